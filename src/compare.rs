@@ -1,0 +1,3 @@
+//! PTV-versus-PIV comparison on the same grid.
+//!
+//! (Design notes to be written with the implementation.)

@@ -1,0 +1,1 @@
+//! Prophesee `% key value` header parsing and inference (to be implemented).

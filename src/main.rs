@@ -1,0 +1,14 @@
+//! The `ebptv` command line: parses arguments, calls the library, shows
+//! progress and writes files. No analysis lives here.
+
+mod cli;
+
+use clap::Parser;
+
+fn main() {
+    let args = cli::Cli::parse();
+    if let Err(e) = cli::run(args) {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}
