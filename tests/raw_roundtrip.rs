@@ -43,7 +43,12 @@ fn build(groups: &[Group], trig: &[(u64, u8, bool)], t0: u64) -> (Vec<Event>, Ve
     let mut events = Vec::new();
     for g in groups {
         t += g.dt;
-        events.extend(g.xs.iter().map(|&x| Event { t: t as i64, x, y: g.y, p: g.p }));
+        events.extend(g.xs.iter().map(|&x| Event {
+            t: t as i64,
+            x,
+            y: g.y,
+            p: g.p,
+        }));
     }
     let t_end = t;
     let mut triggers: Vec<Trigger> = trig
@@ -60,7 +65,13 @@ fn build(groups: &[Group], trig: &[(u64, u8, bool)], t0: u64) -> (Vec<Event>, Ve
 
 /// Write `events`/`triggers` split into chunks at `cuts`, read back with
 /// `chunk_events`, return what came back and the file size.
-fn round_trip(format: Format, events: &[Event], triggers: &[Trigger], cuts: &[usize], chunk_events: usize) -> (Vec<Event>, Vec<Trigger>, u64) {
+fn round_trip(
+    format: Format,
+    events: &[Event],
+    triggers: &[Trigger],
+    cuts: &[usize],
+    chunk_events: usize,
+) -> (Vec<Event>, Vec<Trigger>, u64) {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("rt.raw");
     let geometry = Geometry::new(1280, 720);
@@ -85,7 +96,14 @@ fn round_trip(format: Format, events: &[Event], triggers: &[Trigger], cuts: &[us
     }
     w.finish().unwrap();
     let size = std::fs::metadata(&path).unwrap().len();
-    let mut src = open_with(&path, &OpenOptions { chunk_events: Some(chunk_events), ..Default::default() }).unwrap();
+    let mut src = open_with(
+        &path,
+        &OpenOptions {
+            chunk_events: Some(chunk_events),
+            ..Default::default()
+        },
+    )
+    .unwrap();
     assert_eq!(src.info().format, format);
     assert_eq!(src.info().geometry, Some(geometry));
     let mut chunk = Chunk::default();
@@ -134,7 +152,12 @@ fn evt3_vectors_save_words() {
     for k in 0..10i64 {
         for y in 0..64u16 {
             for x in (100..148u16).filter(|x| x % 6 != 0) {
-                events.push(Event { t: 1000 + 7 * k, x, y, p: 1 });
+                events.push(Event {
+                    t: 1000 + 7 * k,
+                    x,
+                    y,
+                    p: 1,
+                });
             }
         }
     }
@@ -142,16 +165,39 @@ fn evt3_vectors_save_words() {
     assert_eq!(ev, events);
     // ADDR_X only would need one word per event plus row and time words.
     let addr_x_only = 2 * (events.len() + 64 * 10 + 2 * 10) as u64;
-    assert!(size < addr_x_only / 2, "{size} bytes vs {addr_x_only} without vectors");
+    assert!(
+        size < addr_x_only / 2,
+        "{size} bytes vs {addr_x_only} without vectors"
+    );
 }
 
 #[test]
 fn evt3_time_may_step_back_within_a_loop() {
     let events = vec![
-        Event { t: 50_000, x: 1, y: 1, p: 1 },
-        Event { t: 49_000, x: 2, y: 1, p: 1 },
-        Event { t: 30_000, x: 3, y: 2, p: 0 },
-        Event { t: 60_000, x: 4, y: 2, p: 0 },
+        Event {
+            t: 50_000,
+            x: 1,
+            y: 1,
+            p: 1,
+        },
+        Event {
+            t: 49_000,
+            x: 2,
+            y: 1,
+            p: 1,
+        },
+        Event {
+            t: 30_000,
+            x: 3,
+            y: 2,
+            p: 0,
+        },
+        Event {
+            t: 60_000,
+            x: 4,
+            y: 2,
+            p: 0,
+        },
     ];
     let (ev, _, _) = round_trip(Format::Evt3, &events, &[], &[], 10);
     assert_eq!(ev, events);
@@ -174,7 +220,10 @@ fn writers_refuse_what_they_cannot_encode() {
         assert!(!path.exists(), "a failed write must leave no file");
         // Negative time, coordinates beyond 11 bits.
         let mut w = create(&path, Some(format), g).unwrap();
-        let mut c = Chunk { events: EventChunk::default(), triggers: vec![] };
+        let mut c = Chunk {
+            events: EventChunk::default(),
+            triggers: vec![],
+        };
         c.events.push(-5, 1, 1, 1);
         assert!(w.write_chunk(&c).is_err());
         let mut c = Chunk::default();
@@ -183,14 +232,26 @@ fn writers_refuse_what_they_cannot_encode() {
         drop(w);
         assert!(!path.exists());
     }
-    let e = create(dir.path().join("g.raw"), Some(Format::Evt3), Geometry::new(0, 10)).err().unwrap().to_string();
+    let e = create(
+        dir.path().join("g.raw"),
+        Some(Format::Evt3),
+        Geometry::new(0, 10),
+    )
+    .err()
+    .unwrap()
+    .to_string();
     assert!(e.contains("geometry"), "{e}");
 }
 
 #[test]
 fn evt3_writer_output_is_read_by_the_evt3_crate() {
     let events: Vec<Event> = (0..5000)
-        .map(|i: i64| Event { t: i * 9_000 + (i % 7), x: (i * 37 % 1280) as u16, y: (i * 11 % 720) as u16, p: (i % 3 == 0) as u8 })
+        .map(|i: i64| Event {
+            t: i * 9_000 + (i % 7),
+            x: (i * 37 % 1280) as u16,
+            y: (i * 11 % 720) as u16,
+            p: (i % 3 == 0) as u8,
+        })
         .collect();
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("c.raw");
@@ -206,7 +267,12 @@ fn evt3_writer_output_is_read_by_the_evt3_crate() {
     let got: Vec<Event> = theirs
         .cd_events
         .iter()
-        .map(|e| Event { t: e.timestamp as i64, x: e.x, y: e.y, p: e.polarity })
+        .map(|e| Event {
+            t: e.timestamp as i64,
+            x: e.x,
+            y: e.y,
+            p: e.polarity,
+        })
         .collect();
     assert_eq!(got, events);
 }

@@ -51,6 +51,8 @@ const LOOP_THRESHOLD: u64 = 10 << 12;
 
 const ROW_CD: u8 = 1;
 const ROW_EM: u8 = 2;
+/// Word kinds handled on the branch-free fast path: ADDR_Y, ADDR_X, TIME_LOW.
+const FAST_KINDS: u16 = (1 << 0x0) | (1 << 0x2) | (1 << 0x6);
 
 /// The EVT 3.0 decoding state machine, independent of where the bytes come
 /// from (files through [`Evt3Reader`], memory in tests and tools).
@@ -124,58 +126,65 @@ impl Evt3Decoder {
         // Local copies of the hot state so it lives in registers.
         let mut t = self.current_time;
         let mut y = self.y;
+        let mut row = self.row;
         let mut base_x = self.base_x;
         let mut pol = self.polarity;
-        let ev = &mut out.events;
-        for w in words.chunks_exact(2) {
-            let w = u16::from_le_bytes([w[0], w[1]]);
+        let mut time_base = self.time_base;
+        let mut sink = RawAppend::new(&mut out.events, words.len() / 2 * MAX_EVENTS_PER_WORD);
+        let n = words.len() & !1;
+        let mut pos = 0;
+        loop {
+            if row == ROW_CD {
+                // SAFETY: the sink has room for MAX_EVENTS_PER_WORD events
+                // per word of this block (+1 spare); the words before `pos`
+                // kept at most that many each, and the run keeps at most
+                // one per word.
+                pos += unsafe { fast_run(&words[pos..], &mut t, &mut y, time_base, &mut sink) };
+            }
+            if pos >= n {
+                break;
+            }
+            let w = u16::from_le_bytes([words[pos], words[pos + 1]]);
+            pos += 2;
             match w >> 12 {
+                0x0 => {
+                    y = w & 0x7FF;
+                    row = ROW_CD;
+                }
                 0x2 => {
-                    // ADDR_X: one event.
-                    if self.row == ROW_CD {
-                        ev.t.push(t);
-                        ev.x.push(w & 0x7FF);
-                        ev.y.push(y);
-                        ev.p.push(((w >> 11) & 1) as u8);
+                    if row == ROW_EM {
+                        self.anomalies.skipped_other_words += 1;
                     } else {
-                        self.addr_x_without_row();
+                        self.anomalies.vector_without_base += 1;
                     }
                 }
-                0x4 | 0x5 => {
-                    let (mut mask, n) = if w >> 12 == 0x4 {
+                0x6 => t = (time_base + (w & 0xFFF) as u64) as i64,
+                kind @ (0x4 | 0x5) => {
+                    let (mut mask, n) = if kind == 0x4 {
                         (w & 0xFFF, 12)
                     } else {
                         (w & 0xFF, 8)
                     };
-                    if self.have_base & (self.row == ROW_CD) {
+                    if self.have_base & (row == ROW_CD) {
                         while mask != 0 {
                             let i = mask.trailing_zeros() as u16;
-                            ev.t.push(t);
-                            ev.x.push(base_x.wrapping_add(i));
-                            ev.y.push(y);
-                            ev.p.push(pol);
+                            sink.push(t, base_x.wrapping_add(i), y, pol);
                             mask &= mask - 1;
                         }
                     } else {
-                        self.vector_without_base(mask);
+                        self.vector_without_base(row);
                     }
                     base_x = base_x.wrapping_add(n);
-                }
-                0x0 => {
-                    y = w & 0x7FF;
-                    self.row = ROW_CD;
                 }
                 0x3 => {
                     base_x = w & 0x7FF;
                     pol = ((w >> 11) & 1) as u8;
                     self.have_base = true;
                 }
-                0x6 => {
-                    t = (self.time_base + (w & 0xFFF) as u64) as i64;
-                }
                 0x8 => {
                     self.time_high(w);
-                    t = self.time_base as i64;
+                    time_base = self.time_base;
+                    t = time_base as i64;
                 }
                 0xA => out.triggers.push(Trigger {
                     t,
@@ -189,31 +198,24 @@ impl Evt3Decoder {
                 0x1 => {
                     // EM_Y: the following X/VECT words are exposure
                     // measurements, not CD events.
-                    self.row = ROW_EM;
+                    row = ROW_EM;
                     self.anomalies.skipped_other_words += 1;
                 }
                 0x7 | 0xE | 0xF => self.anomalies.skipped_other_words += 1,
                 _ => self.anomalies.unknown_word_types += 1,
             }
         }
+        drop(sink);
         self.current_time = t;
         self.y = y;
+        self.row = row;
         self.base_x = base_x;
         self.polarity = pol;
     }
 
     #[cold]
-    fn addr_x_without_row(&mut self) {
-        if self.row == ROW_EM {
-            self.anomalies.skipped_other_words += 1;
-        } else {
-            self.anomalies.vector_without_base += 1;
-        }
-    }
-
-    #[cold]
-    fn vector_without_base(&mut self, _mask: u16) {
-        if self.row == ROW_EM && self.have_base {
+    fn vector_without_base(&mut self, row: u8) {
+        if row == ROW_EM && self.have_base {
             self.anomalies.skipped_other_words += 1;
         } else {
             self.anomalies.vector_without_base += 1;
@@ -233,6 +235,165 @@ impl Evt3Decoder {
     }
 }
 
+/// The fast path of the EVT 3.0 decoder: a run of ADDR_X / ADDR_Y /
+/// TIME_LOW words inside a CD row (nearly all words of sparse data), with no
+/// data-dependent branch: each word writes a candidate event speculatively,
+/// kept only for an ADDR_X, and selects the new row / time. It stops before
+/// the first other word and returns the bytes consumed.
+///
+/// A separate, never-inlined function on purpose: with only its own few
+/// variables live, the state stays in registers (inlined into the full
+/// decoder, the row was spilled to the stack and every word paid a
+/// store-to-load round trip on it).
+///
+/// # Safety
+/// `sink` must have room for one kept event per word of `bytes`, plus the
+/// spare slot.
+#[inline(never)]
+unsafe fn fast_run(
+    bytes: &[u8],
+    t: &mut i64,
+    y: &mut u16,
+    time_base: u64,
+    sink: &mut RawAppend,
+) -> usize {
+    let (mut tt, mut yy) = (*t, *y);
+    let n = bytes.len() & !1;
+    let mut i = 0;
+    while i < n {
+        // The commonest pair by far in sparse data: ADDR_Y then ADDR_X (each
+        // event in a new row), decoded from one 32-bit load.
+        if let Some(b4) = bytes.get(i..i + 4) {
+            let v = u32::from_le_bytes([b4[0], b4[1], b4[2], b4[3]]);
+            if v & 0xF000_F000 == 0x2000_0000 {
+                yy = (v & 0x7FF) as u16;
+                // SAFETY: one kept event for two words (caller's room).
+                unsafe {
+                    sink.write_spare_unchecked(
+                        tt,
+                        ((v >> 16) & 0x7FF) as u16,
+                        yy,
+                        ((v >> 27) & 1) as u8,
+                    )
+                };
+                sink.advance(1);
+                i += 4;
+                continue;
+            }
+        }
+        let w = u16::from_le_bytes([bytes[i], bytes[i + 1]]);
+        let kind = w >> 12;
+        if (1u16 << kind) & FAST_KINDS == 0 {
+            break;
+        }
+        // SAFETY: at most one kept event per word so far (caller's room).
+        unsafe { sink.write_spare_unchecked(tt, w & 0x7FF, yy, ((w >> 11) & 1) as u8) };
+        sink.advance((kind == 0x2) as usize);
+        yy = if kind == 0x0 { w & 0x7FF } else { yy };
+        let low_time = (time_base + (w & 0xFFF) as u64) as i64;
+        tt = if kind == 0x6 { low_time } else { tt };
+        i += 2;
+    }
+    *t = tt;
+    *y = yy;
+    i
+}
+
+/// Appends to an [`EventChunk`] through pointers into capacity reserved up
+/// front, so the hot loops keep the length in a register, write the four
+/// columns without per-push capacity checks, and can write a candidate
+/// event *speculatively* (at the current end, kept only if `advance`d).
+///
+/// Safety rests on one invariant, checked on every write: nothing is written
+/// at or beyond `len + room + 1` slots reserved in [`RawAppend::new`]. The
+/// lengths are set once, on drop; everything below them was written.
+pub(crate) struct RawAppend<'a> {
+    chunk: &'a mut EventChunk,
+    t: *mut i64,
+    x: *mut u16,
+    y: *mut u16,
+    p: *mut u8,
+    len: usize,
+    /// One past the last writable slot.
+    end: usize,
+}
+
+impl<'a> RawAppend<'a> {
+    /// Room for `room` appended events plus one speculative slot.
+    #[inline]
+    pub(crate) fn new(chunk: &'a mut EventChunk, room: usize) -> Self {
+        reserve(chunk, room + 1);
+        let len = chunk.len();
+        RawAppend {
+            t: chunk.t.as_mut_ptr(),
+            x: chunk.x.as_mut_ptr(),
+            y: chunk.y.as_mut_ptr(),
+            p: chunk.p.as_mut_ptr(),
+            chunk,
+            len,
+            end: len + room + 1,
+        }
+    }
+
+    /// Write an event in the slot after the last kept one, without keeping
+    /// it (see [`RawAppend::advance`]).
+    ///
+    /// # Safety
+    /// `len < end`: the caller has kept fewer than `room + 1` events (the
+    /// decoders guarantee it by construction: a block of `k` words reserves
+    /// `k * MAX_EVENTS_PER_WORD` and no word keeps more than that many).
+    #[inline(always)]
+    pub(crate) unsafe fn write_spare_unchecked(&mut self, t: i64, x: u16, y: u16, p: u8) {
+        debug_assert!(self.len < self.end);
+        // SAFETY: len < end <= capacity of all four vectors (reserved in
+        // `new`, and the vectors are exclusively borrowed since).
+        unsafe {
+            self.t.add(self.len).write(t);
+            self.x.add(self.len).write(x);
+            self.y.add(self.len).write(y);
+            self.p.add(self.len).write(p);
+        }
+    }
+
+    /// Keep the last `write_spare`d event (`k` = 1) or not (`k` = 0).
+    #[inline(always)]
+    pub(crate) fn advance(&mut self, k: usize) {
+        self.len += k;
+    }
+
+    /// Append one event (checked: panics rather than overflow the room).
+    #[inline(always)]
+    pub(crate) fn push(&mut self, t: i64, x: u16, y: u16, p: u8) {
+        if self.len >= self.end {
+            overflow();
+        }
+        // SAFETY: checked just above.
+        unsafe { self.write_spare_unchecked(t, x, y, p) };
+        self.len += 1;
+    }
+}
+
+impl Drop for RawAppend<'_> {
+    fn drop(&mut self) {
+        // The kept events are at most `end - 1` <= capacity, all written.
+        let len = self.len;
+        // SAFETY: every slot below `len` was written by `write_spare`, and
+        // `len` <= capacity; the element types are plain integers.
+        unsafe {
+            self.chunk.t.set_len(len);
+            self.chunk.x.set_len(len);
+            self.chunk.y.set_len(len);
+            self.chunk.p.set_len(len);
+        }
+    }
+}
+
+#[cold]
+#[inline(never)]
+fn overflow() -> ! {
+    panic!("RawAppend: more events than the room reserved (decoder bug)")
+}
+
 #[inline]
 fn reserve(ev: &mut EventChunk, n: usize) {
     ev.t.reserve(n);
@@ -241,17 +402,19 @@ fn reserve(ev: &mut EventChunk, n: usize) {
     ev.p.reserve(n);
 }
 
-/// Count events outside `geometry` (kept, reported).
+/// Count events outside `geometry` (kept, reported). Two vectorised max
+/// reductions decide the common case (all inside) without a per-event test.
 pub(crate) fn count_out_of_geometry(ev: &EventChunk, geometry: Option<Geometry>) -> u64 {
-    match geometry {
-        Some(g) => {
-            ev.x.iter()
-                .zip(&ev.y)
-                .map(|(&x, &y)| ((x >= g.width) | (y >= g.height)) as u64)
-                .sum()
-        }
-        None => 0,
+    let Some(g) = geometry else { return 0 };
+    let max_x = ev.x.iter().copied().max().unwrap_or(0);
+    let max_y = ev.y.iter().copied().max().unwrap_or(0);
+    if max_x < g.width && max_y < g.height {
+        return 0;
     }
+    ev.x.iter()
+        .zip(&ev.y)
+        .filter(|&(&x, &y)| x >= g.width || y >= g.height)
+        .count() as u64
 }
 
 /// Streaming EVT 3.0 file reader.
