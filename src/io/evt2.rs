@@ -21,7 +21,7 @@ use crate::error::{Error, Result};
 use crate::events::{Chunk, Edge, Geometry, Trigger};
 use crate::io::atomic::AtomicFile;
 use crate::io::evt3::{
-    check_header_format, check_not_empty, count_out_of_geometry, time_high_steps,
+    check_header_format, check_not_empty, count_out_of_geometry, time_high_steps, RawAppend,
 };
 use crate::io::raw_header::{read_raw_header, stream_info, PayloadReader, READ_BUFFER_BYTES};
 use crate::io::{Anomalies, EventSource, Format, StreamInfo};
@@ -80,11 +80,6 @@ impl Evt2Decoder {
             }
             let words = (max_events - len).min((total - pos) / 4);
             let end = pos + 4 * words;
-            let ev = &mut out.events;
-            ev.t.reserve(words);
-            ev.x.reserve(words);
-            ev.y.reserve(words);
-            ev.p.reserve(words);
             self.decode_block(&bytes[pos..end], out);
             pos = end;
         }
@@ -112,18 +107,20 @@ impl Evt2Decoder {
             words = &words[skip..];
         }
         let mut base = self.time.base as i64;
-        let ev = &mut out.events;
-        for w in words.chunks_exact(4) {
-            let w = u32::from_le_bytes([w[0], w[1], w[2], w[3]]);
-            let kind = w >> 28;
-            if kind <= 1 {
-                ev.t.push(base + ((w >> 22) & 0x3F) as i64);
-                ev.x.push(((w >> 11) & 0x7FF) as u16);
-                ev.y.push((w & 0x7FF) as u16);
-                ev.p.push(kind as u8);
-                continue;
+        let n = words.len() & !3;
+        let mut sink = RawAppend::new(&mut out.events, n / 4);
+        let mut pos = 0;
+        loop {
+            // SAFETY: the sink has room for one event per word of the block
+            // (+1 spare); each word keeps at most one.
+            pos += unsafe { cd_run(&words[pos..n], base, &mut sink) };
+            if pos >= n {
+                break;
             }
-            match kind {
+            let w =
+                u32::from_le_bytes([words[pos], words[pos + 1], words[pos + 2], words[pos + 3]]);
+            pos += 4;
+            match w >> 28 {
                 0x8 => {
                     if self.time.update(w) {
                         self.anomalies.time_loops += 1;
@@ -144,6 +141,36 @@ impl Evt2Decoder {
             }
         }
     }
+}
+
+/// A run of CD words (types 0x0 / 0x1), the bulk of any EVT 2.0 stream, in
+/// a small never-inlined loop whose state stays in registers. Stops before
+/// the first other word; returns the bytes consumed.
+///
+/// # Safety
+/// `sink` must have room for one event per word of `words`.
+#[inline(never)]
+unsafe fn cd_run(words: &[u8], base: i64, sink: &mut RawAppend) -> usize {
+    let mut i = 0;
+    while let Some(b) = words.get(i..i + 4) {
+        let w = u32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+        let kind = w >> 28;
+        if kind > 1 {
+            break;
+        }
+        // SAFETY: one event per word (caller's room).
+        unsafe {
+            sink.write_spare_unchecked(
+                base + ((w >> 22) & 0x3F) as i64,
+                ((w >> 11) & 0x7FF) as u16,
+                (w & 0x7FF) as u16,
+                kind as u8,
+            )
+        };
+        sink.advance(1);
+        i += 4;
+    }
+    i
 }
 
 /// Streaming EVT 2.0 file reader.
