@@ -525,7 +525,7 @@ impl Aedat4Reader {
         };
         let b = &self.packet;
         if start
-            .checked_add(n.checked_mul(4).unwrap_or(usize::MAX))
+            .checked_add(n.saturating_mul(4))
             .map_or(true, |e| e > b.len())
         {
             return Err(self.corrupt(
@@ -887,7 +887,8 @@ mod tests {
         let (events, triggers) = sample();
         let g = Geometry::new(346, 260);
         let none = |b: &[u8]| b.to_vec();
-        let cases: [(Compression, &dyn Fn(&[u8]) -> Vec<u8>); 3] = [
+        type Compressor<'a> = &'a dyn Fn(&[u8]) -> Vec<u8>;
+        let cases: [(Compression, Compressor); 3] = [
             (Compression::None, &none),
             (Compression::Lz4, &lz4_frame),
             (Compression::Zstd, &zstd_stored_frame),

@@ -310,6 +310,9 @@ fn is_numeric_field(s: &str) -> bool {
     !s.is_empty() && s.parse::<f64>().is_ok()
 }
 
+/// A layout, header notes, and the first data line of a header-less file.
+type DetectedLayout = (Layout, Vec<(String, String)>, Option<String>);
+
 /// Read the first line and work out the layout; returns the layout, header
 /// notes for [`StreamInfo::header`], and the first data line when the file
 /// has no header line.
@@ -317,7 +320,7 @@ fn detect_layout(
     lr: &mut LineReader,
     unit_opt: Option<TimeUnit>,
     trigger_file: bool,
-) -> Result<Option<(Layout, Vec<(String, String)>, Option<String>)>> {
+) -> Result<Option<DetectedLayout>> {
     let first = match lr.next_line()? {
         Some(l) => l.to_string(),
         None => return Ok(None),
@@ -388,18 +391,16 @@ fn detect_layout(
             )
         {
             &mut x
-        } else if !trigger_file
+        } else if (!trigger_file
             && matches!(
                 base.as_str(),
                 "p" | "pol" | "polarity" | "polarities" | "on" | "is_increase" | "sign"
-            )
-        {
-            &mut p
-        } else if trigger_file
-            && matches!(
-                base.as_str(),
-                "p" | "edge" | "value" | "polarity" | "rising" | "pol"
-            )
+            ))
+            || (trigger_file
+                && matches!(
+                    base.as_str(),
+                    "p" | "edge" | "value" | "polarity" | "rising" | "pol"
+                ))
         {
             &mut p
         } else {

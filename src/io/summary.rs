@@ -16,7 +16,7 @@ use serde::Serialize;
 
 use crate::error::Result;
 use crate::events::{Chunk, Edge, Geometry};
-use crate::io::{Anomalies, EventSource, Format};
+use crate::io::{Anomalies, EventSource, Format, StreamInfo};
 
 const RING: usize = 256;
 
@@ -181,16 +181,9 @@ impl SummaryBuilder {
         (self.peak, self.peak_bin)
     }
 
-    pub fn finish(
-        mut self,
-        path: PathBuf,
-        format: Format,
-        geometry: Option<Geometry>,
-        header: Vec<(String, String)>,
-        file_bytes: Option<u64>,
-        anomalies: Anomalies,
-        decode_seconds: f64,
-    ) -> Summary {
+    /// Close the summary of the stream described by `info`.
+    pub fn finish(mut self, info: StreamInfo, anomalies: Anomalies, decode_seconds: f64) -> Summary {
+        let StreamInfo { path, format, geometry, header, file_size: file_bytes, .. } = info;
         let (peak, peak_bin) = self.peak();
         let has = self.events > 0;
         let duration = has.then(|| self.max_t - self.min_t);
@@ -249,15 +242,7 @@ pub fn summarize(
     }
     let secs = start.elapsed().as_secs_f64();
     let info = src.info().clone();
-    Ok(b.finish(
-        info.path,
-        info.format,
-        info.geometry,
-        info.header,
-        info.file_size,
-        src.anomalies(),
-        secs,
-    ))
+    Ok(b.finish(info, src.anomalies(), secs))
 }
 
 #[cfg(test)]
@@ -265,6 +250,17 @@ mod tests {
     use super::*;
     use crate::events::Trigger;
     use std::collections::HashMap;
+
+    fn dummy_info() -> StreamInfo {
+        StreamInfo {
+            path: PathBuf::from("x"),
+            format: Format::Csv,
+            geometry: None,
+            header: vec![],
+            payload_offset: 0,
+            file_size: None,
+        }
+    }
 
     /// Brute force: count every bin in a map.
     fn reference_peak(ts: &[i64], bin: i64) -> u64 {
@@ -300,15 +296,7 @@ mod tests {
             }
             b.add(&chunk);
         }
-        let s = b.finish(
-            PathBuf::from("x"),
-            Format::Csv,
-            None,
-            vec![],
-            None,
-            Anomalies::default(),
-            1.0,
-        );
+        let s = b.finish(dummy_info(), Anomalies::default(), 1.0);
         assert_eq!(s.late_for_peak, 0);
         assert_eq!(
             s.peak_rate_ev_per_s.unwrap(),
@@ -344,15 +332,7 @@ mod tests {
         });
         let mut b = SummaryBuilder::new(1000);
         b.add(&chunk);
-        let s = b.finish(
-            PathBuf::from("x"),
-            Format::Csv,
-            None,
-            vec![],
-            None,
-            Anomalies::default(),
-            0.5,
-        );
+        let s = b.finish(dummy_info(), Anomalies::default(), 0.5);
         assert_eq!((s.events, s.on_events, s.off_events), (3, 2, 1));
         assert_eq!(s.duration_us, Some(1_000_000));
         assert_eq!(s.mean_rate_ev_per_s, Some(3.0));
@@ -373,15 +353,7 @@ mod tests {
     #[test]
     fn empty_stream() {
         let b = SummaryBuilder::new(1000);
-        let s = b.finish(
-            PathBuf::from("x"),
-            Format::Csv,
-            None,
-            vec![],
-            None,
-            Anomalies::default(),
-            0.0,
-        );
+        let s = b.finish(dummy_info(), Anomalies::default(), 0.0);
         assert_eq!(s.events, 0);
         assert!(
             s.duration_us.is_none() && s.peak_rate_ev_per_s.is_none() && s.on_fraction.is_none()
