@@ -9,7 +9,11 @@ use ebptv::io::EventWriter;
 use ebptv::{Chunk, Edge, Trigger};
 
 fn numpy_available() -> bool {
-    Command::new("python3").args(["-c", "import numpy"]).output().map(|o| o.status.success()).unwrap_or(false)
+    Command::new("python3")
+        .args(["-c", "import numpy"])
+        .output()
+        .map(|o| o.status.success())
+        .unwrap_or(false)
 }
 
 #[test]
@@ -23,13 +27,29 @@ fn numpy_loads_events_tables_and_arrays() {
     let mut w: Box<dyn EventWriter> = Box::new(NpyEventWriter::create(&ev).unwrap());
     let mut c = Chunk::default();
     for i in 0..1000i64 {
-        c.events.push(i * 3 - 100, (i % 1280) as u16, (i % 720) as u16, (i % 2) as u8);
+        c.events.push(
+            i * 3 - 100,
+            (i % 1280) as u16,
+            (i % 720) as u16,
+            (i % 2) as u8,
+        );
     }
-    c.triggers.push(Trigger { t: 7, channel: 1, edge: Edge::Rising });
+    c.triggers.push(Trigger {
+        t: 7,
+        channel: 1,
+        edge: Edge::Rising,
+    });
     w.write_chunk(&c).unwrap();
     w.finish().unwrap();
     let tab = dir.path().join("tab.npy");
-    write_npy_table(&tab, &[("x", NpyColumn::F64(&[0.5, 1.5])), ("n", NpyColumn::U32(&[3, 4]))]).unwrap();
+    write_npy_table(
+        &tab,
+        &[
+            ("x", NpyColumn::F64(&[0.5, 1.5])),
+            ("n", NpyColumn::U32(&[3, 4])),
+        ],
+    )
+    .unwrap();
     let arr = dir.path().join("arr.npy");
     write_npy_f64(&arr, &[2, 3], &[0.0, 1.0, 2.0, 3.0, 4.0, 5.0]).unwrap();
     let script = format!(
@@ -48,6 +68,13 @@ fn numpy_loads_events_tables_and_arrays() {
         tab.display(),
         arr.display()
     );
-    let out = Command::new("python3").args(["-c", &script]).output().unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let out = Command::new("python3")
+        .args(["-c", &script])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 }

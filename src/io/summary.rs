@@ -182,8 +182,20 @@ impl SummaryBuilder {
     }
 
     /// Close the summary of the stream described by `info`.
-    pub fn finish(mut self, info: StreamInfo, anomalies: Anomalies, decode_seconds: f64) -> Summary {
-        let StreamInfo { path, format, geometry, header, file_size: file_bytes, .. } = info;
+    pub fn finish(
+        mut self,
+        info: StreamInfo,
+        anomalies: Anomalies,
+        decode_seconds: f64,
+    ) -> Summary {
+        let StreamInfo {
+            path,
+            format,
+            geometry,
+            header,
+            file_size: file_bytes,
+            ..
+        } = info;
         let (peak, peak_bin) = self.peak();
         let has = self.events > 0;
         let duration = has.then(|| self.max_t - self.min_t);
