@@ -3,6 +3,7 @@
 
 use clap::{Parser, Subcommand};
 
+pub mod convert;
 pub mod info;
 
 #[derive(Parser, Debug)]
@@ -20,10 +21,13 @@ pub struct Cli {
 pub enum Command {
     /// Summarise an event file: format, geometry, counts, rates, triggers.
     Info(info::InfoArgs),
+    /// Convert an event file (optionally a time range / ROI / polarity) to CSV, .npy or RAW.
+    Convert(convert::ConvertArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Info(a) => info::run(a),
+        Command::Convert(a) => convert::run(a),
     }
 }
