@@ -109,6 +109,7 @@ mod tests {
         let l = Light {
             rise_us: 0.0,
             fall_us: 0.0,
+            pulse_width_us: 30.0,
             sawtooth_depth: 0.15,
             sawtooth_hz: 50_000.0,
             ..Light::default()
