@@ -91,7 +91,7 @@ fn water_jet(name: &str, pulse_hz: f64, roi: Option<Roi>) -> Scenario {
         thickness: 30.0,
     };
     s.seeding = Seeding {
-        ppp: 0.003,
+        ppp: 0.0036,
         sheet_thickness: 20.0,
         out_of_plane_rms: 500.0,
         brightness_spread: 0.4,
@@ -143,16 +143,20 @@ pub fn preset(name: &str) -> Result<Scenario> {
                 height: 360,
             }),
         ),
-        "roi_burst" => water_jet(
-            name,
-            10_000.0,
-            Some(Roi {
-                x: 0,
-                y: 280,
-                width: 1280,
-                height: 160,
-            }),
-        ),
+        "roi_burst" => {
+            let mut s = water_jet(
+                name,
+                10_000.0,
+                Some(Roi {
+                    x: 0,
+                    y: 280,
+                    width: 1280,
+                    height: 160,
+                }),
+            );
+            s.seeding.ppp = 0.003;
+            s
+        }
         "laminar_bl" => {
             let mut s = base(
                 name,
