@@ -10,7 +10,13 @@ fn event_distances(o: &SimOutput, period: f64) -> Vec<f64> {
     let first = o.pulse_starts_us[0];
     let mut grid: BTreeMap<(i64, i32, i32), Vec<(f64, f64)>> = BTreeMap::new();
     for t in &o.truth {
-        grid.entry((t.pulse, (t.x / 8.0).floor() as i32, (t.y / 8.0).floor() as i32)).or_default().push((t.x, t.y));
+        grid.entry((
+            t.pulse,
+            (t.x / 8.0).floor() as i32,
+            (t.y / 8.0).floor() as i32,
+        ))
+        .or_default()
+        .push((t.x, t.y));
     }
     o.events
         .iter()
@@ -52,7 +58,12 @@ fn every_event_sits_on_a_particle_image_of_its_pulse() {
     // Image e⁻² radius 0.75 px plus pixel quantisation (≤ 0.71 px) plus a
     // streak: every event lies within 1.6 px of its particle.
     let far = d.iter().filter(|&&x| x > 1.6).count();
-    assert_eq!(far, 0, "{far} of {} events are off every particle image", d.len());
+    assert_eq!(
+        far,
+        0,
+        "{far} of {} events are off every particle image",
+        d.len()
+    );
     let mean = d.iter().sum::<f64>() / d.len() as f64;
     assert!(mean < 0.7, "mean distance {mean}");
     // And most lit particles fire: ~2 events per particle per pulse.
@@ -111,7 +122,10 @@ fn truth_velocity_is_the_field_and_pathlines_are_accurate() {
             let ey = 0.5 * (w[0].v + w[1].v) * dt;
             let err = ((w[1].x - w[0].x - ex).powi(2) + (w[1].y - w[0].y - ey).powi(2)).sqrt();
             let speed = (w[0].u.powi(2) + w[0].v.powi(2)).sqrt() * dt;
-            assert!(err < 0.02 * speed.max(0.5), "step error {err} px for a {speed} px step");
+            assert!(
+                err < 0.02 * speed.max(0.5),
+                "step error {err} px for a {speed} px step"
+            );
         }
         checked += 1;
     }
@@ -121,9 +135,16 @@ fn truth_velocity_is_the_field_and_pathlines_are_accurate() {
 #[test]
 fn particles_leave_and_enter_the_sheet_and_recycle() {
     let mut s = Scenario::default();
-    s.sensor = Sensor { width: 200, height: 100, roi: None };
+    s.sensor = Sensor {
+        width: 200,
+        height: 100,
+        roi: None,
+    };
     s.duration_s = 0.02;
-    s.flow = FlowSpec::Uniform { u: 20_000.0, v: 0.0 };
+    s.flow = FlowSpec::Uniform {
+        u: 20_000.0,
+        v: 0.0,
+    };
     s.seeding.ppp = 0.02;
     s.seeding.out_of_plane_rms = 2000.0;
     let o = simulate(&s, 1).unwrap();
@@ -131,11 +152,18 @@ fn particles_leave_and_enter_the_sheet_and_recycle() {
     // The lit count per pulse stays at ppp · area despite the churn.
     let per_pulse = o.truth.len() as f64 / pulses;
     let expect = 0.02 * 200.0 * 100.0;
-    assert!((per_pulse - expect).abs() < 0.1 * expect, "{per_pulse} lit per pulse, expected {expect}");
+    assert!(
+        (per_pulse - expect).abs() < 0.1 * expect,
+        "{per_pulse} lit per pulse, expected {expect}"
+    );
     // Many identities are created: particles leave (out of plane or
     // downstream) and new ones enter.
     let ids: std::collections::BTreeSet<u64> = o.truth.iter().map(|t| t.particle_id).collect();
-    assert!(ids.len() as f64 > 3.0 * expect, "{} distinct particles", ids.len());
+    assert!(
+        ids.len() as f64 > 3.0 * expect,
+        "{} distinct particles",
+        ids.len()
+    );
     // One row per particle per pulse.
     let mut seen = std::collections::BTreeSet::new();
     for t in &o.truth {
@@ -146,7 +174,11 @@ fn particles_leave_and_enter_the_sheet_and_recycle() {
 #[test]
 fn turbulent_truth_has_the_known_stresses() {
     let mut s = Scenario::default();
-    s.sensor = Sensor { width: 256, height: 256, roi: None };
+    s.sensor = Sensor {
+        width: 256,
+        height: 256,
+        roi: None,
+    };
     s.duration_s = 0.2;
     s.light.pulse_hz = 1000.0;
     s.seeding.ppp = 0.01;
@@ -181,13 +213,18 @@ fn turbulent_truth_has_the_known_stresses() {
 #[test]
 fn shedding_frequency_follows_the_strouhal_number() {
     let s = presets::preset("rib_wake").unwrap();
-    let f = Flow::build(&s.flow).unwrap().shedding_frequency_hz().unwrap();
+    let f = Flow::build(&s.flow)
+        .unwrap()
+        .shedding_frequency_hz()
+        .unwrap();
     assert!((f - 35.4).abs() < 0.05, "{f} Hz");
     // The cross-stream velocity on the wake axis oscillates at f.
     let flow = Flow::build(&s.flow).unwrap();
     let n = 4096;
     let dt = 1.0 / 2000.0;
-    let v: Vec<f64> = (0..n).map(|k| flow.velocity(640.0, 360.0, k as f64 * dt).1).collect();
+    let v: Vec<f64> = (0..n)
+        .map(|k| flow.velocity(640.0, 360.0, k as f64 * dt).1)
+        .collect();
     let best = (1..200)
         .map(|fi| {
             let fr = fi as f64 * 0.5;
