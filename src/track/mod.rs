@@ -48,6 +48,7 @@
 pub mod fit;
 pub mod io;
 pub mod lap;
+pub mod synth;
 
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -163,8 +164,9 @@ pub struct TrackParams {
     /// Largest displacement between consecutive pulses (px); bounds the
     /// first step of a new track and every search radius.
     pub max_disp: f64,
-    /// Tolerance (px) of the third and fourth frames of a new track around
-    /// the constant-velocity prediction.
+    /// Smallest tolerance (px) of the third and fourth frames of a new track
+    /// around the constant-velocity prediction (the gate is `n_sigma` times
+    /// the prediction's uncertainty, √6 σ per axis).
     pub init_radius: f64,
     /// Smallest search radius of a running track (px).
     pub min_search_radius: f64,
@@ -190,6 +192,17 @@ pub struct TrackParams {
     pub max_fit_residual: f64,
     /// Pulses across which an ended track may be stitched to a new one.
     pub stitch_gap: u32,
+    /// Relative growth per gap pulse of the stitching tolerance
+    /// (`min_search_radius` at a gap of 0).
+    pub stitch_growth: f64,
+    /// Detections a track needs after a bridged gap for the detections after
+    /// the gap to be kept when the track ends there: a track whose particle
+    /// left the sheet tends to grab a stray neighbour or noise before it
+    /// ends, and such a tail is cut.
+    pub confirm_after_gap: usize,
+    /// Detections further than this many position sigmas from the fit of
+    /// their neighbours are removed when a track is finalised (0 = off).
+    pub outlier_sigma: f64,
     /// Search radius (px) around the prior's prediction for the first step.
     pub prior_radius: f64,
     /// Mean-flow prior for initialisation.
@@ -201,19 +214,22 @@ impl Default for TrackParams {
     fn default() -> Self {
         TrackParams {
             max_disp: 10.0,
-            init_radius: 2.5,
+            init_radius: 1.5,
             min_search_radius: 1.5,
-            n_sigma: 4.0,
+            n_sigma: 3.5,
             sigma_floor: 0.3,
             max_gap: 2,
-            gap_growth: 0.5,
-            predict_window: 6,
-            predict_order: 1,
+            gap_growth: 0.0,
+            predict_window: 12,
+            predict_order: 2,
             fit_window: 11,
             fit_order: 2,
             min_length: 5,
             max_fit_residual: 1.5,
-            stitch_gap: 6,
+            stitch_gap: 3,
+            stitch_growth: 0.25,
+            confirm_after_gap: 2,
+            outlier_sigma: 3.5,
             prior_radius: 3.0,
             prior: None,
         }
@@ -330,6 +346,10 @@ pub struct Tracker {
     pool: Vec<ActiveTrack>,
     next_serial: u64,
     next_id: u64,
+    /// Sum and count of squared normalised innovations (px², per axis),
+    /// seeded with `sigma_floor` as a prior worth a few dozen links.
+    innov_sum: f64,
+    innov_n: f64,
     last_pulse: Option<i64>,
     stats: TrackerStats,
 }
@@ -337,6 +357,7 @@ pub struct Tracker {
 impl Tracker {
     pub fn new(params: TrackParams) -> Result<Self> {
         params.validate()?;
+        let floor2 = params.sigma_floor.powi(2);
         Ok(Tracker {
             params,
             active: Vec::new(),
@@ -344,6 +365,8 @@ impl Tracker {
             pool: Vec::new(),
             next_serial: 0,
             next_id: 0,
+            innov_sum: floor2 * 30.0,
+            innov_n: 30.0,
             last_pulse: None,
             stats: TrackerStats::default(),
         })
@@ -459,8 +482,18 @@ impl Tracker {
         (out, self.stats)
     }
 
-    /// Predicted position and search radius of a track at time `t_us`.
-    fn predict(&self, track: &ActiveTrack, pulse: i64, t_us: f64) -> (f64, f64, f64) {
+    /// Position noise per axis (px) estimated from the innovations of all
+    /// accepted links so far (a few per-track residuals are too noisy to
+    /// set a gate), never below `sigma_floor`.
+    pub fn position_sigma(&self) -> f64 {
+        (self.innov_sum / self.innov_n)
+            .sqrt()
+            .max(self.params.sigma_floor)
+    }
+
+    /// Predicted position, search radius and fit leverage of a track at
+    /// time `t_us`.
+    fn predict(&self, track: &ActiveTrack, pulse: i64, t_us: f64) -> (f64, f64, f64, f64) {
         let p = &self.params;
         let n = track.dets.len();
         let w = p.predict_window.min(n);
@@ -480,12 +513,12 @@ impl Tracker {
         let gap = (pulse - last.pulse - 1).max(0) as f64;
         match fit::fit_eval(&tau, &xs, &ys, order, at) {
             Some(f) => {
-                let sigma = f.rms_residual.max(p.sigma_floor) * (1.0 + f.leverage).sqrt();
+                let sigma = self.position_sigma() * (1.0 + f.leverage).sqrt();
                 let r = (p.n_sigma * sigma).clamp(p.min_search_radius, p.max_disp)
                     * (1.0 + p.gap_growth * gap);
-                (f.x, f.y, r.min(p.max_disp * (1.0 + gap)))
+                (f.x, f.y, r.min(p.max_disp * (1.0 + gap)), f.leverage)
             }
-            None => (last.x, last.y, p.max_disp),
+            None => (last.x, last.y, p.max_disp, 1.0),
         }
     }
 
@@ -499,18 +532,27 @@ impl Tracker {
         let points: Vec<[f64; 2]> = dets.iter().map(|d| [d.x, d.y]).collect();
         let tree: ImmutableKdTree<f64, u32, 2, 32> = ImmutableKdTree::new_from_slice(&points);
         let mut edges = Vec::new();
+        let mut lev = Vec::with_capacity(self.active.len());
         for (ti, t) in self.active.iter().enumerate() {
-            let (px, py, r) = self.predict(t, pulse, t_us);
+            let (px, py, r, l) = self.predict(t, pulse, t_us);
+            lev.push(l);
             for nb in tree.within_unsorted::<SquaredEuclidean>(&[px, py], r * r) {
-                edges.push((ti, nb.item as usize, nb.distance / (r * r)));
+                edges.push((ti, nb.item as usize, nb.distance / (r * r), nb.distance));
             }
         }
         let miss = vec![1.0; self.active.len()];
-        let sol = lap::assign_sparse(dets.len(), &edges, &miss);
+        let lap_edges: Vec<(usize, usize, f64)> = edges.iter().map(|e| (e.0, e.1, e.2)).collect();
+        let sol = lap::assign_sparse(dets.len(), &lap_edges, &miss);
         for (ti, c) in sol.into_iter().enumerate() {
             if let Some(c) = c {
                 self.active[ti].dets.push(dets[c]);
                 used[c] = true;
+                if let Some(e) = edges.iter().find(|e| e.0 == ti && e.1 == c) {
+                    // Squared innovation per axis, normalised by the
+                    // predictor's variance factor.
+                    self.innov_sum += e.3 / (2.0 * (1.0 + lev[ti]));
+                    self.innov_n += 1.0;
+                }
             }
         }
         used
@@ -529,6 +571,10 @@ impl Tracker {
             }
         }
         let p = &self.params;
+        // Gate of frames 2 and 3: a constant-velocity prediction from two
+        // noisy positions errs by √6 σ per axis.
+        let init_gate =
+            (p.n_sigma * self.position_sigma() * 6f64.sqrt()).clamp(p.init_radius, p.max_disp);
         // Trees over the unused particles of frames 1..3.
         let trees: Vec<(Vec<usize>, Option<ImmutableKdTree<f64, u32, 2, 32>>)> = (1..INIT_FRAMES)
             .map(|k| {
@@ -574,11 +620,11 @@ impl Tracker {
                 let d1 = &f[1].dets[i1];
                 let (v1x, v1y) = ((d1.x - d0.x) / dt(0, 1), (d1.y - d0.y) / dt(0, 1));
                 let (p2x, p2y) = (d1.x + v1x * dt(1, 2), d1.y + v1y * dt(1, 2));
-                for i2 in near(2, p2x, p2y, p.init_radius) {
+                for i2 in near(2, p2x, p2y, init_gate) {
                     let d2 = &f[2].dets[i2];
                     let (v2x, v2y) = ((d2.x - d1.x) / dt(1, 2), (d2.y - d1.y) / dt(1, 2));
                     let (p3x, p3y) = (d2.x + v2x * dt(2, 3), d2.y + v2y * dt(2, 3));
-                    for i3 in near(3, p3x, p3y, p.init_radius) {
+                    for i3 in near(3, p3x, p3y, init_gate) {
                         let d3 = &f[3].dets[i3];
                         let e2 = (d2.x - p2x).powi(2) + (d2.y - p2y).powi(2);
                         let e3 = (d3.x - p3x).powi(2) + (d3.y - p3y).powi(2);
@@ -625,7 +671,7 @@ impl Tracker {
                 if gap < 0 || gap > p.stitch_gap as i64 {
                     continue;
                 }
-                let r = p.min_search_radius * (1.0 + p.gap_growth * gap as f64) * 1.5;
+                let r = p.min_search_radius * (1.0 + p.stitch_growth * gap as f64);
                 let fwd = extrapolate(&old.dets, p.predict_window, start.pulse);
                 let bwd = extrapolate(&new.dets, INIT_FRAMES, end.pulse);
                 let (Some(fwd), Some(bwd)) = (fwd, bwd) else {
@@ -669,7 +715,12 @@ impl Tracker {
     /// Fit, validate and number the given ended tracks.
     fn finalise(&mut self, ended: Vec<ActiveTrack>) -> Vec<LinkedTrack> {
         let mut out = Vec::new();
-        for t in ended {
+        for mut t in ended {
+            if self.params.outlier_sigma > 0.0 {
+                let gate = self.params.outlier_sigma * self.position_sigma();
+                remove_outliers(&mut t.dets, self.params.fit_window, gate);
+            }
+            trim_unconfirmed_tail(&mut t.dets, self.params.confirm_after_gap);
             if t.dets.len() < self.params.min_length {
                 self.stats.tracks_rejected_short += 1;
                 continue;
@@ -691,6 +742,66 @@ impl Tracker {
             self.next_id += 1;
         }
         out
+    }
+}
+
+/// Remove detections that the rest of the track does not support: each
+/// detection is compared with a quadratic fit of its neighbours (the
+/// `window` nearest detections, itself excluded), and dropped when it lies
+/// further than `gate · √(1 + leverage)` from it. A dropped interior
+/// detection becomes a bridged gap. Catches the stray particle a track
+/// grabs while its own is missing, and wrong first/last detections.
+fn remove_outliers(dets: &mut Vec<Det>, window: usize, gate: f64) {
+    let n = dets.len();
+    if n < 6 {
+        return;
+    }
+    let w = window.min(n - 1).max(5);
+    let mut keep = vec![true; n];
+    let mut tau = Vec::with_capacity(w);
+    let mut xs = Vec::with_capacity(w);
+    let mut ys = Vec::with_capacity(w);
+    for i in 0..n {
+        // The w detections nearest to i, i excluded.
+        let mut lo = i.saturating_sub(w / 2);
+        if lo + w + 1 > n {
+            lo = n - w - 1;
+        }
+        tau.clear();
+        xs.clear();
+        ys.clear();
+        for (j, d) in dets.iter().enumerate().skip(lo).take(w + 1) {
+            if j != i {
+                tau.push((d.pulse - dets[i].pulse) as f64);
+                xs.push(d.x);
+                ys.push(d.y);
+            }
+        }
+        if let Some(f) = fit::fit_eval(&tau, &xs, &ys, 2, 0.0) {
+            let d2 = (f.x - dets[i].x).powi(2) + (f.y - dets[i].y).powi(2);
+            if d2 > gate * gate * (1.0 + f.leverage) {
+                keep[i] = false;
+            }
+        }
+    }
+    let mut k = 0;
+    dets.retain(|_| {
+        k += 1;
+        keep[k - 1]
+    });
+}
+
+/// Cut detections after the last gap when fewer than `confirm` follow it.
+fn trim_unconfirmed_tail(dets: &mut Vec<Det>, confirm: usize) {
+    let n = dets.len();
+    let Some(last_gap) = (1..n)
+        .rev()
+        .find(|&i| dets[i].pulse != dets[i - 1].pulse + 1)
+    else {
+        return;
+    };
+    if n - last_gap < confirm {
+        dets.truncate(last_gap);
     }
 }
 
