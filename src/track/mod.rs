@@ -985,8 +985,8 @@ mod tests {
     fn long_gaps_are_stitched() {
         let mut ps = Vec::new();
         for k in 0..30 {
-            if (10..15).contains(&k) {
-                continue; // 5 missed pulses > max_gap = 2
+            if (10..13).contains(&k) {
+                continue; // 3 missed pulses > max_gap = 2
             }
             ps.push(particle(k, 5.0 + 3.0 * k as f64, 20.0 + 0.1 * k as f64));
         }
