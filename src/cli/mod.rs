@@ -4,6 +4,7 @@
 use clap::{Parser, Subcommand};
 
 pub mod info;
+pub mod track;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -20,10 +21,14 @@ pub struct Cli {
 pub enum Command {
     /// Summarise an event file: format, geometry, counts, rates, triggers.
     Info(info::InfoArgs),
+    /// Particle tracking: a recording (or a particles.csv) → particles.csv,
+    /// tracks.csv, summary.json, tracks.png.
+    Track(track::TrackArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Info(a) => info::run(a),
+        Command::Track(a) => track::run(a),
     }
 }

@@ -24,37 +24,77 @@ fn werr(path: &Path, e: std::io::Error) -> Error {
     Error::io(path, e)
 }
 
-/// Write `particles.csv` (`pulse,t_us,x,y,n_events`; µs and px).
-pub fn write_particles_csv(path: &Path, particles: &[Particle]) -> Result<()> {
-    let mut f = AtomicFile::create(path)?;
-    writeln!(f, "{PARTICLES_HEADER}").map_err(|e| werr(path, e))?;
-    for p in particles {
-        writeln!(
-            f,
-            "{},{},{:.4},{:.4},{}",
-            p.pulse, p.t_us, p.x, p.y, p.n_events
-        )
-        .map_err(|e| werr(path, e))?;
-    }
-    f.commit()
+/// Streaming writer of `particles.csv` (`pulse,t_us,x,y,n_events`; µs and
+/// px): rows are appended as pulses are clustered; the file appears under
+/// its name only on [`ParticlesCsvWriter::finish`].
+pub struct ParticlesCsvWriter {
+    file: AtomicFile,
 }
 
-/// Write `tracks.csv` (`track_id,pulse,t_us,x,y,u,v`; µs, px, px/s), one row
-/// per track point.
-pub fn write_tracks_csv(path: &Path, tracks: &[Track]) -> Result<()> {
-    let mut f = AtomicFile::create(path)?;
-    writeln!(f, "{TRACKS_HEADER}").map_err(|e| werr(path, e))?;
-    for t in tracks {
-        for p in &t.points {
-            writeln!(
-                f,
-                "{},{},{},{:.4},{:.4},{:.3},{:.3}",
-                t.id, p.pulse, p.t_us, p.x, p.y, p.u, p.v
-            )
-            .map_err(|e| werr(path, e))?;
-        }
+impl ParticlesCsvWriter {
+    pub fn create(path: &Path) -> Result<Self> {
+        let mut file = AtomicFile::create(path)?;
+        writeln!(file, "{PARTICLES_HEADER}").map_err(|e| werr(path, e))?;
+        Ok(ParticlesCsvWriter { file })
     }
-    f.commit()
+    pub fn write(&mut self, particles: &[Particle]) -> Result<()> {
+        for p in particles {
+            writeln!(
+                self.file,
+                "{},{},{:.4},{:.4},{}",
+                p.pulse, p.t_us, p.x, p.y, p.n_events
+            )
+            .map_err(|e| werr(self.file.target(), e))?;
+        }
+        Ok(())
+    }
+    pub fn finish(self) -> Result<()> {
+        self.file.commit()
+    }
+}
+
+/// Streaming writer of `tracks.csv` (`track_id,pulse,t_us,x,y,u,v`; µs, px,
+/// px/s), one row per track point.
+pub struct TracksCsvWriter {
+    file: AtomicFile,
+}
+
+impl TracksCsvWriter {
+    pub fn create(path: &Path) -> Result<Self> {
+        let mut file = AtomicFile::create(path)?;
+        writeln!(file, "{TRACKS_HEADER}").map_err(|e| werr(path, e))?;
+        Ok(TracksCsvWriter { file })
+    }
+    pub fn write(&mut self, tracks: &[Track]) -> Result<()> {
+        for t in tracks {
+            for p in &t.points {
+                writeln!(
+                    self.file,
+                    "{},{},{},{:.4},{:.4},{:.3},{:.3}",
+                    t.id, p.pulse, p.t_us, p.x, p.y, p.u, p.v
+                )
+                .map_err(|e| werr(self.file.target(), e))?;
+            }
+        }
+        Ok(())
+    }
+    pub fn finish(self) -> Result<()> {
+        self.file.commit()
+    }
+}
+
+/// Write `particles.csv` in one go.
+pub fn write_particles_csv(path: &Path, particles: &[Particle]) -> Result<()> {
+    let mut w = ParticlesCsvWriter::create(path)?;
+    w.write(particles)?;
+    w.finish()
+}
+
+/// Write `tracks.csv` in one go.
+pub fn write_tracks_csv(path: &Path, tracks: &[Track]) -> Result<()> {
+    let mut w = TracksCsvWriter::create(path)?;
+    w.write(tracks)?;
+    w.finish()
 }
 
 /// A header-checked CSV reader yielding the requested columns as f64.
@@ -271,9 +311,35 @@ pub struct Summary {
     pub tracker: TrackerStats,
 }
 
+/// Accumulates what [`Summary`] needs while tracks stream past.
+#[derive(Debug, Clone, Default)]
+pub struct SummaryAcc {
+    lengths: Vec<u64>,
+    speed_sum: f64,
+    points: u64,
+}
+
+impl SummaryAcc {
+    pub fn add(&mut self, tracks: &[Track]) {
+        for t in tracks {
+            self.lengths.push(t.points.len() as u64);
+            self.points += t.points.len() as u64;
+            self.speed_sum += t.points.iter().map(|p| p.u.hypot(p.v)).sum::<f64>();
+        }
+    }
+    pub fn summary(&self, stats: &TrackerStats) -> Summary {
+        Summary::from_parts(&self.lengths, self.speed_sum, self.points, stats)
+    }
+}
+
 impl Summary {
     pub fn new(tracks: &[Track], stats: &TrackerStats) -> Self {
-        let lens: Vec<u64> = tracks.iter().map(|t| t.points.len() as u64).collect();
+        let mut acc = SummaryAcc::default();
+        acc.add(tracks);
+        acc.summary(stats)
+    }
+
+    fn from_parts(lens: &[u64], speed_sum: f64, npts: u64, stats: &TrackerStats) -> Self {
         let max_len = lens.iter().copied().max().unwrap_or(0);
         let mut hist = Vec::new();
         // Bins 4-8, 8-16, 16-32, ...: lengths span orders of magnitude.
@@ -284,26 +350,20 @@ impl Summary {
             hist.push((lo, hi, c));
             lo = hi;
         }
-        let npts: usize = tracks.iter().map(|t| t.points.len()).sum();
-        let speed_sum: f64 = tracks
-            .iter()
-            .flat_map(|t| &t.points)
-            .map(|p| p.u.hypot(p.v))
-            .sum();
         Summary {
             pulses: stats.pulses,
             particles: stats.particles,
-            tracks: tracks.len() as u64,
+            tracks: lens.len() as u64,
             particles_on_tracks: stats.particles_on_tracks,
             fraction_on_tracks: if stats.particles > 0 {
                 stats.particles_on_tracks as f64 / stats.particles as f64
             } else {
                 0.0
             },
-            mean_track_length: if tracks.is_empty() {
+            mean_track_length: if lens.is_empty() {
                 0.0
             } else {
-                npts as f64 / tracks.len() as f64
+                npts as f64 / lens.len() as f64
             },
             length_histogram: hist,
             mean_speed_px_s: if npts > 0 {

@@ -62,7 +62,7 @@ use crate::error::{Error, Result};
 
 pub use io::{
     read_particles_csv, read_tracks_csv, write_particles_csv, write_summary_json, write_tracks_csv,
-    Summary,
+    ParticlesCsvWriter, Summary, SummaryAcc, TracksCsvWriter,
 };
 
 /// One point of a track: the track's fitted state at one pulse.
