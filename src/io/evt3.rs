@@ -261,10 +261,37 @@ unsafe fn fast_run(
     let n = bytes.len() & !1;
     let mut i = 0;
     while i < n {
-        // The commonest pair by far in sparse data: ADDR_Y then ADDR_X (each
-        // event in a new row), decoded from one 32-bit load.
+        // The commonest pair by far in sparse data is ADDR_Y then ADDR_X
+        // (each event in a new row): two such pairs per 64-bit load, then
+        // one pair per 32-bit load, then single words.
+        while let Some(b8) = bytes.get(i..i + 8) {
+            let v = u64::from_le_bytes(b8.try_into().expect("8 bytes"));
+            if v & 0xF000_F000_F000_F000 != 0x2000_0000_2000_0000 {
+                break;
+            }
+            let y0 = (v & 0x7FF) as u16;
+            yy = ((v >> 32) & 0x7FF) as u16;
+            // SAFETY: two kept events for four words (caller's room).
+            unsafe {
+                sink.write_spare_unchecked(
+                    tt,
+                    ((v >> 16) & 0x7FF) as u16,
+                    y0,
+                    ((v >> 27) & 1) as u8,
+                );
+                sink.advance(1);
+                sink.write_spare_unchecked(
+                    tt,
+                    ((v >> 48) & 0x7FF) as u16,
+                    yy,
+                    ((v >> 59) & 1) as u8,
+                );
+                sink.advance(1);
+            }
+            i += 8;
+        }
         if let Some(b4) = bytes.get(i..i + 4) {
-            let v = u32::from_le_bytes([b4[0], b4[1], b4[2], b4[3]]);
+            let v = u32::from_le_bytes(b4.try_into().expect("4 bytes"));
             if v & 0xF000_F000 == 0x2000_0000 {
                 yy = (v & 0x7FF) as u16;
                 // SAFETY: one kept event for two words (caller's room).
@@ -280,6 +307,9 @@ unsafe fn fast_run(
                 i += 4;
                 continue;
             }
+        }
+        if i >= n {
+            break;
         }
         let w = u16::from_le_bytes([bytes[i], bytes[i + 1]]);
         let kind = w >> 12;
