@@ -598,6 +598,11 @@ impl EventSource for Aedat4Reader {
         loop {
             if let Some((next, end)) = self.cursor {
                 let take = (end - next).min(self.chunk_events - chunk.events.len());
+                let ev = &mut chunk.events;
+                ev.t.reserve(take);
+                ev.x.reserve(take);
+                ev.y.reserve(take);
+                ev.p.reserve(take);
                 for rec in self.packet[next * EVENT_BYTES..(next + take) * EVENT_BYTES]
                     .chunks_exact(EVENT_BYTES)
                 {
