@@ -5,6 +5,7 @@ use clap::{Parser, Subcommand};
 
 pub mod convert;
 pub mod info;
+pub mod track;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -23,11 +24,15 @@ pub enum Command {
     Info(info::InfoArgs),
     /// Convert an event file (optionally a time range / ROI / polarity) to CSV, .npy or RAW.
     Convert(convert::ConvertArgs),
+    /// Particle tracking: a recording (or a particles.csv) → particles.csv,
+    /// tracks.csv, summary.json, tracks.png.
+    Track(track::TrackArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Info(a) => info::run(a),
         Command::Convert(a) => convert::run(a),
+        Command::Track(a) => track::run(a),
     }
 }
