@@ -4,6 +4,7 @@
 use clap::{Parser, Subcommand};
 
 pub mod info;
+pub mod simulate;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -20,10 +21,13 @@ pub struct Cli {
 pub enum Command {
     /// Summarise an event file: format, geometry, counts, rates, triggers.
     Info(info::InfoArgs),
+    /// Simulate a pulsed event-camera recording with ground truth.
+    Simulate(simulate::SimulateArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Info(a) => info::run(a),
+        Command::Simulate(a) => simulate::run(a),
     }
 }
