@@ -3,6 +3,7 @@
 
 use clap::{Parser, Subcommand};
 
+pub mod convert;
 pub mod info;
 pub mod track;
 
@@ -21,6 +22,8 @@ pub struct Cli {
 pub enum Command {
     /// Summarise an event file: format, geometry, counts, rates, triggers.
     Info(info::InfoArgs),
+    /// Convert an event file (optionally a time range / ROI / polarity) to CSV, .npy or RAW.
+    Convert(convert::ConvertArgs),
     /// Particle tracking: a recording (or a particles.csv) → particles.csv,
     /// tracks.csv, summary.json, tracks.png.
     Track(track::TrackArgs),
@@ -29,6 +32,7 @@ pub enum Command {
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Info(a) => info::run(a),
+        Command::Convert(a) => convert::run(a),
         Command::Track(a) => track::run(a),
     }
 }
