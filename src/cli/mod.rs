@@ -3,7 +3,9 @@
 
 use clap::{Parser, Subcommand};
 
+pub mod grid;
 pub mod info;
+pub mod spectra;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -20,10 +22,16 @@ pub struct Cli {
 pub enum Command {
     /// Summarise an event file: format, geometry, counts, rates, triggers.
     Info(info::InfoArgs),
+    /// Bin tracks onto an Eulerian grid (means, stresses, errors), or merge grid states.
+    Grid(grid::GridArgs),
+    /// Velocity spectra at points or along a line from tracks (Welch PSD, peak, noise floor).
+    Spectra(spectra::SpectraArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Info(a) => info::run(a),
+        Command::Grid(a) => grid::run(a),
+        Command::Spectra(a) => spectra::run(a),
     }
 }
