@@ -7,6 +7,9 @@ pub mod convert;
 pub mod info;
 pub mod track;
 pub mod simulate;
+pub mod grid;
+pub mod info;
+pub mod spectra;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -30,6 +33,10 @@ pub enum Command {
     Track(track::TrackArgs),
     /// Simulate a pulsed event-camera recording with ground truth.
     Simulate(simulate::SimulateArgs),
+    /// Bin tracks onto an Eulerian grid (means, stresses, errors), or merge grid states.
+    Grid(grid::GridArgs),
+    /// Velocity spectra at points or along a line from tracks (Welch PSD, peak, noise floor).
+    Spectra(spectra::SpectraArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -38,5 +45,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Convert(a) => convert::run(a),
         Command::Track(a) => track::run(a),
         Command::Simulate(a) => simulate::run(a),
+        Command::Grid(a) => grid::run(a),
+        Command::Spectra(a) => spectra::run(a),
     }
 }
