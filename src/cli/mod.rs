@@ -6,7 +6,11 @@ use clap::{Parser, Subcommand};
 pub mod info;
 
 #[derive(Parser, Debug)]
-#[command(name = "ebptv", version, about = "Event-based particle tracking velocimetry for pulsed illumination")]
+#[command(
+    name = "ebptv",
+    version,
+    about = "Event-based particle tracking velocimetry for pulsed illumination"
+)]
 pub struct Cli {
     #[command(subcommand)]
     pub command: Command,

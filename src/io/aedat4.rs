@@ -12,7 +12,10 @@ pub struct Aedat4Reader {
 
 impl Aedat4Reader {
     pub fn open(path: &Path, _chunk_events: usize) -> Result<Self> {
-        Err(Error::UnknownFormat { path: path.to_path_buf(), why: "iniVation AEDAT 4.0 reader not implemented yet".into() })
+        Err(Error::UnknownFormat {
+            path: path.to_path_buf(),
+            why: "iniVation AEDAT 4.0 reader not implemented yet".into(),
+        })
     }
 }
 

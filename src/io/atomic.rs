@@ -27,7 +27,9 @@ impl AtomicFile {
         };
         let name = target
             .file_name()
-            .ok_or_else(|| Error::param("output", format!("{} is not a file path", target.display())))?
+            .ok_or_else(|| {
+                Error::param("output", format!("{} is not a file path", target.display()))
+            })?
             .to_string_lossy()
             .into_owned();
         let tmp = dir.join(format!(".{}.{}.partial", name, std::process::id()));
@@ -58,7 +60,8 @@ impl AtomicFile {
     /// Convenience: write a whole byte buffer atomically.
     pub fn write_all_to(target: impl AsRef<Path>, bytes: &[u8]) -> Result<()> {
         let mut f = AtomicFile::create(target)?;
-        f.write_all(bytes).map_err(|e| Error::io(f.target.clone(), e))?;
+        f.write_all(bytes)
+            .map_err(|e| Error::io(f.target.clone(), e))?;
         f.commit()
     }
 }

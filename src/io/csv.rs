@@ -12,7 +12,10 @@ pub struct CsvReader {
 
 impl CsvReader {
     pub fn open(path: &Path, _chunk_events: usize, _unit: Option<TimeUnit>) -> Result<Self> {
-        Err(Error::UnknownFormat { path: path.to_path_buf(), why: "CSV reader not implemented yet".into() })
+        Err(Error::UnknownFormat {
+            path: path.to_path_buf(),
+            why: "CSV reader not implemented yet".into(),
+        })
     }
 }
 
@@ -37,7 +40,10 @@ pub struct CsvWriter;
 
 impl CsvWriter {
     pub fn create(path: &Path) -> Result<Self> {
-        Err(Error::param("output", format!("{}: writer not implemented yet", path.display())))
+        Err(Error::param(
+            "output",
+            format!("{}: writer not implemented yet", path.display()),
+        ))
     }
 }
 

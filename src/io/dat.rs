@@ -12,7 +12,10 @@ pub struct DatReader {
 
 impl DatReader {
     pub fn open(path: &Path, _chunk_events: usize) -> Result<Self> {
-        Err(Error::UnknownFormat { path: path.to_path_buf(), why: "Prophesee DAT reader not implemented yet".into() })
+        Err(Error::UnknownFormat {
+            path: path.to_path_buf(),
+            why: "Prophesee DAT reader not implemented yet".into(),
+        })
     }
 }
 

@@ -12,7 +12,10 @@ pub struct EsReader {
 
 impl EsReader {
     pub fn open(path: &Path, _chunk_events: usize) -> Result<Self> {
-        Err(Error::UnknownFormat { path: path.to_path_buf(), why: "Event Stream (.es) reader not implemented yet".into() })
+        Err(Error::UnknownFormat {
+            path: path.to_path_buf(),
+            why: "Event Stream (.es) reader not implemented yet".into(),
+        })
     }
 }
 

@@ -12,7 +12,10 @@ pub struct Evt21Reader {
 
 impl Evt21Reader {
     pub fn open(path: &Path, _chunk_events: usize) -> Result<Self> {
-        Err(Error::UnknownFormat { path: path.to_path_buf(), why: "Prophesee EVT 2.1 reader not implemented yet".into() })
+        Err(Error::UnknownFormat {
+            path: path.to_path_buf(),
+            why: "Prophesee EVT 2.1 reader not implemented yet".into(),
+        })
     }
 }
 

@@ -12,7 +12,10 @@ pub struct Evt3Reader {
 
 impl Evt3Reader {
     pub fn open(path: &Path, _chunk_events: usize) -> Result<Self> {
-        Err(Error::UnknownFormat { path: path.to_path_buf(), why: "Prophesee evt3 reader not implemented yet".into() })
+        Err(Error::UnknownFormat {
+            path: path.to_path_buf(),
+            why: "Prophesee evt3 reader not implemented yet".into(),
+        })
     }
 }
 
@@ -30,7 +33,10 @@ pub struct Evt3Writer;
 
 impl Evt3Writer {
     pub fn create(path: &Path, _geometry: crate::events::Geometry) -> Result<Self> {
-        Err(Error::param("output", format!("{}: writer not implemented yet", path.display())))
+        Err(Error::param(
+            "output",
+            format!("{}: writer not implemented yet", path.display()),
+        ))
     }
 }
 

@@ -9,7 +9,10 @@ pub struct NpyEventWriter;
 
 impl NpyEventWriter {
     pub fn create(path: &Path) -> Result<Self> {
-        Err(Error::param("output", format!("{}: writer not implemented yet", path.display())))
+        Err(Error::param(
+            "output",
+            format!("{}: writer not implemented yet", path.display()),
+        ))
     }
 }
 

@@ -327,14 +327,23 @@ mod tests {
     fn fft_matches_direct_square_rect_and_odd() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
         for &(w, h, np) in &[(16, 16, 1), (12, 5, 3), (64, 8, 2), (9, 7, 4), (1, 6, 1)] {
-            let wins: Vec<Vec<f32>> = (0..2 * np).map(|_| random_window(&mut rng, w * h)).collect();
+            let wins: Vec<Vec<f32>> = (0..2 * np)
+                .map(|_| random_window(&mut rng, w * h))
+                .collect();
             let pairs: Vec<(&[f32], &[f32])> = (0..np)
                 .map(|k| (wins[2 * k].as_slice(), wins[2 * k + 1].as_slice()))
                 .collect();
             let f = fft_sum(&pairs, w, h);
             let d = direct_correlation(&pairs, w, h);
-            let maxerr = f.iter().zip(&d).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
-            assert!(maxerr < 1e-4, "{w}x{h} np={np}: max |fft-direct| = {maxerr}");
+            let maxerr = f
+                .iter()
+                .zip(&d)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f32::max);
+            assert!(
+                maxerr < 1e-4,
+                "{w}x{h} np={np}: max |fft-direct| = {maxerr}"
+            );
         }
     }
 
@@ -355,7 +364,10 @@ mod tests {
         }
         let plane = fft_sum(&[(&a, &b)], w, h);
         let p = find_peak(&plane, w, h);
-        assert!((p.dx - 5.0).abs() < 0.2 && (p.dy + 3.0).abs() < 0.2, "{p:?}");
+        assert!(
+            (p.dx - 5.0).abs() < 0.2 && (p.dy + 3.0).abs() < 0.2,
+            "{p:?}"
+        );
         assert!((p.height - 1.0).abs() < 1e-4, "{p:?}");
     }
 

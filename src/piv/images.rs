@@ -23,7 +23,11 @@ pub fn load_image(path: &Path) -> Result<Image> {
     };
     if head.starts_with(b"\x89PNG") {
         load_png(path)
-    } else if head.starts_with(b"II*\0") || head.starts_with(b"MM\0*") || head.starts_with(b"II+\0") || head.starts_with(b"MM\0+") {
+    } else if head.starts_with(b"II*\0")
+        || head.starts_with(b"MM\0*")
+        || head.starts_with(b"II+\0")
+        || head.starts_with(b"MM\0+")
+    {
         load_tiff(path)
     } else {
         Err(Error::corrupt(
@@ -34,7 +38,14 @@ pub fn load_image(path: &Path) -> Result<Image> {
     }
 }
 
-fn grey_from_channels(path: &Path, w: usize, h: usize, ch: usize, alpha: bool, samples: impl Iterator<Item = f32>) -> Result<Image> {
+fn grey_from_channels(
+    path: &Path,
+    w: usize,
+    h: usize,
+    ch: usize,
+    alpha: bool,
+    samples: impl Iterator<Item = f32>,
+) -> Result<Image> {
     let colour = if alpha { ch - 1 } else { ch };
     let mut data = Vec::with_capacity(w * h);
     let mut acc = 0.0f32;
@@ -57,7 +68,11 @@ fn grey_from_channels(path: &Path, w: usize, h: usize, ch: usize, alpha: bool, s
             format!("image data holds {n} pixels, header says {w}x{h}"),
         ));
     }
-    Ok(Image { width: w, height: h, data })
+    Ok(Image {
+        width: w,
+        height: h,
+        data,
+    })
 }
 
 fn load_png(path: &Path) -> Result<Image> {
@@ -86,12 +101,14 @@ fn load_png(path: &Path) -> Result<Image> {
         png::BitDepth::Sixteen => {
             let it = (0..h).flat_map(|y| {
                 let row = &bytes[y * line..y * line + w * ch * 2];
-                row.chunks_exact(2).map(|b| u16::from_be_bytes([b[0], b[1]]) as f32)
+                row.chunks_exact(2)
+                    .map(|b| u16::from_be_bytes([b[0], b[1]]) as f32)
             });
             grey_from_channels(path, w, h, ch, alpha, it)
         }
         _ => {
-            let it = (0..h).flat_map(|y| bytes[y * line..y * line + w * ch].iter().map(|&b| b as f32));
+            let it =
+                (0..h).flat_map(|y| bytes[y * line..y * line + w * ch].iter().map(|&b| b as f32));
             grey_from_channels(path, w, h, ch, alpha, it)
         }
     }
@@ -110,16 +127,32 @@ fn load_tiff(path: &Path) -> Result<Image> {
         tiff::ColorType::RGB(_) => (3, false),
         tiff::ColorType::RGBA(_) => (4, true),
         other => {
-            return Err(Error::corrupt(path, 0, format!("TIFF colour type {other:?} not supported (grey or RGB)")))
+            return Err(Error::corrupt(
+                path,
+                0,
+                format!("TIFF colour type {other:?} not supported (grey or RGB)"),
+            ))
         }
     };
     match dec.read_image().map_err(bad)? {
-        DecodingResult::U8(v) => grey_from_channels(path, w, h, ch, alpha, v.into_iter().map(|x| x as f32)),
-        DecodingResult::U16(v) => grey_from_channels(path, w, h, ch, alpha, v.into_iter().map(|x| x as f32)),
-        DecodingResult::U32(v) => grey_from_channels(path, w, h, ch, alpha, v.into_iter().map(|x| x as f32)),
+        DecodingResult::U8(v) => {
+            grey_from_channels(path, w, h, ch, alpha, v.into_iter().map(|x| x as f32))
+        }
+        DecodingResult::U16(v) => {
+            grey_from_channels(path, w, h, ch, alpha, v.into_iter().map(|x| x as f32))
+        }
+        DecodingResult::U32(v) => {
+            grey_from_channels(path, w, h, ch, alpha, v.into_iter().map(|x| x as f32))
+        }
         DecodingResult::F32(v) => grey_from_channels(path, w, h, ch, alpha, v.into_iter()),
-        DecodingResult::F64(v) => grey_from_channels(path, w, h, ch, alpha, v.into_iter().map(|x| x as f32)),
-        _ => Err(Error::corrupt(path, 0, "TIFF sample type not supported (8/16/32-bit unsigned or float)")),
+        DecodingResult::F64(v) => {
+            grey_from_channels(path, w, h, ch, alpha, v.into_iter().map(|x| x as f32))
+        }
+        _ => Err(Error::corrupt(
+            path,
+            0,
+            "TIFF sample type not supported (8/16/32-bit unsigned or float)",
+        )),
     }
 }
 
@@ -170,7 +203,8 @@ mod tests {
         {
             let f = File::create(&p).unwrap();
             let mut enc = tiff::encoder::TiffEncoder::new(f).unwrap();
-            enc.write_image::<tiff::encoder::colortype::Gray8>(6, 4, &data).unwrap();
+            enc.write_image::<tiff::encoder::colortype::Gray8>(6, 4, &data)
+                .unwrap();
         }
         let img = load_image(&p).unwrap();
         assert_eq!((img.width, img.height), (6, 4));
@@ -183,7 +217,10 @@ mod tests {
         let p = dir.path().join("x.png");
         std::fs::write(&p, b"BM not an image").unwrap();
         let e = load_image(&p).unwrap_err().to_string();
-        assert!(e.contains("x.png") && e.contains("not a PNG or TIFF"), "{e}");
+        assert!(
+            e.contains("x.png") && e.contains("not a PNG or TIFF"),
+            "{e}"
+        );
         std::fs::write(&p, b"\x89PNG\r\n\x1a\ntruncated").unwrap();
         assert!(load_image(&p).is_err());
     }

@@ -50,7 +50,11 @@ pub struct Image {
 
 impl Image {
     pub fn zeros(width: usize, height: usize) -> Self {
-        Image { width, height, data: vec![0.0; width * height] }
+        Image {
+            width,
+            height,
+            data: vec![0.0; width * height],
+        }
     }
     #[inline]
     pub fn get(&self, x: usize, y: usize) -> f32 {
@@ -122,7 +126,10 @@ impl FieldStats {
     /// Combine with statistics of another time slice on the same grid.
     pub fn merge(&mut self, o: &FieldStats) -> Result<()> {
         if o.grid != self.grid {
-            return Err(Error::param("stats", "cannot merge PIV statistics of different grids"));
+            return Err(Error::param(
+                "stats",
+                "cannot merge PIV statistics of different grids",
+            ));
         }
         self.steps += o.steps;
         for k in 0..self.n.len() {
@@ -143,7 +150,8 @@ impl FieldStats {
             .map(|k| {
                 let n = self.n[k] as f64;
                 let (i, j) = (k % self.grid.nx, k / self.grid.nx);
-                let (mut u, mut v, mut uu, mut vv, mut uv) = (f64::NAN, f64::NAN, f64::NAN, f64::NAN, f64::NAN);
+                let (mut u, mut v, mut uu, mut vv, mut uv) =
+                    (f64::NAN, f64::NAN, f64::NAN, f64::NAN, f64::NAN);
                 if n > 0.0 {
                     u = self.su[k] / n;
                     v = self.sv[k] / n;
@@ -159,7 +167,11 @@ impl FieldStats {
                     uu,
                     vv,
                     uv,
-                    valid: if self.steps > 0 { n / self.steps as f64 } else { 0.0 },
+                    valid: if self.steps > 0 {
+                        n / self.steps as f64
+                    } else {
+                        0.0
+                    },
                 }
             })
             .collect()
@@ -200,15 +212,26 @@ pub struct PivStream {
 }
 
 impl PivStream {
-    pub fn new(width: usize, height: usize, timing: PulseTiming, opts: StreamOptions) -> Result<Self> {
+    pub fn new(
+        width: usize,
+        height: usize,
+        timing: PulseTiming,
+        opts: StreamOptions,
+    ) -> Result<Self> {
         if opts.frames < 2 {
-            return Err(Error::param("frames", format!("{}: multi-frame correlation needs N_f >= 2", opts.frames)));
+            return Err(Error::param(
+                "frames",
+                format!("{}: multi-frame correlation needs N_f >= 2", opts.frames),
+            ));
         }
         if opts.step == 0 {
             return Err(Error::param("step", "must be at least 1 pulse"));
         }
         if !(timing.period_us.is_finite() && timing.period_us > 0.0) {
-            return Err(Error::param("period_us", format!("{}: pulse period must be positive", timing.period_us)));
+            return Err(Error::param(
+                "period_us",
+                format!("{}: pulse period must be positive", timing.period_us),
+            ));
         }
         let grid = node_grid(width, height, &opts.piv)?;
         Ok(PivStream {
@@ -236,7 +259,9 @@ impl PivStream {
         let mut buf = self.ring.take_buffer();
         match events {
             Some(ev) => self.imager.render(ev, &mut buf),
-            None => self.imager.render(&crate::events::EventChunk::default(), &mut buf),
+            None => self
+                .imager
+                .render(&crate::events::EventChunk::default(), &mut buf),
         }
         self.ring.push(index, buf);
         self.since_eval += 1;

@@ -74,7 +74,11 @@ pub fn npy_header(descr: &str, shape: &[usize]) -> Vec<u8> {
         1 => format!("({},)", shape[0]),
         _ => format!(
             "({})",
-            shape.iter().map(|s| s.to_string()).collect::<Vec<_>>().join(", ")
+            shape
+                .iter()
+                .map(|s| s.to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
         ),
     };
     let mut dict = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape_s}, }}");
@@ -105,8 +109,14 @@ pub struct NpyStack {
 
 impl NpyStack {
     pub fn create(target: &Path, descr: &'static str, ny: usize, nx: usize) -> Result<Self> {
-        let dir = target.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-        let name = target.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let dir = target
+            .parent()
+            .filter(|d| !d.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
+        let name = target
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
         let spill_path = dir.join(format!(".{}.{}.spill", name, std::process::id()));
         let f = File::create(&spill_path).map_err(|e| Error::io(&spill_path, e))?;
         let elem = if descr == "|u1" { 1 } else { 4 };
@@ -126,7 +136,8 @@ impl NpyStack {
         let w = self.spill.as_mut().expect("open");
         let mut n = 0;
         for v in vals {
-            w.write_all(&v.to_le_bytes()).map_err(|e| Error::io(&self.spill_path, e))?;
+            w.write_all(&v.to_le_bytes())
+                .map_err(|e| Error::io(&self.spill_path, e))?;
             n += 4;
         }
         debug_assert_eq!(n, self.frame_len);
@@ -136,7 +147,8 @@ impl NpyStack {
 
     pub fn push_u8(&mut self, vals: &[u8]) -> Result<()> {
         let w = self.spill.as_mut().expect("open");
-        w.write_all(vals).map_err(|e| Error::io(&self.spill_path, e))?;
+        w.write_all(vals)
+            .map_err(|e| Error::io(&self.spill_path, e))?;
         self.steps += 1;
         Ok(())
     }
@@ -151,11 +163,14 @@ impl NpyStack {
         let mut f = File::open(&self.spill_path).map_err(|e| Error::io(&self.spill_path, e))?;
         let mut buf = vec![0u8; 1 << 20];
         loop {
-            let n = f.read(&mut buf).map_err(|e| Error::io(&self.spill_path, e))?;
+            let n = f
+                .read(&mut buf)
+                .map_err(|e| Error::io(&self.spill_path, e))?;
             if n == 0 {
                 break;
             }
-            out.write_all(&buf[..n]).map_err(|e| Error::io(&self.target, e))?;
+            out.write_all(&buf[..n])
+                .map_err(|e| Error::io(&self.target, e))?;
         }
         out.commit()?;
         let _ = std::fs::remove_file(&self.spill_path);
@@ -195,7 +210,10 @@ mod tests {
         let b = std::fs::read(&p).unwrap();
         let hl = 10 + u16::from_le_bytes([b[8], b[9]]) as usize;
         assert!(String::from_utf8_lossy(&b[..hl]).contains("(2, 2, 3)"));
-        let vals: Vec<f32> = b[hl..].chunks(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect();
+        let vals: Vec<f32> = b[hl..]
+            .chunks(4)
+            .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+            .collect();
         assert_eq!(vals, (0..12).map(|i| i as f32).collect::<Vec<_>>());
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
     }

@@ -52,7 +52,10 @@ impl PseudoOptions {
         if !(self.sigma.is_finite() && (0.0..=10.0).contains(&self.sigma)) {
             return Err(Error::param(
                 "sigma",
-                format!("{} px: the blur must be between 0 and 10 px (typically 0.5-2)", self.sigma),
+                format!(
+                    "{} px: the blur must be between 0 and 10 px (typically 0.5-2)",
+                    self.sigma
+                ),
             ));
         }
         Ok(())
@@ -117,7 +120,10 @@ impl PseudoImager {
     pub fn new(width: usize, height: usize, opts: PseudoOptions) -> Result<Self> {
         opts.check()?;
         if width == 0 || height == 0 {
-            return Err(Error::param("geometry", format!("{width}x{height} px image")));
+            return Err(Error::param(
+                "geometry",
+                format!("{width}x{height} px image"),
+            ));
         }
         Ok(PseudoImager {
             width,
@@ -232,7 +238,12 @@ mod tests {
         blur(&mut img, &k, &mut tmp);
         assert!((img.data.iter().sum::<f32>() - 1.0).abs() < 1e-4);
         // Centre of mass unchanged.
-        let cx: f32 = img.data.iter().enumerate().map(|(i, v)| v * (i % 21) as f32).sum();
+        let cx: f32 = img
+            .data
+            .iter()
+            .enumerate()
+            .map(|(i, v)| v * (i % 21) as f32)
+            .sum();
         assert!((cx - 10.0).abs() < 1e-3);
     }
 
@@ -244,14 +255,26 @@ mod tests {
         ev.push(2, 3, 1, 0);
         ev.push(3, 99, 1, 1); // outside: ignored
         let mut img = Image::zeros(0, 0);
-        let mut b = PseudoImager::new(5, 3, PseudoOptions { sigma: 0.0, ..Default::default() }).unwrap();
+        let mut b = PseudoImager::new(
+            5,
+            3,
+            PseudoOptions {
+                sigma: 0.0,
+                ..Default::default()
+            },
+        )
+        .unwrap();
         b.render(&ev, &mut img);
         assert_eq!(img.get(2, 1), 1.0);
         assert_eq!(img.get(3, 1), 0.0);
         let mut c = PseudoImager::new(
             5,
             3,
-            PseudoOptions { sigma: 0.0, mode: PixelMode::Counts, both_polarities: true },
+            PseudoOptions {
+                sigma: 0.0,
+                mode: PixelMode::Counts,
+                both_polarities: true,
+            },
         )
         .unwrap();
         c.render(&ev, &mut img);
@@ -276,6 +299,14 @@ mod tests {
 
     #[test]
     fn absurd_sigma_is_rejected() {
-        assert!(PseudoImager::new(4, 4, PseudoOptions { sigma: -1.0, ..Default::default() }).is_err());
+        assert!(PseudoImager::new(
+            4,
+            4,
+            PseudoOptions {
+                sigma: -1.0,
+                ..Default::default()
+            }
+        )
+        .is_err());
     }
 }

@@ -53,15 +53,26 @@ pub fn particle_frames(o: &SynthOptions, disp: &dyn Fn(f64, f64) -> (f64, f64)) 
     let mut vmax: f64 = 0.0;
     for j in 0..=8 {
         for i in 0..=8 {
-            let (u, v) = disp(i as f64 * o.width as f64 / 8.0, j as f64 * o.height as f64 / 8.0);
+            let (u, v) = disp(
+                i as f64 * o.width as f64 / 8.0,
+                j as f64 * o.height as f64 / 8.0,
+            );
             vmax = vmax.max(u.abs()).max(v.abs());
         }
     }
     let margin = (vmax * o.frames as f64).ceil() + 4.0;
-    let (ew, eh) = (o.width as f64 + 2.0 * margin, o.height as f64 + 2.0 * margin);
+    let (ew, eh) = (
+        o.width as f64 + 2.0 * margin,
+        o.height as f64 + 2.0 * margin,
+    );
     let n = (o.ppp * ew * eh).round() as usize;
     let mut pts: Vec<(f64, f64)> = (0..n)
-        .map(|_| (rng.gen::<f64>() * ew - margin, rng.gen::<f64>() * eh - margin))
+        .map(|_| {
+            (
+                rng.gen::<f64>() * ew - margin,
+                rng.gen::<f64>() * eh - margin,
+            )
+        })
         .collect();
     let kernel = o.binary_sigma.map(gaussian_kernel);
     let mut tmp = Vec::new();
@@ -72,7 +83,8 @@ pub fn particle_frames(o: &SynthOptions, disp: &dyn Fn(f64, f64) -> (f64, f64)) 
             Some(k) => {
                 for &(x, y) in &pts {
                     let (xi, yi) = (x.round(), y.round());
-                    if xi >= 0.0 && yi >= 0.0 && (xi as usize) < o.width && (yi as usize) < o.height {
+                    if xi >= 0.0 && yi >= 0.0 && (xi as usize) < o.width && (yi as usize) < o.height
+                    {
                         img.data[yi as usize * o.width + xi as usize] = 1.0;
                     }
                 }

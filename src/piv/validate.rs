@@ -8,7 +8,10 @@
 //! from flagging everything in a perfectly uniform flow, where `r_m ≈ 0`.
 //! Failed vectors (and vectors without a usable correlation peak) are
 //! replaced by the median of their valid neighbours; a vector with no valid
-//! neighbour keeps NaN. Masked nodes are never tested nor used.
+//! neighbour keeps NaN. Masked nodes are never tested nor used. Border
+//! nodes are tested (and replaced) against linear extrapolations from the
+//! two inner nodes in each direction instead of the biased one-sided 3×3
+//! neighbourhood (see `border_extrapolations`).
 
 /// Validity flags (bit set).
 pub mod flag {
@@ -82,6 +85,51 @@ fn neighbours(
     (nu, nv)
 }
 
+/// Reference values for a node on the grid border: linear extrapolations
+/// `2·U(node+o) − U(node+2o)` along every direction `o` in which both nodes
+/// exist and are usable. The plain 3×3 median is biased at a border in a
+/// velocity gradient (most neighbours lie on the inner side), so it flags
+/// correct wall-side vectors of a boundary layer; the extrapolations are
+/// exact for a linear field.
+#[allow(clippy::too_many_arguments)]
+fn border_extrapolations(
+    u: &[f64],
+    v: &[f64],
+    flags: &[u8],
+    nx: usize,
+    ny: usize,
+    i: usize,
+    j: usize,
+    usable: impl Fn(u8) -> bool,
+) -> (Vec<f64>, Vec<f64>) {
+    let mut eu = Vec::with_capacity(8);
+    let mut ev = Vec::with_capacity(8);
+    for dj in -1i64..=1 {
+        for di in -1i64..=1 {
+            if di == 0 && dj == 0 {
+                continue;
+            }
+            let (i1, j1) = (i as i64 + di, j as i64 + dj);
+            let (i2, j2) = (i as i64 + 2 * di, j as i64 + 2 * dj);
+            if i2 < 0 || j2 < 0 || i2 >= nx as i64 || j2 >= ny as i64 || i1 < 0 || j1 < 0 {
+                continue;
+            }
+            let k1 = j1 as usize * nx + i1 as usize;
+            let k2 = j2 as usize * nx + i2 as usize;
+            if usable(flags[k1]) && usable(flags[k2]) && u[k1].is_finite() && u[k2].is_finite() {
+                eu.push(2.0 * u[k1] - u[k2]);
+                ev.push(2.0 * v[k1] - v[k2]);
+            }
+        }
+    }
+    (eu, ev)
+}
+
+#[inline]
+fn on_border(nx: usize, ny: usize, i: usize, j: usize) -> bool {
+    nx >= 3 && ny >= 3 && (i == 0 || j == 0 || i == nx - 1 || j == ny - 1)
+}
+
 /// Flag outliers (`flag::OUTLIER`) on a `nx × ny` node grid. Nodes already
 /// flagged NO_PEAK or MASKED are skipped and not used as neighbours. Returns
 /// the number of new outliers. Nodes with fewer than 3 usable neighbours are
@@ -102,7 +150,12 @@ pub fn normalized_median_test(
             if flags[k] & bad != 0 {
                 continue;
             }
-            let (mut nu, mut nv) = neighbours(u, v, flags, nx, ny, i, j, |f| f & bad == 0);
+            let usable = |f: u8| f & bad == 0;
+            let (mut nu, mut nv) = if on_border(nx, ny, i, j) {
+                border_extrapolations(u, v, flags, nx, ny, i, j, usable)
+            } else {
+                neighbours(u, v, flags, nx, ny, i, j, usable)
+            };
             if nu.len() < 3 {
                 continue;
             }
@@ -140,9 +193,18 @@ pub fn replace_invalid(u: &mut [f64], v: &mut [f64], flags: &mut [u8], nx: usize
                     continue;
                 }
                 // Neighbours replaced in an earlier sweep count as usable.
-                let (mut nu, mut nv) = neighbours(u, v, flags, nx, ny, i, j, |f| {
-                    f & flag::MASKED == 0 && (f & invalid == 0 || f & flag::REPLACED != 0)
-                });
+                let usable =
+                    |f: u8| f & flag::MASKED == 0 && (f & invalid == 0 || f & flag::REPLACED != 0);
+                let (mut nu, mut nv) = if on_border(nx, ny, i, j) {
+                    let e = border_extrapolations(u, v, flags, nx, ny, i, j, usable);
+                    if e.0.len() >= 2 {
+                        e
+                    } else {
+                        neighbours(u, v, flags, nx, ny, i, j, usable)
+                    }
+                } else {
+                    neighbours(u, v, flags, nx, ny, i, j, usable)
+                };
                 if nu.is_empty() {
                     remaining += 1;
                     continue;
@@ -203,7 +265,25 @@ mod tests {
         let u: Vec<f64> = (0..nx * ny).map(|k| 0.1 * (k % nx) as f64).collect();
         let v: Vec<f64> = (0..nx * ny).map(|k| -0.1 * (k / nx) as f64).collect();
         let mut f = vec![0u8; nx * ny];
-        assert_eq!(normalized_median_test(&u, &v, &mut f, nx, ny, MedianTest::default()), 0);
+        assert_eq!(
+            normalized_median_test(&u, &v, &mut f, nx, ny, MedianTest::default()),
+            0
+        );
+        // A steep gradient (a wall) passes at the border too.
+        let u: Vec<f64> = (0..nx * ny).map(|k| 3.0 * (k / nx) as f64).collect();
+        let mut f = vec![0u8; nx * ny];
+        assert_eq!(
+            normalized_median_test(&u, &v, &mut f, nx, ny, MedianTest::default()),
+            0
+        );
+        // ... while an outlier on the border is still caught.
+        let mut u = u;
+        u[2] = 10.0;
+        assert_eq!(
+            normalized_median_test(&u, &v, &mut f, nx, ny, MedianTest::default()),
+            1
+        );
+        assert_eq!(f[2], flag::OUTLIER);
     }
 
     #[test]
