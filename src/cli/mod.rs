@@ -3,7 +3,10 @@
 
 use clap::{Parser, Subcommand};
 
+pub mod compare;
 pub mod info;
+pub mod piv;
+pub mod piv_images;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -20,10 +23,19 @@ pub struct Cli {
 pub enum Command {
     /// Summarise an event file: format, geometry, counts, rates, triggers.
     Info(info::InfoArgs),
+    /// Multi-frame correlation PIV on pulsed pseudo-images of a recording.
+    Piv(piv::PivArgs),
+    /// Correlation PIV on ordinary image pairs or sequences (PNG, TIFF).
+    PivImages(piv_images::PivImagesArgs),
+    /// Compare PTV grid statistics with PIV statistics on the same grid.
+    Compare(compare::CompareArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Info(a) => info::run(a),
+        Command::Piv(a) => piv::run(a),
+        Command::PivImages(a) => piv_images::run(a),
+        Command::Compare(a) => compare::run(a),
     }
 }
