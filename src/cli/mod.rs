@@ -10,6 +10,10 @@ pub mod simulate;
 pub mod grid;
 pub mod info;
 pub mod spectra;
+pub mod compare;
+pub mod info;
+pub mod piv;
+pub mod piv_images;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -37,6 +41,12 @@ pub enum Command {
     Grid(grid::GridArgs),
     /// Velocity spectra at points or along a line from tracks (Welch PSD, peak, noise floor).
     Spectra(spectra::SpectraArgs),
+    /// Multi-frame correlation PIV on pulsed pseudo-images of a recording.
+    Piv(piv::PivArgs),
+    /// Correlation PIV on ordinary image pairs or sequences (PNG, TIFF).
+    PivImages(piv_images::PivImagesArgs),
+    /// Compare PTV grid statistics with PIV statistics on the same grid.
+    Compare(compare::CompareArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -47,5 +57,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Simulate(a) => simulate::run(a),
         Command::Grid(a) => grid::run(a),
         Command::Spectra(a) => spectra::run(a),
+        Command::Piv(a) => piv::run(a),
+        Command::PivImages(a) => piv_images::run(a),
+        Command::Compare(a) => compare::run(a),
     }
 }
