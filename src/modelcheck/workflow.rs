@@ -21,7 +21,9 @@
 //!    noise): a grid then golden-section refinement for one parameter,
 //!    Nelder–Mead for more, in a box (log-scaled where the parameter spans
 //!    decades). The objective is Σ d_s / spread_s, the distances scaled by
-//!    the current model's replicate spreads.
+//!    replicate spreads: first those of the current model, then (second,
+//!    narrower stage) those of the model with the stage-1 fit added, since
+//!    an effect changes the noise of the signatures it drives.
 //! 4. **Judge on held-out data**: assess each fitted candidate against the
 //!    *held-out* measurement with fresh seeds. Accept the best only if its
 //!    gap reduction beats chance (`chance_factor` × the gap's null spread)
@@ -332,12 +334,23 @@ pub fn minimise_1d(
     f: &mut dyn FnMut(f64) -> Result<f64>,
     max_evals: usize,
 ) -> Result<(f64, f64, usize)> {
+    minimise_1d_in(f, 0.0, 1.0, max_evals)
+}
+
+/// [`minimise_1d`] on `[lo, hi]` ⊂ [0, 1].
+pub fn minimise_1d_in(
+    f: &mut dyn FnMut(f64) -> Result<f64>,
+    lo: f64,
+    hi: f64,
+    max_evals: usize,
+) -> Result<(f64, f64, usize)> {
+    let (lo, hi) = (lo.clamp(0.0, 1.0), hi.clamp(0.0, 1.0));
     let grid = 9usize.min(max_evals.max(3));
     let mut evals = 0;
-    let mut best = (0.0, f64::INFINITY);
+    let mut best = (lo, f64::INFINITY);
     let mut values = Vec::with_capacity(grid);
     for k in 0..grid {
-        let u = k as f64 / (grid - 1) as f64;
+        let u = lo + (hi - lo) * k as f64 / (grid - 1) as f64;
         let v = f(u)?;
         evals += 1;
         values.push(v);
@@ -345,8 +358,8 @@ pub fn minimise_1d(
             best = (u, v);
         }
     }
-    let h = 1.0 / (grid - 1) as f64;
-    let (mut a, mut b) = ((best.0 - h).max(0.0), (best.0 + h).min(1.0));
+    let h = (hi - lo) / (grid - 1) as f64;
+    let (mut a, mut b) = ((best.0 - h).max(lo), (best.0 + h).min(hi));
     let g = (5f64.sqrt() - 1.0) / 2.0;
     let mut c = b - g * (b - a);
     let mut d = a + g * (b - a);
@@ -463,7 +476,8 @@ fn fit_candidate(
     base: &Assessment,
     max_evaluations: usize,
     crn_seed: u64,
-) -> Result<(EffectSetting, f64, usize)> {
+    refine_from: Option<&[f64]>,
+) -> Result<(Vec<f64>, f64, usize)> {
     let mut objective = |u: &[f64]| -> Result<f64> {
         let mut m = model.to_vec();
         m.push(setting(spec, u));
@@ -473,20 +487,30 @@ fn fit_candidate(
         let d = distances(measured_fit, &s)?;
         Ok(base.scaled_sum(&d))
     };
-    let (u, v, evals) = if spec.params.len() == 1 {
-        let (u, v, e) = minimise_1d(&mut |x| objective(&[x]), max_evaluations)?;
-        (vec![u], v, e)
+    if spec.params.len() == 1 {
+        let (lo, hi) = match refine_from {
+            Some(u) => (u[0] - REFINE_HALF_WIDTH, u[0] + REFINE_HALF_WIDTH),
+            None => (0.0, 1.0),
+        };
+        let (u, v, e) = minimise_1d_in(&mut |x| objective(&[x]), lo, hi, max_evaluations)?;
+        Ok((vec![u], v, e))
     } else {
+        let (start, step) = match refine_from {
+            Some(u) => (u.to_vec(), REFINE_HALF_WIDTH),
+            None => (vec![0.5; spec.params.len()], 0.3),
+        };
+        // Nelder–Mead needs more steps per dimension than a line search.
         nelder_mead(
             &mut objective,
-            &vec![0.5; spec.params.len()],
-            0.3,
-            // Nelder–Mead needs more steps per dimension than a line search.
+            &start,
+            step,
             max_evaluations * spec.params.len(),
-        )?
-    };
-    Ok((setting(spec, &u), v, evals))
+        )
+    }
 }
+
+/// Half width (unit-cube coordinates) of the second-stage search.
+const REFINE_HALF_WIDTH: f64 = 0.15;
 
 /// Run the search. `measured_fit` and `measured_holdout` are two disjoint
 /// time blocks of the measurement, each as long as one simulated recording.
@@ -562,12 +586,14 @@ pub fn run(
         round_no += 1;
         let crn = seed_for(opts.seed, 2000 + round_no, 0);
         let hold_seeds = seeds(3000 + round_no, opts.replicates + 1);
+        let scale_seeds = seeds(4000 + round_no, opts.replicates + 1);
         // Candidates in parallel; each fit is sequential (its evaluations
         // share the common random numbers).
         let fitted: Vec<(CandidateResult, Assessment, EffectSetting)> = remaining
             .par_iter()
             .map(|spec| {
-                let (set, objective, evaluations) = fit_candidate(
+                // Stage 1: weights from the current model's replicate spreads.
+                let (u1, _, e1) = fit_candidate(
                     sim,
                     cfg,
                     &model,
@@ -576,7 +602,27 @@ pub fn run(
                     &current,
                     opts.max_evaluations,
                     crn,
+                    None,
                 )?;
+                // Stage 2: the effect changes the noise of the signatures it
+                // drives (hot pixels make the off-burst rate noisy), so take
+                // the weights from replicates of the stage-1 model and refine.
+                let mut m1 = model.clone();
+                m1.push(setting(spec, &u1));
+                let a1 = Assessment::new(sim, cfg, &m1, &scale_seeds, z)?;
+                let (u, objective, e2) = fit_candidate(
+                    sim,
+                    cfg,
+                    &model,
+                    spec,
+                    &m_fit,
+                    &a1,
+                    opts.max_evaluations,
+                    crn,
+                    Some(&u1),
+                )?;
+                let evaluations = e1 + e2;
+                let set = setting(spec, &u);
                 let mut m = model.clone();
                 m.push(set.clone());
                 let a = Assessment::new(sim, cfg, &m, &hold_seeds, z)?;
