@@ -18,16 +18,16 @@ pub mod error;
 pub mod events;
 pub mod io;
 
-pub mod pulses;
 pub mod cluster;
-pub mod track;
-pub mod grid;
-pub mod spectra;
-pub mod piv;
 pub mod compare;
-pub mod sim;
+pub mod grid;
 pub mod modelcheck;
+pub mod piv;
 pub mod plot;
+pub mod pulses;
+pub mod sim;
+pub mod spectra;
+pub mod track;
 
 pub use error::{Error, Result};
 pub use events::{Chunk, Edge, Event, EventChunk, Geometry, Trigger};

@@ -99,5 +99,7 @@ pub fn split_pulses(
     on_pulse: &mut dyn FnMut(PulseEvents) -> crate::Result<()>,
 ) -> crate::Result<u64> {
     let _ = (source, timing, on_pulse);
-    Err(crate::Error::analysis("pulse splitting not implemented yet"))
+    Err(crate::Error::analysis(
+        "pulse splitting not implemented yet",
+    ))
 }

@@ -3,10 +3,16 @@
 
 use clap::{Parser, Subcommand};
 
+pub mod convert;
 pub mod info;
+pub mod track;
 
 #[derive(Parser, Debug)]
-#[command(name = "ebptv", version, about = "Event-based particle tracking velocimetry for pulsed illumination")]
+#[command(
+    name = "ebptv",
+    version,
+    about = "Event-based particle tracking velocimetry for pulsed illumination"
+)]
 pub struct Cli {
     #[command(subcommand)]
     pub command: Command,
@@ -16,10 +22,17 @@ pub struct Cli {
 pub enum Command {
     /// Summarise an event file: format, geometry, counts, rates, triggers.
     Info(info::InfoArgs),
+    /// Convert an event file (optionally a time range / ROI / polarity) to CSV, .npy or RAW.
+    Convert(convert::ConvertArgs),
+    /// Particle tracking: a recording (or a particles.csv) → particles.csv,
+    /// tracks.csv, summary.json, tracks.png.
+    Track(track::TrackArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Info(a) => info::run(a),
+        Command::Convert(a) => convert::run(a),
+        Command::Track(a) => track::run(a),
     }
 }

@@ -7,7 +7,7 @@
 //! a failed run never leaves a half-written file that looks like a result.
 
 use std::fs::File;
-use std::io::{BufWriter, Write};
+use std::io::{BufWriter, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
@@ -27,7 +27,9 @@ impl AtomicFile {
         };
         let name = target
             .file_name()
-            .ok_or_else(|| Error::param("output", format!("{} is not a file path", target.display())))?
+            .ok_or_else(|| {
+                Error::param("output", format!("{} is not a file path", target.display()))
+            })?
             .to_string_lossy()
             .into_owned();
         let tmp = dir.join(format!(".{}.{}.partial", name, std::process::id()));
@@ -58,7 +60,8 @@ impl AtomicFile {
     /// Convenience: write a whole byte buffer atomically.
     pub fn write_all_to(target: impl AsRef<Path>, bytes: &[u8]) -> Result<()> {
         let mut f = AtomicFile::create(target)?;
-        f.write_all(bytes).map_err(|e| Error::io(f.target.clone(), e))?;
+        f.write_all(bytes)
+            .map_err(|e| Error::io(f.target.clone(), e))?;
         f.commit()
     }
 }
@@ -72,6 +75,14 @@ impl Write for AtomicFile {
     }
     fn flush(&mut self) -> std::io::Result<()> {
         self.writer.as_mut().expect("not committed").flush()
+    }
+}
+
+/// Seeking (flushes the buffer first) lets streaming writers patch a header
+/// whose content is known only at the end (the `.npy` shape).
+impl Seek for AtomicFile {
+    fn seek(&mut self, pos: SeekFrom) -> std::io::Result<u64> {
+        self.writer.as_mut().expect("not committed").seek(pos)
     }
 }
 

@@ -2,7 +2,7 @@
 //! wrapper around any [`EventSource`].
 
 use crate::error::{Error, Result};
-use crate::events::{Chunk, ON, OFF};
+use crate::events::{Chunk, OFF, ON};
 use crate::io::{Anomalies, EventSource, StreamInfo};
 
 /// Which polarities to keep.
@@ -21,7 +21,10 @@ impl std::str::FromStr for PolaritySelect {
             "on" | "ON" | "pos" | "positive" => Ok(PolaritySelect::On),
             "off" | "OFF" | "neg" | "negative" => Ok(PolaritySelect::Off),
             "both" | "all" => Ok(PolaritySelect::Both),
-            _ => Err(Error::param("polarity", format!("`{s}`: expected on, off or both"))),
+            _ => Err(Error::param(
+                "polarity",
+                format!("`{s}`: expected on, off or both"),
+            )),
         }
     }
 }
@@ -38,10 +41,7 @@ pub struct Roi {
 impl Roi {
     #[inline]
     pub fn contains(&self, x: u16, y: u16) -> bool {
-        x >= self.x0
-            && y >= self.y0
-            && (x - self.x0) < self.width
-            && (y - self.y0) < self.height
+        x >= self.x0 && y >= self.y0 && (x - self.x0) < self.width && (y - self.y0) < self.height
     }
 }
 
@@ -50,7 +50,12 @@ impl std::str::FromStr for Roi {
     /// `x0,y0,w,h`
     fn from_str(s: &str) -> Result<Self> {
         let parts: Vec<&str> = s.split(',').map(|p| p.trim()).collect();
-        let bad = || Error::param("roi", format!("`{s}`: expected x0,y0,width,height (pixels)"));
+        let bad = || {
+            Error::param(
+                "roi",
+                format!("`{s}`: expected x0,y0,width,height (pixels)"),
+            )
+        };
         if parts.len() != 4 {
             return Err(bad());
         }
@@ -59,9 +64,17 @@ impl std::str::FromStr for Roi {
             .map(|p| p.parse::<u16>().map_err(|_| bad()))
             .collect::<Result<_>>()?;
         if v[2] == 0 || v[3] == 0 {
-            return Err(Error::param("roi", format!("`{s}`: width and height must be positive")));
+            return Err(Error::param(
+                "roi",
+                format!("`{s}`: width and height must be positive"),
+            ));
         }
-        Ok(Roi { x0: v[0], y0: v[1], width: v[2], height: v[3] })
+        Ok(Roi {
+            x0: v[0],
+            y0: v[1],
+            width: v[2],
+            height: v[3],
+        })
     }
 }
 
@@ -78,12 +91,18 @@ pub struct Selection {
 
 impl Selection {
     pub fn is_everything(&self) -> bool {
-        self.from_us.is_none() && self.to_us.is_none() && self.roi.is_none() && self.polarity == PolaritySelect::Both
+        self.from_us.is_none()
+            && self.to_us.is_none()
+            && self.roi.is_none()
+            && self.polarity == PolaritySelect::Both
     }
     pub fn validate(&self) -> Result<()> {
         if let (Some(a), Some(b)) = (self.from_us, self.to_us) {
             if b <= a {
-                return Err(Error::param("to-us", format!("end {b} µs is not after start {a} µs")));
+                return Err(Error::param(
+                    "to-us",
+                    format!("end {b} µs is not after start {a} µs"),
+                ));
             }
         }
         Ok(())

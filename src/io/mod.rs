@@ -183,7 +183,11 @@ pub fn open_with(path: impl AsRef<Path>, opts: &OpenOptions) -> Result<Box<dyn E
         Format::Evt21 => Ok(Box::new(evt21::Evt21Reader::open(path, chunk)?)),
         Format::Evt3 => Ok(Box::new(evt3::Evt3Reader::open(path, chunk)?)),
         Format::Dat => Ok(Box::new(dat::DatReader::open(path, chunk)?)),
-        Format::Csv => Ok(Box::new(csv::CsvReader::open(path, chunk, opts.csv_time_unit)?)),
+        Format::Csv => Ok(Box::new(csv::CsvReader::open(
+            path,
+            chunk,
+            opts.csv_time_unit,
+        )?)),
         Format::Aedat4 => Ok(Box::new(aedat4::Aedat4Reader::open(path, chunk)?)),
         Format::Es => Ok(Box::new(es::EsReader::open(path, chunk)?)),
         Format::Npy => Err(Error::UnknownFormat {
@@ -228,13 +232,16 @@ pub fn create(
         Format::Npy => Ok(Box::new(npy::NpyEventWriter::create(path)?)),
         other => Err(Error::param(
             "output",
-            format!("writing {} is not supported; write .raw (EVT 3.0), EVT 2.0, .csv or .npy", other.name()),
+            format!(
+                "writing {} is not supported; write .raw (EVT 3.0), EVT 2.0, .csv or .npy",
+                other.name()
+            ),
         )),
     }
 }
 
-pub mod atomic;
 pub mod aedat4;
+pub mod atomic;
 pub mod csv;
 pub mod dat;
 pub mod es;
@@ -245,3 +252,4 @@ pub mod filter;
 pub mod npy;
 pub mod raw_header;
 pub mod sniff;
+pub mod summary;

@@ -12,7 +12,11 @@ pub struct Image {
 
 impl Image {
     pub fn zeros(width: usize, height: usize) -> Self {
-        Image { width, height, data: vec![0.0; width * height] }
+        Image {
+            width,
+            height,
+            data: vec![0.0; width * height],
+        }
     }
     #[inline]
     pub fn get(&self, x: usize, y: usize) -> f32 {
