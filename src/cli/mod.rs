@@ -5,6 +5,7 @@ use clap::{Parser, Subcommand};
 
 pub mod compare;
 pub mod convert;
+pub mod demo;
 pub mod grid;
 pub mod info;
 pub mod piv;
@@ -26,6 +27,8 @@ pub struct Cli {
 
 #[derive(Subcommand, Debug)]
 pub enum Command {
+    /// Simulate a small recording and run every stage on it, scored against the truth.
+    Demo(demo::DemoArgs),
     /// Summarise an event file: format, geometry, counts, rates, triggers.
     Info(info::InfoArgs),
     /// Convert an event file (optionally a time range / ROI / polarity) to CSV, .npy or RAW.
@@ -49,6 +52,7 @@ pub enum Command {
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
+        Command::Demo(a) => demo::run(a),
         Command::Info(a) => info::run(a),
         Command::Convert(a) => convert::run(a),
         Command::Track(a) => track::run(a),
