@@ -245,7 +245,7 @@ impl PixelModel {
         out: &mut Vec<Arrival>,
     ) {
         thread_local! {
-            static DENSE: std::cell::RefCell<(Vec<f64>, Vec<u32>)> = const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
+            static DENSE: std::cell::RefCell<(Vec<f32>, Vec<u32>)> = const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
         }
         DENSE.with(|cell| {
             let mut guard = cell.borrow_mut();
@@ -260,11 +260,11 @@ impl PixelModel {
                 if *d == 0.0 {
                     touched.push(idx);
                 }
-                *d += sig;
+                *d += sig as f32;
             });
             let mut rng = Pcg64::seed_from_u64(pulse_seed);
             for &idx in touched.iter() {
-                let sig = std::mem::replace(&mut dense[idx as usize], 0.0);
+                let sig = std::mem::replace(&mut dense[idx as usize], 0.0) as f64;
                 self.pixel_response(idx, sig, t_pulse_us, &mut rng, out);
             }
         });
@@ -286,12 +286,13 @@ impl PixelModel {
         let mut i = 0;
         while i < list.len() {
             let idx = list[i].0;
-            let mut sig = 0.0f64;
+            // Summed in f32 in input order, as the fast path does.
+            let mut sig = 0.0f32;
             while i < list.len() && list[i].0 == idx {
-                sig += list[i].1;
+                sig += list[i].1 as f32;
                 i += 1;
             }
-            self.pixel_response(idx, sig, t_pulse_us, &mut rng, out);
+            self.pixel_response(idx, sig as f64, t_pulse_us, &mut rng, out);
         }
     }
 
