@@ -5,6 +5,8 @@ use clap::{Parser, Subcommand};
 
 pub mod convert;
 pub mod info;
+pub mod monitor;
+pub mod pulses;
 pub mod track;
 
 #[derive(Parser, Debug)]
@@ -27,6 +29,10 @@ pub enum Command {
     /// Particle tracking: a recording (or a particles.csv) → particles.csv,
     /// tracks.csv, summary.json, tracks.png.
     Track(track::TrackArgs),
+    /// Pulse timing (triggers or estimated), latency and saturation diagnostics → pulses.json + figures.
+    Pulses(pulses::PulsesArgs),
+    /// Live pulse diagnostics of a recording being written (--follow; Ctrl-C stops).
+    Monitor(monitor::MonitorArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -34,5 +40,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Info(a) => info::run(a),
         Command::Convert(a) => convert::run(a),
         Command::Track(a) => track::run(a),
+        Command::Pulses(a) => pulses::run(a),
+        Command::Monitor(a) => monitor::run(a),
     }
 }

@@ -481,6 +481,15 @@ impl Analyzer {
         })
     }
 
+    /// Time span of the events fed so far (µs).
+    pub fn span_us(&self) -> i64 {
+        if self.warm.is_some() {
+            self.warm_t_max.saturating_sub(self.warm_t_min).max(0)
+        } else {
+            self.t_max.saturating_sub(self.t_min).max(0)
+        }
+    }
+
     /// Feed one chunk.
     pub fn push(&mut self, chunk: &Chunk) -> Result<()> {
         for tr in &chunk.triggers {
