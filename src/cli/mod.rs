@@ -12,6 +12,8 @@ pub mod piv;
 pub mod piv_images;
 pub mod simulate;
 pub mod spectra;
+pub mod monitor;
+pub mod pulses;
 pub mod track;
 
 #[derive(Parser, Debug)]
@@ -48,6 +50,10 @@ pub enum Command {
     PivImages(piv_images::PivImagesArgs),
     /// Compare PTV grid statistics with PIV statistics on the same grid.
     Compare(compare::CompareArgs),
+    /// Pulse timing (triggers or estimated), latency and saturation diagnostics → pulses.json + figures.
+    Pulses(pulses::PulsesArgs),
+    /// Live pulse diagnostics of a recording being written (--follow; Ctrl-C stops).
+    Monitor(monitor::MonitorArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -62,5 +68,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Piv(a) => piv::run(a),
         Command::PivImages(a) => piv_images::run(a),
         Command::Compare(a) => compare::run(a),
+        Command::Pulses(a) => pulses::run(a),
+        Command::Monitor(a) => monitor::run(a),
     }
 }
