@@ -30,6 +30,7 @@ fn links_a_particles_csv() {
         .arg(&input)
         .arg("--out")
         .arg(&out)
+        .arg("--npy")
         .output()
         .unwrap();
     assert!(
