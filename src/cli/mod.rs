@@ -3,9 +3,17 @@
 
 use clap::{Parser, Subcommand};
 
+pub mod convert;
+pub mod info;
+pub mod track;
+pub mod simulate;
 pub mod grid;
 pub mod info;
 pub mod spectra;
+pub mod compare;
+pub mod info;
+pub mod piv;
+pub mod piv_images;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -22,16 +30,35 @@ pub struct Cli {
 pub enum Command {
     /// Summarise an event file: format, geometry, counts, rates, triggers.
     Info(info::InfoArgs),
+    /// Convert an event file (optionally a time range / ROI / polarity) to CSV, .npy or RAW.
+    Convert(convert::ConvertArgs),
+    /// Particle tracking: a recording (or a particles.csv) → particles.csv,
+    /// tracks.csv, summary.json, tracks.png.
+    Track(track::TrackArgs),
+    /// Simulate a pulsed event-camera recording with ground truth.
+    Simulate(simulate::SimulateArgs),
     /// Bin tracks onto an Eulerian grid (means, stresses, errors), or merge grid states.
     Grid(grid::GridArgs),
     /// Velocity spectra at points or along a line from tracks (Welch PSD, peak, noise floor).
     Spectra(spectra::SpectraArgs),
+    /// Multi-frame correlation PIV on pulsed pseudo-images of a recording.
+    Piv(piv::PivArgs),
+    /// Correlation PIV on ordinary image pairs or sequences (PNG, TIFF).
+    PivImages(piv_images::PivImagesArgs),
+    /// Compare PTV grid statistics with PIV statistics on the same grid.
+    Compare(compare::CompareArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Info(a) => info::run(a),
+        Command::Convert(a) => convert::run(a),
+        Command::Track(a) => track::run(a),
+        Command::Simulate(a) => simulate::run(a),
         Command::Grid(a) => grid::run(a),
         Command::Spectra(a) => spectra::run(a),
+        Command::Piv(a) => piv::run(a),
+        Command::PivImages(a) => piv_images::run(a),
+        Command::Compare(a) => compare::run(a),
     }
 }

@@ -190,13 +190,24 @@ pub fn signature_distance(a: &Signature, b: &Signature) -> Result<Option<f64>> {
 }
 
 /// Distances for every signature present (and comparable) in both sets, in
-/// the order of `a`.
+/// the order of `a`. Histograms give two rows: `name` (Wasserstein: where
+/// the bulk sits) and `name.chi2` (reduced chi-square: sensitive to sparse
+/// tails, e.g. a few hot pixels far out in the per-pixel counts, that move
+/// little mass and so barely move the Wasserstein distance).
 pub fn distances(a: &Signatures, b: &Signatures) -> Result<Vec<(String, f64)>> {
     let mut out = Vec::new();
     for s in &a.items {
         if let Some(t) = b.get(&s.name) {
             if let Some(d) = signature_distance(s, t)? {
                 out.push((s.name.clone(), d));
+            }
+            if let (SignatureValue::Histogram(x), SignatureValue::Histogram(y)) =
+                (&s.value, &t.value)
+            {
+                if x.same_bins(y) && x.total() > 0.0 && y.total() > 0.0 {
+                    let c = chi_square(&x.counts, &y.counts)?;
+                    out.push((format!("{}.chi2", s.name), c.reduced()));
+                }
             }
         }
     }

@@ -11,3 +11,4 @@
 
 pub mod distance;
 pub mod signatures;
+pub mod workflow;
