@@ -3,17 +3,15 @@
 
 use clap::{Parser, Subcommand};
 
-pub mod convert;
-pub mod info;
-pub mod track;
-pub mod simulate;
-pub mod grid;
-pub mod info;
-pub mod spectra;
 pub mod compare;
+pub mod convert;
+pub mod grid;
 pub mod info;
 pub mod piv;
 pub mod piv_images;
+pub mod simulate;
+pub mod spectra;
+pub mod track;
 
 #[derive(Parser, Debug)]
 #[command(
