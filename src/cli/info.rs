@@ -1,6 +1,10 @@
+//! `ebptv info FILE [--json]`: one streaming pass, then a table or JSON.
+
 use std::path::PathBuf;
 
 use clap::Args;
+use ebptv::io::summary::{summarize, Summary};
+use ebptv::io::{self, Format, OpenOptions};
 
 #[derive(Args, Debug)]
 pub struct InfoArgs {
@@ -9,9 +13,210 @@ pub struct InfoArgs {
     /// Print JSON instead of a table.
     #[arg(long)]
     pub json: bool,
+    /// Read as this format instead of detecting it (evt3, evt2, evt21, dat, csv, aedat4, es).
+    #[arg(long)]
+    pub format: Option<String>,
+    /// CSV only: unit of the time column when its header does not say (us, ms, s, ns).
+    #[arg(long)]
+    pub time_unit: Option<String>,
+    /// Bin width for the peak event rate, µs.
+    #[arg(long, default_value_t = 1000)]
+    pub peak_bin_us: i64,
+}
+
+pub(crate) fn open_options(
+    format: Option<&str>,
+    time_unit: Option<&str>,
+) -> anyhow::Result<OpenOptions> {
+    let format = match format {
+        Some(f) => Some(Format::from_name(f).ok_or_else(|| {
+            ebptv::Error::param(
+                "format",
+                format!("`{f}`: expected evt3, evt2, evt21, dat, csv, aedat4 or es"),
+            )
+        })?),
+        None => None,
+    };
+    let csv_time_unit = match time_unit {
+        Some(u) => Some(u.parse::<io::csv::TimeUnit>()?),
+        None => None,
+    };
+    Ok(OpenOptions {
+        format,
+        csv_time_unit,
+        ..Default::default()
+    })
+}
+
+/// A byte-progress bar on stderr; indicatif hides it when stderr is not a terminal.
+pub(crate) fn progress_bar(total: Option<u64>) -> indicatif::ProgressBar {
+    let pb =
+        indicatif::ProgressBar::with_draw_target(total, indicatif::ProgressDrawTarget::stderr());
+    if let Ok(style) = indicatif::ProgressStyle::with_template(
+        "{spinner} [{elapsed_precise}] {wide_bar} {bytes}/{total_bytes} ({eta})",
+    ) {
+        pb.set_style(style);
+    }
+    pb
 }
 
 pub fn run(args: InfoArgs) -> anyhow::Result<()> {
-    let _src = ebptv::io::open(&args.file)?;
-    anyhow::bail!("info not implemented yet")
+    if args.peak_bin_us <= 0 {
+        return Err(ebptv::Error::param(
+            "peak-bin-us",
+            format!("{} µs: must be positive", args.peak_bin_us),
+        )
+        .into());
+    }
+    let opts = open_options(args.format.as_deref(), args.time_unit.as_deref())?;
+    let mut src = io::open_with(&args.file, &opts)?;
+    let pb = progress_bar(src.info().file_size);
+    let summary = summarize(&mut src, args.peak_bin_us, |b| pb.set_position(b))?;
+    pb.finish_and_clear();
+    let text = if args.json {
+        serde_json::to_string_pretty(&summary)? + "\n"
+    } else {
+        render(&summary)
+    };
+    write_stdout(&text)
+}
+
+/// Print, treating a closed pipe (`ebptv info f | head`) as success.
+pub(crate) fn write_stdout(text: &str) -> anyhow::Result<()> {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    match out.write_all(text.as_bytes()).and_then(|_| out.flush()) {
+        Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => Ok(()),
+        r => Ok(r?),
+    }
+}
+
+fn fmt_rate(r: Option<f64>) -> String {
+    match r {
+        Some(r) if r >= 1e6 => format!("{:.3} Mev/s", r / 1e6),
+        Some(r) if r >= 1e3 => format!("{:.3} kev/s", r / 1e3),
+        Some(r) => format!("{r:.1} ev/s"),
+        None => "-".into(),
+    }
+}
+
+fn opt<T: std::fmt::Display>(v: Option<T>) -> String {
+    v.map_or_else(|| "-".to_string(), |v| v.to_string())
+}
+
+fn render(s: &Summary) -> String {
+    let mut o = String::new();
+    let mut line = |k: &str, v: String| o.push_str(&format!("{k:<18} {v}\n"));
+    line("file", s.path.display().to_string());
+    line("format", s.format_name.clone());
+    if let Some(b) = s.file_bytes {
+        line("size", format!("{b} bytes"));
+    }
+    line(
+        "geometry",
+        match (s.geometry, s.geometry_from_events) {
+            (Some(g), _) if s.geometry_source == "inferred" => {
+                format!(
+                    "{}x{} (inferred from the header, not stated)",
+                    g.width, g.height
+                )
+            }
+            (Some(g), _) => format!("{}x{} (stated in the file)", g.width, g.height),
+            (None, Some(e)) => format!(
+                "not stated; events span {}x{} (max x+1, max y+1)",
+                e.width, e.height
+            ),
+            (None, None) => "not stated".into(),
+        },
+    );
+    for (k, v) in &s.header {
+        line(&format!("  {k}"), v.clone());
+    }
+    line("events", s.events.to_string());
+    line(
+        "polarity",
+        match s.on_fraction {
+            Some(f) => format!(
+                "{} ON, {} OFF ({:.1} % ON)",
+                s.on_events,
+                s.off_events,
+                100.0 * f
+            ),
+            None => "-".into(),
+        },
+    );
+    line(
+        "first/last t",
+        format!(
+            "{} / {} µs (file order)",
+            opt(s.first_t_us),
+            opt(s.last_t_us)
+        ),
+    );
+    line(
+        "time range",
+        format!("{} .. {} µs", opt(s.min_t_us), opt(s.max_t_us)),
+    );
+    line(
+        "duration",
+        s.duration_us
+            .map_or("-".into(), |d| format!("{d} µs ({:.6} s)", d as f64 * 1e-6)),
+    );
+    line("mean rate", fmt_rate(s.mean_rate_ev_per_s));
+    line(
+        "peak rate",
+        format!(
+            "{} (busiest {} µs bin, starting at {} µs)",
+            fmt_rate(s.peak_rate_ev_per_s),
+            s.peak_bin_us,
+            opt(s.peak_bin_start_us)
+        ),
+    );
+    if s.triggers.is_empty() {
+        line("triggers", "none".into());
+    }
+    for t in &s.triggers {
+        line(
+            &format!("triggers ch {}", t.channel),
+            format!(
+                "{} rising, {} falling, t {} .. {} µs",
+                t.rising, t.falling, t.first_t, t.last_t
+            ),
+        );
+    }
+    let a = &s.anomalies;
+    let mut notes = Vec::new();
+    let mut note = |n: u64, what: &str| {
+        if n > 0 {
+            notes.push(format!("{n} {what}"));
+        }
+    };
+    note(s.time_steps_back, "events earlier than their predecessor");
+    note(a.time_loops, "time-counter loops unwrapped");
+    note(
+        a.words_before_time_base,
+        "words before the first time base skipped",
+    );
+    note(a.unknown_word_types, "unknown words/packets/types");
+    note(a.vector_without_base, "vector words without base");
+    note(a.out_of_geometry, "events outside the geometry");
+    note(a.truncated_tail_bytes, "bytes of a truncated tail");
+    note(a.skipped_other_words, "other words/packets skipped (legal)");
+    note(s.late_for_peak, "events too late to bin for the peak rate");
+    line(
+        "anomalies",
+        if notes.is_empty() {
+            "none".into()
+        } else {
+            notes.join("; ")
+        },
+    );
+    line(
+        "decoded in",
+        format!(
+            "{:.3} s ({:.1} Mev/s)",
+            s.decode_seconds, s.decode_rate_mev_per_s
+        ),
+    );
+    o
 }

@@ -4,9 +4,14 @@
 use clap::{Parser, Subcommand};
 
 pub mod compare;
+pub mod convert;
+pub mod grid;
 pub mod info;
 pub mod piv;
 pub mod piv_images;
+pub mod simulate;
+pub mod spectra;
+pub mod track;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -23,6 +28,17 @@ pub struct Cli {
 pub enum Command {
     /// Summarise an event file: format, geometry, counts, rates, triggers.
     Info(info::InfoArgs),
+    /// Convert an event file (optionally a time range / ROI / polarity) to CSV, .npy or RAW.
+    Convert(convert::ConvertArgs),
+    /// Particle tracking: a recording (or a particles.csv) → particles.csv,
+    /// tracks.csv, summary.json, tracks.png.
+    Track(track::TrackArgs),
+    /// Simulate a pulsed event-camera recording with ground truth.
+    Simulate(simulate::SimulateArgs),
+    /// Bin tracks onto an Eulerian grid (means, stresses, errors), or merge grid states.
+    Grid(grid::GridArgs),
+    /// Velocity spectra at points or along a line from tracks (Welch PSD, peak, noise floor).
+    Spectra(spectra::SpectraArgs),
     /// Multi-frame correlation PIV on pulsed pseudo-images of a recording.
     Piv(piv::PivArgs),
     /// Correlation PIV on ordinary image pairs or sequences (PNG, TIFF).
@@ -34,6 +50,11 @@ pub enum Command {
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Info(a) => info::run(a),
+        Command::Convert(a) => convert::run(a),
+        Command::Track(a) => track::run(a),
+        Command::Simulate(a) => simulate::run(a),
+        Command::Grid(a) => grid::run(a),
+        Command::Spectra(a) => spectra::run(a),
         Command::Piv(a) => piv::run(a),
         Command::PivImages(a) => piv_images::run(a),
         Command::Compare(a) => compare::run(a),

@@ -7,7 +7,7 @@
 //! a failed run never leaves a half-written file that looks like a result.
 
 use std::fs::File;
-use std::io::{BufWriter, Write};
+use std::io::{BufWriter, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
@@ -75,6 +75,14 @@ impl Write for AtomicFile {
     }
     fn flush(&mut self) -> std::io::Result<()> {
         self.writer.as_mut().expect("not committed").flush()
+    }
+}
+
+/// Seeking (flushes the buffer first) lets streaming writers patch a header
+/// whose content is known only at the end (the `.npy` shape).
+impl Seek for AtomicFile {
+    fn seek(&mut self, pos: SeekFrom) -> std::io::Result<u64> {
+        self.writer.as_mut().expect("not committed").seek(pos)
     }
 }
 

@@ -1,20 +1,208 @@
-//! Prophesee evt2 — reader (to be implemented).
+//! Prophesee EVT 2.0: streaming reader and writer.
+//!
+//! EVT 2.0 is a stream of 32-bit little-endian words, type in bits 31..28.
+//! CD_OFF (0x0) / CD_ON (0x1) carry x (bits 21..11), y (10..0) and the low 6
+//! bits of time (27..22); TIME_HIGH (0x8) carries time bits 33..6;
+//! EXT_TRIGGER (0xA) carries the edge (bit 0), the channel (bits 12..8) and
+//! the low time bits. OTHERS (0xE), IMU (0xD) and CONTINUED (0xF) words are
+//! skipped (counted). Each word stands alone, so the only state is the time
+//! base, and a read-buffer boundary never splits anything but a word (which
+//! [`crate::io::raw_header::PayloadReader`] keeps whole).
+//!
+//! The 34-bit time wraps after ~4.8 h: a loop is counted only when TIME_HIGH
+//! drops by nearly a full cycle (reference decoder's rule, threshold 10
+//! TIME_HIGH units). Words before the first TIME_HIGH are skipped and
+//! counted. Time is raw sensor time, never clamped or sorted.
 
+use std::io::Write;
 use std::path::Path;
 
 use crate::error::{Error, Result};
-use crate::events::Chunk;
-use crate::io::{EventSource, StreamInfo};
+use crate::events::{Chunk, Edge, Geometry, Trigger};
+use crate::io::atomic::AtomicFile;
+use crate::io::evt3::{
+    check_header_format, check_not_empty, count_out_of_geometry, time_high_steps, RawAppend,
+};
+use crate::io::raw_header::{read_raw_header, stream_info, PayloadReader, READ_BUFFER_BYTES};
+use crate::io::{Anomalies, EventSource, Format, StreamInfo};
 
+const MAX_TIME_BASE: u64 = ((1 << 28) - 1) << 6;
+/// Period of the 34-bit clock, µs.
+pub const TIME_LOOP_US: u64 = MAX_TIME_BASE + (1 << 6);
+const LOOP_THRESHOLD: u64 = 10 << 6;
+
+/// Unwrap a 28-bit TIME_HIGH field into a full time base (shared by EVT 2.0
+/// and EVT 2.1, which use the same clock).
+#[derive(Debug, Clone, Default)]
+pub(crate) struct TimeBase34 {
+    pub base: u64,
+    pub loops: u64,
+}
+
+impl TimeBase34 {
+    /// Returns true when a loop was counted.
+    #[inline]
+    pub fn update(&mut self, field: u32) -> bool {
+        let mut new_base = ((field as u64 & 0x0FFF_FFFF) << 6) + self.loops * TIME_LOOP_US;
+        let looped = self.base > new_base && self.base - new_base >= MAX_TIME_BASE - LOOP_THRESHOLD;
+        if looped {
+            new_base += TIME_LOOP_US;
+            self.loops += 1;
+        }
+        self.base = new_base;
+        looped
+    }
+}
+
+/// The EVT 2.0 decoder, independent of where the bytes come from.
+#[derive(Debug, Clone, Default)]
+pub struct Evt2Decoder {
+    have_time_base: bool,
+    time: TimeBase34,
+    pub anomalies: Anomalies,
+}
+
+impl Evt2Decoder {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Decode whole 32-bit words of `bytes` into `out` until it holds
+    /// `max_events` events or triggers. Returns the bytes consumed (a
+    /// multiple of 4).
+    pub fn decode(&mut self, bytes: &[u8], out: &mut Chunk, max_events: usize) -> usize {
+        let total = bytes.len() & !3;
+        let mut pos = 0;
+        while pos < total {
+            let len = out.events.len();
+            if len >= max_events || out.triggers.len() >= max_events {
+                break;
+            }
+            let words = (max_events - len).min((total - pos) / 4);
+            let end = pos + 4 * words;
+            self.decode_block(&bytes[pos..end], out);
+            pos = end;
+        }
+        pos
+    }
+
+    #[cold]
+    fn find_time_base(&mut self, words: &[u8]) -> usize {
+        for (i, w) in words.chunks_exact(4).enumerate() {
+            let w = u32::from_le_bytes([w[0], w[1], w[2], w[3]]);
+            if w >> 28 == 0x8 {
+                self.have_time_base = true;
+                self.time.update(w);
+                return 4 * (i + 1);
+            }
+            self.anomalies.words_before_time_base += 1;
+        }
+        words.len()
+    }
+
+    #[inline]
+    fn decode_block(&mut self, mut words: &[u8], out: &mut Chunk) {
+        if !self.have_time_base {
+            let skip = self.find_time_base(words);
+            words = &words[skip..];
+        }
+        let mut base = self.time.base as i64;
+        let n = words.len() & !3;
+        let mut sink = RawAppend::new(&mut out.events, n / 4);
+        let mut pos = 0;
+        loop {
+            // SAFETY: the sink has room for one event per word of the block
+            // (+1 spare); each word keeps at most one.
+            pos += unsafe { cd_run(&words[pos..n], base, &mut sink) };
+            if pos >= n {
+                break;
+            }
+            let w =
+                u32::from_le_bytes([words[pos], words[pos + 1], words[pos + 2], words[pos + 3]]);
+            pos += 4;
+            match w >> 28 {
+                0x8 => {
+                    if self.time.update(w) {
+                        self.anomalies.time_loops += 1;
+                    }
+                    base = self.time.base as i64;
+                }
+                0xA => out.triggers.push(Trigger {
+                    t: base + ((w >> 22) & 0x3F) as i64,
+                    channel: ((w >> 8) & 0x1F) as u8,
+                    edge: if w & 1 == 1 {
+                        Edge::Rising
+                    } else {
+                        Edge::Falling
+                    },
+                }),
+                0xD..=0xF => self.anomalies.skipped_other_words += 1,
+                _ => self.anomalies.unknown_word_types += 1,
+            }
+        }
+    }
+}
+
+/// A run of CD words (types 0x0 / 0x1), the bulk of any EVT 2.0 stream, in
+/// a small never-inlined loop whose state stays in registers. Stops before
+/// the first other word; returns the bytes consumed.
+///
+/// # Safety
+/// `sink` must have room for one event per word of `words`.
+#[inline(never)]
+unsafe fn cd_run(words: &[u8], base: i64, sink: &mut RawAppend) -> usize {
+    let mut i = 0;
+    while let Some(b) = words.get(i..i + 4) {
+        let w = u32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+        let kind = w >> 28;
+        if kind > 1 {
+            break;
+        }
+        // SAFETY: one event per word (caller's room).
+        unsafe {
+            sink.write_spare_unchecked(
+                base + ((w >> 22) & 0x3F) as i64,
+                ((w >> 11) & 0x7FF) as u16,
+                (w & 0x7FF) as u16,
+                kind as u8,
+            )
+        };
+        sink.advance(1);
+        i += 4;
+    }
+    i
+}
+
+/// Streaming EVT 2.0 file reader.
 pub struct Evt2Reader {
     info: StreamInfo,
+    payload: PayloadReader,
+    decoder: Evt2Decoder,
+    chunk_events: usize,
+    out_of_geometry: u64,
+    tail_reported: bool,
 }
 
 impl Evt2Reader {
-    pub fn open(path: &Path, _chunk_events: usize) -> Result<Self> {
-        Err(Error::UnknownFormat {
-            path: path.to_path_buf(),
-            why: "Prophesee evt2 reader not implemented yet".into(),
+    /// Open `path`, parse its header, and prepare to stream chunks of at
+    /// most `chunk_events` events.
+    pub fn open(path: &Path, chunk_events: usize) -> Result<Self> {
+        Self::open_with_buffer(path, chunk_events, READ_BUFFER_BYTES)
+    }
+
+    /// [`Evt2Reader::open`] with a chosen read-buffer size.
+    pub fn open_with_buffer(path: &Path, chunk_events: usize, buffer_bytes: usize) -> Result<Self> {
+        let header = read_raw_header(path)?;
+        check_header_format(path, header.format, Format::Evt2)?;
+        let info = stream_info(path, Format::Evt2, &header)?;
+        check_not_empty(&info)?;
+        Ok(Evt2Reader {
+            payload: PayloadReader::open(path, header.payload_offset, 4, buffer_bytes)?,
+            info,
+            decoder: Evt2Decoder::new(),
+            chunk_events: chunk_events.max(1),
+            out_of_geometry: 0,
+            tail_reported: false,
         })
     }
 }
@@ -23,28 +211,235 @@ impl EventSource for Evt2Reader {
     fn info(&self) -> &StreamInfo {
         &self.info
     }
+
     fn next_chunk(&mut self, chunk: &mut Chunk) -> Result<bool> {
         chunk.clear();
-        Ok(false)
+        loop {
+            let words = self.payload.words()?;
+            if words.is_empty() {
+                if !self.tail_reported {
+                    self.tail_reported = true;
+                    self.decoder.anomalies.truncated_tail_bytes +=
+                        self.payload.trailing_partial_bytes();
+                }
+                break;
+            }
+            let used = self.decoder.decode(words, chunk, self.chunk_events);
+            self.payload.consume(used);
+            if chunk.events.len() >= self.chunk_events || chunk.triggers.len() >= self.chunk_events
+            {
+                break;
+            }
+        }
+        self.out_of_geometry += count_out_of_geometry(&chunk.events, self.info.geometry);
+        Ok(!chunk.is_empty())
+    }
+
+    fn anomalies(&self) -> Anomalies {
+        let mut a = self.decoder.anomalies.clone();
+        a.out_of_geometry = self.out_of_geometry;
+        a
+    }
+
+    fn bytes_read(&self) -> u64 {
+        self.payload.file_offset()
     }
 }
 
-pub struct Evt2Writer;
+/// EVT 2.0 writer (through [`AtomicFile`]).
+pub struct Evt2Writer {
+    file: AtomicFile,
+    words: Vec<u32>,
+    th_scratch: Vec<u32>,
+    /// Full time high (t >> 6) last written, incl. loops.
+    time_high: Option<u64>,
+    last_t: i64,
+}
 
 impl Evt2Writer {
-    pub fn create(path: &Path, _geometry: crate::events::Geometry) -> Result<Self> {
-        Err(Error::param(
-            "output",
-            format!("{}: writer not implemented yet", path.display()),
-        ))
+    pub fn create(path: &Path, geometry: Geometry) -> Result<Self> {
+        if geometry.width == 0
+            || geometry.height == 0
+            || geometry.width > 2048
+            || geometry.height > 2048
+        {
+            return Err(Error::param(
+                "geometry",
+                format!(
+                    "{}x{}: EVT 2.0 holds sensors from 1x1 up to 2048x2048",
+                    geometry.width, geometry.height
+                ),
+            ));
+        }
+        let mut file = AtomicFile::create(path)?;
+        let header = format!(
+            "% format EVT2;height={h};width={w}\n% geometry {w}x{h}\n% generator ebptv {v}\n% end\n",
+            w = geometry.width,
+            h = geometry.height,
+            v = env!("CARGO_PKG_VERSION")
+        );
+        file.write_all(header.as_bytes())
+            .map_err(|e| Error::io(path, e))?;
+        Ok(Evt2Writer {
+            file,
+            words: Vec::with_capacity(1 << 16),
+            th_scratch: Vec::new(),
+            time_high: None,
+            last_t: 0,
+        })
+    }
+
+    /// Make `t >> 6` the decoder's time base; returns the low 6 bits.
+    fn set_time(&mut self, t: i64) -> Result<u32> {
+        if t < 0 {
+            return Err(Error::param(
+                "events",
+                format!("time {t} µs is negative; EVT 2.0 stores times from 0"),
+            ));
+        }
+        let th = (t as u64) >> 6;
+        if self.time_high != Some(th) {
+            self.th_scratch.clear();
+            time_high_steps(self.time_high, th, 28, &mut self.th_scratch).map_err(|_| {
+                Error::param(
+                    "events",
+                    format!(
+                        "time steps back from {} µs to {t} µs across a 34-bit clock loop; EVT 2.0 cannot encode that (events must be time-ordered)",
+                        self.last_t
+                    ),
+                )
+            })?;
+            self.words
+                .extend(self.th_scratch.iter().map(|&v| 0x8000_0000 | v));
+            self.time_high = Some(th);
+        }
+        self.last_t = t;
+        Ok((t & 0x3F) as u32)
+    }
+
+    fn write_trigger(&mut self, tr: &Trigger) -> Result<()> {
+        if tr.channel > 31 {
+            return Err(Error::param(
+                "triggers",
+                format!("channel {} does not fit EVT 2.0's 5-bit id", tr.channel),
+            ));
+        }
+        let low = self.set_time(tr.t)?;
+        let v = matches!(tr.edge, Edge::Rising) as u32;
+        self.words
+            .push(0xA000_0000 | (low << 22) | ((tr.channel as u32) << 8) | v);
+        Ok(())
+    }
+
+    fn flush_words(&mut self) -> Result<()> {
+        let mut bytes = Vec::with_capacity(self.words.len() * 4);
+        for w in &self.words {
+            bytes.extend_from_slice(&w.to_le_bytes());
+        }
+        self.words.clear();
+        let target = self.file.target().to_path_buf();
+        self.file
+            .write_all(&bytes)
+            .map_err(|e| Error::io(target, e))
     }
 }
 
 impl crate::io::EventWriter for Evt2Writer {
-    fn write_chunk(&mut self, _chunk: &Chunk) -> Result<()> {
-        Ok(())
+    fn write_chunk(&mut self, chunk: &Chunk) -> Result<()> {
+        let ev = &chunk.events;
+        let mut trig = chunk.triggers.iter().peekable();
+        for i in 0..ev.len() {
+            let t = ev.t[i];
+            while let Some(tr) = trig.next_if(|tr| tr.t <= t) {
+                self.write_trigger(tr)?;
+            }
+            let (x, y) = (ev.x[i], ev.y[i]);
+            if x >= 2048 || y >= 2048 {
+                return Err(Error::param(
+                    "events",
+                    format!("event at ({x}, {y}) does not fit EVT 2.0's 11-bit coordinates"),
+                ));
+            }
+            let low = self.set_time(t)?;
+            let kind = (ev.p[i] != 0) as u32;
+            self.words
+                .push((kind << 28) | (low << 22) | ((x as u32) << 11) | y as u32);
+        }
+        for tr in trig {
+            self.write_trigger(tr)?;
+        }
+        self.flush_words()
     }
-    fn finish(self: Box<Self>) -> Result<()> {
-        Ok(())
+
+    fn finish(mut self: Box<Self>) -> Result<()> {
+        self.flush_words()?;
+        self.file.commit()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn decode_all(words: &[u32]) -> (Chunk, Anomalies) {
+        let bytes: Vec<u8> = words.iter().flat_map(|w| w.to_le_bytes()).collect();
+        let mut d = Evt2Decoder::new();
+        let mut c = Chunk::default();
+        assert_eq!(d.decode(&bytes, &mut c, 1 << 20), bytes.len());
+        (c, d.anomalies)
+    }
+
+    #[test]
+    fn words_of_every_type() {
+        let cd = |p: u32, low: u32, x: u32, y: u32| (p << 28) | (low << 22) | (x << 11) | y;
+        let (c, a) = decode_all(&[
+            cd(1, 0, 1, 1), // before time base
+            0x8000_0002,    // base 128
+            cd(1, 5, 639, 479),
+            cd(0, 63, 3, 4),
+            0xA000_0000 | (7 << 22) | (1 << 8), // trigger ch 1 falling at 135
+            0xE000_0000,
+            0xF000_0000,
+            0x3000_0000,
+        ]);
+        assert_eq!(c.events.t, vec![133, 191]);
+        assert_eq!(c.events.x, vec![639, 3]);
+        assert_eq!(c.events.y, vec![479, 4]);
+        assert_eq!(c.events.p, vec![1, 0]);
+        assert_eq!(
+            c.triggers,
+            vec![Trigger {
+                t: 135,
+                channel: 1,
+                edge: Edge::Falling
+            }]
+        );
+        assert_eq!(a.words_before_time_base, 1);
+        assert_eq!(a.skipped_other_words, 2);
+        assert_eq!(a.unknown_word_types, 1);
+    }
+
+    #[test]
+    fn loop_of_the_34_bit_clock() {
+        let (c, a) = decode_all(&[
+            0x8FFF_FFFF,
+            0x1000_0000,
+            0x8000_0000,
+            0x1000_0000,
+            0x8000_0100,
+            0x1000_0000,
+            0x8000_0010,
+            0x1000_0000,
+        ]);
+        assert_eq!(
+            c.events.t,
+            vec![
+                MAX_TIME_BASE as i64,
+                TIME_LOOP_US as i64,
+                (TIME_LOOP_US + (0x100 << 6)) as i64,
+                (TIME_LOOP_US + (0x10 << 6)) as i64
+            ]
+        );
+        assert_eq!(a.time_loops, 1);
     }
 }

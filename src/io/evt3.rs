@@ -1,50 +1,919 @@
-//! Prophesee evt3 — reader (to be implemented).
+//! Prophesee EVT 3.0: streaming reader and writer.
+//!
+//! EVT 3.0 is a stateful stream of 16-bit little-endian words (type in bits
+//! 15..12). The decoder keeps the state the format relies on: the time base
+//! (TIME_HIGH, with 24-bit loops unwrapped), the current time (TIME_LOW),
+//! the current row (ADDR_Y), and the vector base x and polarity
+//! (VECT_BASE_X). ADDR_X emits one event; VECT_12 / VECT_8 emit one event per
+//! set bit at base_x + i and advance base_x by 12 / 8, each word on its own
+//! (a vector run may be any length, and may straddle a read buffer: all state
+//! lives in [`Evt3Decoder`], none in the buffer).
+//!
+//! Time is reported exactly as the sensor wrote it: TIME_LOW may step back
+//! inside one TIME_HIGH (several event sources share the bus) and is neither
+//! clamped nor sorted. Only TIME_HIGH dropping by at least
+//! `(4095 - 10) << 12` µs counts as a loop of the 24-bit clock, the rule of
+//! Prophesee's reference decoder. Words before the first TIME_HIGH carry no
+//! usable time and are skipped; they, unknown word types, vectors with no
+//! base, and a truncated last word are counted in [`Anomalies`].
+//!
+//! Speed: the hot loop ([`Evt3Decoder::decode`]) walks a `&[u8]` slice of a
+//! fixed 2 MB read buffer two bytes at a time, dispatches on the type
+//! nibble, and appends to the struct-of-arrays chunk whose capacity was
+//! reserved up front; the out-of-geometry check is a separate vectorisable
+//! pass over the finished chunk, not a per-event branch.
+//!
+//! The writer ([`Evt3Writer`]) takes time-ordered chunks (events sharing a
+//! timestamp and row grouped, as the simulator and cameras produce them) and
+//! uses VECT_BASE_X + VECT_12/VECT_8 for runs of increasing x where that
+//! saves words, ADDR_X otherwise, so the reader gives back exactly the same
+//! events in the same order.
 
+use std::io::Write;
 use std::path::Path;
 
 use crate::error::{Error, Result};
-use crate::events::Chunk;
-use crate::io::{EventSource, StreamInfo};
+use crate::events::{Chunk, Edge, EventChunk, Geometry, Trigger};
+use crate::io::atomic::AtomicFile;
+use crate::io::raw_header::{read_raw_header, stream_info, PayloadReader, READ_BUFFER_BYTES};
+use crate::io::{Anomalies, EventSource, Format, StreamInfo};
 
+/// Most events one EVT 3.0 word can produce (VECT_12).
+pub const MAX_EVENTS_PER_WORD: usize = 12;
+
+const TIME_HIGH_BITS: u32 = 12;
+/// Largest time base a TIME_HIGH can express, µs.
+const MAX_TIME_BASE: u64 = ((1 << 12) - 1) << 12;
+/// Period of the 24-bit clock, µs.
+pub const TIME_LOOP_US: u64 = MAX_TIME_BASE + (1 << 12);
+/// Tolerance of the loop detection (reference decoder's value), µs.
+const LOOP_THRESHOLD: u64 = 10 << 12;
+
+const ROW_CD: u8 = 1;
+const ROW_EM: u8 = 2;
+/// Word kinds handled on the branch-free fast path: ADDR_Y, ADDR_X, TIME_LOW.
+const FAST_KINDS: u16 = (1 << 0x0) | (1 << 0x2) | (1 << 0x6);
+
+/// The EVT 3.0 decoding state machine, independent of where the bytes come
+/// from (files through [`Evt3Reader`], memory in tests and tools).
+#[derive(Debug, Clone, Default)]
+pub struct Evt3Decoder {
+    have_time_base: bool,
+    /// Current time base including unwrapped loops, µs.
+    time_base: u64,
+    loops: u64,
+    current_time: i64,
+    y: u16,
+    /// 0: no ADDR_Y yet; [`ROW_CD`] after ADDR_Y; [`ROW_EM`] after EM_Y
+    /// (exposure-measurement events follow, not CD).
+    row: u8,
+    vector: VectorState,
+    pub anomalies: Anomalies,
+}
+
+impl Evt3Decoder {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Decode whole 16-bit words from `bytes` (a trailing odd byte is left
+    /// alone) into `out`, stopping once `out` holds at least `max_events`
+    /// events (at most `max_events + 11`) or triggers. Returns the number of
+    /// bytes consumed (always even).
+    pub fn decode(&mut self, bytes: &[u8], out: &mut Chunk, max_events: usize) -> usize {
+        let total = bytes.len() & !1;
+        let mut pos = 0;
+        while pos < total {
+            let len = out.events.len();
+            if len >= max_events || out.triggers.len() >= max_events {
+                break;
+            }
+            // Words that cannot overflow the chunk even if all are VECT_12.
+            let words = ((max_events - len) / MAX_EVENTS_PER_WORD).clamp(1, (total - pos) / 2);
+            let end = pos + 2 * words;
+            reserve(&mut out.events, words * MAX_EVENTS_PER_WORD);
+            self.decode_block(&bytes[pos..end], out);
+            pos = end;
+        }
+        pos
+    }
+
+    /// Skip to the first TIME_HIGH, counting the skipped words. Returns the
+    /// index of the first word not consumed.
+    #[cold]
+    fn find_time_base(&mut self, words: &[u8]) -> usize {
+        for (i, w) in words.chunks_exact(2).enumerate() {
+            let w = u16::from_le_bytes([w[0], w[1]]);
+            if w >> 12 == 0x8 {
+                self.have_time_base = true;
+                self.time_base = ((w & 0xFFF) as u64) << TIME_HIGH_BITS;
+                self.current_time = self.time_base as i64;
+                return 2 * (i + 1);
+            }
+            self.anomalies.words_before_time_base += 1;
+        }
+        words.len()
+    }
+
+    #[inline]
+    fn decode_block(&mut self, mut words: &[u8], out: &mut Chunk) {
+        if !self.have_time_base {
+            let skip = self.find_time_base(words);
+            words = &words[skip..];
+        }
+        // Local copies of the hot state so it lives in registers.
+        let mut t = self.current_time;
+        let mut y = self.y;
+        let mut row = self.row;
+        let mut vs = self.vector;
+        let mut time_base = self.time_base;
+        let mut sink = RawAppend::new(&mut out.events, words.len() / 2 * MAX_EVENTS_PER_WORD);
+        let n = words.len() & !1;
+        let mut pos = 0;
+        loop {
+            if row == ROW_CD {
+                // SAFETY: the sink has room for MAX_EVENTS_PER_WORD events
+                // per word of this block (+1 spare); the words before `pos`
+                // kept at most that many each, and the run keeps at most
+                // one per word.
+                pos += unsafe {
+                    fast_run(&words[pos..], &mut t, &mut y, &mut vs, time_base, &mut sink)
+                };
+            }
+            if pos >= n {
+                break;
+            }
+            let w = u16::from_le_bytes([words[pos], words[pos + 1]]);
+            pos += 2;
+            match w >> 12 {
+                0x0 => {
+                    y = w & 0x7FF;
+                    row = ROW_CD;
+                }
+                0x2 => {
+                    if row == ROW_EM {
+                        self.anomalies.skipped_other_words += 1;
+                    } else {
+                        self.anomalies.vector_without_base += 1;
+                    }
+                }
+                0x6 => t = (time_base + (w & 0xFFF) as u64) as i64,
+                kind @ (0x4 | 0x5) => {
+                    let (mut mask, n) = if kind == 0x4 {
+                        (w & 0xFFF, 12)
+                    } else {
+                        (w & 0xFF, 8)
+                    };
+                    if vs.have_base & (row == ROW_CD) {
+                        while mask != 0 {
+                            let i = mask.trailing_zeros() as u16;
+                            sink.push(t, vs.base_x.wrapping_add(i), y, vs.polarity);
+                            mask &= mask - 1;
+                        }
+                    } else {
+                        self.vector_without_base(row, vs.have_base);
+                    }
+                    vs.base_x = vs.base_x.wrapping_add(n);
+                }
+                0x3 => {
+                    vs.base_x = w & 0x7FF;
+                    vs.polarity = ((w >> 11) & 1) as u8;
+                    vs.have_base = true;
+                }
+                0x8 => {
+                    self.time_high(w);
+                    time_base = self.time_base;
+                    t = time_base as i64;
+                }
+                0xA => out.triggers.push(Trigger {
+                    t,
+                    channel: ((w >> 8) & 0xF) as u8,
+                    edge: if w & 1 == 1 {
+                        Edge::Rising
+                    } else {
+                        Edge::Falling
+                    },
+                }),
+                0x1 => {
+                    // EM_Y: the following X/VECT words are exposure
+                    // measurements, not CD events.
+                    row = ROW_EM;
+                    self.anomalies.skipped_other_words += 1;
+                }
+                0x7 | 0xE | 0xF => self.anomalies.skipped_other_words += 1,
+                _ => self.anomalies.unknown_word_types += 1,
+            }
+        }
+        drop(sink);
+        self.current_time = t;
+        self.y = y;
+        self.row = row;
+        self.vector = vs;
+    }
+
+    #[cold]
+    fn vector_without_base(&mut self, row: u8, have_base: bool) {
+        if row == ROW_EM && have_base {
+            self.anomalies.skipped_other_words += 1;
+        } else {
+            self.anomalies.vector_without_base += 1;
+        }
+    }
+
+    #[inline]
+    fn time_high(&mut self, w: u16) {
+        let mut new_base = (((w & 0xFFF) as u64) << TIME_HIGH_BITS) + self.loops * TIME_LOOP_US;
+        if self.time_base > new_base && self.time_base - new_base >= MAX_TIME_BASE - LOOP_THRESHOLD
+        {
+            new_base += TIME_LOOP_US;
+            self.loops += 1;
+            self.anomalies.time_loops += 1;
+        }
+        self.time_base = new_base;
+    }
+}
+
+/// The fast path of the EVT 3.0 decoder: a run of ADDR_X / ADDR_Y /
+/// TIME_LOW words inside a CD row (nearly all words of sparse data), with no
+/// data-dependent branch: each word writes a candidate event speculatively,
+/// kept only for an ADDR_X, and selects the new row / time. It stops before
+/// the first other word and returns the bytes consumed.
+///
+/// A separate, never-inlined function on purpose: with only its own few
+/// variables live, the state stays in registers (inlined into the full
+/// decoder, the row was spilled to the stack and every word paid a
+/// store-to-load round trip on it).
+///
+/// # Safety
+/// `sink` must have room for one kept event per word of `bytes`, plus the
+/// spare slot.
+#[inline(never)]
+unsafe fn fast_run(
+    bytes: &[u8],
+    t: &mut i64,
+    y: &mut u16,
+    vector: &mut VectorState,
+    time_base: u64,
+    sink: &mut RawAppend,
+) -> usize {
+    let (mut tt, mut yy) = (*t, *y);
+    let mut vs = *vector;
+    let n = bytes.len() & !1;
+    let mut i = 0;
+    while i < n {
+        // The commonest pair by far in sparse data is ADDR_Y then ADDR_X
+        // (each event in a new row): two such pairs per 64-bit load, then
+        // one pair per 32-bit load, then single words.
+        while let Some(b8) = bytes.get(i..i + 8) {
+            let v = u64::from_le_bytes(b8.try_into().expect("8 bytes"));
+            if v & 0xF000_F000_F000_F000 != 0x2000_0000_2000_0000 {
+                break;
+            }
+            let y0 = (v & 0x7FF) as u16;
+            yy = ((v >> 32) & 0x7FF) as u16;
+            // SAFETY: two kept events for four words (caller's room).
+            unsafe {
+                sink.write_spare_unchecked(
+                    tt,
+                    ((v >> 16) & 0x7FF) as u16,
+                    y0,
+                    ((v >> 27) & 1) as u8,
+                );
+                sink.advance(1);
+                sink.write_spare_unchecked(
+                    tt,
+                    ((v >> 48) & 0x7FF) as u16,
+                    yy,
+                    ((v >> 59) & 1) as u8,
+                );
+                sink.advance(1);
+            }
+            i += 8;
+        }
+        if let Some(b4) = bytes.get(i..i + 4) {
+            let v = u32::from_le_bytes(b4.try_into().expect("4 bytes"));
+            if v & 0xF000_F000 == 0x2000_0000 {
+                yy = (v & 0x7FF) as u16;
+                // SAFETY: one kept event for two words (caller's room).
+                unsafe {
+                    sink.write_spare_unchecked(
+                        tt,
+                        ((v >> 16) & 0x7FF) as u16,
+                        yy,
+                        ((v >> 27) & 1) as u8,
+                    )
+                };
+                sink.advance(1);
+                i += 4;
+                continue;
+            }
+        }
+        if i >= n {
+            break;
+        }
+        let w = u16::from_le_bytes([bytes[i], bytes[i + 1]]);
+        let kind = w >> 12;
+        if (1u16 << kind) & FAST_KINDS == 0 {
+            // Vector words (dense rows) stay on the fast path too; a vector
+            // with no base yet goes to the slow path to be counted.
+            if kind == 0x3 {
+                vs.base_x = w & 0x7FF;
+                vs.polarity = ((w >> 11) & 1) as u8;
+                vs.have_base = true;
+                i += 2;
+                continue;
+            }
+            if (kind == 0x4 || kind == 0x5) && vs.have_base {
+                let (mut mask, width) = if kind == 0x4 {
+                    (w & 0xFFF, 12)
+                } else {
+                    (w & 0xFF, 8)
+                };
+                while mask != 0 {
+                    let bit = mask.trailing_zeros() as u16;
+                    // SAFETY: at most MAX_EVENTS_PER_WORD kept events per
+                    // word (caller's room).
+                    unsafe {
+                        sink.write_spare_unchecked(tt, vs.base_x.wrapping_add(bit), yy, vs.polarity)
+                    };
+                    sink.advance(1);
+                    mask &= mask - 1;
+                }
+                vs.base_x = vs.base_x.wrapping_add(width);
+                i += 2;
+                continue;
+            }
+            break;
+        }
+        // SAFETY: at most one kept event per word so far (caller's room).
+        unsafe { sink.write_spare_unchecked(tt, w & 0x7FF, yy, ((w >> 11) & 1) as u8) };
+        sink.advance((kind == 0x2) as usize);
+        yy = if kind == 0x0 { w & 0x7FF } else { yy };
+        let low_time = (time_base + (w & 0xFFF) as u64) as i64;
+        tt = if kind == 0x6 { low_time } else { tt };
+        i += 2;
+    }
+    *t = tt;
+    *y = yy;
+    *vector = vs;
+    i
+}
+
+/// The vector base the VECT_12 / VECT_8 words build on.
+#[derive(Debug, Clone, Copy, Default)]
+struct VectorState {
+    base_x: u16,
+    polarity: u8,
+    have_base: bool,
+}
+
+/// Appends to an [`EventChunk`] through pointers into capacity reserved up
+/// front, so the hot loops keep the length in a register, write the four
+/// columns without per-push capacity checks, and can write a candidate
+/// event *speculatively* (at the current end, kept only if `advance`d).
+///
+/// Safety rests on one invariant, checked on every write: nothing is written
+/// at or beyond `len + room + 1` slots reserved in [`RawAppend::new`]. The
+/// lengths are set once, on drop; everything below them was written.
+pub(crate) struct RawAppend<'a> {
+    chunk: &'a mut EventChunk,
+    t: *mut i64,
+    x: *mut u16,
+    y: *mut u16,
+    p: *mut u8,
+    len: usize,
+    /// One past the last writable slot.
+    end: usize,
+}
+
+impl<'a> RawAppend<'a> {
+    /// Room for `room` appended events plus one speculative slot.
+    #[inline]
+    pub(crate) fn new(chunk: &'a mut EventChunk, room: usize) -> Self {
+        reserve(chunk, room + 1);
+        let len = chunk.len();
+        RawAppend {
+            t: chunk.t.as_mut_ptr(),
+            x: chunk.x.as_mut_ptr(),
+            y: chunk.y.as_mut_ptr(),
+            p: chunk.p.as_mut_ptr(),
+            chunk,
+            len,
+            end: len + room + 1,
+        }
+    }
+
+    /// Write an event in the slot after the last kept one, without keeping
+    /// it (see [`RawAppend::advance`]).
+    ///
+    /// # Safety
+    /// `len < end`: the caller has kept fewer than `room + 1` events (the
+    /// decoders guarantee it by construction: a block of `k` words reserves
+    /// `k * MAX_EVENTS_PER_WORD` and no word keeps more than that many).
+    #[inline(always)]
+    pub(crate) unsafe fn write_spare_unchecked(&mut self, t: i64, x: u16, y: u16, p: u8) {
+        debug_assert!(self.len < self.end);
+        // SAFETY: len < end <= capacity of all four vectors (reserved in
+        // `new`, and the vectors are exclusively borrowed since).
+        unsafe {
+            self.t.add(self.len).write(t);
+            self.x.add(self.len).write(x);
+            self.y.add(self.len).write(y);
+            self.p.add(self.len).write(p);
+        }
+    }
+
+    /// Keep the last `write_spare`d event (`k` = 1) or not (`k` = 0).
+    #[inline(always)]
+    pub(crate) fn advance(&mut self, k: usize) {
+        self.len += k;
+    }
+
+    /// Append one event (checked: panics rather than overflow the room).
+    #[inline(always)]
+    pub(crate) fn push(&mut self, t: i64, x: u16, y: u16, p: u8) {
+        if self.len >= self.end {
+            overflow();
+        }
+        // SAFETY: checked just above.
+        unsafe { self.write_spare_unchecked(t, x, y, p) };
+        self.len += 1;
+    }
+}
+
+impl Drop for RawAppend<'_> {
+    fn drop(&mut self) {
+        // The kept events are at most `end - 1` <= capacity, all written.
+        let len = self.len;
+        // SAFETY: every slot below `len` was written by `write_spare`, and
+        // `len` <= capacity; the element types are plain integers.
+        unsafe {
+            self.chunk.t.set_len(len);
+            self.chunk.x.set_len(len);
+            self.chunk.y.set_len(len);
+            self.chunk.p.set_len(len);
+        }
+    }
+}
+
+#[cold]
+#[inline(never)]
+fn overflow() -> ! {
+    panic!("RawAppend: more events than the room reserved (decoder bug)")
+}
+
+#[inline]
+fn reserve(ev: &mut EventChunk, n: usize) {
+    ev.t.reserve(n);
+    ev.x.reserve(n);
+    ev.y.reserve(n);
+    ev.p.reserve(n);
+}
+
+/// Count events outside `geometry` (kept, reported). Two vectorised max
+/// reductions decide the common case (all inside) without a per-event test.
+pub(crate) fn count_out_of_geometry(ev: &EventChunk, geometry: Option<Geometry>) -> u64 {
+    let Some(g) = geometry else { return 0 };
+    let max_x = ev.x.iter().copied().max().unwrap_or(0);
+    let max_y = ev.y.iter().copied().max().unwrap_or(0);
+    if max_x < g.width && max_y < g.height {
+        return 0;
+    }
+    ev.x.iter()
+        .zip(&ev.y)
+        .filter(|&(&x, &y)| x >= g.width || y >= g.height)
+        .count() as u64
+}
+
+/// Streaming EVT 3.0 file reader.
 pub struct Evt3Reader {
     info: StreamInfo,
+    payload: PayloadReader,
+    decoder: Evt3Decoder,
+    chunk_events: usize,
+    out_of_geometry: u64,
+    tail_reported: bool,
 }
 
 impl Evt3Reader {
-    pub fn open(path: &Path, _chunk_events: usize) -> Result<Self> {
-        Err(Error::UnknownFormat {
-            path: path.to_path_buf(),
-            why: "Prophesee evt3 reader not implemented yet".into(),
+    /// Open `path`, parse its header, and prepare to stream chunks of about
+    /// `chunk_events` events (at most `chunk_events + 11`).
+    pub fn open(path: &Path, chunk_events: usize) -> Result<Self> {
+        Self::open_with_buffer(path, chunk_events, READ_BUFFER_BYTES)
+    }
+
+    /// [`Evt3Reader::open`] with a chosen read-buffer size (tests use tiny
+    /// buffers to exercise sequences straddling refills).
+    pub fn open_with_buffer(path: &Path, chunk_events: usize, buffer_bytes: usize) -> Result<Self> {
+        let header = read_raw_header(path)?;
+        check_header_format(path, header.format, Format::Evt3)?;
+        let info = stream_info(path, Format::Evt3, &header)?;
+        check_not_empty(&info)?;
+        Ok(Evt3Reader {
+            payload: PayloadReader::open(path, header.payload_offset, 2, buffer_bytes)?,
+            info,
+            decoder: Evt3Decoder::new(),
+            chunk_events: chunk_events.max(1),
+            out_of_geometry: 0,
+            tail_reported: false,
         })
     }
+}
+
+/// A reader refuses a file whose header names another encoding.
+pub(crate) fn check_header_format(path: &Path, said: Option<Format>, reader: Format) -> Result<()> {
+    match said {
+        Some(f) if f != reader => Err(Error::corrupt(
+            path,
+            0,
+            format!(
+                "the header says {} but the file is being read as {}",
+                f.name(),
+                reader.name()
+            ),
+        )),
+        _ => Ok(()),
+    }
+}
+
+/// A zero-byte file is an error (there is nothing to read, not even a
+/// header); a header-only file is a valid, empty recording.
+pub(crate) fn check_not_empty(info: &StreamInfo) -> Result<()> {
+    if info.file_size == Some(0) {
+        return Err(Error::Empty {
+            path: info.path.clone(),
+            why: "the file is empty (0 bytes)".into(),
+        });
+    }
+    Ok(())
 }
 
 impl EventSource for Evt3Reader {
     fn info(&self) -> &StreamInfo {
         &self.info
     }
+
     fn next_chunk(&mut self, chunk: &mut Chunk) -> Result<bool> {
         chunk.clear();
-        Ok(false)
+        reserve(&mut chunk.events, self.chunk_events + MAX_EVENTS_PER_WORD);
+        loop {
+            let words = self.payload.words()?;
+            if words.is_empty() {
+                if !self.tail_reported {
+                    self.tail_reported = true;
+                    self.decoder.anomalies.truncated_tail_bytes +=
+                        self.payload.trailing_partial_bytes();
+                }
+                break;
+            }
+            let used = self.decoder.decode(words, chunk, self.chunk_events);
+            self.payload.consume(used);
+            if chunk.events.len() >= self.chunk_events || chunk.triggers.len() >= self.chunk_events
+            {
+                break;
+            }
+        }
+        self.out_of_geometry += count_out_of_geometry(&chunk.events, self.info.geometry);
+        Ok(!chunk.is_empty())
+    }
+
+    fn anomalies(&self) -> Anomalies {
+        let mut a = self.decoder.anomalies.clone();
+        a.out_of_geometry = self.out_of_geometry;
+        a
+    }
+
+    fn bytes_read(&self) -> u64 {
+        self.payload.file_offset()
     }
 }
 
-pub struct Evt3Writer;
+// ---------------------------------------------------------------- writer
+
+/// Sequence of TIME_HIGH values (`bits` wide) that takes a decoder from time
+/// high `last` (full value incl. loops, `None` at stream start) to `new`,
+/// such that the decoder's loop rule (a drop of at least `max - 10`) counts
+/// exactly the loops crossed: each loop boundary is crossed as
+/// `max → 0`. Returns `Err` when `new` cannot be reached (time going back
+/// across a loop boundary, or by nearly a full loop).
+pub(crate) fn time_high_steps(
+    last: Option<u64>,
+    new: u64,
+    bits: u32,
+    out: &mut Vec<u32>,
+) -> std::result::Result<(), ()> {
+    let mask = (1u64 << bits) - 1;
+    let mut cur = match last {
+        Some(c) => c,
+        None => {
+            // The decoder starts in loop 0.
+            let start = if new >> bits == 0 { new } else { 0 };
+            out.push((start & mask) as u32);
+            start
+        }
+    };
+    if new < cur {
+        if cur >> bits == new >> bits && cur - new < mask - 10 {
+            out.push((new & mask) as u32);
+            return Ok(());
+        }
+        return Err(());
+    }
+    while cur >> bits < new >> bits {
+        if cur & mask != mask {
+            out.push(mask as u32);
+        }
+        cur = (cur | mask) + 1;
+        out.push(0);
+    }
+    if cur != new {
+        out.push((new & mask) as u32);
+    }
+    Ok(())
+}
+
+/// EVT 3.0 writer (through [`AtomicFile`]: nothing appears at the target
+/// until [`crate::io::EventWriter::finish`]).
+pub struct Evt3Writer {
+    file: AtomicFile,
+    geometry: Geometry,
+    words: Vec<u16>,
+    th_scratch: Vec<u32>,
+    /// Full time high (t >> 12) last written, incl. loops.
+    time_high: Option<u64>,
+    time: Option<i64>,
+    y: Option<u16>,
+    xs: Vec<u16>,
+}
 
 impl Evt3Writer {
-    pub fn create(path: &Path, _geometry: crate::events::Geometry) -> Result<Self> {
-        Err(Error::param(
-            "output",
-            format!("{}: writer not implemented yet", path.display()),
-        ))
+    pub fn create(path: &Path, geometry: Geometry) -> Result<Self> {
+        if geometry.width == 0
+            || geometry.height == 0
+            || geometry.width > 2048
+            || geometry.height > 2048
+        {
+            return Err(Error::param(
+                "geometry",
+                format!(
+                    "{}x{}: EVT 3.0 holds sensors from 1x1 up to 2048x2048",
+                    geometry.width, geometry.height
+                ),
+            ));
+        }
+        let mut file = AtomicFile::create(path)?;
+        let header = format!(
+            "% format EVT3;height={h};width={w}\n% geometry {w}x{h}\n% generator ebptv {v}\n% end\n",
+            w = geometry.width,
+            h = geometry.height,
+            v = env!("CARGO_PKG_VERSION")
+        );
+        file.write_all(header.as_bytes())
+            .map_err(|e| Error::io(path, e))?;
+        Ok(Evt3Writer {
+            file,
+            geometry,
+            words: Vec::with_capacity(1 << 16),
+            th_scratch: Vec::new(),
+            time_high: None,
+            time: None,
+            y: None,
+            xs: Vec::new(),
+        })
+    }
+
+    fn set_time(&mut self, t: i64) -> Result<()> {
+        if self.time == Some(t) {
+            return Ok(());
+        }
+        if t < 0 {
+            return Err(Error::param(
+                "events",
+                format!("time {t} µs is negative; EVT 3.0 stores times from 0"),
+            ));
+        }
+        let th = (t as u64) >> 12;
+        if self.time_high != Some(th) {
+            self.th_scratch.clear();
+            time_high_steps(self.time_high, th, 12, &mut self.th_scratch).map_err(|_| {
+                Error::param(
+                    "events",
+                    format!(
+                        "time steps back from {} µs to {t} µs across a 24-bit clock loop; EVT 3.0 cannot encode that (events must be time-ordered)",
+                        self.time.unwrap_or(0)
+                    ),
+                )
+            })?;
+            self.words
+                .extend(self.th_scratch.iter().map(|&v| 0x8000 | v as u16));
+            self.time_high = Some(th);
+        }
+        self.words.push(0x6000 | (t as u16 & 0xFFF));
+        self.time = Some(t);
+        Ok(())
+    }
+
+    fn set_y(&mut self, y: u16) {
+        if self.y != Some(y) {
+            self.words.push(y & 0x7FF);
+            self.y = Some(y);
+        }
+    }
+
+    /// Encode `xs` (strictly increasing, same t, y, polarity `p`).
+    fn encode_row_run(&mut self, p: u8) {
+        let xs = std::mem::take(&mut self.xs);
+        let pbit = (p as u16 & 1) << 11;
+        let mut i = 0;
+        while i < xs.len() {
+            let base = xs[i];
+            // Events in the first 12-wide window decide whether a vector pays.
+            let in_window = xs[i..].iter().take_while(|&&x| x < base + 12).count();
+            if in_window < 3 {
+                self.words.push(0x2000 | pbit | xs[i]);
+                i += 1;
+                continue;
+            }
+            self.words.push(0x3000 | pbit | base);
+            let mut block = base;
+            // Each further 12-wide block with at least one event costs one word.
+            while i < xs.len() && xs[i] < block + 12 {
+                let mut mask = 0u16;
+                while i < xs.len() && xs[i] < block + 12 {
+                    mask |= 1 << (xs[i] - block);
+                    i += 1;
+                }
+                if mask < 0x100 && (i >= xs.len() || xs[i] >= block + 12) {
+                    self.words.push(0x5000 | mask);
+                    block += 8;
+                } else {
+                    self.words.push(0x4000 | mask);
+                    block += 12;
+                }
+            }
+        }
+        self.xs = xs;
+        self.xs.clear();
+    }
+
+    fn flush_words(&mut self) -> Result<()> {
+        let mut bytes = Vec::with_capacity(self.words.len() * 2);
+        for w in &self.words {
+            bytes.extend_from_slice(&w.to_le_bytes());
+        }
+        self.words.clear();
+        let target = self.file.target().to_path_buf();
+        self.file
+            .write_all(&bytes)
+            .map_err(|e| Error::io(target, e))
+    }
+
+    fn write_trigger(&mut self, tr: &Trigger) -> Result<()> {
+        if tr.channel > 15 {
+            return Err(Error::param(
+                "triggers",
+                format!("channel {} does not fit EVT 3.0's 4-bit id", tr.channel),
+            ));
+        }
+        self.set_time(tr.t)?;
+        let v = matches!(tr.edge, Edge::Rising) as u16;
+        self.words.push(0xA000 | ((tr.channel as u16) << 8) | v);
+        Ok(())
     }
 }
 
 impl crate::io::EventWriter for Evt3Writer {
-    fn write_chunk(&mut self, _chunk: &Chunk) -> Result<()> {
-        Ok(())
+    fn write_chunk(&mut self, chunk: &Chunk) -> Result<()> {
+        let ev = &chunk.events;
+        let n = ev.len();
+        let mut trig = chunk.triggers.iter().peekable();
+        let mut i = 0;
+        while i < n {
+            let (t, y, p) = (ev.t[i], ev.y[i], ev.p[i]);
+            while let Some(tr) = trig.next_if(|tr| tr.t <= t) {
+                self.write_trigger(tr)?;
+            }
+            if ev.x[i] >= 2048 || y >= 2048 {
+                return Err(Error::param(
+                    "events",
+                    format!(
+                        "event at ({}, {y}) does not fit EVT 3.0's 11-bit coordinates",
+                        ev.x[i]
+                    ),
+                ));
+            }
+            self.set_time(t)?;
+            self.set_y(y);
+            // The run of events with the same t, y, p and increasing x.
+            self.xs.clear();
+            self.xs.push(ev.x[i]);
+            let mut j = i + 1;
+            while j < n
+                && ev.t[j] == t
+                && ev.y[j] == y
+                && ev.p[j] == p
+                && ev.x[j] > ev.x[j - 1]
+                && ev.x[j] < 2048
+            {
+                self.xs.push(ev.x[j]);
+                j += 1;
+            }
+            self.encode_row_run(p);
+            i = j;
+        }
+        for tr in trig {
+            self.write_trigger(tr)?;
+        }
+        let _ = self.geometry;
+        self.flush_words()
     }
-    fn finish(self: Box<Self>) -> Result<()> {
-        Ok(())
+
+    fn finish(mut self: Box<Self>) -> Result<()> {
+        self.flush_words()?;
+        self.file.commit()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn decode_all(words: &[u16]) -> (Chunk, Anomalies) {
+        let bytes: Vec<u8> = words.iter().flat_map(|w| w.to_le_bytes()).collect();
+        let mut d = Evt3Decoder::new();
+        let mut c = Chunk::default();
+        let used = d.decode(&bytes, &mut c, usize::MAX / 2);
+        assert_eq!(used, bytes.len());
+        (c, d.anomalies)
+    }
+
+    #[test]
+    fn words_of_every_type() {
+        let (c, a) = decode_all(&[
+            0x2005, // ADDR_X before time base: skipped
+            0x8001, // TIME_HIGH 1 → 4096
+            0x6010, // TIME_LOW 16 → 4112
+            0x0007, // y = 7
+            0x2803, // x = 3, ON
+            0x3010, // base x = 16, OFF
+            0x4805, // VECT_12 bits 0, 2, 11 → 16, 18, 27
+            0x5003, // VECT_8 bits 0, 1 → 28, 29
+            0x6005, // TIME_LOW back to 5 (legal)
+            0xA101, // trigger id 1 rising
+            0xE000, 0x7000, 0xF000, // OTHERS + continued
+            0x9000, // unknown
+        ]);
+        assert_eq!(c.events.x, vec![3, 16, 18, 27, 28, 29]);
+        assert_eq!(c.events.y, vec![7; 6]);
+        assert_eq!(c.events.p, vec![1, 0, 0, 0, 0, 0]);
+        assert_eq!(c.events.t, vec![4112; 6]);
+        assert_eq!(
+            c.triggers,
+            vec![Trigger {
+                t: 4101,
+                channel: 1,
+                edge: Edge::Rising
+            }]
+        );
+        assert_eq!(a.words_before_time_base, 1);
+        assert_eq!(a.skipped_other_words, 3);
+        assert_eq!(a.unknown_word_types, 1);
+    }
+
+    #[test]
+    fn time_high_loop() {
+        let (c, a) = decode_all(&[0x8FFF, 0x0001, 0x6FFF, 0x2001, 0x8000, 0x6002, 0x2002]);
+        assert_eq!(
+            c.events.t,
+            vec![(4095 << 12) + 4095, TIME_LOOP_US as i64 + 2]
+        );
+        assert_eq!(a.time_loops, 1);
+        // A smaller step back is not a loop.
+        let (c, a) = decode_all(&[0x8800, 0x0001, 0x2001, 0x8100, 0x2002]);
+        assert_eq!(c.events.t, vec![0x800 << 12, 0x100 << 12]);
+        assert_eq!(a.time_loops, 0);
+    }
+
+    #[test]
+    fn vector_without_base_is_counted() {
+        let (c, a) = decode_all(&[0x8000, 0x0003, 0x4FFF, 0x2001]);
+        assert_eq!(c.events.len(), 1);
+        assert_eq!(a.vector_without_base, 1);
+    }
+
+    #[test]
+    fn time_high_steps_cross_loops() {
+        let mut v = Vec::new();
+        time_high_steps(Some(100), (2 << 12) + 50, 12, &mut v).unwrap();
+        assert_eq!(v, vec![4095, 0, 4095, 0, 50]);
+        v.clear();
+        time_high_steps(None, (1 << 12) + 7, 12, &mut v).unwrap();
+        assert_eq!(v, vec![0, 4095, 0, 7]);
+        v.clear();
+        assert!(time_high_steps(Some(1 << 12), 4095, 12, &mut v).is_err());
+        assert!(time_high_steps(Some(4095), 2, 12, &mut v).is_err());
+        v.clear();
+        time_high_steps(Some(300), 200, 12, &mut v).unwrap();
+        assert_eq!(v, vec![200]);
     }
 }

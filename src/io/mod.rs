@@ -252,3 +252,4 @@ pub mod filter;
 pub mod npy;
 pub mod raw_header;
 pub mod sniff;
+pub mod summary;

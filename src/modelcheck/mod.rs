@@ -1,4 +1,14 @@
 //! Model check: where simulation and measured data disagree, which effect
 //! is missing, fitted, with the gap before and after.
 //!
-//! (Design notes to be written with the implementation.)
+//! The building blocks:
+//! - [`signatures`]: summaries (histograms, profiles, scalars) computed by
+//!   one code path on measured and simulated events, with binnings fixed by
+//!   a shared [`signatures::SignatureConfig`];
+//! - [`distance`]: distances between signatures (Wasserstein, chi-square,
+//!   profile and scalar differences), standardised against
+//!   simulation-vs-simulation replicates, and the ranking table.
+
+pub mod distance;
+pub mod signatures;
+pub mod workflow;

@@ -1,0 +1,317 @@
+//! `ebptv track`: recording (or particles.csv) → particles → tracks.
+
+use std::io::BufRead;
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+
+use ebptv::cluster::{cluster_pulses, ClusterParams, Particle};
+use ebptv::pulses::{self, PulseEvents, PulseOptions};
+use ebptv::track::{ParticlesCsvWriter, SummaryAcc, Track, TrackParams, Tracker, TracksCsvWriter};
+
+#[derive(Args, Debug)]
+pub struct TrackArgs {
+    /// A recording (any supported event format) or a `particles.csv`
+    /// (`pulse,t_us,x,y,n_events`: linking only).
+    pub input: PathBuf,
+    /// Output directory (created if missing).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Clustering radius (px): events on pixels at most this far apart join.
+    #[arg(long, default_value_t = 1.5)]
+    pub radius: f64,
+    /// Largest particle displacement between pulses (px).
+    #[arg(long, default_value_t = 10.0)]
+    pub max_disp: f64,
+    /// Fewest detections of a kept track.
+    #[arg(long, default_value_t = 5)]
+    pub min_length: usize,
+    /// Missed pulses a track may bridge.
+    #[arg(long, default_value_t = 2)]
+    pub gap: u32,
+    /// Nominal pulse frequency (Hz) when pulse times are estimated from the
+    /// events (no trigger channel).
+    #[arg(long)]
+    pub pulse_hz: Option<f64>,
+    /// Ignore the trigger channel and estimate pulse times from the events.
+    #[arg(long)]
+    pub ignore_triggers: bool,
+    /// Cluster OFF events too (default: ON events only).
+    #[arg(long)]
+    pub all_polarities: bool,
+    /// Smallest cluster kept (events).
+    #[arg(long, default_value_t = 1)]
+    pub min_events: u32,
+    /// Largest cluster kept (events).
+    #[arg(long, default_value_t = 64)]
+    pub max_events: u32,
+    /// File of pixels to ignore, one `x,y` per line.
+    #[arg(long)]
+    pub hot_pixels: Option<PathBuf>,
+    /// Uniform mean-flow prior `U,V` (px/s) for track initialisation.
+    #[arg(long, value_delimiter = ',', num_args = 2)]
+    pub prior: Option<Vec<f64>>,
+    /// Pulses shown in tracks.png (from the first pulse).
+    #[arg(long, default_value_t = 200)]
+    pub plot_pulses: i64,
+    /// Pulses clustered per parallel batch.
+    #[arg(long, default_value_t = 512)]
+    pub batch: usize,
+}
+
+/// Clustering, tracking and streaming output for one run.
+struct Pipeline {
+    cluster: ClusterParams,
+    tracker: Tracker,
+    particles_out: ParticlesCsvWriter,
+    tracks_out: TracksCsvWriter,
+    summary: SummaryAcc,
+    batch: Vec<PulseEvents>,
+    batch_size: usize,
+    first_pulse: Option<i64>,
+    plot_pulses: i64,
+    plot_lines: Vec<Vec<(f64, f64)>>,
+    plot_speeds: Vec<f64>,
+    width: f64,
+    height: f64,
+    events: u64,
+    progress: ProgressBar,
+}
+
+impl Pipeline {
+    fn pulse(&mut self, p: PulseEvents) -> ebptv::Result<()> {
+        self.events += p.events.len() as u64;
+        self.batch.push(p);
+        if self.batch.len() >= self.batch_size {
+            self.flush()?;
+        }
+        Ok(())
+    }
+
+    fn flush(&mut self) -> ebptv::Result<()> {
+        let parts = cluster_pulses(&self.batch, &self.cluster)?;
+        let batch = std::mem::take(&mut self.batch);
+        for (pe, ps) in batch.iter().zip(parts) {
+            self.link(pe.index, pe.start_us, &ps)?;
+        }
+        self.batch = batch;
+        self.batch.clear();
+        self.progress.set_message(format!(
+            "{} events, {} particles, {} active tracks",
+            self.events,
+            self.tracker.stats().particles,
+            self.tracker.active_tracks()
+        ));
+        Ok(())
+    }
+
+    fn link(&mut self, pulse: i64, t_us: f64, ps: &[Particle]) -> ebptv::Result<()> {
+        self.first_pulse.get_or_insert(pulse);
+        for p in ps {
+            self.width = self.width.max(p.x + 1.0);
+            self.height = self.height.max(p.y + 1.0);
+        }
+        self.particles_out.write(ps)?;
+        let done = self.tracker.push(pulse, t_us, ps)?;
+        self.emit(&done)?;
+        self.progress.inc(1);
+        Ok(())
+    }
+
+    fn emit(&mut self, tracks: &[Track]) -> ebptv::Result<()> {
+        self.tracks_out.write(tracks)?;
+        self.summary.add(tracks);
+        let end = self.first_pulse.unwrap_or(0) + self.plot_pulses;
+        for t in tracks {
+            let pts: Vec<(f64, f64)> = t
+                .points
+                .iter()
+                .filter(|p| p.pulse < end)
+                .map(|p| (p.x, p.y))
+                .collect();
+            if pts.len() >= 2 {
+                let speed =
+                    t.points.iter().map(|p| p.u.hypot(p.v)).sum::<f64>() / t.points.len() as f64;
+                self.plot_lines.push(pts);
+                self.plot_speeds.push(speed);
+            }
+        }
+        Ok(())
+    }
+
+    fn finish(mut self, out: &Path, width: Option<f64>, height: Option<f64>) -> anyhow::Result<()> {
+        self.flush()?;
+        let fresh = Tracker::new(TrackParams::default())?;
+        let (rest, stats) = std::mem::replace(&mut self.tracker, fresh).finish();
+        let rest: Vec<Track> = rest.into_iter().map(|t| t.track).collect();
+        self.emit(&rest)?;
+        self.progress.finish_and_clear();
+        let summary = self.summary.summary(&stats);
+        // Outputs appear together at the end (each atomically).
+        self.particles_out.finish()?;
+        self.tracks_out.finish()?;
+        ebptv::track::write_summary_json(&out.join("summary.json"), &summary)?;
+        // TODO(io-other): write tracks.npy with crate::io::npy once the npy
+        // helpers land in main.
+        ebptv::plot::polylines(
+            &out.join("tracks.png"),
+            &ebptv::plot::Polylines {
+                title: &format!(
+                    "tracks, pulses {}..{}",
+                    self.first_pulse.unwrap_or(0),
+                    self.first_pulse.unwrap_or(0) + self.plot_pulses
+                ),
+                width: width.unwrap_or(self.width.max(1.0)),
+                height: height.unwrap_or(self.height.max(1.0)),
+                lines: &self.plot_lines,
+                values: &self.plot_speeds,
+                colorbar_label: "speed (px/s)",
+            },
+        )?;
+        eprintln!(
+            "{} pulses, {} particles, {} tracks ({:.1} % of particles on tracks, mean length {:.1}) → {}",
+            summary.pulses,
+            summary.particles,
+            summary.tracks,
+            100.0 * summary.fraction_on_tracks,
+            summary.mean_track_length,
+            out.display()
+        );
+        Ok(())
+    }
+}
+
+/// True when the file's first line looks like a particles.csv header (has
+/// a `pulse` column; event CSVs do not). Missing columns are then reported
+/// by the particles.csv reader.
+fn is_particles_csv(path: &Path) -> bool {
+    let Ok(f) = std::fs::File::open(path) else {
+        return false;
+    };
+    let mut line = String::new();
+    if std::io::BufReader::new(f).read_line(&mut line).is_err() {
+        return false;
+    }
+    let cols: Vec<&str> = line.trim().split(',').map(|c| c.trim()).collect();
+    cols.contains(&"pulse")
+}
+
+fn read_hot_pixels(path: &Path) -> anyhow::Result<std::collections::HashSet<(u16, u16)>> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let mut set = std::collections::HashSet::new();
+    for (i, line) in text.lines().enumerate() {
+        let f: Vec<&str> = line.split(',').map(|s| s.trim()).collect();
+        if f.len() < 2 || line.trim().is_empty() {
+            continue;
+        }
+        match (f[0].parse::<u16>(), f[1].parse::<u16>()) {
+            (Ok(x), Ok(y)) => {
+                set.insert((x, y));
+            }
+            _ if i == 0 => {} // header
+            _ => anyhow::bail!(
+                "{}: line {}: expected `x,y` pixel coordinates, got `{line}`",
+                path.display(),
+                i + 1
+            ),
+        }
+    }
+    Ok(set)
+}
+
+pub fn run(args: TrackArgs) -> anyhow::Result<()> {
+    let cluster = ClusterParams {
+        radius: args.radius,
+        on_only: !args.all_polarities,
+        min_events: args.min_events,
+        max_events: args.max_events,
+        hot_pixels: match &args.hot_pixels {
+            Some(p) => read_hot_pixels(p)?,
+            None => Default::default(),
+        },
+    };
+    cluster.validate()?;
+    let mut tparams = TrackParams {
+        max_disp: args.max_disp,
+        min_length: args.min_length,
+        max_gap: args.gap,
+        ..Default::default()
+    };
+    if let Some(p) = &args.prior {
+        tparams.prior = Some(ebptv::track::FlowPrior::uniform(p[0], p[1]));
+    }
+    let tracker = Tracker::new(tparams)?;
+    if args.batch == 0 {
+        anyhow::bail!("invalid parameter `batch`: must be at least 1");
+    }
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+
+    let progress = ProgressBar::new_spinner();
+    progress.set_style(
+        ProgressStyle::with_template("{spinner} {elapsed} {pos} pulses  {msg}")
+            .expect("valid template"),
+    );
+    progress.enable_steady_tick(std::time::Duration::from_millis(200));
+    let mut pipe = Pipeline {
+        cluster,
+        tracker,
+        particles_out: ParticlesCsvWriter::create(&args.out.join("particles.csv"))?,
+        tracks_out: TracksCsvWriter::create(&args.out.join("tracks.csv"))?,
+        summary: SummaryAcc::default(),
+        batch: Vec::new(),
+        batch_size: args.batch,
+        first_pulse: None,
+        plot_pulses: args.plot_pulses,
+        plot_lines: Vec::new(),
+        plot_speeds: Vec::new(),
+        width: 0.0,
+        height: 0.0,
+        events: 0,
+        progress,
+    };
+
+    if is_particles_csv(&args.input) {
+        let particles = ebptv::track::read_particles_csv(&args.input)?;
+        let mut order: Vec<usize> = (0..particles.len()).collect();
+        order.sort_by_key(|&i| particles[i].pulse);
+        let sorted: Vec<Particle> = order.iter().map(|&i| particles[i]).collect();
+        let mut s = 0;
+        while s < sorted.len() {
+            let mut e = s;
+            while e < sorted.len() && sorted[e].pulse == sorted[s].pulse {
+                e += 1;
+            }
+            pipe.link(sorted[s].pulse, sorted[s].t_us, &sorted[s..e])?;
+            s = e;
+        }
+        return pipe.finish(&args.out, None, None);
+    }
+
+    let opts = PulseOptions {
+        pulse_hz: args.pulse_hz,
+        ignore_triggers: args.ignore_triggers,
+        ..Default::default()
+    };
+    let mut src = ebptv::io::open(&args.input)?;
+    let geometry = src.info().geometry;
+    let report = pulses::analyze(&mut *src, &opts)
+        .with_context(|| format!("finding the light pulses in {}", args.input.display()))?;
+    let json = serde_json::to_vec_pretty(&report)?;
+    ebptv::io::atomic::AtomicFile::write_all_to(args.out.join("pulses.json"), &json)?;
+    let mut src = ebptv::io::open(&args.input)?;
+    let unassigned = pulses::split_pulses(&mut *src, &report.timing, &mut |p| pipe.pulse(p))?;
+    if unassigned > 0 {
+        pipe.progress.println(format!(
+            "{unassigned} events could not be attributed to a pulse"
+        ));
+    }
+    pipe.finish(
+        &args.out,
+        geometry.map(|g| g.width as f64),
+        geometry.map(|g| g.height as f64),
+    )
+}

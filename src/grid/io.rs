@@ -1,0 +1,204 @@
+//! Grid files: the mergeable state (`grid_state.json`), `grid.csv`,
+//! `grid_extra.csv`, `profile.csv` and PNG maps.
+//!
+//! The state is JSON with only the non-empty bins; f64 values are written
+//! in shortest round-trip form so reading a state back reproduces the sums.
+
+use std::io::Write;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use super::accumulate::{BinAcc, GridAccumulator};
+use super::estimate::GridStats;
+use super::spec::GridSpec;
+use crate::error::{Error, Result};
+use crate::io::atomic::AtomicFile;
+
+const STATE_FORMAT: &str = "ebptv-grid-state";
+const STATE_VERSION: u32 = 1;
+
+#[derive(Serialize, Deserialize)]
+struct StateFile {
+    format: String,
+    version: u32,
+    spec: GridSpec,
+    rejected: u64,
+    outside: u64,
+    /// (flat index, sums) of the non-empty bins.
+    bins: Vec<(usize, BinAcc)>,
+}
+
+/// Write the accumulator so that `ebptv grid --merge` can combine it with others.
+pub fn save_state(path: &Path, acc: &GridAccumulator) -> Result<()> {
+    let st = StateFile {
+        format: STATE_FORMAT.into(),
+        version: STATE_VERSION,
+        spec: acc.spec,
+        rejected: acc.rejected,
+        outside: acc.outside,
+        bins: acc
+            .bins
+            .iter()
+            .enumerate()
+            .filter(|(_, b)| b.n > 0)
+            .map(|(k, b)| (k, b.clone()))
+            .collect(),
+    };
+    let mut f = AtomicFile::create(path)?;
+    serde_json::to_writer(&mut f, &st).map_err(|e| Error::io(path, e.into()))?;
+    f.commit()
+}
+
+/// Read a state written by [`save_state`].
+pub fn load_state(path: &Path) -> Result<GridAccumulator> {
+    let text = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let st: StateFile = serde_json::from_slice(&text).map_err(|e| {
+        Error::corrupt(
+            path,
+            0,
+            format!("not an ebptv grid state (grid_state.json): {e}"),
+        )
+    })?;
+    if st.format != STATE_FORMAT || st.version != STATE_VERSION {
+        return Err(Error::corrupt(
+            path,
+            0,
+            format!(
+                "unsupported grid state format {} v{}",
+                st.format, st.version
+            ),
+        ));
+    }
+    let spec = GridSpec::from_window(
+        st.spec.lattice,
+        st.spec.weighting,
+        st.spec.i0,
+        st.spec.j0,
+        st.spec.nx,
+        st.spec.ny,
+    )
+    .map_err(|e| Error::corrupt(path, 0, e.to_string()))?;
+    // Re-validate the lattice (a hand-edited file must not smuggle in bin 0).
+    crate::grid::spec::Lattice::with_origin(
+        spec.lattice.bin_w,
+        spec.lattice.bin_h,
+        spec.lattice.overlap,
+        spec.lattice.origin_x,
+        spec.lattice.origin_y,
+    )
+    .map_err(|e| Error::corrupt(path, 0, e.to_string()))?;
+    let mut acc = GridAccumulator::new(spec);
+    acc.rejected = st.rejected;
+    acc.outside = st.outside;
+    for (k, b) in st.bins {
+        if k >= acc.bins.len() {
+            return Err(Error::corrupt(
+                path,
+                0,
+                format!("bin index {k} outside the {}x{} grid", spec.nx, spec.ny),
+            ));
+        }
+        acc.bins[k] = b;
+    }
+    Ok(acc)
+}
+
+fn num(x: f64) -> String {
+    if x.is_finite() {
+        format!("{x}")
+    } else {
+        "nan".into()
+    }
+}
+
+/// `grid.csv`: exactly `x,y,count,u,v,uu,vv,uv` (px, px/s, (px/s)²), one
+/// row per bin, rows ordered by y then x; empty bins have `nan` statistics.
+pub fn write_grid_csv(path: &Path, g: &GridStats) -> Result<()> {
+    let mut f = AtomicFile::create(path)?;
+    let mut s = String::from("x,y,count,u,v,uu,vv,uv\n");
+    for (iy, &y) in g.ys.iter().enumerate() {
+        for (ix, &x) in g.xs.iter().enumerate() {
+            let b = g.at(ix, iy);
+            s.push_str(&format!(
+                "{},{},{},{},{},{},{},{}\n",
+                x,
+                y,
+                b.count,
+                num(b.u),
+                num(b.v),
+                num(b.uu),
+                num(b.vv),
+                num(b.uv)
+            ));
+        }
+    }
+    f.write_all(s.as_bytes()).map_err(|e| Error::io(path, e))?;
+    f.commit()
+}
+
+/// Columns of `grid_extra.csv`.
+pub const EXTRA_HEADER: &str =
+    "x,y,n_tracks,se_u,se_v,se_uu,se_vv,se_uv,dudx,dudy,dvdx,dvdy,fit_params";
+
+/// `grid_extra.csv`: per bin `x,y,n_tracks,se_u,se_v,se_uu,se_vv,se_uv,
+/// dudx,dudy,dvdx,dvdy,fit_params` (same row order as `grid.csv`).
+pub fn write_extra_csv(path: &Path, g: &GridStats) -> Result<()> {
+    let mut f = AtomicFile::create(path)?;
+    let mut s = String::from(EXTRA_HEADER);
+    s.push('\n');
+    for (iy, &y) in g.ys.iter().enumerate() {
+        for (ix, &x) in g.xs.iter().enumerate() {
+            let b = g.at(ix, iy);
+            s.push_str(&format!(
+                "{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
+                x,
+                y,
+                b.n_tracks,
+                num(b.se_u),
+                num(b.se_v),
+                num(b.se_uu),
+                num(b.se_vv),
+                num(b.se_uv),
+                num(b.dudx),
+                num(b.dudy),
+                num(b.dvdx),
+                num(b.dvdy),
+                b.fit_params
+            ));
+        }
+    }
+    f.write_all(s.as_bytes()).map_err(|e| Error::io(path, e))?;
+    f.commit()
+}
+
+/// PNG maps of count, u, v, uu, vv, uv into `dir` (`map_<q>.png`).
+pub fn write_maps(dir: &Path, g: &GridStats) -> Result<()> {
+    let x_range = (g.xs[0], *g.xs.last().unwrap());
+    let y_range = (g.ys[0], *g.ys.last().unwrap());
+    let maps: [(&str, &str, bool, Vec<f64>); 6] = [
+        ("count", "samples per bin", false, g.map(|b| b.count as f64)),
+        ("u", "u (px/s)", false, g.map(|b| b.u)),
+        ("v", "v (px/s)", true, g.map(|b| b.v)),
+        ("uu", "<u'u'> (px/s)^2", false, g.map(|b| b.uu)),
+        ("vv", "<v'v'> (px/s)^2", false, g.map(|b| b.vv)),
+        ("uv", "<u'v'> (px/s)^2", true, g.map(|b| b.uv)),
+    ];
+    for (name, label, diverging, values) in maps.iter() {
+        let title = format!("grid: {name}");
+        crate::plot::heatmap(
+            &dir.join(format!("map_{name}.png")),
+            &crate::plot::Heatmap {
+                title: &title,
+                values,
+                nx: g.spec.nx,
+                ny: g.spec.ny,
+                x_range,
+                y_range,
+                colorbar_label: label,
+                diverging: *diverging,
+            },
+        )?;
+    }
+    Ok(())
+}

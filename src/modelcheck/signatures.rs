@@ -1,0 +1,755 @@
+//! Signatures: summaries of an event recording computed *identically* on
+//! measured and simulated data, so that a difference between the two points
+//! at a missing effect rather than at a difference in processing.
+//!
+//! Every signature is a histogram with a fixed binning (set by
+//! [`SignatureConfig`], never by the data being summarised), a profile (the
+//! mean of one quantity per bin of another), or a scalar. The binning of each
+//! is chosen so that a known sensor or physics effect moves it:
+//!
+//! | name | kind | moved by |
+//! |---|---|---|
+//! | `latency` | histogram of (t − first pulse) mod period, µs | latency jitter, intensity latency, saturation (flattens) |
+//! | `event_rate` | scalar, events/s | everything that adds or removes events |
+//! | `on_fraction` | scalar, ON / all | OFF events, polarity noise |
+//! | `pixel_count` | histogram of events per pixel (all pixels) | hot pixels (long tail), seeding |
+//! | `split_half_min` | histogram of min(even-block, odd-block) count per pixel | fixed-pattern activity (hot pixels) |
+//! | `split_half_correlation` | scalar, Pearson r of even- vs odd-block counts | fixed pattern vs chance |
+//! | `off_burst_rate` | scalar, events/(pixel·s) outside the burst window | background noise |
+//! | `shared_fraction` | scalar, fraction of events sharing (row, timestamp) | arbiter saturation |
+//! | `group_size` | histogram of (row, timestamp) group sizes | arbiter saturation |
+//! | `min_iei` | histogram of per-pixel minimum inter-event interval, µs | refractory period |
+//! | `events_per_cluster` | histogram (needs particles) | brightness, threshold |
+//! | `latency_vs_brightness` | profile: mean first latency per events-per-cluster bin | intensity-dependent latency |
+//! | `elongation_vs_speed` | profile: extent along motion − across, per speed bin (needs tracks) | pulse streaks |
+//! | `track_length` | histogram of points per track (needs tracks) | everything that breaks tracks |
+//!
+//! Split-half consistency: pulses are grouped in blocks of
+//! [`SignatureConfig::block_pulses`]; each pixel's events are counted in even
+//! and odd blocks separately. Activity driven by moving particles is chance:
+//! the two halves are nearly independent (r ≈ 0). A fixed pattern (a hot
+//! pixel) fires in both halves: r → 1 and `split_half_min` grows a tail.
+//!
+//! (Row, timestamp) groups: events with the same timestamp in the same row.
+//! When the arbiters saturate, pending events of a row are read out together
+//! with one timestamp; an unsaturated sensor gives groups of one (apart from
+//! coincidences). Groups are formed over runs of equal timestamps in stream
+//! order (readers never reorder time), across chunk boundaries.
+//!
+//! Everything streams: [`SignatureAccumulator::add_events`] takes chunks in
+//! order; per-pixel state is a few arrays of the sensor size.
+
+use std::collections::HashMap;
+
+use serde::{Deserialize, Serialize};
+
+use crate::cluster::Particle;
+use crate::error::{Error, Result};
+use crate::events::{EventChunk, Geometry, ON};
+use crate::pulses::PulseTiming;
+use crate::track::Track;
+
+/// How a histogram's bins are placed on the line when measuring distances
+/// between distributions (see [`super::distance`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BinScale {
+    /// Bin centres in the quantity's own unit (µs for latency).
+    Linear,
+    /// Bin index: for roughly geometric binnings (counts, intervals), so a
+    /// distance is in "bins", i.e. roughly in log units, and a tail of huge
+    /// values does not swamp everything else.
+    Index,
+}
+
+/// Counts on fixed bins. Values below the first edge are counted in the
+/// first bin, values at or beyond the last edge in the last bin (so the
+/// last bin is "≥ its left edge"), NaN is dropped.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Histogram {
+    pub edges: Vec<f64>,
+    pub counts: Vec<f64>,
+    pub scale: BinScale,
+}
+
+impl Histogram {
+    /// `edges`: at least two, finite, strictly increasing.
+    pub fn new(edges: Vec<f64>, scale: BinScale) -> Result<Self> {
+        if edges.len() < 2 {
+            return Err(Error::param("histogram edges", "need at least two edges"));
+        }
+        if edges.iter().any(|e| !e.is_finite())
+            || edges
+                .windows(2)
+                .any(|w| w[1].partial_cmp(&w[0]) != Some(std::cmp::Ordering::Greater))
+        {
+            return Err(Error::param(
+                "histogram edges",
+                "must be finite and strictly increasing",
+            ));
+        }
+        let n = edges.len() - 1;
+        Ok(Histogram {
+            edges,
+            counts: vec![0.0; n],
+            scale,
+        })
+    }
+
+    pub fn n_bins(&self) -> usize {
+        self.counts.len()
+    }
+
+    /// Bin of `v` (clamped to the first / last bin), `None` for NaN.
+    #[inline]
+    pub fn bin_of(&self, v: f64) -> Option<usize> {
+        if v.is_nan() {
+            return None;
+        }
+        let k = self.edges.partition_point(|e| *e <= v);
+        Some(k.saturating_sub(1).min(self.counts.len() - 1))
+    }
+
+    #[inline]
+    pub fn add(&mut self, v: f64) {
+        self.add_weighted(v, 1.0);
+    }
+
+    #[inline]
+    pub fn add_weighted(&mut self, v: f64, w: f64) {
+        if let Some(k) = self.bin_of(v) {
+            self.counts[k] += w;
+        }
+    }
+
+    pub fn total(&self) -> f64 {
+        self.counts.iter().sum()
+    }
+
+    /// Where each bin sits on the line for distance computations.
+    pub fn positions(&self) -> Vec<f64> {
+        match self.scale {
+            BinScale::Linear => self.edges.windows(2).map(|w| 0.5 * (w[0] + w[1])).collect(),
+            BinScale::Index => (0..self.counts.len()).map(|k| k as f64).collect(),
+        }
+    }
+
+    /// Same bins (edges and scale)?
+    pub fn same_bins(&self, other: &Histogram) -> bool {
+        self.scale == other.scale && self.edges == other.edges
+    }
+}
+
+/// Mean of a quantity per bin of another (e.g. latency per brightness).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Profile {
+    pub edges: Vec<f64>,
+    /// Mean per bin (NaN where the bin is empty).
+    pub mean: Vec<f64>,
+    /// Samples per bin.
+    pub count: Vec<f64>,
+}
+
+/// Accumulates a [`Profile`].
+#[derive(Debug, Clone)]
+struct ProfileAcc {
+    bins: Histogram,
+    sum: Vec<f64>,
+}
+
+impl ProfileAcc {
+    fn new(edges: Vec<f64>) -> Result<Self> {
+        let bins = Histogram::new(edges, BinScale::Index)?;
+        let n = bins.n_bins();
+        Ok(ProfileAcc {
+            bins,
+            sum: vec![0.0; n],
+        })
+    }
+    fn add(&mut self, x: f64, v: f64) {
+        if !v.is_finite() {
+            return;
+        }
+        if let Some(k) = self.bins.bin_of(x) {
+            self.bins.counts[k] += 1.0;
+            self.sum[k] += v;
+        }
+    }
+    fn finish(&self) -> Profile {
+        Profile {
+            edges: self.bins.edges.clone(),
+            mean: self
+                .sum
+                .iter()
+                .zip(&self.bins.counts)
+                .map(|(s, c)| if *c > 0.0 { s / c } else { f64::NAN })
+                .collect(),
+            count: self.bins.counts.clone(),
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "lowercase")]
+pub enum SignatureValue {
+    Histogram(Histogram),
+    Profile(Profile),
+    Scalar { value: f64 },
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Signature {
+    pub name: String,
+    /// What is counted and in which unit (for tables and figure labels).
+    pub description: String,
+    pub value: SignatureValue,
+}
+
+/// All signatures of one recording, in a fixed order.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Signatures {
+    pub items: Vec<Signature>,
+    /// Events inside the geometry that entered the signatures.
+    pub n_events: u64,
+    /// Events outside the configured geometry (ignored).
+    pub n_outside: u64,
+    /// Time span covered (µs): last − first event time.
+    pub duration_us: f64,
+}
+
+impl Signatures {
+    pub fn get(&self, name: &str) -> Option<&Signature> {
+        self.items.iter().find(|s| s.name == name)
+    }
+    pub fn scalar(&self, name: &str) -> Option<f64> {
+        match self.get(name)?.value {
+            SignatureValue::Scalar { value } => Some(value),
+            _ => None,
+        }
+    }
+    pub fn histogram(&self, name: &str) -> Option<&Histogram> {
+        match &self.get(name)?.value {
+            SignatureValue::Histogram(h) => Some(h),
+            _ => None,
+        }
+    }
+    pub fn profile(&self, name: &str) -> Option<&Profile> {
+        match &self.get(name)?.value {
+            SignatureValue::Profile(p) => Some(p),
+            _ => None,
+        }
+    }
+}
+
+/// Binning and windows shared by the measured and every simulated data set.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SignatureConfig {
+    pub geometry: Geometry,
+    pub timing: PulseTiming,
+    /// Bin width of the folded latency histogram (µs).
+    pub latency_bin_us: f64,
+    /// Burst window in folded time, `[start, end)` µs after the pulse start;
+    /// `end` may exceed the period (the window wraps). `None`: derived from
+    /// the data's own latency histogram (quick looks only — a comparison
+    /// must fix it, e.g. from the measurement with [`burst_window`]).
+    pub burst_window_us: Option<(f64, f64)>,
+    /// Pulses per block for the split-half consistency.
+    pub block_pulses: u64,
+    /// Speed bin edges (px/s) for `elongation_vs_speed`.
+    pub speed_edges: Vec<f64>,
+}
+
+impl SignatureConfig {
+    /// Defaults: ~1 µs latency bins (at most 400 bins), blocks of 50 pulses,
+    /// speed bins 0–20 000 px/s in steps of 2000.
+    pub fn new(geometry: Geometry, timing: PulseTiming) -> Self {
+        let latency_bin_us = (timing.period_us / 400.0).max(1.0);
+        SignatureConfig {
+            geometry,
+            timing,
+            latency_bin_us,
+            burst_window_us: None,
+            block_pulses: 50,
+            speed_edges: (0..=10).map(|k| k as f64 * 2000.0).collect(),
+        }
+    }
+
+    fn validate(&self) -> Result<()> {
+        if self.geometry.pixels() == 0 {
+            return Err(Error::param("geometry", "has no pixels"));
+        }
+        let p = self.timing.period_us;
+        if !(p.is_finite() && p > 0.0) {
+            return Err(Error::param("period_us", format!("{p} must be > 0")));
+        }
+        if !self.timing.first_pulse_us.is_finite() {
+            return Err(Error::param("first_pulse_us", "must be finite"));
+        }
+        let b = self.latency_bin_us;
+        if !(b.is_finite() && b > 0.0 && b <= p) {
+            return Err(Error::param(
+                "latency_bin_us",
+                format!("{b} must be in (0, period = {p}]"),
+            ));
+        }
+        if self.block_pulses == 0 {
+            return Err(Error::param("block_pulses", "must be ≥ 1"));
+        }
+        if let Some((a, e)) = self.burst_window_us {
+            if !(a.is_finite() && e.is_finite() && e > a && e - a <= p) {
+                return Err(Error::param(
+                    "burst_window_us",
+                    format!("({a}, {e}) must be finite, start < end, at most one period long"),
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    fn latency_edges(&self) -> Vec<f64> {
+        let p = self.timing.period_us;
+        let n = (p / self.latency_bin_us).ceil().max(1.0) as usize;
+        let w = p / n as f64;
+        (0..=n).map(|k| k as f64 * w).collect()
+    }
+}
+
+/// Edges for counts spanning orders of magnitude: 0..16 exactly, then
+/// geometric with ratio 2^(1/4) (about 19 % wide bins: fine enough to place
+/// a tail of hot pixels, coarse enough to stay populated).
+pub fn count_edges(max: f64) -> Vec<f64> {
+    let mut e: Vec<f64> = (0..=16).map(|k| k as f64).collect();
+    let mut x = 16.0f64;
+    while x < max {
+        x = (x * 2f64.powf(0.25)).round();
+        e.push(x);
+    }
+    e
+}
+
+/// Edges for intervals (µs): [0, 1), then 4 bins per decade up to 10 s.
+pub fn interval_edges() -> Vec<f64> {
+    let mut e = vec![0.0];
+    for k in 0..=28 {
+        e.push(10f64.powf(k as f64 / 4.0));
+    }
+    e
+}
+
+/// Smallest circular window around the peak of a folded latency histogram
+/// holding at least `fraction` of the events: grown bin by bin towards the
+/// fuller neighbour. Returns `[start, end)` µs (end may exceed the period).
+pub fn burst_window(latency: &Histogram, fraction: f64) -> Result<(f64, f64)> {
+    let total = latency.total();
+    if total <= 0.0 {
+        return Err(Error::analysis(
+            "no events in the latency histogram: cannot locate the burst",
+        ));
+    }
+    if !(fraction > 0.0 && fraction <= 1.0) {
+        return Err(Error::param(
+            "burst fraction",
+            format!("{fraction} must be in (0, 1]"),
+        ));
+    }
+    let n = latency.n_bins();
+    let c = &latency.counts;
+    let peak = (0..n)
+        .max_by(|&a, &b| c[a].total_cmp(&c[b]).then(b.cmp(&a)))
+        .unwrap_or(0);
+    let (mut lo, mut hi) = (peak as i64, peak as i64); // inclusive, circular
+    let mut mass = c[peak];
+    let at = |k: i64| c[k.rem_euclid(n as i64) as usize];
+    while mass < fraction * total && ((hi - lo + 1) as usize) < n {
+        let (left, right) = (at(lo - 1), at(hi + 1));
+        if right >= left {
+            hi += 1;
+            mass += right;
+        } else {
+            lo -= 1;
+            mass += left;
+        }
+    }
+    let w = latency.edges[1] - latency.edges[0];
+    let start = latency.edges[0] + lo as f64 * w;
+    let end = latency.edges[0] + (hi + 1) as f64 * w;
+    let period = latency.edges[n] - latency.edges[0];
+    let shift = (start.div_euclid(period)) * period;
+    Ok((start - shift, end - shift))
+}
+
+/// Streaming computation of [`Signatures`].
+pub struct SignatureAccumulator {
+    cfg: SignatureConfig,
+    latency: Histogram,
+    count_even: Vec<u32>,
+    count_odd: Vec<u32>,
+    last_t: Vec<i64>,
+    min_dt: Vec<i64>,
+    n_events: u64,
+    n_on: u64,
+    n_outside: u64,
+    t_min: i64,
+    t_max: i64,
+    // (row, timestamp) grouping over runs of equal timestamps.
+    run_t: i64,
+    run_rows: Vec<u16>,
+    group_sizes: HashMap<u32, u64>,
+    shared_events: u64,
+    particles: Vec<(u32, f32)>,
+    elongation: Option<ProfileAcc>,
+    track_lengths: Vec<u32>,
+}
+
+const NO_TIME: i64 = i64::MIN;
+
+/// Upper end of the per-pixel count binning (the last bin is "≥ this").
+/// Fixed, never taken from the data, so every data set shares the bins.
+const MAX_COUNT_EDGE: f64 = (1u64 << 24) as f64;
+
+impl SignatureAccumulator {
+    pub fn new(cfg: SignatureConfig) -> Result<Self> {
+        cfg.validate()?;
+        let latency = Histogram::new(cfg.latency_edges(), BinScale::Linear)?;
+        let n = cfg.geometry.pixels();
+        Ok(SignatureAccumulator {
+            latency,
+            count_even: vec![0; n],
+            count_odd: vec![0; n],
+            last_t: vec![NO_TIME; n],
+            min_dt: vec![i64::MAX; n],
+            n_events: 0,
+            n_on: 0,
+            n_outside: 0,
+            t_min: i64::MAX,
+            t_max: i64::MIN,
+            run_t: NO_TIME,
+            run_rows: Vec::new(),
+            group_sizes: HashMap::new(),
+            shared_events: 0,
+            particles: Vec::new(),
+            elongation: None,
+            track_lengths: Vec::new(),
+            cfg,
+        })
+    }
+
+    pub fn config(&self) -> &SignatureConfig {
+        &self.cfg
+    }
+
+    /// Add a chunk of events (chunks in stream order).
+    pub fn add_events(&mut self, ev: &EventChunk) {
+        let g = self.cfg.geometry;
+        let period = self.cfg.timing.period_us;
+        let first = self.cfg.timing.first_pulse_us;
+        let block = self.cfg.block_pulses as i64;
+        for i in 0..ev.len() {
+            let (t, x, y, p) = (ev.t[i], ev.x[i], ev.y[i], ev.p[i]);
+            if !g.contains(x, y) {
+                self.n_outside += 1;
+                continue;
+            }
+            self.n_events += 1;
+            self.n_on += (p == ON) as u64;
+            self.t_min = self.t_min.min(t);
+            self.t_max = self.t_max.max(t);
+
+            let rel = t as f64 - first;
+            self.latency.add(rel.rem_euclid(period));
+            let pulse = (rel / period).floor() as i64;
+            let pix = y as usize * g.width as usize + x as usize;
+            if pulse.div_euclid(block) % 2 == 0 {
+                self.count_even[pix] += 1;
+            } else {
+                self.count_odd[pix] += 1;
+            }
+            let last = self.last_t[pix];
+            if last != NO_TIME {
+                // Readers never reorder time; a backwards step is data, and
+                // its size is still an interval between two events.
+                let dt = (t - last).abs();
+                self.min_dt[pix] = self.min_dt[pix].min(dt);
+            }
+            self.last_t[pix] = t;
+
+            if t != self.run_t {
+                self.flush_run();
+                self.run_t = t;
+            }
+            self.run_rows.push(y);
+        }
+    }
+
+    fn flush_run(&mut self) {
+        if self.run_rows.is_empty() {
+            return;
+        }
+        self.run_rows.sort_unstable();
+        let rows = std::mem::take(&mut self.run_rows);
+        for group in rows.chunk_by(|a, b| a == b) {
+            let s = group.len() as u32;
+            *self.group_sizes.entry(s).or_insert(0) += 1;
+            if s >= 2 {
+                self.shared_events += s as u64;
+            }
+        }
+        self.run_rows = rows;
+        self.run_rows.clear();
+    }
+
+    /// Add clustered particles (any order).
+    pub fn add_particles(&mut self, particles: &[Particle]) {
+        self.particles
+            .extend(particles.iter().map(|p| (p.n_events, p.first_latency_us)));
+    }
+
+    /// Add tracks, with the particles they were built from (for the
+    /// elongation of each tracked particle image). A particle is matched to
+    /// the track point at the same pulse nearest to it, within 2 px.
+    pub fn add_tracks(&mut self, tracks: &[Track], particles: &[Particle]) -> Result<()> {
+        if self.elongation.is_none() {
+            self.elongation =
+                Some(ProfileAcc::new(self.cfg.speed_edges.clone()).map_err(|_| {
+                    Error::param(
+                        "speed_edges",
+                        "need ≥ 2 finite, strictly increasing edges (px/s)",
+                    )
+                })?);
+        }
+        self.track_lengths
+            .extend(tracks.iter().map(|t| t.points.len() as u32));
+        let mut by_pulse: HashMap<i64, Vec<(f64, f64, f64, f64)>> = HashMap::new();
+        for tr in tracks {
+            for pt in &tr.points {
+                if !pt.interpolated {
+                    by_pulse
+                        .entry(pt.pulse)
+                        .or_default()
+                        .push((pt.x, pt.y, pt.u, pt.v));
+                }
+            }
+        }
+        let acc = self.elongation.as_mut().expect("set above");
+        for p in particles {
+            let Some(cands) = by_pulse.get(&p.pulse) else {
+                continue;
+            };
+            let best = cands
+                .iter()
+                .map(|c| ((c.0 - p.x).powi(2) + (c.1 - p.y).powi(2), c))
+                .min_by(|a, b| a.0.total_cmp(&b.0));
+            if let Some((d2, &(_, _, u, v))) = best {
+                if d2 <= 4.0 {
+                    let (ex, ey) = (p.extent_x as f64, p.extent_y as f64);
+                    let along_minus_across = if u.abs() >= v.abs() { ex - ey } else { ey - ex };
+                    acc.add(u.hypot(v), along_minus_across);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Finish: all signatures. Errors when no event fell inside the sensor.
+    pub fn finish(mut self) -> Result<Signatures> {
+        self.flush_run();
+        if self.n_events == 0 {
+            return Err(Error::analysis(
+                "no events inside the sensor geometry: no signatures",
+            ));
+        }
+        let duration_us = (self.t_max - self.t_min) as f64;
+        let seconds = (duration_us.max(self.cfg.timing.period_us)) * 1e-6;
+        let n_pix = self.cfg.geometry.pixels() as f64;
+        let mut items = Vec::new();
+        let mut push = |name: &str, description: &str, value: SignatureValue| {
+            items.push(Signature {
+                name: name.into(),
+                description: description.into(),
+                value,
+            })
+        };
+
+        push(
+            "latency",
+            "events per folded time bin, (t - first pulse) mod period (us)",
+            SignatureValue::Histogram(self.latency.clone()),
+        );
+        push(
+            "event_rate",
+            "events per second",
+            SignatureValue::Scalar {
+                value: self.n_events as f64 / seconds,
+            },
+        );
+        push(
+            "on_fraction",
+            "fraction of ON events",
+            SignatureValue::Scalar {
+                value: self.n_on as f64 / self.n_events as f64,
+            },
+        );
+
+        let edges = count_edges(MAX_COUNT_EDGE);
+        let mut pixel_count = Histogram::new(edges.clone(), BinScale::Index)?;
+        let mut split_min = Histogram::new(edges, BinScale::Index)?;
+        for (&a, &b) in self.count_even.iter().zip(&self.count_odd) {
+            pixel_count.add((a + b) as f64);
+            split_min.add(a.min(b) as f64);
+        }
+        push(
+            "pixel_count",
+            "pixels per bin of events per pixel",
+            SignatureValue::Histogram(pixel_count),
+        );
+        push(
+            "split_half_min",
+            "pixels per bin of min(even-block, odd-block) event count",
+            SignatureValue::Histogram(split_min),
+        );
+        push(
+            "split_half_correlation",
+            "Pearson r of per-pixel counts in even vs odd pulse blocks",
+            SignatureValue::Scalar {
+                value: pearson(&self.count_even, &self.count_odd),
+            },
+        );
+
+        let window = match self.cfg.burst_window_us {
+            Some(w) => w,
+            None => burst_window(&self.latency, 0.95)?,
+        };
+        let period = self.cfg.timing.period_us;
+        let off: f64 = self
+            .latency
+            .positions()
+            .iter()
+            .zip(&self.latency.counts)
+            .filter(|(c, _)| (*c - window.0).rem_euclid(period) >= window.1 - window.0)
+            .map(|(_, n)| n)
+            .sum();
+        push(
+            "off_burst_rate",
+            "events per pixel per second outside the burst window",
+            SignatureValue::Scalar {
+                value: off / n_pix / seconds,
+            },
+        );
+
+        push(
+            "shared_fraction",
+            "fraction of events sharing (row, timestamp) with another event",
+            SignatureValue::Scalar {
+                value: self.shared_events as f64 / self.n_events as f64,
+            },
+        );
+        let mut groups = Histogram::new(count_edges(65536.0)[1..].to_vec(), BinScale::Index)?;
+        for (&s, &n) in &self.group_sizes {
+            groups.add_weighted(s as f64, n as f64);
+        }
+        push(
+            "group_size",
+            "(row, timestamp) groups per bin of group size",
+            SignatureValue::Histogram(groups),
+        );
+
+        let mut iei = Histogram::new(interval_edges(), BinScale::Index)?;
+        for &d in &self.min_dt {
+            if d != i64::MAX {
+                iei.add(d as f64);
+            }
+        }
+        push(
+            "min_iei",
+            "pixels per bin of their minimum inter-event interval (us)",
+            SignatureValue::Histogram(iei),
+        );
+
+        if !self.particles.is_empty() {
+            let mut epc = Histogram::new((1..=17).map(|k| k as f64).collect(), BinScale::Index)?;
+            let mut lat = ProfileAcc::new(vec![1.0, 2.0, 3.0, 4.0, 5.0, 7.0, 10.0, 16.0])?;
+            for &(n, l) in &self.particles {
+                epc.add(n as f64);
+                lat.add(n as f64, l as f64);
+            }
+            push(
+                "events_per_cluster",
+                "particles per number of events",
+                SignatureValue::Histogram(epc),
+            );
+            push(
+                "latency_vs_brightness",
+                "mean first-event latency (us) per events-per-cluster bin",
+                SignatureValue::Profile(lat.finish()),
+            );
+        }
+        if let Some(el) = &self.elongation {
+            push(
+                "elongation_vs_speed",
+                "mean extent along minus across the motion (px) per speed bin (px/s)",
+                SignatureValue::Profile(el.finish()),
+            );
+            let mut tl = Histogram::new(
+                vec![
+                    1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 15.0, 20.0, 30.0, 50.0, 100.0, 200.0,
+                ],
+                BinScale::Index,
+            )?;
+            for &n in &self.track_lengths {
+                tl.add(n as f64);
+            }
+            push(
+                "track_length",
+                "tracks per number of points",
+                SignatureValue::Histogram(tl),
+            );
+        }
+
+        Ok(Signatures {
+            items,
+            n_events: self.n_events,
+            n_outside: self.n_outside,
+            duration_us,
+        })
+    }
+}
+
+/// Pearson correlation; 0 when either side has no variance.
+fn pearson(a: &[u32], b: &[u32]) -> f64 {
+    let n = a.len() as f64;
+    if n == 0.0 {
+        return 0.0;
+    }
+    let (sa, sb) = a.iter().zip(b).fold((0.0, 0.0), |(sa, sb), (&x, &y)| {
+        (sa + x as f64, sb + y as f64)
+    });
+    let (ma, mb) = (sa / n, sb / n);
+    let (mut cov, mut va, mut vb) = (0.0, 0.0, 0.0);
+    for (&x, &y) in a.iter().zip(b) {
+        let (dx, dy) = (x as f64 - ma, y as f64 - mb);
+        cov += dx * dy;
+        va += dx * dx;
+        vb += dy * dy;
+    }
+    if va <= 0.0 || vb <= 0.0 {
+        0.0
+    } else {
+        cov / (va * vb).sqrt()
+    }
+}
+
+/// Convenience: signatures of one in-memory event set.
+pub fn compute(
+    cfg: &SignatureConfig,
+    events: &EventChunk,
+    particles: &[Particle],
+    tracks: Option<&[Track]>,
+) -> Result<Signatures> {
+    let mut acc = SignatureAccumulator::new(cfg.clone())?;
+    acc.add_events(events);
+    acc.add_particles(particles);
+    if let Some(t) = tracks {
+        acc.add_tracks(t, particles)?;
+    }
+    acc.finish()
+}

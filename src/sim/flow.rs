@@ -1,0 +1,644 @@
+//! Velocity fields with exact u(x, y, t) (px, px/s, s).
+//!
+//! Every field is analytic (or, for `Gridded`, exactly the interpolant of
+//! the user's grid), so the truth velocity of a particle is the field at its
+//! position, not a finite difference. Fields that are not plainly parallel
+//! derive from a stream function, which makes them divergence-free by
+//! construction: particles neither bunch nor thin out, and ppp stays what the
+//! scenario says.
+
+use std::path::Path;
+
+use rand::{Rng, SeedableRng};
+use rand_pcg::Pcg64;
+
+use super::scenario::FlowSpec;
+use crate::error::{Error, Result};
+
+/// A built velocity field.
+#[derive(Debug, Clone)]
+pub enum Flow {
+    Uniform {
+        u: f64,
+        v: f64,
+    },
+    LambOseen {
+        x0: f64,
+        y0: f64,
+        gamma: f64,
+        rc2: f64,
+        u: f64,
+        v: f64,
+    },
+    Poiseuille {
+        u_max: f64,
+        y0: f64,
+        width: f64,
+    },
+    BoundaryLayer {
+        u_inf: f64,
+        delta: f64,
+        wall_y: f64,
+    },
+    Turbulent(Box<Turbulent>),
+    Jet {
+        u_center: f64,
+        u_coflow: f64,
+        y_center: f64,
+        half_width: f64,
+        thickness: f64,
+    },
+    Shedding(Shedding),
+    Gridded(Box<Gridded>),
+}
+
+/// Random Fourier modes of a stream function ψ = Σ a_n sin(k_n·x − ω_n t + φ_n)
+/// on a mean shear flow.
+#[derive(Debug, Clone)]
+pub struct Turbulent {
+    pub u_mean: f64,
+    pub v_mean: f64,
+    pub shear: f64,
+    pub y_ref: f64,
+    /// (a k_x, a k_y, k_x, k_y, ω, φ) per mode.
+    modes: Vec<[f64; 6]>,
+}
+
+#[derive(Debug, Clone)]
+pub struct Shedding {
+    u_inf: f64,
+    x0: f64,
+    yc: f64,
+    size: f64,
+    deficit: f64,
+    width: f64,
+    /// Shedding frequency (Hz).
+    pub frequency_hz: f64,
+    /// Stream-function amplitude and wavenumber of the travelling wave.
+    a: f64,
+    k: f64,
+}
+
+#[derive(Debug, Clone)]
+pub struct Gridded {
+    xs: Vec<f64>,
+    ys: Vec<f64>,
+    u: Vec<f64>,
+    v: Vec<f64>,
+}
+
+impl Flow {
+    pub fn build(spec: &FlowSpec) -> Result<Flow> {
+        Ok(match spec {
+            FlowSpec::Uniform { u, v } => Flow::Uniform { u: *u, v: *v },
+            FlowSpec::LambOseen {
+                x0,
+                y0,
+                circulation,
+                core_radius,
+                u,
+                v,
+            } => Flow::LambOseen {
+                x0: *x0,
+                y0: *y0,
+                gamma: *circulation,
+                rc2: core_radius * core_radius,
+                u: *u,
+                v: *v,
+            },
+            FlowSpec::Poiseuille { u_max, y0, width } => Flow::Poiseuille {
+                u_max: *u_max,
+                y0: *y0,
+                width: *width,
+            },
+            FlowSpec::BoundaryLayer {
+                u_inf,
+                delta,
+                wall_y,
+            } => Flow::BoundaryLayer {
+                u_inf: *u_inf,
+                delta: *delta,
+                wall_y: *wall_y,
+            },
+            FlowSpec::Turbulent {
+                u_mean,
+                v_mean,
+                shear,
+                y_ref,
+                rms,
+                length_scale,
+                time_scale_s,
+                n_modes,
+                seed,
+            } => {
+                let mut rng = Pcg64::seed_from_u64(*seed);
+                let n = *n_modes as usize;
+                // Each mode carries velocity amplitude A = |a k|; the sum of
+                // (uu + vv) = n A²/2, so A = 2 rms / sqrt(n).
+                let amp = 2.0 * rms / (n as f64).sqrt();
+                let modes = (0..n)
+                    .map(|_| {
+                        let kmag = std::f64::consts::TAU / length_scale
+                            * (0.5f64).powf(rng.gen_range(-1.0..1.0));
+                        let theta: f64 = rng.gen_range(0.0..std::f64::consts::TAU);
+                        let (kx, ky) = (kmag * theta.cos(), kmag * theta.sin());
+                        let a = amp / kmag;
+                        // Convected with the mean flow plus a random decorrelation rate.
+                        let omega =
+                            kx * u_mean + ky * v_mean + rng.gen_range(-1.0..1.0) / time_scale_s;
+                        let phi = rng.gen_range(0.0..std::f64::consts::TAU);
+                        [a * kx, a * ky, kx, ky, omega, phi]
+                    })
+                    .collect();
+                Flow::Turbulent(Box::new(Turbulent {
+                    u_mean: *u_mean,
+                    v_mean: *v_mean,
+                    shear: *shear,
+                    y_ref: *y_ref,
+                    modes,
+                }))
+            }
+            FlowSpec::Jet {
+                u_center,
+                u_coflow,
+                y_center,
+                half_width,
+                thickness,
+            } => Flow::Jet {
+                u_center: *u_center,
+                u_coflow: *u_coflow,
+                y_center: *y_center,
+                half_width: *half_width,
+                thickness: *thickness,
+            },
+            FlowSpec::Shedding {
+                u_inf,
+                obstacle_x,
+                y_center,
+                size,
+                strouhal,
+                amplitude,
+                deficit,
+                wake_width,
+            } => {
+                let f = strouhal * u_inf / size;
+                // Vortices convect at ~0.85 u_inf behind bluff bodies.
+                let k = std::f64::consts::TAU * f / (0.85 * u_inf);
+                Flow::Shedding(Shedding {
+                    u_inf: *u_inf,
+                    x0: *obstacle_x,
+                    yc: *y_center,
+                    size: *size,
+                    deficit: *deficit,
+                    width: *wake_width,
+                    frequency_hz: f,
+                    a: amplitude * u_inf / k,
+                    k,
+                })
+            }
+            FlowSpec::Gridded { path, scale } => {
+                Flow::Gridded(Box::new(Gridded::load(path, *scale)?))
+            }
+        })
+    }
+
+    /// Velocity (px/s) at (x, y) px and time t (s).
+    #[inline]
+    pub fn velocity(&self, x: f64, y: f64, t: f64) -> (f64, f64) {
+        match self {
+            Flow::Uniform { u, v } => (*u, *v),
+            Flow::LambOseen {
+                x0,
+                y0,
+                gamma,
+                rc2,
+                u,
+                v,
+            } => {
+                let (dx, dy) = (x - x0, y - y0);
+                let r2 = dx * dx + dy * dy;
+                // u_θ/r = Γ/(2π r²)(1 − e^{−r²/rc²}); finite limit Γ/(2π rc²) at r → 0.
+                let f = if r2 < 1e-12 * rc2 {
+                    gamma / (std::f64::consts::TAU * rc2)
+                } else {
+                    gamma / (std::f64::consts::TAU * r2) * (1.0 - (-r2 / rc2).exp())
+                };
+                (u - f * dy, v + f * dx)
+            }
+            Flow::Poiseuille { u_max, y0, width } => {
+                let s = (y - y0) / width;
+                if (0.0..=1.0).contains(&s) {
+                    (4.0 * u_max * s * (1.0 - s), 0.0)
+                } else {
+                    (0.0, 0.0)
+                }
+            }
+            Flow::BoundaryLayer {
+                u_inf,
+                delta,
+                wall_y,
+            } => {
+                let eta = (wall_y - y) / delta;
+                if eta <= 0.0 {
+                    (0.0, 0.0)
+                } else if eta >= 1.0 {
+                    (*u_inf, 0.0)
+                } else {
+                    (u_inf * (2.0 * eta - 2.0 * eta.powi(3) + eta.powi(4)), 0.0)
+                }
+            }
+            Flow::Turbulent(tb) => tb.velocity(x, y, t),
+            Flow::Jet {
+                u_center,
+                u_coflow,
+                y_center,
+                half_width,
+                thickness,
+            } => {
+                let g = 0.5 * (1.0 + ((half_width - (y - y_center).abs()) / thickness).tanh());
+                (u_coflow + (u_center - u_coflow) * g, 0.0)
+            }
+            Flow::Shedding(s) => s.velocity(x, y, t),
+            Flow::Gridded(g) => g.velocity(x, y),
+        }
+    }
+
+    /// Steady flows along x whose u depends on y only: pathlines are
+    /// straight lines at constant speed and advection is exact.
+    pub fn is_parallel_steady(&self) -> bool {
+        match self {
+            Flow::Uniform { v, .. } => *v == 0.0,
+            Flow::Poiseuille { .. } | Flow::BoundaryLayer { .. } | Flow::Jet { .. } => true,
+            _ => false,
+        }
+    }
+
+    /// Whether (x, y) is fluid (particles are seeded and recycled only there).
+    pub fn is_fluid(&self, _x: f64, y: f64) -> bool {
+        match self {
+            Flow::Poiseuille { y0, width, .. } => y >= *y0 && y <= y0 + width,
+            Flow::BoundaryLayer { wall_y, .. } => y < *wall_y,
+            _ => true,
+        }
+    }
+
+    /// Exact Reynolds stresses (uu, vv, uv) of the fluctuations about the
+    /// mean field, when the field is a statistical one.
+    pub fn known_stresses(&self) -> Option<(f64, f64, f64)> {
+        match self {
+            Flow::Turbulent(tb) => Some(tb.stresses()),
+            _ => None,
+        }
+    }
+
+    /// Mean velocity (the field without fluctuations) for statistical fields.
+    pub fn mean_velocity(&self, x: f64, y: f64) -> (f64, f64) {
+        match self {
+            Flow::Turbulent(tb) => (tb.u_mean + tb.shear * (y - tb.y_ref), tb.v_mean),
+            _ => self.velocity(x, y, 0.0),
+        }
+    }
+
+    /// Shedding frequency (Hz) for the shedding flow.
+    pub fn shedding_frequency_hz(&self) -> Option<f64> {
+        match self {
+            Flow::Shedding(s) => Some(s.frequency_hz),
+            _ => None,
+        }
+    }
+}
+
+impl Turbulent {
+    #[inline]
+    fn velocity(&self, x: f64, y: f64, t: f64) -> (f64, f64) {
+        let mut u = self.u_mean + self.shear * (y - self.y_ref);
+        let mut v = self.v_mean;
+        for m in &self.modes {
+            let c = (m[2] * x + m[3] * y - m[4] * t + m[5]).cos();
+            // u = ∂ψ/∂y, v = −∂ψ/∂x.
+            u += m[1] * c;
+            v -= m[0] * c;
+        }
+        (u, v)
+    }
+
+    /// Time-averaged (uu, vv, uv) at any point: with distinct frequencies,
+    /// cross terms average out and each mode contributes half its square.
+    pub fn stresses(&self) -> (f64, f64, f64) {
+        let (mut uu, mut vv, mut uv) = (0.0, 0.0, 0.0);
+        for m in &self.modes {
+            uu += 0.5 * m[1] * m[1];
+            vv += 0.5 * m[0] * m[0];
+            uv -= 0.5 * m[0] * m[1];
+        }
+        (uu, vv, uv)
+    }
+}
+
+impl Shedding {
+    #[inline]
+    fn velocity(&self, x: f64, y: f64, t: f64) -> (f64, f64) {
+        let eta = (y - self.yc) / self.width;
+        let g = (-eta * eta).exp();
+        let dg = -2.0 * eta / self.width * g;
+        // Smooth onset of the wave behind the obstacle (logistic in x).
+        let s = 1.0 / (1.0 + (-(x - self.x0) / self.size).exp());
+        let ds = s * (1.0 - s) / self.size;
+        let theta = std::f64::consts::TAU * self.frequency_hz * t - self.k * x;
+        let (sn, cs) = theta.sin_cos();
+        let u = self.u_inf * (1.0 - self.deficit * s * g) + self.a * s * dg * sn;
+        // The deficit's stream function ∫U(1 − d s g)dy depends on x through
+        // s; its −∂/∂x part keeps the field divergence-free.
+        let erf_part = self.u_inf
+            * self.deficit
+            * ds
+            * self.width
+            * 0.5
+            * std::f64::consts::PI.sqrt()
+            * erf(eta);
+        let v = erf_part - self.a * g * (ds * sn - self.k * s * cs);
+        (u, v)
+    }
+}
+
+/// Error function (Abramowitz–Stegun 7.1.26, |error| < 1.5e-7).
+#[inline]
+pub fn erf(x: f64) -> f64 {
+    let s = x.signum();
+    let x = x.abs();
+    let t = 1.0 / (1.0 + 0.327_591_1 * x);
+    let y = 1.0
+        - (((((1.061_405_429 * t - 1.453_152_027) * t) + 1.421_413_741) * t - 0.284_496_736) * t
+            + 0.254_829_592)
+            * t
+            * (-x * x).exp();
+    s * y
+}
+
+impl Gridded {
+    pub fn load(path: &Path, scale: f64) -> Result<Gridded> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let mut lines = text
+            .lines()
+            .enumerate()
+            .filter(|(_, l)| !l.trim().is_empty());
+        let (_, header) = lines.next().ok_or_else(|| Error::Empty {
+            path: path.into(),
+            why: "empty velocity-field file".into(),
+        })?;
+        let cols: Vec<String> = header
+            .split(',')
+            .map(|c| c.trim().to_ascii_lowercase())
+            .collect();
+        let idx = |name: &str| {
+            cols.iter()
+                .position(|c| c == name)
+                .ok_or_else(|| Error::Config {
+                    path: path.into(),
+                    why: format!("header lacks column `{name}` (need x,y,u,v)"),
+                })
+        };
+        let (ix, iy, iu, iv) = (idx("x")?, idx("y")?, idx("u")?, idx("v")?);
+        let mut rows = Vec::new();
+        for (ln, line) in lines {
+            let f: Vec<&str> = line.split(',').collect();
+            let get = |i: usize| -> Result<f64> {
+                let v: f64 = f
+                    .get(i)
+                    .and_then(|s| s.trim().parse().ok())
+                    .ok_or_else(|| Error::Config {
+                        path: path.into(),
+                        why: format!("line {}: bad number in column {}", ln + 1, cols[i]),
+                    })?;
+                if v.is_finite() {
+                    Ok(v)
+                } else {
+                    Err(Error::Config {
+                        path: path.into(),
+                        why: format!("line {}: non-finite {}", ln + 1, cols[i]),
+                    })
+                }
+            };
+            rows.push((get(ix)?, get(iy)?, get(iu)? * scale, get(iv)? * scale));
+        }
+        let uniq = |mut v: Vec<f64>| {
+            v.sort_by(f64::total_cmp);
+            v.dedup();
+            v
+        };
+        let xs = uniq(rows.iter().map(|r| r.0).collect());
+        let ys = uniq(rows.iter().map(|r| r.1).collect());
+        if xs.len() < 2 || ys.len() < 2 {
+            return Err(Error::Config {
+                path: path.into(),
+                why: "need at least 2 distinct x and 2 distinct y grid nodes".into(),
+            });
+        }
+        let n = xs.len() * ys.len();
+        let mut u = vec![f64::NAN; n];
+        let mut v = vec![f64::NAN; n];
+        for r in &rows {
+            let i = xs.binary_search_by(|a| a.total_cmp(&r.0)).unwrap();
+            let j = ys.binary_search_by(|a| a.total_cmp(&r.1)).unwrap();
+            u[j * xs.len() + i] = r.2;
+            v[j * xs.len() + i] = r.3;
+        }
+        if let Some(k) = u.iter().position(|a| a.is_nan()) {
+            return Err(Error::Config {
+                path: path.into(),
+                why: format!(
+                    "not a full regular grid: node x={}, y={} missing",
+                    xs[k % xs.len()],
+                    ys[k / xs.len()]
+                ),
+            });
+        }
+        Ok(Gridded { xs, ys, u, v })
+    }
+
+    fn locate(axis: &[f64], x: f64) -> (usize, f64) {
+        if x <= axis[0] {
+            return (0, 0.0);
+        }
+        let last = axis.len() - 1;
+        if x >= axis[last] {
+            return (last - 1, 1.0);
+        }
+        let i = axis.partition_point(|a| *a <= x) - 1;
+        (i, (x - axis[i]) / (axis[i + 1] - axis[i]))
+    }
+
+    fn velocity(&self, x: f64, y: f64) -> (f64, f64) {
+        let (i, fx) = Self::locate(&self.xs, x);
+        let (j, fy) = Self::locate(&self.ys, y);
+        let w = self.xs.len();
+        let bil = |a: &[f64]| {
+            let a00 = a[j * w + i];
+            let a10 = a[j * w + i + 1];
+            let a01 = a[(j + 1) * w + i];
+            let a11 = a[(j + 1) * w + i + 1];
+            (a00 * (1.0 - fx) + a10 * fx) * (1.0 - fy) + (a01 * (1.0 - fx) + a11 * fx) * fy
+        };
+        (bil(&self.u), bil(&self.v))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn divergence(f: &Flow, x: f64, y: f64, t: f64) -> f64 {
+        let h = 1e-3;
+        let (u1, _) = f.velocity(x + h, y, t);
+        let (u0, _) = f.velocity(x - h, y, t);
+        let (_, v1) = f.velocity(x, y + h, t);
+        let (_, v0) = f.velocity(x, y - h, t);
+        (u1 - u0 + v1 - v0) / (2.0 * h)
+    }
+
+    #[test]
+    fn fields_are_divergence_free() {
+        let specs = [
+            FlowSpec::LambOseen {
+                x0: 100.0,
+                y0: 80.0,
+                circulation: 5e5,
+                core_radius: 20.0,
+                u: 10.0,
+                v: 0.0,
+            },
+            FlowSpec::Turbulent {
+                u_mean: 2000.0,
+                v_mean: 0.0,
+                shear: 3.0,
+                y_ref: 0.0,
+                rms: 300.0,
+                length_scale: 60.0,
+                time_scale_s: 0.01,
+                n_modes: 32,
+                seed: 7,
+            },
+            FlowSpec::Shedding {
+                u_inf: 5000.0,
+                obstacle_x: 100.0,
+                y_center: 300.0,
+                size: 40.0,
+                strouhal: 0.145,
+                amplitude: 0.3,
+                deficit: 0.4,
+                wake_width: 60.0,
+            },
+        ];
+        for s in &specs {
+            let f = Flow::build(s).unwrap();
+            let mut scale = 0.0f64;
+            for k in 0..50 {
+                let (x, y) = (13.7 * k as f64, 300.0 + 7.1 * k as f64 - 170.0);
+                let (u, v) = f.velocity(x, y, 1e-3 * k as f64);
+                scale = scale.max(u.abs() + v.abs());
+                let d = divergence(&f, x, y, 1e-3 * k as f64);
+                assert!(
+                    d.abs() < 1e-5 * scale.max(1.0),
+                    "{s:?}: div {d} at ({x},{y})"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn lamb_oseen_profile() {
+        let f = Flow::build(&FlowSpec::LambOseen {
+            x0: 0.0,
+            y0: 0.0,
+            circulation: 1000.0,
+            core_radius: 5.0,
+            u: 0.0,
+            v: 0.0,
+        })
+        .unwrap();
+        let r: f64 = 50.0; // far field: potential vortex
+        let (_, v) = f.velocity(r, 0.0, 0.0);
+        let expect = 1000.0 / (std::f64::consts::TAU * r) * (1.0 - (-(r * r) / 25.0).exp());
+        assert!((v - expect).abs() < 1e-12);
+        assert!(v > 0.0, "counter-clockwise circulation turns +x into +y");
+    }
+
+    #[test]
+    fn turbulent_stresses_match_time_average() {
+        let f = Flow::build(&FlowSpec::Turbulent {
+            u_mean: 0.0,
+            v_mean: 0.0,
+            shear: 0.0,
+            y_ref: 0.0,
+            rms: 100.0,
+            length_scale: 50.0,
+            time_scale_s: 0.002,
+            n_modes: 8,
+            seed: 3,
+        })
+        .unwrap();
+        let (uu, vv, uv) = f.known_stresses().unwrap();
+        assert!(((uu + vv) / 2.0 - 100.0f64.powi(2)).abs() < 1e-6 * 1e4);
+        // Brute-force time average at a point (a long record).
+        let n = 400_000;
+        let (mut su, mut sv, mut suv) = (0.0, 0.0, 0.0);
+        for k in 0..n {
+            let (u, v) = f.velocity(10.0, 20.0, k as f64 * 5e-5);
+            su += u * u;
+            sv += v * v;
+            suv += u * v;
+        }
+        let n = n as f64;
+        let tol = 0.05 * (uu + vv);
+        assert!((su / n - uu).abs() < tol, "uu {} vs {uu}", su / n);
+        assert!((sv / n - vv).abs() < tol, "vv {} vs {vv}", sv / n);
+        assert!((suv / n - uv).abs() < tol, "uv {} vs {uv}", suv / n);
+    }
+
+    #[test]
+    fn erf_is_accurate() {
+        // Reference values of erf.
+        for (x, e) in [
+            (0.0, 0.0),
+            (0.5, 0.520_499_877_8),
+            (1.0, 0.842_700_792_9),
+            (2.0, 0.995_322_265),
+            (-1.0, -0.842_700_792_9),
+        ] {
+            assert!((erf(x) - e).abs() < 2e-7, "erf({x})");
+        }
+    }
+
+    #[test]
+    fn gridded_interpolates_and_rejects_holes() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("f.csv");
+        let mut s = String::from("x,y,u,v\n");
+        for j in 0..3 {
+            for i in 0..4 {
+                let (x, y) = (i as f64 * 10.0, j as f64 * 20.0);
+                s += &format!("{x},{y},{},{}\n", 2.0 * x + y, -y);
+            }
+        }
+        std::fs::write(&p, &s).unwrap();
+        let f = Flow::build(&FlowSpec::Gridded {
+            path: p.clone(),
+            scale: 1.0,
+        })
+        .unwrap();
+        let (u, v) = f.velocity(15.0, 7.0, 0.0);
+        assert!(
+            (u - 37.0).abs() < 1e-9 && (v + 7.0).abs() < 1e-9,
+            "bilinear is exact on a linear field"
+        );
+        let holed: String = s.lines().take(6).collect::<Vec<_>>().join("\n");
+        std::fs::write(&p, holed).unwrap();
+        let e = Flow::build(&FlowSpec::Gridded {
+            path: p,
+            scale: 1.0,
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("missing"), "{e}");
+    }
+}

@@ -1,0 +1,296 @@
+//! Particles: seeding, advection and recycling.
+//!
+//! Particles live in a slab 1.5 light-sheet thicknesses deep over the ROI
+//! plus a margin (so images straddling the ROI edge are right). They move
+//! with the flow (exactly for steady parallel flows, else classical RK4
+//! with sub-steps of at most 2 px, far finer than any field's length scale) and out of plane with a
+//! per-particle constant velocity. A particle leaving the slab or the domain
+//! is recycled as a *new* particle (new id): periodically wrapped in x/y
+//! (which keeps the density of parallel flows exact), or re-seeded at a
+//! random fluid position entering the slab from the side it left.
+//!
+//! Every particle slot has its own random stream, so advancing slots in
+//! parallel gives the same result as advancing them one by one.
+
+use rand::{Rng, SeedableRng};
+use rand_distr::{Distribution, StandardNormal};
+use rand_pcg::Pcg64;
+
+use super::flow::Flow;
+use super::scenario::Scenario;
+use super::stream_seed;
+
+/// Half-depth of the slab relative to the sheet thickness.
+const SLAB_HALF: f64 = 0.75;
+
+/// Longest RK4 sub-step (px of displacement).
+pub const SUBSTEP_PX: f64 = 2.0;
+
+#[derive(Debug, Clone, Copy)]
+pub struct Particle {
+    pub x: f64,
+    pub y: f64,
+    /// Out-of-plane position (sheet centre 0).
+    pub z: f64,
+    pub w: f64,
+    pub brightness: f64,
+    pub id: u64,
+    generation: u64,
+}
+
+/// The rectangle particles live in (px).
+#[derive(Debug, Clone, Copy)]
+pub struct Domain {
+    pub x0: f64,
+    pub x1: f64,
+    pub y0: f64,
+    pub y1: f64,
+}
+
+/// A particle at one pulse, as the renderer needs it.
+#[derive(Debug, Clone, Copy)]
+pub struct Snapshot {
+    pub x: f64,
+    pub y: f64,
+    pub u: f64,
+    pub v: f64,
+    pub brightness: f64,
+    pub id: u64,
+}
+
+pub struct Particles {
+    pub particles: Vec<Particle>,
+    rngs: Vec<Pcg64>,
+    pub domain: Domain,
+    sheet_half: f64,
+    slab_half: f64,
+    out_of_plane_rms: f64,
+    brightness_spread: f64,
+}
+
+impl Particles {
+    pub fn seed(sc: &Scenario, flow: &Flow, seed: u64) -> Particles {
+        let roi = sc.roi();
+        let margin = 2.0 + 1.5 * sc.optics.particle_diameter_px;
+        let domain = Domain {
+            x0: roi.x as f64 - 0.5 - margin,
+            x1: (roi.x + roi.width) as f64 - 0.5 + margin,
+            y0: roi.y as f64 - 0.5 - margin,
+            y1: (roi.y + roi.height) as f64 - 0.5 + margin,
+        };
+        // Fluid fraction of the domain, for the particle count.
+        let mut fluid = 0usize;
+        let probes = 64;
+        for j in 0..probes {
+            for i in 0..probes {
+                let x = domain.x0 + (i as f64 + 0.5) / probes as f64 * (domain.x1 - domain.x0);
+                let y = domain.y0 + (j as f64 + 0.5) / probes as f64 * (domain.y1 - domain.y0);
+                fluid += flow.is_fluid(x, y) as usize;
+            }
+        }
+        let area = (domain.x1 - domain.x0) * (domain.y1 - domain.y0) * fluid as f64
+            / (probes * probes) as f64;
+        let sheet_half = 0.5 * sc.seeding.sheet_thickness;
+        let slab_half = SLAB_HALF * sc.seeding.sheet_thickness;
+        let n = (sc.seeding.ppp * area * slab_half / sheet_half).round() as usize;
+        let mut ps = Particles {
+            particles: Vec::with_capacity(n),
+            rngs: Vec::with_capacity(n),
+            domain,
+            sheet_half,
+            slab_half,
+            out_of_plane_rms: sc.seeding.out_of_plane_rms,
+            brightness_spread: sc.seeding.brightness_spread,
+        };
+        for slot in 0..n {
+            let mut rng = Pcg64::seed_from_u64(stream_seed(seed, 1, slot as u64));
+            let mut p = Particle {
+                x: 0.0,
+                y: 0.0,
+                z: 0.0,
+                w: 0.0,
+                brightness: 1.0,
+                id: slot as u64,
+                generation: 0,
+            };
+            ps.fresh(&mut p, &mut rng, flow, 0.0, None);
+            ps.particles.push(p);
+            ps.rngs.push(rng);
+        }
+        ps
+    }
+
+    pub fn len(&self) -> usize {
+        self.particles.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.particles.is_empty()
+    }
+
+    /// Give slot `p` a new particle: random fluid position, brightness and
+    /// out-of-plane velocity; `enter_side` places it at the slab face it
+    /// enters through (recycling), else anywhere in the slab.
+    fn fresh(
+        &self,
+        p: &mut Particle,
+        rng: &mut Pcg64,
+        flow: &Flow,
+        t: f64,
+        enter_side: Option<f64>,
+    ) {
+        let d = &self.domain;
+        let mut tries = 0;
+        loop {
+            p.x = rng.gen_range(d.x0..d.x1);
+            p.y = rng.gen_range(d.y0..d.y1);
+            tries += 1;
+            if flow.is_fluid(p.x, p.y) || tries > 1000 {
+                break;
+            }
+        }
+        let _ = t;
+        let g: f64 = StandardNormal.sample(rng);
+        p.brightness = (self.brightness_spread * g).exp();
+        let gw: f64 = StandardNormal.sample(rng);
+        p.w = self.out_of_plane_rms * gw;
+        p.z = match enter_side {
+            Some(side) => side * self.slab_half,
+            None => rng.gen_range(-self.slab_half..self.slab_half),
+        };
+    }
+
+    fn renew_id(p: &mut Particle, slot: usize, n_slots: usize) {
+        p.generation += 1;
+        p.id = slot as u64 + n_slots as u64 * p.generation;
+    }
+
+    /// Whether the particle is lit by the sheet.
+    #[inline]
+    pub fn in_sheet(&self, p: &Particle) -> bool {
+        p.z.abs() <= self.sheet_half
+    }
+
+    /// Advance every particle from `t0` to each of `times` in turn (s) and
+    /// return, per time, the lit particles as snapshots (in slot order).
+    pub fn advance_and_snapshot(
+        &mut self,
+        flow: &Flow,
+        t0: f64,
+        times: &[f64],
+    ) -> Vec<Vec<Snapshot>> {
+        use rayon::prelude::*;
+        const CHUNK: usize = 2048;
+        let n_slots = self.particles.len();
+        let mut particles = std::mem::take(&mut self.particles);
+        let mut rngs = std::mem::take(&mut self.rngs);
+        let this = &*self;
+        let parts: Vec<Vec<Vec<Snapshot>>> = particles
+            .par_chunks_mut(CHUNK)
+            .zip(rngs.par_chunks_mut(CHUNK))
+            .enumerate()
+            .map(|(ci, (pc, rc))| {
+                let mut out: Vec<Vec<Snapshot>> = vec![Vec::new(); times.len()];
+                for (k, (p, rng)) in pc.iter_mut().zip(rc.iter_mut()).enumerate() {
+                    let slot = ci * CHUNK + k;
+                    let mut t = t0;
+                    for (ti, &t1) in times.iter().enumerate() {
+                        this.step(p, rng, flow, t, t1, slot, n_slots);
+                        t = t1;
+                        if this.in_sheet(p) {
+                            let (u, v) = flow.velocity(p.x, p.y, t1);
+                            out[ti].push(Snapshot {
+                                x: p.x,
+                                y: p.y,
+                                u,
+                                v,
+                                brightness: p.brightness,
+                                id: p.id,
+                            });
+                        }
+                    }
+                }
+                out
+            })
+            .collect();
+        self.particles = particles;
+        self.rngs = rngs;
+        let mut merged: Vec<Vec<Snapshot>> = vec![Vec::new(); times.len()];
+        for part in parts {
+            for (m, s) in merged.iter_mut().zip(part) {
+                m.extend(s);
+            }
+        }
+        merged
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn step(
+        &self,
+        p: &mut Particle,
+        rng: &mut Pcg64,
+        flow: &Flow,
+        t0: f64,
+        t1: f64,
+        slot: usize,
+        n_slots: usize,
+    ) {
+        let dt = t1 - t0;
+        if dt <= 0.0 {
+            return;
+        }
+        let (u, v) = flow.velocity(p.x, p.y, t0);
+        if flow.is_parallel_steady() {
+            p.x += u * dt;
+        } else {
+            // RK4 sub-steps of at most 2 px: the fields vary over tens of px,
+            // so the pathline error stays far below 1e-3 px.
+            let disp = (u * u + v * v).sqrt() * dt;
+            let n = ((disp / SUBSTEP_PX).ceil() as usize).clamp(1, 256);
+            let h = dt / n as f64;
+            let mut t = t0;
+            for _ in 0..n {
+                let (k1x, k1y) = flow.velocity(p.x, p.y, t);
+                let (k2x, k2y) =
+                    flow.velocity(p.x + 0.5 * h * k1x, p.y + 0.5 * h * k1y, t + 0.5 * h);
+                let (k3x, k3y) =
+                    flow.velocity(p.x + 0.5 * h * k2x, p.y + 0.5 * h * k2y, t + 0.5 * h);
+                let (k4x, k4y) = flow.velocity(p.x + h * k3x, p.y + h * k3y, t + h);
+                p.x += h / 6.0 * (k1x + 2.0 * k2x + 2.0 * k3x + k4x);
+                p.y += h / 6.0 * (k1y + 2.0 * k2y + 2.0 * k3y + k4y);
+                t += h;
+            }
+        }
+        p.z += p.w * dt;
+        let d = &self.domain;
+        if p.z.abs() > self.slab_half {
+            // Left the slab: a new particle enters through the opposite face.
+            let side = -p.z.signum();
+            self.fresh(p, rng, flow, t1, Some(side));
+            // Keep its direction into the slab.
+            if p.w * side > 0.0 {
+                p.w = -p.w;
+            }
+            Self::renew_id(p, slot, n_slots);
+            return;
+        }
+        let (wx, wy) = (d.x1 - d.x0, d.y1 - d.y0);
+        let mut wrapped = false;
+        if p.x < d.x0 || p.x >= d.x1 {
+            p.x = d.x0 + (p.x - d.x0).rem_euclid(wx);
+            wrapped = true;
+        }
+        if p.y < d.y0 || p.y >= d.y1 {
+            p.y = d.y0 + (p.y - d.y0).rem_euclid(wy);
+            wrapped = true;
+        }
+        if wrapped {
+            if !flow.is_fluid(p.x, p.y) {
+                self.fresh(p, rng, flow, t1, None);
+            } else {
+                p.z = rng.gen_range(-self.slab_half..self.slab_half);
+            }
+            Self::renew_id(p, slot, n_slots);
+        }
+    }
+}

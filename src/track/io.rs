@@ -1,0 +1,506 @@
+//! Files of the PTV stage: `particles.csv`, `tracks.csv`, `summary.json`.
+//!
+//! Writers go through [`AtomicFile`]; readers check the header (columns by
+//! name, any order, extra columns ignored) and every value, and report the
+//! file and line of the first problem.
+
+use std::collections::BTreeMap;
+use std::io::{BufRead, BufReader, Write};
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use super::{Track, TrackPoint, TrackerStats};
+use crate::cluster::Particle;
+use crate::error::{Error, Result};
+use crate::io::atomic::AtomicFile;
+
+/// Columns of `particles.csv`.
+pub const PARTICLES_HEADER: &str = "pulse,t_us,x,y,n_events";
+/// Columns of `tracks.csv`.
+pub const TRACKS_HEADER: &str = "track_id,pulse,t_us,x,y,u,v";
+
+fn werr(path: &Path, e: std::io::Error) -> Error {
+    Error::io(path, e)
+}
+
+/// Streaming writer of `particles.csv` (`pulse,t_us,x,y,n_events`; µs and
+/// px): rows are appended as pulses are clustered; the file appears under
+/// its name only on [`ParticlesCsvWriter::finish`].
+pub struct ParticlesCsvWriter {
+    file: AtomicFile,
+}
+
+impl ParticlesCsvWriter {
+    pub fn create(path: &Path) -> Result<Self> {
+        let mut file = AtomicFile::create(path)?;
+        writeln!(file, "{PARTICLES_HEADER}").map_err(|e| werr(path, e))?;
+        Ok(ParticlesCsvWriter { file })
+    }
+    pub fn write(&mut self, particles: &[Particle]) -> Result<()> {
+        for p in particles {
+            writeln!(
+                self.file,
+                "{},{},{:.4},{:.4},{}",
+                p.pulse, p.t_us, p.x, p.y, p.n_events
+            )
+            .map_err(|e| werr(self.file.target(), e))?;
+        }
+        Ok(())
+    }
+    pub fn finish(self) -> Result<()> {
+        self.file.commit()
+    }
+}
+
+/// Streaming writer of `tracks.csv` (`track_id,pulse,t_us,x,y,u,v`; µs, px,
+/// px/s), one row per track point.
+pub struct TracksCsvWriter {
+    file: AtomicFile,
+}
+
+impl TracksCsvWriter {
+    pub fn create(path: &Path) -> Result<Self> {
+        let mut file = AtomicFile::create(path)?;
+        writeln!(file, "{TRACKS_HEADER}").map_err(|e| werr(path, e))?;
+        Ok(TracksCsvWriter { file })
+    }
+    pub fn write(&mut self, tracks: &[Track]) -> Result<()> {
+        for t in tracks {
+            for p in &t.points {
+                writeln!(
+                    self.file,
+                    "{},{},{},{:.4},{:.4},{:.3},{:.3}",
+                    t.id, p.pulse, p.t_us, p.x, p.y, p.u, p.v
+                )
+                .map_err(|e| werr(self.file.target(), e))?;
+            }
+        }
+        Ok(())
+    }
+    pub fn finish(self) -> Result<()> {
+        self.file.commit()
+    }
+}
+
+/// Write `particles.csv` in one go.
+pub fn write_particles_csv(path: &Path, particles: &[Particle]) -> Result<()> {
+    let mut w = ParticlesCsvWriter::create(path)?;
+    w.write(particles)?;
+    w.finish()
+}
+
+/// Write `tracks.csv` in one go.
+pub fn write_tracks_csv(path: &Path, tracks: &[Track]) -> Result<()> {
+    let mut w = TracksCsvWriter::create(path)?;
+    w.write(tracks)?;
+    w.finish()
+}
+
+/// A header-checked CSV reader yielding the requested columns as f64.
+struct CsvColumns<'a> {
+    path: &'a Path,
+    lines: std::io::Lines<BufReader<std::fs::File>>,
+    idx: Vec<usize>,
+    names: &'a [&'a str],
+    line_no: u64,
+    buf: Vec<f64>,
+}
+
+impl<'a> CsvColumns<'a> {
+    fn open(path: &'a Path, names: &'a [&'a str]) -> Result<Self> {
+        let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+        let mut lines = BufReader::new(file).lines();
+        let header = match lines.next() {
+            None => {
+                return Err(Error::corrupt(
+                    path,
+                    0,
+                    "empty file: expected a header line",
+                ))
+            }
+            Some(h) => h.map_err(|e| Error::io(path, e))?,
+        };
+        let cols: Vec<&str> = header
+            .trim()
+            .trim_start_matches('\u{feff}')
+            .split(',')
+            .map(|c| c.trim())
+            .collect();
+        let mut idx = Vec::new();
+        let mut missing = Vec::new();
+        for n in names {
+            match cols.iter().position(|c| c == n) {
+                Some(i) => idx.push(i),
+                None => missing.push(*n),
+            }
+        }
+        if !missing.is_empty() {
+            return Err(Error::corrupt(
+                path,
+                0,
+                format!(
+                    "line 1: missing column(s) {} (header is `{}`, expected {})",
+                    missing.join(", "),
+                    header.trim(),
+                    names.join(",")
+                ),
+            ));
+        }
+        Ok(CsvColumns {
+            path,
+            lines,
+            idx,
+            names,
+            line_no: 1,
+            buf: Vec::new(),
+        })
+    }
+
+    /// Next data row's values (skips blank lines), or `None` at the end.
+    fn next_row(&mut self) -> Result<Option<&[f64]>> {
+        loop {
+            let Some(line) = self.lines.next() else {
+                return Ok(None);
+            };
+            self.line_no += 1;
+            let line = line.map_err(|e| Error::io(self.path, e))?;
+            if line.trim().is_empty() {
+                continue;
+            }
+            let fields: Vec<&str> = line.split(',').collect();
+            self.buf.clear();
+            for (k, &i) in self.idx.iter().enumerate() {
+                let raw = fields.get(i).map(|s| s.trim()).ok_or_else(|| {
+                    Error::corrupt(
+                        self.path,
+                        0,
+                        format!(
+                            "line {}: too few fields (no `{}`)",
+                            self.line_no, self.names[k]
+                        ),
+                    )
+                })?;
+                let v: f64 = raw.parse().map_err(|_| {
+                    Error::corrupt(
+                        self.path,
+                        0,
+                        format!(
+                            "line {}: `{}` = `{raw}` is not a number",
+                            self.line_no, self.names[k]
+                        ),
+                    )
+                })?;
+                if !v.is_finite() {
+                    return Err(Error::corrupt(
+                        self.path,
+                        0,
+                        format!(
+                            "line {}: `{}` is {raw}, not a finite number",
+                            self.line_no, self.names[k]
+                        ),
+                    ));
+                }
+                self.buf.push(v);
+            }
+            return Ok(Some(&self.buf));
+        }
+    }
+
+    fn int(&self, v: f64, col: usize) -> Result<i64> {
+        if v.fract() != 0.0 || v.abs() > 9.0e15 {
+            return Err(Error::corrupt(
+                self.path,
+                0,
+                format!(
+                    "line {}: `{}` = {v} is not an integer",
+                    self.line_no, self.names[col]
+                ),
+            ));
+        }
+        Ok(v as i64)
+    }
+}
+
+/// Read `particles.csv`. Columns by name (extra columns ignored); missing
+/// columns, unparsable values or NaN/inf are errors naming the line.
+pub fn read_particles_csv(path: &Path) -> Result<Vec<Particle>> {
+    let names = ["pulse", "t_us", "x", "y", "n_events"];
+    let mut r = CsvColumns::open(path, &names)?;
+    let mut out = Vec::new();
+    while let Some(row) = r.next_row()? {
+        let row: [f64; 5] = row.try_into().expect("five columns");
+        let pulse = r.int(row[0], 0)?;
+        let n_events = r.int(row[4], 4)?;
+        if n_events < 0 || n_events > u32::MAX as i64 {
+            return Err(Error::corrupt(
+                path,
+                0,
+                format!("line {}: n_events = {n_events} out of range", r.line_no),
+            ));
+        }
+        out.push(Particle {
+            pulse,
+            t_us: row[1],
+            x: row[2],
+            y: row[3],
+            n_events: n_events as u32,
+            n_pixels: 0,
+            extent_x: 0.0,
+            extent_y: 0.0,
+            first_latency_us: 0.0,
+        });
+    }
+    Ok(out)
+}
+
+/// Read `tracks.csv` into tracks (rows grouped by `track_id`, points sorted
+/// by pulse). Accelerations are not in the file and come back as 0; points
+/// are not marked interpolated.
+pub fn read_tracks_csv(path: &Path) -> Result<Vec<Track>> {
+    let names = ["track_id", "pulse", "t_us", "x", "y", "u", "v"];
+    let mut r = CsvColumns::open(path, &names)?;
+    let mut by_id: BTreeMap<u64, Vec<TrackPoint>> = BTreeMap::new();
+    while let Some(row) = r.next_row()? {
+        let row: [f64; 7] = row.try_into().expect("seven columns");
+        let id = r.int(row[0], 0)?;
+        if id < 0 {
+            return Err(Error::corrupt(
+                path,
+                0,
+                format!("line {}: negative track_id {id}", r.line_no),
+            ));
+        }
+        let pulse = r.int(row[1], 1)?;
+        by_id.entry(id as u64).or_default().push(TrackPoint {
+            pulse,
+            t_us: row[2],
+            x: row[3],
+            y: row[4],
+            u: row[5],
+            v: row[6],
+            ax: 0.0,
+            ay: 0.0,
+            interpolated: false,
+        });
+    }
+    Ok(by_id
+        .into_iter()
+        .map(|(id, mut points)| {
+            points.sort_by_key(|p| p.pulse);
+            Track { id, points }
+        })
+        .collect())
+}
+
+/// `summary.json`: what the PTV stage found.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Summary {
+    pub pulses: u64,
+    pub particles: u64,
+    pub tracks: u64,
+    /// Detections on kept tracks.
+    pub particles_on_tracks: u64,
+    /// `particles_on_tracks / particles`.
+    pub fraction_on_tracks: f64,
+    pub mean_track_length: f64,
+    /// Histogram of track lengths (points per track): `[lower, upper)` bin
+    /// edges and counts.
+    pub length_histogram: Vec<(u64, u64, u64)>,
+    pub mean_speed_px_s: f64,
+    pub tracker: TrackerStats,
+}
+
+/// Accumulates what [`Summary`] needs while tracks stream past.
+#[derive(Debug, Clone, Default)]
+pub struct SummaryAcc {
+    lengths: Vec<u64>,
+    speed_sum: f64,
+    points: u64,
+}
+
+impl SummaryAcc {
+    pub fn add(&mut self, tracks: &[Track]) {
+        for t in tracks {
+            self.lengths.push(t.points.len() as u64);
+            self.points += t.points.len() as u64;
+            self.speed_sum += t.points.iter().map(|p| p.u.hypot(p.v)).sum::<f64>();
+        }
+    }
+    pub fn summary(&self, stats: &TrackerStats) -> Summary {
+        Summary::from_parts(&self.lengths, self.speed_sum, self.points, stats)
+    }
+}
+
+impl Summary {
+    pub fn new(tracks: &[Track], stats: &TrackerStats) -> Self {
+        let mut acc = SummaryAcc::default();
+        acc.add(tracks);
+        acc.summary(stats)
+    }
+
+    fn from_parts(lens: &[u64], speed_sum: f64, npts: u64, stats: &TrackerStats) -> Self {
+        let max_len = lens.iter().copied().max().unwrap_or(0);
+        let mut hist = Vec::new();
+        // Bins 4-8, 8-16, 16-32, ...: lengths span orders of magnitude.
+        let mut lo = 1u64;
+        while lo <= max_len {
+            let hi = lo * 2;
+            let c = lens.iter().filter(|&&l| l >= lo && l < hi).count() as u64;
+            hist.push((lo, hi, c));
+            lo = hi;
+        }
+        Summary {
+            pulses: stats.pulses,
+            particles: stats.particles,
+            tracks: lens.len() as u64,
+            particles_on_tracks: stats.particles_on_tracks,
+            fraction_on_tracks: if stats.particles > 0 {
+                stats.particles_on_tracks as f64 / stats.particles as f64
+            } else {
+                0.0
+            },
+            mean_track_length: if lens.is_empty() {
+                0.0
+            } else {
+                npts as f64 / lens.len() as f64
+            },
+            length_histogram: hist,
+            mean_speed_px_s: if npts > 0 {
+                speed_sum / npts as f64
+            } else {
+                0.0
+            },
+            tracker: stats.clone(),
+        }
+    }
+}
+
+/// Write `summary.json` atomically.
+pub fn write_summary_json(path: &Path, summary: &Summary) -> Result<()> {
+    let bytes = serde_json::to_vec_pretty(summary)
+        .map_err(|e| Error::analysis(format!("summary.json: {e}")))?;
+    AtomicFile::write_all_to(path, &bytes)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn particles_roundtrip_and_errors() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("particles.csv");
+        let p = Particle {
+            pulse: 4,
+            t_us: 800.5,
+            x: 1.25,
+            y: 7.5,
+            n_events: 2,
+            n_pixels: 2,
+            extent_x: 2.0,
+            extent_y: 1.0,
+            first_latency_us: 3.0,
+        };
+        write_particles_csv(&path, &[p]).unwrap();
+        let back = read_particles_csv(&path).unwrap();
+        assert_eq!(
+            (
+                back[0].pulse,
+                back[0].t_us,
+                back[0].x,
+                back[0].y,
+                back[0].n_events
+            ),
+            (4, 800.5, 1.25, 7.5, 2)
+        );
+
+        std::fs::write(&path, "pulse,t_us,x,n_events\n1,2,3,4\n").unwrap();
+        let e = read_particles_csv(&path).unwrap_err().to_string();
+        assert!(
+            e.contains("missing column(s) y") && e.contains("particles.csv"),
+            "{e}"
+        );
+        std::fs::write(&path, "pulse,t_us,x,y,n_events\n1,2,3,4,1\n2,3,NaN,4,1\n").unwrap();
+        let e = read_particles_csv(&path).unwrap_err().to_string();
+        assert!(e.contains("line 3") && e.contains("`x`"), "{e}");
+        std::fs::write(&path, "pulse,t_us,x,y,n_events\n1.5,2,3,4,1\n").unwrap();
+        assert!(read_particles_csv(&path)
+            .unwrap_err()
+            .to_string()
+            .contains("not an integer"));
+        std::fs::write(&path, "").unwrap();
+        assert!(read_particles_csv(&path)
+            .unwrap_err()
+            .to_string()
+            .contains("empty"));
+    }
+
+    #[test]
+    fn tracks_roundtrip() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("tracks.csv");
+        let pt = |pulse: i64, x: f64| TrackPoint {
+            pulse,
+            t_us: pulse as f64 * 100.0,
+            x,
+            y: 2.0,
+            u: 1000.5,
+            v: -3.25,
+            ax: 0.0,
+            ay: 0.0,
+            interpolated: false,
+        };
+        let tracks = vec![
+            Track {
+                id: 0,
+                points: vec![pt(0, 1.0), pt(1, 2.0)],
+            },
+            Track {
+                id: 7,
+                points: vec![pt(3, 5.0)],
+            },
+        ];
+        write_tracks_csv(&path, &tracks).unwrap();
+        assert_eq!(read_tracks_csv(&path).unwrap(), tracks);
+        std::fs::write(&path, "track_id,pulse,t_us,x,y,u\n").unwrap();
+        assert!(read_tracks_csv(&path)
+            .unwrap_err()
+            .to_string()
+            .contains("missing column(s) v"));
+    }
+
+    #[test]
+    fn summary_histogram() {
+        let mk = |n: usize| Track {
+            id: 0,
+            points: vec![
+                TrackPoint {
+                    pulse: 0,
+                    t_us: 0.0,
+                    x: 0.0,
+                    y: 0.0,
+                    u: 3.0,
+                    v: 4.0,
+                    ax: 0.0,
+                    ay: 0.0,
+                    interpolated: false
+                };
+                n
+            ],
+        };
+        let s = Summary::new(
+            &[mk(5), mk(6), mk(20)],
+            &TrackerStats {
+                particles: 40,
+                particles_on_tracks: 30,
+                ..Default::default()
+            },
+        );
+        assert_eq!(s.tracks, 3);
+        assert!((s.fraction_on_tracks - 0.75).abs() < 1e-12);
+        assert!((s.mean_speed_px_s - 5.0).abs() < 1e-12);
+        let c: Vec<u64> = s.length_histogram.iter().map(|h| h.2).collect();
+        assert_eq!(c, vec![0, 0, 2, 0, 1]);
+    }
+}

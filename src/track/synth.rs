@@ -1,0 +1,406 @@
+//! A small synthetic PTV scene with ground truth, and the link scores.
+//!
+//! The full simulator (`crate::sim`) models the sensor and its readout; this
+//! generator models only what clustering and tracking see — a few events per
+//! particle per pulse around the particle's image centre, noise events, and
+//! particles that leave and enter the light sheet — so that the PTV stage
+//! can be tested and benchmarked on its own, quickly, against exact truth:
+//! every event knows which particle (or noise) made it.
+//!
+//! # Scene
+//! A steady, curved 2-D flow on a `width × height` frame,
+//! `u = U (0.5 + 0.4 sin(2π y/L))`, `v = 0.35 U cos(2π x/L)` (px per pulse,
+//! `L = flow_scale`),
+//! with `U` set so the largest speed is `max_disp` px per pulse. Particles
+//! (density `ppp` per pixel) are advected with RK4; a particle leaves the
+//! sheet with probability `1/sheet_life` per pulse or by crossing the frame
+//! edge, and a new one appears at a random place so the density stays put.
+//! Each pulse, particle `i` fires with probability `p_detect`, then
+//! `1 + Poisson(m_i - 1)` ON events (`m_i` uniform in
+//! `events_per_particle`, the mean events of a firing particle) on pixels drawn from a Gaussian image of standard
+//! deviation `image_sigma` px around its centre; `noise_fraction` times as
+//! many noise events land on uniformly random pixels.
+//!
+//! # Link scores (the definition used in tests and docs)
+//! A detection (particle) belongs to the truth particle that made most of
+//! its events (none if noise made most). A *link* is a pair of consecutive
+//! detections of one output track (across a bridged gap, too); it is
+//! correct when both detections belong to the same truth particle.
+//! *Precision* = correct links / output links. A *truth link* is a truth
+//! particle detected in two consecutive pulses k, k+1; it is found when an
+//! output track holds that pair of detections consecutively.
+//! *Recall* = found truth links / truth links. The velocity error is the
+//! fitted track velocity minus the true velocity at every detection of a
+//! correctly identified track point, in px per pulse interval.
+
+use std::collections::{HashMap, HashSet};
+
+use rand::{Rng, SeedableRng};
+use rand_distr::{Distribution, Normal, Poisson};
+use rand_pcg::Pcg64;
+use serde::{Deserialize, Serialize};
+
+use super::LinkedTrack;
+use crate::cluster::{particles_from_labels, pixel_labels, pulse_pixels, ClusterParams, Particle};
+use crate::events::{EventChunk, ON};
+use crate::pulses::PulseEvents;
+use crate::sim::TruthSample;
+
+/// Scene parameters.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct SynthParams {
+    pub width: u16,
+    pub height: u16,
+    /// Particles per pixel in the sheet.
+    pub ppp: f64,
+    pub pulses: usize,
+    pub period_us: f64,
+    /// Largest displacement per pulse (px).
+    pub max_disp: f64,
+    /// Range of the mean events per particle per pulse.
+    pub events_per_particle: (f64, f64),
+    /// Noise events as a fraction of particle events.
+    pub noise_fraction: f64,
+    /// Mean residence time in the sheet (pulses).
+    pub sheet_life: f64,
+    /// Standard deviation of the particle image (px).
+    pub image_sigma: f64,
+    /// Probability that a particle in the sheet fires at all in a pulse.
+    pub p_detect: f64,
+    /// Wavelength (px) of the flow's structures.
+    pub flow_scale: f64,
+    pub seed: u64,
+}
+
+impl Default for SynthParams {
+    /// Paper-like conditions.
+    fn default() -> Self {
+        SynthParams {
+            width: 256,
+            height: 256,
+            ppp: 0.01,
+            pulses: 60,
+            period_us: 200.0,
+            max_disp: 8.0,
+            events_per_particle: (1.3, 2.0),
+            noise_fraction: 0.01,
+            sheet_life: 40.0,
+            image_sigma: 0.35,
+            p_detect: 0.95,
+            flow_scale: 512.0,
+            seed: 1,
+        }
+    }
+}
+
+/// One pulse of the scene: its events, the truth id of each event (`None`
+/// for noise) and the truth of every particle in the sheet.
+#[derive(Debug, Clone)]
+pub struct SynthPulse {
+    pub pulse: PulseEvents,
+    pub event_truth: Vec<Option<u64>>,
+    pub truth: Vec<TruthSample>,
+}
+
+impl SynthParams {
+    fn speed_scale(&self) -> f64 {
+        let mag = (0.9f64.powi(2) + 0.35f64.powi(2)).sqrt();
+        self.max_disp / mag
+    }
+
+    /// Velocity (px per pulse) at a position.
+    pub fn velocity(&self, x: f64, y: f64) -> (f64, f64) {
+        let u0 = self.speed_scale();
+        let tau = std::f64::consts::TAU;
+        (
+            u0 * (0.5 + 0.4 * (tau * y / self.flow_scale).sin()),
+            0.35 * u0 * (tau * x / self.flow_scale).cos(),
+        )
+    }
+
+    fn advect(&self, x: f64, y: f64) -> (f64, f64) {
+        let (k1x, k1y) = self.velocity(x, y);
+        let (k2x, k2y) = self.velocity(x + 0.5 * k1x, y + 0.5 * k1y);
+        let (k3x, k3y) = self.velocity(x + 0.5 * k2x, y + 0.5 * k2y);
+        let (k4x, k4y) = self.velocity(x + k3x, y + k3y);
+        (
+            x + (k1x + 2.0 * k2x + 2.0 * k3x + k4x) / 6.0,
+            y + (k1y + 2.0 * k2y + 2.0 * k3y + k4y) / 6.0,
+        )
+    }
+}
+
+/// Generate the scene, pulse by pulse.
+pub fn generate(p: &SynthParams) -> Vec<SynthPulse> {
+    struct P {
+        id: u64,
+        x: f64,
+        y: f64,
+        m: f64,
+    }
+    let mut rng = Pcg64::seed_from_u64(p.seed);
+    let (w, h) = (p.width as f64, p.height as f64);
+    let n = (p.ppp * w * h).round() as usize;
+    let mut next_id = 0u64;
+    let mut spawn = |rng: &mut Pcg64| {
+        next_id += 1;
+        P {
+            id: next_id - 1,
+            x: rng.gen_range(0.0..w - 1.0),
+            y: rng.gen_range(0.0..h - 1.0),
+            m: rng.gen_range(p.events_per_particle.0..=p.events_per_particle.1),
+        }
+    };
+    let mut parts: Vec<P> = (0..n).map(|_| spawn(&mut rng)).collect();
+    let blur = Normal::new(0.0, p.image_sigma.max(1e-9)).expect("finite sigma");
+    let latency = Normal::new(100.0f64, 20.0).expect("finite");
+    let period_s = p.period_us * 1e-6;
+    let mut out = Vec::with_capacity(p.pulses);
+    for k in 0..p.pulses {
+        let start = 1000.0 + k as f64 * p.period_us;
+        let mut events: Vec<(i64, u16, u16, Option<u64>)> = Vec::new();
+        let mut truth = Vec::with_capacity(parts.len());
+        for q in &parts {
+            let (u, v) = p.velocity(q.x, q.y);
+            truth.push(TruthSample {
+                pulse: k as i64,
+                t_us: start,
+                particle_id: q.id,
+                x: q.x,
+                y: q.y,
+                u: u / period_s,
+                v: v / period_s,
+            });
+            let ne = if rng.gen_bool(p.p_detect.clamp(0.0, 1.0)) {
+                1 + Poisson::new(q.m - 1.0)
+                    .map(|d| d.sample(&mut rng) as usize)
+                    .unwrap_or(0)
+            } else {
+                0
+            };
+            for _ in 0..ne {
+                let ex = (q.x + blur.sample(&mut rng)).round();
+                let ey = (q.y + blur.sample(&mut rng)).round();
+                if ex >= 0.0 && ey >= 0.0 && ex < w && ey < h {
+                    let t = start + latency.sample(&mut rng).max(1.0);
+                    events.push((t as i64, ex as u16, ey as u16, Some(q.id)));
+                }
+            }
+        }
+        let n_noise = (events.len() as f64 * p.noise_fraction).round() as usize;
+        for _ in 0..n_noise {
+            let t = start + rng.gen_range(0.0..p.period_us);
+            events.push((
+                t as i64,
+                rng.gen_range(0..p.width),
+                rng.gen_range(0..p.height),
+                None,
+            ));
+        }
+        events.sort_by_key(|e| e.0);
+        let mut chunk = EventChunk::with_capacity(events.len());
+        for e in &events {
+            chunk.push(e.0, e.1, e.2, ON);
+        }
+        out.push(SynthPulse {
+            pulse: PulseEvents {
+                index: k as i64,
+                start_us: start,
+                events: chunk,
+            },
+            event_truth: events.iter().map(|e| e.3).collect(),
+            truth,
+        });
+        // Advance: advect, lose particles out of frame or sheet, refill.
+        let mut kept = Vec::with_capacity(parts.len());
+        for q in parts {
+            let (x, y) = p.advect(q.x, q.y);
+            let in_frame = x >= 0.0 && y >= 0.0 && x < w - 1.0 && y < h - 1.0;
+            if in_frame && !rng.gen_bool((1.0 / p.sheet_life).min(1.0)) {
+                kept.push(P { x, y, ..q });
+            }
+        }
+        while kept.len() < n {
+            kept.push(spawn(&mut rng));
+        }
+        parts = kept;
+    }
+    out
+}
+
+/// Cluster one synthetic pulse and attribute each particle to the truth
+/// particle that made most of its events.
+pub fn cluster_with_truth(
+    sp: &SynthPulse,
+    params: &ClusterParams,
+) -> (Vec<Particle>, Vec<Option<u64>>) {
+    let pixels = pulse_pixels(&sp.pulse, params);
+    let labels = pixel_labels(&pixels, params);
+    let particles = particles_from_labels(&sp.pulse, &pixels, &labels, params);
+    let label_of: HashMap<(u16, u16), u32> = pixels
+        .iter()
+        .zip(&labels)
+        .map(|(p, &l)| ((p.x, p.y), l))
+        .collect();
+    let n_labels = labels.iter().map(|&l| l as usize + 1).max().unwrap_or(0);
+    let mut votes: Vec<HashMap<Option<u64>, u32>> = vec![HashMap::new(); n_labels];
+    let mut size = vec![0u32; n_labels];
+    let ev = &sp.pulse.events;
+    for i in 0..ev.len() {
+        if params.on_only && ev.p[i] != ON {
+            continue;
+        }
+        if let Some(&l) = label_of.get(&(ev.x[i], ev.y[i])) {
+            *votes[l as usize].entry(sp.event_truth[i]).or_default() += 1;
+            size[l as usize] += 1;
+        }
+    }
+    let ids: Vec<Option<u64>> = (0..n_labels)
+        .filter(|&l| size[l] >= params.min_events && size[l] <= params.max_events)
+        .map(|l| {
+            let mut v: Vec<(Option<u64>, u32)> = votes[l].iter().map(|(k, c)| (*k, *c)).collect();
+            v.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
+            match v.as_slice() {
+                [(_, c1), (_, c2), ..] if c1 == c2 => None,
+                [(id, _), ..] => *id,
+                [] => None,
+            }
+        })
+        .collect();
+    debug_assert_eq!(ids.len(), particles.len());
+    (particles, ids)
+}
+
+/// Link scores against truth (see the module docs for the definitions).
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct LinkScore {
+    pub links: u64,
+    pub correct_links: u64,
+    pub truth_links: u64,
+    pub found_truth_links: u64,
+    pub precision: f64,
+    pub recall: f64,
+    /// Rms of each velocity component's error (px per pulse interval).
+    pub velocity_rms_px_per_pulse: f64,
+    pub velocity_samples: u64,
+    /// The same over track points at least `interior_margin` points from
+    /// both ends of their track, where the sliding fit window is centred.
+    pub velocity_rms_interior_px_per_pulse: f64,
+    pub velocity_samples_interior: u64,
+}
+
+/// Score linked tracks. `det_truth[serial]` is the truth id of each
+/// detection (serials as the tracker numbered them), `det_pulse[serial]`
+/// its pulse; `truth` the truth samples of all pulses.
+pub fn score(
+    tracks: &[LinkedTrack],
+    det_truth: &[Option<u64>],
+    det_pulse: &[i64],
+    truth: &[TruthSample],
+    period_us: f64,
+    interior_margin: usize,
+) -> LinkScore {
+    let mut s = LinkScore::default();
+    // Truth links: (pulse k, id) detected at k and k+1.
+    let detected: HashSet<(i64, u64)> = det_truth
+        .iter()
+        .zip(det_pulse)
+        .filter_map(|(id, &k)| id.map(|id| (k, id)))
+        .collect();
+    s.truth_links = detected
+        .iter()
+        .filter(|&&(k, id)| detected.contains(&(k + 1, id)))
+        .count() as u64;
+    let truth_vel: HashMap<(i64, u64), (f64, f64)> = truth
+        .iter()
+        .map(|t| ((t.pulse, t.particle_id), (t.u, t.v)))
+        .collect();
+    let mut found: HashSet<(i64, u64)> = HashSet::new();
+    let mut sq = 0.0;
+    let mut sq_in = 0.0;
+    for t in tracks {
+        let serials: Vec<u64> = t.detections.iter().flatten().copied().collect();
+        for w in serials.windows(2) {
+            s.links += 1;
+            let (a, b) = (w[0] as usize, w[1] as usize);
+            if let (Some(ia), Some(ib)) = (det_truth[a], det_truth[b]) {
+                if ia == ib {
+                    s.correct_links += 1;
+                    if det_pulse[b] == det_pulse[a] + 1 {
+                        found.insert((det_pulse[a], ia));
+                    }
+                }
+            }
+        }
+        let n = t.track.points.len();
+        for (i, (pt, d)) in t.track.points.iter().zip(&t.detections).enumerate() {
+            let Some(serial) = d else { continue };
+            let Some(id) = det_truth[*serial as usize] else {
+                continue;
+            };
+            if let Some(&(u, v)) = truth_vel.get(&(pt.pulse, id)) {
+                let k = period_us * 1e-6;
+                let e2 = ((pt.u - u) * k).powi(2) + ((pt.v - v) * k).powi(2);
+                sq += e2;
+                s.velocity_samples += 1;
+                if i >= interior_margin && n - 1 - i >= interior_margin {
+                    sq_in += e2;
+                    s.velocity_samples_interior += 1;
+                }
+            }
+        }
+    }
+    s.found_truth_links = found.len() as u64;
+    s.precision = if s.links > 0 {
+        s.correct_links as f64 / s.links as f64
+    } else {
+        0.0
+    };
+    s.recall = if s.truth_links > 0 {
+        s.found_truth_links as f64 / s.truth_links as f64
+    } else {
+        0.0
+    };
+    s.velocity_rms_px_per_pulse = if s.velocity_samples > 0 {
+        (sq / (2 * s.velocity_samples) as f64).sqrt()
+    } else {
+        0.0
+    };
+    s.velocity_rms_interior_px_per_pulse = if s.velocity_samples_interior > 0 {
+        (sq_in / (2 * s.velocity_samples_interior) as f64).sqrt()
+    } else {
+        0.0
+    };
+    s
+}
+
+/// Run the whole PTV stage on a scene: cluster every pulse, track, score.
+pub fn run_and_score(
+    scene: &[SynthPulse],
+    cparams: &ClusterParams,
+    tparams: &super::TrackParams,
+    period_us: f64,
+) -> crate::Result<(Vec<LinkedTrack>, LinkScore)> {
+    let mut tracker = super::Tracker::new(tparams.clone())?;
+    let mut det_truth = Vec::new();
+    let mut det_pulse = Vec::new();
+    let mut tracks = Vec::new();
+    let mut truth = Vec::new();
+    for sp in scene {
+        let (parts, ids) = cluster_with_truth(sp, cparams);
+        det_pulse.extend(std::iter::repeat(sp.pulse.index).take(parts.len()));
+        det_truth.extend(ids);
+        tracks.extend(tracker.push_linked(sp.pulse.index, sp.pulse.start_us, &parts)?);
+        truth.extend_from_slice(&sp.truth);
+    }
+    tracks.extend(tracker.finish().0);
+    let s = score(
+        &tracks,
+        &det_truth,
+        &det_pulse,
+        &truth,
+        period_us,
+        tparams.fit_window / 2,
+    );
+    Ok((tracks, s))
+}

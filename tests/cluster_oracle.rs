@@ -1,0 +1,142 @@
+//! The k-d tree clustering must reproduce an obviously-correct O(n²)
+//! reference exactly: same partition of events, same particles.
+
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+
+use ebptv::cluster::{cluster_pulse, pixel_labels, pulse_pixels, ClusterParams};
+use ebptv::events::EventChunk;
+use ebptv::pulses::PulseEvents;
+use proptest::prelude::*;
+
+/// Reference: every pair of selected events closer than the radius (squared
+/// integer distance <= floor(r²)) is joined, by repeated relabelling.
+fn brute_partition(pulse: &PulseEvents, params: &ClusterParams) -> BTreeSet<BTreeSet<usize>> {
+    let ev = &pulse.events;
+    let sel: Vec<usize> = (0..ev.len())
+        .filter(|&i| {
+            (!params.on_only || ev.p[i] == 1) && !params.hot_pixels.contains(&(ev.x[i], ev.y[i]))
+        })
+        .collect();
+    let mut label: Vec<usize> = (0..sel.len()).collect();
+    let max_d2 = (params.radius * params.radius).floor() as i64;
+    loop {
+        let mut changed = false;
+        for a in 0..sel.len() {
+            for b in 0..sel.len() {
+                let (i, j) = (sel[a], sel[b]);
+                let dx = ev.x[i] as i64 - ev.x[j] as i64;
+                let dy = ev.y[i] as i64 - ev.y[j] as i64;
+                if dx * dx + dy * dy <= max_d2 && label[b] > label[a] {
+                    label[b] = label[a];
+                    changed = true;
+                }
+            }
+        }
+        if !changed {
+            break;
+        }
+    }
+    let mut groups: BTreeMap<usize, BTreeSet<usize>> = BTreeMap::new();
+    for (a, &l) in label.iter().enumerate() {
+        groups.entry(l).or_default().insert(sel[a]);
+    }
+    groups.into_values().collect()
+}
+
+fn fast_partition(pulse: &PulseEvents, params: &ClusterParams) -> BTreeSet<BTreeSet<usize>> {
+    let pixels = pulse_pixels(pulse, params);
+    let labels = pixel_labels(&pixels, params);
+    let label_of: HashMap<(u16, u16), u32> = pixels
+        .iter()
+        .zip(&labels)
+        .map(|(p, &l)| ((p.x, p.y), l))
+        .collect();
+    let ev = &pulse.events;
+    let mut groups: BTreeMap<u32, BTreeSet<usize>> = BTreeMap::new();
+    for i in 0..ev.len() {
+        if let Some(&l) = label_of.get(&(ev.x[i], ev.y[i])) {
+            if !params.on_only || ev.p[i] == 1 {
+                groups.entry(l).or_default().insert(i);
+            }
+        }
+    }
+    groups.into_values().collect()
+}
+
+/// Reference particle features from a partition, sorted by position.
+fn brute_particles(
+    pulse: &PulseEvents,
+    part: &BTreeSet<BTreeSet<usize>>,
+    params: &ClusterParams,
+) -> Vec<(i64, i64, u32, u32, f32, f32, f32)> {
+    let ev = &pulse.events;
+    let mut out = Vec::new();
+    for g in part {
+        let n = g.len() as u32;
+        if n < params.min_events || n > params.max_events {
+            continue;
+        }
+        let sx: f64 = g.iter().map(|&i| ev.x[i] as f64).sum();
+        let sy: f64 = g.iter().map(|&i| ev.y[i] as f64).sum();
+        let pix: BTreeSet<(u16, u16)> = g.iter().map(|&i| (ev.x[i], ev.y[i])).collect();
+        let ex = g.iter().map(|&i| ev.x[i]).max().unwrap()
+            - g.iter().map(|&i| ev.x[i]).min().unwrap()
+            + 1;
+        let ey = g.iter().map(|&i| ev.y[i]).max().unwrap()
+            - g.iter().map(|&i| ev.y[i]).min().unwrap()
+            + 1;
+        let t0 = g.iter().map(|&i| ev.t[i]).min().unwrap();
+        // Centroid rounded to 1e-9 px so the summation order does not matter.
+        out.push((
+            (sx / n as f64 * 1e9).round() as i64,
+            (sy / n as f64 * 1e9).round() as i64,
+            n,
+            pix.len() as u32,
+            ex as f32,
+            ey as f32,
+            (t0 as f64 - pulse.start_us) as f32,
+        ));
+    }
+    out.sort_by(|a, b| a.partial_cmp(b).unwrap());
+    out
+}
+
+fn random_pulse() -> impl Strategy<Value = PulseEvents> {
+    // Small frames make dense clouds with many chained neighbours.
+    (
+        4u16..40,
+        prop::collection::vec((0i64..300, 0u16..1000, 0u16..1000, 0u8..2), 0..250),
+    )
+        .prop_map(|(side, evs)| {
+            let mut ev = EventChunk::default();
+            for (t, x, y, p) in evs {
+                ev.push(1000 + t, x % side, y % side, p);
+            }
+            PulseEvents {
+                index: 7,
+                start_us: 1000.0,
+                events: ev,
+            }
+        })
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(300))]
+    #[test]
+    fn kdtree_matches_brute_force(pulse in random_pulse(), r10 in 5u32..40, on_only in any::<bool>(), min_events in 1u32..3, hot in prop::collection::vec((0u16..40, 0u16..40), 0..5)) {
+        let params = ClusterParams {
+            radius: r10 as f64 / 10.0,
+            on_only,
+            min_events,
+            max_events: 12,
+            hot_pixels: hot.into_iter().collect(),
+        };
+        let brute = brute_partition(&pulse, &params);
+        prop_assert_eq!(&fast_partition(&pulse, &params), &brute);
+        let mut fast: Vec<_> = cluster_pulse(&pulse, &params).iter().map(|p| (
+            (p.x * 1e9).round() as i64, (p.y * 1e9).round() as i64, p.n_events, p.n_pixels, p.extent_x, p.extent_y, p.first_latency_us,
+        )).collect();
+        fast.sort_by(|a, b| a.partial_cmp(b).unwrap());
+        prop_assert_eq!(fast, brute_particles(&pulse, &brute, &params));
+    }
+}

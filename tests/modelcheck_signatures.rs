@@ -1,0 +1,580 @@
+//! Model-check building blocks: distances against brute-force references and
+//! known cases; signatures on hand-built event sets with known answers.
+
+use ebptv::cluster::Particle;
+use ebptv::events::{EventChunk, Geometry};
+use ebptv::modelcheck::distance::{
+    chi_square, distances, histogram_wasserstein, rank, standardise, wasserstein_1d,
+};
+use ebptv::modelcheck::signatures::{
+    burst_window, compute, count_edges, BinScale, Histogram, SignatureAccumulator, SignatureConfig,
+    SignatureValue,
+};
+use ebptv::pulses::{PulseSource, PulseTiming};
+use ebptv::track::{Track, TrackPoint};
+use rand::{Rng, SeedableRng};
+use rand_pcg::Pcg64;
+
+// ---------------------------------------------------------------- distances
+
+/// W1 between two empirical distributions by their quantile functions:
+/// ∫₀¹ |Qa(u) − Qb(u)| du, integrating over the merged breakpoints k/na, k/nb.
+fn wasserstein_reference(a: &[f64], b: &[f64]) -> f64 {
+    let mut a = a.to_vec();
+    let mut b = b.to_vec();
+    a.sort_by(f64::total_cmp);
+    b.sort_by(f64::total_cmp);
+    let (na, nb) = (a.len(), b.len());
+    let mut cuts: Vec<f64> = (0..=na).map(|k| k as f64 / na as f64).collect();
+    cuts.extend((0..=nb).map(|k| k as f64 / nb as f64));
+    cuts.sort_by(f64::total_cmp);
+    cuts.dedup_by(|x, y| (*x - *y).abs() < 1e-15);
+    let q = |s: &[f64], u: f64| s[((u * s.len() as f64).floor() as usize).min(s.len() - 1)];
+    cuts.windows(2)
+        .map(|w| {
+            let mid = 0.5 * (w[0] + w[1]);
+            (q(&a, mid) - q(&b, mid)).abs() * (w[1] - w[0])
+        })
+        .sum()
+}
+
+#[test]
+fn wasserstein_matches_sorted_sample_reference() {
+    let mut rng = Pcg64::seed_from_u64(7);
+    // Uneven bin positions, as for geometric binnings on a linear axis.
+    let positions: Vec<f64> = (0..15).map(|k| (k as f64).powf(1.5) * 3.0).collect();
+    for trial in 0..40 {
+        let na = rng.gen_range(1..300);
+        let nb = if trial % 3 == 0 {
+            na
+        } else {
+            rng.gen_range(1..300)
+        };
+        let skew = rng.gen_range(0.0..1.0);
+        let draw = |rng: &mut Pcg64, n: usize, bias: f64| -> Vec<usize> {
+            (0..n)
+                .map(|_| {
+                    let u: f64 = rng.gen::<f64>().powf(1.0 + bias);
+                    ((u * 15.0) as usize).min(14)
+                })
+                .collect()
+        };
+        let ia = draw(&mut rng, na, 0.0);
+        let ib = draw(&mut rng, nb, skew * 3.0);
+        let mut ha = vec![0.0; 15];
+        let mut hb = vec![0.0; 15];
+        ia.iter().for_each(|&k| ha[k] += 1.0);
+        ib.iter().for_each(|&k| hb[k] += 1.0);
+        let sa: Vec<f64> = ia.iter().map(|&k| positions[k]).collect();
+        let sb: Vec<f64> = ib.iter().map(|&k| positions[k]).collect();
+        let fast = wasserstein_1d(&positions, &ha, &hb).unwrap();
+        let slow = wasserstein_reference(&sa, &sb);
+        assert!(
+            (fast - slow).abs() <= 1e-9 * (1.0 + slow),
+            "trial {trial}: {fast} vs reference {slow}"
+        );
+        if na == nb {
+            // Equal sizes: mean |sorted difference|.
+            let mut sa = sa.clone();
+            let mut sb = sb.clone();
+            sa.sort_by(f64::total_cmp);
+            sb.sort_by(f64::total_cmp);
+            let direct = sa.iter().zip(&sb).map(|(x, y)| (x - y).abs()).sum::<f64>() / na as f64;
+            assert!((fast - direct).abs() <= 1e-9 * (1.0 + direct));
+        }
+        let back = wasserstein_1d(&positions, &hb, &ha).unwrap();
+        assert!((fast - back).abs() < 1e-12, "symmetric");
+    }
+}
+
+#[test]
+fn wasserstein_known_cases_and_errors() {
+    let pos = [0.0, 2.0, 4.0, 6.0];
+    assert_eq!(
+        wasserstein_1d(&pos, &[1.0, 2.0, 0.0, 1.0], &[2.0, 4.0, 0.0, 2.0]).unwrap(),
+        0.0
+    );
+    // All mass moved by one bin of width 2.
+    assert!(
+        (wasserstein_1d(&pos, &[0.0, 5.0, 0.0, 0.0], &[0.0, 0.0, 3.0, 0.0]).unwrap() - 2.0).abs()
+            < 1e-12
+    );
+    // Half the mass moved by three bins (6 units): 0.5 * 6 = 3.
+    assert!(
+        (wasserstein_1d(&pos, &[1.0, 0.0, 0.0, 1.0], &[0.0, 0.0, 0.0, 1.0]).unwrap() - 3.0).abs()
+            < 1e-12
+    );
+    assert!(wasserstein_1d(&pos, &[0.0; 4], &[1.0; 4]).is_err(), "empty");
+    assert!(
+        wasserstein_1d(&pos, &[1.0; 3], &[1.0; 4]).is_err(),
+        "length"
+    );
+    assert!(
+        wasserstein_1d(&pos, &[-1.0, 2.0, 0.0, 0.0], &[1.0; 4]).is_err(),
+        "negative"
+    );
+    assert!(
+        wasserstein_1d(&[0.0, 0.0, 1.0, 2.0], &[1.0; 4], &[1.0; 4]).is_err(),
+        "positions"
+    );
+    let h1 = Histogram::new(vec![0.0, 1.0, 2.0], BinScale::Linear).unwrap();
+    let h2 = Histogram::new(vec![0.0, 1.0, 3.0], BinScale::Linear).unwrap();
+    assert!(histogram_wasserstein(&h1, &h2).is_err(), "different bins");
+}
+
+#[test]
+fn chi_square_known_cases() {
+    let c = chi_square(&[10.0, 0.0], &[0.0, 10.0]).unwrap();
+    assert!((c.statistic - 20.0).abs() < 1e-12 && c.dof == 1);
+    let c = chi_square(&[5.0, 15.0], &[15.0, 5.0]).unwrap();
+    assert!((c.statistic - 10.0).abs() < 1e-12);
+    // Proportional histograms with different totals agree perfectly.
+    let c = chi_square(&[10.0, 20.0, 0.0, 5.0], &[20.0, 40.0, 0.0, 10.0]).unwrap();
+    assert!(c.statistic.abs() < 1e-12);
+    assert_eq!(c.dof, 2, "the empty bin carries no degree of freedom");
+    assert!(chi_square(&[1.0], &[1.0, 2.0]).is_err());
+    assert!(chi_square(&[0.0, 0.0], &[1.0, 2.0]).is_err());
+    assert!(chi_square(&[f64::NAN, 0.0], &[1.0, 2.0]).is_err());
+}
+
+#[test]
+fn chi_square_of_two_draws_of_one_law_is_about_its_dof() {
+    let mut rng = Pcg64::seed_from_u64(11);
+    let probs = [0.05, 0.1, 0.2, 0.3, 0.2, 0.1, 0.05];
+    let draw = |rng: &mut Pcg64, n: usize| {
+        let mut h = vec![0.0; probs.len()];
+        for _ in 0..n {
+            let mut u: f64 = rng.gen();
+            let mut k = 0;
+            while k + 1 < probs.len() && u >= probs[k] {
+                u -= probs[k];
+                k += 1;
+            }
+            h[k] += 1.0;
+        }
+        h
+    };
+    let trials = 300;
+    let mut mean = 0.0;
+    for _ in 0..trials {
+        let (a, b) = (draw(&mut rng, 2000), draw(&mut rng, 5000));
+        mean += chi_square(&a, &b).unwrap().reduced() / trials as f64;
+    }
+    assert!((mean - 1.0).abs() < 0.12, "mean reduced chi-square {mean}");
+    // A shifted law is far beyond it.
+    let a = draw(&mut rng, 2000);
+    let mut b = draw(&mut rng, 2000);
+    b.rotate_right(1);
+    assert!(chi_square(&a, &b).unwrap().reduced() > 20.0);
+}
+
+#[test]
+fn standardise_and_rank() {
+    let s = standardise(10.0, &[1.0, 2.0, 3.0]).unwrap();
+    assert!((s.replicate_mean - 2.0).abs() < 1e-12 && (s.replicate_sd - 1.0).abs() < 1e-12);
+    assert!((s.z - 8.0).abs() < 1e-12);
+    assert!((s.p_value - 0.25).abs() < 1e-12);
+    let s = standardise(2.0, &[1.0, 2.0, 3.0]).unwrap();
+    assert!(s.z.abs() < 1e-12 && (s.p_value - 0.75).abs() < 1e-12);
+    assert!(standardise(1.0, &[1.0]).is_err());
+    assert!(standardise(f64::NAN, &[1.0, 2.0]).is_err());
+    // Zero spread: an exact match is z = 0, anything above is huge.
+    assert_eq!(standardise(0.0, &[0.0, 0.0]).unwrap().z, 0.0);
+    assert!(standardise(0.1, &[0.0, 0.0]).unwrap().z > 1e6);
+
+    let obs = vec![
+        ("latency".to_string(), 5.0),
+        ("event_rate".to_string(), 1.05),
+        ("min_iei".to_string(), 0.9),
+    ];
+    let reps: Vec<Vec<(String, f64)>> = [
+        [1.0, 1.0, 1.0],
+        [1.2, 0.9, 1.1],
+        [0.8, 1.1, 0.9],
+        [1.0, 1.0, 1.0],
+    ]
+    .iter()
+    .map(|r| {
+        vec![
+            ("latency".to_string(), r[0]),
+            ("event_rate".to_string(), r[1]),
+            ("min_iei".to_string(), r[2]),
+        ]
+    })
+    .collect();
+    let t = rank(&obs, &reps, 3.0).unwrap();
+    assert_eq!(t.rows[0].signature, "latency");
+    assert!(t.rows[0].disagrees);
+    assert!(t.rows[1..].iter().all(|r| !r.disagrees));
+    assert!(t.any_disagreement());
+    let md = t.to_markdown();
+    assert!(md.contains("| latency |") && md.contains("**yes**"));
+    assert!(
+        rank(&obs, &reps[..1], 3.0).unwrap().rows.is_empty(),
+        "one replicate: no judgement"
+    );
+    assert!(rank(&obs, &reps, -1.0).is_err());
+}
+
+// --------------------------------------------------------------- signatures
+
+fn timing(period: f64, first: f64) -> PulseTiming {
+    PulseTiming {
+        period_us: period,
+        first_pulse_us: first,
+        window_offset_us: 0.0,
+        source: PulseSource::Trigger,
+        pulse_width_us: Some(5.0),
+    }
+}
+
+fn chunk(events: &[(i64, u16, u16, u8)]) -> EventChunk {
+    let mut c = EventChunk::default();
+    for &(t, x, y, p) in events {
+        c.push(t, x, y, p);
+    }
+    c
+}
+
+#[test]
+fn folded_latency_on_off_and_rate() {
+    let mut cfg = SignatureConfig::new(Geometry::new(8, 8), timing(100.0, 1000.0));
+    cfg.latency_bin_us = 10.0;
+    // Latencies 15, 15, 95 and one event before pulse 0 (t = 985: latency 85).
+    let ev = chunk(&[
+        (1015, 1, 1, 1),
+        (1115, 2, 2, 1),
+        (1295, 3, 3, 0),
+        (985, 4, 4, 1),
+        (2000, 9, 9, 1),
+    ]);
+    let s = compute(&cfg, &ev, &[], None).unwrap();
+    let lat = s.histogram("latency").unwrap();
+    assert_eq!(lat.n_bins(), 10);
+    assert_eq!(lat.counts[1], 2.0);
+    assert_eq!(lat.counts[9], 1.0);
+    assert_eq!(lat.counts[8], 1.0);
+    assert_eq!(s.n_events, 4);
+    assert_eq!(s.n_outside, 1, "(9, 9) is outside an 8x8 sensor");
+    assert!((s.scalar("on_fraction").unwrap() - 0.75).abs() < 1e-12);
+    // 4 events over 310 µs.
+    assert!((s.scalar("event_rate").unwrap() - 4.0 / 310e-6).abs() < 1e-6);
+}
+
+#[test]
+fn shared_timestamps_and_group_sizes_are_counted_across_chunks() {
+    let cfg = SignatureConfig::new(Geometry::new(16, 16), timing(100.0, 0.0));
+    let mut acc = SignatureAccumulator::new(cfg).unwrap();
+    // t=100: rows 5,5,5 and 7 (one group of 3, one of 1); t=101: row 5 (1);
+    // t=102: row 3 twice, split over two chunks (one group of 2).
+    acc.add_events(&chunk(&[
+        (100, 1, 5, 1),
+        (100, 2, 5, 1),
+        (100, 9, 7, 1),
+        (100, 3, 5, 1),
+        (101, 1, 5, 1),
+        (102, 4, 3, 1),
+    ]));
+    acc.add_events(&chunk(&[(102, 6, 3, 1)]));
+    let s = acc.finish().unwrap();
+    assert!((s.scalar("shared_fraction").unwrap() - 5.0 / 7.0).abs() < 1e-12);
+    let g = s.histogram("group_size").unwrap();
+    assert_eq!(g.edges[0], 1.0);
+    assert_eq!(g.counts[0], 2.0, "two groups of one");
+    assert_eq!(g.counts[1], 1.0, "one group of two");
+    assert_eq!(g.counts[2], 1.0, "one group of three");
+    assert_eq!(g.total(), 4.0);
+}
+
+#[test]
+fn streaming_in_chunks_equals_one_shot() {
+    let mut rng = Pcg64::seed_from_u64(3);
+    let mut all = EventChunk::default();
+    let mut t = 0i64;
+    for _ in 0..5000 {
+        t += rng.gen_range(0..3);
+        all.push(
+            t,
+            rng.gen_range(0..32),
+            rng.gen_range(0..24),
+            rng.gen_range(0..2),
+        );
+    }
+    let cfg = SignatureConfig::new(Geometry::new(32, 24), timing(50.0, 7.0));
+    let one = compute(&cfg, &all, &[], None).unwrap();
+    let mut acc = SignatureAccumulator::new(cfg).unwrap();
+    let mut i = 0;
+    while i < all.len() {
+        let n = rng.gen_range(1..400).min(all.len() - i);
+        let mut c = EventChunk::default();
+        for k in i..i + n {
+            c.push(all.t[k], all.x[k], all.y[k], all.p[k]);
+        }
+        acc.add_events(&c);
+        i += n;
+    }
+    assert_eq!(acc.finish().unwrap(), one);
+}
+
+/// Random "particle" events: each pulse lights `per_pulse` random pixels
+/// with one event each, latency ~ 20 ± 5 µs.
+fn particle_events(
+    rng: &mut Pcg64,
+    g: Geometry,
+    period: i64,
+    pulses: i64,
+    per_pulse: usize,
+) -> Vec<(i64, u16, u16, u8)> {
+    let mut ev = Vec::new();
+    for k in 0..pulses {
+        for _ in 0..per_pulse {
+            let t = k * period + 20 + rng.gen_range(-5..=5);
+            ev.push((
+                t,
+                rng.gen_range(0..g.width),
+                rng.gen_range(0..g.height),
+                1u8,
+            ));
+        }
+    }
+    ev
+}
+
+#[test]
+fn hot_pixels_show_in_split_half_consistency() {
+    let g = Geometry::new(64, 48);
+    let (period, pulses) = (100i64, 2000i64);
+    let mut rng = Pcg64::seed_from_u64(5);
+    let base = particle_events(&mut rng, g, period, pulses, 50);
+    let mut cfg = SignatureConfig::new(g, timing(period as f64, 0.0));
+    cfg.block_pulses = 20;
+    let mut sorted = base.clone();
+    sorted.sort();
+    let clean = compute(&cfg, &chunk(&sorted), &[], None).unwrap();
+    let r0 = clean.scalar("split_half_correlation").unwrap();
+    assert!(r0.abs() < 0.08, "chance activity is uncorrelated: r = {r0}");
+
+    // Five hot pixels firing at random times, ~0.3 events per pulse each.
+    let hot = [(3u16, 4u16), (40, 10), (60, 47), (0, 0), (33, 33)];
+    let mut with_hot = base;
+    for &(x, y) in &hot {
+        for k in 0..pulses {
+            if rng.gen_bool(0.3) {
+                with_hot.push((k * period + rng.gen_range(0..period), x, y, 1));
+            }
+        }
+    }
+    with_hot.sort();
+    let hot_s = compute(&cfg, &chunk(&with_hot), &[], None).unwrap();
+    let r1 = hot_s.scalar("split_half_correlation").unwrap();
+    assert!(
+        r1 > 0.5,
+        "fixed-pattern activity correlates halves: r = {r1}"
+    );
+
+    // The min(even, odd) histogram: background pixels have ~16 events per
+    // half; hot pixels ~300. Exactly the five hot pixels sit above 150.
+    let tail = |h: &Histogram| -> f64 {
+        h.edges
+            .windows(2)
+            .zip(&h.counts)
+            .filter(|(e, _)| e[0] >= 150.0)
+            .map(|(_, c)| c)
+            .sum()
+    };
+    assert_eq!(tail(clean.histogram("split_half_min").unwrap()), 0.0);
+    assert_eq!(tail(hot_s.histogram("split_half_min").unwrap()), 5.0);
+    assert_eq!(
+        hot_s.histogram("pixel_count").unwrap().total(),
+        g.pixels() as f64
+    );
+    // And the distance machinery sees it: pixel_count and the correlation move.
+    let d = distances(&clean, &hot_s).unwrap();
+    let get = |n: &str| d.iter().find(|(k, _)| k == n).unwrap().1;
+    assert!(get("split_half_correlation") > 0.4);
+    assert!(get("pixel_count") > 0.0);
+}
+
+#[test]
+fn background_noise_shows_as_off_burst_rate() {
+    let g = Geometry::new(32, 32);
+    let (period, pulses) = (200i64, 1000i64);
+    let mut rng = Pcg64::seed_from_u64(9);
+    let mut ev = particle_events(&mut rng, g, period, pulses, 20);
+    let mut cfg = SignatureConfig::new(g, timing(period as f64, 0.0));
+    cfg.latency_bin_us = 2.0;
+    // Fix the burst window from the clean data (as the workflow does from
+    // the measurement): events sit at 15..=25 µs.
+    let mut clean = ev.clone();
+    clean.sort();
+    let lat = compute(&cfg, &chunk(&clean), &[], None).unwrap();
+    let w = burst_window(lat.histogram("latency").unwrap(), 0.99).unwrap();
+    assert!(
+        w.0 >= 12.0 && w.0 <= 16.0 && w.1 >= 24.0 && w.1 <= 28.0,
+        "window {w:?}"
+    );
+    cfg.burst_window_us = Some(w);
+    let clean_s = compute(&cfg, &chunk(&clean), &[], None).unwrap();
+    assert_eq!(clean_s.scalar("off_burst_rate").unwrap(), 0.0);
+
+    // 3000 noise events at latencies 100..180 µs (outside the window).
+    for _ in 0..3000 {
+        let k = rng.gen_range(0..pulses);
+        ev.push((
+            k * period + rng.gen_range(100..180),
+            rng.gen_range(0..32),
+            rng.gen_range(0..32),
+            1,
+        ));
+    }
+    ev.sort();
+    let s = compute(&cfg, &chunk(&ev), &[], None).unwrap();
+    let seconds = s.duration_us * 1e-6;
+    let expect = 3000.0 / 1024.0 / seconds;
+    let got = s.scalar("off_burst_rate").unwrap();
+    assert!((got - expect).abs() < 1e-9 * expect, "{got} vs {expect}");
+}
+
+#[test]
+fn burst_window_wraps_around_the_period() {
+    let mut h = Histogram::new(
+        (0..=10).map(|k| k as f64 * 10.0).collect(),
+        BinScale::Linear,
+    )
+    .unwrap();
+    h.counts = vec![30.0, 5.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 5.0, 60.0];
+    let (a, b) = burst_window(&h, 0.9).unwrap();
+    // Peak bin 9 (90..100) then bin 0 (wrapping): 90 % of 100 reached.
+    assert_eq!((a, b), (90.0, 110.0));
+    assert!(burst_window(
+        &Histogram::new(vec![0.0, 1.0], BinScale::Linear).unwrap(),
+        0.9
+    )
+    .is_err());
+}
+
+#[test]
+fn min_inter_event_interval_per_pixel() {
+    let cfg = SignatureConfig::new(Geometry::new(4, 4), timing(1000.0, 0.0));
+    // Pixel (1,1): 0, 50, 1000 → min 50. Pixel (2,2): 10, 13 → 3. Pixel (3,3): one event.
+    let ev = chunk(&[
+        (0, 1, 1, 1),
+        (10, 2, 2, 1),
+        (13, 2, 2, 1),
+        (50, 1, 1, 1),
+        (1000, 1, 1, 1),
+        (1001, 3, 3, 1),
+    ]);
+    let s = compute(&cfg, &ev, &[], None).unwrap();
+    let h = s.histogram("min_iei").unwrap();
+    assert_eq!(
+        h.total(),
+        2.0,
+        "only pixels with two events have an interval"
+    );
+    assert_eq!(h.counts[h.bin_of(50.0).unwrap()], 1.0);
+    assert_eq!(h.counts[h.bin_of(3.0).unwrap()], 1.0);
+    assert_ne!(h.bin_of(50.0), h.bin_of(3.0));
+}
+
+fn particle(pulse: i64, x: f64, y: f64, n: u32, lat: f32, ex: f32, ey: f32) -> Particle {
+    Particle {
+        pulse,
+        t_us: pulse as f64 * 100.0,
+        x,
+        y,
+        n_events: n,
+        n_pixels: n,
+        extent_x: ex,
+        extent_y: ey,
+        first_latency_us: lat,
+    }
+}
+
+#[test]
+fn cluster_and_track_signatures() {
+    let cfg = SignatureConfig::new(Geometry::new(64, 64), timing(100.0, 0.0));
+    let ev = chunk(&[(10, 1, 1, 1), (20, 2, 2, 1)]);
+    let parts = vec![
+        particle(0, 10.0, 10.0, 1, 30.0, 1.0, 1.0),
+        particle(0, 30.0, 30.0, 1, 40.0, 1.0, 1.0),
+        particle(1, 12.0, 10.2, 3, 20.0, 3.0, 1.0),
+        particle(1, 50.0, 50.0, 8, 10.0, 2.0, 2.0),
+    ];
+    let pt = |pulse: i64, x: f64, y: f64, u: f64, v: f64| TrackPoint {
+        pulse,
+        t_us: pulse as f64 * 100.0,
+        x,
+        y,
+        u,
+        v,
+        ax: 0.0,
+        ay: 0.0,
+        interpolated: false,
+    };
+    let tracks = vec![
+        Track {
+            id: 1,
+            points: vec![
+                pt(0, 10.0, 10.0, 3000.0, 0.0),
+                pt(1, 12.0, 10.0, 3000.0, 0.0),
+            ],
+        },
+        Track {
+            id: 2,
+            points: vec![pt(0, 30.5, 30.0, 0.0, 500.0)],
+        },
+    ];
+    let s = compute(&cfg, &ev, &parts, Some(&tracks)).unwrap();
+    let epc = s.histogram("events_per_cluster").unwrap();
+    assert_eq!(epc.counts[0], 2.0);
+    assert_eq!(epc.counts[2], 1.0);
+    assert_eq!(epc.counts[7], 1.0);
+    let lat = s.profile("latency_vs_brightness").unwrap();
+    assert_eq!(
+        lat.mean[0], 35.0,
+        "mean first latency of the 1-event clusters"
+    );
+    assert_eq!(lat.mean[2], 20.0);
+    assert!(lat.mean[1].is_nan() && lat.count[1] == 0.0);
+    let el = s.profile("elongation_vs_speed").unwrap();
+    // Speed 3000 px/s (bin 2000..4000): particles at pulse 0 (0 px) and pulse 1
+    // (3 − 1 = 2 px along x): mean 1. Speed 500 (bin 0..2000): 0 px. The
+    // 8-event particle has no track point within 2 px.
+    assert_eq!(el.count[1], 2.0);
+    assert_eq!(el.mean[1], 1.0);
+    assert_eq!(el.count[0], 1.0);
+    assert_eq!(el.mean[0], 0.0);
+    let tl = s.histogram("track_length").unwrap();
+    assert_eq!(tl.counts[0], 1.0);
+    assert_eq!(tl.counts[1], 1.0);
+    // Without particles or tracks these signatures are absent.
+    let plain = compute(&cfg, &ev, &[], None).unwrap();
+    assert!(plain.get("events_per_cluster").is_none() && plain.get("track_length").is_none());
+    assert!(matches!(
+        plain.get("latency").unwrap().value,
+        SignatureValue::Histogram(_)
+    ));
+}
+
+#[test]
+fn bad_configuration_and_empty_data_are_errors() {
+    let g = Geometry::new(8, 8);
+    let mut cfg = SignatureConfig::new(g, timing(0.0, 0.0));
+    assert!(SignatureAccumulator::new(cfg.clone()).is_err());
+    cfg.timing.period_us = 100.0;
+    cfg.latency_bin_us = 200.0;
+    assert!(SignatureAccumulator::new(cfg.clone()).is_err());
+    cfg.latency_bin_us = 1.0;
+    cfg.block_pulses = 0;
+    assert!(SignatureAccumulator::new(cfg.clone()).is_err());
+    cfg.block_pulses = 10;
+    cfg.burst_window_us = Some((50.0, 10.0));
+    assert!(SignatureAccumulator::new(cfg.clone()).is_err());
+    cfg.burst_window_us = None;
+    let e = compute(&cfg, &EventChunk::default(), &[], None).unwrap_err();
+    assert!(e.to_string().contains("no events"), "{e}");
+    assert!(Histogram::new(vec![1.0], BinScale::Index).is_err());
+    assert!(Histogram::new(vec![0.0, 0.0], BinScale::Index).is_err());
+    assert_eq!(&count_edges(20.0)[14..], &[14.0, 15.0, 16.0, 19.0, 23.0]);
+}

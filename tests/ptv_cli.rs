@@ -1,0 +1,115 @@
+//! `ebptv track` on a particles.csv: outputs, contracts and bad input.
+
+use std::process::Command;
+
+use ebptv::cluster::{cluster_pulse, ClusterParams};
+use ebptv::track::synth::{generate, SynthParams};
+
+fn ebptv() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_ebptv"))
+}
+
+#[test]
+fn links_a_particles_csv() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = generate(&SynthParams {
+        pulses: 30,
+        width: 128,
+        height: 128,
+        ..Default::default()
+    });
+    let particles: Vec<_> = scene
+        .iter()
+        .flat_map(|s| cluster_pulse(&s.pulse, &ClusterParams::default()))
+        .collect();
+    let input = dir.path().join("particles.csv");
+    ebptv::track::write_particles_csv(&input, &particles).unwrap();
+    let out = dir.path().join("out");
+    let st = ebptv()
+        .arg("track")
+        .arg(&input)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    let tracks = ebptv::track::read_tracks_csv(&out.join("tracks.csv")).unwrap();
+    assert!(tracks.len() > 50, "{} tracks", tracks.len());
+    for t in &tracks {
+        assert!(t.points.len() >= 5);
+        assert!(t.points.windows(2).all(|w| w[1].pulse == w[0].pulse + 1));
+    }
+    let back = ebptv::track::read_particles_csv(&out.join("particles.csv")).unwrap();
+    assert_eq!(back.len(), particles.len());
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["tracks"].as_u64().unwrap(), tracks.len() as u64);
+    assert_eq!(
+        summary["particles"].as_u64().unwrap(),
+        particles.len() as u64
+    );
+    let f = summary["fraction_on_tracks"].as_f64().unwrap();
+    assert!(f > 0.5 && f <= 1.0, "{f}");
+    assert!(out.join("tracks.png").exists());
+}
+
+#[test]
+fn bad_input_gives_clear_errors_and_no_outputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("particles.csv");
+    let out = dir.path().join("out");
+    std::fs::write(&input, "pulse,t_us,x,n_events\n0,0,1,1\n").unwrap();
+    let st = ebptv()
+        .arg("track")
+        .arg(&input)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert!(
+        !st.status.success() && err.contains("missing column(s) y"),
+        "{err}"
+    );
+    assert!(!out.join("tracks.csv").exists() && !out.join("particles.csv").exists());
+
+    std::fs::write(
+        &input,
+        "pulse,t_us,x,y,n_events\n0,0,1,1,1\n1,200,nan,1,1\n",
+    )
+    .unwrap();
+    let st = ebptv()
+        .arg("track")
+        .arg(&input)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert!(!st.status.success() && err.contains("line 3"), "{err}");
+
+    std::fs::write(&input, "pulse,t_us,x,y,n_events\n0,0,1,1,1\n").unwrap();
+    for r in ["--radius=0", "--radius=-1"] {
+        let st = ebptv()
+            .args(["track", r])
+            .arg(&input)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&st.stderr);
+        assert!(!st.status.success() && err.contains("radius"), "{err}");
+    }
+    let st = ebptv()
+        .args(["track", "--max-disp", "0"])
+        .arg(&input)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(!st.status.success() && String::from_utf8_lossy(&st.stderr).contains("max_disp"));
+}
