@@ -5,6 +5,7 @@ use clap::{Parser, Subcommand};
 
 pub mod convert;
 pub mod info;
+pub mod model_check;
 pub mod track;
 
 #[derive(Parser, Debug)]
@@ -27,6 +28,9 @@ pub enum Command {
     /// Particle tracking: a recording (or a particles.csv) → particles.csv,
     /// tracks.csv, summary.json, tracks.png.
     Track(track::TrackArgs),
+    /// Model check: measured vs simulated signatures → the missing effects,
+    /// fitted (model_check.json, model.toml, report.md, PNGs).
+    ModelCheck(model_check::ModelCheckArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -34,5 +38,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Info(a) => info::run(a),
         Command::Convert(a) => convert::run(a),
         Command::Track(a) => track::run(a),
+        Command::ModelCheck(a) => model_check::run(a),
     }
 }
