@@ -14,6 +14,7 @@ pub mod simulate;
 pub mod spectra;
 pub mod monitor;
 pub mod pulses;
+pub mod model_check;
 pub mod track;
 
 #[derive(Parser, Debug)]
@@ -54,6 +55,9 @@ pub enum Command {
     Pulses(pulses::PulsesArgs),
     /// Live pulse diagnostics of a recording being written (--follow; Ctrl-C stops).
     Monitor(monitor::MonitorArgs),
+    /// Model check: measured vs simulated signatures → the missing effects,
+    /// fitted (model_check.json, model.toml, report.md, PNGs).
+    ModelCheck(model_check::ModelCheckArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -70,5 +74,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Compare(a) => compare::run(a),
         Command::Pulses(a) => pulses::run(a),
         Command::Monitor(a) => monitor::run(a),
+        Command::ModelCheck(a) => model_check::run(a),
     }
 }
