@@ -246,7 +246,7 @@ pub(crate) fn stream_info(path: &Path, format: Format, header: &RawHeader) -> Re
 }
 
 /// Default size of the payload read buffer.
-pub const READ_BUFFER_BYTES: usize = 1048576;
+pub const READ_BUFFER_BYTES: usize = 1 << 20;
 
 /// Reads a RAW payload through one fixed-size buffer, handing out whole
 /// words (`word_bytes` = 2, 4 or 8) and carrying a partial word over to the
