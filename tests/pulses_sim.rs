@@ -377,6 +377,17 @@ fn saturated_recording_is_flagged() {
 }
 
 #[test]
+fn noisy_but_unsaturated_is_not_flagged() {
+    let mut s = Scene::new(10_000.0);
+    s.trigger_channel = Some(1);
+    s.noise_hz = 4e6;
+    let (r, _) = run(&s, &PulseOptions::default());
+    let r = r.unwrap();
+    assert!(r.random_event_fraction > 0.6, "{}", r.random_event_fraction);
+    assert!(!r.saturated);
+}
+
+#[test]
 fn continuous_illumination_is_refused_clearly() {
     let mut s = Scene::new(10_000.0);
     s.particles_per_pulse = 0.0;

@@ -636,7 +636,6 @@ pub(crate) fn time_high_steps(
 /// until [`crate::io::EventWriter::finish`]).
 pub struct Evt3Writer {
     file: AtomicFile,
-    geometry: Geometry,
     words: Vec<u16>,
     th_scratch: Vec<u32>,
     /// Full time high (t >> 12) last written, incl. loops.
@@ -672,7 +671,6 @@ impl Evt3Writer {
             .map_err(|e| Error::io(path, e))?;
         Ok(Evt3Writer {
             file,
-            geometry,
             words: Vec::with_capacity(1 << 16),
             th_scratch: Vec::new(),
             time_high: None,
@@ -824,7 +822,6 @@ impl crate::io::EventWriter for Evt3Writer {
         for tr in trig {
             self.write_trigger(tr)?;
         }
-        let _ = self.geometry;
         self.flush_words()
     }
 
