@@ -3,7 +3,7 @@
 //! Particles live in a slab 1.5 light-sheet thicknesses deep over the ROI
 //! plus a margin (so images straddling the ROI edge are right). They move
 //! with the flow (exactly for steady parallel flows, else classical RK4
-//! with sub-steps of at most 2 px, far finer than any field's length scale) and out of plane with a
+//! with sub-steps of at most 4 px, far finer than any field's length scale) and out of plane with a
 //! per-particle constant velocity. A particle leaving the slab or the domain
 //! is recycled as a *new* particle (new id): periodically wrapped in x/y
 //! (which keeps the density of parallel flows exact), or re-seeded at a
@@ -24,7 +24,7 @@ use super::stream_seed;
 const SLAB_HALF: f64 = 0.75;
 
 /// Longest RK4 sub-step (px of displacement).
-pub const SUBSTEP_PX: f64 = 2.0;
+pub const SUBSTEP_PX: f64 = 4.0;
 
 #[derive(Debug, Clone, Copy)]
 pub struct Particle {
@@ -243,7 +243,7 @@ impl Particles {
         if flow.is_parallel_steady() {
             p.x += u * dt;
         } else {
-            // RK4 sub-steps of at most 2 px: the fields vary over tens of px,
+            // RK4 sub-steps of at most 4 px: the fields vary over tens of px,
             // so the pathline error stays far below 1e-3 px.
             let disp = (u * u + v * v).sqrt() * dt;
             let n = ((disp / SUBSTEP_PX).ceil() as usize).clamp(1, 256);
