@@ -20,6 +20,7 @@ pub mod io;
 
 pub mod cluster;
 pub mod compare;
+pub mod evaluate;
 pub mod grid;
 pub mod modelcheck;
 pub mod piv;

@@ -349,6 +349,39 @@ fn convert_csv_with_triggers_roundtrip() {
 }
 
 #[test]
+fn wrong_extension_is_read_by_content() {
+    let dir = tempfile::tempdir().unwrap();
+    let ev = sample_events();
+    let dat_as_csv = dir.path().join("really_dat.csv");
+    std::fs::write(
+        &dat_as_csv,
+        encode_dat_cd(&ev, Some(Geometry::new(640, 480))),
+    )
+    .unwrap();
+    let aedat_as_dat = dir.path().join("really_aedat.dat");
+    let a = ebptv::io::aedat4::encode_aedat4(
+        &ev,
+        &[],
+        Geometry::new(640, 480),
+        ebptv::io::aedat4::Compression::Lz4,
+        500,
+        &ebptv::io::aedat4::lz4_frame,
+    );
+    std::fs::write(&aedat_as_dat, a).unwrap();
+    for (p, fmt) in [(&dat_as_csv, "dat"), (&aedat_as_dat, "aedat4")] {
+        let out = ebptv(&["info", "--json", s(p)]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let j: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        assert_eq!(j["format"], fmt);
+        assert_eq!(j["events"], 3000);
+    }
+}
+
+#[test]
 fn info_on_real_files() {
     let real = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/real");
     for (name, events) in [

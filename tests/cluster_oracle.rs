@@ -3,7 +3,9 @@
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
-use ebptv::cluster::{cluster_pulse, pixel_labels, pulse_pixels, ClusterParams};
+use ebptv::cluster::{
+    cluster_pulse, pixel_labels, pixel_labels_kdtree, pulse_pixels, ClusterParams,
+};
 use ebptv::events::EventChunk;
 use ebptv::pulses::PulseEvents;
 use proptest::prelude::*;
@@ -43,9 +45,17 @@ fn brute_partition(pulse: &PulseEvents, params: &ClusterParams) -> BTreeSet<BTre
     groups.into_values().collect()
 }
 
-fn fast_partition(pulse: &PulseEvents, params: &ClusterParams) -> BTreeSet<BTreeSet<usize>> {
+fn fast_partition(
+    pulse: &PulseEvents,
+    params: &ClusterParams,
+    kdtree: bool,
+) -> BTreeSet<BTreeSet<usize>> {
     let pixels = pulse_pixels(pulse, params);
-    let labels = pixel_labels(&pixels, params);
+    let labels = if kdtree {
+        pixel_labels_kdtree(&pixels, params)
+    } else {
+        pixel_labels(&pixels, params)
+    };
     let label_of: HashMap<(u16, u16), u32> = pixels
         .iter()
         .zip(&labels)
@@ -132,7 +142,8 @@ proptest! {
             hot_pixels: hot.into_iter().collect(),
         };
         let brute = brute_partition(&pulse, &params);
-        prop_assert_eq!(&fast_partition(&pulse, &params), &brute);
+        prop_assert_eq!(&fast_partition(&pulse, &params, false), &brute);
+        prop_assert_eq!(&fast_partition(&pulse, &params, true), &brute);
         let mut fast: Vec<_> = cluster_pulse(&pulse, &params).iter().map(|p| (
             (p.x * 1e9).round() as i64, (p.y * 1e9).round() as i64, p.n_events, p.n_pixels, p.extent_x, p.extent_y, p.first_latency_us,
         )).collect();

@@ -305,3 +305,37 @@ fn fit_falls_back_when_positions_cannot_resolve_it() {
     assert_eq!(b.fit_params, 1, "must fall back to the mean");
     assert!(b.u.is_finite());
 }
+
+#[test]
+fn parallel_binning_equals_sequential() {
+    let f = Shear {
+        u0: 800.0,
+        shear: 1.0,
+        su: 30.0,
+        sv: 20.0,
+        rho: 0.3,
+    };
+    let s = f.tracks(256.0, 128.0, 30_000, 8, 100.0, 0.9, 13);
+    let lat = Lattice::new(16.0, 16.0, 0.5).unwrap();
+    let seq = bin_samples(&s, lat, Weighting::TopHat).unwrap();
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(3)
+        .build()
+        .unwrap();
+    let mut par = GridAccumulator::new(seq.spec);
+    pool.install(|| par.add_par(&s));
+    let opt = EstimateOptions {
+        fit: Fit::Linear,
+        min_count: 5,
+        noise_rms: 0.0,
+    };
+    let (a, b) = (estimate(&seq, &opt).unwrap(), estimate(&par, &opt).unwrap());
+    for (p, q) in a.bins.iter().zip(&b.bins) {
+        assert_eq!(p.count, q.count);
+        assert_eq!(p.n_tracks, q.n_tracks);
+        assert!(
+            close(p.u, q.u, 1e-10) && close(p.uu, q.uu, 1e-8) && close(p.uv, q.uv, 1e-8),
+            "{p:?} {q:?}"
+        );
+    }
+}

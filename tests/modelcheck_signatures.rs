@@ -180,7 +180,7 @@ fn standardise_and_rank() {
     assert!(standardise(f64::NAN, &[1.0, 2.0]).is_err());
     // Zero spread: an exact match is z = 0, anything above is huge.
     assert_eq!(standardise(0.0, &[0.0, 0.0]).unwrap().z, 0.0);
-    assert!(standardise(0.1, &[0.0, 0.0]).unwrap().z > 1e6);
+    assert_eq!(standardise(0.1, &[0.0, 0.0]).unwrap().z, 1000.0, "capped");
 
     let obs = vec![
         ("latency".to_string(), 5.0),
@@ -576,8 +576,5 @@ fn bad_configuration_and_empty_data_are_errors() {
     assert!(e.to_string().contains("no events"), "{e}");
     assert!(Histogram::new(vec![1.0], BinScale::Index).is_err());
     assert!(Histogram::new(vec![0.0, 0.0], BinScale::Index).is_err());
-    assert_eq!(
-        &count_edges(20.0)[..10],
-        &[0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 11.0]
-    );
+    assert_eq!(&count_edges(20.0)[14..], &[14.0, 15.0, 16.0, 19.0, 23.0]);
 }

@@ -30,6 +30,7 @@ fn links_a_particles_csv() {
         .arg(&input)
         .arg("--out")
         .arg(&out)
+        .arg("--npy")
         .output()
         .unwrap();
     assert!(
@@ -55,6 +56,15 @@ fn links_a_particles_csv() {
     let f = summary["fraction_on_tracks"].as_f64().unwrap();
     assert!(f > 0.5 && f <= 1.0, "{f}");
     assert!(out.join("tracks.png").exists());
+    let npy = std::fs::read(out.join("tracks.npy")).unwrap();
+    let h = ebptv::io::npy::parse_npy_header(&npy).unwrap();
+    assert!(
+        h.descr.contains("track_id") && h.descr.contains("'v'"),
+        "{}",
+        h.descr
+    );
+    let rows: usize = tracks.iter().map(|t| t.points.len()).sum();
+    assert_eq!(h.shape, vec![rows]);
 }
 
 #[test]

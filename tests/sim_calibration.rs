@@ -207,3 +207,13 @@ fn readout_saturates_near_40_mev_s() {
         "saturated output rate {last_rate:.1} Mev/s"
     );
 }
+
+/// Not a test: a fixed workload for measuring CPU time per event
+/// (`/usr/bin/time cargo test --release --test sim_calibration -- --ignored workload`).
+#[test]
+#[ignore]
+fn workload() {
+    let s = short(presets::preset("water_jet_5khz").unwrap(), 0.1);
+    let out = simulate(&s, 1).unwrap();
+    eprintln!("workload: {} events", out.events.len());
+}

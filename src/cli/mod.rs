@@ -3,10 +3,18 @@
 
 use clap::{Parser, Subcommand};
 
+pub mod compare;
 pub mod convert;
+pub mod demo;
+pub mod grid;
 pub mod info;
+pub mod piv;
+pub mod piv_images;
+pub mod simulate;
+pub mod spectra;
 pub mod monitor;
 pub mod pulses;
+pub mod model_check;
 pub mod track;
 
 #[derive(Parser, Debug)]
@@ -22,6 +30,8 @@ pub struct Cli {
 
 #[derive(Subcommand, Debug)]
 pub enum Command {
+    /// Simulate a small recording and run every stage on it, scored against the truth.
+    Demo(demo::DemoArgs),
     /// Summarise an event file: format, geometry, counts, rates, triggers.
     Info(info::InfoArgs),
     /// Convert an event file (optionally a time range / ROI / polarity) to CSV, .npy or RAW.
@@ -29,18 +39,41 @@ pub enum Command {
     /// Particle tracking: a recording (or a particles.csv) → particles.csv,
     /// tracks.csv, summary.json, tracks.png.
     Track(track::TrackArgs),
+    /// Simulate a pulsed event-camera recording with ground truth.
+    Simulate(simulate::SimulateArgs),
+    /// Bin tracks onto an Eulerian grid (means, stresses, errors), or merge grid states.
+    Grid(grid::GridArgs),
+    /// Velocity spectra at points or along a line from tracks (Welch PSD, peak, noise floor).
+    Spectra(spectra::SpectraArgs),
+    /// Multi-frame correlation PIV on pulsed pseudo-images of a recording.
+    Piv(piv::PivArgs),
+    /// Correlation PIV on ordinary image pairs or sequences (PNG, TIFF).
+    PivImages(piv_images::PivImagesArgs),
+    /// Compare PTV grid statistics with PIV statistics on the same grid.
+    Compare(compare::CompareArgs),
     /// Pulse timing (triggers or estimated), latency and saturation diagnostics → pulses.json + figures.
     Pulses(pulses::PulsesArgs),
     /// Live pulse diagnostics of a recording being written (--follow; Ctrl-C stops).
     Monitor(monitor::MonitorArgs),
+    /// Model check: measured vs simulated signatures → the missing effects,
+    /// fitted (model_check.json, model.toml, report.md, PNGs).
+    ModelCheck(model_check::ModelCheckArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
+        Command::Demo(a) => demo::run(a),
         Command::Info(a) => info::run(a),
         Command::Convert(a) => convert::run(a),
         Command::Track(a) => track::run(a),
+        Command::Simulate(a) => simulate::run(a),
+        Command::Grid(a) => grid::run(a),
+        Command::Spectra(a) => spectra::run(a),
+        Command::Piv(a) => piv::run(a),
+        Command::PivImages(a) => piv_images::run(a),
+        Command::Compare(a) => compare::run(a),
         Command::Pulses(a) => pulses::run(a),
         Command::Monitor(a) => monitor::run(a),
+        Command::ModelCheck(a) => model_check::run(a),
     }
 }

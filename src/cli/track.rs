@@ -56,6 +56,10 @@ pub struct TrackArgs {
     /// Pulses shown in tracks.png (from the first pulse).
     #[arg(long, default_value_t = 200)]
     pub plot_pulses: i64,
+    /// Also write tracks.npy (a structured array with the tracks.csv
+    /// columns). Holds every track point in memory until the end.
+    #[arg(long)]
+    pub npy: bool,
     /// Pulses clustered per parallel batch.
     #[arg(long, default_value_t = 512)]
     pub batch: usize,
@@ -74,6 +78,8 @@ struct Pipeline {
     plot_pulses: i64,
     plot_lines: Vec<Vec<(f64, f64)>>,
     plot_speeds: Vec<f64>,
+    /// Columns of tracks.npy when requested.
+    npy: Option<[Vec<f64>; 7]>,
     width: f64,
     height: f64,
     events: u64,
@@ -123,6 +129,23 @@ impl Pipeline {
     fn emit(&mut self, tracks: &[Track]) -> ebptv::Result<()> {
         self.tracks_out.write(tracks)?;
         self.summary.add(tracks);
+        if let Some(cols) = &mut self.npy {
+            for t in tracks {
+                for p in &t.points {
+                    for (c, v) in cols.iter_mut().zip([
+                        t.id as f64,
+                        p.pulse as f64,
+                        p.t_us,
+                        p.x,
+                        p.y,
+                        p.u,
+                        p.v,
+                    ]) {
+                        c.push(v);
+                    }
+                }
+            }
+        }
         let end = self.first_pulse.unwrap_or(0) + self.plot_pulses;
         for t in tracks {
             let pts: Vec<(f64, f64)> = t
@@ -153,8 +176,24 @@ impl Pipeline {
         self.particles_out.finish()?;
         self.tracks_out.finish()?;
         ebptv::track::write_summary_json(&out.join("summary.json"), &summary)?;
-        // TODO(io-other): write tracks.npy with crate::io::npy once the npy
-        // helpers land in main.
+        if let Some(cols) = self.npy.take() {
+            let [id, pulse, t, x, y, u, v] = cols;
+            use ebptv::io::npy::NpyColumn;
+            let id: Vec<u64> = id.iter().map(|&a| a as u64).collect();
+            let pulse: Vec<i64> = pulse.iter().map(|&a| a as i64).collect();
+            ebptv::io::npy::write_npy_table(
+                out.join("tracks.npy"),
+                &[
+                    ("track_id", NpyColumn::U64(&id)),
+                    ("pulse", NpyColumn::I64(&pulse)),
+                    ("t_us", NpyColumn::F64(&t)),
+                    ("x", NpyColumn::F64(&x)),
+                    ("y", NpyColumn::F64(&y)),
+                    ("u", NpyColumn::F64(&u)),
+                    ("v", NpyColumn::F64(&v)),
+                ],
+            )?;
+        }
         ebptv::plot::polylines(
             &out.join("tracks.png"),
             &ebptv::plot::Polylines {
@@ -268,6 +307,7 @@ pub fn run(args: TrackArgs) -> anyhow::Result<()> {
         plot_pulses: args.plot_pulses,
         plot_lines: Vec::new(),
         plot_speeds: Vec::new(),
+        npy: args.npy.then(Default::default),
         width: 0.0,
         height: 0.0,
         events: 0,

@@ -38,7 +38,7 @@ use super::spec::GridSpec;
 use super::Sample;
 use crate::error::{Error, Result};
 
-/// Neumaier (improved Kahan–Babuška) compensated sum.
+/// Compensated sum (Kahan–Babuška–Neumaier accuracy via TwoSum).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 #[serde(from = "(f64, f64)", into = "(f64, f64)")]
 pub struct KSum {
@@ -58,14 +58,14 @@ impl From<KSum> for (f64, f64) {
 }
 
 impl KSum {
-    #[inline]
+    /// Knuth's branch-free TwoSum: the rounding error of `s + x` is exact
+    /// and goes into `c` (same accuracy as Neumaier's branching form,
+    /// without an unpredictable branch per add).
+    #[inline(always)]
     pub fn add(&mut self, x: f64) {
         let t = self.s + x;
-        if self.s.abs() >= x.abs() {
-            self.c += (self.s - t) + x;
-        } else {
-            self.c += (x - t) + self.s;
-        }
+        let z = t - self.s;
+        self.c += (self.s - (t - z)) + (x - z);
         self.s = t;
     }
     #[inline]
@@ -331,6 +331,37 @@ impl GridAccumulator {
     pub fn add_all<'a>(&mut self, samples: impl IntoIterator<Item = &'a Sample>) {
         for s in samples {
             self.add(s);
+        }
+    }
+
+    /// Bin samples on all cores: contiguous chunks (one per thread, fewer for huge grids) are
+    /// binned into private accumulators and merged in order, which by the
+    /// merge rules gives the sequential result to rounding (the track cut at
+    /// a chunk boundary is re-joined, so track counts are exact).
+    pub fn add_par(&mut self, samples: &[Sample]) {
+        use rayon::prelude::*;
+        // Each part holds a whole grid: cap their total memory at ~512 MB.
+        let grid_bytes = self.spec.n_bins() * std::mem::size_of::<BinAcc>();
+        let threads = rayon::current_num_threads().min((512 << 20) / grid_bytes.max(1)).max(1);
+        if threads == 1 || samples.len() < 100_000 {
+            self.add_all(samples);
+            return;
+        }
+        let chunk = samples.len().div_ceil(threads);
+        let spec = self.spec;
+        let part = samples
+            .par_chunks(chunk)
+            .map(|c| {
+                let mut a = GridAccumulator::new(spec);
+                a.add_all(c);
+                a
+            })
+            .reduce_with(|mut a, b| {
+                a.merge(&b).expect("same spec");
+                a
+            });
+        if let Some(p) = part {
+            self.merge(&p).expect("same spec");
         }
     }
 

@@ -16,18 +16,19 @@
 //! loop and unwrapped (`Anomalies::time_loops`), smaller steps back are kept
 //! as they are (raw sensor time, never sorted).
 //!
-//! Files without any `% ` header line are refused: every Prophesee tool
+//! The header is parsed by [`raw_header::parse_percent_header`] (shared
+//! with RAW files). Files without any `% ` header line are refused: every Prophesee tool
 //! writes one, and without it arbitrary bytes would decode as plausible
 //! events. Memory is bounded by the chunk size: records are read in blocks
 //! of `chunk_events` records.
 
 use std::fs::File;
-use std::io::{BufRead, BufReader, Read};
+use std::io::{BufReader, Read, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
 use crate::events::{Chunk, Edge, Geometry, Trigger};
-use crate::io::{Anomalies, EventSource, Format, StreamInfo};
+use crate::io::{raw_header, Anomalies, EventSource, Format, StreamInfo};
 
 /// Event type byte of a DAT file.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -51,61 +52,7 @@ impl DatEventType {
     }
 }
 
-/// Longest header accepted; a longer run of `%` lines is not a DAT header.
-const MAX_HEADER_BYTES: u64 = 1 << 20;
 const RECORD_BYTES: usize = 8;
-
-/// Parsed `% key value` header lines and the number of bytes they span.
-///
-/// The header ends at the first line not starting with `%`, or after a
-/// `% end` line. Lines are split at the first run of spaces after `% `:
-/// `% Date 2017-10-31 11:29:21` gives (`Date`, `2017-10-31 11:29:21`).
-pub fn parse_percent_header<R: BufRead>(
-    r: &mut R,
-    path: &Path,
-) -> Result<(Vec<(String, String)>, u64)> {
-    let mut pairs = Vec::new();
-    let mut consumed: u64 = 0;
-    let mut line = Vec::new();
-    loop {
-        let buf = r.fill_buf().map_err(|e| Error::io(path, e))?;
-        if buf.first() != Some(&b'%') {
-            break;
-        }
-        line.clear();
-        let n = r
-            .by_ref()
-            .take(MAX_HEADER_BYTES - consumed.min(MAX_HEADER_BYTES))
-            .read_until(b'\n', &mut line)
-            .map_err(|e| Error::io(path, e))?;
-        consumed += n as u64;
-        if line.last() != Some(&b'\n') {
-            return Err(Error::corrupt(
-                path,
-                consumed,
-                if consumed >= MAX_HEADER_BYTES {
-                    "header of `%` lines longer than 1 MiB: not a DAT/RAW header".to_string()
-                } else {
-                    "file ends inside a `%` header line (header only, no events)".to_string()
-                },
-            ));
-        }
-        let text = String::from_utf8_lossy(&line[1..]);
-        let text = text.trim();
-        let (key, value) = match text.split_once(char::is_whitespace) {
-            Some((k, v)) => (k.trim().to_string(), v.trim().to_string()),
-            None => (text.to_string(), String::new()),
-        };
-        let is_end = key == "end";
-        if !key.is_empty() {
-            pairs.push((key, value));
-        }
-        if is_end {
-            break;
-        }
-    }
-    Ok((pairs, consumed))
-}
 
 /// Geometry from `Width`/`Height` header keys (case-insensitive), when both
 /// are present and valid.
@@ -138,17 +85,28 @@ pub struct DatReader {
 
 impl DatReader {
     pub fn open(path: &Path, chunk_events: usize) -> Result<Self> {
-        let file = File::open(path).map_err(|e| Error::io(path, e))?;
+        let mut file = File::open(path).map_err(|e| Error::io(path, e))?;
         let file_size = file.metadata().ok().map(|m| m.len());
-        let mut reader = BufReader::with_capacity(1 << 16, file);
         if file_size == Some(0) {
             return Err(Error::Empty {
                 path: path.to_path_buf(),
                 why: "file is empty".into(),
             });
         }
-        let (header, header_len) = parse_percent_header(&mut reader, path)?;
-        if header.is_empty() {
+        // The `%` header is the one RAW files use: parse it with the shared
+        // parser, then continue right after it.
+        let mut head = Vec::new();
+        (&mut file)
+            .take(raw_header::MAX_HEADER_BYTES as u64)
+            .read_to_end(&mut head)
+            .map_err(|e| Error::io(path, e))?;
+        let (header, header_len) = raw_header::parse_percent_header(&head);
+        let header_len = header_len as u64;
+        drop(head);
+        file.seek(SeekFrom::Start(header_len))
+            .map_err(|e| Error::io(path, e))?;
+        let mut reader = BufReader::with_capacity(1 << 16, file);
+        if header_len == 0 {
             return Err(Error::UnknownFormat {
                 path: path.to_path_buf(),
                 why: "no `% ` header line: not a Prophesee DAT file".into(),
@@ -270,6 +228,12 @@ impl EventSource for DatReader {
                 self.anomalies.truncated_tail_bytes += (avail - whole) as u64;
             }
             let geometry = self.info.geometry;
+            let ev = &mut chunk.events;
+            let n = whole / RECORD_BYTES;
+            ev.t.reserve(n);
+            ev.x.reserve(n);
+            ev.y.reserve(n);
+            ev.p.reserve(n);
             for rec in buf[..whole].chunks_exact(RECORD_BYTES) {
                 let raw_t = u32::from_le_bytes([rec[0], rec[1], rec[2], rec[3]]);
                 let w = u32::from_le_bytes([rec[4], rec[5], rec[6], rec[7]]);

@@ -190,7 +190,10 @@ pub fn signature_distance(a: &Signature, b: &Signature) -> Result<Option<f64>> {
 }
 
 /// Distances for every signature present (and comparable) in both sets, in
-/// the order of `a`.
+/// the order of `a`. Histograms give two rows: `name` (Wasserstein: where
+/// the bulk sits) and `name.chi2` (reduced chi-square: sensitive to sparse
+/// tails, e.g. a few hot pixels far out in the per-pixel counts, that move
+/// little mass and so barely move the Wasserstein distance).
 pub fn distances(a: &Signatures, b: &Signatures) -> Result<Vec<(String, f64)>> {
     let mut out = Vec::new();
     for s in &a.items {
@@ -198,10 +201,26 @@ pub fn distances(a: &Signatures, b: &Signatures) -> Result<Vec<(String, f64)>> {
             if let Some(d) = signature_distance(s, t)? {
                 out.push((s.name.clone(), d));
             }
+            if let (SignatureValue::Histogram(x), SignatureValue::Histogram(y)) =
+                (&s.value, &t.value)
+            {
+                if x.same_bins(y) && x.total() > 0.0 && y.total() > 0.0 {
+                    let c = chi_square(&x.counts, &y.counts)?;
+                    out.push((format!("{}.chi2", s.name), c.reduced()));
+                }
+            }
         }
     }
     Ok(out)
 }
+
+/// |z| is capped here: beyond it the replicates (often all exactly zero,
+/// e.g. no shared timestamps in any simulation) say only "far beyond
+/// chance", and an uncapped 1e9 would swamp every other row of a sum.
+pub const Z_CAP: f64 = 1000.0;
+
+/// Floor of the replicate spread, relative to the replicate mean.
+pub const SD_FLOOR_REL: f64 = 0.5;
 
 /// An observed distance judged against replicate distances.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -209,8 +228,8 @@ pub struct Standardised {
     pub observed: f64,
     pub replicate_mean: f64,
     pub replicate_sd: f64,
-    /// (observed − mean) / sd, the sd floored so that a zero-spread
-    /// replicate set does not divide by zero.
+    /// (observed − mean) / sd, the sd floored at [`SD_FLOOR_REL`] × mean
+    /// (and above zero), capped at ±[`Z_CAP`].
     pub z: f64,
     /// Empirical p-value: (1 + #replicates ≥ observed) / (1 + n).
     pub p_value: f64,
@@ -232,8 +251,14 @@ pub fn standardise(observed: f64, replicates: &[f64]) -> Result<Standardised> {
     let n = replicates.len() as f64;
     let mean = replicates.iter().sum::<f64>() / n;
     let sd = (replicates.iter().map(|r| (r - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
-    let floor = 1e-9 * (mean.abs() + observed.abs()) + f64::MIN_POSITIVE;
-    let z = (observed - mean) / sd.max(floor);
+    // The spread of a handful of replicates is itself uncertain and, for
+    // heavy-tailed distances (few particles recycled through a small scene),
+    // often underestimated; a floor at half the replicate mean keeps
+    // "beyond chance" honest. Distances are ≥ 0, so under the null an
+    // observed value beyond (1 + z/2) × mean is rare.
+    let floor =
+        (SD_FLOOR_REL * mean.abs()).max(1e-9 * (mean.abs() + observed.abs())) + f64::MIN_POSITIVE;
+    let z = ((observed - mean) / sd.max(floor)).clamp(-Z_CAP, Z_CAP);
     let above = replicates.iter().filter(|&&r| r >= observed).count() as f64;
     Ok(Standardised {
         observed,

@@ -10,4 +10,7 @@
 //!   simulation-vs-simulation replicates, and the ranking table.
 
 pub mod distance;
+pub mod report;
+pub mod scene;
 pub mod signatures;
+pub mod workflow;

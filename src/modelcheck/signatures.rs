@@ -314,12 +314,14 @@ impl SignatureConfig {
     }
 }
 
-/// Edges for counts spanning orders of magnitude: 0..8 exactly, then ×√2.
+/// Edges for counts spanning orders of magnitude: 0..16 exactly, then
+/// geometric with ratio 2^(1/4) (about 19 % wide bins: fine enough to place
+/// a tail of hot pixels, coarse enough to stay populated).
 pub fn count_edges(max: f64) -> Vec<f64> {
-    let mut e: Vec<f64> = (0..=8).map(|k| k as f64).collect();
-    let mut x = 8.0f64;
+    let mut e: Vec<f64> = (0..=16).map(|k| k as f64).collect();
+    let mut x = 16.0f64;
     while x < max {
-        x = (x * std::f64::consts::SQRT_2).round();
+        x = (x * 2f64.powf(0.25)).round();
         e.push(x);
     }
     e

@@ -39,10 +39,12 @@ pub mod light;
 pub mod pixel;
 pub mod presets;
 pub mod readout;
+pub mod record;
 pub mod scenario;
 pub mod seeding;
 
 pub use flow::Flow;
+pub use record::{write_recording, RecordingSummary, TruthWriter};
 pub use scenario::{Scenario, EFFECT_NAMES};
 
 use crate::error::{Error, Result};
@@ -121,6 +123,30 @@ pub(crate) fn stream_seed(seed: u64, stream: u64, index: u64) -> u64 {
 
 /// Target time span of one block (µs).
 const BLOCK_US: f64 = 2000.0;
+
+/// Sort requests by time at 1 ns resolution relative to `t_begin` (ample
+/// for 1 µs timestamps; 2^39 ns = 9 min of carry-over), ties by pixel and
+/// polarity. Each request packs into one u64 key (time, y, x, p), so the
+/// sort moves plain integers; times come back rounded to the nanosecond.
+fn sort_requests(reqs: &mut [pixel::Arrival], t_begin: f64) {
+    use rayon::prelude::*;
+    let mut keys: Vec<u64> = reqs
+        .iter()
+        .map(|a| {
+            let ns = (((a.t - t_begin) * 1000.0).round().max(0.0) as u64).min((1 << 39) - 1);
+            (ns << 25) | ((a.y as u64) << 13) | ((a.x as u64) << 1) | a.p as u64
+        })
+        .collect();
+    keys.par_sort_unstable();
+    for (a, k) in reqs.iter_mut().zip(keys) {
+        *a = pixel::Arrival {
+            t: t_begin + (k >> 25) as f64 * 1e-3,
+            y: ((k >> 13) & 0xFFF) as u16,
+            x: ((k >> 1) & 0xFFF) as u16,
+            p: (k & 1) as u8,
+        };
+    }
+}
 
 /// The streaming simulator.
 pub struct Simulator {
@@ -294,15 +320,8 @@ impl Simulator {
             .par_iter()
             .enumerate()
             .map(|(i, s)| {
-                let mut scratch = Vec::new();
                 let mut out = Vec::new();
-                pixel.render_pulse(
-                    s,
-                    starts[i],
-                    stream_seed(seed, 6, k0 + i as u64),
-                    &mut scratch,
-                    &mut out,
-                );
+                pixel.render_pulse(s, starts[i], stream_seed(seed, 6, k0 + i as u64), &mut out);
                 out
             })
             .collect();
@@ -312,12 +331,7 @@ impl Simulator {
         }
         self.pixel
             .noise(t_begin, t_end, stream_seed(seed, 7, b), &mut reqs);
-        reqs.par_sort_unstable_by(|a, b| {
-            a.t.total_cmp(&b.t)
-                .then(a.y.cmp(&b.y))
-                .then(a.x.cmp(&b.x))
-                .then(a.p.cmp(&b.p))
-        });
+        sort_requests(&mut reqs, t_begin);
         let split = reqs.partition_point(|a| a.t < t_end);
         self.carry = if last {
             Vec::new()

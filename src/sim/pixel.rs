@@ -62,6 +62,9 @@ pub struct PixelModel {
     streak_scale: Option<f64>,
     background_rate: Option<f64>,
     hot: Vec<(u16, u16, f64)>,
+    /// Signal contributions below this are dropped: 1 % of the smallest
+    /// signal that can cross any pixel's threshold.
+    negligible: f64,
 }
 
 impl PixelModel {
@@ -117,6 +120,15 @@ impl PixelModel {
             streak_scale: sc.light.pulse_streaks.map(|p| p.scale),
             background_rate: sc.noise.background_noise.map(|b| b.rate_hz),
             hot,
+            negligible: {
+                let c_min = sc.pixel.contrast_threshold
+                    * 0.05f64.max(1.0 - 6.0 * sc.pixel.threshold_mismatch.map_or(0.0, |m| m.sigma));
+                let c_min = sc
+                    .pixel
+                    .off_events
+                    .map_or(c_min, |o| c_min.min(o.threshold));
+                0.01 * c_min.exp_m1()
+            },
         }
     }
 
@@ -144,20 +156,23 @@ impl PixelModel {
         if i0 > i1 || j0 > j1 {
             return;
         }
-        let mut fx = [0.0f64; 32];
-        let nx = ((i1 - i0 + 1) as usize).min(32);
-        for (a, fxa) in fx.iter_mut().enumerate().take(nx) {
-            let i = (i0 + a as i64) as f64;
-            *fxa = 0.5 * (erf((i + 0.5 - x) * k) - erf((i - 0.5 - x) * k));
+        // Pixel-integrated Gaussian: differences of erf at the pixel edges,
+        // each edge evaluated once.
+        let nx = ((i1 - i0 + 1) as usize).min(31);
+        let mut ex = [0.0f64; 32];
+        for (a, e) in ex.iter_mut().enumerate().take(nx + 1) {
+            *e = erf((i0 as f64 + a as f64 - 0.5 - x) * k);
         }
+        let mut ey_lo = erf((j0 as f64 - 0.5 - y) * k);
         for j in j0..=j1 {
-            let jf = j as f64;
-            let fy = 0.5 * (erf((jf + 0.5 - y) * k) - erf((jf - 0.5 - y) * k));
+            let ey_hi = erf((j as f64 + 0.5 - y) * k);
+            let fy = 0.5 * (ey_hi - ey_lo);
+            ey_lo = ey_hi;
             if fy < 1e-6 {
                 continue;
             }
-            for (a, fxa) in fx.iter().enumerate().take(nx) {
-                let w = fxa * fy;
+            for a in 0..nx {
+                let w = 0.5 * (ex[a + 1] - ex[a]) * fy;
                 if w > 1e-6 {
                     f((i0 + a as i64) as u32, j as u32, w);
                 }
@@ -188,54 +203,114 @@ impl PixelModel {
         }
     }
 
+    /// Signal contributions of a pulse's particle images, particles taken
+    /// by image row then input order: `f(roi_pixel_index, signal)`.
+    fn contributions(&self, snaps: &[Snapshot], mut f: impl FnMut(u32, f64)) {
+        let w = self.roi.width;
+        let mut pos = Vec::with_capacity(32);
+        // Visit particles row by row: consecutive images then touch the same
+        // few sensor rows, which keeps the accumulation buffer in cache.
+        let mut order: Vec<u64> = snaps
+            .iter()
+            .enumerate()
+            .map(|(i, s)| ((s.y.clamp(-1e6, 1e6) + 1e6) as u64) << 32 | i as u64)
+            .collect();
+        order.sort_unstable();
+        for &o in &order {
+            let s = &snaps[(o & 0xFFFF_FFFF) as usize];
+            self.positions(s, &mut pos);
+            let amp = self.gain * s.brightness;
+            for &(px, py, pw) in &pos {
+                let a = amp * pw;
+                self.footprint(px, py, |ix, iy, frac| {
+                    let sig = a * frac;
+                    if sig >= self.negligible {
+                        f((iy - self.roi.y) * w + (ix - self.roi.x), sig);
+                    }
+                });
+            }
+        }
+    }
+
     /// Events of every lit pixel for one pulse starting at `t_pulse_us`.
-    /// `scratch` is reused between calls.
+    ///
+    /// Overlapping images add up in a dense per-thread ROI buffer; pixels
+    /// are visited in order of first touch (row-sorted particles), so no sort is
+    /// needed and the result is deterministic.
     pub fn render_pulse(
         &self,
         snaps: &[Snapshot],
         t_pulse_us: f64,
         pulse_seed: u64,
-        scratch: &mut Vec<(u32, f32)>,
         out: &mut Vec<Arrival>,
     ) {
-        scratch.clear();
-        let w = self.roi.width;
-        let mut pos = Vec::with_capacity(32);
-        for s in snaps {
-            self.positions(s, &mut pos);
-            let amp = self.gain * s.brightness;
-            for &(px, py, pw) in &pos {
-                self.footprint(px, py, |ix, iy, frac| {
-                    let idx = (iy - self.roi.y) * w + (ix - self.roi.x);
-                    scratch.push((idx, (amp * pw * frac) as f32));
-                });
-            }
+        thread_local! {
+            static DENSE: std::cell::RefCell<(Vec<f32>, Vec<u32>)> = const { std::cell::RefCell::new((Vec::new(), Vec::new())) };
         }
-        scratch.sort_unstable_by_key(|a| a.0);
+        DENSE.with(|cell| {
+            let mut guard = cell.borrow_mut();
+            let (dense, touched) = &mut *guard;
+            let n = self.roi.width as usize * self.roi.height as usize;
+            if dense.len() < n {
+                dense.resize(n, 0.0);
+            }
+            touched.clear();
+            self.contributions(snaps, |idx, sig| {
+                let d = &mut dense[idx as usize];
+                if *d == 0.0 {
+                    touched.push(idx);
+                }
+                *d += sig as f32;
+            });
+            let mut rng = Pcg64::seed_from_u64(pulse_seed);
+            for &idx in touched.iter() {
+                let sig = std::mem::replace(&mut dense[idx as usize], 0.0) as f64;
+                self.pixel_response(idx, sig, t_pulse_us, &mut rng, out);
+            }
+        });
+    }
+
+    /// Plain reference for [`render_pulse`]: collect, stable-sort by pixel,
+    /// sum, respond (pixels in index order).
+    pub fn render_pulse_reference(
+        &self,
+        snaps: &[Snapshot],
+        t_pulse_us: f64,
+        pulse_seed: u64,
+        out: &mut Vec<Arrival>,
+    ) {
+        let mut list: Vec<(u32, f64)> = Vec::new();
+        self.contributions(snaps, |idx, sig| list.push((idx, sig)));
+        list.sort_by_key(|a| a.0);
         let mut rng = Pcg64::seed_from_u64(pulse_seed);
         let mut i = 0;
-        while i < scratch.len() {
-            let idx = scratch[i].0;
-            let mut sig = 0.0f64;
-            while i < scratch.len() && scratch[i].0 == idx {
-                sig += scratch[i].1 as f64;
+        while i < list.len() {
+            let idx = list[i].0;
+            // Summed in f32 in input order, as the fast path does.
+            let mut sig = 0.0f32;
+            while i < list.len() && list[i].0 == idx {
+                sig += list[i].1 as f32;
                 i += 1;
             }
-            self.pixel_response(idx, sig, t_pulse_us, &mut rng, out);
+            self.pixel_response(idx, sig as f64, t_pulse_us, &mut rng, out);
         }
     }
 
     #[inline]
     fn pixel_response(&self, idx: u32, sig: f64, t0: f64, rng: &mut Pcg64, out: &mut Vec<Arrival>) {
-        let dl = sig.ln_1p();
         let c = match &self.mismatch {
             Some(m) => self.threshold * m[idx as usize] as f64,
             None => self.threshold,
         };
+        let dl = sig.ln_1p();
         let x = (self.roi.x + idx % self.roi.width) as u16;
         let y = (self.roi.y + idx / self.roi.width) as u16;
         let n_on = ((dl / c).floor() as u32).min(self.max_events);
+        if n_on == 0 && self.off.is_none() {
+            return;
+        }
         let tau = match self.intensity_latency {
+            Some((e, r)) if e == 0.5 => self.tau_us * (r / sig).sqrt().min(100.0),
             Some((e, r)) => self.tau_us * (r / sig).powf(e).min(100.0),
             None => self.tau_us,
         };
@@ -305,4 +380,104 @@ fn poisson(rng: &mut Pcg64, mean: f64) -> u64 {
     Poisson::new(mean)
         .map(|d| d.sample(rng) as u64)
         .unwrap_or(0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sim::scenario::*;
+
+    #[test]
+    fn dense_render_matches_sorted_reference() {
+        let mut sc = Scenario::default();
+        sc.sensor = Sensor {
+            width: 64,
+            height: 48,
+            roi: Some(Roi {
+                x: 3,
+                y: 5,
+                width: 50,
+                height: 40,
+            }),
+        };
+        sc.pixel.threshold_mismatch = Some(ThresholdMismatch { sigma: 0.15 });
+        sc.pixel.intensity_latency = Some(IntensityLatency {
+            exponent: 0.7,
+            reference: 2.0,
+        });
+        sc.pixel.off_events = Some(OffEvents {
+            threshold: 0.3,
+            tau_us: 15.0,
+        });
+        sc.light.pulse_streaks = Some(PulseStreaks { scale: 1.0 });
+        let model = PixelModel::new(&sc, 4);
+        let mut rng = Pcg64::seed_from_u64(1);
+        // Dense, overlapping particles, some straddling the ROI edge.
+        let snaps: Vec<Snapshot> = (0..400)
+            .map(|i| Snapshot {
+                x: rng.gen_range(0.0..56.0),
+                y: rng.gen_range(2.0..48.0),
+                u: rng.gen_range(-30_000.0..30_000.0),
+                v: rng.gen_range(-30_000.0..30_000.0),
+                brightness: rng.gen_range(0.2..3.0),
+                id: i,
+            })
+            .collect();
+        let key = |a: &Arrival| (a.t.to_bits(), a.x, a.y, a.p);
+        let mut fast = Vec::new();
+        let mut slow = Vec::new();
+        model.render_pulse(&snaps, 100.0, 9, &mut fast);
+        model.render_pulse_reference(&snaps, 100.0, 9, &mut slow);
+        assert!(fast.len() > 300);
+        fast.sort_by_key(key);
+        slow.sort_by_key(key);
+        assert_eq!(fast, slow);
+        // Every event lies in the ROI.
+        assert!(fast
+            .iter()
+            .all(|a| (3..53).contains(&a.x) && (5..45).contains(&a.y)));
+    }
+
+    #[test]
+    fn events_per_pixel_follow_the_log_contrast() {
+        // One bright particle centred on a pixel, no effects: the centre
+        // pixel fires floor(ln(1 + s)/C) events, capped.
+        let mut sc = Scenario::default();
+        sc.sensor = Sensor {
+            width: 16,
+            height: 16,
+            roi: None,
+        };
+        sc.pixel.max_events_per_pulse = 64;
+        sc.light.rise_us = 0.0;
+        sc.light.fall_us = 0.0;
+        let model = PixelModel::new(&sc, 0);
+        let snap = Snapshot {
+            x: 8.0,
+            y: 8.0,
+            u: 0.0,
+            v: 0.0,
+            brightness: 4.0,
+            id: 0,
+        };
+        let mut out = Vec::new();
+        model.render_pulse(&[snap], 0.0, 0, &mut out);
+        let centre = out.iter().filter(|a| a.x == 8 && a.y == 8).count();
+        let k = std::f64::consts::FRAC_1_SQRT_2 / (sc.optics.particle_diameter_px / 4.0);
+        let frac = erf(0.5 * k).powi(2);
+        let s = sc.light.energy * 4.0 * frac;
+        assert_eq!(
+            centre,
+            (s.ln_1p() / sc.pixel.contrast_threshold).floor() as usize
+        );
+        // Crossing times increase and start after the fixed latency.
+        let mut t: Vec<f64> = out
+            .iter()
+            .filter(|a| a.x == 8 && a.y == 8)
+            .map(|a| a.t)
+            .collect();
+        t.sort_by(f64::total_cmp);
+        assert!(t[0] >= sc.pixel.latency_us);
+        assert!(t.windows(2).all(|w| w[0] < w[1]));
+    }
 }

@@ -271,6 +271,42 @@ pub fn cluster_with_truth(
     (particles, ids)
 }
 
+/// Attribute each particle to the nearest truth particle of its pulse
+/// within `max_dist` px (for truth that knows positions but not which
+/// events each particle made, e.g. the full simulator's
+/// `truth_particles.csv`). Particles must be grouped by pulse in the order
+/// the truth lists pulses or not: any order works.
+pub fn attribute_nearest(
+    particles: &[Particle],
+    truth: &[TruthSample],
+    max_dist: f64,
+) -> Vec<Option<u64>> {
+    let mut by_pulse: HashMap<i64, Vec<&TruthSample>> = HashMap::new();
+    for t in truth {
+        by_pulse.entry(t.pulse).or_default().push(t);
+    }
+    let trees: HashMap<i64, kiddo::ImmutableKdTree<f64, 2>> = by_pulse
+        .iter()
+        .map(|(k, v)| {
+            (
+                *k,
+                kiddo::ImmutableKdTree::new_from_slice(
+                    &v.iter().map(|t| [t.x, t.y]).collect::<Vec<_>>(),
+                ),
+            )
+        })
+        .collect();
+    particles
+        .iter()
+        .map(|p| {
+            let tree = trees.get(&p.pulse)?;
+            let nn = tree.nearest_one::<kiddo::SquaredEuclidean>(&[p.x, p.y]);
+            (nn.distance <= max_dist * max_dist)
+                .then(|| by_pulse[&p.pulse][nn.item as usize].particle_id)
+        })
+        .collect()
+}
+
 /// Link scores against truth (see the module docs for the definitions).
 #[derive(Debug, Clone, Default, Serialize, Deserialize)]
 pub struct LinkScore {

@@ -1,0 +1,197 @@
+//! `ebptv demo`: the whole chain on a simulated recording, scored against
+//! its ground truth.
+//!
+//! The demo runs exactly the command lines a user would type (printed as it
+//! goes, so each step can be repeated by hand), then scores the files they
+//! wrote with `ebptv::evaluate`.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use clap::{Args, Parser};
+use serde_json::json;
+
+use ebptv::evaluate::{self, Truth};
+use ebptv::io::atomic::AtomicFile;
+use ebptv::sim::scenario::Scenario;
+
+#[derive(Args, Debug)]
+pub struct DemoArgs {
+    /// Output directory.
+    #[arg(long, default_value = "demo_out")]
+    pub out: PathBuf,
+    /// Simulator preset (see `ebptv simulate --list-presets`).
+    #[arg(long, default_value = "demo")]
+    pub preset: String,
+    /// Random seed of the simulated recording.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Override the recording's duration (s).
+    #[arg(long)]
+    pub seconds: Option<f64>,
+}
+
+fn step(line: &[String]) -> anyhow::Result<()> {
+    eprintln!("\n$ {}", line.join(" "));
+    let cli = super::Cli::try_parse_from(line)
+        .with_context(|| format!("demo step `{}`", line.join(" ")))?;
+    super::run(cli).with_context(|| format!("demo step `{}` failed", line[1]))
+}
+
+fn p(path: &Path) -> String {
+    path.display().to_string()
+}
+
+pub fn run(args: DemoArgs) -> anyhow::Result<()> {
+    let out = &args.out;
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let (sim, ptv, grid, piv, cmp) = (
+        out.join("sim"),
+        out.join("ptv"),
+        out.join("grid"),
+        out.join("piv"),
+        out.join("compare"),
+    );
+    let rec = sim.join("recording.raw");
+    let s = |v: &[&str]| v.iter().map(|x| x.to_string()).collect::<Vec<_>>();
+
+    let mut sim_cmd = s(&["ebptv", "simulate", "--preset", &args.preset, "--seed"]);
+    sim_cmd.push(args.seed.to_string());
+    if let Some(sec) = args.seconds {
+        sim_cmd.push("--seconds".into());
+        sim_cmd.push(sec.to_string());
+    }
+    sim_cmd.extend(s(&["--out", &p(&sim)]));
+    step(&sim_cmd)?;
+    step(&s(&["ebptv", "track", &p(&rec), "--out", &p(&ptv)]))?;
+    step(&s(&[
+        "ebptv",
+        "grid",
+        &p(&ptv.join("tracks.csv")),
+        "--bin",
+        "16",
+        "--fit",
+        "linear",
+        "--out",
+        &p(&grid),
+    ]))?;
+    step(&s(&[
+        "ebptv",
+        "piv",
+        &p(&rec),
+        "--window",
+        "32",
+        "--frames",
+        "5",
+        "--out",
+        &p(&piv),
+    ]))?;
+    step(&s(&[
+        "ebptv",
+        "compare",
+        "--ptv",
+        &p(&grid.join("grid.csv")),
+        "--piv",
+        &p(&piv.join("piv_mean.csv")),
+        "--out",
+        &p(&cmp),
+    ]))?;
+
+    eprintln!(
+        "\nscoring against the simulator's truth ({})",
+        p(&sim.join("truth_particles.csv"))
+    );
+    let scenario = Scenario::from_toml_file(sim.join("scenario.toml"))?;
+    let truth = Truth::read(&sim.join("truth_particles.csv"))?;
+    let period = scenario.period_us();
+
+    let pulses: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(ptv.join("pulses.json")).context("reading pulses.json")?,
+    )?;
+    let est_period = pulses["period_us"].as_f64().unwrap_or(f64::NAN);
+    let est_first = pulses["first_pulse_us"].as_f64().unwrap_or(f64::NAN);
+    let radius = 1.0;
+    let det = evaluate::score_particles(&ptv.join("particles.csv"), &truth, radius)?;
+    let trk = evaluate::score_tracks(&ptv.join("tracks.csv"), &truth, period, radius)?;
+    let grid_score = evaluate::score_mean_field(&grid.join("grid.csv"), &truth, 16.0, 16.0, 20)?;
+    let piv_score = evaluate::score_mean_field(&piv.join("piv_mean.csv"), &truth, 32.0, 32.0, 20)?;
+    let comparison: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(cmp.join("compare.json")).context("reading compare.json")?,
+    )?;
+
+    let report = json!({
+        "preset": args.preset,
+        "seed": args.seed,
+        "pulses": {
+            "source": pulses["source"],
+            "period_us": est_period,
+            "period_error_us": est_period - period,
+            "first_pulse_error_us": est_first - scenario.light.first_pulse_us,
+            "latency_peak_us": pulses["latency_peak_us"],
+            "latency_fwhm_us": pulses["latency_fwhm_us"],
+        },
+        "particles": det,
+        "tracks": trk,
+        "grid": grid_score,
+        "piv": piv_score,
+        "compare": comparison,
+    });
+    AtomicFile::write_all_to(
+        out.join("demo_report.json"),
+        serde_json::to_string_pretty(&report)?.as_bytes(),
+    )?;
+
+    println!(
+        "\nebptv demo: preset `{}`, seed {} → {}",
+        args.preset,
+        args.seed,
+        out.display()
+    );
+    println!("{:<44} {:>14}", "quantity", "value");
+    let row = |name: &str, v: String| println!("{name:<44} {v:>14}");
+    row(
+        "pulse period error (µs)",
+        format!("{:+.4}", est_period - period),
+    );
+    row(
+        "pulse start error (µs)",
+        format!("{:+.2}", est_first - scenario.light.first_pulse_us),
+    );
+    row("particle detection recall", format!("{:.3}", det.recall));
+    row(
+        "particle detection precision",
+        format!("{:.3}", det.precision),
+    );
+    row(
+        "centroid rms error (px)",
+        format!("{:.3}", det.position_rms_px),
+    );
+    row("tracks", format!("{}", trk.tracks));
+    row("link precision", format!("{:.4}", trk.link_precision));
+    row("link recall", format!("{:.4}", trk.link_recall));
+    row(
+        "track velocity rms error (px/pulse)",
+        format!("{:.4}", trk.velocity_rms_px_per_pulse),
+    );
+    row(
+        "PTV grid mean error (rms, % of max speed)",
+        format!("{:.2}", 100.0 * grid_score.rms_error_of_max_speed),
+    );
+    row(
+        "PIV mean error (rms, % of max speed)",
+        format!("{:.2}", 100.0 * piv_score.rms_error_of_max_speed),
+    );
+    let u_diff = comparison["quantities"]
+        .as_array()
+        .and_then(|q| q.iter().find(|e| e[0] == "u"))
+        .and_then(|e| e[1]["rms_diff"].as_f64());
+    if let Some(d) = u_diff {
+        row("PTV − PIV rms difference of u (px/s)", format!("{d:.1}"));
+    }
+    println!(
+        "\nfigures and data in {}; scores in {}",
+        out.display(),
+        p(&out.join("demo_report.json"))
+    );
+    Ok(())
+}

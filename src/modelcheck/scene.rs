@@ -1,0 +1,206 @@
+//! The bridge from the model-check search to ebptv's simulator: a base
+//! [`Scenario`] whose switchable effects are the candidates, and the same
+//! processing (pulse split by the scenario's timing, per-pulse clustering)
+//! that the measurement goes through.
+
+use std::collections::BTreeMap;
+
+use super::signatures::SignatureConfig;
+use super::workflow::{EffectSetting, EffectSpec, ParamSpec, Recording, Simulator};
+use crate::cluster::{cluster_pulses, ClusterParams, Particle};
+use crate::error::{Error, Result};
+use crate::events::{EventChunk, Geometry};
+use crate::pulses::{PulseEvents, PulseSource, PulseTiming};
+use crate::sim::Scenario;
+
+/// The catalogue searched by default, with parameter ranges wide enough for
+/// the EVK2-class sensors the project targets. Ranges are in the units of
+/// the scenario file (see `crate::sim::scenario`).
+pub fn default_catalogue(base: &Scenario) -> Vec<EffectSpec> {
+    let roi = base.roi();
+    let pixels = roi.width as f64 * roi.height as f64;
+    let p = |name: &str, lo: f64, hi: f64, log: bool| ParamSpec {
+        name: name.into(),
+        lo,
+        hi,
+        log,
+    };
+    let e = |name: &str, params: Vec<ParamSpec>| EffectSpec {
+        name: name.into(),
+        params,
+    };
+    vec![
+        e(
+            "hot_pixels",
+            vec![
+                p("count", 1.0, (0.02 * pixels).max(2.0), true),
+                p("rate_hz", 20.0, 20_000.0, true),
+            ],
+        ),
+        e("background_noise", vec![p("rate_hz", 0.05, 100.0, true)]),
+        e("latency_jitter", vec![p("spread_us", 0.5, 60.0, true)]),
+        e(
+            "intensity_latency",
+            vec![
+                p("exponent", 0.05, 2.0, false),
+                p("reference", 0.5, 20.0, true),
+            ],
+        ),
+        e(
+            "arbiter_saturation",
+            vec![
+                p("row_time_us", 0.001, 0.5, true),
+                p("event_time_us", 0.002, 1.0, true),
+            ],
+        ),
+        e("refractory", vec![p("period_us", 1.0, 300.0, true)]),
+    ]
+}
+
+/// Drives `crate::sim` for the search.
+pub struct SceneSimulator {
+    base: Scenario,
+    catalogue: Vec<EffectSpec>,
+    cluster: ClusterParams,
+}
+
+impl SceneSimulator {
+    /// `base` is validated; its effects stay on as the starting model's
+    /// fixed part (use `Scenario::without_effects` for an ideal sensor).
+    pub fn new(base: Scenario) -> Result<Self> {
+        base.validate()?;
+        let cluster = ClusterParams {
+            radius: ClusterParams::radius_for_image_diameter(base.optics.particle_diameter_px),
+            ..ClusterParams::default()
+        };
+        Ok(SceneSimulator {
+            catalogue: default_catalogue(&base),
+            base,
+            cluster,
+        })
+    }
+
+    /// Restrict or reorder the catalogue (names must be known effects).
+    pub fn with_catalogue(mut self, catalogue: Vec<EffectSpec>) -> Self {
+        self.catalogue = catalogue;
+        self
+    }
+
+    pub fn base(&self) -> &Scenario {
+        &self.base
+    }
+
+    /// The scenario with `effects` switched on (validated).
+    pub fn scenario_with(&self, effects: &[EffectSetting]) -> Result<Scenario> {
+        let mut sc = self.base.clone();
+        for e in effects {
+            sc.set_effect(&e.name, Some(&e.parameters))?;
+        }
+        sc.validate()?;
+        Ok(sc)
+    }
+
+    /// Pulse timing of the scenario (the simulator's own clock).
+    pub fn timing(&self) -> PulseTiming {
+        timing_of(&self.base)
+    }
+
+    /// Signature configuration for this scene (geometry and timing).
+    pub fn signature_config(&self) -> SignatureConfig {
+        let g = Geometry::new(
+            self.base.sensor.width as u16,
+            self.base.sensor.height as u16,
+        );
+        SignatureConfig::new(g, self.timing())
+    }
+
+    /// The effects of the base scenario that are switched on.
+    pub fn active_effects(&self) -> Vec<EffectSetting> {
+        active_effects(&self.base)
+    }
+}
+
+/// The effects switched on in `sc`, as settings.
+pub fn active_effects(sc: &Scenario) -> Vec<EffectSetting> {
+    crate::sim::EFFECT_NAMES
+        .iter()
+        .filter_map(|name| {
+            sc.effect_params(name)
+                .ok()
+                .flatten()
+                .map(|parameters| EffectSetting {
+                    name: name.to_string(),
+                    parameters,
+                })
+        })
+        .collect()
+}
+
+/// Pulse timing of a scenario.
+pub fn timing_of(sc: &Scenario) -> PulseTiming {
+    PulseTiming {
+        period_us: sc.period_us(),
+        first_pulse_us: sc.light.first_pulse_us,
+        window_offset_us: 0.0,
+        source: PulseSource::Trigger,
+        pulse_width_us: Some(sc.light.pulse_width_us),
+    }
+}
+
+/// Split time-ordered events into pulses by `timing` and cluster them.
+pub fn particles_of(
+    events: &EventChunk,
+    timing: &PulseTiming,
+    params: &ClusterParams,
+) -> Result<Vec<Particle>> {
+    let mut pulses: Vec<PulseEvents> = Vec::new();
+    for i in 0..events.len() {
+        let Some(k) = timing.assign(events.t[i]) else {
+            continue;
+        };
+        if pulses.last().map(|p| p.index) != Some(k) {
+            if pulses.last().is_some_and(|p| p.index > k) {
+                return Err(Error::analysis(
+                    "events are not in time order: cannot split them into pulses",
+                ));
+            }
+            pulses.push(PulseEvents {
+                index: k,
+                start_us: timing.pulse_start(k),
+                events: EventChunk::default(),
+            });
+        }
+        let p = pulses.last_mut().expect("pushed above");
+        p.events
+            .push(events.t[i], events.x[i], events.y[i], events.p[i]);
+    }
+    Ok(cluster_pulses(&pulses, params)?
+        .into_iter()
+        .flatten()
+        .collect())
+}
+
+impl Simulator for SceneSimulator {
+    fn catalogue(&self) -> Vec<EffectSpec> {
+        self.catalogue.clone()
+    }
+
+    fn simulate(&self, effects: &[EffectSetting], seed: u64) -> Result<Recording> {
+        let sc = self.scenario_with(effects)?;
+        let out = crate::sim::simulate(&sc, seed)?;
+        let particles = particles_of(&out.events, &timing_of(&sc), &self.cluster)?;
+        Ok(Recording {
+            events: out.events,
+            particles,
+            tracks: None,
+        })
+    }
+}
+
+/// Parameters as a plain map (for reports).
+pub fn parameters_of(effects: &[EffectSetting]) -> BTreeMap<String, BTreeMap<String, f64>> {
+    effects
+        .iter()
+        .map(|e| (e.name.clone(), e.parameters.clone()))
+        .collect()
+}

@@ -1,0 +1,707 @@
+//! The model-check search: name the missing effect, fit it, show the gap
+//! shrink, repeat.
+//!
+//! The engine is independent of any particular simulator: it talks to a
+//! [`Simulator`] that offers a catalogue of switchable, parameterised
+//! effects and simulates a recording for a list of effect settings and a
+//! seed. (`crate::sim` is wired in through this trait.)
+//!
+//! One round:
+//! 1. **Assess** the current model: simulate a reference and `replicates`
+//!    more recordings (different seeds); the distance of the held-out
+//!    measurement to the reference is standardised against the replicates'
+//!    distances ([`super::distance::rank`]). The *gap* is Σ max(z, 0). The
+//!    gap's own chance spread comes from treating each replicate in turn as
+//!    the measurement (leave-one-out).
+//! 2. If no signature disagrees beyond chance, stop: the model is
+//!    consistent.
+//! 3. **Fit** every candidate effect not yet in the model to the *fit*
+//!    measurement with common random numbers (one seed for all parameter
+//!    values, so the objective changes with the parameters, not with the
+//!    noise): a grid then golden-section refinement for one parameter,
+//!    Nelder–Mead for more, in a box (log-scaled where the parameter spans
+//!    decades). The objective is Σ d_s / spread_s, the distances scaled by
+//!    replicate spreads: first those of the current model, then (second,
+//!    narrower stage) those of the model with the stage-1 fit added, since
+//!    an effect changes the noise of the signatures it drives.
+//! 4. **Judge on held-out data**: assess each fitted candidate against the
+//!    *held-out* measurement with fresh seeds. Accept the best only if its
+//!    gap reduction beats chance (`chance_factor` × the gap's null spread)
+//!    and beats the runner-up's by at least one null spread; otherwise
+//!    stop with "unexplained".
+//!
+//! Fit and held-out measurements are different time blocks of the recording
+//! (the caller splits), so a candidate cannot win by fitting noise.
+
+use std::collections::BTreeMap;
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::distance::{distances, rank, DiscrepancyTable};
+use super::signatures::{SignatureAccumulator, SignatureConfig, Signatures};
+use crate::cluster::Particle;
+use crate::error::{Error, Result};
+use crate::events::EventChunk;
+use crate::track::Track;
+
+/// One parameter of an effect, searched in `[lo, hi]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ParamSpec {
+    pub name: String,
+    pub lo: f64,
+    pub hi: f64,
+    /// Search in log space (the parameter spans decades; needs lo > 0).
+    pub log: bool,
+}
+
+/// A catalogue entry: a switchable effect of the simulator.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EffectSpec {
+    pub name: String,
+    pub params: Vec<ParamSpec>,
+}
+
+/// An effect switched on with parameter values.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EffectSetting {
+    pub name: String,
+    pub parameters: BTreeMap<String, f64>,
+}
+
+/// What the signatures are computed from: events, and optionally the
+/// particles and tracks ebptv's own pipeline found in them.
+#[derive(Debug, Clone, Default)]
+pub struct Recording {
+    pub events: EventChunk,
+    pub particles: Vec<Particle>,
+    pub tracks: Option<Vec<Track>>,
+}
+
+/// A simulator the workflow can drive.
+pub trait Simulator: Sync {
+    /// The effects it can switch on.
+    fn catalogue(&self) -> Vec<EffectSpec>;
+    /// Simulate the base scene with `effects` on, from `seed`, and run the
+    /// same processing the measurement went through.
+    fn simulate(&self, effects: &[EffectSetting], seed: u64) -> Result<Recording>;
+}
+
+/// Options of [`run`].
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct WorkflowOptions {
+    /// Replicate simulations per assessment (besides the reference).
+    pub replicates: usize,
+    /// A signature disagrees when z exceeds this (and every replicate).
+    pub z_threshold: f64,
+    /// Most effects to add.
+    pub max_effects: usize,
+    /// Objective evaluations per candidate fit (per parameter).
+    pub max_evaluations: usize,
+    /// Accept only if the gap reduction exceeds this many null spreads.
+    pub chance_factor: f64,
+    /// Base seed; every simulation seed derives from it.
+    pub seed: u64,
+}
+
+impl Default for WorkflowOptions {
+    fn default() -> Self {
+        WorkflowOptions {
+            replicates: 5,
+            z_threshold: 4.0,
+            max_effects: 3,
+            max_evaluations: 30,
+            chance_factor: 3.0,
+            seed: 1,
+        }
+    }
+}
+
+/// An effect added to the model.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FoundEffect {
+    pub name: String,
+    pub parameters: BTreeMap<String, f64>,
+    /// Gap (Σ max(z, 0), held-out data) before and after adding it.
+    pub gap_before: f64,
+    pub gap_after: f64,
+}
+
+/// One candidate's result in one round.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CandidateResult {
+    pub name: String,
+    pub parameters: BTreeMap<String, f64>,
+    /// Fit objective at the optimum (fit data).
+    pub objective: f64,
+    /// Gap on held-out data with the candidate added.
+    pub gap_after: f64,
+    pub improvement: f64,
+    pub evaluations: usize,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Round {
+    pub gap_before: f64,
+    /// Chance spread of the gap (leave-one-out over replicates).
+    pub gap_null_sd: f64,
+    pub table_before: DiscrepancyTable,
+    /// Best first.
+    pub candidates: Vec<CandidateResult>,
+    pub accepted: Option<String>,
+    pub note: String,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Verdict {
+    /// The starting model already explains the data.
+    Consistent,
+    /// Effects were added and the model now explains the data.
+    Explained,
+    /// A discrepancy remains that no candidate reduces beyond chance.
+    Unexplained,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ModelCheckResult {
+    /// In the order found.
+    pub effects: Vec<FoundEffect>,
+    pub verdict: Verdict,
+    /// The final model: starting effects plus the ones found.
+    pub model: Vec<EffectSetting>,
+    pub final_table: DiscrepancyTable,
+    pub rounds: Vec<Round>,
+}
+
+/// Signatures of a recording under a fixed configuration.
+pub fn signatures_of(cfg: &SignatureConfig, rec: &Recording) -> Result<Signatures> {
+    let mut acc = SignatureAccumulator::new(cfg.clone())?;
+    acc.add_events(&rec.events);
+    acc.add_particles(&rec.particles);
+    if let Some(t) = &rec.tracks {
+        acc.add_tracks(t, &rec.particles)?;
+    }
+    acc.finish()
+}
+
+/// Seeds: disjoint streams per purpose so that nothing reuses another's
+/// random numbers by accident.
+fn seed_for(base: u64, purpose: u64, k: u64) -> u64 {
+    // splitmix64 of the triple.
+    let mut z = base
+        .wrapping_add(purpose.wrapping_mul(0x9E37_79B9_7F4A_7C15))
+        .wrapping_add(k.wrapping_mul(0xBF58_476D_1CE4_E5B9));
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// The current model simulated with a reference seed and replicates.
+struct Assessment {
+    reference: Signatures,
+    /// Distances replicate ↔ reference.
+    replicate_distances: Vec<Vec<(String, f64)>>,
+    /// Gap of each replicate treated as the measurement.
+    null_gaps: Vec<f64>,
+}
+
+impl Assessment {
+    fn new(
+        sim: &dyn Simulator,
+        cfg: &SignatureConfig,
+        model: &[EffectSetting],
+        seeds: &[u64],
+        z: f64,
+    ) -> Result<Self> {
+        let sigs: Vec<Signatures> = seeds
+            .par_iter()
+            .map(|&s| signatures_of(cfg, &sim.simulate(model, s)?))
+            .collect::<Result<_>>()?;
+        let reference = sigs[0].clone();
+        let replicate_distances: Vec<Vec<(String, f64)>> = sigs[1..]
+            .iter()
+            .map(|s| distances(s, &reference))
+            .collect::<Result<_>>()?;
+        let mut null_gaps = Vec::new();
+        for i in 0..replicate_distances.len() {
+            let others: Vec<Vec<(String, f64)>> = replicate_distances
+                .iter()
+                .enumerate()
+                .filter(|(j, _)| *j != i)
+                .map(|(_, d)| d.clone())
+                .collect();
+            null_gaps.push(rank(&replicate_distances[i], &others, z)?.gap());
+        }
+        Ok(Assessment {
+            reference,
+            replicate_distances,
+            null_gaps,
+        })
+    }
+
+    fn table(&self, measured: &Signatures, z: f64) -> Result<DiscrepancyTable> {
+        rank(
+            &distances(measured, &self.reference)?,
+            &self.replicate_distances,
+            z,
+        )
+    }
+
+    /// Σ d_s / spread_s: the fit objective. Unlike the gap it keeps
+    /// decreasing below chance level, so the optimum is well defined.
+    fn scaled_sum(&self, d: &[(String, f64)]) -> f64 {
+        d.iter()
+            .filter_map(|(name, v)| {
+                let reps: Vec<f64> = self
+                    .replicate_distances
+                    .iter()
+                    .filter_map(|r| r.iter().find(|(n, _)| n == name).map(|x| x.1))
+                    .collect();
+                if reps.len() < 2 {
+                    return None;
+                }
+                let m = reps.iter().sum::<f64>() / reps.len() as f64;
+                let sd = (reps.iter().map(|r| (r - m).powi(2)).sum::<f64>()
+                    / (reps.len() - 1) as f64)
+                    .sqrt();
+                // A floor so that a signature that happens to agree exactly
+                // in every replicate does not get an infinite weight.
+                Some(v / sd.max(0.05 * m).max(1e-12))
+            })
+            .sum()
+    }
+
+    fn null_sd(&self) -> f64 {
+        let n = self.null_gaps.len() as f64;
+        if n < 2.0 {
+            return 0.0;
+        }
+        let m = self.null_gaps.iter().sum::<f64>() / n;
+        (self.null_gaps.iter().map(|g| (g - m).powi(2)).sum::<f64>() / (n - 1.0)).sqrt()
+    }
+}
+
+fn validate_catalogue(cat: &[EffectSpec]) -> Result<()> {
+    for e in cat {
+        if e.params.is_empty() {
+            return Err(Error::param(
+                format!("effect `{}`", e.name),
+                "has no parameter to fit",
+            ));
+        }
+        for p in &e.params {
+            let ok = p.lo.is_finite() && p.hi.is_finite() && p.hi > p.lo && (!p.log || p.lo > 0.0);
+            if !ok {
+                return Err(Error::param(
+                    format!("effect `{}` parameter `{}`", e.name, p.name),
+                    format!(
+                        "range [{}, {}] must be finite, lo < hi (lo > 0 on a log scale)",
+                        p.lo, p.hi
+                    ),
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Unit-cube coordinate ↔ parameter value.
+fn to_value(p: &ParamSpec, u: f64) -> f64 {
+    let u = u.clamp(0.0, 1.0);
+    if p.log {
+        (p.lo.ln() + u * (p.hi.ln() - p.lo.ln())).exp()
+    } else {
+        p.lo + u * (p.hi - p.lo)
+    }
+}
+
+fn setting(spec: &EffectSpec, u: &[f64]) -> EffectSetting {
+    EffectSetting {
+        name: spec.name.clone(),
+        parameters: spec
+            .params
+            .iter()
+            .zip(u)
+            .map(|(p, &x)| (p.name.clone(), to_value(p, x)))
+            .collect(),
+    }
+}
+
+/// Minimise `f` on [0, 1]: a grid, then golden-section search in the
+/// bracket around the best grid point. Returns (argmin, min, evaluations).
+pub fn minimise_1d(
+    f: &mut dyn FnMut(f64) -> Result<f64>,
+    max_evals: usize,
+) -> Result<(f64, f64, usize)> {
+    minimise_1d_in(f, 0.0, 1.0, max_evals)
+}
+
+/// [`minimise_1d`] on `[lo, hi]` ⊂ [0, 1].
+pub fn minimise_1d_in(
+    f: &mut dyn FnMut(f64) -> Result<f64>,
+    lo: f64,
+    hi: f64,
+    max_evals: usize,
+) -> Result<(f64, f64, usize)> {
+    let (lo, hi) = (lo.clamp(0.0, 1.0), hi.clamp(0.0, 1.0));
+    let grid = 9usize.min(max_evals.max(3));
+    let mut evals = 0;
+    let mut best = (lo, f64::INFINITY);
+    let mut values = Vec::with_capacity(grid);
+    for k in 0..grid {
+        let u = lo + (hi - lo) * k as f64 / (grid - 1) as f64;
+        let v = f(u)?;
+        evals += 1;
+        values.push(v);
+        if v < best.1 {
+            best = (u, v);
+        }
+    }
+    let h = (hi - lo) / (grid - 1) as f64;
+    let (mut a, mut b) = ((best.0 - h).max(lo), (best.0 + h).min(hi));
+    let g = (5f64.sqrt() - 1.0) / 2.0;
+    let mut c = b - g * (b - a);
+    let mut d = a + g * (b - a);
+    let (mut fc, mut fd) = (f(c)?, f(d)?);
+    evals += 2;
+    while evals < max_evals {
+        if fc < fd {
+            b = d;
+            d = c;
+            fd = fc;
+            c = b - g * (b - a);
+            fc = f(c)?;
+        } else {
+            a = c;
+            c = d;
+            fc = fd;
+            d = a + g * (b - a);
+            fd = f(d)?;
+        }
+        evals += 1;
+    }
+    for (u, v) in [(c, fc), (d, fd)] {
+        if v < best.1 {
+            best = (u, v);
+        }
+    }
+    Ok((best.0, best.1, evals))
+}
+
+/// Nelder–Mead in the unit cube (points clamped). Returns (argmin, min,
+/// evaluations).
+pub fn nelder_mead(
+    f: &mut dyn FnMut(&[f64]) -> Result<f64>,
+    start: &[f64],
+    step: f64,
+    max_evals: usize,
+) -> Result<(Vec<f64>, f64, usize)> {
+    let n = start.len();
+    let clamp = |v: Vec<f64>| v.into_iter().map(|x| x.clamp(0.0, 1.0)).collect::<Vec<_>>();
+    let mut simplex: Vec<(Vec<f64>, f64)> = Vec::with_capacity(n + 1);
+    let mut evals = 0;
+    let x0 = clamp(start.to_vec());
+    simplex.push((x0.clone(), f(&x0)?));
+    evals += 1;
+    for i in 0..n {
+        let mut x = x0.clone();
+        x[i] = if x[i] + step <= 1.0 {
+            x[i] + step
+        } else {
+            x[i] - step
+        };
+        let x = clamp(x);
+        let v = f(&x)?;
+        evals += 1;
+        simplex.push((x, v));
+    }
+    while evals < max_evals {
+        simplex.sort_by(|a, b| a.1.total_cmp(&b.1));
+        let centroid: Vec<f64> = (0..n)
+            .map(|j| simplex[..n].iter().map(|p| p.0[j]).sum::<f64>() / n as f64)
+            .collect();
+        let worst = simplex[n].clone();
+        let along = |t: f64| {
+            clamp(
+                (0..n)
+                    .map(|j| centroid[j] + t * (worst.0[j] - centroid[j]))
+                    .collect(),
+            )
+        };
+        let xr = along(-1.0);
+        let fr = f(&xr)?;
+        evals += 1;
+        if fr < simplex[0].1 {
+            let xe = along(-2.0);
+            let fe = f(&xe)?;
+            evals += 1;
+            simplex[n] = if fe < fr { (xe, fe) } else { (xr, fr) };
+        } else if fr < simplex[n - 1].1 {
+            simplex[n] = (xr, fr);
+        } else {
+            let xc = if fr < worst.1 {
+                along(-0.5)
+            } else {
+                along(0.5)
+            };
+            let fc = f(&xc)?;
+            evals += 1;
+            if fc < worst.1.min(fr) {
+                simplex[n] = (xc, fc);
+            } else {
+                // Shrink towards the best point.
+                let best = simplex[0].0.clone();
+                for p in simplex.iter_mut().skip(1) {
+                    let x = clamp((0..n).map(|j| best[j] + 0.5 * (p.0[j] - best[j])).collect());
+                    p.1 = f(&x)?;
+                    p.0 = x;
+                    evals += 1;
+                }
+            }
+        }
+    }
+    simplex.sort_by(|a, b| a.1.total_cmp(&b.1));
+    let (x, v) = simplex.swap_remove(0);
+    Ok((x, v, evals))
+}
+
+/// Fit one candidate effect on top of `model` to the fit measurement.
+fn fit_candidate(
+    sim: &dyn Simulator,
+    cfg: &SignatureConfig,
+    model: &[EffectSetting],
+    spec: &EffectSpec,
+    measured_fit: &Signatures,
+    base: &Assessment,
+    max_evaluations: usize,
+    crn_seed: u64,
+    refine_from: Option<&[f64]>,
+) -> Result<(Vec<f64>, f64, usize)> {
+    let mut objective = |u: &[f64]| -> Result<f64> {
+        let mut m = model.to_vec();
+        m.push(setting(spec, u));
+        let s = signatures_of(cfg, &sim.simulate(&m, crn_seed)?)?;
+        // Distances to the candidate's simulation, judged by the current
+        // model's replicate spreads.
+        let d = distances(measured_fit, &s)?;
+        Ok(base.scaled_sum(&d))
+    };
+    if spec.params.len() == 1 {
+        let (lo, hi) = match refine_from {
+            Some(u) => (u[0] - REFINE_HALF_WIDTH, u[0] + REFINE_HALF_WIDTH),
+            None => (0.0, 1.0),
+        };
+        let (u, v, e) = minimise_1d_in(&mut |x| objective(&[x]), lo, hi, max_evaluations)?;
+        Ok((vec![u], v, e))
+    } else {
+        let (start, step) = match refine_from {
+            Some(u) => (u.to_vec(), REFINE_HALF_WIDTH),
+            None => (vec![0.5; spec.params.len()], 0.3),
+        };
+        // Nelder–Mead needs more steps per dimension than a line search.
+        nelder_mead(
+            &mut objective,
+            &start,
+            step,
+            max_evaluations * spec.params.len(),
+        )
+    }
+}
+
+/// Half width (unit-cube coordinates) of the second-stage search.
+const REFINE_HALF_WIDTH: f64 = 0.15;
+
+/// Run the search. `measured_fit` and `measured_holdout` are two disjoint
+/// time blocks of the measurement, each as long as one simulated recording.
+pub fn run(
+    sim: &dyn Simulator,
+    cfg: &SignatureConfig,
+    measured_fit: &Recording,
+    measured_holdout: &Recording,
+    start_model: &[EffectSetting],
+    opts: &WorkflowOptions,
+) -> Result<ModelCheckResult> {
+    if opts.replicates < 3 {
+        return Err(Error::param(
+            "replicates",
+            format!("{}: need at least 3 for a chance estimate", opts.replicates),
+        ));
+    }
+    let catalogue = sim.catalogue();
+    validate_catalogue(&catalogue)?;
+    let m_fit = signatures_of(cfg, measured_fit)?;
+    let m_hold = signatures_of(cfg, measured_holdout)?;
+    let z = opts.z_threshold;
+
+    let mut model = start_model.to_vec();
+    let mut effects = Vec::new();
+    let mut rounds = Vec::new();
+    let mut round_no = 0u64;
+    let seeds = |purpose: u64, n: usize| -> Vec<u64> {
+        (0..n as u64)
+            .map(|k| seed_for(opts.seed, purpose, k))
+            .collect()
+    };
+    let mut current = Assessment::new(sim, cfg, &model, &seeds(1000, opts.replicates + 1), z)?;
+    loop {
+        let table = current.table(&m_hold, z)?;
+        let gap_before = table.gap();
+        let null_sd = current.null_sd();
+        if !table.any_disagreement() {
+            let verdict = if effects.is_empty() {
+                Verdict::Consistent
+            } else {
+                Verdict::Explained
+            };
+            return Ok(ModelCheckResult {
+                effects,
+                verdict,
+                model,
+                final_table: table,
+                rounds,
+            });
+        }
+        let remaining: Vec<&EffectSpec> = catalogue
+            .iter()
+            .filter(|c| !model.iter().any(|m| m.name == c.name))
+            .collect();
+        if effects.len() >= opts.max_effects || remaining.is_empty() {
+            rounds.push(Round {
+                gap_before,
+                gap_null_sd: null_sd,
+                table_before: table.clone(),
+                candidates: vec![],
+                accepted: None,
+                note: "no candidate left to try".into(),
+            });
+            return Ok(ModelCheckResult {
+                effects,
+                verdict: Verdict::Unexplained,
+                model,
+                final_table: table,
+                rounds,
+            });
+        }
+        round_no += 1;
+        let crn = seed_for(opts.seed, 2000 + round_no, 0);
+        let hold_seeds = seeds(3000 + round_no, opts.replicates + 1);
+        let scale_seeds = seeds(4000 + round_no, opts.replicates + 1);
+        // Candidates in parallel; each fit is sequential (its evaluations
+        // share the common random numbers).
+        let fitted: Vec<(CandidateResult, Assessment, EffectSetting)> = remaining
+            .par_iter()
+            .map(|spec| {
+                // Stage 1: weights from the current model's replicate spreads.
+                let (u1, _, e1) = fit_candidate(
+                    sim,
+                    cfg,
+                    &model,
+                    spec,
+                    &m_fit,
+                    &current,
+                    opts.max_evaluations,
+                    crn,
+                    None,
+                )?;
+                // Stage 2: the effect changes the noise of the signatures it
+                // drives (hot pixels make the off-burst rate noisy), so take
+                // the weights from replicates of the stage-1 model and refine.
+                let mut m1 = model.clone();
+                m1.push(setting(spec, &u1));
+                let a1 = Assessment::new(sim, cfg, &m1, &scale_seeds, z)?;
+                let (u, objective, e2) = fit_candidate(
+                    sim,
+                    cfg,
+                    &model,
+                    spec,
+                    &m_fit,
+                    &a1,
+                    opts.max_evaluations,
+                    crn,
+                    Some(&u1),
+                )?;
+                let evaluations = e1 + e2;
+                let set = setting(spec, &u);
+                let mut m = model.clone();
+                m.push(set.clone());
+                let a = Assessment::new(sim, cfg, &m, &hold_seeds, z)?;
+                let gap_after = a.table(&m_hold, z)?.gap();
+                Ok((
+                    CandidateResult {
+                        name: spec.name.clone(),
+                        parameters: set.parameters.clone(),
+                        objective,
+                        gap_after,
+                        improvement: gap_before - gap_after,
+                        evaluations,
+                    },
+                    a,
+                    set,
+                ))
+            })
+            .collect::<Result<_>>()?;
+        let mut fitted = fitted;
+        // Ties broken by name so the catalogue order never matters.
+        fitted.sort_by(|a, b| {
+            b.0.improvement
+                .total_cmp(&a.0.improvement)
+                .then_with(|| a.0.name.cmp(&b.0.name))
+        });
+        let best = &fitted[0].0;
+        let runner_up = fitted.get(1).map(|f| f.0.improvement).unwrap_or(0.0);
+        let chance = opts.chance_factor * null_sd;
+        let beats_chance = best.improvement > chance && best.improvement > 0.0;
+        let beats_runner_up = best.improvement - runner_up.max(0.0) > null_sd;
+        let candidates: Vec<CandidateResult> = fitted.iter().map(|f| f.0.clone()).collect();
+        if beats_chance && beats_runner_up {
+            let (res, assessment, set) = fitted.swap_remove(0);
+            effects.push(FoundEffect {
+                name: res.name.clone(),
+                parameters: res.parameters.clone(),
+                gap_before,
+                gap_after: res.gap_after,
+            });
+            rounds.push(Round {
+                gap_before,
+                gap_null_sd: null_sd,
+                table_before: table,
+                candidates,
+                accepted: Some(res.name.clone()),
+                note: format!(
+                    "improvement {:.2} > chance {:.2}, runner-up {:.2}",
+                    res.improvement, chance, runner_up
+                ),
+            });
+            model.push(set);
+            current = assessment;
+        } else {
+            let note = if !beats_chance {
+                format!(
+                    "best candidate `{}` improves the gap by {:.2}, not beyond chance ({:.2})",
+                    best.name, best.improvement, chance
+                )
+            } else {
+                format!(
+                    "best candidate `{}` ({:.2}) does not clearly beat the runner-up ({:.2})",
+                    best.name, best.improvement, runner_up
+                )
+            };
+            rounds.push(Round {
+                gap_before,
+                gap_null_sd: null_sd,
+                table_before: table.clone(),
+                candidates,
+                accepted: None,
+                note,
+            });
+            return Ok(ModelCheckResult {
+                effects,
+                verdict: Verdict::Unexplained,
+                model,
+                final_table: table,
+                rounds,
+            });
+        }
+    }
+}

@@ -1,0 +1,179 @@
+//! The model-check search driven by ebptv's own simulator (`crate::sim`):
+//! hidden effects in "measured" recordings simulated with seeds the search
+//! never sees.
+
+use std::collections::BTreeMap;
+use std::time::Instant;
+
+use ebptv::modelcheck::scene::{default_catalogue, SceneSimulator};
+use ebptv::modelcheck::workflow::{
+    run, EffectSetting, ModelCheckResult, Simulator, Verdict, WorkflowOptions,
+};
+use ebptv::sim::scenario::{Scenario, Sensor};
+use rand::seq::SliceRandom;
+use rand::{Rng, SeedableRng};
+use rand_pcg::Pcg64;
+
+fn base() -> Scenario {
+    let mut s = Scenario {
+        name: "modelcheck-small".into(),
+        duration_s: 0.02,
+        sensor: Sensor {
+            width: 160,
+            height: 120,
+            roi: None,
+        },
+        ..Scenario::default()
+    };
+    s.seeding.ppp = 0.006;
+    s.light.energy = ebptv::sim::presets::WATER_ENERGY;
+    s
+}
+
+fn setting(name: &str, ps: &[(&str, f64)]) -> EffectSetting {
+    EffectSetting {
+        name: name.into(),
+        parameters: ps
+            .iter()
+            .map(|&(k, v)| (k.to_string(), v))
+            .collect::<BTreeMap<_, _>>(),
+    }
+}
+
+fn opts() -> WorkflowOptions {
+    WorkflowOptions {
+        replicates: 4,
+        max_evaluations: 14,
+        max_effects: 2,
+        seed: 77,
+        ..WorkflowOptions::default()
+    }
+}
+
+/// Measured = the scene with `truth` on, two seeds the search never uses.
+fn check_hidden(truth: Option<EffectSetting>, seed: u64, order_seed: u64) -> ModelCheckResult {
+    let mut catalogue = default_catalogue(&base());
+    catalogue.shuffle(&mut Pcg64::seed_from_u64(order_seed));
+    let sim = SceneSimulator::new(base())
+        .unwrap()
+        .with_catalogue(catalogue);
+    let truth_v: Vec<EffectSetting> = truth.into_iter().collect();
+    let fit = sim.simulate(&truth_v, 1_000_000 + seed).unwrap();
+    let hold = sim.simulate(&truth_v, 2_000_000 + seed).unwrap();
+    let mut cfg = sim.signature_config();
+    cfg.latency_bin_us = 2.0;
+    let clean = sim.simulate(&[], 3_000_000 + seed).unwrap();
+    let lat = ebptv::modelcheck::workflow::signatures_of(&cfg, &clean).unwrap();
+    cfg.burst_window_us = Some(
+        ebptv::modelcheck::signatures::burst_window(lat.histogram("latency").unwrap(), 0.99)
+            .unwrap(),
+    );
+    let t = Instant::now();
+    let res = run(&sim, &cfg, &fit, &hold, &[], &opts()).unwrap();
+    println!(
+        "truth {:?}\n -> {:?} {:?} in {:?}",
+        truth_v,
+        res.verdict,
+        res.effects,
+        t.elapsed()
+    );
+    res
+}
+
+/// Named first, parameters within 30 %, gap at least halved.
+fn assert_recovered(res: &ModelCheckResult, truth: &EffectSetting) {
+    let first = res
+        .effects
+        .first()
+        .unwrap_or_else(|| panic!("nothing found: {:#?}", res.rounds));
+    assert_eq!(first.name, truth.name, "{:#?}", res.rounds);
+    for (k, v) in &truth.parameters {
+        let got = first.parameters[k];
+        assert!(
+            (got - v).abs() <= 0.3 * v.abs(),
+            "{k}: fitted {got}, true {v}"
+        );
+    }
+    assert!(first.gap_after <= 0.5 * first.gap_before, "{first:?}");
+}
+
+/// A strength drawn from a seed the search never sees (log-uniform).
+fn strength(seed: u64, lo: f64, hi: f64) -> f64 {
+    let u: f64 = Pcg64::seed_from_u64(seed ^ 0x5EED).gen();
+    (lo.ln() + u * (hi.ln() - lo.ln())).exp()
+}
+
+#[test]
+fn real_sim_hidden_latency_jitter() {
+    let truth = setting("latency_jitter", &[("spread_us", strength(1, 6.0, 20.0))]);
+    let res = check_hidden(Some(truth.clone()), 1, 11);
+    assert_recovered(&res, &truth);
+}
+
+#[test]
+fn real_sim_null_case_names_nothing() {
+    let res = check_hidden(None, 2, 12);
+    assert!(res.effects.is_empty(), "{:#?}", res.rounds);
+    assert_eq!(
+        res.verdict,
+        Verdict::Consistent,
+        "{}",
+        res.final_table.to_markdown()
+    );
+}
+
+// The remaining catalogue effects take ~20 s of CPU each on 2 cores: run
+// with `cargo test --release --test modelcheck_scene -- --ignored`.
+
+#[test]
+#[ignore]
+fn real_sim_hidden_background_noise() {
+    let truth = setting("background_noise", &[("rate_hz", strength(3, 2.0, 20.0))]);
+    assert_recovered(&check_hidden(Some(truth.clone()), 3, 13), &truth);
+}
+
+#[test]
+#[ignore]
+fn real_sim_hidden_refractory() {
+    let truth = setting("refractory", &[("period_us", strength(4, 4.0, 15.0))]);
+    assert_recovered(&check_hidden(Some(truth.clone()), 4, 14), &truth);
+}
+
+#[test]
+#[ignore]
+fn real_sim_hidden_hot_pixels() {
+    let truth = setting(
+        "hot_pixels",
+        &[
+            ("count", strength(5, 20.0, 60.0).round()),
+            ("rate_hz", strength(6, 300.0, 3000.0)),
+        ],
+    );
+    assert_recovered(&check_hidden(Some(truth.clone()), 5, 15), &truth);
+}
+
+#[test]
+#[ignore]
+fn real_sim_hidden_intensity_latency() {
+    let truth = setting(
+        "intensity_latency",
+        &[
+            ("exponent", strength(7, 0.5, 1.5)),
+            ("reference", strength(8, 2.0, 6.0)),
+        ],
+    );
+    assert_recovered(&check_hidden(Some(truth.clone()), 7, 17), &truth);
+}
+
+#[test]
+#[ignore]
+fn real_sim_hidden_arbiter_saturation() {
+    let truth = setting(
+        "arbiter_saturation",
+        &[
+            ("row_time_us", strength(9, 0.02, 0.1)),
+            ("event_time_us", strength(10, 0.05, 0.3)),
+        ],
+    );
+    assert_recovered(&check_hidden(Some(truth.clone()), 9, 19), &truth);
+}

@@ -1,0 +1,45 @@
+//! The table of docs/bench/ptv.md: link scores as conditions get harder.
+//! Ignored by default (a few seconds per row):
+//! `cargo test --release --test ptv_conditions -- --ignored --nocapture`
+
+use ebptv::cluster::ClusterParams;
+use ebptv::track::synth::{generate, run_and_score, SynthParams};
+use ebptv::track::TrackParams;
+
+#[test]
+#[ignore]
+fn conditions_table() {
+    let rows: [(&str, f64, f64, f64); 6] = [
+        ("paper-like", 0.01, 8.0, 0.01),
+        ("ppp 0.005", 0.005, 8.0, 0.01),
+        ("ppp 0.02", 0.02, 8.0, 0.01),
+        ("12 px/pulse", 0.01, 12.0, 0.01),
+        ("5 % noise", 0.01, 8.0, 0.05),
+        ("all three", 0.02, 12.0, 0.05),
+    ];
+    println!("| conditions | ppp | px/pulse | noise | precision | recall | vel rms (px/pulse) | interior vel rms |");
+    println!("|---|---|---|---|---|---|---|---|");
+    for (name, ppp, disp, noise) in rows {
+        let sp = SynthParams {
+            ppp,
+            max_disp: disp,
+            noise_fraction: noise,
+            width: 384,
+            height: 384,
+            ..Default::default()
+        };
+        let scene = generate(&sp);
+        let tp = TrackParams {
+            max_disp: (disp * 1.25).max(10.0),
+            ..Default::default()
+        };
+        let (_, s) = run_and_score(&scene, &ClusterParams::default(), &tp, sp.period_us).unwrap();
+        println!(
+            "| {name} | {ppp} | {disp} | {noise} | {:.4} | {:.4} | {:.3} | {:.3} |",
+            s.precision,
+            s.recall,
+            s.velocity_rms_px_per_pulse,
+            s.velocity_rms_interior_px_per_pulse
+        );
+    }
+}
