@@ -82,6 +82,9 @@ fn grid_command_writes_the_contract_and_merges_to_the_single_run() {
             "--out".to_string(),
             d.join(out).to_str().unwrap().to_string(),
         ]);
+        if out == "single" {
+            args.extend(["--fields-every".to_string(), "1".to_string()]);
+        }
         let args: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
         let (ok, err) = ebptv(&args);
         assert!(ok, "{err}");
@@ -131,6 +134,36 @@ fn grid_command_writes_the_contract_and_merges_to_the_single_run() {
     assert_eq!(hx, ebptv::grid::io::EXTRA_HEADER);
     assert_eq!(extra.len(), single.len());
     assert!(d.join("single/map_u.png").exists() && d.join("single/grid.json").exists());
+    // .npy arrays: (ny, nx) maps and (frames, ny, nx) fields whose counts
+    // add up to the grid counts (each pulse in exactly one frame).
+    let npy = |name: &str| {
+        let b = std::fs::read(d.join("single").join(name)).unwrap();
+        let h = ebptv::io::npy::parse_npy_header(&b).unwrap();
+        assert_eq!(h.descr, "'<f8'");
+        let v: Vec<f64> = b[h.data_offset..]
+            .chunks(8)
+            .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
+            .collect();
+        (h.shape, v)
+    };
+    let (gs, gcount) = npy("grid_count.npy");
+    let (_, gu) = npy("grid_u.npy");
+    let (fs, fcount) = npy("fields_count.npy");
+    assert_eq!(gs.len(), 2);
+    assert_eq!(gs[0] * gs[1], single.len());
+    assert_eq!(fs.len(), 3);
+    assert_eq!(fs[0], 10, "10 pulses → 10 frames");
+    assert_eq!(&fs[1..], &gs[..]);
+    let nb = gs[0] * gs[1];
+    for b in 0..nb {
+        let sum: f64 = (0..fs[0]).map(|k| fcount[k * nb + b]).sum();
+        assert_eq!(sum, gcount[b]);
+        assert_eq!(gcount[b], single[b][2]);
+        assert!(
+            (gu[b].is_nan() && single[b][3].is_nan())
+                || (gu[b] - single[b][3]).abs() < 1e-9 * gu[b].abs().max(1.0)
+        );
+    }
 }
 
 #[test]

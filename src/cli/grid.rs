@@ -1,6 +1,5 @@
 //! `ebptv grid`: bin tracks onto an Eulerian grid, or merge grid states.
 
-use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
@@ -93,7 +92,7 @@ pub struct GridArgs {
     /// Image scale (px/mm) for wall units.
     #[arg(long)]
     pub px_per_mm: Option<f64>,
-    /// Also write time-resolved fields (fields.csv) every K pulses.
+    /// Also write time-resolved fields (fields_{u,v,count,t_us}.npy) every K pulses.
     #[arg(long)]
     pub fields_every: Option<usize>,
     /// Skip the PNG maps.
@@ -117,84 +116,26 @@ pub fn parse_pair(s: &str) -> std::result::Result<(f64, f64), String> {
     Ok((a, b))
 }
 
-/// Minimal reader of `tracks.csv` (`track_id,pulse,t_us,x,y,u,v`; columns
-/// found by name, extra columns ignored). Temporary until the tracker's
-/// reader lands in main.
+/// `tracks.csv` as samples (through the tracker's reader, which groups rows
+/// by track — what the per-track standard errors want); an error when the
+/// file holds no track point.
 pub fn read_tracks_csv(path: &Path) -> Result<Vec<Sample>> {
-    let f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
-    let mut lines = BufReader::new(f).lines();
-    let header = match lines.next() {
-        Some(h) => h.map_err(|e| Error::io(path, e))?,
-        None => {
-            return Err(Error::Empty {
-                path: path.into(),
-                why: "tracks file is empty (no header)".into(),
-            })
-        }
-    };
-    let cols: Vec<String> = header
-        .split(',')
-        .map(|c| c.trim().to_ascii_lowercase())
-        .collect();
-    let col = |name: &str| {
-        cols.iter().position(|c| c == name).ok_or_else(|| {
-            Error::corrupt(
-                path,
-                0,
-                format!("header lacks column `{name}` (expected track_id,pulse,t_us,x,y,u,v)"),
-            )
+    let tracks = ebptv::track::io::read_tracks_csv(path)?;
+    let samples: Vec<Sample> = tracks
+        .iter()
+        .flat_map(|t| {
+            t.points
+                .iter()
+                .map(move |p| Sample::from_track_point(t.id, p))
         })
-    };
-    let (ci, ct, cx, cy, cu, cv) = (
-        col("track_id")?,
-        col("t_us")?,
-        col("x")?,
-        col("y")?,
-        col("u")?,
-        col("v")?,
-    );
-    let mut out = Vec::new();
-    let mut offset = header.len() as u64 + 1;
-    for (k, line) in lines.enumerate() {
-        let line = line.map_err(|e| Error::io(path, e))?;
-        let len = line.len() as u64 + 1;
-        if line.trim().is_empty() {
-            offset += len;
-            continue;
-        }
-        let f: Vec<&str> = line.split(',').collect();
-        let get = |c: usize| -> Result<f64> {
-            f.get(c)
-                .and_then(|s| s.trim().parse::<f64>().ok())
-                .ok_or_else(|| {
-                    Error::corrupt(
-                        path,
-                        offset,
-                        format!("line {}: bad or missing value in column {}", k + 2, cols[c]),
-                    )
-                })
-        };
-        let id = f
-            .get(ci)
-            .and_then(|s| s.trim().parse::<u64>().ok())
-            .ok_or_else(|| Error::corrupt(path, offset, format!("line {}: bad track_id", k + 2)))?;
-        out.push(Sample {
-            track_id: id,
-            t_us: get(ct)?,
-            x: get(cx)?,
-            y: get(cy)?,
-            u: get(cu)?,
-            v: get(cv)?,
-        });
-        offset += len;
-    }
-    if out.is_empty() {
+        .collect();
+    if samples.is_empty() {
         return Err(Error::Empty {
             path: path.into(),
             why: "tracks file has a header but no track points".into(),
         });
     }
-    Ok(out)
+    Ok(samples)
 }
 
 fn state_path(p: &Path) -> PathBuf {
@@ -281,6 +222,7 @@ pub fn run(a: GridArgs) -> anyhow::Result<()> {
     gio::save_state(&a.out.join("grid_state.json"), &acc)?;
     gio::write_grid_csv(&a.out.join("grid.csv"), &g)?;
     gio::write_extra_csv(&a.out.join("grid_extra.csv"), &g)?;
+    gio::write_grid_npy(&a.out, &g)?;
     if !a.no_plots {
         gio::write_maps(&a.out, &g)?;
     }
@@ -356,34 +298,8 @@ pub fn run(a: GridArgs) -> anyhow::Result<()> {
         );
         let frames = Frames::from_samples(&samples, k.max(1))?;
         let f = time_resolved(&samples, &g.spec, &frames, None)?;
-        let mut file = AtomicFile::create(a.out.join("fields.csv"))?;
-        let mut s = String::from("frame,t_us,x,y,count,u,v\n");
-        let nt = frames.n;
-        for (slot, &b) in f.bins.iter().enumerate() {
-            let (x, y) = (g.xs[b % g.spec.nx], g.ys[b / g.spec.nx]);
-            for k in 0..nt {
-                let c = f.count[slot * nt + k];
-                if c > 0 {
-                    s.push_str(&format!(
-                        "{},{},{},{},{},{},{}\n",
-                        k,
-                        frames.time_us(k),
-                        x,
-                        y,
-                        c,
-                        f.u[slot * nt + k],
-                        f.v[slot * nt + k]
-                    ));
-                }
-            }
-            if s.len() > 1 << 22 {
-                file.write_all(s.as_bytes())?;
-                s.clear();
-            }
-        }
-        file.write_all(s.as_bytes())?;
-        file.commit()?;
-        summary["fields"] = json!({"frames": nt, "step_us": frames.step_us, "window_us": frames.window_us, "t0_us": frames.t0_us});
+        gio::write_fields_npy(&a.out, &g.spec, &f)?;
+        summary["fields"] = json!({"frames": frames.n, "step_us": frames.step_us, "window_us": frames.window_us, "t0_us": frames.t0_us});
     }
 
     AtomicFile::write_all_to(

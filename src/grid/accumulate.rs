@@ -342,7 +342,9 @@ impl GridAccumulator {
         use rayon::prelude::*;
         // Each part holds a whole grid: cap their total memory at ~512 MB.
         let grid_bytes = self.spec.n_bins() * std::mem::size_of::<BinAcc>();
-        let threads = rayon::current_num_threads().min((512 << 20) / grid_bytes.max(1)).max(1);
+        let threads = rayon::current_num_threads()
+            .min((512 << 20) / grid_bytes.max(1))
+            .max(1);
         if threads == 1 || samples.len() < 100_000 {
             self.add_all(samples);
             return;

@@ -172,6 +172,69 @@ pub fn write_extra_csv(path: &Path, g: &GridStats) -> Result<()> {
     f.commit()
 }
 
+/// `.npy` arrays in `dir`: `grid_x.npy` (nx), `grid_y.npy` (ny) bin centres
+/// and `grid_<q>.npy` of shape (ny, nx) for q in count, n_tracks, u, v, uu,
+/// vv, uv, se_u, se_v (f64, NaN for empty bins).
+pub fn write_grid_npy(dir: &Path, g: &GridStats) -> Result<()> {
+    use crate::io::npy::write_npy_f64;
+    let shape = [g.spec.ny, g.spec.nx];
+    write_npy_f64(dir.join("grid_x.npy"), &[g.spec.nx], &g.xs)?;
+    write_npy_f64(dir.join("grid_y.npy"), &[g.spec.ny], &g.ys)?;
+    let qs: [(&str, Vec<f64>); 9] = [
+        ("count", g.map(|b| b.count as f64)),
+        ("n_tracks", g.map(|b| b.n_tracks as f64)),
+        ("u", g.map(|b| b.u)),
+        ("v", g.map(|b| b.v)),
+        ("uu", g.map(|b| b.uu)),
+        ("vv", g.map(|b| b.vv)),
+        ("uv", g.map(|b| b.uv)),
+        ("se_u", g.map(|b| b.se_u)),
+        ("se_v", g.map(|b| b.se_v)),
+    ];
+    for (name, v) in qs.iter() {
+        write_npy_f64(dir.join(format!("grid_{name}.npy")), &shape, v)?;
+    }
+    Ok(())
+}
+
+/// Time-resolved fields as `.npy`: `fields_u.npy`, `fields_v.npy` (f64,
+/// NaN where a bin had no sample in a frame) and `fields_count.npy` of
+/// shape (frames, ny, nx), `fields_t_us.npy` (frames) the frame centres.
+pub fn write_fields_npy(
+    dir: &Path,
+    spec: &GridSpec,
+    f: &crate::grid::fields::FieldSeries,
+) -> Result<()> {
+    use crate::io::npy::write_npy_f64;
+    let (nt, nb) = (f.frames.n, spec.n_bins());
+    if f.bins.len() != nb || f.bins.iter().enumerate().any(|(k, &b)| k != b) {
+        return Err(Error::param(
+            "fields",
+            "writing fields needs the series of every bin in order",
+        ));
+    }
+    // Series are stored bin-major; numpy wants (t, y, x).
+    let transpose = |src: &dyn Fn(usize) -> f64| {
+        let mut out = vec![0.0; nt * nb];
+        for b in 0..nb {
+            for k in 0..nt {
+                out[k * nb + b] = src(b * nt + k);
+            }
+        }
+        out
+    };
+    let shape = [nt, spec.ny, spec.nx];
+    write_npy_f64(dir.join("fields_u.npy"), &shape, &transpose(&|e| f.u[e]))?;
+    write_npy_f64(dir.join("fields_v.npy"), &shape, &transpose(&|e| f.v[e]))?;
+    write_npy_f64(
+        dir.join("fields_count.npy"),
+        &shape,
+        &transpose(&|e| f.count[e] as f64),
+    )?;
+    let t: Vec<f64> = (0..nt).map(|k| f.frames.time_us(k)).collect();
+    write_npy_f64(dir.join("fields_t_us.npy"), &[nt], &t)
+}
+
 /// PNG maps of count, u, v, uu, vv, uv into `dir` (`map_<q>.png`).
 pub fn write_maps(dir: &Path, g: &GridStats) -> Result<()> {
     let x_range = (g.xs[0], *g.xs.last().unwrap());
