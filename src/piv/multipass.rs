@@ -201,48 +201,62 @@ fn prefilter_line(s: &mut [f32]) {
     }
 }
 
-#[inline]
-fn bspline3(t: f32) -> f32 {
-    let t = t.abs();
-    if t < 1.0 {
-        2.0 / 3.0 - t * t + 0.5 * t * t * t
-    } else if t < 2.0 {
-        let u = 2.0 - t;
-        u * u * u / 6.0
-    } else {
-        0.0
-    }
+/// The four cubic B-spline weights for a fractional offset `t` in [0, 1].
+#[inline(always)]
+fn bspline_weights(t: f32) -> [f32; 4] {
+    let s = 1.0 - t;
+    let t2 = t * t;
+    let s2 = s * s;
+    [
+        s2 * s / 6.0,
+        2.0 / 3.0 - t2 + 0.5 * t2 * t,
+        2.0 / 3.0 - s2 + 0.5 * s2 * s,
+        t2 * t / 6.0,
+    ]
 }
 
 /// Image value at a real position from B-spline coefficients
-/// ([`bspline_coefficients`]); edge coefficients replicated outside.
+/// ([`bspline_coefficients`]); coefficients mirrored at the edges, as the
+/// prefilter assumed.
 #[inline]
 pub fn sample_bspline(coef: &Image, x: f32, y: f32) -> f32 {
-    let xf = x.floor();
-    let yf = y.floor();
-    let (fx, fy) = (x - xf, y - yf);
-    let (xi, yi) = (xf as i64, yf as i64);
-    let wmax = coef.width as i64 - 1;
+    // floor without a libm call; an exact negative integer lands one cell
+    // lower with t = 1, which gives the same weights shifted by one tap.
+    let xi = x as i64 - (x < 0.0) as i64;
+    let yi = y as i64 - (y < 0.0) as i64;
+    let wx = bspline_weights(x - xi as f32);
+    let wy = bspline_weights(y - yi as f32);
+    let w = coef.width;
+    let (x0, y0) = (xi - 1, yi - 1);
+    if x0 >= 0 && y0 >= 0 && x0 + 3 < w as i64 && y0 + 3 < coef.height as i64 {
+        // Fast path: the 4×4 support lies inside the image.
+        let base = y0 as usize * w + x0 as usize;
+        let mut acc = 0.0f32;
+        for (m, wyv) in wy.iter().enumerate() {
+            let r = &coef.data[base + m * w..base + m * w + 4];
+            acc += wyv * (wx[0] * r[0] + wx[1] * r[1] + wx[2] * r[2] + wx[3] * r[3]);
+        }
+        return acc;
+    }
+    let wmax = w as i64 - 1;
     let hmax = coef.height as i64 - 1;
-    let wx = [
-        bspline3(fx + 1.0),
-        bspline3(fx),
-        bspline3(1.0 - fx),
-        bspline3(2.0 - fx),
-    ];
-    let wy = [
-        bspline3(fy + 1.0),
-        bspline3(fy),
-        bspline3(1.0 - fy),
-        bspline3(2.0 - fy),
-    ];
+    let mirror = |i: i64, max: i64| -> usize {
+        let m = if i < 0 {
+            -i
+        } else if i > max {
+            2 * max - i
+        } else {
+            i
+        };
+        m.clamp(0, max) as usize
+    };
     let mut acc = 0.0f32;
     for (m, wyv) in wy.iter().enumerate() {
-        let yy = (yi - 1 + m as i64).clamp(0, hmax) as usize;
-        let row = &coef.data[yy * coef.width..(yy + 1) * coef.width];
+        let yy = mirror(y0 + m as i64, hmax);
+        let row = &coef.data[yy * w..(yy + 1) * w];
         let mut r = 0.0f32;
         for (n, wxv) in wx.iter().enumerate() {
-            let xx = (xi - 1 + n as i64).clamp(0, wmax) as usize;
+            let xx = mirror(x0 + n as i64, wmax);
             r += wxv * row[xx];
         }
         acc += wyv * r;
@@ -567,4 +581,39 @@ pub fn piv_frames(frames: &[&Image], o: &PivOptions) -> Result<VectorField> {
         }
     }
     Ok(f)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bspline_interpolates_pixels_exactly_and_is_smooth_between() {
+        let mut img = Image::zeros(12, 9);
+        for (i, v) in img.data.iter_mut().enumerate() {
+            *v = ((i * 37) % 11) as f32;
+        }
+        let c = bspline_coefficients(&img);
+        for y in 0..9 {
+            for x in 0..12 {
+                let s = sample_bspline(&c, x as f32, y as f32);
+                assert!(
+                    (s - img.get(x, y)).abs() < 1e-3,
+                    "({x},{y}): {s} vs {}",
+                    img.get(x, y)
+                );
+            }
+        }
+        // A linear ramp is reproduced between pixels too (away from edges).
+        let mut ramp = Image::zeros(16, 16);
+        for y in 0..16 {
+            for x in 0..16 {
+                ramp.data[y * 16 + x] = 2.0 * x as f32 + y as f32;
+            }
+        }
+        let c = bspline_coefficients(&ramp);
+        for &(x, y) in &[(5.3f32, 7.8f32), (8.5, 8.5), (10.01, 4.99)] {
+            assert!((sample_bspline(&c, x, y) - (2.0 * x + y)).abs() < 1e-3);
+        }
+    }
 }
