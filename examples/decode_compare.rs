@@ -1,17 +1,14 @@
-//! CPU time (this thread's, from /proc/thread-self/schedstat, so that other
-//! processes on a busy machine do not count) of decoding a RAW file with
+//! CPU time (this thread's, so that other processes on a busy machine do not
+//! count) of decoding a RAW file with
 //! ebptv and with the `evt3` crate.
 //!
 //! `cargo run --release --example decode_compare -- FILE.raw [REPEATS]`
 use ebptv::events::Chunk;
 use ebptv::io::{open, EventSource};
 
-fn cpu_ns() -> u64 {
-    std::fs::read_to_string("/proc/thread-self/schedstat")
-        .ok()
-        .and_then(|s| s.split_whitespace().next().and_then(|v| v.parse().ok()))
-        .unwrap_or(0)
-}
+#[path = "common/cpu.rs"]
+mod cpu;
+use cpu::thread_cpu_ns as cpu_ns;
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -33,6 +30,9 @@ fn main() -> anyhow::Result<()> {
         }
         best_ours = best_ours.min((cpu_ns() - c0) as f64 * 1e-9);
         n = count;
+        if std::env::var_os("ONLY_EBPTV").is_some() {
+            continue;
+        }
         let c0 = cpu_ns();
         let r = evt3::Evt3Decoder::new().decode_file(path)?;
         best_theirs = best_theirs.min((cpu_ns() - c0) as f64 * 1e-9);

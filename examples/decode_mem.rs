@@ -7,12 +7,9 @@ use ebptv::events::Chunk;
 use ebptv::io::raw_header::read_raw_header;
 use ebptv::io::Format;
 
-fn cpu_ns() -> u64 {
-    std::fs::read_to_string("/proc/thread-self/schedstat")
-        .ok()
-        .and_then(|s| s.split_whitespace().next().and_then(|v| v.parse().ok()))
-        .unwrap_or(0)
-}
+#[path = "common/cpu.rs"]
+mod cpu;
+use cpu::thread_cpu_ns as cpu_ns;
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();

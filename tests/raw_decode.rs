@@ -521,6 +521,18 @@ fn evt3_word() -> impl Strategy<Value = u16> {
     ]
 }
 
+/// Like [`evt3_word`], but with frequent ADDR_Y + ADDR_X pairs (the
+/// sparse-data pattern the decoder's fast path reads two and four words
+/// at a time), so runs of pairs of every length, at every alignment, and
+/// cut by read buffers all occur.
+fn evt3_words_with_pairs() -> impl Strategy<Value = Vec<u16>> {
+    let segment = prop_oneof![
+        2 => evt3_word().prop_map(|w| vec![w]),
+        3 => ((0u16..0x800), (0u16..0x1000)).prop_map(|(y, x)| vec![y, 0x2000 | x]),
+    ];
+    prop::collection::vec(segment, 0..1500).prop_map(|v| v.concat())
+}
+
 fn to_bytes16(words: &[u16]) -> Vec<u8> {
     words.iter().flat_map(|w| w.to_le_bytes()).collect()
 }
@@ -529,7 +541,7 @@ proptest! {
     #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
 
     #[test]
-    fn evt3_fast_matches_reference(words in prop::collection::vec(evt3_word(), 0..3000),
+    fn evt3_fast_matches_reference(words in prop_oneof![prop::collection::vec(evt3_word(), 0..3000), evt3_words_with_pairs()],
                                    odd in any::<bool>(), chunk in 1usize..200, buf in 1usize..64) {
         let dir = tempfile::tempdir().unwrap();
         let mut payload = to_bytes16(&words);

@@ -13,10 +13,12 @@ use std::f64::consts::PI;
 /// A(y) Gaussian around the wake centre line y_c; particles live for 20
 /// pulses; velocity noise `noise` px/s.
 fn wake(f_shed: f64, noise: f64, seed: u64) -> Vec<Sample> {
+    wake_sized(f_shed, noise, seed, 4096, 400)
+}
+
+fn wake_sized(f_shed: f64, noise: f64, seed: u64, n_pulses: usize, n_live: usize) -> Vec<Sample> {
     let (w, h, yc, u0, amp) = (256.0, 128.0, 64.0, 2000.0, 80.0);
     let period_us = 500.0; // 2 kHz pulses
-    let n_pulses = 4096;
-    let n_live = 400;
     let life = 20;
     let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
     let nz = Normal::new(0.0, noise).unwrap();
@@ -144,4 +146,58 @@ fn bad_points_are_rejected() {
     let s = wake(35.4, 5.0, 3);
     assert!(point_spectra(&s, &[(5000.0, 10.0)], &options()).is_err());
     assert!(point_spectra(&s, &[], &options()).is_err());
+}
+
+#[test]
+fn spectra_command_writes_peak_hz() {
+    let s = wake_sized(35.4, 10.0, 4, 2048, 200);
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let mut t = String::from("track_id,pulse,t_us,x,y,u,v\n");
+    for p in &s {
+        t.push_str(&format!(
+            "{},{},{},{:.3},{:.3},{:.2},{:.2}\n",
+            p.track_id,
+            (p.t_us / 500.0) as i64,
+            p.t_us,
+            p.x,
+            p.y,
+            p.u,
+            p.v
+        ));
+    }
+    std::fs::write(d.join("tracks.csv"), t).unwrap();
+    let out = d.join("sp");
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_ebptv"))
+        .args([
+            "spectra",
+            d.join("tracks.csv").to_str().unwrap(),
+            "--point",
+            "128,64",
+            "--line",
+            "128,8,128,120",
+            "--line-points",
+            "5",
+        ])
+        .args([
+            "--nperseg",
+            "512",
+            "--moving-average",
+            "9",
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("spectrum.json")).unwrap()).unwrap();
+    let peak = j["peak_hz"].as_f64().unwrap();
+    assert!((peak - 35.4).abs() < 1.5, "{peak}");
+    assert!(j["dynamic_range"].as_f64().unwrap() > 10.0);
+    assert!((j["fs_hz"].as_f64().unwrap() - 2000.0).abs() < 1e-6);
+    let csv = std::fs::read_to_string(out.join("spectra.csv")).unwrap();
+    assert!(csv.starts_with("f_hz,psd_u_0,psd_v_0\n"));
+    assert_eq!(csv.lines().count(), 1 + 257);
+    assert!(out.join("premultiplied_line.csv").exists() && out.join("spectrum_p0.png").exists());
 }

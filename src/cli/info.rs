@@ -115,7 +115,13 @@ fn render(s: &Summary) -> String {
     line(
         "geometry",
         match (s.geometry, s.geometry_from_events) {
-            (Some(g), _) => format!("{}x{} (from the file)", g.width, g.height),
+            (Some(g), _) if s.geometry_source == "inferred" => {
+                format!(
+                    "{}x{} (inferred from the header, not stated)",
+                    g.width, g.height
+                )
+            }
+            (Some(g), _) => format!("{}x{} (stated in the file)", g.width, g.height),
             (None, Some(e)) => format!(
                 "not stated; events span {}x{} (max x+1, max y+1)",
                 e.width, e.height

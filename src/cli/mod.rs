@@ -3,9 +3,15 @@
 
 use clap::{Parser, Subcommand};
 
+pub mod compare;
 pub mod convert;
+pub mod grid;
 pub mod info;
 pub mod model_check;
+pub mod piv;
+pub mod piv_images;
+pub mod simulate;
+pub mod spectra;
 pub mod track;
 
 #[derive(Parser, Debug)]
@@ -31,6 +37,18 @@ pub enum Command {
     /// Model check: measured vs simulated signatures → the missing effects,
     /// fitted (model_check.json, model.toml, report.md, PNGs).
     ModelCheck(model_check::ModelCheckArgs),
+    /// Simulate a pulsed event-camera recording with ground truth.
+    Simulate(simulate::SimulateArgs),
+    /// Bin tracks onto an Eulerian grid (means, stresses, errors), or merge grid states.
+    Grid(grid::GridArgs),
+    /// Velocity spectra at points or along a line from tracks (Welch PSD, peak, noise floor).
+    Spectra(spectra::SpectraArgs),
+    /// Multi-frame correlation PIV on pulsed pseudo-images of a recording.
+    Piv(piv::PivArgs),
+    /// Correlation PIV on ordinary image pairs or sequences (PNG, TIFF).
+    PivImages(piv_images::PivImagesArgs),
+    /// Compare PTV grid statistics with PIV statistics on the same grid.
+    Compare(compare::CompareArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -39,5 +57,11 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Convert(a) => convert::run(a),
         Command::Track(a) => track::run(a),
         Command::ModelCheck(a) => model_check::run(a),
+        Command::Simulate(a) => simulate::run(a),
+        Command::Grid(a) => grid::run(a),
+        Command::Spectra(a) => spectra::run(a),
+        Command::Piv(a) => piv::run(a),
+        Command::PivImages(a) => piv_images::run(a),
+        Command::Compare(a) => compare::run(a),
     }
 }

@@ -23,6 +23,8 @@
 //! channel 3. Timestamp resets (0) are skipped and counted
 //! (`skipped_other_words`), unknown types counted (`unknown_word_types`).
 //! Frame, IMU and other packets are skipped without decompressing them.
+//! When the XML declares no stream at all, every packet is decompressed and
+//! recognised by its flatbuffer identifier (`EVTS`, `TRIG`) instead.
 //!
 //! The flatbuffers are parsed by hand with bounds checks on every read (no
 //! code generation); a malformed buffer is a [`Error::Corrupt`] naming the
@@ -477,8 +479,11 @@ impl Aedat4Reader {
                 ));
             }
             let kind = self.streams.iter().find(|(s, _)| *s == id).map(|(_, k)| *k);
+            // Without a stream description, every packet is opened and
+            // recognised by its flatbuffer identifier.
+            let sniff = self.streams.is_empty();
             match kind {
-                Some(k @ (Kind::Events | Kind::Triggers)) => {
+                Some(Kind::Events | Kind::Triggers) | None if kind.is_some() || sniff => {
                     self.raw.clear();
                     self.raw.resize(size as usize, 0);
                     self.reader
@@ -486,6 +491,17 @@ impl Aedat4Reader {
                         .map_err(|e| Error::io(&self.info.path, e))?;
                     self.pos += size;
                     self.decompress(at)?;
+                    let k = match kind {
+                        Some(k) => k,
+                        None => match self.packet.get(8..12) {
+                            Some(b"EVTS") => Kind::Events,
+                            Some(b"TRIG") => Kind::Triggers,
+                            _ => {
+                                self.anomalies.skipped_other_words += 1;
+                                continue;
+                            }
+                        },
+                    };
                     return Ok(Some((k, at)));
                 }
                 other => {
@@ -598,6 +614,11 @@ impl EventSource for Aedat4Reader {
         loop {
             if let Some((next, end)) = self.cursor {
                 let take = (end - next).min(self.chunk_events - chunk.events.len());
+                let ev = &mut chunk.events;
+                ev.t.reserve(take);
+                ev.x.reserve(take);
+                ev.y.reserve(take);
+                ev.p.reserve(take);
                 for rec in self.packet[next * EVENT_BYTES..(next + take) * EVENT_BYTES]
                     .chunks_exact(EVENT_BYTES)
                 {
@@ -904,6 +925,32 @@ mod tests {
                 assert!(!r.anomalies().any_problem());
             }
         }
+    }
+
+    #[test]
+    fn packets_recognised_without_stream_description() {
+        let dir = tempfile::tempdir().unwrap();
+        let (events, triggers) = sample();
+        let mut b = encode_aedat4(
+            &events,
+            &triggers,
+            Geometry::new(346, 260),
+            Compression::Lz4,
+            700,
+            &lz4_frame,
+        );
+        // Blank out the XML's stream nodes (same length, so offsets hold).
+        let find = |needle: &[u8]| b.windows(needle.len()).position(|w| w == needle).unwrap();
+        let (start, end) = (find(b"<node name=\"outInfo\""), find(b"</dv>"));
+        for byte in &mut b[start..end] {
+            *byte = b' ';
+        }
+        let p = dir.path().join("noxml.aedat4");
+        std::fs::write(&p, &b).unwrap();
+        let (ev, tr, r) = read_all(&p, 1000).unwrap();
+        assert!(ev == events, "{} events of {}", ev.len(), events.len());
+        assert_eq!(tr, triggers);
+        assert_eq!(r.info().geometry, None);
     }
 
     #[test]

@@ -106,6 +106,8 @@ struct LineReader {
     reader: BufReader<File>,
     line: Vec<u8>,
     line_no: u64,
+    /// Byte range of the current (trimmed) line in `line`.
+    cur: (usize, usize),
     offset: u64,
     /// Geometry found in a comment line.
     geometry: Option<Geometry>,
@@ -121,6 +123,7 @@ impl LineReader {
                 reader: BufReader::with_capacity(1 << 16, file),
                 line: Vec::with_capacity(128),
                 line_no: 0,
+                cur: (0, 0),
                 offset: 0,
                 geometry: None,
             },
@@ -130,13 +133,27 @@ impl LineReader {
 
     /// The next non-blank, non-comment line (trimmed), or `None` at the end.
     fn next_line(&mut self) -> Result<Option<&str>> {
+        Ok(if self.advance()? {
+            Some(self.current())
+        } else {
+            None
+        })
+    }
+
+    /// The current line, trimmed (valid after `advance` returned true).
+    fn current(&self) -> &str {
+        std::str::from_utf8(&self.line[self.cur.0..self.cur.1]).unwrap_or("")
+    }
+
+    /// Move to the next non-blank, non-comment line; false at the end.
+    fn advance(&mut self) -> Result<bool> {
         loop {
             self.line.clear();
             let n = std::io::Read::take(&mut self.reader, MAX_LINE)
                 .read_until(b'\n', &mut self.line)
                 .map_err(|e| Error::io(&self.path, e))?;
             if n == 0 {
-                return Ok(None);
+                return Ok(false);
             }
             self.line_no += 1;
             let start = self.offset;
@@ -151,20 +168,17 @@ impl LineReader {
                     ),
                 ));
             }
-            let text = match std::str::from_utf8(&self.line) {
-                Ok(t) => t.trim(),
-                Err(_) => {
-                    return Err(Error::corrupt(
-                        &self.path,
-                        start,
-                        format!(
-                            "line {}: not text (invalid UTF-8): not an event CSV",
-                            self.line_no
-                        ),
-                    ))
-                }
+            let Ok(full) = std::str::from_utf8(&self.line) else {
+                return Err(Error::corrupt(
+                    &self.path,
+                    start,
+                    format!(
+                        "line {}: not text (invalid UTF-8): not an event CSV",
+                        self.line_no
+                    ),
+                ));
             };
-            let text = text.trim_start_matches('\u{feff}');
+            let text = full.trim().trim_start_matches('\u{feff}');
             if text.is_empty() {
                 continue;
             }
@@ -174,11 +188,9 @@ impl LineReader {
                 }
                 continue;
             }
-            // Re-borrow to return the trimmed text.
-            let text = std::str::from_utf8(&self.line)
-                .expect("checked above")
-                .trim();
-            return Ok(Some(text.trim_start_matches('\u{feff}')));
+            let begin = text.as_ptr() as usize - full.as_ptr() as usize;
+            self.cur = (begin, begin + text.len());
+            return Ok(true);
         }
     }
 
@@ -223,7 +235,7 @@ impl Sep {
         }
         Sep::Whitespace
     }
-    /// Split `line` into at most `out.len()` trimmed fields; returns the count.
+    /// Split `line` into trimmed fields.
     fn split<'a>(self, line: &'a str, out: &mut Vec<&'a str>) {
         out.clear();
         match self {
@@ -231,7 +243,27 @@ impl Sep {
             Sep::Whitespace => out.extend(line.split_whitespace()),
         }
     }
+
+    /// Split into the first `MAX_FIELDS` fields without allocating; returns
+    /// the number of fields found (capped).
+    fn split_fixed<'a>(self, line: &'a str, out: &mut [&'a str; MAX_FIELDS]) -> usize {
+        let mut n = 0;
+        let mut put = |s: &'a str| {
+            if n < MAX_FIELDS {
+                out[n] = s;
+                n += 1;
+            }
+        };
+        match self {
+            Sep::Char(c) => line.split(c).for_each(|s| put(s.trim().trim_matches('"'))),
+            Sep::Whitespace => line.split_whitespace().for_each(put),
+        }
+        n
+    }
 }
+
+/// Columns beyond this one are never used (the needed ones must come first).
+const MAX_FIELDS: usize = 32;
 
 /// Split a header name into its base and unit: `t_us` → (`t`, us).
 fn name_and_unit(raw: &str) -> (String, Option<TimeUnit>) {
@@ -441,7 +473,12 @@ fn detect_layout(
     if !ignored.is_empty() {
         notes.push(("ignored_columns".into(), ignored.join(",")));
     }
-    let min_fields = [t, x, y, p].into_iter().max().unwrap() + 1;
+    let min_fields = [t, x, y, p].into_iter().max().unwrap_or(0) + 1;
+    if min_fields > MAX_FIELDS {
+        return Err(lr.err(format!(
+            "the event columns must be among the first {MAX_FIELDS} columns"
+        )));
+    }
     Ok(Some((
         Layout {
             t,
@@ -463,6 +500,12 @@ fn detect_layout(
 /// plain decimals), rounding half away from zero.
 fn parse_time_us(s: &str, unit: TimeUnit) -> Option<(i64, bool)> {
     let exp = unit.exponent_to_us();
+    // Fast path: a plain integer in µs (the common case, and our own output).
+    if exp == 0 {
+        if let Ok(v) = s.parse::<i64>() {
+            return Some((v, false));
+        }
+    }
     let (neg, body) = match s.as_bytes().first()? {
         b'-' => (true, &s[1..]),
         b'+' => (false, &s[1..]),
@@ -586,57 +629,55 @@ impl CsvReader {
             events_done: false,
         })
     }
+}
 
-    fn parse_row(&mut self, line: &str, chunk: &mut Chunk) -> Result<()> {
-        let lay = &self.layout;
-        let mut f: Vec<&str> = Vec::with_capacity(8);
-        lay.sep.split(line, &mut f);
-        if f.len() < lay.min_fields {
-            return Err(self.lines.err(format!(
-                "{} fields, expected at least {} (`{}`)",
-                f.len(),
-                lay.min_fields,
-                truncate(line)
-            )));
-        }
-        let (t, fractional) = parse_time_us(f[lay.t], lay.unit).ok_or_else(|| {
-            self.lines
-                .err(format!("time `{}` is not a number", truncate(f[lay.t])))
-        })?;
-        if fractional && !lay.unit_stated {
-            return Err(self.lines.err(format!(
+/// Parse one event row into `chunk`; errors name the line via `lines`.
+fn parse_event_row(lay: &Layout, lines: &LineReader, line: &str, chunk: &mut Chunk) -> Result<()> {
+    let mut f = [""; MAX_FIELDS];
+    let nf = lay.sep.split_fixed(line, &mut f);
+    if nf < lay.min_fields {
+        return Err(lines.err(format!(
+            "{} fields, expected at least {} (`{}`)",
+            nf,
+            lay.min_fields,
+            truncate(line)
+        )));
+    }
+    let (t, fractional) = parse_time_us(f[lay.t], lay.unit)
+        .ok_or_else(|| lines.err(format!("time `{}` is not a number", truncate(f[lay.t]))))?;
+    if fractional && !lay.unit_stated {
+        return Err(lines.err(format!(
                 "time `{}` has a fractional part but the file does not state its unit (assumed µs{}); name the column `t_s`/`t_us` or pass the time unit",
                 f[lay.t],
                 if lay.has_header { "" } else { ", no header line" }
             )));
-        }
-        let x: u16 = f[lay.x].parse().map_err(|_| {
-            self.lines.err(format!(
-                "x `{}` is not a pixel coordinate (0..65535)",
-                truncate(f[lay.x])
-            ))
-        })?;
-        let y: u16 = f[lay.y].parse().map_err(|_| {
-            self.lines.err(format!(
-                "y `{}` is not a pixel coordinate (0..65535)",
-                truncate(f[lay.y])
-            ))
-        })?;
-        if !lay.has_header && !is_plain_polarity(f[lay.p]) {
-            return Err(self.lines.err(format!(
+    }
+    let x: u16 = f[lay.x].parse().map_err(|_| {
+        lines.err(format!(
+            "x `{}` is not a pixel coordinate (0..65535)",
+            truncate(f[lay.x])
+        ))
+    })?;
+    let y: u16 = f[lay.y].parse().map_err(|_| {
+        lines.err(format!(
+            "y `{}` is not a pixel coordinate (0..65535)",
+            truncate(f[lay.y])
+        ))
+    })?;
+    if !lay.has_header && !is_plain_polarity(f[lay.p]) {
+        return Err(lines.err(format!(
                 "no header line, so openeb's order x,y,p,t was assumed, but the polarity column holds `{}`; add a header line naming the columns (e.g. `t,x,y,p`)",
                 truncate(f[lay.p])
             )));
-        }
-        let p = parse_polarity(f[lay.p]).ok_or_else(|| {
-            self.lines.err(format!(
-                "polarity `{}` is not 0/1, -1/1 or true/false",
-                truncate(f[lay.p])
-            ))
-        })?;
-        chunk.events.push(t, x, y, p);
-        Ok(())
     }
+    let p = parse_polarity(f[lay.p]).ok_or_else(|| {
+        lines.err(format!(
+            "polarity `{}` is not 0/1, -1/1 or true/false",
+            truncate(f[lay.p])
+        ))
+    })?;
+    chunk.events.push(t, x, y, p);
+    Ok(())
 }
 
 fn truncate(s: &str) -> String {
@@ -659,17 +700,14 @@ impl EventSource for CsvReader {
     fn next_chunk(&mut self, chunk: &mut Chunk) -> Result<bool> {
         chunk.clear();
         if let Some(first) = self.pending_first.take() {
-            self.parse_row(&first, chunk)?;
+            parse_event_row(&self.layout, &self.lines, &first, chunk)?;
         }
         while !self.events_done && chunk.events.len() < self.chunk_events {
-            let line = match self.lines.next_line()? {
-                Some(l) => l.to_string(),
-                None => {
-                    self.events_done = true;
-                    break;
-                }
-            };
-            self.parse_row(&line, chunk)?;
+            if !self.lines.advance()? {
+                self.events_done = true;
+                break;
+            }
+            parse_event_row(&self.layout, &self.lines, self.lines.current(), chunk)?;
         }
         if let Some(ts) = self.triggers.as_mut() {
             let limit = if self.events_done {

@@ -270,6 +270,12 @@ impl EventSource for DatReader {
                 self.anomalies.truncated_tail_bytes += (avail - whole) as u64;
             }
             let geometry = self.info.geometry;
+            let ev = &mut chunk.events;
+            let n = whole / RECORD_BYTES;
+            ev.t.reserve(n);
+            ev.x.reserve(n);
+            ev.y.reserve(n);
+            ev.p.reserve(n);
             for rec in buf[..whole].chunks_exact(RECORD_BYTES) {
                 let raw_t = u32::from_le_bytes([rec[0], rec[1], rec[2], rec[3]]);
                 let w = u32::from_le_bytes([rec[4], rec[5], rec[6], rec[7]]);

@@ -67,9 +67,7 @@ pub struct Evt3Decoder {
     /// 0: no ADDR_Y yet; [`ROW_CD`] after ADDR_Y; [`ROW_EM`] after EM_Y
     /// (exposure-measurement events follow, not CD).
     row: u8,
-    base_x: u16,
-    have_base: bool,
-    polarity: u8,
+    vector: VectorState,
     pub anomalies: Anomalies,
 }
 
@@ -127,8 +125,7 @@ impl Evt3Decoder {
         let mut t = self.current_time;
         let mut y = self.y;
         let mut row = self.row;
-        let mut base_x = self.base_x;
-        let mut pol = self.polarity;
+        let mut vs = self.vector;
         let mut time_base = self.time_base;
         let mut sink = RawAppend::new(&mut out.events, words.len() / 2 * MAX_EVENTS_PER_WORD);
         let n = words.len() & !1;
@@ -139,7 +136,9 @@ impl Evt3Decoder {
                 // per word of this block (+1 spare); the words before `pos`
                 // kept at most that many each, and the run keeps at most
                 // one per word.
-                pos += unsafe { fast_run(&words[pos..], &mut t, &mut y, time_base, &mut sink) };
+                pos += unsafe {
+                    fast_run(&words[pos..], &mut t, &mut y, &mut vs, time_base, &mut sink)
+                };
             }
             if pos >= n {
                 break;
@@ -165,21 +164,21 @@ impl Evt3Decoder {
                     } else {
                         (w & 0xFF, 8)
                     };
-                    if self.have_base & (row == ROW_CD) {
+                    if vs.have_base & (row == ROW_CD) {
                         while mask != 0 {
                             let i = mask.trailing_zeros() as u16;
-                            sink.push(t, base_x.wrapping_add(i), y, pol);
+                            sink.push(t, vs.base_x.wrapping_add(i), y, vs.polarity);
                             mask &= mask - 1;
                         }
                     } else {
-                        self.vector_without_base(row);
+                        self.vector_without_base(row, vs.have_base);
                     }
-                    base_x = base_x.wrapping_add(n);
+                    vs.base_x = vs.base_x.wrapping_add(n);
                 }
                 0x3 => {
-                    base_x = w & 0x7FF;
-                    pol = ((w >> 11) & 1) as u8;
-                    self.have_base = true;
+                    vs.base_x = w & 0x7FF;
+                    vs.polarity = ((w >> 11) & 1) as u8;
+                    vs.have_base = true;
                 }
                 0x8 => {
                     self.time_high(w);
@@ -209,13 +208,12 @@ impl Evt3Decoder {
         self.current_time = t;
         self.y = y;
         self.row = row;
-        self.base_x = base_x;
-        self.polarity = pol;
+        self.vector = vs;
     }
 
     #[cold]
-    fn vector_without_base(&mut self, row: u8) {
-        if row == ROW_EM && self.have_base {
+    fn vector_without_base(&mut self, row: u8, have_base: bool) {
+        if row == ROW_EM && have_base {
             self.anomalies.skipped_other_words += 1;
         } else {
             self.anomalies.vector_without_base += 1;
@@ -254,17 +252,46 @@ unsafe fn fast_run(
     bytes: &[u8],
     t: &mut i64,
     y: &mut u16,
+    vector: &mut VectorState,
     time_base: u64,
     sink: &mut RawAppend,
 ) -> usize {
     let (mut tt, mut yy) = (*t, *y);
+    let mut vs = *vector;
     let n = bytes.len() & !1;
     let mut i = 0;
     while i < n {
-        // The commonest pair by far in sparse data: ADDR_Y then ADDR_X (each
-        // event in a new row), decoded from one 32-bit load.
+        // The commonest pair by far in sparse data is ADDR_Y then ADDR_X
+        // (each event in a new row): two such pairs per 64-bit load, then
+        // one pair per 32-bit load, then single words.
+        while let Some(b8) = bytes.get(i..i + 8) {
+            let v = u64::from_le_bytes(b8.try_into().expect("8 bytes"));
+            if v & 0xF000_F000_F000_F000 != 0x2000_0000_2000_0000 {
+                break;
+            }
+            let y0 = (v & 0x7FF) as u16;
+            yy = ((v >> 32) & 0x7FF) as u16;
+            // SAFETY: two kept events for four words (caller's room).
+            unsafe {
+                sink.write_spare_unchecked(
+                    tt,
+                    ((v >> 16) & 0x7FF) as u16,
+                    y0,
+                    ((v >> 27) & 1) as u8,
+                );
+                sink.advance(1);
+                sink.write_spare_unchecked(
+                    tt,
+                    ((v >> 48) & 0x7FF) as u16,
+                    yy,
+                    ((v >> 59) & 1) as u8,
+                );
+                sink.advance(1);
+            }
+            i += 8;
+        }
         if let Some(b4) = bytes.get(i..i + 4) {
-            let v = u32::from_le_bytes([b4[0], b4[1], b4[2], b4[3]]);
+            let v = u32::from_le_bytes(b4.try_into().expect("4 bytes"));
             if v & 0xF000_F000 == 0x2000_0000 {
                 yy = (v & 0x7FF) as u16;
                 // SAFETY: one kept event for two words (caller's room).
@@ -281,9 +308,41 @@ unsafe fn fast_run(
                 continue;
             }
         }
+        if i >= n {
+            break;
+        }
         let w = u16::from_le_bytes([bytes[i], bytes[i + 1]]);
         let kind = w >> 12;
         if (1u16 << kind) & FAST_KINDS == 0 {
+            // Vector words (dense rows) stay on the fast path too; a vector
+            // with no base yet goes to the slow path to be counted.
+            if kind == 0x3 {
+                vs.base_x = w & 0x7FF;
+                vs.polarity = ((w >> 11) & 1) as u8;
+                vs.have_base = true;
+                i += 2;
+                continue;
+            }
+            if (kind == 0x4 || kind == 0x5) && vs.have_base {
+                let (mut mask, width) = if kind == 0x4 {
+                    (w & 0xFFF, 12)
+                } else {
+                    (w & 0xFF, 8)
+                };
+                while mask != 0 {
+                    let bit = mask.trailing_zeros() as u16;
+                    // SAFETY: at most MAX_EVENTS_PER_WORD kept events per
+                    // word (caller's room).
+                    unsafe {
+                        sink.write_spare_unchecked(tt, vs.base_x.wrapping_add(bit), yy, vs.polarity)
+                    };
+                    sink.advance(1);
+                    mask &= mask - 1;
+                }
+                vs.base_x = vs.base_x.wrapping_add(width);
+                i += 2;
+                continue;
+            }
             break;
         }
         // SAFETY: at most one kept event per word so far (caller's room).
@@ -296,7 +355,16 @@ unsafe fn fast_run(
     }
     *t = tt;
     *y = yy;
+    *vector = vs;
     i
+}
+
+/// The vector base the VECT_12 / VECT_8 words build on.
+#[derive(Debug, Clone, Copy, Default)]
+struct VectorState {
+    base_x: u16,
+    polarity: u8,
+    have_base: bool,
 }
 
 /// Appends to an [`EventChunk`] through pointers into capacity reserved up

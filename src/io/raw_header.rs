@@ -208,16 +208,26 @@ pub fn interpret(entries: Vec<(String, String)>, payload_offset: u64) -> RawHead
     }
 }
 
-/// Read and interpret the header of the file at `path`.
+/// Read and interpret the header of the file at `path`. Reads 64 KB (any
+/// real header is far shorter), more only while the header runs on, up to
+/// [`MAX_HEADER_BYTES`].
 pub fn read_raw_header(path: &Path) -> Result<RawHeader> {
     let mut f = File::open(path).map_err(|e| Error::io(path, e))?;
-    let mut buf = Vec::with_capacity(64 * 1024);
-    (&mut f)
-        .take(MAX_HEADER_BYTES as u64)
-        .read_to_end(&mut buf)
-        .map_err(|e| Error::io(path, e))?;
-    let (entries, off) = parse_percent_header(&buf);
-    Ok(interpret(entries, off as u64))
+    let mut buf = Vec::new();
+    let mut want = 64 * 1024;
+    loop {
+        let have = buf.len();
+        (&mut f)
+            .take((want - have) as u64)
+            .read_to_end(&mut buf)
+            .map_err(|e| Error::io(path, e))?;
+        let (entries, off) = parse_percent_header(&buf);
+        // The header ended inside what was read (or the file ended).
+        if off < buf.len() || buf.len() < want || want >= MAX_HEADER_BYTES {
+            return Ok(interpret(entries, off as u64));
+        }
+        want = (want * 4).min(MAX_HEADER_BYTES);
+    }
 }
 
 /// The [`StreamInfo`] of a RAW file of a known format.
@@ -265,7 +275,13 @@ impl PayloadReader {
         let mut file = File::open(path).map_err(|e| Error::io(path, e))?;
         file.seek(SeekFrom::Start(payload_offset))
             .map_err(|e| Error::io(path, e))?;
-        let cap = (buffer_bytes.max(word_bytes) / word_bytes) * word_bytes;
+        // No bigger than the payload (small files, many opens), whole words.
+        let payload = file
+            .metadata()
+            .map(|m| m.len().saturating_sub(payload_offset))
+            .unwrap_or(u64::MAX);
+        let want = (buffer_bytes as u64).min(payload + word_bytes as u64) as usize;
+        let cap = (want.max(word_bytes) / word_bytes) * word_bytes;
         Ok(PayloadReader {
             path: path.to_path_buf(),
             file,

@@ -38,6 +38,10 @@ pub struct Summary {
     pub format_name: String,
     /// Geometry stated (or inferred by the reader from the header).
     pub geometry: Option<Geometry>,
+    /// How the geometry is known: `stated` (a header field says it),
+    /// `inferred` (a RAW reader derived it, e.g. from `% system_ID`), or
+    /// `unknown` (then see `geometry_from_events`).
+    pub geometry_source: String,
     /// Smallest geometry holding every event seen: max x + 1, max y + 1.
     pub geometry_from_events: Option<Geometry>,
     pub header: Vec<(String, String)>,
@@ -188,6 +192,7 @@ impl SummaryBuilder {
         anomalies: Anomalies,
         decode_seconds: f64,
     ) -> Summary {
+        let geometry_source = geometry_source(&info).to_string();
         let StreamInfo {
             path,
             format,
@@ -207,6 +212,7 @@ impl SummaryBuilder {
             format,
             format_name: format.name().to_string(),
             geometry,
+            geometry_source,
             geometry_from_events: has
                 .then(|| Geometry::new(self.max_x.saturating_add(1), self.max_y.saturating_add(1))),
             header,
@@ -235,6 +241,26 @@ impl SummaryBuilder {
                 0.0
             },
         }
+    }
+}
+
+/// Whether the geometry was stated by the file or inferred by its reader.
+/// The RAW readers infer it from `% system_ID` / `% evt` when neither a
+/// `% geometry` line nor a `width=` in `% format` states it; every other
+/// reader only reports a geometry the file states.
+pub fn geometry_source(info: &StreamInfo) -> &'static str {
+    if info.geometry.is_none() {
+        return "unknown";
+    }
+    let raw = matches!(info.format, Format::Evt2 | Format::Evt21 | Format::Evt3);
+    let stated = info.header.iter().any(|(k, v)| {
+        k.eq_ignore_ascii_case("geometry")
+            || (k.eq_ignore_ascii_case("format") && v.to_ascii_lowercase().contains("width"))
+    });
+    if raw && !stated {
+        "inferred"
+    } else {
+        "stated"
     }
 }
 
@@ -360,6 +386,23 @@ mod tests {
         );
         assert_eq!(s.time_steps_back, 1);
         assert_eq!(s.peak_rate_ev_per_s, Some(1000.0));
+    }
+
+    #[test]
+    fn geometry_source_rules() {
+        let mut i = dummy_info();
+        assert_eq!(geometry_source(&i), "unknown");
+        i.geometry = Some(Geometry::new(640, 480));
+        assert_eq!(geometry_source(&i), "stated");
+        i.format = Format::Evt3;
+        i.header = vec![
+            ("evt".into(), "3.0".into()),
+            ("system_ID".into(), "48".into()),
+        ];
+        assert_eq!(geometry_source(&i), "inferred");
+        i.header
+            .push(("format".into(), "EVT3;height=720;width=1280".into()));
+        assert_eq!(geometry_source(&i), "stated");
     }
 
     #[test]

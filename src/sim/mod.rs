@@ -39,10 +39,12 @@ pub mod light;
 pub mod pixel;
 pub mod presets;
 pub mod readout;
+pub mod record;
 pub mod scenario;
 pub mod seeding;
 
 pub use flow::Flow;
+pub use record::{write_recording, RecordingSummary, TruthWriter};
 pub use scenario::{Scenario, EFFECT_NAMES};
 
 use crate::error::{Error, Result};

@@ -663,16 +663,25 @@ impl Tracker {
         }
         let p = &self.params;
         let mut edges = Vec::new();
+        // All chains of one call start at the same pulse, so each ended
+        // track is extrapolated once.
+        let start_pulse = chains[0].dets[0].pulse;
         for (ri, old) in self.pool.iter().enumerate() {
             let end = old.last();
+            let gap = start_pulse - end.pulse - 1;
+            if gap < 0 || gap > p.stitch_gap as i64 {
+                continue;
+            }
+            let r = p.min_search_radius * (1.0 + p.stitch_growth * gap as f64);
+            let Some(fwd) = extrapolate(&old.dets, p.predict_window, start_pulse) else {
+                continue;
+            };
             for (ci, new) in chains.iter().enumerate() {
                 let start = &new.dets[0];
-                let gap = start.pulse - end.pulse - 1;
-                if gap < 0 || gap > p.stitch_gap as i64 {
+                if (fwd.0 - start.x).powi(2) + (fwd.1 - start.y).powi(2) > 2.0 * r * r {
                     continue;
                 }
-                let r = p.min_search_radius * (1.0 + p.stitch_growth * gap as f64);
-                let fwd = extrapolate(&old.dets, p.predict_window, start.pulse);
+                let fwd = Some(fwd);
                 let bwd = extrapolate(&new.dets, INIT_FRAMES, end.pulse);
                 let (Some(fwd), Some(bwd)) = (fwd, bwd) else {
                     continue;

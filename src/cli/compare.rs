@@ -1,0 +1,114 @@
+use std::path::PathBuf;
+
+use clap::Args;
+use ebptv::compare::{compare, read_table};
+use ebptv::io::atomic::AtomicFile;
+use ebptv::plot::{heatmap, line_plot, Heatmap, LinePlot, Series, SeriesStyle};
+
+#[derive(Args, Debug)]
+pub struct CompareArgs {
+    /// PTV grid statistics (`grid.csv`: x,y,count,u,v,uu,vv,uv).
+    #[arg(long)]
+    pub ptv: PathBuf,
+    /// PIV statistics (`piv_mean.csv`: x,y,u,v,uu,vv,uv,valid).
+    #[arg(long)]
+    pub piv: PathBuf,
+    /// Ignore PTV bins with fewer samples.
+    #[arg(long, default_value_t = 1.0)]
+    pub min_count: f64,
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+pub fn run(a: CompareArgs) -> anyhow::Result<()> {
+    let ptv = read_table(&a.ptv, &["x", "y", "count", "u", "v", "uu", "vv", "uv"])?;
+    let piv = read_table(&a.piv, &["x", "y", "u", "v", "uu", "vv", "uv", "valid"])?;
+    let c = compare(&ptv, &piv, a.min_count)?;
+    std::fs::create_dir_all(&a.out).map_err(|e| ebptv::Error::io(&a.out, e))?;
+    let mut json = serde_json::json!({
+        "ptv": a.ptv.display().to_string(),
+        "piv": a.piv.display().to_string(),
+        "resampling": c.resampling,
+        "ptv_bins": c.ptv_bins,
+        "compared_bins": c.compared_bins,
+    });
+    for (q, s) in &c.quantities {
+        json[q] = serde_json::to_value(s)?;
+    }
+    AtomicFile::write_all_to(
+        a.out.join("compare.json"),
+        serde_json::to_string_pretty(&json)?.as_bytes(),
+    )?;
+    let (nx, ny) = (c.grid.xs.len(), c.grid.ys.len());
+    let xr = (c.grid.xs[0], *c.grid.xs.last().unwrap());
+    let yr = (c.grid.ys[0], *c.grid.ys.last().unwrap());
+    for (q, map) in &c.diff_maps {
+        let title = format!("PTV - PIV: {q}");
+        heatmap(
+            &a.out.join(format!("diff_{q}.png")),
+            &Heatmap {
+                title: &title,
+                values: map,
+                nx,
+                ny,
+                x_range: xr,
+                y_range: yr,
+                colorbar_label: if q.len() == 1 { "px/s" } else { "(px/s)^2" },
+                diverging: true,
+            },
+        )?;
+    }
+    let ys: Vec<f64> = c.profiles.iter().map(|p| p.0).collect();
+    let cols: Vec<Vec<f64>> = (1..5)
+        .map(|i| {
+            c.profiles
+                .iter()
+                .map(|p| [p.1, p.2, p.3, p.4][i - 1])
+                .collect()
+        })
+        .collect();
+    line_plot(
+        &a.out.join("profiles.png"),
+        &LinePlot {
+            title: "Column-averaged profiles",
+            x_label: "y (px)",
+            y_label: "velocity (px/s)",
+            series: vec![
+                Series {
+                    label: "PTV u",
+                    x: &ys,
+                    y: &cols[0],
+                    style: SeriesStyle::Points,
+                },
+                Series {
+                    label: "PIV u",
+                    x: &ys,
+                    y: &cols[1],
+                    style: SeriesStyle::Line,
+                },
+                Series {
+                    label: "PTV v",
+                    x: &ys,
+                    y: &cols[2],
+                    style: SeriesStyle::Points,
+                },
+                Series {
+                    label: "PIV v",
+                    x: &ys,
+                    y: &cols[3],
+                    style: SeriesStyle::Line,
+                },
+            ],
+            log_x: false,
+            log_y: false,
+            vlines: vec![],
+        },
+    )?;
+    for (q, s) in &c.quantities {
+        println!(
+            "{q:>3}: n {:6}  mean(PTV-PIV) {:+.4e}  rms {:.4e}  (PTV rms {:.4e}, PIV rms {:.4e})",
+            s.n, s.mean_diff, s.rms_diff, s.ptv_rms, s.piv_rms
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,154 @@
+use std::path::PathBuf;
+
+use clap::Args;
+use ebptv::piv::output::{write_mean_csv, NpyStack};
+use ebptv::piv::{PivOptions, PivStream, PixelMode, PseudoOptions, StreamOptions};
+use ebptv::plot::{heatmap, Heatmap};
+use ebptv::pulses::{analyze, split_pulses, PulseOptions};
+
+#[derive(Args, Debug)]
+pub struct PivArgs {
+    /// Event recording.
+    pub recording: PathBuf,
+    /// Final interrogation window width (px).
+    #[arg(long, default_value_t = 32)]
+    pub window: usize,
+    /// Window height (px); default = width (e.g. 64 x 8 for a boundary layer).
+    #[arg(long)]
+    pub window_h: Option<usize>,
+    /// Node spacing (px); default = half the window.
+    #[arg(long)]
+    pub spacing: Option<usize>,
+    /// Frames (pulses) per evaluation, N_f.
+    #[arg(long, default_value_t = 5)]
+    pub frames: usize,
+    /// Pulses between evaluations; default N_f - 1.
+    #[arg(long)]
+    pub step: Option<usize>,
+    #[arg(long, default_value_t = 3)]
+    pub passes: usize,
+    /// Gaussian blur of the pseudo-images (px).
+    #[arg(long, default_value_t = 1.0)]
+    pub sigma: f64,
+    /// Event counts instead of binary pseudo-images.
+    #[arg(long)]
+    pub counts: bool,
+    /// Use OFF events too.
+    #[arg(long)]
+    pub both_polarities: bool,
+    /// Nominal pulse frequency (Hz) when the recording has no triggers.
+    #[arg(long)]
+    pub pulse_hz: Option<f64>,
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+pub fn run(a: PivArgs) -> anyhow::Result<()> {
+    let mut src = ebptv::io::open(&a.recording)?;
+    let geom = src.info().geometry.ok_or_else(|| {
+        anyhow::anyhow!(
+            "{}: the sensor size is not stated in the file; PIV needs it for the pseudo-images",
+            a.recording.display()
+        )
+    })?;
+    let report = analyze(
+        src.as_mut(),
+        &PulseOptions {
+            pulse_hz: a.pulse_hz,
+            ..Default::default()
+        },
+    )?;
+    let mut piv = PivOptions::new(a.window, a.spacing.unwrap_or((a.window / 2).max(1)));
+    piv.window_h = a.window_h.unwrap_or(a.window);
+    piv.spacing_y = a.spacing.unwrap_or((piv.window_h / 2).max(1));
+    piv.passes = a.passes;
+    let opts = StreamOptions {
+        piv,
+        pseudo: PseudoOptions {
+            mode: if a.counts {
+                PixelMode::Counts
+            } else {
+                PixelMode::Binary
+            },
+            both_polarities: a.both_polarities,
+            sigma: a.sigma,
+        },
+        frames: a.frames,
+        step: a.step.unwrap_or(a.frames.saturating_sub(1).max(1)),
+    };
+    let (w, h) = (geom.width as usize, geom.height as usize);
+    let mut stream = PivStream::new(w, h, report.timing, opts)?;
+    let g = *stream.grid();
+    std::fs::create_dir_all(&a.out).map_err(|e| ebptv::Error::io(&a.out, e))?;
+    let mut su = NpyStack::create(&a.out.join("piv_u.npy"), "<f4", g.ny, g.nx)?;
+    let mut sv = NpyStack::create(&a.out.join("piv_v.npy"), "<f4", g.ny, g.nx)?;
+    let mut sf = NpyStack::create(&a.out.join("piv_flag.npy"), "|u1", g.ny, g.nx)?;
+    let mut times = Vec::new();
+    let hz = stream.pulse_hz();
+    let bar = indicatif::ProgressBar::new_spinner();
+    let mut src = ebptv::io::open(&a.recording)?;
+    split_pulses(src.as_mut(), &report.timing, &mut |pe| {
+        if let Some(f) = stream.push_pulse(&pe)? {
+            su.push_f32(f.field.u.iter().map(|&x| (x * hz) as f32))?;
+            sv.push_f32(f.field.v.iter().map(|&x| (x * hz) as f32))?;
+            sf.push_u8(&f.field.flags)?;
+            times.push((f.first_pulse, f.t_us));
+            bar.set_message(format!("{} fields", times.len()));
+            bar.tick();
+        }
+        Ok(())
+    })?;
+    bar.finish_and_clear();
+    if times.is_empty() {
+        anyhow::bail!(
+            "{}: no PIV field: fewer than {} consecutive pulses with events",
+            a.recording.display(),
+            a.frames
+        );
+    }
+    su.finish()?;
+    sv.finish()?;
+    sf.finish()?;
+    let mut t = String::from("step,first_pulse,t_us\n");
+    for (k, (p, tu)) in times.iter().enumerate() {
+        t.push_str(&format!("{k},{p},{tu}\n"));
+    }
+    ebptv::io::atomic::AtomicFile::write_all_to(a.out.join("piv_steps.csv"), t.as_bytes())?;
+    let rows = stream.stats.rows();
+    write_mean_csv(&a.out.join("piv_mean.csv"), &rows)?;
+    let xr = (g.x(0), g.x(g.nx - 1));
+    let yr = (g.y(0), g.y(g.ny - 1));
+    let maps: [(&str, &str, bool, Vec<f64>); 4] = [
+        ("u", "u (px/s)", true, rows.iter().map(|r| r.u).collect()),
+        ("v", "v (px/s)", true, rows.iter().map(|r| r.v).collect()),
+        (
+            "uu",
+            "u'u' ((px/s)^2)",
+            false,
+            rows.iter().map(|r| r.uu).collect(),
+        ),
+        (
+            "valid",
+            "valid fraction",
+            false,
+            rows.iter().map(|r| r.valid).collect(),
+        ),
+    ];
+    for (name, label, div, vals) in &maps {
+        heatmap(
+            &a.out.join(format!("piv_{name}.png")),
+            &Heatmap {
+                title: &format!("PIV mean {name}"),
+                values: vals,
+                nx: g.nx,
+                ny: g.ny,
+                x_range: xr,
+                y_range: yr,
+                colorbar_label: label,
+                diverging: *div,
+            },
+        )?;
+    }
+    eprintln!("{} PIV fields, {} nodes each", times.len(), g.len());
+    Ok(())
+}

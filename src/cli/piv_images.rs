@@ -1,0 +1,83 @@
+use std::path::PathBuf;
+
+use clap::Args;
+use ebptv::piv::images::load_image;
+use ebptv::piv::output::write_vectors_csv;
+use ebptv::piv::{piv_frames, PivOptions};
+use rayon::prelude::*;
+
+#[derive(Args, Debug)]
+pub struct PivImagesArgs {
+    /// Images (8/16-bit PNG or TIFF), in time order.
+    #[arg(required = true, num_args = 2..)]
+    pub images: Vec<PathBuf>,
+    /// Final interrogation window width (px).
+    #[arg(long, default_value_t = 32)]
+    pub window: usize,
+    /// Window height (px); default = width.
+    #[arg(long)]
+    pub window_h: Option<usize>,
+    /// Node spacing (px); default = half the window.
+    #[arg(long)]
+    pub spacing: Option<usize>,
+    #[arg(long, default_value_t = 3)]
+    pub passes: usize,
+    /// Frames per evaluation: 2 = independent pairs (A B), (C D)...;
+    /// N > 2 = sum of correlation over N consecutive images.
+    #[arg(long, default_value_t = 2)]
+    pub frames: usize,
+    /// Treat the list as a sequence (1-2, 2-3, ...) instead of pairs (1-2, 3-4, ...).
+    #[arg(long)]
+    pub sequence: bool,
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+pub fn run(a: PivImagesArgs) -> anyhow::Result<()> {
+    if a.frames < 2 {
+        anyhow::bail!("invalid parameter `frames`: {} (need at least 2)", a.frames);
+    }
+    let mut o = PivOptions::new(a.window, a.spacing.unwrap_or((a.window / 2).max(1)));
+    o.window_h = a.window_h.unwrap_or(a.window);
+    o.spacing_y = a.spacing.unwrap_or((o.window_h / 2).max(1));
+    o.passes = a.passes;
+    let imgs = a
+        .images
+        .iter()
+        .map(|p| load_image(p))
+        .collect::<Result<Vec<_>, _>>()?;
+    if imgs.len() < a.frames {
+        anyhow::bail!(
+            "{} images given, --frames {} needs at least that many",
+            imgs.len(),
+            a.frames
+        );
+    }
+    let step = if a.sequence { 1 } else { a.frames };
+    let starts: Vec<usize> = (0..=imgs.len() - a.frames).step_by(step).collect();
+    std::fs::create_dir_all(&a.out).map_err(|e| ebptv::Error::io(&a.out, e))?;
+    let bar = indicatif::ProgressBar::new(starts.len() as u64);
+    let t0 = std::time::Instant::now();
+    let nodes: Vec<usize> = starts
+        .par_iter()
+        .map(|&s| -> anyhow::Result<usize> {
+            let refs: Vec<_> = imgs[s..s + a.frames].iter().collect();
+            let f = piv_frames(&refs, &o)
+                .map_err(|e| anyhow::anyhow!("{}: {e}", a.images[s].display()))?;
+            write_vectors_csv(&a.out.join(format!("vectors_{s:05}.csv")), &f)?;
+            bar.inc(1);
+            Ok(f.grid.len())
+        })
+        .collect::<anyhow::Result<_>>()?;
+    bar.finish_and_clear();
+    let dt = t0.elapsed().as_secs_f64();
+    let n: usize = nodes.iter().sum();
+    eprintln!(
+        "{} field(s), {} vectors in {:.3} s ({:.0} vectors/s)",
+        starts.len(),
+        n,
+        dt,
+        n as f64 / dt
+    );
+    Ok(())
+}

@@ -1,0 +1,1238 @@
+//! Light pulses: timing from triggers or from the events, event-to-pulse
+//! assignment, latency and readout-saturation diagnostics.
+//!
+//! # One streaming pass, solved at the end
+//! [`analyze`] reads a recording once. The pulse period is only known well
+//! after the whole recording is seen (the laser and camera clocks drift
+//! apart by ppm, i.e. by whole bursts over ten seconds), yet every
+//! diagnostic is a histogram of event time relative to the pulses. The pass
+//! therefore keeps *compact statistics that can be re-aligned later*:
+//!
+//! 1. **Warm-up.** The first events (≤ 2 M events or ≤ 1 s) are buffered.
+//!    From them a reference period `P_ref` is found: from the trigger train
+//!    when one is recorded, else from the event rate (1 µs bins → FFT
+//!    periodogram → harmonic sum picks the fundamental → a high harmonic
+//!    refines it → epoch folding polishes it; [`timing::estimate_period`]).
+//!    The buffer is then replayed through step 2.
+//! 2. **Streaming.** Every event adds one count to the histogram of
+//!    `(t − t_ref) mod P_ref` (≈1 µs bins) of the current *time block*
+//!    (10 ms, doubled by pairwise merging so at most 1024 blocks exist), one
+//!    count to its pixel in the rate map, and extends or closes the run of
+//!    events sharing (row, timestamp) (the readout-saturation signature).
+//!    A few short time slices (3 periods each, thinned by doubling) keep
+//!    their raw events for the pseudo-image statistics.
+//! 3. **Solve.** With triggers, the least-squares train over all rising
+//!    edges (integer pulse numbers: a missing edge leaves a gap, a glitch is
+//!    dropped; [`timing::fit_trigger_train`]) gives the exact period and
+//!    phase. Without, each block's folded histogram is cross-correlated
+//!    with the template (FFT), the block phases are unwrapped and a weighted
+//!    line through them gives the period correction (`P = P_ref / (1 − slope)`)
+//!    and phase over the whole recording — residual error of `P_ref` shows
+//!    up only as a linear phase drift between blocks. Each block's histogram
+//!    is then shifted to the fitted pulse start and summed into the 1 µs
+//!    latency histogram: peak, FWHM, 95 % window, contrast, floor. Without
+//!    triggers the pulse start is the burst onset: the rising flank
+//!    (20–60 % of the peak) extrapolated to the floor; it lags the light
+//!    pulse by the sensor's minimum latency, which
+//!    [`PulseOptions::onset_latency_us`] can subtract when known (e.g. from
+//!    a recording with triggers).
+//!
+//! Memory is bounded by the warm-up buffer (~26 MB), the block histograms
+//! (≤ 1024 × P_ref bins), the rate map and the trigger times.
+//!
+//! # Assignment
+//! Pulse k owns events in `[start_k + window_offset, start_k + window_offset + P)`;
+//! the offset puts the window boundary at the lowest point of the smoothed
+//! latency histogram. Pulse 0 is the first pulse of the fitted train that
+//! starts at or after the first recorded event (with triggers: the first
+//! kept rising edge). [`split_pulses`] streams events to pulses with a small
+//! reorder window ([`REORDER_MARGIN_US`]): EVT 3 time may step back by a few
+//! µs, so a pulse is handed over only once events 1 ms past its window end
+//! have been seen; later stragglers are counted as unattributable.
+//!
+//! # Saturation
+//! When the arbiters saturate, the pending events of a row are read out with
+//! one timestamp and timing stops tracking the pulses. Two measures: the
+//! fraction of events in runs sharing (row, timestamp) (group sizes as a
+//! distribution; groups of ≥ [`LARGE_GROUP`] are the saturation signature —
+//! two neighbouring pixels of one particle image may legitimately share),
+//! and the burst fraction of each time block against the recording's
+//! median. Blocks are flagged; the recording is `saturated` when flagged
+//! blocks hold half of the events or the burst fraction of the whole falls
+//! below 10 %.
+
+use std::collections::{BTreeMap, VecDeque};
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::{Error, Result};
+use crate::events::{Chunk, Edge, EventChunk, Geometry, ON};
+
+pub mod diagnostics;
+pub mod monitor;
+pub mod timing;
+
+pub use timing::{ChannelEdges, Periodicity};
+
+/// Where the pulse times came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PulseSource {
+    Trigger,
+    Estimated,
+}
+
+/// A regular pulse train: pulse k starts at `first_pulse_us + k * period_us`
+/// (sensor clock, µs). Events of pulse k are those in
+/// `[start_k + window_offset_us, start_k + window_offset_us + period_us)`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PulseTiming {
+    pub period_us: f64,
+    pub first_pulse_us: f64,
+    /// Offset of the assignment window from the pulse start (µs); the window
+    /// boundary sits where the folded histogram is lowest. May be negative.
+    pub window_offset_us: f64,
+    pub source: PulseSource,
+    /// Pulse width (µs) when known (falling triggers, or the scenario).
+    pub pulse_width_us: Option<f64>,
+}
+
+impl PulseTiming {
+    /// Start time of pulse `k` (µs).
+    #[inline]
+    pub fn pulse_start(&self, k: i64) -> f64 {
+        self.first_pulse_us + k as f64 * self.period_us
+    }
+
+    /// Pulse index of an event at time `t_us`, or `None` before pulse 0.
+    #[inline]
+    pub fn assign(&self, t_us: i64) -> Option<i64> {
+        let rel = (t_us as f64 - self.first_pulse_us - self.window_offset_us) / self.period_us;
+        if rel < 0.0 {
+            None
+        } else {
+            Some(rel.floor() as i64)
+        }
+    }
+}
+
+/// The events of one pulse, gathered while streaming.
+#[derive(Debug, Clone, Default)]
+pub struct PulseEvents {
+    pub index: i64,
+    /// Start of the light pulse (µs, sensor clock).
+    pub start_us: f64,
+    pub events: EventChunk,
+}
+
+/// Options of [`analyze`].
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+#[serde(default)]
+pub struct PulseOptions {
+    /// Nominal pulse frequency (Hz) when estimating from events; the search
+    /// covers ±2 % around it.
+    pub pulse_hz: Option<f64>,
+    /// Search range (Hz) when the frequency is not known exactly.
+    pub pulse_hz_range: Option<(f64, f64)>,
+    /// Trigger channel to use; `None` = the one carrying a regular train.
+    pub trigger_channel: Option<u8>,
+    /// Ignore triggers even when present (estimate from events).
+    pub ignore_triggers: bool,
+    /// Known delay from the light pulse to the burst onset (µs), subtracted
+    /// from estimated pulse starts (ignored with triggers).
+    pub onset_latency_us: Option<f64>,
+}
+
+/// Default search band without any frequency hint (Hz).
+pub const DEFAULT_SEARCH_HZ: (f64, f64) = (500.0, 50_000.0);
+/// Relative half-width of the search band around a nominal frequency.
+pub const NOMINAL_TOLERANCE: f64 = 0.02;
+/// Events sharing (row, timestamp) in a run at least this long are the
+/// arbiter-saturation signature.
+pub const LARGE_GROUP: usize = 4;
+/// Reorder window of [`split_pulses`] (µs).
+pub const REORDER_MARGIN_US: i64 = 1000;
+
+const WARMUP_MAX_EVENTS: usize = 2_000_000;
+const WARMUP_MAX_US: i64 = 1_000_000;
+const BLOCK_US_INITIAL: i64 = 10_000;
+const MAX_BLOCKS: usize = 1024;
+const MAX_GROUP: usize = 64;
+const MAX_SLICES: usize = 32;
+const HEAD_MAX: usize = 200_000;
+
+impl PulseOptions {
+    /// Check the user's values; name the parameter that is wrong.
+    pub fn validate(&self) -> Result<()> {
+        if let Some(f) = self.pulse_hz {
+            if !(f.is_finite() && f > 0.0 && f <= 200_000.0) {
+                return Err(Error::param(
+                    "pulse_hz",
+                    format!("{f} Hz: must be in (0, 200000]"),
+                ));
+            }
+        }
+        if let Some((a, b)) = self.pulse_hz_range {
+            if !(a.is_finite() && b.is_finite() && a > 0.0 && a < b && b <= 200_000.0) {
+                return Err(Error::param(
+                    "pulse_hz_range",
+                    format!("{a}..{b} Hz: need 0 < A < B ≤ 200000"),
+                ));
+            }
+        }
+        if self.pulse_hz.is_some() && self.pulse_hz_range.is_some() {
+            return Err(Error::param(
+                "pulse_hz",
+                "give either a nominal frequency or a range, not both",
+            ));
+        }
+        if self.ignore_triggers && self.trigger_channel.is_some() {
+            return Err(Error::param(
+                "trigger_channel",
+                "conflicts with ignore_triggers",
+            ));
+        }
+        Ok(())
+    }
+
+    /// The frequency band searched when estimating from events (Hz).
+    pub fn search_band(&self) -> (f64, f64) {
+        if let Some(r) = self.pulse_hz_range {
+            r
+        } else if let Some(f) = self.pulse_hz {
+            (f * (1.0 - NOMINAL_TOLERANCE), f * (1.0 + NOMINAL_TOLERANCE))
+        } else {
+            DEFAULT_SEARCH_HZ
+        }
+    }
+}
+
+/// How the trigger channels looked and how the train fitted.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct TriggerReport {
+    pub channels: Vec<timing::ChannelSummary>,
+    /// The fit of the channel used (absent when pulses were estimated).
+    pub fit: Option<timing::TriggerFit>,
+}
+
+/// How the period was estimated from events.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct EstimateReport {
+    pub search_hz: (f64, f64),
+    /// Warm-up estimate (periodogram + epoch folding).
+    pub warmup: Periodicity,
+    /// Blocks whose phase entered the final fit.
+    pub blocks_used: usize,
+    /// RMS of block phases about the fitted line (µs).
+    pub phase_residual_rms_us: f64,
+    /// Burst onset found in the latency histogram before subtracting
+    /// `onset_latency_us` (µs after the template's zero; diagnostic).
+    pub onset_latency_subtracted_us: f64,
+}
+
+/// One time block of the recording.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct TimeWindow {
+    pub t_start_us: i64,
+    pub t_end_us: i64,
+    pub events: u64,
+    pub rate_hz: f64,
+    /// Events in runs sharing (row, timestamp), any size ≥ 2.
+    pub shared_fraction: f64,
+    /// Events in runs of ≥ LARGE_GROUP sharing (row, timestamp).
+    pub large_group_fraction: f64,
+    /// Events above the random floor of this block's latency histogram.
+    pub burst_fraction: f64,
+    pub saturated: bool,
+}
+
+/// Readout-saturation measures.
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
+pub struct SaturationReport {
+    /// Number of runs of each size (index = events sharing one (row, t);
+    /// the last bin collects larger runs).
+    pub group_sizes: Vec<u64>,
+    pub large_group_fraction: f64,
+    /// Fraction of events in flagged time windows.
+    pub saturated_event_fraction: f64,
+    pub windows: Vec<TimeWindow>,
+}
+
+/// Particle-image statistics from per-pulse pseudo-images (paper App. A).
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
+pub struct ParticleImageReport {
+    pub pulses_sampled: u64,
+    /// Connected-pixel clusters per sensor pixel per pulse.
+    pub ppp: f64,
+    /// sqrt(mean cluster area) (px).
+    pub mean_image_size_px: f64,
+    /// Events per cluster per pulse (noise events form clusters too).
+    pub events_per_particle: f64,
+}
+
+/// Event-rate map and hot pixels.
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
+pub struct RateMapReport {
+    pub width: u16,
+    pub height: u16,
+    /// Mean over pixels with at least one event (ev/(pixel·s)).
+    pub mean_active_rate_hz: f64,
+    pub max_rate_hz: f64,
+    pub hot_threshold_hz: f64,
+    pub hot_pixels: Vec<diagnostics::HotPixel>,
+    /// Events per pixel per second, row-major `height × width` (not in JSON;
+    /// written as `rate_map.npy` / `.csv` by the CLI).
+    #[serde(skip)]
+    pub rate: Vec<f32>,
+}
+
+/// Result of the pulse stage, serialised flat as `pulses.json`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct PulseReport {
+    #[serde(flatten)]
+    pub timing: PulseTiming,
+    pub latency_peak_us: f64,
+    pub latency_fwhm_us: f64,
+    pub latency_window95_us: (f64, f64),
+    pub burst_contrast: f64,
+    pub random_event_fraction: f64,
+    pub histogram_flatness: f64,
+    pub saturated: bool,
+    /// Fraction of events sharing (row, timestamp) with others.
+    pub saturation_shared_fraction: f64,
+    pub events: u64,
+    pub on_fraction: f64,
+    pub t_first_us: i64,
+    pub t_last_us: i64,
+    pub duration_s: f64,
+    pub event_rate_hz: f64,
+    /// Pulses from pulse 0 to the one holding the last event.
+    pub pulses: u64,
+    /// Events before the window of pulse 0.
+    pub unattributed_events: u64,
+    pub triggers: TriggerReport,
+    pub estimate: Option<EstimateReport>,
+    pub latency: diagnostics::LatencyStats,
+    pub saturation: SaturationReport,
+    pub particles: ParticleImageReport,
+    pub rate_map: RateMapReport,
+    /// Event counts per 1 µs from `rate_trace_t0_us` over the first pulses
+    /// (figure of the rate with pulse marks).
+    pub rate_trace: Vec<u32>,
+    pub rate_trace_t0_us: i64,
+}
+
+/// One streaming pass over `source`: pulse timing and diagnostics.
+pub fn analyze(
+    source: &mut dyn crate::io::EventSource,
+    opts: &PulseOptions,
+) -> Result<PulseReport> {
+    let mut an = Analyzer::new(opts.clone(), source.info().geometry)?;
+    let mut chunk = Chunk::default();
+    while source.next_chunk(&mut chunk)? {
+        an.push(&chunk)?;
+    }
+    an.finish()
+}
+
+/// Fold reference fixed at the end of the warm-up.
+#[derive(Debug, Clone, Copy)]
+struct Fold {
+    t_ref: i64,
+    p_ref: f64,
+    inv_p: f64,
+    nbins: usize,
+}
+
+#[derive(Debug, Clone)]
+struct Block {
+    start: i64,
+    end: i64,
+    n: u64,
+    /// Sum of (t − start): the block's event-weighted centre.
+    t_rel_sum: i64,
+    shared: u64,
+    large: u64,
+    hist: Vec<u32>,
+}
+
+impl Block {
+    fn new(start: i64, end: i64, nbins: usize) -> Self {
+        Block {
+            start,
+            end,
+            n: 0,
+            t_rel_sum: 0,
+            shared: 0,
+            large: 0,
+            hist: vec![0; nbins],
+        }
+    }
+    fn centre(&self) -> f64 {
+        self.start as f64 + self.t_rel_sum as f64 / self.n.max(1) as f64
+    }
+    fn merge(&mut self, o: Block) {
+        let c = (self.centre() * self.n as f64 + o.centre() * o.n as f64)
+            / (self.n + o.n).max(1) as f64;
+        self.n += o.n;
+        self.t_rel_sum = ((c - self.start as f64) * self.n as f64).round() as i64;
+        self.end = o.end;
+        self.shared += o.shared;
+        self.large += o.large;
+        for (a, b) in self.hist.iter_mut().zip(&o.hist) {
+            *a += b;
+        }
+    }
+}
+
+/// Raw events of a short time slice, kept for pseudo-images.
+#[derive(Debug, Clone, Default)]
+struct Slice {
+    j: i64,
+    start: i64,
+    t: Vec<i64>,
+    x: Vec<u16>,
+    y: Vec<u16>,
+}
+
+/// The incremental form of [`analyze`]: feed chunks with [`Analyzer::push`],
+/// then [`Analyzer::finish`]. The monitor uses one per interval.
+pub struct Analyzer {
+    opts: PulseOptions,
+    warm: Option<EventChunk>,
+    warm_t_min: i64,
+    warm_t_max: i64,
+    edges: BTreeMap<u8, ChannelEdges>,
+    fold: Option<Fold>,
+    warmup_estimate: Option<Periodicity>,
+    // per-event accumulators
+    width: usize,
+    height: usize,
+    rate: Vec<u32>,
+    n_events: u64,
+    n_on: u64,
+    t_min: i64,
+    t_max: i64,
+    block_us: i64,
+    blocks: Vec<Block>,
+    cur: Block,
+    last_t: i64,
+    last_y: u16,
+    run: usize,
+    groups: Vec<u64>,
+    head: Vec<i64>,
+    head_until: i64,
+    // sampler
+    slices: Vec<Slice>,
+    slice_every: i64,
+    slice_span: i64,
+    slice_cur: Option<Slice>,
+    slice_next_j: i64,
+    slice_lo: i64,
+    slice_hi: i64,
+    trace: Vec<u32>,
+    trace_t0: i64,
+}
+
+impl Analyzer {
+    pub fn new(opts: PulseOptions, geometry: Option<Geometry>) -> Result<Self> {
+        opts.validate()?;
+        let (w, h) = geometry
+            .map(|g| (g.width as usize, g.height as usize))
+            .unwrap_or((1280, 720));
+        Ok(Analyzer {
+            opts,
+            warm: Some(EventChunk::default()),
+            warm_t_min: i64::MAX,
+            warm_t_max: i64::MIN,
+            edges: BTreeMap::new(),
+            fold: None,
+            warmup_estimate: None,
+            width: w.max(1),
+            height: h.max(1),
+            rate: vec![0; w.max(1) * h.max(1)],
+            n_events: 0,
+            n_on: 0,
+            t_min: i64::MAX,
+            t_max: i64::MIN,
+            block_us: BLOCK_US_INITIAL,
+            blocks: Vec::new(),
+            cur: Block::new(i64::MIN, i64::MIN, 0),
+            last_t: i64::MIN,
+            last_y: 0,
+            run: 0,
+            groups: vec![0; MAX_GROUP + 1],
+            head: Vec::new(),
+            head_until: i64::MIN,
+            slices: Vec::new(),
+            slice_every: 1,
+            slice_span: 0,
+            slice_cur: None,
+            slice_next_j: 0,
+            slice_lo: i64::MAX,
+            slice_hi: i64::MAX,
+            trace: Vec::new(),
+            trace_t0: 0,
+        })
+    }
+
+    /// Feed one chunk.
+    pub fn push(&mut self, chunk: &Chunk) -> Result<()> {
+        for tr in &chunk.triggers {
+            let e = self.edges.entry(tr.channel).or_default();
+            match tr.edge {
+                Edge::Rising => e.rising.push(tr.t),
+                Edge::Falling => e.falling.push(tr.t),
+            }
+        }
+        if let Some(w) = self.warm.as_mut() {
+            w.extend_from(&chunk.events);
+            for &t in &chunk.events.t {
+                self.warm_t_min = self.warm_t_min.min(t);
+                self.warm_t_max = self.warm_t_max.max(t);
+            }
+            if w.len() >= WARMUP_MAX_EVENTS
+                || self.warm_t_max.saturating_sub(self.warm_t_min) >= WARMUP_MAX_US
+            {
+                self.begin_streaming()?;
+            }
+            return Ok(());
+        }
+        let f = self.fold.expect("fold set after warm-up");
+        self.accumulate(&f, &chunk.events);
+        Ok(())
+    }
+
+    /// The trigger channel to time pulses by, or `None` to estimate.
+    fn choose_channel(&self) -> Result<Option<u8>> {
+        if self.opts.ignore_triggers {
+            return Ok(None);
+        }
+        let sums = timing::summarize_channels(&self.edges);
+        match self.opts.trigger_channel {
+            Some(c) => match sums.iter().find(|s| s.channel == c) {
+                Some(s) if timing::is_regular(s) => Ok(Some(c)),
+                _ => Err(Error::analysis(format!(
+                    "no regular pulse train on trigger channel {c}; found: {}. Choose another channel with --trigger-channel, or --ignore-triggers to estimate the pulses from the events",
+                    timing::describe_channels(&sums)
+                ))),
+            },
+            None => Ok(sums
+                .iter()
+                .filter(|s| timing::is_regular(s))
+                .max_by_key(|s| s.rising)
+                .map(|s| s.channel)),
+        }
+    }
+
+    fn begin_streaming(&mut self) -> Result<()> {
+        let buf = self.warm.take().unwrap_or_default();
+        if buf.is_empty() {
+            return Ok(());
+        }
+        let (t_min, t_max) = (self.warm_t_min, self.warm_t_max);
+        let channel = self.choose_channel()?;
+        let fit = channel.and_then(|c| timing::fit_trigger_train(c, &self.edges[&c]).ok());
+        let (p_ref, t_ref) = match fit {
+            Some(f) => (f.period_us, f.first_us.floor() as i64),
+            None => {
+                let band = self.opts.search_band();
+                let per = timing::estimate_period(&buf.t, band).map_err(|e| self.explain(e))?;
+                let p = per.period_us;
+                self.warmup_estimate = Some(per);
+                (p, t_min)
+            }
+        };
+        let nbins = (p_ref.round() as usize).max(8);
+        let f = Fold {
+            t_ref,
+            p_ref,
+            inv_p: 1.0 / p_ref,
+            nbins,
+        };
+        self.fold = Some(f);
+        self.slice_span = (3.0 * p_ref).ceil() as i64 + 1;
+        self.slice_next_j = 1;
+        self.slice_lo = t_ref + p_ref.round() as i64;
+        self.slice_hi = self.slice_lo + self.slice_span;
+        self.head_until = t_min + (2.0 * p_ref) as i64 + REORDER_MARGIN_US;
+        let trace_len = ((20.0 * p_ref) as i64)
+            .clamp(100, 20_000)
+            .min(t_max - t_min + 1) as usize;
+        self.trace = vec![0; trace_len];
+        self.trace_t0 = t_min;
+        for &t in &buf.t {
+            let i = t - t_min;
+            if (0..trace_len as i64).contains(&i) {
+                self.trace[i as usize] += 1;
+            }
+        }
+        self.accumulate(&f, &buf);
+        Ok(())
+    }
+
+    /// Add what the trigger channels hold to an estimation error, so the
+    /// user learns about a train on an unexpected channel.
+    fn explain(&self, e: Error) -> Error {
+        if self.edges.is_empty() || self.opts.ignore_triggers {
+            return e;
+        }
+        let sums = timing::summarize_channels(&self.edges);
+        Error::analysis(format!(
+            "{e} (trigger channels: {})",
+            timing::describe_channels(&sums)
+        ))
+    }
+
+    /// The per-event hot loop: fold histogram of the current block, rate
+    /// map, (row, timestamp) runs, sampled slices.
+    fn accumulate(&mut self, f: &Fold, ev: &EventChunk) {
+        let nb = f.nbins;
+        let nbf = nb as f64;
+        for i in 0..ev.len() {
+            let t = ev.t[i];
+            let x = ev.x[i] as usize;
+            let y = ev.y[i];
+            if t >= self.cur.end {
+                self.roll_block(f, t);
+            }
+            // +0.5: the timestamp's tick centre, so integer times never sit
+            // on a fold-bin edge where rounding would flip them.
+            let ph = ((t - f.t_ref) as f64 + 0.5) * f.inv_p;
+            let mut fr = ph - (ph as i64) as f64;
+            if fr < 0.0 {
+                fr += 1.0;
+            }
+            let b = ((fr * nbf) as usize).min(nb - 1);
+            self.cur.hist[b] += 1;
+            self.cur.n += 1;
+            self.cur.t_rel_sum += t - self.cur.start;
+            if x < self.width && (y as usize) < self.height {
+                self.rate[y as usize * self.width + x] += 1;
+            } else {
+                self.grow_map(x + 1, y as usize + 1);
+                self.rate[y as usize * self.width + x] += 1;
+            }
+            if t == self.last_t && y == self.last_y {
+                self.run += 1;
+            } else {
+                self.close_run();
+                self.last_t = t;
+                self.last_y = y;
+                self.run = 1;
+            }
+            if t >= self.slice_lo {
+                if t < self.slice_hi {
+                    if let Some(s) = self.slice_cur.as_mut() {
+                        s.t.push(t);
+                        s.x.push(x as u16);
+                        s.y.push(y);
+                    } else {
+                        self.open_slice(f, t, x as u16, y);
+                    }
+                } else {
+                    self.advance_slice(f, t, x as u16, y);
+                }
+            }
+            if t < self.head_until && self.head.len() < HEAD_MAX {
+                self.head.push(t);
+            }
+            self.n_on += (ev.p[i] == ON) as u64;
+            self.t_min = self.t_min.min(t);
+            self.t_max = self.t_max.max(t);
+        }
+        self.n_events += ev.len() as u64;
+    }
+
+    fn grow_map(&mut self, w: usize, h: usize) {
+        let (nw, nh) = (w.max(self.width), h.max(self.height));
+        let mut m = vec![0u32; nw * nh];
+        for y in 0..self.height {
+            m[y * nw..y * nw + self.width]
+                .copy_from_slice(&self.rate[y * self.width..(y + 1) * self.width]);
+        }
+        self.rate = m;
+        self.width = nw;
+        self.height = nh;
+    }
+
+    fn close_run(&mut self) {
+        let r = self.run;
+        if r == 0 {
+            return;
+        }
+        self.groups[r.min(MAX_GROUP)] += 1;
+        if r >= 2 {
+            self.cur.shared += r as u64;
+            if r >= LARGE_GROUP {
+                self.cur.large += r as u64;
+            }
+        }
+        self.run = 0;
+    }
+
+    fn roll_block(&mut self, f: &Fold, t: i64) {
+        let done = std::mem::replace(&mut self.cur, Block::new(0, 0, 0));
+        if done.n > 0 {
+            self.blocks.push(done);
+        }
+        if self.blocks.len() > MAX_BLOCKS {
+            let old = std::mem::take(&mut self.blocks);
+            let mut it = old.into_iter();
+            while let Some(mut a) = it.next() {
+                if let Some(b) = it.next() {
+                    a.merge(b);
+                }
+                self.blocks.push(a);
+            }
+            self.block_us *= 2;
+        }
+        let start = f.t_ref + (t - f.t_ref).div_euclid(self.block_us) * self.block_us;
+        self.cur = Block::new(start, start + self.block_us, f.nbins);
+    }
+
+    fn slice_start(f: &Fold, j: i64) -> i64 {
+        f.t_ref + (j as f64 * f.p_ref).round() as i64
+    }
+
+    fn open_slice(&mut self, f: &Fold, t: i64, x: u16, y: u16) {
+        let j = self.slice_next_j;
+        let mut s = Slice {
+            j,
+            start: Self::slice_start(f, j),
+            ..Default::default()
+        };
+        s.t.push(t);
+        s.x.push(x);
+        s.y.push(y);
+        self.slice_cur = Some(s);
+    }
+
+    /// `t` is past the current slice: store it, schedule the next slice
+    /// (thinning by doubling when too many are kept), and re-offer the event.
+    fn advance_slice(&mut self, f: &Fold, t: i64, x: u16, y: u16) {
+        if let Some(s) = self.slice_cur.take() {
+            self.slices.push(s);
+            if self.slices.len() > MAX_SLICES {
+                self.slice_every *= 2;
+                let e = self.slice_every;
+                self.slices.retain(|s| s.j % e == 0);
+            }
+        }
+        let e = self.slice_every;
+        let k_t = ((t - f.t_ref) as f64 * f.inv_p).floor() as i64;
+        let mut j = (self.slice_next_j + 1).max(k_t - 2);
+        j = (j + e - 1).div_euclid(e) * e;
+        self.slice_next_j = j;
+        self.slice_lo = Self::slice_start(f, j);
+        self.slice_hi = self.slice_lo + self.slice_span;
+        if t >= self.slice_lo && t < self.slice_hi {
+            self.open_slice(f, t, x, y);
+        }
+    }
+
+    /// Solve for the pulse timing and compute every diagnostic.
+    pub fn finish(mut self) -> Result<PulseReport> {
+        if self.warm.is_some() {
+            self.begin_streaming()?;
+        }
+        let f = match self.fold {
+            Some(f) if self.n_events > 0 => f,
+            _ => return Err(Error::analysis("no events: nothing to analyse")),
+        };
+        self.close_run();
+        let cur = std::mem::replace(&mut self.cur, Block::new(0, 0, 0));
+        if cur.n > 0 {
+            self.blocks.push(cur);
+        }
+        if let Some(s) = self.slice_cur.take() {
+            self.slices.push(s);
+        }
+        let channel = self.choose_channel()?;
+        let channels = timing::summarize_channels(&self.edges);
+        let n_lat = f.p_ref.ceil() as usize;
+
+        // --- timing: a pulse start `anchor + k·period` ---
+        let (anchor, period, source, trig_fit, estimate) = match channel {
+            Some(c) => {
+                let fit = timing::fit_trigger_train(c, &self.edges[&c])?;
+                (
+                    fit.first_us,
+                    fit.period_us,
+                    PulseSource::Trigger,
+                    Some(fit),
+                    None,
+                )
+            }
+            None => {
+                let (anchor, period, used, rms) = self.fit_block_phases(&f)?;
+                let lat = aligned_histogram(&self.blocks, &f, anchor, period, n_lat);
+                let onset = diagnostics::burst_onset(&lat);
+                let known = self.opts.onset_latency_us.unwrap_or(0.0);
+                let est = EstimateReport {
+                    search_hz: self.opts.search_band(),
+                    warmup: self.warmup_estimate.clone().expect("estimated in warm-up"),
+                    blocks_used: used,
+                    phase_residual_rms_us: rms,
+                    onset_latency_subtracted_us: known,
+                };
+                (
+                    anchor + onset - known,
+                    period,
+                    PulseSource::Estimated,
+                    None,
+                    Some(est),
+                )
+            }
+        };
+        let lat = aligned_histogram(&self.blocks, &f, anchor, period, n_lat);
+        let stats = diagnostics::latency_stats(&lat);
+        let low = diagnostics::lowest_point(&lat);
+        let window_offset = if low <= stats.peak_us {
+            low
+        } else {
+            low - period
+        };
+
+        // Pulse 0: the first kept trigger, or the first pulse starting at or
+        // after the first event.
+        let first = match &trig_fit {
+            Some(fit) => fit.first_us,
+            None => anchor + ((self.t_min as f64 - anchor) / period).ceil() * period,
+        };
+        let timing = PulseTiming {
+            period_us: period,
+            first_pulse_us: first,
+            window_offset_us: window_offset,
+            source,
+            pulse_width_us: trig_fit.as_ref().and_then(|t| t.width_us),
+        };
+        let w0 = first + window_offset;
+        let mut unattributed = self.head.iter().filter(|&&t| (t as f64) < w0).count() as u64;
+        if w0 > self.head_until as f64 {
+            unattributed += self
+                .blocks
+                .iter()
+                .filter(|b| (b.end as f64) <= w0)
+                .map(|b| b.n)
+                .sum::<u64>();
+        }
+        let pulses = timing.assign(self.t_max).map(|k| k as u64 + 1).unwrap_or(0);
+
+        // --- saturation per time window ---
+        let (w_lo, w_hi) = stats.window95_us;
+        let mut windows = Vec::with_capacity(self.blocks.len());
+        for b in &self.blocks {
+            let h = aligned_histogram(std::slice::from_ref(b), &f, anchor, period, n_lat);
+            let wl = (w_hi - w_lo).max(1.0) as usize;
+            let inside: f64 = (w_lo as usize..w_lo as usize + wl)
+                .map(|i| h[i % n_lat])
+                .sum();
+            let out_density = (b.n as f64 - inside).max(0.0) / (n_lat - wl.min(n_lat - 1)) as f64;
+            let burst = ((inside - out_density * wl as f64) / b.n as f64).clamp(0.0, 1.0);
+            let dur = (b.end - b.start).max(1) as f64 * 1e-6;
+            windows.push(TimeWindow {
+                t_start_us: b.start,
+                t_end_us: b.end,
+                events: b.n,
+                rate_hz: b.n as f64 / dur,
+                shared_fraction: b.shared as f64 / b.n as f64,
+                large_group_fraction: b.large as f64 / b.n as f64,
+                burst_fraction: burst,
+                saturated: false,
+            });
+        }
+        let mut fr: Vec<f64> = windows
+            .iter()
+            .filter(|w| w.events >= 100)
+            .map(|w| w.burst_fraction)
+            .collect();
+        let med_burst = timing::median_f64(&mut fr).unwrap_or(0.0);
+        let mut flagged = 0u64;
+        for w in &mut windows {
+            w.saturated = w.events >= 100
+                && (w.large_group_fraction > 0.10 || w.burst_fraction < (0.5 * med_burst).max(0.1));
+            if w.saturated {
+                flagged += w.events;
+            }
+        }
+        let sat_events = flagged as f64 / self.n_events as f64;
+        let shared: u64 = self.blocks.iter().map(|b| b.shared).sum();
+        let large: u64 = self.blocks.iter().map(|b| b.large).sum();
+        let saturated = sat_events >= 0.5 || stats.burst_fraction < 0.1;
+
+        // --- rate map ---
+        let duration_s = (self.t_max - self.t_min + 1) as f64 * 1e-6;
+        let (hot, thr) = diagnostics::hot_pixels(&self.rate, self.width, duration_s, 10.0, 100);
+        let active = self.rate.iter().filter(|c| **c > 0).count().max(1);
+        let rate_map = RateMapReport {
+            width: self.width as u16,
+            height: self.height as u16,
+            mean_active_rate_hz: self.n_events as f64 / active as f64 / duration_s,
+            max_rate_hz: *self.rate.iter().max().unwrap_or(&0) as f64 / duration_s,
+            hot_threshold_hz: thr,
+            hot_pixels: hot,
+            rate: self
+                .rate
+                .iter()
+                .map(|&c| (c as f64 / duration_s) as f32)
+                .collect(),
+        };
+
+        // --- pseudo-images of sampled pulses ---
+        let mut cc = diagnostics::ClusterCount::default();
+        let mut sampled = 0u64;
+        for s in &self.slices {
+            let Some(k) = timing.assign(s.start).map(|k| k + 1) else {
+                continue;
+            };
+            let ws = timing.pulse_start(k) + window_offset;
+            if ws + period > (s.start + self.slice_span) as f64 {
+                continue;
+            }
+            let (mut xs, mut ys) = (Vec::new(), Vec::new());
+            for i in 0..s.t.len() {
+                if timing.assign(s.t[i]) == Some(k) {
+                    xs.push(s.x[i]);
+                    ys.push(s.y[i]);
+                }
+            }
+            let c = diagnostics::count_clusters(&xs, &ys);
+            cc.clusters += c.clusters;
+            cc.area += c.area;
+            cc.events += c.events;
+            sampled += 1;
+        }
+        let particles = ParticleImageReport {
+            pulses_sampled: sampled,
+            ppp: if sampled > 0 {
+                cc.clusters as f64 / sampled as f64 / (self.width * self.height) as f64
+            } else {
+                0.0
+            },
+            mean_image_size_px: if cc.clusters > 0 {
+                (cc.area as f64 / cc.clusters as f64).sqrt()
+            } else {
+                0.0
+            },
+            events_per_particle: if cc.clusters > 0 {
+                cc.events as f64 / cc.clusters as f64
+            } else {
+                0.0
+            },
+        };
+
+        Ok(PulseReport {
+            timing,
+            latency_peak_us: stats.peak_us,
+            latency_fwhm_us: stats.fwhm_us,
+            latency_window95_us: stats.window95_us,
+            burst_contrast: stats.burst_contrast,
+            random_event_fraction: stats.random_fraction,
+            histogram_flatness: stats.flatness,
+            saturated,
+            saturation_shared_fraction: shared as f64 / self.n_events as f64,
+            events: self.n_events,
+            on_fraction: self.n_on as f64 / self.n_events as f64,
+            t_first_us: self.t_min,
+            t_last_us: self.t_max,
+            duration_s,
+            event_rate_hz: self.n_events as f64 / duration_s,
+            pulses,
+            unattributed_events: unattributed,
+            triggers: TriggerReport {
+                channels,
+                fit: trig_fit,
+            },
+            estimate,
+            latency: stats,
+            saturation: SaturationReport {
+                group_sizes: self.groups.clone(),
+                large_group_fraction: large as f64 / self.n_events as f64,
+                saturated_event_fraction: sat_events,
+                windows,
+            },
+            particles,
+            rate_map,
+            rate_trace: self.trace.clone(),
+            rate_trace_t0_us: self.trace_t0,
+        })
+    }
+
+    /// Block phases → unwrapped → weighted line: (anchor, period, blocks
+    /// used, rms µs). The anchor is a time where the template's zero sits.
+    fn fit_block_phases(&self, f: &Fold) -> Result<(f64, f64, usize, f64)> {
+        let bw = f.p_ref / f.nbins as f64;
+        let usable: Vec<&Block> = self.blocks.iter().filter(|b| b.n >= 50).collect();
+        if usable.is_empty() {
+            return Err(Error::analysis(
+                "too few events per time block to follow the pulse phase",
+            ));
+        }
+        let mut template: Vec<f64> = vec![0.0; f.nbins];
+        for b in &usable {
+            for (t, &c) in template.iter_mut().zip(&b.hist) {
+                *t += c as f64;
+            }
+        }
+        let mut anchor = f.t_ref as f64;
+        let mut period = f.p_ref;
+        let mut used = 0;
+        let mut rms = 0.0;
+        for iteration in 0..2 {
+            let corr = timing::CircularCorrelator::new(&template);
+            let mut xs = Vec::new();
+            let mut ys = Vec::new();
+            let mut ws = Vec::new();
+            let mut prev: Option<f64> = None;
+            for b in &usable {
+                let h: Vec<f64> = b.hist.iter().map(|&c| c as f64).collect();
+                let (s, _) = corr.shift_of(&h);
+                let mut phi = s * bw;
+                if let Some(p) = prev {
+                    while phi - p > 0.5 * f.p_ref {
+                        phi -= f.p_ref;
+                    }
+                    while phi - p < -0.5 * f.p_ref {
+                        phi += f.p_ref;
+                    }
+                }
+                prev = Some(phi);
+                xs.push(b.centre() - f.t_ref as f64);
+                ys.push(phi);
+                ws.push(b.n as f64);
+            }
+            let (mut a, mut slope, mut r) = timing::weighted_line_fit(&xs, &ys, &ws);
+            // One pass of outlier rejection (blocks hit by saturation bursts).
+            let lim = (3.0 * r).max(2.0);
+            let keep: Vec<usize> = (0..xs.len())
+                .filter(|&i| (ys[i] - a - slope * xs[i]).abs() <= lim)
+                .collect();
+            if keep.len() >= 2 && keep.len() < xs.len() {
+                let sel = |v: &[f64]| keep.iter().map(|&i| v[i]).collect::<Vec<f64>>();
+                (a, slope, r) = timing::weighted_line_fit(&sel(&xs), &sel(&ys), &sel(&ws));
+            }
+            used = keep.len();
+            rms = r;
+            period = f.p_ref / (1.0 - slope);
+            anchor = f.t_ref as f64 + a;
+            if iteration == 0 {
+                // A sharper template: blocks aligned to the first fit.
+                template = aligned_fold(&usable, f, anchor, period);
+            }
+        }
+        // The template's zero moved with re-alignment; anchor refers to the
+        // zero of the last template, which is what the latency histogram
+        // is built against.
+        Ok((anchor, period, used, rms))
+    }
+}
+
+/// Fold position (µs in [0, P_ref)) of the pulse of the train nearest `tc`.
+fn fold_position(f: &Fold, anchor: f64, period: f64, tc: f64) -> f64 {
+    let k = ((tc - anchor) / period).round();
+    (anchor + k * period - f.t_ref as f64).rem_euclid(f.p_ref)
+}
+
+/// Sum of block histograms, each shifted so the train's pulse lands at
+/// fold position 0 (in the blocks' own bins).
+fn aligned_fold(blocks: &[&Block], f: &Fold, anchor: f64, period: f64) -> Vec<f64> {
+    let mut out = vec![0.0; f.nbins];
+    let bw = f.p_ref / f.nbins as f64;
+    for b in blocks {
+        let shift = fold_position(f, anchor, period, b.centre()) / bw;
+        deposit_shifted(&mut out, &b.hist, shift, 1.0);
+    }
+    out
+}
+
+/// out[j − shift] += hist[j], linear interpolation between bins.
+fn deposit_shifted(out: &mut [f64], hist: &[u32], shift: f64, scale: f64) {
+    let n = out.len() as f64;
+    let m = out.len();
+    for (j, &c) in hist.iter().enumerate() {
+        if c == 0 {
+            continue;
+        }
+        let pos = (j as f64 * scale - shift).rem_euclid(n);
+        let i = pos.floor();
+        let fr = pos - i;
+        let i = i as usize % m;
+        out[i] += c as f64 * (1.0 - fr);
+        out[(i + 1) % m] += c as f64 * fr;
+    }
+}
+
+/// Latency histogram (1 µs bins from the pulse start) of `blocks` for the
+/// train `anchor + k·period`.
+fn aligned_histogram(
+    blocks: &[Block],
+    f: &Fold,
+    anchor: f64,
+    period: f64,
+    n_lat: usize,
+) -> Vec<f64> {
+    let mut out = vec![0.0; n_lat];
+    let bw = f.p_ref / f.nbins as f64;
+    for b in blocks {
+        if b.n == 0 {
+            continue;
+        }
+        let pos0 = fold_position(f, anchor, period, b.centre());
+        // fold bin j covers [j·bw, (j+1)·bw): its centre at latency
+        // (j + 0.5)·bw − pos0; the 1 µs latency bin i is centred at i + 0.5.
+        for (j, &c) in b.hist.iter().enumerate() {
+            if c == 0 {
+                continue;
+            }
+            let lat = ((j as f64 + 0.5) * bw - pos0).rem_euclid(f.p_ref) - 0.5;
+            let i = lat.floor();
+            let fr = lat - i;
+            let i0 = (i as isize).rem_euclid(n_lat as isize) as usize;
+            out[i0] += c as f64 * (1.0 - fr);
+            out[(i0 + 1) % n_lat] += c as f64 * fr;
+        }
+    }
+    out
+}
+
+/// Stream `source` and hand the events of each pulse, in pulse order, to
+/// `on_pulse`: every pulse from 0 to the last one holding events, empty
+/// ones included. Returns the number of events that could not be
+/// attributed (before pulse 0, or arriving more than [`REORDER_MARGIN_US`]
+/// after their pulse was handed over).
+pub fn split_pulses(
+    source: &mut dyn crate::io::EventSource,
+    timing: &PulseTiming,
+    on_pulse: &mut dyn FnMut(PulseEvents) -> Result<()>,
+) -> Result<u64> {
+    if !(timing.period_us.is_finite() && timing.period_us > 0.0) {
+        return Err(Error::param(
+            "period_us",
+            format!("{} µs: must be positive", timing.period_us),
+        ));
+    }
+    let mut sp = Splitter::new(*timing);
+    let mut chunk = Chunk::default();
+    while source.next_chunk(&mut chunk)? {
+        sp.push(&chunk.events, on_pulse)?;
+    }
+    sp.finish(on_pulse)
+}
+
+/// Incremental form of [`split_pulses`].
+pub struct Splitter {
+    timing: PulseTiming,
+    pending: VecDeque<EventChunk>,
+    /// Pulse index of `pending[0]`.
+    base: i64,
+    /// Once an event at or after this time is seen, pulse `base` is complete.
+    emit_after: i64,
+    unattributed: u64,
+}
+
+impl Splitter {
+    pub fn new(timing: PulseTiming) -> Self {
+        let mut s = Splitter {
+            timing,
+            pending: VecDeque::new(),
+            base: 0,
+            emit_after: 0,
+            unattributed: 0,
+        };
+        s.emit_after = s.complete_time(0);
+        s
+    }
+
+    fn complete_time(&self, k: i64) -> i64 {
+        let end = self.timing.pulse_start(k) + self.timing.window_offset_us + self.timing.period_us;
+        end.ceil() as i64 + REORDER_MARGIN_US
+    }
+
+    fn emit_front(&mut self, on_pulse: &mut dyn FnMut(PulseEvents) -> Result<()>) -> Result<()> {
+        let events = self.pending.pop_front().unwrap_or_default();
+        on_pulse(PulseEvents {
+            index: self.base,
+            start_us: self.timing.pulse_start(self.base),
+            events,
+        })?;
+        self.base += 1;
+        self.emit_after = self.complete_time(self.base);
+        Ok(())
+    }
+
+    pub fn push(
+        &mut self,
+        ev: &EventChunk,
+        on_pulse: &mut dyn FnMut(PulseEvents) -> Result<()>,
+    ) -> Result<()> {
+        let p = self.timing.period_us;
+        let origin = self.timing.first_pulse_us + self.timing.window_offset_us;
+        for i in 0..ev.len() {
+            let t = ev.t[i];
+            while t >= self.emit_after {
+                self.emit_front(on_pulse)?;
+            }
+            let rel = (t as f64 - origin) / p;
+            if rel < 0.0 {
+                self.unattributed += 1;
+                continue;
+            }
+            let k = rel as i64;
+            if k < self.base {
+                self.unattributed += 1;
+                continue;
+            }
+            let idx = (k - self.base) as usize;
+            while self.pending.len() <= idx {
+                self.pending.push_back(EventChunk::default());
+            }
+            self.pending[idx].push(t, ev.x[i], ev.y[i], ev.p[i]);
+        }
+        Ok(())
+    }
+
+    /// Hand over the pulses still pending; returns the unattributed count.
+    pub fn finish(mut self, on_pulse: &mut dyn FnMut(PulseEvents) -> Result<()>) -> Result<u64> {
+        while !self.pending.is_empty() {
+            self.emit_front(on_pulse)?;
+        }
+        Ok(self.unattributed)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn uniform_events_give_flat_histogram() {
+        let mut an = Analyzer::new(PulseOptions::default(), None).unwrap();
+        let mut c = Chunk::default();
+        let mut s: u64 = 1;
+        let mut ts = Vec::new();
+        for _ in 0..1_000_000 {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ts.push(((s >> 33) % 400_000) as i64);
+        }
+        ts.sort();
+        for &t in &ts {
+            c.events.push(t, (t % 100) as u16, (t % 77) as u16, 1);
+        }
+        for k in 0..4000 {
+            c.triggers.push(crate::Trigger {
+                t: (37.3 + k as f64 * 100.0) as i64,
+                channel: 1,
+                edge: Edge::Rising,
+            });
+        }
+        an.push(&c).unwrap();
+        let r = an.finish().unwrap();
+        let h = &r.latency.histogram;
+        let m = h.iter().sum::<f64>() / h.len() as f64;
+        let worst = h.iter().map(|v| (v / m - 1.0).abs()).fold(0.0, f64::max);
+        assert!(worst < 0.05, "{worst} {h:?}");
+    }
+}

@@ -1,0 +1,1 @@
+//! Live monitor (below).

@@ -1,0 +1,164 @@
+//! End-to-end runs of `ebptv piv-images` and `ebptv compare`.
+
+use std::process::Command;
+
+use ebptv::piv::images::save_png16;
+use ebptv::piv::synth::{particle_frames, SynthOptions};
+
+fn ebptv() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_ebptv"))
+}
+
+#[test]
+fn piv_images_on_png_pair_recovers_the_shift() {
+    let dir = tempfile::tempdir().unwrap();
+    let so = SynthOptions {
+        width: 128,
+        height: 96,
+        frames: 2,
+        seed: 3,
+        ..Default::default()
+    };
+    let frames = particle_frames(&so, &|_, _| (2.4, -1.2));
+    let (a, b) = (dir.path().join("a.png"), dir.path().join("b.png"));
+    save_png16(&a, &frames[0], 20000.0).unwrap();
+    save_png16(&b, &frames[1], 20000.0).unwrap();
+    let out = dir.path().join("out");
+    let st = ebptv()
+        .args([
+            "piv-images",
+            a.to_str().unwrap(),
+            b.to_str().unwrap(),
+            "--window",
+            "32",
+            "--spacing",
+            "16",
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let csv = std::fs::read_to_string(out.join("vectors_00000.csv")).unwrap();
+    let mut lines = csv.lines();
+    assert_eq!(lines.next().unwrap(), "x,y,u,v,flag");
+    let mut n = 0;
+    for l in lines {
+        let f: Vec<f64> = l.split(',').map(|s| s.parse().unwrap()).collect();
+        if f[4] == 0.0 {
+            assert!((f[2] - 2.4).abs() < 0.1 && (f[3] + 1.2).abs() < 0.1, "{l}");
+            n += 1;
+        }
+    }
+    assert!(n >= 32, "{n} of 35 vectors valid");
+}
+
+#[test]
+fn piv_images_rejects_different_sizes_and_big_windows() {
+    let dir = tempfile::tempdir().unwrap();
+    let so = SynthOptions {
+        width: 64,
+        height: 64,
+        frames: 1,
+        ..Default::default()
+    };
+    let f = particle_frames(&so, &|_, _| (0.0, 0.0));
+    let so2 = SynthOptions {
+        width: 48,
+        height: 64,
+        frames: 1,
+        ..Default::default()
+    };
+    let g = particle_frames(&so2, &|_, _| (0.0, 0.0));
+    let (a, b) = (dir.path().join("a.png"), dir.path().join("b.png"));
+    save_png16(&a, &f[0], 1000.0).unwrap();
+    save_png16(&b, &g[0], 1000.0).unwrap();
+    let out = dir.path().join("o");
+    let r = ebptv()
+        .args([
+            "piv-images",
+            a.to_str().unwrap(),
+            b.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .output()
+        .unwrap();
+    assert!(!r.status.success());
+    assert!(
+        String::from_utf8_lossy(&r.stderr).contains("same size"),
+        "{}",
+        String::from_utf8_lossy(&r.stderr)
+    );
+    let r = ebptv()
+        .args([
+            "piv-images",
+            a.to_str().unwrap(),
+            a.to_str().unwrap(),
+            "--window",
+            "128",
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .output()
+        .unwrap();
+    assert!(!r.status.success());
+    assert!(String::from_utf8_lossy(&r.stderr).contains("larger than"));
+    let r = ebptv()
+        .args([
+            "piv-images",
+            a.to_str().unwrap(),
+            a.to_str().unwrap(),
+            "--spacing",
+            "0",
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .output()
+        .unwrap();
+    assert!(!r.status.success());
+    assert!(String::from_utf8_lossy(&r.stderr).contains("spacing"));
+}
+
+#[test]
+fn compare_writes_json_with_known_differences() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut piv = String::from("x,y,u,v,uu,vv,uv,valid\n");
+    for j in 0..5 {
+        for i in 0..5 {
+            let (x, y) = (16.0 * i as f64, 16.0 * j as f64);
+            piv.push_str(&format!("{x},{y},{},{},1,1,0,1\n", 100.0 + x, -y));
+        }
+    }
+    let mut ptv = String::from("x,y,count,u,v,uu,vv,uv\n");
+    for j in 0..8 {
+        for i in 0..8 {
+            let (x, y) = (4.0 + 8.0 * i as f64, 4.0 + 8.0 * j as f64);
+            ptv.push_str(&format!("{x},{y},5,{},{},1,1,0\n", 100.0 + x + 2.0, -y));
+        }
+    }
+    std::fs::write(dir.path().join("piv_mean.csv"), piv).unwrap();
+    std::fs::write(dir.path().join("grid.csv"), ptv).unwrap();
+    let out = dir.path().join("cmp");
+    let st = ebptv()
+        .args([
+            "compare",
+            "--ptv",
+            dir.path().join("grid.csv").to_str().unwrap(),
+            "--piv",
+            dir.path().join("piv_mean.csv").to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("compare.json")).unwrap()).unwrap();
+    assert!(
+        (j["u"]["mean_diff"].as_f64().unwrap() - 2.0).abs() < 1e-9,
+        "{j}"
+    );
+    assert!(j["v"]["rms_diff"].as_f64().unwrap() < 1e-9);
+    assert_eq!(j["compared_bins"].as_u64().unwrap(), 64);
+}
