@@ -8,13 +8,13 @@ pub mod convert;
 pub mod demo;
 pub mod grid;
 pub mod info;
+pub mod model_check;
 pub mod piv;
 pub mod piv_images;
 pub mod simulate;
 pub mod spectra;
 pub mod monitor;
 pub mod pulses;
-pub mod model_check;
 pub mod track;
 
 #[derive(Parser, Debug)]
@@ -39,6 +39,9 @@ pub enum Command {
     /// Particle tracking: a recording (or a particles.csv) → particles.csv,
     /// tracks.csv, summary.json, tracks.png.
     Track(track::TrackArgs),
+    /// Model check: measured vs simulated signatures → the missing effects,
+    /// fitted (model_check.json, model.toml, report.md, PNGs).
+    ModelCheck(model_check::ModelCheckArgs),
     /// Simulate a pulsed event-camera recording with ground truth.
     Simulate(simulate::SimulateArgs),
     /// Bin tracks onto an Eulerian grid (means, stresses, errors), or merge grid states.
@@ -66,6 +69,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Info(a) => info::run(a),
         Command::Convert(a) => convert::run(a),
         Command::Track(a) => track::run(a),
+        Command::ModelCheck(a) => model_check::run(a),
         Command::Simulate(a) => simulate::run(a),
         Command::Grid(a) => grid::run(a),
         Command::Spectra(a) => spectra::run(a),
