@@ -16,7 +16,10 @@ pub enum Error {
     /// (The cause is part of the message, not a `source()`, so that error
     /// chains printed with `{:#}` do not repeat it.)
     #[error("{path}: {cause}")]
-    Io { path: PathBuf, cause: std::io::Error },
+    Io {
+        path: PathBuf,
+        cause: std::io::Error,
+    },
 
     /// The file is of a known format but its content is malformed.
     #[error("{path}: {what} (at byte {offset})")]

@@ -9,12 +9,12 @@ pub mod demo;
 pub mod grid;
 pub mod info;
 pub mod model_check;
+pub mod monitor;
 pub mod piv;
 pub mod piv_images;
+pub mod pulses;
 pub mod simulate;
 pub mod spectra;
-pub mod monitor;
-pub mod pulses;
 pub mod track;
 
 #[derive(Parser, Debug)]

@@ -53,8 +53,9 @@ pub struct TrackArgs {
     /// Uniform mean-flow prior `U,V` (px/s) for track initialisation.
     #[arg(long, value_delimiter = ',', num_args = 2)]
     pub prior: Option<Vec<f64>>,
-    /// Pulses shown in tracks.png (from the first pulse).
-    #[arg(long, default_value_t = 200)]
+    /// Pulses shown in tracks.png (from the first pulse); a short window
+    /// keeps individual tracks visible at paper seeding densities.
+    #[arg(long, default_value_t = 20)]
     pub plot_pulses: i64,
     /// Also write tracks.npy (a structured array with the tracks.csv
     /// columns). Holds every track point in memory until the end.
