@@ -6,7 +6,7 @@
 //! Time is this thread's CPU time (`CLOCK_THREAD_CPUTIME_ID`, ns), not
 //! wall time: the benchmark machine is shared, and the claim is about one
 //! core's work. Both decoders are measured the same way in the same run.
-//! Numbers and the command: docs/bench/decode.md.
+//! Numbers and the command: BENCHMARKS.md.
 //!
 //! `cargo bench --bench decode`
 

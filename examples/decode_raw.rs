@@ -1,6 +1,6 @@
 //! Stream a RAW (or any supported) event file and print counts, time range,
 //! anomalies, decode rate and nothing else: the tool behind the peak-memory
-//! measurement in docs/bench/decode.md.
+//! measurement in BENCHMARKS.md.
 //!
 //! `cargo run --release --example decode_raw -- FILE [CHUNK_EVENTS]`
 use std::time::Instant;

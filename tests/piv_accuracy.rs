@@ -129,7 +129,7 @@ fn inner_bias(d: (f64, f64), passes: usize, nf: usize, seed: u64) -> (f64, f64) 
 }
 
 /// Peak locking: the bias as a function of the sub-pixel part of the
-/// displacement. Printed for docs/bench/piv.md (`-- --nocapture`).
+/// displacement. Printed for BENCHMARKS.md (`-- --nocapture`).
 #[test]
 fn bias_versus_subpixel_displacement_is_small_with_deformation() {
     let mut worst3: f64 = 0.0;

@@ -1,7 +1,7 @@
 //! Clustering + tracking against exact ground truth on synthetic scenes
 //! (`ebptv::track::synth`; definitions of precision, recall and velocity
 //! error in its module docs). Thresholds are what the implementation
-//! reaches with a margin; docs/bench/ptv.md compares them with the issue's
+//! reaches with a margin; BENCHMARKS.md compares them with the issue's
 //! targets (precision 0.99, recall 0.95, 0.05 px/pulse), which are not met
 //! at ppp 0.01 — close particle pairs whose clusters merge set the limit.
 

@@ -1,4 +1,4 @@
-//! The table of docs/bench/ptv.md: link scores as conditions get harder.
+//! The table of BENCHMARKS.md: link scores as conditions get harder.
 //! Ignored by default (a few seconds per row):
 //! `cargo test --release --test ptv_conditions -- --ignored --nocapture`
 

@@ -61,7 +61,7 @@ fn demo_scenario_tracks_against_truth() {
     );
     assert!(s.truth_links > 5_000, "{s:?}");
     // Issue targets: recall >= 0.95 and velocity rms <= 0.05 px/pulse are
-    // met; precision reaches ~0.97 (target 0.99; see docs/bench/ptv.md).
+    // met; precision reaches ~0.97 (target 0.99; see BENCHMARKS.md).
     assert!(s.precision >= 0.95, "precision {}", s.precision);
     assert!(s.recall >= 0.95, "recall {}", s.recall);
     assert!(

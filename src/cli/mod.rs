@@ -36,14 +36,15 @@ pub enum Command {
     Info(info::InfoArgs),
     /// Convert an event file (optionally a time range / ROI / polarity) to CSV, .npy or RAW.
     Convert(convert::ConvertArgs),
+    /// Simulate a pulsed event-camera recording with ground truth.
+    Simulate(simulate::SimulateArgs),
+    /// Pulse timing (triggers or estimated), latency and saturation diagnostics → pulses.json + figures.
+    Pulses(pulses::PulsesArgs),
+    /// Live pulse diagnostics of a recording being written (--follow; Ctrl-C stops).
+    Monitor(monitor::MonitorArgs),
     /// Particle tracking: a recording (or a particles.csv) → particles.csv,
     /// tracks.csv, summary.json, tracks.png.
     Track(track::TrackArgs),
-    /// Model check: measured vs simulated signatures → the missing effects,
-    /// fitted (model_check.json, model.toml, report.md, PNGs).
-    ModelCheck(model_check::ModelCheckArgs),
-    /// Simulate a pulsed event-camera recording with ground truth.
-    Simulate(simulate::SimulateArgs),
     /// Bin tracks onto an Eulerian grid (means, stresses, errors), or merge grid states.
     Grid(grid::GridArgs),
     /// Velocity spectra at points or along a line from tracks (Welch PSD, peak, noise floor).
@@ -54,10 +55,6 @@ pub enum Command {
     PivImages(piv_images::PivImagesArgs),
     /// Compare PTV grid statistics with PIV statistics on the same grid.
     Compare(compare::CompareArgs),
-    /// Pulse timing (triggers or estimated), latency and saturation diagnostics → pulses.json + figures.
-    Pulses(pulses::PulsesArgs),
-    /// Live pulse diagnostics of a recording being written (--follow; Ctrl-C stops).
-    Monitor(monitor::MonitorArgs),
     /// Model check: measured vs simulated signatures → the missing effects,
     /// fitted (model_check.json, model.toml, report.md, PNGs).
     ModelCheck(model_check::ModelCheckArgs),
@@ -68,16 +65,15 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Demo(a) => demo::run(a),
         Command::Info(a) => info::run(a),
         Command::Convert(a) => convert::run(a),
-        Command::Track(a) => track::run(a),
-        Command::ModelCheck(a) => model_check::run(a),
         Command::Simulate(a) => simulate::run(a),
+        Command::Pulses(a) => pulses::run(a),
+        Command::Monitor(a) => monitor::run(a),
+        Command::Track(a) => track::run(a),
         Command::Grid(a) => grid::run(a),
         Command::Spectra(a) => spectra::run(a),
         Command::Piv(a) => piv::run(a),
         Command::PivImages(a) => piv_images::run(a),
         Command::Compare(a) => compare::run(a),
-        Command::Pulses(a) => pulses::run(a),
-        Command::Monitor(a) => monitor::run(a),
         Command::ModelCheck(a) => model_check::run(a),
     }
 }

@@ -17,7 +17,7 @@
 //! usable time and are skipped; they, unknown word types, vectors with no
 //! base, and a truncated last word are counted in [`Anomalies`].
 //!
-//! Speed (docs/bench/decode.md: ~370 Mev/s on one core, 4x the `evt3`
+//! Speed (BENCHMARKS.md: ~370 Mev/s on one core, 4x the `evt3`
 //! crate): the decoder walks a `&[u8]` slice of a fixed 1 MB read buffer
 //! and appends through `RawAppend` into chunk capacity reserved per block
 //! (12 events per word), so there is no per-event capacity check. The bulk

@@ -54,6 +54,12 @@ fn header_bytes(descr: &str, shape: &[usize], min_len: usize) -> Vec<u8> {
     out
 }
 
+/// The header of a plain (non-structured) C-order array of dtype `descr`
+/// (e.g. `<f4`, `<f8`, `|u1`), for writers that stream the data after it.
+pub fn array_header(descr: &str, shape: &[usize]) -> Vec<u8> {
+    header_bytes(&format!("'{descr}'"), shape, 0)
+}
+
 /// A column of a structured table for [`write_npy_table`].
 #[derive(Debug, Clone, Copy)]
 pub enum NpyColumn<'a> {

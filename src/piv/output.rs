@@ -68,30 +68,9 @@ pub fn write_vectors_csv(path: &Path, f: &VectorField) -> Result<()> {
     out.commit()
 }
 
-/// NPY v1.0 header for a C-order array.
+/// NPY v1.0 header for a C-order array (see [`crate::io::npy`]).
 pub fn npy_header(descr: &str, shape: &[usize]) -> Vec<u8> {
-    let shape_s = match shape.len() {
-        1 => format!("({},)", shape[0]),
-        _ => format!(
-            "({})",
-            shape
-                .iter()
-                .map(|s| s.to_string())
-                .collect::<Vec<_>>()
-                .join(", ")
-        ),
-    };
-    let mut dict = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape_s}, }}");
-    // Magic (6) + version (2) + length (2) + dict + '\n' is a multiple of 64.
-    let total = 10 + dict.len() + 1;
-    let pad = (64 - total % 64) % 64;
-    dict.push_str(&" ".repeat(pad));
-    dict.push('\n');
-    let mut h = Vec::with_capacity(10 + dict.len());
-    h.extend_from_slice(b"\x93NUMPY\x01\x00");
-    h.extend_from_slice(&(dict.len() as u16).to_le_bytes());
-    h.extend_from_slice(dict.as_bytes());
-    h
+    crate::io::npy::array_header(descr, shape)
 }
 
 /// A stack of 2-D frames (`ny × nx`) of one dtype (`<f4` or `|u1`) written
