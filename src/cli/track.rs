@@ -7,9 +7,12 @@ use anyhow::Context;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use ebptv::cluster::{cluster_pulses, ClusterParams, Particle};
-use ebptv::pulses::{self, PulseEvents, PulseOptions};
-use ebptv::track::{ParticlesCsvWriter, SummaryAcc, Track, TrackParams, Tracker, TracksCsvWriter};
+use ebptv::cluster::{ClusterParams, Particle};
+use ebptv::pulses::PulseOptions;
+use ebptv::track::{
+    track_recording, ParticlesCsvWriter, PtvSink, PtvStream, SummaryAcc, Track, TrackParams,
+    TrackerStats, TracksCsvWriter,
+};
 
 #[derive(Args, Debug)]
 pub struct TrackArgs {
@@ -66,15 +69,12 @@ pub struct TrackArgs {
     pub batch: usize,
 }
 
-/// Clustering, tracking and streaming output for one run.
+/// The outputs of one run: a [`PtvSink`] that writes files, keeps the
+/// summary, the figure's polylines and the progress bar.
 struct Pipeline {
-    cluster: ClusterParams,
-    tracker: Tracker,
     particles_out: ParticlesCsvWriter,
     tracks_out: TracksCsvWriter,
     summary: SummaryAcc,
-    batch: Vec<PulseEvents>,
-    batch_size: usize,
     first_pulse: Option<i64>,
     plot_pulses: i64,
     plot_lines: Vec<Vec<(f64, f64)>>,
@@ -83,50 +83,27 @@ struct Pipeline {
     npy: Option<[Vec<f64>; 7]>,
     width: f64,
     height: f64,
-    events: u64,
     progress: ProgressBar,
 }
 
-impl Pipeline {
-    fn pulse(&mut self, p: PulseEvents) -> ebptv::Result<()> {
-        self.events += p.events.len() as u64;
-        self.batch.push(p);
-        if self.batch.len() >= self.batch_size {
-            self.flush()?;
-        }
-        Ok(())
-    }
-
-    fn flush(&mut self) -> ebptv::Result<()> {
-        let parts = cluster_pulses(&self.batch, &self.cluster)?;
-        let batch = std::mem::take(&mut self.batch);
-        for (pe, ps) in batch.iter().zip(parts) {
-            self.link(pe.index, pe.start_us, &ps)?;
-        }
-        self.batch = batch;
-        self.batch.clear();
-        self.progress.set_message(format!(
-            "{} events, {} particles, {} active tracks",
-            self.events,
-            self.tracker.stats().particles,
-            self.tracker.active_tracks()
-        ));
-        Ok(())
-    }
-
-    fn link(&mut self, pulse: i64, t_us: f64, ps: &[Particle]) -> ebptv::Result<()> {
+impl PtvSink for Pipeline {
+    fn particles(&mut self, pulse: i64, _t_us: f64, ps: &[Particle]) -> ebptv::Result<()> {
         self.first_pulse.get_or_insert(pulse);
         for p in ps {
             self.width = self.width.max(p.x + 1.0);
             self.height = self.height.max(p.y + 1.0);
         }
         self.particles_out.write(ps)?;
-        let done = self.tracker.push(pulse, t_us, ps)?;
-        self.emit(&done)?;
         self.progress.inc(1);
         Ok(())
     }
 
+    fn tracks(&mut self, tracks: &[Track]) -> ebptv::Result<()> {
+        self.emit(tracks)
+    }
+}
+
+impl Pipeline {
     fn emit(&mut self, tracks: &[Track]) -> ebptv::Result<()> {
         self.tracks_out.write(tracks)?;
         self.summary.add(tracks);
@@ -165,14 +142,15 @@ impl Pipeline {
         Ok(())
     }
 
-    fn finish(mut self, out: &Path, width: Option<f64>, height: Option<f64>) -> anyhow::Result<()> {
-        self.flush()?;
-        let fresh = Tracker::new(TrackParams::default())?;
-        let (rest, stats) = std::mem::replace(&mut self.tracker, fresh).finish();
-        let rest: Vec<Track> = rest.into_iter().map(|t| t.track).collect();
-        self.emit(&rest)?;
+    fn finish(
+        mut self,
+        stats: &TrackerStats,
+        out: &Path,
+        width: Option<f64>,
+        height: Option<f64>,
+    ) -> anyhow::Result<()> {
         self.progress.finish_and_clear();
-        let summary = self.summary.summary(&stats);
+        let summary = self.summary.summary(stats);
         // Outputs appear together at the end (each atomically).
         self.particles_out.finish()?;
         self.tracks_out.finish()?;
@@ -273,7 +251,6 @@ pub fn run(args: TrackArgs) -> anyhow::Result<()> {
             None => Default::default(),
         },
     };
-    cluster.validate()?;
     let mut tparams = TrackParams {
         max_disp: args.max_disp,
         min_length: args.min_length,
@@ -283,10 +260,7 @@ pub fn run(args: TrackArgs) -> anyhow::Result<()> {
     if let Some(p) = &args.prior {
         tparams.prior = Some(ebptv::track::FlowPrior::uniform(p[0], p[1]));
     }
-    let tracker = Tracker::new(tparams)?;
-    if args.batch == 0 {
-        anyhow::bail!("invalid parameter `batch`: must be at least 1");
-    }
+    let mut stream = PtvStream::new(cluster, tparams, args.batch)?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
 
@@ -297,13 +271,9 @@ pub fn run(args: TrackArgs) -> anyhow::Result<()> {
     );
     progress.enable_steady_tick(std::time::Duration::from_millis(200));
     let mut pipe = Pipeline {
-        cluster,
-        tracker,
         particles_out: ParticlesCsvWriter::create(&args.out.join("particles.csv"))?,
         tracks_out: TracksCsvWriter::create(&args.out.join("tracks.csv"))?,
         summary: SummaryAcc::default(),
-        batch: Vec::new(),
-        batch_size: args.batch,
         first_pulse: None,
         plot_pulses: args.plot_pulses,
         plot_lines: Vec::new(),
@@ -311,7 +281,6 @@ pub fn run(args: TrackArgs) -> anyhow::Result<()> {
         npy: args.npy.then(Default::default),
         width: 0.0,
         height: 0.0,
-        events: 0,
         progress,
     };
 
@@ -326,10 +295,11 @@ pub fn run(args: TrackArgs) -> anyhow::Result<()> {
             while e < sorted.len() && sorted[e].pulse == sorted[s].pulse {
                 e += 1;
             }
-            pipe.link(sorted[s].pulse, sorted[s].t_us, &sorted[s..e])?;
+            stream.push_particles(sorted[s].pulse, sorted[s].t_us, &sorted[s..e], &mut pipe)?;
             s = e;
         }
-        return pipe.finish(&args.out, None, None);
+        let stats = stream.finish(&mut pipe)?;
+        return pipe.finish(&stats, &args.out, None, None);
     }
 
     let opts = PulseOptions {
@@ -337,20 +307,31 @@ pub fn run(args: TrackArgs) -> anyhow::Result<()> {
         ignore_triggers: args.ignore_triggers,
         ..Default::default()
     };
-    let mut src = ebptv::io::open(&args.input)?;
-    let geometry = src.info().geometry;
-    let report = pulses::analyze(&mut *src, &opts)
-        .with_context(|| format!("finding the light pulses in {}", args.input.display()))?;
-    let json = serde_json::to_vec_pretty(&report)?;
-    ebptv::io::atomic::AtomicFile::write_all_to(args.out.join("pulses.json"), &json)?;
-    let mut src = ebptv::io::open(&args.input)?;
-    let unassigned = pulses::split_pulses(&mut *src, &report.timing, &mut |p| pipe.pulse(p))?;
+    let geometry = ebptv::io::open(&args.input)?.info().geometry;
+    let progress = pipe.progress.clone();
+    let (report, stats, unassigned) = track_recording(
+        &|| ebptv::io::open(&args.input),
+        &opts,
+        stream,
+        &mut pipe,
+        &mut |s| {
+            let (particles, active) = s.progress();
+            progress.set_message(format!(
+                "{} events, {particles} particles, {active} active tracks",
+                s.events()
+            ));
+        },
+    )?;
     if unassigned > 0 {
         pipe.progress.println(format!(
             "{unassigned} events could not be attributed to a pulse"
         ));
     }
+    // Written with the other outputs, once tracking succeeded.
+    let json = serde_json::to_vec_pretty(&report)?;
+    ebptv::io::atomic::AtomicFile::write_all_to(args.out.join("pulses.json"), &json)?;
     pipe.finish(
+        &stats,
         &args.out,
         geometry.map(|g| g.width as f64),
         geometry.map(|g| g.height as f64),

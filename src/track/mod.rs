@@ -48,6 +48,7 @@
 pub mod fit;
 pub mod io;
 pub mod lap;
+pub mod stream;
 pub mod synth;
 
 use std::collections::VecDeque;
@@ -64,6 +65,7 @@ pub use io::{
     read_particles_csv, read_tracks_csv, write_particles_csv, write_summary_json, write_tracks_csv,
     ParticlesCsvWriter, Summary, SummaryAcc, TracksCsvWriter,
 };
+pub use stream::{track_recording, PtvSink, PtvStream};
 
 /// One point of a track: the track's fitted state at one pulse.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
