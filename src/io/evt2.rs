@@ -20,11 +20,10 @@ use std::path::Path;
 use crate::error::{Error, Result};
 use crate::events::{Chunk, Edge, Geometry, Trigger};
 use crate::io::atomic::AtomicFile;
-use crate::io::evt3::{
-    check_header_format, check_not_empty, count_out_of_geometry, time_high_steps, RawAppend,
-};
+use crate::io::evt3::{check_header_format, check_not_empty, time_high_steps, RawAppend};
 use crate::io::raw_header::{read_raw_header, stream_info, PayloadReader, READ_BUFFER_BYTES};
-use crate::io::{Anomalies, EventSource, Format, StreamInfo};
+use crate::io::raw_reader::{RawReader, WordDecoder};
+use crate::io::{Anomalies, Format};
 
 const MAX_TIME_BASE: u64 = ((1 << 28) - 1) << 6;
 /// Period of the 34-bit clock, µs.
@@ -174,16 +173,9 @@ unsafe fn cd_run(words: &[u8], base: i64, sink: &mut RawAppend) -> usize {
 }
 
 /// Streaming EVT 2.0 file reader.
-pub struct Evt2Reader {
-    info: StreamInfo,
-    payload: PayloadReader,
-    decoder: Evt2Decoder,
-    chunk_events: usize,
-    out_of_geometry: u64,
-    tail_reported: bool,
-}
+pub type Evt2Reader = RawReader<Evt2Decoder>;
 
-impl Evt2Reader {
+impl RawReader<Evt2Decoder> {
     /// Open `path`, parse its header, and prepare to stream chunks of at
     /// most `chunk_events` events.
     pub fn open(path: &Path, chunk_events: usize) -> Result<Self> {
@@ -196,53 +188,26 @@ impl Evt2Reader {
         check_header_format(path, header.format, Format::Evt2)?;
         let info = stream_info(path, Format::Evt2, &header)?;
         check_not_empty(&info)?;
-        Ok(Evt2Reader {
-            payload: PayloadReader::open(path, header.payload_offset, 4, buffer_bytes)?,
+        let payload = PayloadReader::open(path, header.payload_offset, 4, buffer_bytes)?;
+        Ok(RawReader::new(
             info,
-            decoder: Evt2Decoder::new(),
-            chunk_events: chunk_events.max(1),
-            out_of_geometry: 0,
-            tail_reported: false,
-        })
+            payload,
+            Evt2Decoder::new(),
+            chunk_events,
+        ))
     }
 }
 
-impl EventSource for Evt2Reader {
-    fn info(&self) -> &StreamInfo {
-        &self.info
+impl WordDecoder for Evt2Decoder {
+    const MAX_EVENTS_PER_WORD: usize = 1;
+    fn decode(&mut self, bytes: &[u8], out: &mut Chunk, max_events: usize) -> usize {
+        Evt2Decoder::decode(self, bytes, out, max_events)
     }
-
-    fn next_chunk(&mut self, chunk: &mut Chunk) -> Result<bool> {
-        chunk.clear();
-        loop {
-            let words = self.payload.words()?;
-            if words.is_empty() {
-                if !self.tail_reported {
-                    self.tail_reported = true;
-                    self.decoder.anomalies.truncated_tail_bytes +=
-                        self.payload.trailing_partial_bytes();
-                }
-                break;
-            }
-            let used = self.decoder.decode(words, chunk, self.chunk_events);
-            self.payload.consume(used);
-            if chunk.events.len() >= self.chunk_events || chunk.triggers.len() >= self.chunk_events
-            {
-                break;
-            }
-        }
-        self.out_of_geometry += count_out_of_geometry(&chunk.events, self.info.geometry);
-        Ok(!chunk.is_empty())
+    fn anomalies(&self) -> &Anomalies {
+        &self.anomalies
     }
-
-    fn anomalies(&self) -> Anomalies {
-        let mut a = self.decoder.anomalies.clone();
-        a.out_of_geometry = self.out_of_geometry;
-        a
-    }
-
-    fn bytes_read(&self) -> u64 {
-        self.payload.file_offset()
+    fn anomalies_mut(&mut self) -> &mut Anomalies {
+        &mut self.anomalies
     }
 }
 

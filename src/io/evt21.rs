@@ -18,9 +18,10 @@ use std::path::Path;
 use crate::error::Result;
 use crate::events::{Chunk, Edge, Trigger};
 use crate::io::evt2::TimeBase34;
-use crate::io::evt3::{check_header_format, check_not_empty, count_out_of_geometry};
+use crate::io::evt3::{check_header_format, check_not_empty};
 use crate::io::raw_header::{read_raw_header, stream_info, PayloadReader, READ_BUFFER_BYTES};
-use crate::io::{Anomalies, EventSource, Format, StreamInfo};
+use crate::io::raw_reader::{RawReader, WordDecoder};
+use crate::io::{Anomalies, Format};
 
 /// Most events one EVT 2.1 word can produce.
 pub const MAX_EVENTS_PER_WORD: usize = 32;
@@ -143,16 +144,9 @@ impl Evt21Decoder {
 }
 
 /// Streaming EVT 2.1 file reader.
-pub struct Evt21Reader {
-    info: StreamInfo,
-    payload: PayloadReader,
-    decoder: Evt21Decoder,
-    chunk_events: usize,
-    out_of_geometry: u64,
-    tail_reported: bool,
-}
+pub type Evt21Reader = RawReader<Evt21Decoder>;
 
-impl Evt21Reader {
+impl RawReader<Evt21Decoder> {
     /// Open `path` (word order from the header) and prepare to stream chunks
     /// of about `chunk_events` events (at most `chunk_events + 31`).
     pub fn open(path: &Path, chunk_events: usize) -> Result<Self> {
@@ -165,14 +159,13 @@ impl Evt21Reader {
         check_header_format(path, header.format, Format::Evt21)?;
         let info = stream_info(path, Format::Evt21, &header)?;
         check_not_empty(&info)?;
-        Ok(Evt21Reader {
-            payload: PayloadReader::open(path, header.payload_offset, 8, buffer_bytes)?,
+        let payload = PayloadReader::open(path, header.payload_offset, 8, buffer_bytes)?;
+        Ok(RawReader::new(
             info,
-            decoder: Evt21Decoder::new(header.evt21_legacy),
-            chunk_events: chunk_events.max(1),
-            out_of_geometry: 0,
-            tail_reported: false,
-        })
+            payload,
+            Evt21Decoder::new(header.evt21_legacy),
+            chunk_events,
+        ))
     }
 
     /// True when the file uses the legacy (swapped halves) word order.
@@ -181,42 +174,16 @@ impl Evt21Reader {
     }
 }
 
-impl EventSource for Evt21Reader {
-    fn info(&self) -> &StreamInfo {
-        &self.info
+impl WordDecoder for Evt21Decoder {
+    const MAX_EVENTS_PER_WORD: usize = 32;
+    fn decode(&mut self, bytes: &[u8], out: &mut Chunk, max_events: usize) -> usize {
+        Evt21Decoder::decode(self, bytes, out, max_events)
     }
-
-    fn next_chunk(&mut self, chunk: &mut Chunk) -> Result<bool> {
-        chunk.clear();
-        loop {
-            let words = self.payload.words()?;
-            if words.is_empty() {
-                if !self.tail_reported {
-                    self.tail_reported = true;
-                    self.decoder.anomalies.truncated_tail_bytes +=
-                        self.payload.trailing_partial_bytes();
-                }
-                break;
-            }
-            let used = self.decoder.decode(words, chunk, self.chunk_events);
-            self.payload.consume(used);
-            if chunk.events.len() >= self.chunk_events || chunk.triggers.len() >= self.chunk_events
-            {
-                break;
-            }
-        }
-        self.out_of_geometry += count_out_of_geometry(&chunk.events, self.info.geometry);
-        Ok(!chunk.is_empty())
+    fn anomalies(&self) -> &Anomalies {
+        &self.anomalies
     }
-
-    fn anomalies(&self) -> Anomalies {
-        let mut a = self.decoder.anomalies.clone();
-        a.out_of_geometry = self.out_of_geometry;
-        a
-    }
-
-    fn bytes_read(&self) -> u64 {
-        self.payload.file_offset()
+    fn anomalies_mut(&mut self) -> &mut Anomalies {
+        &mut self.anomalies
     }
 }
 

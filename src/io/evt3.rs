@@ -41,7 +41,8 @@ use crate::error::{Error, Result};
 use crate::events::{Chunk, Edge, EventChunk, Geometry, Trigger};
 use crate::io::atomic::AtomicFile;
 use crate::io::raw_header::{read_raw_header, stream_info, PayloadReader, READ_BUFFER_BYTES};
-use crate::io::{Anomalies, EventSource, Format, StreamInfo};
+use crate::io::raw_reader::{RawReader, WordDecoder};
+use crate::io::{Anomalies, Format, StreamInfo};
 
 /// Most events one EVT 3.0 word can produce (VECT_12).
 pub const MAX_EVENTS_PER_WORD: usize = 12;
@@ -491,16 +492,9 @@ pub(crate) fn count_out_of_geometry(ev: &EventChunk, geometry: Option<Geometry>)
 }
 
 /// Streaming EVT 3.0 file reader.
-pub struct Evt3Reader {
-    info: StreamInfo,
-    payload: PayloadReader,
-    decoder: Evt3Decoder,
-    chunk_events: usize,
-    out_of_geometry: u64,
-    tail_reported: bool,
-}
+pub type Evt3Reader = RawReader<Evt3Decoder>;
 
-impl Evt3Reader {
+impl RawReader<Evt3Decoder> {
     /// Open `path`, parse its header, and prepare to stream chunks of about
     /// `chunk_events` events (at most `chunk_events + 11`).
     pub fn open(path: &Path, chunk_events: usize) -> Result<Self> {
@@ -514,14 +508,13 @@ impl Evt3Reader {
         check_header_format(path, header.format, Format::Evt3)?;
         let info = stream_info(path, Format::Evt3, &header)?;
         check_not_empty(&info)?;
-        Ok(Evt3Reader {
-            payload: PayloadReader::open(path, header.payload_offset, 2, buffer_bytes)?,
+        let payload = PayloadReader::open(path, header.payload_offset, 2, buffer_bytes)?;
+        Ok(RawReader::new(
             info,
-            decoder: Evt3Decoder::new(),
-            chunk_events: chunk_events.max(1),
-            out_of_geometry: 0,
-            tail_reported: false,
-        })
+            payload,
+            Evt3Decoder::new(),
+            chunk_events,
+        ))
     }
 }
 
@@ -553,43 +546,16 @@ pub(crate) fn check_not_empty(info: &StreamInfo) -> Result<()> {
     Ok(())
 }
 
-impl EventSource for Evt3Reader {
-    fn info(&self) -> &StreamInfo {
-        &self.info
+impl WordDecoder for Evt3Decoder {
+    const MAX_EVENTS_PER_WORD: usize = MAX_EVENTS_PER_WORD;
+    fn decode(&mut self, bytes: &[u8], out: &mut Chunk, max_events: usize) -> usize {
+        Evt3Decoder::decode(self, bytes, out, max_events)
     }
-
-    fn next_chunk(&mut self, chunk: &mut Chunk) -> Result<bool> {
-        chunk.clear();
-        reserve(&mut chunk.events, self.chunk_events + MAX_EVENTS_PER_WORD);
-        loop {
-            let words = self.payload.words()?;
-            if words.is_empty() {
-                if !self.tail_reported {
-                    self.tail_reported = true;
-                    self.decoder.anomalies.truncated_tail_bytes +=
-                        self.payload.trailing_partial_bytes();
-                }
-                break;
-            }
-            let used = self.decoder.decode(words, chunk, self.chunk_events);
-            self.payload.consume(used);
-            if chunk.events.len() >= self.chunk_events || chunk.triggers.len() >= self.chunk_events
-            {
-                break;
-            }
-        }
-        self.out_of_geometry += count_out_of_geometry(&chunk.events, self.info.geometry);
-        Ok(!chunk.is_empty())
+    fn anomalies(&self) -> &Anomalies {
+        &self.anomalies
     }
-
-    fn anomalies(&self) -> Anomalies {
-        let mut a = self.decoder.anomalies.clone();
-        a.out_of_geometry = self.out_of_geometry;
-        a
-    }
-
-    fn bytes_read(&self) -> u64 {
-        self.payload.file_offset()
+    fn anomalies_mut(&mut self) -> &mut Anomalies {
+        &mut self.anomalies
     }
 }
 

@@ -251,5 +251,6 @@ pub mod evt3;
 pub mod filter;
 pub mod npy;
 pub mod raw_header;
+pub mod raw_reader;
 pub mod sniff;
 pub mod summary;
