@@ -181,12 +181,13 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         "PIV mean error (rms, % of max speed)",
         format!("{:.2}", 100.0 * piv_score.rms_error_of_max_speed),
     );
-    let u_diff = comparison["quantities"]
-        .as_array()
-        .and_then(|q| q.iter().find(|e| e[0] == "u"))
-        .and_then(|e| e[1]["rms_diff"].as_f64());
-    if let Some(d) = u_diff {
-        row("PTV − PIV rms difference of u (px/s)", format!("{d:.1}"));
+    for q in ["u", "v"] {
+        if let Some(d) = comparison[q]["rms_diff"].as_f64() {
+            row(
+                &format!("PTV − PIV rms difference of {q} (% of max speed)"),
+                format!("{:.2}", 100.0 * d / grid_score.max_true_speed),
+            );
+        }
     }
     println!(
         "\nfigures and data in {}; scores in {}",
