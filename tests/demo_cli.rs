@@ -1,0 +1,50 @@
+//! `ebptv demo` end to end on a short recording: every stage runs from the
+//! command line and the scores against the simulator's truth stay where the
+//! full demo puts them (with margins for the shorter recording).
+
+use std::process::Command;
+
+#[test]
+fn demo_runs_every_stage_and_scores_against_truth() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("demo");
+    let status = Command::new(env!("CARGO_BIN_EXE_ebptv"))
+        .args(["demo", "--seconds", "0.02", "--seed", "3", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        status.status.success(),
+        "demo failed: {}",
+        String::from_utf8_lossy(&status.stderr)
+    );
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("demo_report.json")).unwrap())
+            .unwrap();
+    let f = |ptr: &str| {
+        report
+            .pointer(ptr)
+            .and_then(|v| v.as_f64())
+            .unwrap_or_else(|| panic!("{ptr} missing in {report}"))
+    };
+    // Triggers are recorded: timing must be exact to well below 1 µs.
+    assert!(f("/pulses/period_error_us").abs() < 0.01);
+    assert!(f("/pulses/first_pulse_error_us").abs() < 1.0);
+    // Detection and linking against truth (full demo: 0.99 / 0.91 / 0.987).
+    assert!(f("/particles/precision") > 0.97, "{report}");
+    assert!(f("/particles/recall") > 0.85, "{report}");
+    assert!(f("/tracks/link_precision") > 0.97, "{report}");
+    assert!(f("/tracks/velocity_rms_px_per_pulse") < 0.06, "{report}");
+    // Eulerian means within a few percent of the largest speed.
+    assert!(f("/grid/rms_error_of_max_speed") < 0.03, "{report}");
+    assert!(f("/piv/rms_error_of_max_speed") < 0.04, "{report}");
+    for step in [
+        "sim/recording.raw",
+        "ptv/tracks.csv",
+        "grid/grid.csv",
+        "piv/piv_mean.csv",
+        "compare/compare.json",
+    ] {
+        assert!(out.join(step).exists(), "{step} missing");
+    }
+}
