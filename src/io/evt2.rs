@@ -20,9 +20,9 @@ use std::path::Path;
 use crate::error::{Error, Result};
 use crate::events::{Chunk, Edge, Geometry, Trigger};
 use crate::io::atomic::AtomicFile;
-use crate::io::evt3::{check_header_format, check_not_empty, time_high_steps, RawAppend};
-use crate::io::raw_header::{read_raw_header, stream_info, PayloadReader, READ_BUFFER_BYTES};
-use crate::io::raw_reader::{RawReader, WordDecoder};
+use crate::io::evt3::{time_high_steps, RawAppend};
+use crate::io::raw_header::READ_BUFFER_BYTES;
+use crate::io::raw_reader::{create_raw_file, RawReader, WordDecoder};
 use crate::io::{Anomalies, Format};
 
 const MAX_TIME_BASE: u64 = ((1 << 28) - 1) << 6;
@@ -184,17 +184,9 @@ impl RawReader<Evt2Decoder> {
 
     /// [`Evt2Reader::open`] with a chosen read-buffer size.
     pub fn open_with_buffer(path: &Path, chunk_events: usize, buffer_bytes: usize) -> Result<Self> {
-        let header = read_raw_header(path)?;
-        check_header_format(path, header.format, Format::Evt2)?;
-        let info = stream_info(path, Format::Evt2, &header)?;
-        check_not_empty(&info)?;
-        let payload = PayloadReader::open(path, header.payload_offset, 4, buffer_bytes)?;
-        Ok(RawReader::new(
-            info,
-            payload,
-            Evt2Decoder::new(),
-            chunk_events,
-        ))
+        RawReader::open_format(path, Format::Evt2, 4, chunk_events, buffer_bytes, |_| {
+            Evt2Decoder::new()
+        })
     }
 }
 
@@ -223,28 +215,7 @@ pub struct Evt2Writer {
 
 impl Evt2Writer {
     pub fn create(path: &Path, geometry: Geometry) -> Result<Self> {
-        if geometry.width == 0
-            || geometry.height == 0
-            || geometry.width > 2048
-            || geometry.height > 2048
-        {
-            return Err(Error::param(
-                "geometry",
-                format!(
-                    "{}x{}: EVT 2.0 holds sensors from 1x1 up to 2048x2048",
-                    geometry.width, geometry.height
-                ),
-            ));
-        }
-        let mut file = AtomicFile::create(path)?;
-        let header = format!(
-            "% format EVT2;height={h};width={w}\n% geometry {w}x{h}\n% generator ebptv {v}\n% end\n",
-            w = geometry.width,
-            h = geometry.height,
-            v = env!("CARGO_PKG_VERSION")
-        );
-        file.write_all(header.as_bytes())
-            .map_err(|e| Error::io(path, e))?;
+        let file = create_raw_file(path, "EVT2", "EVT 2.0", geometry)?;
         Ok(Evt2Writer {
             file,
             words: Vec::with_capacity(1 << 16),

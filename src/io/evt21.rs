@@ -18,8 +18,7 @@ use std::path::Path;
 use crate::error::Result;
 use crate::events::{Chunk, Edge, Trigger};
 use crate::io::evt2::TimeBase34;
-use crate::io::evt3::{check_header_format, check_not_empty};
-use crate::io::raw_header::{read_raw_header, stream_info, PayloadReader, READ_BUFFER_BYTES};
+use crate::io::raw_header::READ_BUFFER_BYTES;
 use crate::io::raw_reader::{RawReader, WordDecoder};
 use crate::io::{Anomalies, Format};
 
@@ -155,17 +154,9 @@ impl RawReader<Evt21Decoder> {
 
     /// [`Evt21Reader::open`] with a chosen read-buffer size.
     pub fn open_with_buffer(path: &Path, chunk_events: usize, buffer_bytes: usize) -> Result<Self> {
-        let header = read_raw_header(path)?;
-        check_header_format(path, header.format, Format::Evt21)?;
-        let info = stream_info(path, Format::Evt21, &header)?;
-        check_not_empty(&info)?;
-        let payload = PayloadReader::open(path, header.payload_offset, 8, buffer_bytes)?;
-        Ok(RawReader::new(
-            info,
-            payload,
-            Evt21Decoder::new(header.evt21_legacy),
-            chunk_events,
-        ))
+        RawReader::open_format(path, Format::Evt21, 8, chunk_events, buffer_bytes, |h| {
+            Evt21Decoder::new(h.evt21_legacy)
+        })
     }
 
     /// True when the file uses the legacy (swapped halves) word order.

@@ -40,8 +40,8 @@ use std::path::Path;
 use crate::error::{Error, Result};
 use crate::events::{Chunk, Edge, EventChunk, Geometry, Trigger};
 use crate::io::atomic::AtomicFile;
-use crate::io::raw_header::{read_raw_header, stream_info, PayloadReader, READ_BUFFER_BYTES};
-use crate::io::raw_reader::{RawReader, WordDecoder};
+use crate::io::raw_header::READ_BUFFER_BYTES;
+use crate::io::raw_reader::{create_raw_file, RawReader, WordDecoder};
 use crate::io::{Anomalies, Format, StreamInfo};
 
 /// Most events one EVT 3.0 word can produce (VECT_12).
@@ -504,17 +504,9 @@ impl RawReader<Evt3Decoder> {
     /// [`Evt3Reader::open`] with a chosen read-buffer size (tests use tiny
     /// buffers to exercise sequences straddling refills).
     pub fn open_with_buffer(path: &Path, chunk_events: usize, buffer_bytes: usize) -> Result<Self> {
-        let header = read_raw_header(path)?;
-        check_header_format(path, header.format, Format::Evt3)?;
-        let info = stream_info(path, Format::Evt3, &header)?;
-        check_not_empty(&info)?;
-        let payload = PayloadReader::open(path, header.payload_offset, 2, buffer_bytes)?;
-        Ok(RawReader::new(
-            info,
-            payload,
-            Evt3Decoder::new(),
-            chunk_events,
-        ))
+        RawReader::open_format(path, Format::Evt3, 2, chunk_events, buffer_bytes, |_| {
+            Evt3Decoder::new()
+        })
     }
 }
 
@@ -618,28 +610,7 @@ pub struct Evt3Writer {
 
 impl Evt3Writer {
     pub fn create(path: &Path, geometry: Geometry) -> Result<Self> {
-        if geometry.width == 0
-            || geometry.height == 0
-            || geometry.width > 2048
-            || geometry.height > 2048
-        {
-            return Err(Error::param(
-                "geometry",
-                format!(
-                    "{}x{}: EVT 3.0 holds sensors from 1x1 up to 2048x2048",
-                    geometry.width, geometry.height
-                ),
-            ));
-        }
-        let mut file = AtomicFile::create(path)?;
-        let header = format!(
-            "% format EVT3;height={h};width={w}\n% geometry {w}x{h}\n% generator ebptv {v}\n% end\n",
-            w = geometry.width,
-            h = geometry.height,
-            v = env!("CARGO_PKG_VERSION")
-        );
-        file.write_all(header.as_bytes())
-            .map_err(|e| Error::io(path, e))?;
+        let file = create_raw_file(path, "EVT3", "EVT 3.0", geometry)?;
         Ok(Evt3Writer {
             file,
             words: Vec::with_capacity(1 << 16),

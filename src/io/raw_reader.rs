@@ -9,9 +9,15 @@
 
 use crate::error::Result;
 use crate::events::Chunk;
-use crate::io::evt3::count_out_of_geometry;
-use crate::io::raw_header::PayloadReader;
-use crate::io::{Anomalies, EventSource, StreamInfo};
+use std::io::Write;
+use std::path::Path;
+
+use crate::error::Error;
+use crate::events::Geometry;
+use crate::io::atomic::AtomicFile;
+use crate::io::evt3::{check_header_format, check_not_empty, count_out_of_geometry};
+use crate::io::raw_header::{read_raw_header, stream_info, PayloadReader, RawHeader};
+use crate::io::{Anomalies, EventSource, Format, StreamInfo};
 
 /// Decodes a run of whole words of one RAW encoding.
 pub trait WordDecoder: Send {
@@ -35,6 +41,29 @@ pub struct RawReader<D> {
 }
 
 impl<D: WordDecoder> RawReader<D> {
+    /// Open a RAW file of `format` (`word_bytes` per word): parse and check
+    /// its header, refuse a 0-byte file, build the decoder from the header.
+    pub(crate) fn open_format(
+        path: &Path,
+        format: Format,
+        word_bytes: usize,
+        chunk_events: usize,
+        buffer_bytes: usize,
+        decoder: impl FnOnce(&RawHeader) -> D,
+    ) -> Result<Self> {
+        let header = read_raw_header(path)?;
+        check_header_format(path, header.format, format)?;
+        let info = stream_info(path, format, &header)?;
+        check_not_empty(&info)?;
+        let payload = PayloadReader::open(path, header.payload_offset, word_bytes, buffer_bytes)?;
+        Ok(RawReader::new(
+            info,
+            payload,
+            decoder(&header),
+            chunk_events,
+        ))
+    }
+
     pub(crate) fn new(
         info: StreamInfo,
         payload: PayloadReader,
@@ -97,4 +126,38 @@ impl<D: WordDecoder> EventSource for RawReader<D> {
     fn bytes_read(&self) -> u64 {
         self.payload.file_offset()
     }
+}
+
+/// Create a RAW output with the modern header (`% format NAME;height;width`,
+/// `% geometry`, `% generator`, `% end`) for the writers; `label` names the
+/// encoding in errors ("EVT 3.0"). Both encodings address 11-bit x and y.
+pub(crate) fn create_raw_file(
+    path: &Path,
+    format_name: &str,
+    label: &str,
+    geometry: Geometry,
+) -> Result<AtomicFile> {
+    if geometry.width == 0
+        || geometry.height == 0
+        || geometry.width > 2048
+        || geometry.height > 2048
+    {
+        return Err(Error::param(
+            "geometry",
+            format!(
+                "{}x{}: {label} holds sensors from 1x1 up to 2048x2048",
+                geometry.width, geometry.height
+            ),
+        ));
+    }
+    let mut file = AtomicFile::create(path)?;
+    let header = format!(
+        "% format {format_name};height={h};width={w}\n% geometry {w}x{h}\n% generator ebptv {v}\n% end\n",
+        w = geometry.width,
+        h = geometry.height,
+        v = env!("CARGO_PKG_VERSION")
+    );
+    file.write_all(header.as_bytes())
+        .map_err(|e| Error::io(path, e))?;
+    Ok(file)
 }
