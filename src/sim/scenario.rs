@@ -409,6 +409,46 @@ impl Default for Scenario {
 }
 
 /// Names of the switchable effects, in catalogue order.
+/// One table of the switchable effects (name, where it lives in the
+/// scenario, its parameters) from which both [`Scenario::effect_params`]
+/// and [`Scenario::set_effect`] are generated, so the two cannot drift.
+macro_rules! effect_table {
+    ($($name:literal => $sec:ident . $field:ident : $ty:ident { $($p:ident),+ }),+ $(,)?) => {
+        /// Parameters of effect `name` (`None` when it is off). Errors on an
+        /// unknown name.
+        pub fn effect_params(&self, name: &str) -> Result<Option<BTreeMap<String, f64>>> {
+            Ok(match name {
+                $($name => self.$sec.$field.as_ref().map(|e| {
+                    let mut m = BTreeMap::new();
+                    $(m.insert(stringify!($p).to_string(), EffectParam::to_f64(e.$p));)+
+                    m
+                }),)+
+                other => return Err(unknown_effect(other)),
+            })
+        }
+
+        /// Switch effect `name` on with `params` (every parameter required),
+        /// or off with `None`. Does not validate the values (call `validate`).
+        pub fn set_effect(&mut self, name: &str, params: Option<&BTreeMap<String, f64>>) -> Result<()> {
+            let get = |k: &str| -> Result<f64> {
+                params
+                    .and_then(|p| p.get(k).copied())
+                    .ok_or_else(|| Error::param(format!("{name}.{k}"), "missing parameter"))
+            };
+            match name {
+                $($name => {
+                    self.$sec.$field = match params {
+                        Some(_) => Some($ty { $($p: EffectParam::from_f64(get(stringify!($p))?)),+ }),
+                        None => None,
+                    };
+                })+
+                other => return Err(unknown_effect(other)),
+            }
+            Ok(())
+        }
+    };
+}
+
 pub const EFFECT_NAMES: [&str; 10] = [
     "hot_pixels",
     "background_noise",
@@ -787,184 +827,51 @@ impl Scenario {
             .map_err(|e| Error::analysis(format!("cannot serialise scenario: {e}")))
     }
 
-    /// Parameters of effect `name` (`None` when it is off). Errors on an
-    /// unknown name.
-    pub fn effect_params(&self, name: &str) -> Result<Option<BTreeMap<String, f64>>> {
-        fn m(pairs: &[(&str, f64)]) -> Option<BTreeMap<String, f64>> {
-            Some(pairs.iter().map(|(k, v)| (k.to_string(), *v)).collect())
-        }
-        Ok(match name {
-            "hot_pixels" => self
-                .noise
-                .hot_pixels
-                .and_then(|h| m(&[("count", h.count as f64), ("rate_hz", h.rate_hz)])),
-            "background_noise" => self
-                .noise
-                .background_noise
-                .and_then(|b| m(&[("rate_hz", b.rate_hz)])),
-            "latency_jitter" => self
-                .pixel
-                .latency_jitter
-                .and_then(|j| m(&[("spread_us", j.spread_us)])),
-            "intensity_latency" => self
-                .pixel
-                .intensity_latency
-                .and_then(|i| m(&[("exponent", i.exponent), ("reference", i.reference)])),
-            "arbiter_saturation" => self.readout.arbiter_saturation.and_then(|a| {
-                m(&[
-                    ("row_time_us", a.row_time_us),
-                    ("event_time_us", a.event_time_us),
-                ])
-            }),
-            "refractory" => self
-                .pixel
-                .refractory
-                .and_then(|r| m(&[("period_us", r.period_us)])),
-            "pulse_streaks" => self
-                .light
-                .pulse_streaks
-                .and_then(|p| m(&[("scale", p.scale)])),
-            "threshold_mismatch" => self
-                .pixel
-                .threshold_mismatch
-                .and_then(|t| m(&[("sigma", t.sigma)])),
-            "rate_limiter" => self.readout.rate_limiter.and_then(|r| {
-                m(&[
-                    ("max_rate_ev_s", r.max_rate_ev_s),
-                    ("window_us", r.window_us),
-                ])
-            }),
-            "off_events" => self
-                .pixel
-                .off_events
-                .and_then(|o| m(&[("threshold", o.threshold), ("tau_us", o.tau_us)])),
-            other => {
-                return Err(Error::param(
-                    "effect",
-                    format!(
-                        "unknown effect `{other}`; known: {}",
-                        EFFECT_NAMES.join(", ")
-                    ),
-                ))
-            }
-        })
+    effect_table! {
+        "hot_pixels" => noise.hot_pixels: HotPixels { count, rate_hz },
+        "background_noise" => noise.background_noise: BackgroundNoise { rate_hz },
+        "latency_jitter" => pixel.latency_jitter: LatencyJitter { spread_us },
+        "intensity_latency" => pixel.intensity_latency: IntensityLatency { exponent, reference },
+        "arbiter_saturation" => readout.arbiter_saturation: ArbiterSaturation { row_time_us, event_time_us },
+        "refractory" => pixel.refractory: Refractory { period_us },
+        "pulse_streaks" => light.pulse_streaks: PulseStreaks { scale },
+        "threshold_mismatch" => pixel.threshold_mismatch: ThresholdMismatch { sigma },
+        "rate_limiter" => readout.rate_limiter: RateLimiter { max_rate_ev_s, window_us },
+        "off_events" => pixel.off_events: OffEvents { threshold, tau_us },
     }
+}
 
-    /// Switch effect `name` on with `params` (every parameter required), or
-    /// off with `None`. Does not validate the values (call `validate`).
-    pub fn set_effect(&mut self, name: &str, params: Option<&BTreeMap<String, f64>>) -> Result<()> {
-        let get = |k: &str| -> Result<f64> {
-            params
-                .and_then(|p| p.get(k).copied())
-                .ok_or_else(|| Error::param(format!("{name}.{k}"), "missing parameter"))
-        };
-        let on = params.is_some();
-        match name {
-            "hot_pixels" => {
-                self.noise.hot_pixels = if on {
-                    Some(HotPixels {
-                        count: get("count")?.round().max(0.0) as u32,
-                        rate_hz: get("rate_hz")?,
-                    })
-                } else {
-                    None
-                }
-            }
-            "background_noise" => {
-                self.noise.background_noise = if on {
-                    Some(BackgroundNoise {
-                        rate_hz: get("rate_hz")?,
-                    })
-                } else {
-                    None
-                }
-            }
-            "latency_jitter" => {
-                self.pixel.latency_jitter = if on {
-                    Some(LatencyJitter {
-                        spread_us: get("spread_us")?,
-                    })
-                } else {
-                    None
-                }
-            }
-            "intensity_latency" => {
-                self.pixel.intensity_latency = if on {
-                    Some(IntensityLatency {
-                        exponent: get("exponent")?,
-                        reference: get("reference")?,
-                    })
-                } else {
-                    None
-                }
-            }
-            "arbiter_saturation" => {
-                self.readout.arbiter_saturation = if on {
-                    Some(ArbiterSaturation {
-                        row_time_us: get("row_time_us")?,
-                        event_time_us: get("event_time_us")?,
-                    })
-                } else {
-                    None
-                }
-            }
-            "refractory" => {
-                self.pixel.refractory = if on {
-                    Some(Refractory {
-                        period_us: get("period_us")?,
-                    })
-                } else {
-                    None
-                }
-            }
-            "pulse_streaks" => {
-                self.light.pulse_streaks = if on {
-                    Some(PulseStreaks {
-                        scale: get("scale")?,
-                    })
-                } else {
-                    None
-                }
-            }
-            "threshold_mismatch" => {
-                self.pixel.threshold_mismatch = if on {
-                    Some(ThresholdMismatch {
-                        sigma: get("sigma")?,
-                    })
-                } else {
-                    None
-                }
-            }
-            "rate_limiter" => {
-                self.readout.rate_limiter = if on {
-                    Some(RateLimiter {
-                        max_rate_ev_s: get("max_rate_ev_s")?,
-                        window_us: get("window_us")?,
-                    })
-                } else {
-                    None
-                }
-            }
-            "off_events" => {
-                self.pixel.off_events = if on {
-                    Some(OffEvents {
-                        threshold: get("threshold")?,
-                        tau_us: get("tau_us")?,
-                    })
-                } else {
-                    None
-                }
-            }
-            other => {
-                return Err(Error::param(
-                    "effect",
-                    format!(
-                        "unknown effect `{other}`; known: {}",
-                        EFFECT_NAMES.join(", ")
-                    ),
-                ))
-            }
-        }
-        Ok(())
+fn unknown_effect(name: &str) -> Error {
+    Error::param(
+        "effect",
+        format!(
+            "unknown effect `{name}`; known: {}",
+            EFFECT_NAMES.join(", ")
+        ),
+    )
+}
+
+/// An effect parameter as the fitting code sees it: a real number. Counts
+/// round to the nearest non-negative integer on the way in.
+trait EffectParam: Copy {
+    fn to_f64(self) -> f64;
+    fn from_f64(v: f64) -> Self;
+}
+
+impl EffectParam for f64 {
+    fn to_f64(self) -> f64 {
+        self
+    }
+    fn from_f64(v: f64) -> Self {
+        v
+    }
+}
+
+impl EffectParam for u32 {
+    fn to_f64(self) -> f64 {
+        self as f64
+    }
+    fn from_f64(v: f64) -> Self {
+        v.round().max(0.0) as u32
     }
 }
