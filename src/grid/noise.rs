@@ -227,3 +227,95 @@ pub fn velocity_noise(
         dynamic_range: max_speed / noise_rms,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::grid::{bin_samples, estimate, EstimateOptions, Fit, Lattice, Weighting};
+    use rand::{Rng, SeedableRng};
+    use rand_distr::{Distribution, Normal};
+    use rand_pcg::Pcg64;
+
+    /// Particles in a sheared flow with a travelling wave (fluctuations
+    /// shared by neighbours) plus white noise of known rms: the estimate
+    /// recovers the noise, not the wave or the mean shear.
+    fn samples(sigma: f64, wave: f64, seed: u64) -> Vec<Sample> {
+        let mut rng = Pcg64::seed_from_u64(seed);
+        let noise = Normal::new(0.0, sigma).unwrap();
+        let mut out = Vec::new();
+        for k in 0..200 {
+            let t = 100.0 * k as f64;
+            for id in 0..400u64 {
+                let (x, y): (f64, f64) = (rng.gen_range(0.0..256.0), rng.gen_range(0.0..128.0));
+                let phase = 0.05 * x - 0.002 * t;
+                out.push(Sample {
+                    x,
+                    y,
+                    u: 1000.0 + 20.0 * y + wave * phase.cos() + noise.sample(&mut rng),
+                    v: wave * (0.04 * y + 0.001 * t).sin() + noise.sample(&mut rng),
+                    t_us: t,
+                    track_id: k * 1000 + id,
+                });
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn recovers_white_noise_under_shear_and_waves() {
+        for (sigma, wave) in [(50.0, 0.0), (50.0, 300.0), (200.0, 1000.0)] {
+            let s = samples(sigma, wave, 7);
+            let acc = bin_samples(
+                &s,
+                Lattice::new(16.0, 16.0, 0.0).unwrap(),
+                Weighting::TopHat,
+            )
+            .unwrap();
+            let g = estimate(
+                &acc,
+                &EstimateOptions {
+                    fit: Fit::Linear,
+                    min_count: 10,
+                    noise_rms: 0.0,
+                },
+            )
+            .unwrap();
+            let e = velocity_noise(&s, &g, &NoiseOptions::default()).unwrap();
+            assert!(
+                (e.noise_rms / sigma - 1.0).abs() < 0.08,
+                "σ {sigma}, wave {wave}: estimate {}",
+                e.noise_rms
+            );
+            assert!((e.dynamic_range - e.max_speed / e.noise_rms).abs() < 1e-9);
+        }
+    }
+
+    #[test]
+    fn bad_options_and_sparse_data() {
+        let s = samples(50.0, 0.0, 1);
+        let acc = bin_samples(
+            &s,
+            Lattice::new(16.0, 16.0, 0.0).unwrap(),
+            Weighting::TopHat,
+        )
+        .unwrap();
+        let g = estimate(&acc, &EstimateOptions::default()).unwrap();
+        let bad = NoiseOptions {
+            min_sep: 5.0,
+            max_sep: 2.0,
+            shells: 6,
+        };
+        assert!(velocity_noise(&s, &g, &bad).is_err());
+        // One sample per instant: no pairs.
+        let lone: Vec<Sample> = s
+            .iter()
+            .enumerate()
+            .map(|(i, p)| Sample {
+                t_us: i as f64,
+                ..*p
+            })
+            .collect();
+        let err = velocity_noise(&lone, &g, &NoiseOptions::default()).unwrap_err();
+        assert!(err.to_string().contains("pairs"), "{err}");
+    }
+}
