@@ -77,7 +77,8 @@ fn baseline_replays_the_measured_vortex_and_matches_pulses_seeding_brightness() 
 
     // Brightness and latency: the baseline's clusters look like the
     // measured ones (events per particle within 10 %, median first-event
-    // latency within 2 µs), on a fresh seed.
+    // latency within 2 µs; the baseline matched the median of all events),
+    // on a fresh seed.
     let replay = {
         let mut r = sc.clone();
         r.duration_s = 0.02;

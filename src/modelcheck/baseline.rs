@@ -16,7 +16,11 @@
 //!    measured ones (bisection on log energy with the simulator on a small
 //!    crop, common random numbers so the search is monotone).
 //! 5. **Latency median**: the fixed pixel latency shifted until the median
-//!    first-event latency of the simulated clusters matches the measured.
+//!    latency of all events (time after their pulse's start) matches the
+//!    measured. All events, not each cluster's first: a symmetric latency
+//!    jitter leaves the median of all events in place but pulls every
+//!    cluster's first event earlier, and a baseline calibrated on first
+//!    events would absorb part of the jitter it is meant to reveal.
 //!
 //! Everything else is the simulator's ideal sensor; the effects are what
 //! the model check then searches for. The particle-image diameter and the
@@ -198,7 +202,7 @@ pub fn baseline_from_measurement(
     // crop (a uniform flow at the measured median speed: only the pixels'
     // response matters here).
     let measured_epc = mean_events(&sink.particles);
-    let measured_lat = median_latency(&sink.particles);
+    let measured_lat = median_event_latency(events, &timing);
     let speeds = median_velocity(&sink.tracks);
     let base = sc.clone();
     let calib = |energy: f64, latency_us: f64| -> Result<(f64, f64)> {
@@ -217,11 +221,12 @@ pub fn baseline_from_measurement(
         c.pixel.latency_us = latency_us;
         c.validate()?;
         let out = crate::sim::simulate(&c, opts.seed)?;
-        let parts = particles_of(&out.events, &timing_of(&c), &cluster)?;
+        let t = timing_of(&c);
+        let parts = particles_of(&out.events, &t, &cluster)?;
         if parts.is_empty() {
             return Ok((0.0, f64::NAN));
         }
-        Ok((mean_events(&parts), median_latency(&parts)))
+        Ok((mean_events(&parts), median_event_latency(&out.events, &t)))
     };
     let (mut lo, mut hi) = (0.2f64.ln(), 500f64.ln());
     for _ in 0..14 {
@@ -241,7 +246,7 @@ pub fn baseline_from_measurement(
         }
     }
     notes.push(format!(
-        "brightness: light energy {:.3} for {:.2} events per particle; latency: fixed part {:.1} us for a median first-event latency of {:.1} us; particle image diameter and brightness spread are the simulator defaults",
+        "brightness: light energy {:.3} for {:.2} events per particle; latency: fixed part {:.1} us for a median event latency of {:.1} us; particle image diameter and brightness spread are the simulator defaults",
         sc.light.energy, measured_epc, sc.pixel.latency_us, measured_lat
     ));
     sc.validate()?;
@@ -258,11 +263,12 @@ fn mean_events(ps: &[Particle]) -> f64 {
     ps.iter().map(|p| p.n_events as f64).sum::<f64>() / ps.len().max(1) as f64
 }
 
-fn median_latency(ps: &[Particle]) -> f64 {
-    let mut l: Vec<f64> = ps
+/// Median time of the events after the start of their pulse (µs).
+fn median_event_latency(events: &EventChunk, timing: &crate::pulses::PulseTiming) -> f64 {
+    let mut l: Vec<f64> = events
+        .t
         .iter()
-        .map(|p| p.first_latency_us as f64)
-        .filter(|l| l.is_finite())
+        .filter_map(|&t| timing.assign(t).map(|k| t as f64 - timing.pulse_start(k)))
         .collect();
     if l.is_empty() {
         return f64::NAN;
