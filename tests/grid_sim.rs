@@ -426,6 +426,39 @@ fn turbulent_stresses_through_the_chain() {
         100.0 * percentile(kc, 0.5),
     );
     assert!(n >= 100, "{n} bins with ≥ 50 samples");
+
+    // Split and merge: the record's first and second halves binned apart
+    // and merged give the single run's statistics to rounding.
+    let t_mid = 0.5 * (samples[0].t_us + samples.iter().map(|s| s.t_us).fold(0.0, f64::max));
+    let (early, late): (Vec<Sample>, Vec<Sample>) = samples.iter().partition(|s| s.t_us < t_mid);
+    let mut a = ebptv::grid::GridAccumulator::new(spec);
+    a.add_all(&early);
+    let mut b = ebptv::grid::GridAccumulator::new(spec);
+    b.add_all(&late);
+    a.merge(&b).unwrap();
+    let opt = EstimateOptions {
+        fit: Fit::Linear,
+        min_count: 50,
+        noise_rms: noise.noise_rms,
+    };
+    let merged = estimate(&a, &opt).unwrap();
+    let mut worst: f64 = 0.0;
+    for (m, s) in merged.bins.iter().zip(&gm.bins) {
+        assert_eq!(m.count, s.count);
+        for (x, y, scale) in [
+            (m.u, s.u, 25_000.0),
+            (m.v, s.v, 25_000.0),
+            (m.uu, s.uu, uu),
+            (m.vv, s.vv, vv),
+            (m.uv, s.uv, uu),
+        ] {
+            if y.is_finite() {
+                worst = worst.max((x - y).abs() / scale);
+            }
+        }
+    }
+    eprintln!("merge of two halves vs one run: largest difference {worst:.1e} (relative)");
+    assert!(worst < 1e-9);
     assert!(ea < 0.10 && eb < 0.10 && ec < 0.10);
     assert!(
         (noise.noise_rms / noise_robust - 1.0).abs() < 0.15,
