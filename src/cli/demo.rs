@@ -75,14 +75,20 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         "--out",
         &p(&grid),
     ]))?;
+    // Welch segments of at most half the recording (short demos too).
+    let sc = ebptv::sim::presets::preset(&args.preset)?;
+    let pulses = args.seconds.unwrap_or(sc.duration_s) * sc.light.pulse_hz;
+    let nperseg = ((pulses / 2.0).max(16.0).log2().floor().exp2() as usize).min(128);
+    let roi = sc.roi();
+    let point = format!("{},{}", roi.x + roi.width * 3 / 5, roi.y + roi.height / 2);
     step(&s(&[
         "ebptv",
         "spectra",
         &p(&ptv.join("tracks.csv")),
         "--point",
-        "380,180",
+        &point,
         "--nperseg",
-        "128",
+        &nperseg.to_string(),
         "--out",
         &p(&out.join("spectra")),
     ]))?;
