@@ -584,3 +584,67 @@ fn shedding_frequency_through_the_chain() {
         );
     }
 }
+
+/// Laminar boundary layer (preset `laminar_bl`: Pohlhausen profile, wall at
+/// y = 700 px, air, 5 kHz) near the wall, 512 × 140 px ROI, 0.1 s: thin bins
+/// (256 × 4 px, an edge on the wall, linear fit), the profile's wall fit finds the wall within 1 px and the
+/// wall gradient 2U/δ within 5 %, hence u_τ within 2.5 %.
+#[test]
+fn laminar_wall_through_the_chain() {
+    use ebptv::grid::profiles::{profile_at_x, wall_fit, WallOptions, WallSide};
+    let mut sc = ebptv::sim::presets::preset("laminar_bl").unwrap();
+    sc.sensor.roi = Some(Roi {
+        x: 384,
+        y: 580,
+        width: 512,
+        height: 140,
+    });
+    sc.duration_s = 0.1;
+    let FlowSpec::BoundaryLayer {
+        u_inf,
+        delta,
+        wall_y,
+    } = sc.flow
+    else {
+        panic!("laminar_bl is a boundary layer")
+    };
+    let (samples, _) = chain(&sc, 9, TrackParams::default());
+    let acc = bin_samples(
+        &samples,
+        // A bin edge on the wall (the lattice origin): no bin straddles it.
+        Lattice::with_origin(256.0, 4.0, 0.0, -0.5, 0.0).unwrap(),
+        Weighting::TopHat,
+    )
+    .unwrap();
+    let g = estimate(
+        &acc,
+        &EstimateOptions {
+            fit: Fit::Linear,
+            min_count: 30,
+            noise_rms: 0.0,
+        },
+    )
+    .unwrap();
+    let (x_used, prof) = profile_at_x(&g, 640.0);
+    let (nu, px_per_mm) = (1.5e-5, 10.0);
+    let w = wall_fit(
+        &prof,
+        &WallOptions {
+            side: WallSide::Bottom,
+            wall_y: None,
+            n_fit: 4,
+            nu_m2_s: nu,
+            px_per_mm,
+        },
+    )
+    .unwrap();
+    let dudy_true = 2.0 * u_inf / delta;
+    let u_tau_true = (nu * dudy_true).sqrt();
+    eprintln!(
+        "wall at x = {x_used}: y {:.2} px (true {wall_y}), dU/dy {:.2} /s (true {dudy_true:.2}), u_tau {:.4} m/s (true {u_tau_true:.4})",
+        w.wall_y_px, w.dudy_per_s, w.u_tau_m_s
+    );
+    assert!((w.wall_y_px - wall_y).abs() < 1.0);
+    assert!((w.dudy_per_s.abs() / dudy_true - 1.0).abs() < 0.05);
+    assert!((w.u_tau_m_s / u_tau_true - 1.0).abs() < 0.025);
+}
