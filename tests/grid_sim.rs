@@ -373,7 +373,7 @@ fn turbulent_stresses_through_the_chain() {
     )
     .unwrap();
     let est = |s: &[Sample], noise_rms: f64| {
-        let mut a = ebptv::grid::GridAccumulator::new(spec.clone());
+        let mut a = ebptv::grid::GridAccumulator::new(spec);
         a.add_all(s);
         estimate(
             &a,
