@@ -110,15 +110,24 @@ impl SimStats {
     }
 }
 
+/// SplitMix64's finaliser: a bijective 64-bit mix.
+#[inline]
+pub(crate) fn splitmix(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// The part of [`stream_seed`] that does not depend on the index.
+#[inline]
+pub(crate) fn stream_key(seed: u64, stream: u64) -> u64 {
+    splitmix(splitmix(seed) ^ stream.wrapping_mul(0xA24B_AED4_963E_E407))
+}
+
 /// A seed for an independent random stream (SplitMix64 mixing).
 pub(crate) fn stream_seed(seed: u64, stream: u64, index: u64) -> u64 {
-    fn mix(mut z: u64) -> u64 {
-        z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    mix(mix(mix(seed) ^ stream.wrapping_mul(0xA24B_AED4_963E_E407)) ^ index)
+    splitmix(stream_key(seed, stream) ^ index)
 }
 
 /// Target time span of one block (µs).
