@@ -27,7 +27,9 @@
 //! [`simulate`] drains a `Simulator` into memory (tests, small scenes).
 //!
 //! ## Effects
-//! Each sensor/readout effect is an `Option` in the [`Scenario`]; `None`
+//! Each sensor/readout effect (and the laser's `clock_drift` against the
+//! camera clock, which moves pulses, triggers and truth together) is an
+//! `Option` in the [`Scenario`]; `None`
 //! means exactly absent (no random draws are taken for it either, so
 //! switching one effect does not reshuffle the others). See
 //! [`scenario`] for the table of names and parameters.
@@ -275,8 +277,9 @@ impl Simulator {
         self.pixel.hot_pixels()
     }
 
+    /// Camera-time start of pulse `k` (µs; `clock_drift` included).
     fn pulse_start_us(&self, k: u64) -> f64 {
-        self.sc.light.first_pulse_us + k as f64 * self.sc.period_us()
+        self.sc.pulse_start_us(k)
     }
 
     /// Simulate the next block into `chunk` (cleared first).
