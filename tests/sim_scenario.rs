@@ -165,6 +165,7 @@ fn every_effect_can_be_set_and_cleared_by_name() {
                 "hot_pixels" => &[("count", 3.0), ("rate_hz", 100.0)],
                 "rate_limiter" => &[("max_rate_ev_s", 1e7), ("window_us", 100.0)],
                 "off_events" => &[("threshold", 0.3), ("tau_us", 20.0)],
+                "clock_drift" => &[("ppm", 40.0), ("wander_ppm", 5.0), ("wander_period_s", 2.0)],
                 _ => panic!("{name}"),
             };
             pairs.iter().map(|(k, v)| (k.to_string(), *v)).collect()
