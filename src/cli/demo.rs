@@ -77,6 +77,17 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
     ]))?;
     step(&s(&[
         "ebptv",
+        "spectra",
+        &p(&ptv.join("tracks.csv")),
+        "--point",
+        "380,180",
+        "--nperseg",
+        "128",
+        "--out",
+        &p(&out.join("spectra")),
+    ]))?;
+    step(&s(&[
+        "ebptv",
         "piv",
         &p(&rec),
         "--window",
@@ -119,6 +130,13 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         &std::fs::read_to_string(cmp.join("compare.json")).context("reading compare.json")?,
     )?;
 
+    let grid_json: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(grid.join("grid.json")).context("reading grid.json")?,
+    )?;
+    let spectrum: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(out.join("spectra").join("spectrum.json"))
+            .context("reading spectrum.json")?,
+    )?;
     let report = json!({
         "preset": args.preset,
         "seed": args.seed,
@@ -135,6 +153,12 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         "grid": grid_score,
         "piv": piv_score,
         "compare": comparison,
+        "dynamic_range": {
+            "max_speed": grid_json["max_mean_speed"],
+            "velocity_noise_rms": grid_json["velocity_noise_rms"],
+            "per_sample": grid_json["dynamic_range"],
+            "spectral_floor_noise_rms": spectrum["noise_rms"],
+        },
     });
     AtomicFile::write_all_to(
         out.join("demo_report.json"),
@@ -177,6 +201,12 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         "PTV grid mean error (rms, % of max speed)",
         format!("{:.2}", 100.0 * grid_score.rms_error_of_max_speed),
     );
+    if let Some(d) = grid_json["dynamic_range"].as_f64() {
+        row(
+            "dynamic velocity range, per track sample",
+            format!("{d:.0}:1"),
+        );
+    }
     row(
         "PIV mean error (rms, % of max speed)",
         format!("{:.2}", 100.0 * piv_score.rms_error_of_max_speed),
