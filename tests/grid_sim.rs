@@ -373,7 +373,7 @@ fn turbulent_stresses_through_the_chain() {
     )
     .unwrap();
     let est = |s: &[Sample], noise_rms: f64| {
-        let mut a = ebptv::grid::GridAccumulator::new(spec.clone());
+        let mut a = ebptv::grid::GridAccumulator::new(spec);
         a.add_all(s);
         estimate(
             &a,
@@ -426,6 +426,39 @@ fn turbulent_stresses_through_the_chain() {
         100.0 * percentile(kc, 0.5),
     );
     assert!(n >= 100, "{n} bins with ≥ 50 samples");
+
+    // Split and merge: the record's first and second halves binned apart
+    // and merged give the single run's statistics to rounding.
+    let t_mid = 0.5 * (samples[0].t_us + samples.iter().map(|s| s.t_us).fold(0.0, f64::max));
+    let (early, late): (Vec<Sample>, Vec<Sample>) = samples.iter().partition(|s| s.t_us < t_mid);
+    let mut a = ebptv::grid::GridAccumulator::new(spec);
+    a.add_all(&early);
+    let mut b = ebptv::grid::GridAccumulator::new(spec);
+    b.add_all(&late);
+    a.merge(&b).unwrap();
+    let opt = EstimateOptions {
+        fit: Fit::Linear,
+        min_count: 50,
+        noise_rms: noise.noise_rms,
+    };
+    let merged = estimate(&a, &opt).unwrap();
+    let mut worst: f64 = 0.0;
+    for (m, s) in merged.bins.iter().zip(&gm.bins) {
+        assert_eq!(m.count, s.count);
+        for (x, y, scale) in [
+            (m.u, s.u, 25_000.0),
+            (m.v, s.v, 25_000.0),
+            (m.uu, s.uu, uu),
+            (m.vv, s.vv, vv),
+            (m.uv, s.uv, uu),
+        ] {
+            if y.is_finite() {
+                worst = worst.max((x - y).abs() / scale);
+            }
+        }
+    }
+    eprintln!("merge of two halves vs one run: largest difference {worst:.1e} (relative)");
+    assert!(worst < 1e-9);
     assert!(ea < 0.10 && eb < 0.10 && ec < 0.10);
     assert!(
         (noise.noise_rms / noise_robust - 1.0).abs() < 0.15,
@@ -460,7 +493,8 @@ fn noise_and_dynamic_range_of_the_demo_scene() {
 
 /// Square-rib wake (preset `rib_wake`, shedding at St 0.145 → 35.4 Hz) in a
 /// 256 × 128 ROI on the wake axis, 0.2 s (7 shedding periods): the peak of
-/// the velocity spectrum at three points within 1.5 Hz.
+/// the velocity spectrum at three points within 1.5 Hz; the noise rms from
+/// the spectrum's floor within 25 % of the true noise of the binned series.
 #[test]
 fn shedding_frequency_through_the_chain() {
     let mut sc = ebptv::sim::presets::preset("rib_wake").unwrap();
@@ -502,4 +536,115 @@ fn shedding_frequency_through_the_chain() {
     for f in peaks {
         assert!((f - f0).abs() < 1.5, "peak {f} Hz vs {f0} Hz");
     }
+    // The spectral floor against the true noise of the binned series: the
+    // same bins and frames from the exact velocity at the same samples.
+    {
+        use ebptv::grid::fields::{time_resolved, Frames};
+        let exact: Vec<Sample> = samples
+            .iter()
+            .map(|s| {
+                let (u, v) = flow.velocity(s.x, s.y, s.t_us * 1e-6);
+                Sample { u, v, ..*s }
+            })
+            .collect();
+        let (x0, x1, y0, y1) = ebptv::grid::extent(&samples, "s").unwrap();
+        let spec = ebptv::grid::GridSpec::covering(opt.lattice, Weighting::TopHat, x0, x1, y0, y1)
+            .unwrap();
+        let frames = Frames::from_samples(&samples, 1).unwrap();
+        let m = time_resolved(&samples, &spec, &frames, None).unwrap();
+        let t = time_resolved(&exact, &spec, &frames, None).unwrap();
+        let d: Vec<f64> =
+            m.u.iter()
+                .zip(&t.u)
+                .chain(m.v.iter().zip(&t.v))
+                .filter(|(a, b)| a.is_finite() && b.is_finite())
+                .map(|(a, b)| a - b)
+                .collect();
+        let rms = (d.iter().map(|x| x * x).sum::<f64>() / d.len() as f64).sqrt();
+        let mut d2: Vec<f64> = d.iter().map(|x| x * x).collect();
+        let robust = (percentile(std::mem::take(&mut d2), 0.5) / 0.454_936_4).sqrt();
+        let inv_n: Vec<f64> = m
+            .count
+            .iter()
+            .filter(|&&c| c > 0)
+            .map(|&c| 1.0 / c as f64)
+            .collect();
+        let mean_inv = inv_n.iter().sum::<f64>() / inv_n.len() as f64;
+        let g = grid(&samples, 32.0, Fit::Linear, 10);
+        let sn = ebptv::grid::noise::velocity_noise(&samples, &g, &Default::default())
+            .unwrap()
+            .noise_rms;
+        eprintln!("field noise: spectral floor {:.1} px/s, true rms of binned series {rms:.1} px/s (robust {robust:.1}); σ_n √mean(1/n) = {:.1} (σ_n {sn:.1})", r.noise_rms, sn * mean_inv.sqrt());
+        // Robust truth (median of d² over the χ²₁ median 0.4549): the tails
+        // of wrong links are not noise a spectrum floor can see.
+        assert!(
+            (r.noise_rms / robust - 1.0).abs() < 0.25,
+            "spectral floor {} vs true {robust}",
+            r.noise_rms
+        );
+    }
+}
+
+/// Laminar boundary layer (preset `laminar_bl`: Pohlhausen profile, wall at
+/// y = 700 px, air, 5 kHz) near the wall, 512 × 140 px ROI, 0.1 s: thin bins
+/// (256 × 4 px, an edge on the wall, linear fit), the profile's wall fit finds the wall within 1 px and the
+/// wall gradient 2U/δ within 5 %, hence u_τ within 2.5 %.
+#[test]
+fn laminar_wall_through_the_chain() {
+    use ebptv::grid::profiles::{profile_at_x, wall_fit, WallOptions, WallSide};
+    let mut sc = ebptv::sim::presets::preset("laminar_bl").unwrap();
+    sc.sensor.roi = Some(Roi {
+        x: 384,
+        y: 580,
+        width: 512,
+        height: 140,
+    });
+    sc.duration_s = 0.1;
+    let FlowSpec::BoundaryLayer {
+        u_inf,
+        delta,
+        wall_y,
+    } = sc.flow
+    else {
+        panic!("laminar_bl is a boundary layer")
+    };
+    let (samples, _) = chain(&sc, 9, TrackParams::default());
+    let acc = bin_samples(
+        &samples,
+        // A bin edge on the wall (the lattice origin): no bin straddles it.
+        Lattice::with_origin(256.0, 4.0, 0.0, -0.5, 0.0).unwrap(),
+        Weighting::TopHat,
+    )
+    .unwrap();
+    let g = estimate(
+        &acc,
+        &EstimateOptions {
+            fit: Fit::Linear,
+            min_count: 30,
+            noise_rms: 0.0,
+        },
+    )
+    .unwrap();
+    let (x_used, prof) = profile_at_x(&g, 640.0);
+    let (nu, px_per_mm) = (1.5e-5, 10.0);
+    let w = wall_fit(
+        &prof,
+        &WallOptions {
+            side: WallSide::Bottom,
+            wall_y: None,
+            n_fit: 4,
+            nu_m2_s: nu,
+            px_per_mm,
+        },
+    )
+    .unwrap();
+    let dudy_true = 2.0 * u_inf / delta;
+    let u_tau_true = (nu * dudy_true).sqrt();
+    eprintln!(
+        "wall at x = {x_used}: y {:.2} px (true {wall_y}), dU/dy {:.2} /s (true {dudy_true:.2}), u_tau {:.4} m/s (true {u_tau_true:.4})",
+        w.wall_y_px, w.dudy_per_s, w.u_tau_m_s
+    );
+    assert!((w.wall_y_px - wall_y).abs() < 1.0);
+    assert!((w.dudy_per_s.abs() / dudy_true - 1.0).abs() < 0.05);
+    assert!((w.u_tau_m_s / u_tau_true - 1.0).abs() < 0.025);
 }

@@ -38,6 +38,12 @@ fn step(line: &[String]) -> anyhow::Result<()> {
     super::run(cli).with_context(|| format!("demo step `{}` failed", line[1]))
 }
 
+/// Largest power of two ≤ half the pulse count, between 16 and 128.
+fn welch_segment_for(n_pulses: u64) -> u64 {
+    let half = (n_pulses / 2).max(16);
+    (1u64 << (63 - half.leading_zeros())).min(128)
+}
+
 fn p(path: &Path) -> String {
     path.display().to_string()
 }
@@ -75,14 +81,24 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         "--out",
         &p(&grid),
     ]))?;
+    // Welch segments of up to 128 pulses, at least two per recording, so a
+    // short `--seconds` still gets a spectrum (coarser in frequency).
+    let tracked: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(ptv.join("summary.json")).context("reading summary.json")?,
+    )?;
+    let n_pulses = tracked["pulses"].as_u64().unwrap_or(0);
+    let nperseg = welch_segment_for(n_pulses);
+    let sc = ebptv::sim::presets::preset(&args.preset)?;
+    let roi = sc.roi();
+    let point = format!("{},{}", roi.x + roi.width * 3 / 5, roi.y + roi.height / 2);
     step(&s(&[
         "ebptv",
         "spectra",
         &p(&ptv.join("tracks.csv")),
         "--point",
-        "380,180",
+        &point,
         "--nperseg",
-        "128",
+        &nperseg.to_string(),
         "--out",
         &p(&out.join("spectra")),
     ]))?;

@@ -290,6 +290,51 @@ mod tests {
         }
     }
 
+    /// The sorted sweep finds exactly the pairs of a brute-force search.
+    #[test]
+    fn sweep_equals_brute_force_pairs() {
+        let s: Vec<Sample> = samples(80.0, 200.0, 3).into_iter().take(4000).collect();
+        let acc = bin_samples(
+            &s,
+            Lattice::new(16.0, 16.0, 0.0).unwrap(),
+            Weighting::TopHat,
+        )
+        .unwrap();
+        let g = estimate(&acc, &EstimateOptions::default()).unwrap();
+        let opt = NoiseOptions::default();
+        let e = velocity_noise(&s, &g, &opt).unwrap();
+        let (lo, hi) = (opt.min_sep.powi(2), opt.max_sep.powi(2));
+        let w = (hi - lo) / opt.shells as f64;
+        let mut stat: Vec<Vec<f64>> = vec![vec![]; opt.shells];
+        for (i, p) in s.iter().enumerate() {
+            for q in &s[i + 1..] {
+                if p.t_us != q.t_us || p.track_id == q.track_id {
+                    continue;
+                }
+                let d2 = (p.x - q.x).powi(2) + (p.y - q.y).powi(2);
+                let (Some(mp), Some(mq)) = (mean_at(&g, p.x, p.y), mean_at(&g, q.x, q.y)) else {
+                    continue;
+                };
+                if d2 < lo || d2 >= hi {
+                    continue;
+                }
+                let k = (((d2 - lo) / w) as usize).min(opt.shells - 1);
+                let (du, dv) = ((p.u - mp.0) - (q.u - mq.0), (p.v - mp.1) - (q.v - mq.1));
+                stat[k].push((du * du + dv * dv) / 4.0);
+            }
+        }
+        let brute: Vec<(u64, f64)> = stat
+            .iter_mut()
+            .filter(|v| v.len() >= 20)
+            .map(|v| (v.len() as u64, median(v) / std::f64::consts::LN_2))
+            .collect();
+        assert_eq!(brute.len(), e.shells.len());
+        for (b, s) in brute.iter().zip(&e.shells) {
+            assert_eq!(b.0, s.2);
+            assert!((b.1 - s.1).abs() <= 1e-9 * b.1, "{b:?} vs {s:?}");
+        }
+    }
+
     #[test]
     fn bad_options_and_sparse_data() {
         let s = samples(50.0, 0.0, 1);

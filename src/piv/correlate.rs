@@ -136,7 +136,11 @@ impl Workspace {
 
     /// Start a new sum of correlation.
     pub fn reset(&mut self) {
-        self.acc.iter_mut().for_each(|c| *c = Complex32::default());
+        // Only rows kx <= w/2 are accumulated and read (see `add_pair`).
+        let used = (self.plan.w / 2 + 1) * self.plan.h;
+        self.acc[..used]
+            .iter_mut()
+            .for_each(|c| *c = Complex32::default());
         self.pairs = 0;
     }
 
@@ -299,14 +303,21 @@ pub fn subpixel3(lm: f32, c: f32, rp: f32) -> f64 {
 /// Highest peak of a circular correlation plane with a 3-point Gaussian
 /// sub-pixel estimate in x and y separately.
 pub fn find_peak(plane: &[f32], w: usize, h: usize) -> Peak {
-    let mut best = 0usize;
-    let mut bv = f32::NEG_INFINITY;
-    for (i, &v) in plane.iter().enumerate() {
-        if v > bv {
-            bv = v;
-            best = i;
+    // Maximum over 8 independent lanes (vectorises), then its first index:
+    // the same peak as a sequential scan, without its dependency chain.
+    let mut lanes = [f32::NEG_INFINITY; 8];
+    let chunks = plane.chunks_exact(8);
+    let rest = chunks.remainder();
+    for c in chunks {
+        for l in 0..8 {
+            lanes[l] = lanes[l].max(c[l]);
         }
     }
+    let bv = rest.iter().fold(
+        lanes.iter().fold(f32::NEG_INFINITY, |m, &v| m.max(v)),
+        |m, &v| m.max(v),
+    );
+    let best = plane.iter().position(|&v| v == bv).unwrap_or(0);
     let (ix, iy) = (best % w, best / w);
     let sx = signed(ix, w);
     let sy = signed(iy, h);

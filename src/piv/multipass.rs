@@ -810,6 +810,73 @@ mod tests {
         }
     }
 
+    /// The pyramid plane against the definition: direct (non-FFT)
+    /// correlation of each separation's pairs, sampled at `s·δ`, weighted
+    /// by the pair counts.
+    #[test]
+    fn pyramid_plane_matches_direct_correlation_oracle() {
+        use crate::piv::correlate::direct_correlation;
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(9);
+        for &(w, h) in &[(16usize, 16usize), (12, 7)] {
+            let n = w * h;
+            let frames: Vec<Vec<f32>> = (0..5)
+                .map(|_| (0..n).map(|_| rng.gen::<f32>()).collect())
+                .collect();
+            let max_sep = 3;
+            let plan = CorrelationPlan::new(w, h);
+            let mut t = Thread {
+                ws: (0..max_sep).map(|_| plan.workspace()).collect(),
+                a: vec![0.0; n],
+                b: vec![0.0; n],
+                inside: vec![true; n],
+                plane: vec![0.0; n],
+                sep_plane: vec![0.0; n],
+            };
+            t.ws.iter_mut().for_each(|w| w.reset());
+            let fp = frame_pairs(5, max_sep);
+            for &(ka, kb) in &fp {
+                let (mut a, mut b) = (frames[ka].clone(), frames[kb].clone());
+                let (ea, eb) = (remove_mean(&mut a), remove_mean(&mut b));
+                t.ws[kb - ka - 1].add_pair(&a, &b, ea, eb);
+            }
+            assert_eq!(pyramid_plane(&mut t, w, h), fp.len());
+            let mut expect = vec![0.0f64; n];
+            for s in 1..=max_sep {
+                let pairs: Vec<(&[f32], &[f32])> = fp
+                    .iter()
+                    .filter(|p| p.1 - p.0 == s)
+                    .map(|&(ka, kb)| (frames[ka].as_slice(), frames[kb].as_slice()))
+                    .collect();
+                let d = direct_correlation(&pairs, w, h);
+                for dy in -(h as i64 / 2)..=(h as i64 - 1) / 2 {
+                    for dx in -(w as i64 / 2)..=(w as i64 - 1) / 2 {
+                        let (tx, ty) = (dx * s as i64, dy * s as i64);
+                        if tx < -(w as i64 / 2) || tx > (w as i64 - 1) / 2 {
+                            continue;
+                        }
+                        if ty < -(h as i64 / 2) || ty > (h as i64 - 1) / 2 {
+                            continue;
+                        }
+                        let src =
+                            ty.rem_euclid(h as i64) as usize * w + tx.rem_euclid(w as i64) as usize;
+                        let dst =
+                            dy.rem_euclid(h as i64) as usize * w + dx.rem_euclid(w as i64) as usize;
+                        expect[dst] += pairs.len() as f64 * d[src] as f64;
+                    }
+                }
+            }
+            for i in 0..n {
+                let e = expect[i] / fp.len() as f64;
+                assert!(
+                    (t.plane[i] as f64 - e).abs() < 1e-4,
+                    "{w}x{h} [{i}]: {} vs {e}",
+                    t.plane[i]
+                );
+            }
+        }
+    }
+
     #[test]
     fn pyramid_pairs_cover_every_separation() {
         assert_eq!(frame_pairs(5, 1), vec![(0, 1), (1, 2), (2, 3), (3, 4)]);
