@@ -69,7 +69,7 @@ pub struct TrackArgs {
     #[arg(long)]
     pub npy: bool,
     /// Pulses clustered per parallel batch.
-    #[arg(long, default_value_t = 512)]
+    #[arg(long, default_value_t = 64)]
     pub batch: usize,
 }
 

@@ -213,6 +213,12 @@ pub struct TrackParams {
     /// Detections further than this many position sigmas from the fit of
     /// their neighbours are removed when a track is finalised (0 = off).
     pub outlier_sigma: f64,
+    /// Detections a running track holds before its older part is handed
+    /// out as a finished segment (a new track id; the continuation keeps
+    /// the last few detections as fit context). Bounds memory when
+    /// particles stay in view for thousands of pulses.
+    #[serde(default = "default_max_track_length")]
+    pub max_track_length: usize,
     /// Search radius (px) around the prior's prediction for the first step.
     pub prior_radius: f64,
     /// Mean-flow prior for initialisation.
@@ -241,6 +247,7 @@ impl Default for TrackParams {
             stitch_growth: 0.25,
             confirm_after_gap: 2,
             outlier_sigma: 3.5,
+            max_track_length: default_max_track_length(),
             prior_radius: 3.0,
             prior: None,
         }
@@ -254,6 +261,10 @@ const CLIP_K: f64 = 2.5;
 fn clipped_second_moment(k: f64) -> f64 {
     let e = (-0.5 * k * k).exp();
     (1.0 - (1.0 + 0.5 * k * k) * e) / (1.0 - e)
+}
+
+fn default_max_track_length() -> usize {
+    512
 }
 
 fn default_sigma_ceiling() -> f64 {
@@ -302,6 +313,15 @@ impl TrackParams {
                 "polynomial order must be 0, 1 or 2",
             ));
         }
+        if self.max_track_length < 2 * self.predict_window.max(self.fit_window).max(INIT_FRAMES) {
+            return Err(Error::param(
+                "max_track_length",
+                format!(
+                    "must be at least twice the predictor/fit window, got {}",
+                    self.max_track_length
+                ),
+            ));
+        }
         if self.fit_window < 2 {
             return Err(Error::param("fit_window", "needs at least 2 detections"));
         }
@@ -330,6 +350,10 @@ struct Det {
 #[derive(Debug, Clone)]
 struct ActiveTrack {
     dets: Vec<Det>,
+    /// Leading detections that only give context (the predictor and the
+    /// fit) because an earlier segment of the track already handed them
+    /// out (see `TrackParams::max_track_length`).
+    context: usize,
 }
 
 impl ActiveTrack {
@@ -542,6 +566,7 @@ impl Tracker {
         self.active.sort_unstable_by_key(|t| t.dets[0].serial);
 
         let used = self.extend_active(&dets, pulse);
+        let segments = self.cut_long_tracks();
         self.frames.push_back(Frame {
             pulse,
             t_us,
@@ -559,7 +584,31 @@ impl Tracker {
             .into_iter()
             .partition(|t| t.last().pulse < horizon);
         self.pool = keep;
-        Ok(self.finalise(done))
+        let mut out = self.finalise(segments);
+        out.extend(self.finalise(done));
+        Ok(out)
+    }
+
+    /// Hand out the detections of tracks that reached `max_track_length`
+    /// as a finished segment and continue each such track with its last
+    /// few detections as context, so that memory does not grow with the
+    /// life of a particle that stays in view.
+    fn cut_long_tracks(&mut self) -> Vec<ActiveTrack> {
+        let max = self.params.max_track_length;
+        let keep = self.params.predict_window.max(self.params.fit_window);
+        let mut segments = Vec::new();
+        for t in &mut self.active {
+            if t.dets.len() >= max {
+                let tail = t.dets[t.dets.len() - keep..].to_vec();
+                let seg = std::mem::replace(&mut t.dets, tail);
+                segments.push(ActiveTrack {
+                    dets: seg,
+                    context: t.context,
+                });
+                t.context = keep;
+            }
+        }
+        segments
     }
 
     /// End every track and return the rest.
@@ -809,6 +858,7 @@ impl Tracker {
             }
             new_tracks.push(ActiveTrack {
                 dets: (0..INIT_FRAMES).map(|k| f[k].dets[ids[k]]).collect(),
+                context: 0,
             });
         }
         for k in 0..INIT_FRAMES {
@@ -889,22 +939,39 @@ impl Tracker {
     fn finalise(&mut self, ended: Vec<ActiveTrack>) -> Vec<LinkedTrack> {
         let mut out = Vec::new();
         for mut t in ended {
+            // Points up to this pulse went out with an earlier segment.
+            let handed_out = (t.context > 0).then(|| t.dets[t.context - 1].pulse);
             if self.params.outlier_sigma > 0.0 {
                 let gate = self.params.outlier_sigma * self.position_sigma();
                 remove_outliers(&mut t.dets, self.params.fit_window, gate);
             }
             trim_unconfirmed_tail(&mut t.dets, self.params.confirm_after_gap);
-            if t.dets.len() < self.params.min_length {
+            let fresh = match handed_out {
+                None => t.dets.len(),
+                Some(h) => t.dets.iter().filter(|d| d.pulse > h).count(),
+            };
+            if handed_out.is_some() && fresh == 0 {
+                continue; // nothing new after the last segment
+            }
+            if handed_out.is_none() && t.dets.len() < self.params.min_length {
                 self.stats.tracks_rejected_short += 1;
                 continue;
             }
-            let (points, detections, rms) = fit_track(&t.dets, &self.params);
+            let (mut points, mut detections, rms) = fit_track(&t.dets, &self.params);
             if rms > self.params.max_fit_residual {
                 self.stats.tracks_rejected_rough += 1;
                 continue;
             }
+            if let Some(h) = handed_out {
+                let first = points
+                    .iter()
+                    .position(|p| p.pulse > h)
+                    .unwrap_or(points.len());
+                points.drain(..first);
+                detections.drain(..first);
+            }
             self.stats.tracks_kept += 1;
-            self.stats.particles_on_tracks += t.dets.len() as u64;
+            self.stats.particles_on_tracks += fresh as u64;
             out.push(LinkedTrack {
                 track: Track {
                     id: self.next_id,
@@ -1157,6 +1224,32 @@ mod tests {
         assert!(pts[7].interpolated && pts[8].interpolated && !pts[9].interpolated);
         assert!((pts[7].x - 33.0).abs() < 1e-9);
         assert!((pts[7].t_us - 1400.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn long_tracks_come_out_in_segments_covering_every_pulse_once() {
+        let ps: Vec<Particle> = (0..130)
+            .map(|k| particle(k, 5.0 + 2.0 * k as f64, 20.0 + 0.5 * k as f64))
+            .collect();
+        let p = TrackParams {
+            max_track_length: 40,
+            ..Default::default()
+        };
+        let tracks = link(&ps, &p).unwrap();
+        assert!(tracks.len() >= 3, "{} segments", tracks.len());
+        let pulses: Vec<i64> = tracks
+            .iter()
+            .flat_map(|t| t.points.iter().map(|q| q.pulse))
+            .collect();
+        assert_eq!(pulses, (0..130).collect::<Vec<_>>());
+        for q in tracks.iter().flat_map(|t| &t.points) {
+            assert!((q.u - 2.0 * 5000.0).abs() < 1e-6 && (q.v - 0.5 * 5000.0).abs() < 1e-6);
+        }
+        assert!(Tracker::new(TrackParams {
+            max_track_length: 10,
+            ..Default::default()
+        })
+        .is_err());
     }
 
     #[test]
