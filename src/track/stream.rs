@@ -4,7 +4,9 @@
 //! [`track_recording`] runs the pulse analysis (one pass), then streams the
 //! recording a second time through [`crate::pulses::split_pulses`], clusters
 //! pulses in parallel batches (rayon, in [`crate::cluster::cluster_pulses`])
-//! and feeds the particles, in pulse order, to the [`Tracker`]. Results go
+//! and feeds the particles, in pulse order, to the [`Tracker`] — the
+//! clustering of one batch (on a scoped helper thread) overlapping the
+//! tracking of the previous one on the caller's thread. Results go
 //! to a [`PtvSink`] as they appear — particles per pulse, tracks when they
 //! end — so memory is bounded by the batch and the active tracks, not by the
 //! recording. What the sink does with them (write CSV, bin onto a grid,
