@@ -140,6 +140,7 @@ proptest! {
             min_events,
             max_events: 12,
             hot_pixels: hot.into_iter().collect(),
+            split_extent: 0, // the partition oracle; splitting has its own below
         };
         let brute = brute_partition(&pulse, &params);
         prop_assert_eq!(&fast_partition(&pulse, &params, false), &brute);
@@ -149,5 +150,85 @@ proptest! {
         )).collect();
         fast.sort_by(|a, b| a.partial_cmp(b).unwrap());
         prop_assert_eq!(fast, brute_particles(&pulse, &brute, &params));
+    }
+}
+
+/// Reference of `split_wide_clusters` for one component: try every
+/// threshold between distinct projections on the principal axis and cost
+/// each two-part division directly (weighted squared deviations about each
+/// part's own mean), O(n²).
+fn brute_split(pix: &[(f64, f64, f64)]) -> Option<BTreeSet<usize>> {
+    // Covariances scaled by (Σw)², in exact integers.
+    let m = |f: &dyn Fn(&(f64, f64, f64)) -> f64| pix.iter().map(f).sum::<f64>() as i128;
+    let (sw, sx, sy) = (m(&|p| p.2), m(&|p| p.2 * p.0), m(&|p| p.2 * p.1));
+    let (sxx, sxy, syy) = (
+        m(&|p| p.2 * p.0 * p.0),
+        m(&|p| p.2 * p.0 * p.1),
+        m(&|p| p.2 * p.1 * p.1),
+    );
+    let (cxx, cxy, cyy) = (sw * sxx - sx * sx, sw * sxy - sx * sy, sw * syy - sy * sy);
+    let th = 0.5 * (2.0 * cxy as f64).atan2((cxx - cyy) as f64);
+    let (mx, my) = (sx as f64 / sw as f64, sy as f64 / sw as f64);
+    let q: Vec<f64> = pix
+        .iter()
+        .map(|p| (p.0 - mx) * th.cos() + (p.1 - my) * th.sin())
+        .collect();
+    let mut cuts: Vec<f64> = q.clone();
+    cuts.sort_by(|a, b| a.total_cmp(b));
+    let mut best: Option<(f64, BTreeSet<usize>)> = None;
+    for w in cuts.windows(2) {
+        if w[1] - w[0] < 1e-9 {
+            continue;
+        }
+        let far: BTreeSet<usize> = (0..pix.len()).filter(|&i| q[i] >= w[1]).collect();
+        let part_cost = |inside: &dyn Fn(usize) -> bool| {
+            let idx: Vec<usize> = (0..pix.len()).filter(|&i| inside(i)).collect();
+            let w: f64 = idx.iter().map(|&i| pix[i].2).sum();
+            let m = idx.iter().map(|&i| pix[i].2 * q[i]).sum::<f64>() / w;
+            idx.iter()
+                .map(|&i| pix[i].2 * (q[i] - m).powi(2))
+                .sum::<f64>()
+        };
+        let cost = part_cost(&|i| far.contains(&i)) + part_cost(&|i| !far.contains(&i));
+        if best.as_ref().map_or(true, |(c, _)| cost < c - 1e-9) {
+            best = Some((cost, far));
+        }
+    }
+    best.map(|b| b.1)
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(300))]
+    #[test]
+    fn split_matches_brute_force(pulse in random_pulse(), extent in 2u32..5) {
+        let params = ClusterParams { split_extent: extent, on_only: false, ..Default::default() };
+        let pixels = pulse_pixels(&pulse, &params);
+        let base = pixel_labels(&pixels, &params);
+        let mut split = base.clone();
+        ebptv::cluster::split_wide_clusters(&pixels, &mut split, extent);
+        let n_base = base.iter().map(|&l| l + 1).max().unwrap_or(0);
+        let mut by_label: BTreeMap<u32, Vec<usize>> = BTreeMap::new();
+        for (i, &l) in base.iter().enumerate() {
+            by_label.entry(l).or_default().push(i);
+        }
+        for (_, m) in by_label {
+            let xs: Vec<u16> = m.iter().map(|&i| pixels[i].x).collect();
+            let ys: Vec<u16> = m.iter().map(|&i| pixels[i].y).collect();
+            let span = |v: &[u16]| (v.iter().max().unwrap() - v.iter().min().unwrap() + 1) as u32;
+            let wide = span(&xs).max(span(&ys)) >= extent;
+            let pix: Vec<(f64, f64, f64)> = m.iter().map(|&i| (pixels[i].x as f64, pixels[i].y as f64, pixels[i].count as f64)).collect();
+            let want: BTreeSet<usize> = if wide && m.len() >= 2 {
+                brute_split(&pix).unwrap_or_default()
+            } else {
+                BTreeSet::new()
+            };
+            // Pixels of this component that moved to a new label.
+            let got: BTreeSet<usize> = (0..m.len()).filter(|&k| split[m[k]] >= n_base).collect();
+            prop_assert_eq!(got, want);
+            // Pixels that stayed keep their label.
+            for &i in &m {
+                prop_assert!(split[i] == base[i] || split[i] >= n_base);
+            }
+        }
     }
 }

@@ -3,7 +3,8 @@
 //! error in its module docs). Thresholds are what the implementation
 //! reaches with a margin; BENCHMARKS.md compares them with the issue's
 //! targets (precision 0.99, recall 0.95, 0.05 px/pulse), which are not met
-//! at ppp 0.01 — close particle pairs whose clusters merge set the limit.
+//! at ppp 0.01 — close particle pairs whose images merge (closer than
+//! ~1 px, beyond what splitting wide clusters can separate) set the limit.
 
 use ebptv::cluster::ClusterParams;
 use ebptv::track::synth::{generate, run_and_score, SynthParams};
@@ -31,7 +32,7 @@ fn paper_like_conditions() {
     // ppp 0.01, 1.3-2 events per firing particle, 95 % firing, 1 % noise
     // events, up to 8 px/pulse, particles leaving/entering the sheet.
     let s = run(&SynthParams::default());
-    assert!(s.precision >= 0.90, "precision {}", s.precision);
+    assert!(s.precision >= 0.94, "precision {}", s.precision);
     assert!(s.recall >= 0.88, "recall {}", s.recall);
     assert!(
         s.velocity_rms_interior_px_per_pulse <= 0.10,

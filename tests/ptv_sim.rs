@@ -61,8 +61,9 @@ fn demo_scenario_tracks_against_truth() {
     );
     assert!(s.truth_links > 5_000, "{s:?}");
     // Issue targets: recall >= 0.95 and velocity rms <= 0.05 px/pulse are
-    // met; precision reaches ~0.97 (target 0.99; see BENCHMARKS.md).
-    assert!(s.precision >= 0.95, "precision {}", s.precision);
+    // met; precision reaches ~0.984 (target 0.99; see BENCHMARKS.md; 0.972
+    // before wide clusters were split).
+    assert!(s.precision >= 0.975, "precision {}", s.precision);
     assert!(s.recall >= 0.95, "recall {}", s.recall);
     assert!(
         s.velocity_rms_px_per_pulse <= 0.05,

@@ -37,7 +37,7 @@ pub struct TrackArgs {
     #[arg(long, default_value_t = 5)]
     pub min_length: usize,
     /// Missed pulses a track may bridge.
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = 1)]
     pub gap: u32,
     /// Nominal pulse frequency (Hz) when pulse times are estimated from the
     /// events (no trigger channel).
@@ -55,6 +55,10 @@ pub struct TrackArgs {
     /// Largest cluster kept (events).
     #[arg(long, default_value_t = 64)]
     pub max_events: u32,
+    /// Split clusters spanning at least this many pixels along x or y in
+    /// two (merged images of close particle pairs); 0 = never.
+    #[arg(long, default_value_t = 3)]
+    pub split_extent: u32,
     /// File of pixels to ignore, one `x,y` per line.
     #[arg(long)]
     pub hot_pixels: Option<PathBuf>,
@@ -70,7 +74,7 @@ pub struct TrackArgs {
     #[arg(long)]
     pub npy: bool,
     /// Pulses clustered per parallel batch.
-    #[arg(long, default_value_t = 512)]
+    #[arg(long, default_value_t = 64)]
     pub batch: usize,
 }
 
@@ -276,6 +280,7 @@ fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
             Some(p) => read_hot_pixels(p)?,
             None => Default::default(),
         },
+        split_extent: args.split_extent,
     };
     let mut tparams = TrackParams {
         max_disp: args.max_disp,

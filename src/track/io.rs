@@ -29,24 +29,47 @@ fn werr(path: &Path, e: std::io::Error) -> Error {
 /// its name only on [`ParticlesCsvWriter::finish`].
 pub struct ParticlesCsvWriter {
     file: AtomicFile,
+    /// Rows are formatted into this buffer, then written in one call.
+    line: Vec<u8>,
 }
 
 impl ParticlesCsvWriter {
     pub fn create(path: &Path) -> Result<Self> {
         let mut file = AtomicFile::create(path)?;
         writeln!(file, "{PARTICLES_HEADER}").map_err(|e| werr(path, e))?;
-        Ok(ParticlesCsvWriter { file })
+        Ok(ParticlesCsvWriter {
+            file,
+            line: Vec::with_capacity(1 << 16),
+        })
     }
     pub fn write(&mut self, particles: &[Particle]) -> Result<()> {
+        // All particles of a pulse share pulse and t_us: format them once.
+        let mut prefix: Option<(i64, f64, Vec<u8>)> = None;
+        self.line.clear();
         for p in particles {
-            writeln!(
-                self.file,
-                "{},{},{:.4},{:.4},{}",
-                p.pulse, p.t_us, p.x, p.y, p.n_events
-            )
-            .map_err(|e| werr(self.file.target(), e))?;
+            match &prefix {
+                Some((k, t, _)) if *k == p.pulse && t.to_bits() == p.t_us.to_bits() => {}
+                _ => {
+                    let mut b = Vec::with_capacity(32);
+                    push_int(&mut b, p.pulse);
+                    b.push(b',');
+                    write!(b, "{}", p.t_us).expect("writing to memory");
+                    b.push(b',');
+                    prefix = Some((p.pulse, p.t_us, b));
+                }
+            }
+            self.line
+                .extend_from_slice(&prefix.as_ref().expect("set above").2);
+            push_fixed(&mut self.line, p.x, 4);
+            self.line.push(b',');
+            push_fixed(&mut self.line, p.y, 4);
+            self.line.push(b',');
+            push_int(&mut self.line, p.n_events as i64);
+            self.line.push(b'\n');
         }
-        Ok(())
+        self.file
+            .write_all(&self.line)
+            .map_err(|e| werr(self.file.target(), e))
     }
     pub fn finish(self) -> Result<()> {
         self.file.commit()
@@ -57,29 +80,100 @@ impl ParticlesCsvWriter {
 /// px/s), one row per track point.
 pub struct TracksCsvWriter {
     file: AtomicFile,
+    line: Vec<u8>,
 }
 
 impl TracksCsvWriter {
     pub fn create(path: &Path) -> Result<Self> {
         let mut file = AtomicFile::create(path)?;
         writeln!(file, "{TRACKS_HEADER}").map_err(|e| werr(path, e))?;
-        Ok(TracksCsvWriter { file })
+        Ok(TracksCsvWriter {
+            file,
+            line: Vec::with_capacity(1 << 16),
+        })
     }
     pub fn write(&mut self, tracks: &[Track]) -> Result<()> {
+        self.line.clear();
         for t in tracks {
             for p in &t.points {
-                writeln!(
-                    self.file,
-                    "{},{},{},{:.4},{:.4},{:.3},{:.3}",
-                    t.id, p.pulse, p.t_us, p.x, p.y, p.u, p.v
-                )
-                .map_err(|e| werr(self.file.target(), e))?;
+                push_int(&mut self.line, t.id as i64);
+                self.line.push(b',');
+                push_int(&mut self.line, p.pulse);
+                self.line.push(b',');
+                write!(self.line, "{}", p.t_us).expect("writing to memory");
+                self.line.push(b',');
+                push_fixed(&mut self.line, p.x, 4);
+                self.line.push(b',');
+                push_fixed(&mut self.line, p.y, 4);
+                self.line.push(b',');
+                push_fixed(&mut self.line, p.u, 3);
+                self.line.push(b',');
+                push_fixed(&mut self.line, p.v, 3);
+                self.line.push(b'\n');
+            }
+            if self.line.len() > 1 << 16 {
+                self.file
+                    .write_all(&self.line)
+                    .map_err(|e| werr(self.file.target(), e))?;
+                self.line.clear();
             }
         }
-        Ok(())
+        self.file
+            .write_all(&self.line)
+            .map_err(|e| werr(self.file.target(), e))
     }
     pub fn finish(self) -> Result<()> {
         self.file.commit()
+    }
+}
+
+/// Append the decimal digits of `v`.
+fn push_int(buf: &mut Vec<u8>, v: i64) {
+    if v < 0 {
+        buf.push(b'-');
+    }
+    let mut u = v.unsigned_abs();
+    let mut tmp = [0u8; 20];
+    let mut i = tmp.len();
+    loop {
+        i -= 1;
+        tmp[i] = b'0' + (u % 10) as u8;
+        u /= 10;
+        if u == 0 {
+            break;
+        }
+    }
+    buf.extend_from_slice(&tmp[i..]);
+}
+
+/// Append `v` with `decimals` (≤ 6) digits after the point, exactly as
+/// `format!("{v:.decimals$}")` does: integer arithmetic on `v·10^decimals`
+/// when its rounding is unambiguous (far from a half and below 2^52, where
+/// the scaled value's own rounding error cannot flip it), the exact
+/// formatter otherwise.
+fn push_fixed(buf: &mut Vec<u8>, v: f64, decimals: u32) {
+    const POW: [f64; 7] = [1.0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6];
+    let scaled = v.abs() * POW[decimals.min(6) as usize];
+    let frac = scaled - scaled.floor();
+    if !(scaled < 4.0e15) || (frac - 0.5).abs() < 1e-3 || decimals > 6 {
+        write!(buf, "{v:.*}", decimals as usize).expect("writing to memory");
+        return;
+    }
+    let n = scaled.round() as u64;
+    if v.is_sign_negative() {
+        buf.push(b'-');
+    }
+    let unit = 10u64.pow(decimals);
+    push_int(buf, (n / unit) as i64);
+    if decimals > 0 {
+        buf.push(b'.');
+        let mut f = n % unit;
+        let mut digits = [b'0'; 6];
+        for k in (0..decimals as usize).rev() {
+            digits[k] = b'0' + (f % 10) as u8;
+            f /= 10;
+        }
+        buf.extend_from_slice(&digits[..decimals as usize]);
     }
 }
 
@@ -386,6 +480,41 @@ pub fn write_summary_json(path: &Path, summary: &Summary) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn fast_number_formatting_matches_the_formatter() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
+        let mut specials = vec![
+            0.0, -0.0, 0.5, -0.5, 1.00005, 2.5e-5, -1e-9, 1e15, 9e15, 123.45675, 1e300,
+        ];
+        specials.extend((0..200_000).map(|i| {
+            let mag = 10f64.powi(rng.gen_range(-6..9));
+            let v = rng.gen_range(-1.0..1.0) * mag;
+            if i % 7 == 0 {
+                (v * 1e4).round() / 1e4 + 0.00005 // near a tie
+            } else {
+                v
+            }
+        }));
+        let mut buf = Vec::new();
+        for v in specials {
+            for d in [0u32, 3, 4] {
+                buf.clear();
+                push_fixed(&mut buf, v, d);
+                assert_eq!(
+                    String::from_utf8(buf.clone()).unwrap(),
+                    format!("{v:.*}", d as usize),
+                    "{v:e} with {d} decimals"
+                );
+            }
+        }
+        for v in [0i64, 7, -7, 1234567890123, i64::MIN, i64::MAX] {
+            buf.clear();
+            push_int(&mut buf, v);
+            assert_eq!(String::from_utf8(buf.clone()).unwrap(), v.to_string());
+        }
+    }
 
     #[test]
     fn particles_roundtrip_and_errors() {

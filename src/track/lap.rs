@@ -32,18 +32,30 @@ pub fn assign_sparse(
     for &(r, c, _) in edges {
         uf.union(r as u32, (n_rows + c) as u32);
     }
-    let mut comp_edges: std::collections::HashMap<u32, Vec<usize>> =
-        std::collections::HashMap::new();
-    for (k, &(r, _, _)) in edges.iter().enumerate() {
-        comp_edges.entry(uf.find(r as u32)).or_default().push(k);
-    }
-    let mut comps: Vec<Vec<usize>> = comp_edges.into_values().collect();
-    comps.sort_unstable_by_key(|v| v[0]); // deterministic order
+    // Edge indices grouped by component (sorting by root keeps the edges of
+    // a component in input order).
+    let mut keyed: Vec<(u32, u32)> = edges
+        .iter()
+        .enumerate()
+        .map(|(k, &(r, _, _))| (uf.find(r as u32), k as u32))
+        .collect();
+    keyed.sort_unstable();
     let mut row_local = vec![usize::MAX; n_rows];
     let mut col_local = vec![usize::MAX; n_cols];
-    for comp in comps {
-        let mut rows = Vec::new();
-        let mut cols = Vec::new();
+    let mut comp: Vec<usize> = Vec::new();
+    let mut rows = Vec::new();
+    let mut cols = Vec::new();
+    let mut s = 0;
+    while s < keyed.len() {
+        let mut e = s;
+        while e < keyed.len() && keyed[e].0 == keyed[s].0 {
+            e += 1;
+        }
+        comp.clear();
+        comp.extend(keyed[s..e].iter().map(|&(_, k)| k as usize));
+        s = e;
+        rows.clear();
+        cols.clear();
         for &k in &comp {
             let (r, c, _) = edges[k];
             if row_local[r] == usize::MAX {
@@ -54,6 +66,35 @@ pub fn assign_sparse(
                 col_local[c] = cols.len();
                 cols.push(c);
             }
+        }
+        for &r in &rows {
+            row_local[r] = usize::MAX;
+        }
+        for &c in &cols {
+            col_local[c] = usize::MAX;
+        }
+        // One row or one column (most components): the optimum is the
+        // cheapest pair when it beats that row's miss, with every other row
+        // missing. Saving (miss - cost) is what a pair is worth.
+        if rows.len() == 1 || cols.len() == 1 {
+            let mut best: Option<(f64, usize)> = None;
+            for &k in &comp {
+                let (r, _, w) = edges[k];
+                let gain = miss_cost[r] - w;
+                if gain > 0.0 && best.map_or(true, |(g, _)| gain > g) {
+                    best = Some((gain, k));
+                }
+            }
+            if let Some((_, k)) = best {
+                result[edges[k].0] = Some(edges[k].1);
+            }
+            continue;
+        }
+        for (i, &r) in rows.iter().enumerate() {
+            row_local[r] = i;
+        }
+        for (j, &c) in cols.iter().enumerate() {
+            col_local[c] = j;
         }
         let (nr, nc) = (rows.len(), cols.len());
         let width = nc + nr;

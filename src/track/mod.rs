@@ -46,6 +46,7 @@
 //! as soon as they can no longer change.
 
 pub mod fit;
+pub mod grid_index;
 pub mod io;
 pub mod lap;
 pub mod stream;
@@ -54,12 +55,11 @@ pub mod synth;
 use std::collections::VecDeque;
 use std::sync::Arc;
 
-use kiddo::immutable::float::kdtree::ImmutableKdTree;
-use kiddo::SquaredEuclidean;
 use serde::{Deserialize, Serialize};
 
 use crate::cluster::Particle;
 use crate::error::{Error, Result};
+use grid_index::GridIndex;
 
 pub use io::{
     read_particles_csv, read_tracks_csv, write_particles_csv, write_summary_json, write_tracks_csv,
@@ -176,6 +176,14 @@ pub struct TrackParams {
     pub n_sigma: f64,
     /// Position noise floor assumed by the predictor (px per axis).
     pub sigma_floor: f64,
+    /// Ceiling of the estimated position noise (px per axis). The estimate
+    /// comes from the innovations of accepted links; in dense, noisy scenes
+    /// wrong links inflate it, wider gates admit more wrong links, and the
+    /// tracker runs away (session 1: precision 0.29 at ppp 0.02, 12 px/pulse,
+    /// 5 % noise). A centroid of 1–4 events of a 1–1.5 px image errs by
+    /// < 0.5 px, so 1 px bounds the gates without limiting honest scenes.
+    #[serde(default = "default_sigma_ceiling")]
+    pub sigma_ceiling: f64,
     /// Pulses a track may miss and still continue.
     pub max_gap: u32,
     /// Relative growth of the search radius per missed pulse.
@@ -205,6 +213,12 @@ pub struct TrackParams {
     /// Detections further than this many position sigmas from the fit of
     /// their neighbours are removed when a track is finalised (0 = off).
     pub outlier_sigma: f64,
+    /// Detections a running track holds before its older part is handed
+    /// out as a finished segment (a new track id; the continuation keeps
+    /// the last few detections as fit context). Bounds memory when
+    /// particles stay in view for thousands of pulses.
+    #[serde(default = "default_max_track_length")]
+    pub max_track_length: usize,
     /// Search radius (px) around the prior's prediction for the first step.
     pub prior_radius: f64,
     /// Mean-flow prior for initialisation.
@@ -220,7 +234,8 @@ impl Default for TrackParams {
             min_search_radius: 1.5,
             n_sigma: 3.5,
             sigma_floor: 0.3,
-            max_gap: 2,
+            sigma_ceiling: 1.0,
+            max_gap: 1,
             gap_growth: 0.0,
             predict_window: 12,
             predict_order: 2,
@@ -232,10 +247,28 @@ impl Default for TrackParams {
             stitch_growth: 0.25,
             confirm_after_gap: 2,
             outlier_sigma: 3.5,
+            max_track_length: default_max_track_length(),
             prior_radius: 3.0,
             prior: None,
         }
     }
+}
+
+/// Innovations beyond this many σ do not update the noise estimate.
+const CLIP_K: f64 = 2.5;
+
+/// E[r²] / (2σ²) of a 2-D Gaussian truncated at r ≤ kσ.
+fn clipped_second_moment(k: f64) -> f64 {
+    let e = (-0.5 * k * k).exp();
+    (1.0 - (1.0 + 0.5 * k * k) * e) / (1.0 - e)
+}
+
+fn default_max_track_length() -> usize {
+    512
+}
+
+fn default_sigma_ceiling() -> f64 {
+    1.0
 }
 
 /// Frames (pulses) a new track's initialisation chain spans.
@@ -250,6 +283,7 @@ impl TrackParams {
             ("min_search_radius", self.min_search_radius),
             ("n_sigma", self.n_sigma),
             ("sigma_floor", self.sigma_floor),
+            ("sigma_ceiling", self.sigma_ceiling),
             ("max_fit_residual", self.max_fit_residual),
             ("prior_radius", self.prior_radius),
         ];
@@ -277,6 +311,15 @@ impl TrackParams {
             return Err(Error::param(
                 "predict_order/fit_order",
                 "polynomial order must be 0, 1 or 2",
+            ));
+        }
+        if self.max_track_length < 2 * self.predict_window.max(self.fit_window).max(INIT_FRAMES) {
+            return Err(Error::param(
+                "max_track_length",
+                format!(
+                    "must be at least twice the predictor/fit window, got {}",
+                    self.max_track_length
+                ),
             ));
         }
         if self.fit_window < 2 {
@@ -307,6 +350,10 @@ struct Det {
 #[derive(Debug, Clone)]
 struct ActiveTrack {
     dets: Vec<Det>,
+    /// Leading detections that only give context (the predictor and the
+    /// fit) because an earlier segment of the track already handed them
+    /// out (see `TrackParams::max_track_length`).
+    context: usize,
 }
 
 impl ActiveTrack {
@@ -354,6 +401,68 @@ pub struct Tracker {
     innov_n: f64,
     last_pulse: Option<i64>,
     stats: TrackerStats,
+    /// Predictor weights for gap-free windows (see [`PredictWeights`]).
+    weights: Vec<PredictWeights>,
+    /// Reused buffers of [`Tracker::extend_active`] and
+    /// [`Tracker::initialise`] (no allocation per pulse in steady state).
+    scratch: Scratch,
+}
+
+#[derive(Default)]
+struct Scratch {
+    grid: GridIndex,
+    init_grids: [GridIndex; INIT_FRAMES - 1],
+    init_idx: [Vec<usize>; INIT_FRAMES - 1],
+    near: Vec<(u32, f64)>,
+    near2: Vec<(u32, f64)>,
+    near3: Vec<(u32, f64)>,
+    /// (track, detection, normalised cost) candidate pairs, grouped by track.
+    edges: Vec<(usize, usize, f64)>,
+    edge_d2: Vec<f64>,
+    row_start: Vec<usize>,
+    leverage: Vec<f64>,
+    miss: Vec<f64>,
+}
+
+/// The predictor of a track whose last `window` detections are on
+/// consecutive pulses is a fixed linear combination of their positions (the
+/// least-squares polynomial is linear in the data): `x̂ = Σ c_i x_i`, with
+/// the same leverage for every track. Computed once per (window, order,
+/// steps ahead) from [`fit::fit_eval`] itself, they make the common case a
+/// dot product instead of a fit.
+#[derive(Debug, Clone)]
+struct PredictWeights {
+    window: usize,
+    order: usize,
+    ahead: i64,
+    c: Vec<f64>,
+    leverage: f64,
+}
+
+impl PredictWeights {
+    fn new(window: usize, order: usize, ahead: i64) -> Option<Self> {
+        let tau: Vec<f64> = (0..window)
+            .map(|i| i as f64 - (window - 1) as f64)
+            .collect();
+        let mut unit = vec![0.0; window];
+        let zeros = vec![0.0; window];
+        let mut c = Vec::with_capacity(window);
+        let mut leverage = 1.0;
+        for i in 0..window {
+            unit[i] = 1.0;
+            let f = fit::fit_eval(&tau, &unit, &zeros, order, ahead as f64)?;
+            unit[i] = 0.0;
+            c.push(f.x);
+            leverage = f.leverage;
+        }
+        Some(PredictWeights {
+            window,
+            order,
+            ahead,
+            c,
+            leverage,
+        })
+    }
 }
 
 impl Tracker {
@@ -371,6 +480,8 @@ impl Tracker {
             innov_n: 30.0,
             last_pulse: None,
             stats: TrackerStats::default(),
+            weights: Vec::new(),
+            scratch: Scratch::default(),
         })
     }
 
@@ -454,7 +565,8 @@ impl Tracker {
         // Deterministic order whatever the removal history.
         self.active.sort_unstable_by_key(|t| t.dets[0].serial);
 
-        let used = self.extend_active(&dets, pulse, t_us);
+        let used = self.extend_active(&dets, pulse);
+        let segments = self.cut_long_tracks();
         self.frames.push_back(Frame {
             pulse,
             t_us,
@@ -472,7 +584,31 @@ impl Tracker {
             .into_iter()
             .partition(|t| t.last().pulse < horizon);
         self.pool = keep;
-        Ok(self.finalise(done))
+        let mut out = self.finalise(segments);
+        out.extend(self.finalise(done));
+        Ok(out)
+    }
+
+    /// Hand out the detections of tracks that reached `max_track_length`
+    /// as a finished segment and continue each such track with its last
+    /// few detections as context, so that memory does not grow with the
+    /// life of a particle that stays in view.
+    fn cut_long_tracks(&mut self) -> Vec<ActiveTrack> {
+        let max = self.params.max_track_length;
+        let keep = self.params.predict_window.max(self.params.fit_window);
+        let mut segments = Vec::new();
+        for t in &mut self.active {
+            if t.dets.len() >= max {
+                let tail = t.dets[t.dets.len() - keep..].to_vec();
+                let seg = std::mem::replace(&mut t.dets, tail);
+                segments.push(ActiveTrack {
+                    dets: seg,
+                    context: t.context,
+                });
+                t.context = keep;
+            }
+        }
+        segments
     }
 
     /// End every track and return the rest.
@@ -486,16 +622,76 @@ impl Tracker {
 
     /// Position noise per axis (px) estimated from the innovations of all
     /// accepted links so far (a few per-track residuals are too noisy to
-    /// set a gate), never below `sigma_floor`.
+    /// set a gate), within `[sigma_floor, sigma_ceiling]`.
     pub fn position_sigma(&self) -> f64 {
         (self.innov_sum / self.innov_n)
             .sqrt()
+            .min(self.params.sigma_ceiling)
             .max(self.params.sigma_floor)
     }
 
     /// Predicted position, search radius and fit leverage of a track at
-    /// time `t_us`.
-    fn predict(&self, track: &ActiveTrack, pulse: i64, t_us: f64) -> (f64, f64, f64, f64) {
+    /// pulse `pulse`: [`Tracker::predict_reference`], with cached weights
+    /// when the window has no gap (the common case).
+    fn predict(&mut self, ti: usize, pulse: i64) -> (f64, f64, f64, f64) {
+        let p = &self.params;
+        let track = &self.active[ti];
+        let n = track.dets.len();
+        let w = p.predict_window.min(n);
+        let win = &track.dets[n - w..];
+        let last = track.last();
+        if win[0].pulse + w as i64 - 1 != last.pulse {
+            return self.predict_reference(track, pulse);
+        }
+        let order = self.predict_order(n);
+        let ahead = pulse - last.pulse;
+        let k = match self
+            .weights
+            .iter()
+            .position(|c| c.window == w && c.order == order && c.ahead == ahead)
+        {
+            Some(k) => k,
+            None => match PredictWeights::new(w, order, ahead) {
+                Some(c) => {
+                    self.weights.push(c);
+                    self.weights.len() - 1
+                }
+                None => return self.predict_reference(&self.active[ti], pulse),
+            },
+        };
+        let c = &self.weights[k];
+        let (mut x, mut y) = (0.0, 0.0);
+        for (ci, d) in c.c.iter().zip(win) {
+            x += ci * d.x;
+            y += ci * d.y;
+        }
+        let (r, lev) = self.search_radius(c.leverage, ahead);
+        (x, y, r, lev)
+    }
+
+    fn predict_order(&self, n: usize) -> usize {
+        let p = &self.params;
+        if n >= p.predict_order * 3 {
+            p.predict_order
+        } else {
+            p.predict_order.min(1)
+        }
+    }
+
+    /// Search radius for a prediction of the given leverage `ahead` pulses
+    /// after the last detection.
+    fn search_radius(&self, leverage: f64, ahead: i64) -> (f64, f64) {
+        let p = &self.params;
+        let gap = (ahead - 1).max(0) as f64;
+        let sigma = self.position_sigma() * (1.0 + leverage).sqrt();
+        let r =
+            (p.n_sigma * sigma).clamp(p.min_search_radius, p.max_disp) * (1.0 + p.gap_growth * gap);
+        (r.min(p.max_disp * (1.0 + gap)), leverage)
+    }
+
+    /// The predictor as a plain least-squares fit over the window (the
+    /// reference of [`Tracker::predict`]).
+    fn predict_reference(&self, track: &ActiveTrack, pulse: i64) -> (f64, f64, f64, f64) {
         let p = &self.params;
         let n = track.dets.len();
         let w = p.predict_window.min(n);
@@ -506,19 +702,11 @@ impl Tracker {
         let xs: Vec<f64> = win.iter().map(|d| d.x).collect();
         let ys: Vec<f64> = win.iter().map(|d| d.y).collect();
         let at = (pulse - last.pulse) as f64;
-        let _ = t_us;
-        let order = if n >= p.predict_order * 3 {
-            p.predict_order
-        } else {
-            p.predict_order.min(1)
-        };
-        let gap = (pulse - last.pulse - 1).max(0) as f64;
+        let order = self.predict_order(n);
         match fit::fit_eval(&tau, &xs, &ys, order, at) {
             Some(f) => {
-                let sigma = self.position_sigma() * (1.0 + f.leverage).sqrt();
-                let r = (p.n_sigma * sigma).clamp(p.min_search_radius, p.max_disp)
-                    * (1.0 + p.gap_growth * gap);
-                (f.x, f.y, r.min(p.max_disp * (1.0 + gap)), f.leverage)
+                let (r, lev) = self.search_radius(f.leverage, pulse - last.pulse);
+                (f.x, f.y, r, lev)
             }
             None => (last.x, last.y, p.max_disp, 1.0),
         }
@@ -526,37 +714,55 @@ impl Tracker {
 
     /// Extend active tracks with this pulse's detections (global
     /// assignment); returns the used flags of the detections.
-    fn extend_active(&mut self, dets: &[Det], pulse: i64, t_us: f64) -> Vec<bool> {
+    fn extend_active(&mut self, dets: &[Det], pulse: i64) -> Vec<bool> {
         let mut used = vec![false; dets.len()];
         if self.active.is_empty() || dets.is_empty() {
             return used;
         }
-        let points: Vec<[f64; 2]> = dets.iter().map(|d| [d.x, d.y]).collect();
-        let tree: ImmutableKdTree<f64, u32, 2, 32> = ImmutableKdTree::new_from_slice(&points);
-        let mut edges = Vec::new();
-        let mut lev = Vec::with_capacity(self.active.len());
-        for (ti, t) in self.active.iter().enumerate() {
-            let (px, py, r, l) = self.predict(t, pulse, t_us);
-            lev.push(l);
-            for nb in tree.within_unsorted::<SquaredEuclidean>(&[px, py], r * r) {
-                edges.push((ti, nb.item as usize, nb.distance / (r * r), nb.distance));
+        let mut sc = std::mem::take(&mut self.scratch);
+        sc.grid.rebuild(dets.iter().map(|d| (d.x, d.y)));
+        sc.edges.clear();
+        sc.edge_d2.clear();
+        sc.row_start.clear();
+        sc.leverage.clear();
+        for ti in 0..self.active.len() {
+            let (px, py, r, l) = self.predict(ti, pulse);
+            sc.leverage.push(l);
+            sc.row_start.push(sc.edges.len());
+            sc.near.clear();
+            sc.grid.within(px, py, r, &mut sc.near);
+            for &(j, d2) in &sc.near {
+                sc.edges.push((ti, j as usize, d2 / (r * r)));
+                sc.edge_d2.push(d2);
             }
         }
-        let miss = vec![1.0; self.active.len()];
-        let lap_edges: Vec<(usize, usize, f64)> = edges.iter().map(|e| (e.0, e.1, e.2)).collect();
-        let sol = lap::assign_sparse(dets.len(), &lap_edges, &miss);
+        sc.row_start.push(sc.edges.len());
+        let sigma = self.position_sigma();
+        sc.miss.clear();
+        sc.miss.resize(self.active.len(), 1.0);
+        let sol = lap::assign_sparse(dets.len(), &sc.edges, &sc.miss);
         for (ti, c) in sol.into_iter().enumerate() {
             if let Some(c) = c {
                 self.active[ti].dets.push(dets[c]);
                 used[c] = true;
-                if let Some(e) = edges.iter().find(|e| e.0 == ti && e.1 == c) {
+                let row = sc.row_start[ti]..sc.row_start[ti + 1];
+                if let Some(k) = row.clone().find(|&k| sc.edges[k].1 == c) {
                     // Squared innovation per axis, normalised by the
-                    // predictor's variance factor.
-                    self.innov_sum += e.3 / (2.0 * (1.0 + lev[ti]));
-                    self.innov_n += 1.0;
+                    // predictor's variance factor. Only innovations within
+                    // CLIP_K σ count (wrong links, whose innovations are
+                    // large, would otherwise inflate σ, widen the gates and
+                    // let in more wrong links: a runaway in dense, noisy
+                    // scenes); dividing by the truncated Gaussian's second
+                    // moment keeps the estimate unbiased.
+                    let z2 = sc.edge_d2[k] / (1.0 + sc.leverage[ti]);
+                    if z2 <= (CLIP_K * sigma).powi(2) {
+                        self.innov_sum += z2 / (2.0 * clipped_second_moment(CLIP_K));
+                        self.innov_n += 1.0;
+                    }
                 }
             }
         }
+        self.scratch = sc;
         used
     }
 
@@ -577,32 +783,26 @@ impl Tracker {
         // noisy positions errs by √6 σ per axis.
         let init_gate =
             (p.n_sigma * self.position_sigma() * 6f64.sqrt()).clamp(p.init_radius, p.max_disp);
-        // Trees over the unused particles of frames 1..3.
-        let trees: Vec<(Vec<usize>, Option<ImmutableKdTree<f64, u32, 2, 32>>)> = (1..INIT_FRAMES)
-            .map(|k| {
-                let idx: Vec<usize> = (0..f[k].dets.len()).filter(|&i| !f[k].used[i]).collect();
-                let pts: Vec<[f64; 2]> = idx
-                    .iter()
-                    .map(|&i| [f[k].dets[i].x, f[k].dets[i].y])
-                    .collect();
-                let tree = if pts.is_empty() {
-                    None
-                } else {
-                    Some(ImmutableKdTree::new_from_slice(&pts))
-                };
-                (idx, tree)
-            })
-            .collect();
-        let near = |k: usize, x: f64, y: f64, r: f64| -> Vec<usize> {
-            match &trees[k - 1].1 {
-                None => Vec::new(),
-                Some(t) => t
-                    .within_unsorted::<SquaredEuclidean>(&[x, y], r * r)
-                    .into_iter()
-                    .map(|nb| trees[k - 1].0[nb.item as usize])
-                    .collect(),
+        // Grids over the unused particles of frames 1..3.
+        let mut sc = std::mem::take(&mut self.scratch);
+        for k in 1..INIT_FRAMES {
+            let idx = &mut sc.init_idx[k - 1];
+            idx.clear();
+            idx.extend((0..f[k].dets.len()).filter(|&i| !f[k].used[i]));
+            sc.init_grids[k - 1].rebuild(idx.iter().map(|&i| (f[k].dets[i].x, f[k].dets[i].y)));
+        }
+        let near = |k: usize, x: f64, y: f64, r: f64, out: &mut Vec<(u32, f64)>| {
+            out.clear();
+            sc.init_grids[k - 1].within(x, y, r, out);
+            for e in out.iter_mut() {
+                e.0 = sc.init_idx[k - 1][e.0 as usize] as u32;
             }
         };
+        let (mut n1, mut n2, mut n3) = (
+            std::mem::take(&mut sc.near),
+            std::mem::take(&mut sc.near2),
+            std::mem::take(&mut sc.near3),
+        );
         let dt = |a: usize, b: usize| f[b].t_us - f[a].t_us;
         // (cost, [i0, i1, i2, i3])
         let mut chains: Vec<(f64, [usize; 4])> = Vec::new();
@@ -618,15 +818,21 @@ impl Tracker {
                 }
                 None => (d0.x, d0.y, p.max_disp),
             };
-            for i1 in near(1, cx, cy, r1) {
+            near(1, cx, cy, r1, &mut n1);
+            for &(i1, _) in &n1 {
+                let i1 = i1 as usize;
                 let d1 = &f[1].dets[i1];
                 let (v1x, v1y) = ((d1.x - d0.x) / dt(0, 1), (d1.y - d0.y) / dt(0, 1));
                 let (p2x, p2y) = (d1.x + v1x * dt(1, 2), d1.y + v1y * dt(1, 2));
-                for i2 in near(2, p2x, p2y, init_gate) {
+                near(2, p2x, p2y, init_gate, &mut n2);
+                for &(i2, _) in &n2 {
+                    let i2 = i2 as usize;
                     let d2 = &f[2].dets[i2];
                     let (v2x, v2y) = ((d2.x - d1.x) / dt(1, 2), (d2.y - d1.y) / dt(1, 2));
                     let (p3x, p3y) = (d2.x + v2x * dt(2, 3), d2.y + v2y * dt(2, 3));
-                    for i3 in near(3, p3x, p3y, init_gate) {
+                    near(3, p3x, p3y, init_gate, &mut n3);
+                    for &(i3, _) in &n3 {
+                        let i3 = i3 as usize;
                         let d3 = &f[3].dets[i3];
                         let e2 = (d2.x - p2x).powi(2) + (d2.y - p2y).powi(2);
                         let e3 = (d3.x - p3x).powi(2) + (d3.y - p3y).powi(2);
@@ -635,6 +841,11 @@ impl Tracker {
                 }
             }
         }
+        sc.near = n1;
+        sc.near2 = n2;
+        sc.near3 = n3;
+        self.scratch = sc;
+        let f = &self.frames;
         chains.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
         let mut taken: Vec<Vec<bool>> = (0..INIT_FRAMES).map(|k| f[k].used.clone()).collect();
         let mut new_tracks: Vec<ActiveTrack> = Vec::new();
@@ -647,6 +858,7 @@ impl Tracker {
             }
             new_tracks.push(ActiveTrack {
                 dets: (0..INIT_FRAMES).map(|k| f[k].dets[ids[k]]).collect(),
+                context: 0,
             });
         }
         for k in 0..INIT_FRAMES {
@@ -727,22 +939,39 @@ impl Tracker {
     fn finalise(&mut self, ended: Vec<ActiveTrack>) -> Vec<LinkedTrack> {
         let mut out = Vec::new();
         for mut t in ended {
+            // Points up to this pulse went out with an earlier segment.
+            let handed_out = (t.context > 0).then(|| t.dets[t.context - 1].pulse);
             if self.params.outlier_sigma > 0.0 {
                 let gate = self.params.outlier_sigma * self.position_sigma();
                 remove_outliers(&mut t.dets, self.params.fit_window, gate);
             }
             trim_unconfirmed_tail(&mut t.dets, self.params.confirm_after_gap);
-            if t.dets.len() < self.params.min_length {
+            let fresh = match handed_out {
+                None => t.dets.len(),
+                Some(h) => t.dets.iter().filter(|d| d.pulse > h).count(),
+            };
+            if handed_out.is_some() && fresh == 0 {
+                continue; // nothing new after the last segment
+            }
+            if handed_out.is_none() && t.dets.len() < self.params.min_length {
                 self.stats.tracks_rejected_short += 1;
                 continue;
             }
-            let (points, detections, rms) = fit_track(&t.dets, &self.params);
+            let (mut points, mut detections, rms) = fit_track(&t.dets, &self.params);
             if rms > self.params.max_fit_residual {
                 self.stats.tracks_rejected_rough += 1;
                 continue;
             }
+            if let Some(h) = handed_out {
+                let first = points
+                    .iter()
+                    .position(|p| p.pulse > h)
+                    .unwrap_or(points.len());
+                points.drain(..first);
+                detections.drain(..first);
+            }
             self.stats.tracks_kept += 1;
-            self.stats.particles_on_tracks += t.dets.len() as u64;
+            self.stats.particles_on_tracks += fresh as u64;
             out.push(LinkedTrack {
                 track: Track {
                     id: self.next_id,
@@ -844,6 +1073,11 @@ fn fit_track(dets: &[Det], p: &TrackParams) -> (Vec<TrackPoint>, Vec<Option<u64>
     let mut serials = Vec::with_capacity(points.capacity());
     let mut ssr = 0.0;
     let mut j = 0; // index of the first detection at or after the pulse
+    let (mut tau, mut xs, mut ys) = (
+        Vec::with_capacity(w),
+        Vec::with_capacity(w),
+        Vec::with_capacity(w),
+    );
     for pulse in first..=last {
         while dets[j].pulse < pulse {
             j += 1;
@@ -862,12 +1096,12 @@ fn fit_track(dets: &[Det], p: &TrackParams) -> (Vec<TrackPoint>, Vec<Option<u64>
         // τ in seconds relative to this pulse, scaled by the mean period.
         let period_s =
             ((dets[n - 1].t_us - dets[0].t_us) / (last - first).max(1) as f64).max(1e-9) * 1e-6;
-        let tau: Vec<f64> = win
-            .iter()
-            .map(|d| (d.t_us - t_us) * 1e-6 / period_s)
-            .collect();
-        let xs: Vec<f64> = win.iter().map(|d| d.x).collect();
-        let ys: Vec<f64> = win.iter().map(|d| d.y).collect();
+        tau.clear();
+        xs.clear();
+        ys.clear();
+        tau.extend(win.iter().map(|d| (d.t_us - t_us) * 1e-6 / period_s));
+        xs.extend(win.iter().map(|d| d.x));
+        ys.extend(win.iter().map(|d| d.y));
         let f = fit::fit_eval(&tau, &xs, &ys, p.fit_order, 0.0).unwrap_or(fit::FitState {
             x: dets[j].x,
             y: dets[j].y,
@@ -993,11 +1227,37 @@ mod tests {
     }
 
     #[test]
+    fn long_tracks_come_out_in_segments_covering_every_pulse_once() {
+        let ps: Vec<Particle> = (0..130)
+            .map(|k| particle(k, 5.0 + 2.0 * k as f64, 20.0 + 0.5 * k as f64))
+            .collect();
+        let p = TrackParams {
+            max_track_length: 40,
+            ..Default::default()
+        };
+        let tracks = link(&ps, &p).unwrap();
+        assert!(tracks.len() >= 3, "{} segments", tracks.len());
+        let pulses: Vec<i64> = tracks
+            .iter()
+            .flat_map(|t| t.points.iter().map(|q| q.pulse))
+            .collect();
+        assert_eq!(pulses, (0..130).collect::<Vec<_>>());
+        for q in tracks.iter().flat_map(|t| &t.points) {
+            assert!((q.u - 2.0 * 5000.0).abs() < 1e-6 && (q.v - 0.5 * 5000.0).abs() < 1e-6);
+        }
+        assert!(Tracker::new(TrackParams {
+            max_track_length: 10,
+            ..Default::default()
+        })
+        .is_err());
+    }
+
+    #[test]
     fn long_gaps_are_stitched() {
         let mut ps = Vec::new();
         for k in 0..30 {
             if (10..13).contains(&k) {
-                continue; // 3 missed pulses > max_gap = 2
+                continue; // 3 missed pulses > max_gap
             }
             ps.push(particle(k, 5.0 + 3.0 * k as f64, 20.0 + 0.1 * k as f64));
         }

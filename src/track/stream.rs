@@ -4,7 +4,9 @@
 //! [`track_recording`] runs the pulse analysis (one pass), then streams the
 //! recording a second time through [`crate::pulses::split_pulses`], clusters
 //! pulses in parallel batches (rayon, in [`crate::cluster::cluster_pulses`])
-//! and feeds the particles, in pulse order, to the [`Tracker`]. Results go
+//! and feeds the particles, in pulse order, to the [`Tracker`] — the
+//! clustering of one batch (on a scoped helper thread) overlapping the
+//! tracking of the previous one on the caller's thread. Results go
 //! to a [`PtvSink`] as they appear — particles per pulse, tracks when they
 //! end — so memory is bounded by the batch and the active tracks, not by the
 //! recording. What the sink does with them (write CSV, bin onto a grid,
@@ -36,6 +38,9 @@ pub struct PtvStream {
     cluster: ClusterParams,
     tracker: Tracker,
     batch: Vec<PulseEvents>,
+    /// The previous batch, clustered, waiting to be tracked while the
+    /// current one is clustered (two-stage pipeline).
+    clustered: Vec<(i64, f64, Vec<Particle>)>,
     batch_size: usize,
     events: u64,
 }
@@ -51,6 +56,7 @@ impl PtvStream {
             cluster,
             tracker: Tracker::new(track)?,
             batch: Vec::with_capacity(batch_size),
+            clustered: Vec::new(),
             batch_size,
             events: 0,
         })
@@ -80,12 +86,32 @@ impl PtvStream {
         sink.tracks(&done)
     }
 
+    /// Cluster the current batch (rayon, on a helper thread) while the
+    /// previous, already clustered batch is tracked on this thread: the
+    /// tracker is sequential, so this overlaps the two stages. Results are
+    /// the same as clustering and tracking one after the other (pulses
+    /// reach the tracker and the sink in order).
     fn flush(&mut self, sink: &mut dyn PtvSink) -> Result<()> {
-        let parts = cluster_pulses(&self.batch, &self.cluster)?;
         let batch = std::mem::take(&mut self.batch);
-        for (pe, ps) in batch.iter().zip(parts) {
-            self.push_particles(pe.index, pe.start_us, &ps, sink)?;
-        }
+        let previous = std::mem::take(&mut self.clustered);
+        let cluster = &self.cluster;
+        let tracker = &mut self.tracker;
+        let (parts, tracked) = std::thread::scope(|scope| {
+            let worker =
+                (!batch.is_empty()).then(|| scope.spawn(|| cluster_pulses(&batch, cluster)));
+            let tracked = track_batch(tracker, &previous, sink);
+            let parts = match worker {
+                Some(w) => w.join().unwrap_or_else(|e| std::panic::resume_unwind(e)),
+                None => Ok(Vec::new()),
+            };
+            (parts, tracked)
+        });
+        tracked?;
+        self.clustered = batch
+            .iter()
+            .zip(parts?)
+            .map(|(pe, ps)| (pe.index, pe.start_us, ps))
+            .collect();
         self.batch = batch;
         self.batch.clear();
         Ok(())
@@ -103,12 +129,28 @@ impl PtvStream {
 
     /// Cluster what is left, end all tracks, hand them to the sink.
     pub fn finish(mut self, sink: &mut dyn PtvSink) -> Result<TrackerStats> {
-        self.flush(sink)?;
+        self.flush(sink)?; // tracks the previous batch, clusters the last
+        self.flush(sink)?; // tracks the last
+
         let (rest, stats) = self.tracker.finish();
         let rest: Vec<Track> = rest.into_iter().map(|t| t.track).collect();
         sink.tracks(&rest)?;
         Ok(stats)
     }
+}
+
+/// Feed clustered pulses to the tracker and the sink, in order.
+fn track_batch(
+    tracker: &mut Tracker,
+    clustered: &[(i64, f64, Vec<Particle>)],
+    sink: &mut dyn PtvSink,
+) -> Result<()> {
+    for (pulse, t_us, ps) in clustered {
+        sink.particles(*pulse, *t_us, ps)?;
+        let done = tracker.push(*pulse, *t_us, ps)?;
+        sink.tracks(&done)?;
+    }
+    Ok(())
 }
 
 /// The whole PTV stage on a recording. `open` opens the recording afresh

@@ -23,7 +23,12 @@
 //!
 //! # Link scores (the definition used in tests and docs)
 //! A detection (particle) belongs to the truth particle that made most of
-//! its events (none if noise made most). A *link* is a pair of consecutive
+//! its events (none if noise made most). When two particles made equally
+//! many events of one merged image, it belongs to the one whose true
+//! position is nearest its centroid (noise never wins a tie). (Session 1
+//! counted such ties as noise, which scored every link through a 1 + 1
+//! event merged image as wrong, even the link of the particle the image
+//! sits on.) A *link* is a pair of consecutive
 //! detections of one output track (across a bridged gap, too); it is
 //! correct when both detections belong to the same truth particle.
 //! *Precision* = correct links / output links. A *truth link* is a truth
@@ -41,7 +46,9 @@ use rand_pcg::Pcg64;
 use serde::{Deserialize, Serialize};
 
 use super::LinkedTrack;
-use crate::cluster::{particles_from_labels, pixel_labels, pulse_pixels, ClusterParams, Particle};
+use crate::cluster::{
+    particles_from_labels, pixel_labels, pulse_pixels, split_wide_clusters, ClusterParams, Particle,
+};
 use crate::events::{EventChunk, ON};
 use crate::pulses::PulseEvents;
 use crate::sim::TruthSample;
@@ -234,8 +241,20 @@ pub fn cluster_with_truth(
     sp: &SynthPulse,
     params: &ClusterParams,
 ) -> (Vec<Particle>, Vec<Option<u64>>) {
+    let (p, ids, _) = cluster_with_truth_mixed(sp, params);
+    (p, ids)
+}
+
+/// [`cluster_with_truth`], also telling for each particle whether its
+/// events came from more than one source (two particles, or a particle and
+/// noise): a merged image.
+pub fn cluster_with_truth_mixed(
+    sp: &SynthPulse,
+    params: &ClusterParams,
+) -> (Vec<Particle>, Vec<Option<u64>>, Vec<bool>) {
     let pixels = pulse_pixels(&sp.pulse, params);
-    let labels = pixel_labels(&pixels, params);
+    let mut labels = pixel_labels(&pixels, params);
+    split_wide_clusters(&pixels, &mut labels, params.split_extent);
     let particles = particles_from_labels(&sp.pulse, &pixels, &labels, params);
     let label_of: HashMap<(u16, u16), u32> = pixels
         .iter()
@@ -255,20 +274,37 @@ pub fn cluster_with_truth(
             size[l as usize] += 1;
         }
     }
-    let ids: Vec<Option<u64>> = (0..n_labels)
+    let kept: Vec<usize> = (0..n_labels)
         .filter(|&l| size[l] >= params.min_events && size[l] <= params.max_events)
-        .map(|l| {
-            let mut v: Vec<(Option<u64>, u32)> = votes[l].iter().map(|(k, c)| (*k, *c)).collect();
-            v.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
-            match v.as_slice() {
-                [(_, c1), (_, c2), ..] if c1 == c2 => None,
-                [(id, _), ..] => *id,
-                [] => None,
-            }
+        .collect();
+    let mixed: Vec<bool> = kept.iter().map(|&l| votes[l].len() > 1).collect();
+    let truth_xy: HashMap<u64, (f64, f64)> = sp
+        .truth
+        .iter()
+        .map(|t| (t.particle_id, (t.x, t.y)))
+        .collect();
+    let ids: Vec<Option<u64>> = kept
+        .iter()
+        .zip(&particles)
+        .map(|(&l, part)| {
+            let top = votes[l].values().copied().max().unwrap_or(0);
+            // Among the particles with the most events here, the one whose
+            // true position is nearest the centroid; noise never wins a tie.
+            let best = votes[l]
+                .iter()
+                .filter_map(|(id, &c)| match id {
+                    Some(id) if c == top => {
+                        let (x, y) = truth_xy.get(id).copied().unwrap_or((f64::MAX, f64::MAX));
+                        Some(((x - part.x).hypot(y - part.y), *id))
+                    }
+                    _ => None,
+                })
+                .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+            best.map(|(_, id)| id)
         })
         .collect();
     debug_assert_eq!(ids.len(), particles.len());
-    (particles, ids)
+    (particles, ids, mixed)
 }
 
 /// Attribute each particle to the nearest truth particle of its pulse
@@ -439,4 +475,151 @@ pub fn run_and_score(
         tparams.fit_window / 2,
     );
     Ok((tracks, s))
+}
+
+/// Where wrong links and missed truth links come from (see [`diagnose`]).
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct LinkDiagnosis {
+    pub links: u64,
+    pub wrong_links: u64,
+    /// Wrong links with a merged image (events of two sources, particles
+    /// or noise) at one end.
+    pub wrong_merged: u64,
+    /// Wrong links with a pure noise detection at one end.
+    pub wrong_noise: u64,
+    /// Wrong links between two clean images of different particles.
+    pub wrong_swap: u64,
+    /// ... of which the two truth particles were < 2 px apart at the
+    /// second pulse (co-moving neighbours).
+    pub wrong_swap_close: u64,
+    /// Wrong links that are a track's first link (initialisation).
+    pub wrong_first: u64,
+    /// Wrong links that are a track's last link (the tail).
+    pub wrong_last: u64,
+    /// Wrong links across a bridged gap.
+    pub wrong_gap: u64,
+    pub truth_links: u64,
+    pub missed: u64,
+    /// Missed truth links whose first detection is on no kept track.
+    pub missed_a_off_track: u64,
+    /// ... whose second detection is on no kept track.
+    pub missed_b_off_track: u64,
+    /// ... both on tracks (different ones, or not consecutive).
+    pub missed_both_on_tracks: u64,
+    /// ... with a merged image at either end.
+    pub missed_merged: u64,
+    /// The tracker's position noise estimate at the end (px per axis).
+    pub position_sigma: f64,
+}
+
+/// Classify every wrong link and every missed truth link of `tracks`
+/// (detections numbered as in [`score`]; `det_mixed[serial]` tells merged
+/// images, `det_xy` the detection positions, `truth` the truth samples).
+pub fn diagnose(
+    tracks: &[LinkedTrack],
+    det_truth: &[Option<u64>],
+    det_mixed: &[bool],
+    det_pulse: &[i64],
+    truth: &[TruthSample],
+) -> LinkDiagnosis {
+    let mut d = LinkDiagnosis::default();
+    let pos: HashMap<(i64, u64), (f64, f64)> = truth
+        .iter()
+        .map(|t| ((t.pulse, t.particle_id), (t.x, t.y)))
+        .collect();
+    let mut on_track = vec![false; det_truth.len()];
+    let mut found: HashSet<(i64, u64)> = HashSet::new();
+    for t in tracks {
+        let serials: Vec<u64> = t.detections.iter().flatten().copied().collect();
+        for &s in &serials {
+            on_track[s as usize] = true;
+        }
+        let n = serials.len();
+        for (i, w) in serials.windows(2).enumerate() {
+            d.links += 1;
+            let (a, b) = (w[0] as usize, w[1] as usize);
+            let (ia, ib) = (det_truth[a], det_truth[b]);
+            if ia.is_some() && ia == ib {
+                if det_pulse[b] == det_pulse[a] + 1 {
+                    found.insert((det_pulse[a], ia.unwrap()));
+                }
+                continue;
+            }
+            d.wrong_links += 1;
+            if i == 0 {
+                d.wrong_first += 1;
+            }
+            if i + 2 == n {
+                d.wrong_last += 1;
+            }
+            if det_pulse[b] != det_pulse[a] + 1 {
+                d.wrong_gap += 1;
+            }
+            if det_mixed[a] || det_mixed[b] {
+                d.wrong_merged += 1;
+            } else if ia.is_none() || ib.is_none() {
+                d.wrong_noise += 1;
+            } else {
+                d.wrong_swap += 1;
+                let k = det_pulse[b];
+                if let (Some(pa), Some(pb)) =
+                    (pos.get(&(k, ia.unwrap())), pos.get(&(k, ib.unwrap())))
+                {
+                    if (pa.0 - pb.0).hypot(pa.1 - pb.1) < 2.0 {
+                        d.wrong_swap_close += 1;
+                    }
+                }
+            }
+        }
+    }
+    let mut det_of: HashMap<(i64, u64), usize> = HashMap::new();
+    for (s, (id, &k)) in det_truth.iter().zip(det_pulse).enumerate() {
+        if let Some(id) = id {
+            det_of.entry((k, *id)).or_insert(s);
+        }
+    }
+    for (&(k, id), &a) in &det_of {
+        let Some(&b) = det_of.get(&(k + 1, id)) else {
+            continue;
+        };
+        d.truth_links += 1;
+        if found.contains(&(k, id)) {
+            continue;
+        }
+        d.missed += 1;
+        if det_mixed[a] || det_mixed[b] {
+            d.missed_merged += 1;
+        }
+        match (on_track[a], on_track[b]) {
+            (false, _) => d.missed_a_off_track += 1,
+            (true, false) => d.missed_b_off_track += 1,
+            (true, true) => d.missed_both_on_tracks += 1,
+        }
+    }
+    d
+}
+
+/// Cluster, track and [`diagnose`] a scene.
+pub fn run_and_diagnose(
+    scene: &[SynthPulse],
+    cparams: &ClusterParams,
+    tparams: &super::TrackParams,
+) -> crate::Result<LinkDiagnosis> {
+    let mut tracker = super::Tracker::new(tparams.clone())?;
+    let (mut det_truth, mut det_mixed, mut det_pulse) = (Vec::new(), Vec::new(), Vec::new());
+    let mut tracks = Vec::new();
+    let mut truth = Vec::new();
+    for sp in scene {
+        let (parts, ids, mixed) = cluster_with_truth_mixed(sp, cparams);
+        det_pulse.extend(std::iter::repeat(sp.pulse.index).take(parts.len()));
+        det_truth.extend(ids);
+        det_mixed.extend(mixed);
+        tracks.extend(tracker.push_linked(sp.pulse.index, sp.pulse.start_us, &parts)?);
+        truth.extend_from_slice(&sp.truth);
+    }
+    let sigma = tracker.position_sigma();
+    tracks.extend(tracker.finish().0);
+    let mut d = diagnose(&tracks, &det_truth, &det_mixed, &det_pulse, &truth);
+    d.position_sigma = sigma;
+    Ok(d)
 }
