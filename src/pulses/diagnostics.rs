@@ -113,6 +113,59 @@ pub fn burst_onset(h: &[f64]) -> f64 {
     onset.max(x05 - 2.0)
 }
 
+/// Leading edge of the burst, in bins of `h` (circular; may be negative →
+/// wraps): the time where the event rate first rises above the *local*
+/// floor before the burst by `frac` of the burst amplitude (and by 3 √floor
+/// counts, so noise alone does not trigger it).
+///
+/// Why this is the pulse start: an event cannot precede the light that
+/// causes it, so the pulse starts at or before the earliest burst events,
+/// and the earliest detectable burst events are the brightest, fastest
+/// pixels with the shortest latency jitter. Walking from the flank's
+/// half-height back to where the excess vanishes (Willert's "preceding
+/// minimum", made robust by a threshold) lands on that earliest-event time;
+/// the flank extrapolation of [`burst_onset`] instead lands on the *typical*
+/// onset, several jitter widths later. The floor is the minimum of the
+/// lightly smoothed histogram in the 30 % of the period before the flank,
+/// not a global percentile: a broad burst can fill most of the period.
+/// What remains is the sensor's minimum latency for the fastest events,
+/// which no event-only estimate can see ([`super::PulseOptions::onset_latency_us`]).
+pub fn leading_edge(h: &[f64], frac: f64) -> f64 {
+    let n = h.len();
+    if n < 4 {
+        return 0.0;
+    }
+    let s = smooth_circular(h, 1);
+    let at = |i: isize| s[i.rem_euclid(n as isize) as usize];
+    let (kp, &peak) = s
+        .iter()
+        .enumerate()
+        .max_by(|a, b| a.1.total_cmp(b.1))
+        .unwrap();
+    let kp = kp as isize;
+    let look = ((0.3 * n as f64) as isize).max(3);
+    // Half height against the lowest point before the peak.
+    let low0 = (1..=look.max(n as isize / 2))
+        .map(|d| at(kp - d))
+        .fold(f64::MAX, f64::min);
+    let half = low0 + 0.5 * (peak - low0);
+    let mut x50 = kp;
+    while x50 > kp - n as isize && at(x50 - 1) >= half {
+        x50 -= 1;
+    }
+    let floor = (1..=look).map(|d| at(x50 - d)).fold(f64::MAX, f64::min);
+    let amp = (peak - floor).max(0.0);
+    let level = floor + (frac * amp).max(3.0 * floor.max(1.0).sqrt());
+    let mut j = x50;
+    while j > x50 - look && at(j - 1) >= level {
+        j -= 1;
+    }
+    // at(j−1) < level ≤ at(j): interpolate between bin centres.
+    let (a, b) = (at(j - 1), at(j));
+    let f = ((level - a) / (b - a).max(1e-12)).clamp(0.0, 1.0);
+    (j - 1) as f64 + 0.5 + f
+}
+
 /// Latency statistics of a histogram whose bin 0 starts at the pulse start.
 pub fn latency_stats(h: &[f64]) -> LatencyStats {
     let n = h.len();
@@ -415,6 +468,36 @@ mod tests {
         assert_eq!(c.clusters, 3);
         assert_eq!(c.area, 7);
         assert_eq!(c.events, 8);
+    }
+
+    /// A burst starting at bin 12 (no event before) on a noisy floor, at
+    /// several positions in the period (wrapping included).
+    #[test]
+    fn leading_edge_finds_the_first_burst_events() {
+        let n = 500;
+        let mut s: u64 = 3;
+        for shift in [0usize, 100, 480, 495] {
+            let h: Vec<f64> = (0..n)
+                .map(|i| {
+                    s = s
+                        .wrapping_mul(6364136223846793005)
+                        .wrapping_add(1442695040888963407);
+                    let noise = 160.0 + ((s >> 40) % 25) as f64 - 12.0;
+                    let lat = ((i + n - shift) % n) as f64 + 0.5 - 12.0;
+                    // Gamma(3, 2.5) density × 77k events
+                    let burst = if lat > 0.0 {
+                        77_000.0 * lat * lat * (-lat / 2.5).exp() / (2.0 * 2.5f64.powi(3))
+                    } else {
+                        0.0
+                    };
+                    noise + burst
+                })
+                .collect();
+            let e = leading_edge(&h, 0.002);
+            let want = (12.0 + shift as f64) % n as f64;
+            let d = (e - want + 1.5 * n as f64) % n as f64 - 0.5 * n as f64;
+            assert!(d.abs() < 1.5, "shift {shift}: edge {e}, want {want}");
+        }
     }
 
     #[test]

@@ -31,11 +31,15 @@
 //!    up only as a linear phase drift between blocks. Each block's histogram
 //!    is then shifted to the fitted pulse start and summed into the 1 µs
 //!    latency histogram: peak, FWHM, 95 % window, contrast, floor. Without
-//!    triggers the pulse start is the burst onset: the rising flank
-//!    (20–60 % of the peak) extrapolated to the floor; it lags the light
-//!    pulse by the sensor's minimum latency, which
-//!    [`PulseOptions::onset_latency_us`] can subtract when known (e.g. from
-//!    a recording with triggers).
+//!    triggers the pulse start is the burst's *leading edge*: walking back
+//!    from the rising flank's half height to where the excess over the local
+//!    floor falls below 0.2 % of the amplitude
+//!    ([`diagnostics::leading_edge`]). An event cannot precede its light
+//!    pulse, so the earliest burst events bound the start; on the simulator
+//!    presets this lands 2–4 µs after the light (the fastest pixels'
+//!    latency), where the flank extrapolation used before landed 6–10 µs
+//!    late. A known minimum latency ([`PulseOptions::onset_latency_us`],
+//!    e.g. from a recording with triggers) is subtracted.
 //!
 //! Memory is bounded by the warm-up buffer (~26 MB), the block histograms
 //! (≤ 1024 × P_ref bins), the rate map and the trigger times.
@@ -156,6 +160,10 @@ pub const NOMINAL_TOLERANCE: f64 = 0.02;
 /// events sit in large (row, timestamp) groups *and* its burst fraction
 /// collapsed (below half the recording's median, or below 10 %).
 pub const SATURATION_GROUP_FRACTION: f64 = 0.10;
+/// Without triggers, the pulse start is where the burst first exceeds its
+/// local floor by this fraction of its amplitude
+/// ([`diagnostics::leading_edge`]).
+pub const LEADING_EDGE_FRACTION: f64 = 0.002;
 /// Reorder window of [`split_pulses`] (µs).
 pub const REORDER_MARGIN_US: i64 = 1000;
 
@@ -234,8 +242,8 @@ pub struct EstimateReport {
     pub blocks_used: usize,
     /// RMS of block phases about the fitted line (µs).
     pub phase_residual_rms_us: f64,
-    /// Burst onset found in the latency histogram before subtracting
-    /// `onset_latency_us` (µs after the template's zero; diagnostic).
+    /// The known onset latency subtracted from the leading edge
+    /// (`onset_latency_us`; 0 when not given).
     pub onset_latency_subtracted_us: f64,
 }
 
@@ -667,7 +675,11 @@ impl Analyzer {
             None => {
                 let (anchor, period, used, rms) = self.fit_block_phases(&f)?;
                 let lat = aligned_histogram(&self.acc.blocks, &f, anchor, period, n_lat);
-                let onset = diagnostics::burst_onset(&lat);
+                let mut onset =
+                    diagnostics::leading_edge(&per_us(&lat, period), LEADING_EDGE_FRACTION);
+                if onset > 0.5 * n_lat as f64 {
+                    onset -= n_lat as f64; // the edge wrapped to the period's end
+                }
                 let known = self.opts.onset_latency_us.unwrap_or(0.0);
                 let est = EstimateReport {
                     search_hz: self.opts.search_band(),
@@ -938,6 +950,22 @@ impl Analyzer {
         // is built against.
         Ok((anchor, period, used, rms))
     }
+}
+
+/// Latency histogram as events per µs: the last bin covers only the
+/// fraction `period − (n − 1)` of a µs (a dip that is not in the data).
+fn per_us(lat: &[f64], period: f64) -> Vec<f64> {
+    let mut h = lat.to_vec();
+    let n = h.len();
+    let width = period - (n - 1) as f64;
+    if n >= 3 {
+        h[n - 1] = if width > 0.1 {
+            h[n - 1] / width
+        } else {
+            0.5 * (h[n - 2] + h[0])
+        };
+    }
+    h
 }
 
 /// Circular first difference.
