@@ -75,6 +75,7 @@ use crate::events::{Chunk, Edge, EventChunk, Geometry};
 
 pub mod accum;
 pub mod diagnostics;
+pub mod live;
 pub mod monitor;
 pub mod timing;
 
