@@ -1,6 +1,8 @@
-//! Binning speed (samples/s) of the mergeable grid accumulator.
+//! Binning speed (samples/s) of the mergeable grid accumulator, and the
+//! per-sample noise estimator.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
+use ebptv::grid::noise::{velocity_noise, NoiseOptions};
 use ebptv::grid::{
     estimate, EstimateOptions, Fit, GridAccumulator, GridSpec, Lattice, Sample, Weighting,
 };
@@ -77,6 +79,48 @@ fn bench(c: &mut Criterion) {
             .unwrap()
             .bins
             .len()
+        })
+    });
+    g.finish();
+
+    // Noise estimator: demo-like density (2 300 samples per pulse over
+    // 640 × 360 px, 0.01 per px²), 435 pulses ≈ 1 M samples.
+    let mut rng = rand_pcg::Pcg64::seed_from_u64(2);
+    let dense: Vec<Sample> = (0..1_000_500usize)
+        .map(|k| {
+            let (x, y) = (rng.gen::<f64>() * 640.0, rng.gen::<f64>() * 360.0);
+            Sample {
+                x,
+                y,
+                u: 0.1 * y + rng.gen::<f64>() * 20.0,
+                v: rng.gen::<f64>() * 20.0,
+                t_us: (k / 2300) as f64 * 200.0,
+                track_id: (k % 2300) as u64,
+            }
+        })
+        .collect();
+    let spec = GridSpec::covering(
+        Lattice::new(16.0, 16.0, 0.0).unwrap(),
+        Weighting::TopHat,
+        0.0,
+        640.0,
+        0.0,
+        360.0,
+    )
+    .unwrap();
+    let mut acc = GridAccumulator::new(spec);
+    acc.add_all(&dense);
+    let mean = estimate(&acc, &EstimateOptions::default()).unwrap();
+    let mut g = c.benchmark_group("grid_noise");
+    g.sample_size(10)
+        .measurement_time(std::time::Duration::from_secs(4))
+        .warm_up_time(std::time::Duration::from_secs(1));
+    g.throughput(Throughput::Elements(dense.len() as u64));
+    g.bench_function("velocity_noise_pairs", |b| {
+        b.iter(|| {
+            velocity_noise(&dense, &mean, &NoiseOptions::default())
+                .unwrap()
+                .pairs
         })
     });
     g.finish();

@@ -1,5 +1,6 @@
 //! Vectors per second of multi-frame PIV: 32x32 windows, 16 px spacing,
-//! N_f = 5, 1 and 3 passes, on 512x512 synthetic particle images.
+//! N_f = 5, 1 and 3 passes (and 3 passes with pyramid correlation up to
+//! separation 4), on 512x512 synthetic particle images.
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use ebptv::piv::synth::{particle_frames, SynthOptions};
@@ -20,12 +21,13 @@ fn bench(c: &mut Criterion) {
     g.sample_size(10)
         .measurement_time(Duration::from_secs(4))
         .warm_up_time(Duration::from_secs(1));
-    for passes in [1usize, 3] {
+    for (passes, pyramid) in [(1usize, 1usize), (3, 1), (3, 4)] {
         let mut o = PivOptions::new(32, 16);
         o.passes = passes;
+        o.pyramid = pyramid;
         let nodes = node_grid(512, 512, &o).unwrap().len() as u64;
         g.throughput(Throughput::Elements(nodes));
-        g.bench_function(format!("passes{passes}"), |b| {
+        g.bench_function(format!("passes{passes}_pyramid{pyramid}"), |b| {
             b.iter(|| piv_frames(&refs, &o).unwrap())
         });
     }

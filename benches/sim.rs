@@ -1,25 +1,86 @@
-//! Simulator throughput (events per second of wall time).
+//! Simulator throughput: events per second of process CPU time and of wall
+//! time, with 1 and 2 rayon threads.
 //!
-//! `cargo bench --bench sim`. Scenes: the full-frame water jet at ~32 Mev/s
-//! (the paper's recording regime) and the demo vortex.
+//! `cargo bench --bench sim` (add `-- quick` for one repetition). Scenes:
+//! `water_jet_5khz` (full frame, ~31 Mev/s: the paper's recording regime;
+//! steady jet, exact advection), `rib_wake` (full frame, the most expensive
+//! velocity field: RK4 through the shedding field) and `demo` (640×360
+//! vortex). "in memory" drains the `Simulator` (events + truth in memory,
+//! as the pipeline consumes it); "to files" is `write_recording` (EVT 3.0 +
+//! 80 MB/s of truth CSV per 0.1 s, into a temporary directory).
+//!
+//! CPU time is the whole process's (`CLOCK_PROCESS_CPUTIME_ID`, all
+//! threads), so it is meaningful on a loaded machine; wall time is not.
+//! Each number is the best of the repetitions.
 
-use criterion::{criterion_group, criterion_main, Criterion, Throughput};
-use ebptv::sim::{presets, simulate};
+use std::time::Instant;
 
-fn bench(c: &mut Criterion) {
-    let mut g = c.benchmark_group("simulate");
-    g.sample_size(10)
-        .measurement_time(std::time::Duration::from_secs(8))
-        .warm_up_time(std::time::Duration::from_secs(1));
-    for (name, secs) in [("water_jet_5khz", 0.02), ("demo", 0.02), ("rib_wake", 0.02)] {
-        let mut s = presets::preset(name).unwrap();
-        s.duration_s = secs;
-        let n = simulate(&s, 1).unwrap().events.len() as u64;
-        g.throughput(Throughput::Elements(n));
-        g.bench_function(name, |b| b.iter(|| simulate(&s, 1).unwrap().events.len()));
-    }
-    g.finish();
+use ebptv::io::{EventSource, Format};
+use ebptv::sim::{presets, write_recording, Scenario, Simulator};
+use ebptv::Chunk;
+
+fn cpu_seconds() -> f64 {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime writes into the timespec we own.
+    unsafe { libc::clock_gettime(libc::CLOCK_PROCESS_CPUTIME_ID, &mut ts) };
+    ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9
 }
 
-criterion_group!(benches, bench);
-criterion_main!(benches);
+fn in_memory(sc: &Scenario) -> u64 {
+    let mut sim = Simulator::new(sc, 1).unwrap();
+    let mut chunk = Chunk::default();
+    let mut n = 0u64;
+    let mut truth = 0usize;
+    while sim.next_chunk(&mut chunk).unwrap() {
+        n += chunk.events.len() as u64;
+        truth += sim.take_truth().len();
+    }
+    std::hint::black_box(truth);
+    n
+}
+
+fn to_files(sc: &Scenario) -> u64 {
+    let dir = tempfile::tempdir().unwrap();
+    write_recording(sc, 1, dir.path(), Format::Evt3, |_, _| {})
+        .unwrap()
+        .events
+}
+
+fn main() {
+    let quick = std::env::args().any(|a| a == "quick");
+    let reps = if quick { 1 } else { 3 };
+    println!("| scene | path | threads | events | CPU s | Mev per CPU-s | wall s | Mev/s wall |");
+    println!("|---|---|---|---|---|---|---|---|");
+    for (name, secs) in [("water_jet_5khz", 0.1), ("rib_wake", 0.05), ("demo", 0.05)] {
+        let mut sc = presets::preset(name).unwrap();
+        sc.duration_s = secs;
+        let paths: &[(&str, fn(&Scenario) -> u64)] = if name == "water_jet_5khz" {
+            &[("in memory", in_memory), ("to files", to_files)]
+        } else {
+            &[("in memory", in_memory)]
+        };
+        for &(path, run) in paths {
+            for threads in [1, 2] {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .unwrap();
+                let (mut cpu, mut wall, mut n) = (f64::INFINITY, f64::INFINITY, 0);
+                for _ in 0..reps {
+                    let (c0, w0) = (cpu_seconds(), Instant::now());
+                    n = pool.install(|| run(&sc));
+                    wall = wall.min(w0.elapsed().as_secs_f64());
+                    cpu = cpu.min(cpu_seconds() - c0);
+                }
+                println!(
+                    "| {name} ({secs} s) | {path} | {threads} | {n} | {cpu:.2} | {:.2} | {wall:.2} | {:.2} |",
+                    n as f64 / cpu / 1e6,
+                    n as f64 / wall / 1e6
+                );
+            }
+        }
+    }
+}

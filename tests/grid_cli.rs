@@ -292,3 +292,71 @@ fn bad_input_gives_clear_errors_and_no_output() {
     assert!(err.contains("incompatible grids"), "{err}");
     assert!(!d.join("mm/grid.csv").exists());
 }
+
+/// `ebptv track REC --grid "..."`: tracking and binning in one go, the grid
+/// in OUT/grid with maps, time-resolved fields and the noise / dynamic
+/// range keys; bad grid options are refused before tracking starts.
+#[test]
+fn track_with_grid_in_one_go() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let sim = d.join("sim");
+    let (ok, err) = ebptv(&[
+        "simulate",
+        "--preset",
+        "demo",
+        "--seconds",
+        "0.01",
+        "--out",
+        sim.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    let rec = sim.join("recording.raw");
+    let ptv = d.join("ptv");
+    let (ok, err) = ebptv(&[
+        "track",
+        rec.to_str().unwrap(),
+        "--out",
+        ptv.to_str().unwrap(),
+        "--grid",
+        "--bin 16 --fit linear --fields-every 2",
+    ]);
+    assert!(ok, "{err}");
+    let g = ptv.join("grid");
+    for f in [
+        "grid.csv",
+        "grid_u.npy",
+        "map_u.png",
+        "map_uu.png",
+        "fields_u.npy",
+        "grid_state.json",
+    ] {
+        assert!(g.join(f).is_file(), "{f} missing");
+    }
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(g.join("grid.json")).unwrap()).unwrap();
+    let noise = j["velocity_noise_rms"].as_f64().unwrap();
+    let dvr = j["dynamic_range"].as_f64().unwrap();
+    let vmax = j["max_mean_speed"].as_f64().unwrap();
+    assert!(
+        noise > 0.0 && (dvr - vmax / noise).abs() < 1e-6 * dvr,
+        "{j}"
+    );
+    assert_eq!(j["fit"], "linear");
+
+    let bad = d.join("bad");
+    let (ok, err) = ebptv(&[
+        "track",
+        rec.to_str().unwrap(),
+        "--out",
+        bad.to_str().unwrap(),
+        "--grid",
+        "--bogus 3",
+    ]);
+    assert!(!ok);
+    assert!(err.contains("--grid") && err.contains("--bogus"), "{err}");
+    assert!(
+        !bad.join("tracks.csv").exists(),
+        "tracked despite bad --grid"
+    );
+}

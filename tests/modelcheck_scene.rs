@@ -122,8 +122,25 @@ fn real_sim_null_case_names_nothing() {
     );
 }
 
-// The remaining catalogue effects take ~20 s of CPU each on 2 cores: run
-// with `cargo test --release --test modelcheck_scene -- --ignored`.
+// Hot pixels (missed in session 1: a zero-spread scalar swamped the fit
+// objective, and no signature told count from rate) stay in CI.
+#[test]
+fn real_sim_hidden_hot_pixels() {
+    let truth = setting(
+        "hot_pixels",
+        &[
+            ("count", strength(5, 20.0, 60.0).round()),
+            ("rate_hz", strength(6, 300.0, 3000.0)),
+        ],
+    );
+    assert_recovered(&check_hidden(Some(truth.clone()), 5, 15), &truth);
+}
+
+// The remaining catalogue effects take ~10-20 s of CPU each: the full sweep
+// is `cargo test --release --test modelcheck_scene -- --include-ignored
+// --test-threads 1 --nocapture` (results in BENCHMARKS.md). The arbiter
+// test fails: on this 120-row scene row time and event time are not
+// separable (the held-out gap calls a wrong split consistent).
 
 #[test]
 #[ignore]
@@ -137,19 +154,6 @@ fn real_sim_hidden_background_noise() {
 fn real_sim_hidden_refractory() {
     let truth = setting("refractory", &[("period_us", strength(4, 4.0, 15.0))]);
     assert_recovered(&check_hidden(Some(truth.clone()), 4, 14), &truth);
-}
-
-#[test]
-#[ignore]
-fn real_sim_hidden_hot_pixels() {
-    let truth = setting(
-        "hot_pixels",
-        &[
-            ("count", strength(5, 20.0, 60.0).round()),
-            ("rate_hz", strength(6, 300.0, 3000.0)),
-        ],
-    );
-    assert_recovered(&check_hidden(Some(truth.clone()), 5, 15), &truth);
 }
 
 #[test]

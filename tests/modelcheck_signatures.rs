@@ -313,7 +313,9 @@ fn streaming_in_chunks_equals_one_shot() {
         acc.add_events(&c);
         i += n;
     }
-    assert_eq!(acc.finish().unwrap(), one);
+    // Debug text: profiles hold NaN in empty bins, and NaN != NaN.
+    assert_eq!(format!("{:?}", acc.finish().unwrap()), format!("{one:?}"));
+    assert!(one.profile("tick_events_vs_rows").is_some());
 }
 
 /// Random "particle" events: each pulse lights `per_pulse` random pixels
@@ -577,4 +579,75 @@ fn bad_configuration_and_empty_data_are_errors() {
     assert!(Histogram::new(vec![1.0], BinScale::Index).is_err());
     assert!(Histogram::new(vec![0.0, 0.0], BinScale::Index).is_err());
     assert_eq!(&count_edges(20.0)[14..], &[14.0, 15.0, 16.0, 19.0, 23.0]);
+}
+
+#[test]
+fn off_burst_pixels_separate_hot_pixels_from_background() {
+    let g = Geometry::new(32, 32);
+    let (period, pulses) = (200i64, 400i64);
+    let mut cfg = SignatureConfig::new(g, timing(period as f64, 0.0));
+    cfg.latency_bin_us = 2.0;
+    cfg.burst_window_us = Some((10.0, 30.0));
+    // Burst events (inside the window) never count.
+    let mut ev: Vec<(i64, u16, u16, u8)> =
+        (0..pulses).map(|k| (k * period + 20, 5, 5, 1)).collect();
+    // Three hot pixels with exactly 7, 7 and 40 off-burst events; one
+    // background pixel with one.
+    for (x, y, n) in [(1u16, 1u16, 7i64), (2, 9, 7), (30, 30, 40)] {
+        for k in 0..n {
+            ev.push((k * period + 100 + x as i64, x, y, 1));
+        }
+    }
+    ev.push((50 * period + 150, 17, 3, 0));
+    ev.sort();
+    let s = compute(&cfg, &chunk(&ev), &[], None).unwrap();
+    assert!((s.scalar("off_burst_pixels").unwrap() - 4.0 / 1024.0).abs() < 1e-15);
+    let h = s.histogram("off_burst_pixel_count").unwrap();
+    assert_eq!(
+        h.edges[0], 1.0,
+        "pixels without off-burst events are left out"
+    );
+    assert_eq!(h.total(), 4.0);
+    assert_eq!(h.counts[h.bin_of(1.0).unwrap()], 1.0);
+    assert_eq!(h.counts[h.bin_of(7.0).unwrap()], 2.0);
+    assert_eq!(h.counts[h.bin_of(40.0).unwrap()], 1.0);
+    // The per-pixel counts add up to what `off_burst_rate` sees.
+    let total_off = 7.0 + 7.0 + 40.0 + 1.0;
+    let rate = s.scalar("off_burst_rate").unwrap();
+    assert!((rate - total_off / 1024.0 / (s.duration_us * 1e-6)).abs() < 1e-9 * rate);
+    // Without a fixed window they are not computed.
+    cfg.burst_window_us = None;
+    let s = compute(&cfg, &chunk(&ev), &[], None).unwrap();
+    assert!(s.get("off_burst_pixels").is_none());
+    assert!(s.get("off_burst_pixel_count").is_none());
+}
+
+#[test]
+fn tick_profile_counts_busy_ticks_only() {
+    let cfg = SignatureConfig::new(Geometry::new(16, 16), timing(1000.0, 0.0));
+    // Ticks 10, 11, 12, 13 are one busy period; tick 20 stands alone.
+    // Inner ticks 11 (rows 1, 2: 2 rows, 3 events) and 12 (rows 4, 5, 6:
+    // 3 rows, 3 events) count; the edges 10 and 13 and lone 20 do not.
+    let ev = chunk(&[
+        (10, 0, 1, 1),
+        (11, 0, 1, 1),
+        (11, 1, 1, 1),
+        (11, 0, 2, 1),
+        (12, 0, 4, 1),
+        (12, 0, 5, 1),
+        (12, 0, 6, 1),
+        (13, 0, 7, 1),
+        (13, 1, 7, 1),
+        (20, 0, 9, 1),
+        (20, 1, 9, 1),
+        (20, 2, 9, 1),
+        (20, 3, 9, 1),
+    ]);
+    let s = compute(&cfg, &ev, &[], None).unwrap();
+    let p = s.profile("tick_events_vs_rows").unwrap();
+    assert_eq!(p.count.iter().sum::<f64>(), 2.0);
+    let k2 = p.edges.iter().position(|&e| e == 2.0).unwrap();
+    let k3 = p.edges.iter().position(|&e| e == 3.0).unwrap();
+    assert_eq!((p.count[k2], p.mean[k2]), (1.0, 3.0));
+    assert_eq!((p.count[k3], p.mean[k3]), (1.0, 3.0));
 }

@@ -162,3 +162,75 @@ fn compare_writes_json_with_known_differences() {
     assert!(j["v"]["rms_diff"].as_f64().unwrap() < 1e-9);
     assert_eq!(j["compared_bins"].as_u64().unwrap(), 64);
 }
+
+/// A recording without a pulse train (events at random times, as under
+/// continuous illumination): `ebptv piv` must say there are no pulses and
+/// write nothing.
+#[test]
+fn piv_on_a_recording_without_pulses_is_a_clear_error() {
+    use ebptv::events::{Chunk, Geometry};
+    use rand::{Rng, SeedableRng};
+    let dir = tempfile::tempdir().unwrap();
+    let rec = dir.path().join("continuous.raw");
+    let mut w = ebptv::io::create(
+        &rec,
+        None,
+        Geometry {
+            width: 128,
+            height: 96,
+        },
+    )
+    .unwrap();
+    let mut rng = rand_pcg::Pcg64::seed_from_u64(4);
+    let mut chunk = Chunk::default();
+    let mut t = 0i64;
+    for _ in 0..40_000 {
+        t += rng.gen_range(0..6);
+        chunk
+            .events
+            .push(t, rng.gen_range(0..128), rng.gen_range(0..96), 1);
+    }
+    w.write_chunk(&chunk).unwrap();
+    w.finish().unwrap();
+    let out = dir.path().join("o");
+    let r = ebptv()
+        .args(["piv", rec.to_str().unwrap(), "--out", out.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert!(!r.status.success());
+    assert!(err.contains("no pulse"), "{err}");
+    assert!(!out.join("piv_mean.csv").exists());
+}
+
+/// The pyramid depth is checked against the frames before any work.
+#[test]
+fn piv_images_rejects_a_pyramid_deeper_than_the_frames() {
+    let dir = tempfile::tempdir().unwrap();
+    let so = SynthOptions {
+        width: 64,
+        height: 64,
+        frames: 2,
+        ..Default::default()
+    };
+    let f = particle_frames(&so, &|_, _| (1.0, 0.0));
+    let (a, b) = (dir.path().join("a.png"), dir.path().join("b.png"));
+    save_png16(&a, &f[0], 1000.0).unwrap();
+    save_png16(&b, &f[1], 1000.0).unwrap();
+    let out = dir.path().join("o");
+    let r = ebptv()
+        .args([
+            "piv-images",
+            a.to_str().unwrap(),
+            b.to_str().unwrap(),
+            "--pyramid",
+            "2",
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert!(!r.status.success());
+    assert!(err.contains("pyramid"), "{err}");
+}

@@ -418,3 +418,156 @@ fn off_events_add_off_polarity_after_the_pulse() {
         );
     }
 }
+
+#[test]
+fn clock_drift_moves_pulses_triggers_and_truth_together() {
+    let off = run(&base());
+    // Zero drift is exactly no drift.
+    let zero = run(&with(
+        "clock_drift",
+        &[("ppm", 0.0), ("wander_ppm", 0.0), ("wander_period_s", 1.0)],
+    ));
+    assert_eq!(zero.events, off.events);
+    assert_same_world(&zero, &off);
+    // 500 ppm slow laser plus a ±300 ppm wander over 4 ms.
+    let s = with(
+        "clock_drift",
+        &[
+            ("ppm", 500.0),
+            ("wander_ppm", 300.0),
+            ("wander_period_s", 0.004),
+        ],
+    );
+    let on = run(&s);
+    let period = s.period_us();
+    let n = on.pulse_starts_us.len();
+    assert_eq!(n as u64, s.pulse_count());
+    let mut min_gap = f64::INFINITY;
+    let mut max_gap: f64 = 0.0;
+    for (k, w) in on.pulse_starts_us.windows(2).enumerate() {
+        // The camera-time start follows the drift formula.
+        let tau = k as f64 * period;
+        let expect = s.light.first_pulse_us
+            + tau
+            + 1e-6
+                * (500.0 * tau
+                    + 300.0 * 4000.0 / std::f64::consts::TAU
+                        * (1.0 - (std::f64::consts::TAU * tau / 4000.0).cos()));
+        assert!(
+            (w[0] - expect).abs() < 1e-9,
+            "pulse {k}: {} vs {expect}",
+            w[0]
+        );
+        min_gap = min_gap.min(w[1] - w[0]);
+        max_gap = max_gap.max(w[1] - w[0]);
+    }
+    // Spacing = period·(1 + (500 ± 300)·1e-6), within the sampling of the
+    // wander by the pulses.
+    assert!(
+        (min_gap - period * (1.0 + 200e-6)).abs() < 0.005,
+        "{min_gap}"
+    );
+    assert!(
+        (max_gap - period * (1.0 + 800e-6)).abs() < 0.005,
+        "{max_gap}"
+    );
+    assert!(on.pulse_starts_us.last().unwrap() - off.pulse_starts_us[n - 1] > 1.0);
+    // Triggers (camera clock) mark the drifted pulses.
+    let rising: Vec<i64> = on
+        .triggers
+        .iter()
+        .filter(|t| t.edge == ebptv::events::Edge::Rising)
+        .map(|t| t.t)
+        .collect();
+    let expect: Vec<i64> = on
+        .pulse_starts_us
+        .iter()
+        .map(|t| t.floor() as i64)
+        .collect();
+    assert_eq!(rising, expect);
+    // Truth is stamped with the drifted pulse starts.
+    for t in &on.truth {
+        assert_eq!(t.t_us, on.pulse_starts_us[t.pulse as usize]);
+    }
+    // Off again restores the original exactly.
+    let mut back = s.clone();
+    back.set_effect("clock_drift", None).unwrap();
+    assert_eq!(back, base());
+    assert!(s.without_effects().light.clock_drift.is_none());
+}
+
+#[test]
+fn clock_drift_is_validated_with_the_field_named() {
+    for (field, params) in [
+        (
+            "light.clock_drift.ppm",
+            [
+                ("ppm", 5000.0),
+                ("wander_ppm", 0.0),
+                ("wander_period_s", 1.0),
+            ],
+        ),
+        (
+            "light.clock_drift.ppm",
+            [
+                ("ppm", f64::NAN),
+                ("wander_ppm", 0.0),
+                ("wander_period_s", 1.0),
+            ],
+        ),
+        (
+            "light.clock_drift.wander_ppm",
+            [
+                ("ppm", 0.0),
+                ("wander_ppm", -2000.0),
+                ("wander_period_s", 1.0),
+            ],
+        ),
+        (
+            "light.clock_drift.wander_period_s",
+            [("ppm", 0.0), ("wander_ppm", 10.0), ("wander_period_s", 0.0)],
+        ),
+    ] {
+        let mut s = base();
+        let m: BTreeMap<String, f64> = params.iter().map(|(k, v)| (k.to_string(), *v)).collect();
+        s.set_effect("clock_drift", Some(&m)).unwrap();
+        let e = s.validate().unwrap_err().to_string();
+        assert!(e.contains(field), "{e}");
+    }
+}
+
+/// The pulse stage recovers a drifted laser period from the events alone
+/// (no triggers) to the 0.01 µs: the nominal period would miss by
+/// 0.08 µs.
+#[test]
+fn pulse_period_estimation_follows_the_drifted_laser() {
+    use ebptv::pulses::{analyze, PulseOptions, PulseSource};
+    let mut s = ebptv::sim::presets::preset("demo").unwrap();
+    s.duration_s = 0.05;
+    s.triggers.enabled = false;
+    s.light.clock_drift = Some(ClockDrift {
+        ppm: 400.0,
+        wander_ppm: 0.0,
+        wander_period_s: 1.0,
+    });
+    s.validate().unwrap();
+    let drifted = s.period_us() * (1.0 + 400e-6);
+    let mut sim = Simulator::new(&s, 5).unwrap();
+    let opts = PulseOptions {
+        pulse_hz: Some(s.light.pulse_hz),
+        ..Default::default()
+    };
+    let est = analyze(&mut sim, &opts).unwrap();
+    assert_eq!(est.timing.source, PulseSource::Estimated);
+    let truth = sim.pulse_starts_us();
+    let truth_period = (truth[truth.len() - 1] - truth[0]) / (truth.len() - 1) as f64;
+    assert!((truth_period - drifted).abs() < 1e-9);
+    let err = est.timing.period_us - drifted;
+    eprintln!(
+        "drifted period {drifted:.5} µs, estimated {:.5} µs (error {err:.5}), nominal {:.5}",
+        est.timing.period_us,
+        s.period_us()
+    );
+    assert!(err.abs() < 0.01, "period error {err} µs");
+    assert!((est.timing.period_us - s.period_us()).abs() > 0.05);
+}

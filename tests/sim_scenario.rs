@@ -165,6 +165,7 @@ fn every_effect_can_be_set_and_cleared_by_name() {
                 "hot_pixels" => &[("count", 3.0), ("rate_hz", 100.0)],
                 "rate_limiter" => &[("max_rate_ev_s", 1e7), ("window_us", 100.0)],
                 "off_events" => &[("threshold", 0.3), ("tau_us", 20.0)],
+                "clock_drift" => &[("ppm", 40.0), ("wander_ppm", 5.0), ("wander_period_s", 2.0)],
                 _ => panic!("{name}"),
             };
             pairs.iter().map(|(k, v)| (k.to_string(), *v)).collect()
@@ -183,4 +184,44 @@ fn every_effect_can_be_set_and_cleared_by_name() {
         assert!(e.contains(&k), "{e}");
     }
     assert_eq!(s.without_effects(), Scenario::default());
+}
+
+/// Every experiment the issue names has a preset with the stated geometry
+/// and pulse rate.
+#[test]
+fn the_issues_experiments_are_presets() {
+    use ebptv::sim::scenario::FlowSpec;
+    let roi = |s: &ebptv::sim::Scenario| (s.roi().width, s.roi().height);
+    for (name, hz) in [
+        ("water_jet_2khz", 2000.0),
+        ("water_jet_4khz", 4000.0),
+        ("water_jet_5khz", 5000.0),
+        ("water_jet_10khz", 10_000.0),
+    ] {
+        let s = presets::preset(name).unwrap();
+        assert_eq!(s.light.pulse_hz, hz, "{name}");
+        assert!(matches!(s.flow, FlowSpec::Jet { .. }), "{name}");
+        assert_eq!((s.sensor.width, s.sensor.height), (1280, 720), "{name}");
+    }
+    let lbl = presets::preset("laminar_bl").unwrap();
+    assert_eq!((roi(&lbl), lbl.light.pulse_hz), ((320, 720), 5000.0));
+    assert!(matches!(lbl.flow, FlowSpec::BoundaryLayer { .. }));
+    let tbl = presets::preset("turbulent_bl").unwrap();
+    assert_eq!(roi(&tbl), (1280, 320));
+    assert!(matches!(tbl.flow, FlowSpec::Turbulent { .. }));
+    let rib = presets::preset("rib_wake").unwrap();
+    assert_eq!((roi(&rib), rib.light.pulse_hz), ((1280, 720), 5000.0));
+    let FlowSpec::Shedding {
+        u_inf,
+        size,
+        strouhal,
+        ..
+    } = rib.flow
+    else {
+        panic!("rib_wake is not a shedding flow")
+    };
+    assert_eq!(strouhal, 0.145);
+    assert!((strouhal * u_inf / size - 35.4).abs() < 0.05);
+    let roi_burst = presets::preset("roi_burst").unwrap();
+    assert_eq!(roi(&roi_burst), (1280, 160));
 }

@@ -38,6 +38,12 @@ fn step(line: &[String]) -> anyhow::Result<()> {
     super::run(cli).with_context(|| format!("demo step `{}` failed", line[1]))
 }
 
+/// Largest power of two ≤ half the pulse count, between 16 and 128.
+fn welch_segment_for(n_pulses: u64) -> u64 {
+    let half = (n_pulses / 2).max(16);
+    (1u64 << (63 - half.leading_zeros())).min(128)
+}
+
 fn p(path: &Path) -> String {
     path.display().to_string()
 }
@@ -74,6 +80,27 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         "linear",
         "--out",
         &p(&grid),
+    ]))?;
+    // Welch segments of up to 128 pulses, at least two per recording, so a
+    // short `--seconds` still gets a spectrum (coarser in frequency).
+    let tracked: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(ptv.join("summary.json")).context("reading summary.json")?,
+    )?;
+    let n_pulses = tracked["pulses"].as_u64().unwrap_or(0);
+    let nperseg = welch_segment_for(n_pulses);
+    let sc = ebptv::sim::presets::preset(&args.preset)?;
+    let roi = sc.roi();
+    let point = format!("{},{}", roi.x + roi.width * 3 / 5, roi.y + roi.height / 2);
+    step(&s(&[
+        "ebptv",
+        "spectra",
+        &p(&ptv.join("tracks.csv")),
+        "--point",
+        &point,
+        "--nperseg",
+        &nperseg.to_string(),
+        "--out",
+        &p(&out.join("spectra")),
     ]))?;
     step(&s(&[
         "ebptv",
@@ -119,6 +146,13 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         &std::fs::read_to_string(cmp.join("compare.json")).context("reading compare.json")?,
     )?;
 
+    let grid_json: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(grid.join("grid.json")).context("reading grid.json")?,
+    )?;
+    let spectrum: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(out.join("spectra").join("spectrum.json"))
+            .context("reading spectrum.json")?,
+    )?;
     let report = json!({
         "preset": args.preset,
         "seed": args.seed,
@@ -135,6 +169,12 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         "grid": grid_score,
         "piv": piv_score,
         "compare": comparison,
+        "dynamic_range": {
+            "max_speed": grid_json["max_mean_speed"],
+            "velocity_noise_rms": grid_json["velocity_noise_rms"],
+            "per_sample": grid_json["dynamic_range"],
+            "spectral_floor_noise_rms": spectrum["noise_rms"],
+        },
     });
     AtomicFile::write_all_to(
         out.join("demo_report.json"),
@@ -177,6 +217,12 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         "PTV grid mean error (rms, % of max speed)",
         format!("{:.2}", 100.0 * grid_score.rms_error_of_max_speed),
     );
+    if let Some(d) = grid_json["dynamic_range"].as_f64() {
+        row(
+            "dynamic velocity range, per track sample",
+            format!("{d:.0}:1"),
+        );
+    }
     row(
         "PIV mean error (rms, % of max speed)",
         format!("{:.2}", 100.0 * piv_score.rms_error_of_max_speed),

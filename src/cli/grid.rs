@@ -7,6 +7,7 @@ use clap::{Args, ValueEnum};
 use serde_json::json;
 
 use ebptv::grid::fields::{time_resolved, Frames};
+use ebptv::grid::noise::{velocity_noise, NoiseOptions};
 use ebptv::grid::profiles::{profile_at_x, wall_fit, WallOptions, WallSide};
 use ebptv::grid::{
     self, estimate, io as gio, EstimateOptions, Fit, GridAccumulator, GridSpec, Lattice, Sample,
@@ -241,6 +242,27 @@ pub fn run(a: GridArgs) -> anyhow::Result<()> {
         "nx": g.spec.nx, "ny": g.spec.ny, "valid_bins": valid,
         "binned_samples": acc.total_count(), "rejected_samples": acc.rejected, "max_mean_speed": max_speed,
     });
+
+    // Per-sample velocity noise (pairs of samples at one pulse) and the
+    // dynamic velocity range; needs the samples, so not after a merge.
+    if !samples.is_empty() {
+        match velocity_noise(&samples, &g, &NoiseOptions::default()) {
+            Ok(n) => {
+                summary["velocity_noise_rms"] = json!(n.noise_rms);
+                summary["noise_pairs"] = json!(n.pairs);
+                summary["dynamic_range"] = json!(n.dynamic_range);
+                eprintln!(
+                    "grid: velocity noise {:.1} px/s per sample ({} pairs), dynamic range {:.0}:1",
+                    n.noise_rms, n.pairs, n.dynamic_range
+                );
+            }
+            Err(e) => {
+                summary["velocity_noise_rms"] = json!(null);
+                summary["dynamic_range"] = json!(null);
+                eprintln!("grid: no noise estimate: {e}");
+            }
+        }
+    }
 
     if let Some(px) = a.profile_x {
         let (x_used, prof) = profile_at_x(&g, px);

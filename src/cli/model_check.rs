@@ -9,11 +9,12 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use ebptv::cluster::ClusterParams;
 use ebptv::events::{Chunk, Edge, EventChunk, Geometry};
+use ebptv::modelcheck::baseline::{baseline_from_measurement, BaselineOptions};
 use ebptv::modelcheck::report::write_outputs;
 use ebptv::modelcheck::scene::{active_effects, particles_of, timing_of, SceneSimulator};
 use ebptv::modelcheck::signatures::burst_window;
 use ebptv::modelcheck::workflow::{run as run_check, signatures_of, Recording, WorkflowOptions};
-use ebptv::sim::scenario::{Scenario, Sensor};
+use ebptv::sim::scenario::Scenario;
 
 #[derive(Args, Debug)]
 pub struct ModelCheckArgs {
@@ -21,8 +22,10 @@ pub struct ModelCheckArgs {
     pub measured: PathBuf,
     /// Starting model (scenario TOML, as `ebptv simulate --config` takes).
     /// Without it a baseline is built from the measurement: geometry, pulse
-    /// timing from the trigger channel, seeding density from the clusters,
-    /// an ideal sensor otherwise.
+    /// timing from the trigger channel, seeding density, brightness (events
+    /// per particle) and latency median from the clusters, the flow from
+    /// ebptv's own tracks (written as `flow_baseline.csv`, replayed as a
+    /// gridded field); an ideal sensor otherwise.
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Output directory (created if missing).
@@ -35,11 +38,16 @@ pub struct ModelCheckArgs {
     #[arg(long, default_value_t = 5)]
     pub replicates: usize,
     /// Objective evaluations per parameter and fit stage.
-    #[arg(long, default_value_t = 20)]
+    #[arg(long, default_value_t = 12)]
     pub evaluations: usize,
     /// Most effects to add.
     #[arg(long, default_value_t = 3)]
     pub max_effects: usize,
+    /// Pulses per fit and per held-out block (and per simulated
+    /// recording): at most half the recording each. The search's cost
+    /// grows with it; 100 pulses of a 640x360 sensor hold ~0.4 M events.
+    #[arg(long, default_value_t = 100)]
+    pub block_pulses: u64,
 }
 
 pub fn run(a: ModelCheckArgs) -> anyhow::Result<()> {
@@ -79,7 +87,24 @@ pub fn run(a: ModelCheckArgs) -> anyhow::Result<()> {
             notes.push(format!("starting model: {}", p.display()));
             Scenario::from_toml_file(p)?
         }
-        None => baseline(&events, &rising, geometry, &mut notes)?,
+        None => {
+            std::fs::create_dir_all(&a.out)
+                .with_context(|| format!("creating {}", a.out.display()))?;
+            let b = baseline_from_measurement(
+                &events,
+                &rising,
+                geometry,
+                // Absolute: the fitted model.toml names it, and a relative
+                // path there would be read relative to that file.
+                &std::fs::canonicalize(&a.out)?.join("flow_baseline.csv"),
+                &BaselineOptions {
+                    seed: a.seed,
+                    ..BaselineOptions::default()
+                },
+            )?;
+            notes.extend(b.notes);
+            b.scenario
+        }
     };
     // Fit on the first half, judge on the second; the simulator makes
     // recordings as long as one half.
@@ -90,14 +115,19 @@ pub fn run(a: ModelCheckArgs) -> anyhow::Result<()> {
     }
     let split = timing.first_pulse_us
         + (timing.assign(t0).unwrap_or(0) as f64 + half_pulses) * timing.period_us;
+    // Every objective evaluation simulates one block: its length is what
+    // the search costs, so it is capped (`--block-pulses`).
+    let block_pulses = half_pulses.min(a.block_pulses.max(20) as f64);
+    let block_us = block_pulses * timing.period_us;
     let mut fit_ev = events.clone();
-    fit_ev.retain(|t, _, _, _| (t as f64) < split);
+    fit_ev.retain(|t, _, _, _| (t as f64) >= split - block_us && (t as f64) < split);
     let mut hold_ev = events;
-    hold_ev.retain(|t, _, _, _| {
-        (t as f64) >= split && (t as f64) < split + half_pulses * timing.period_us
-    });
+    hold_ev.retain(|t, _, _, _| (t as f64) >= split && (t as f64) < split + block_us);
+    notes.push(format!(
+        "fit on {block_pulses} pulses before t = {split:.0} us, judged on the {block_pulses} after"
+    ));
     let mut sc = scenario.clone();
-    sc.duration_s = (half_pulses * timing.period_us + timing.first_pulse_us) * 1e-6;
+    sc.duration_s = (block_us + timing.first_pulse_us) * 1e-6;
     let start_model = active_effects(&sc);
     let sim = SceneSimulator::new(sc.without_effects())?;
     let cluster = ClusterParams {
@@ -153,53 +183,4 @@ pub fn run(a: ModelCheckArgs) -> anyhow::Result<()> {
     }
     println!("wrote {}", a.out.join("model_check.json").display());
     Ok(())
-}
-
-/// A baseline scenario from the measurement itself.
-fn baseline(
-    events: &EventChunk,
-    rising: &[i64],
-    g: Geometry,
-    notes: &mut Vec<String>,
-) -> anyhow::Result<Scenario> {
-    if rising.len() < 3 {
-        bail!(
-            "no trigger channel in the recording: give the pulse timing with --model SCENARIO.toml"
-        );
-    }
-    let mut d: Vec<i64> = rising.windows(2).map(|w| w[1] - w[0]).collect();
-    d.sort_unstable();
-    let period = d[d.len() / 2] as f64;
-    if period <= 0.0 {
-        bail!("trigger edges are not increasing in time");
-    }
-    let mut sc = Scenario {
-        name: "baseline-from-measurement".into(),
-        sensor: Sensor {
-            width: g.width as u32,
-            height: g.height as u32,
-            roi: None,
-        },
-        ..Scenario::default()
-    };
-    sc.light.pulse_hz = 1e6 / period;
-    sc.light.first_pulse_us = rising[0] as f64;
-    sc.validate()?;
-    // Seeding density from the particles found per pulse.
-    let timing = timing_of(&sc);
-    let parts = particles_of(events, &timing, &ClusterParams::default())?;
-    let pulses = parts
-        .iter()
-        .map(|p| p.pulse)
-        .collect::<std::collections::HashSet<_>>()
-        .len();
-    if pulses > 0 {
-        sc.seeding.ppp = (parts.len() as f64 / pulses as f64 / g.pixels() as f64).clamp(1e-5, 0.1);
-    }
-    sc.light.first_pulse_us = rising[0] as f64 % period;
-    notes.push(format!(
-        "baseline from the measurement: {}x{} px, pulses {:.1} Hz from the trigger channel, ppp {:.4} from the clusters; ideal sensor; the flow, particle brightness and events per particle are the simulator defaults (not estimated yet)",
-        g.width, g.height, sc.light.pulse_hz, sc.seeding.ppp
-    ));
-    Ok(sc)
 }

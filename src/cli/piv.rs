@@ -27,6 +27,11 @@ pub struct PivArgs {
     pub step: Option<usize>,
     #[arg(long, default_value_t = 3)]
     pub passes: usize,
+    /// Pyramid correlation: also correlate frames 2..S apart (pairs k, k+s),
+    /// each plane scaled to the unit separation; lowers the random error.
+    /// 1 = off; needs S < frames and at least 2 passes.
+    #[arg(long, default_value_t = 1, value_name = "S")]
+    pub pyramid: usize,
     /// Gaussian blur of the pseudo-images (px).
     #[arg(long, default_value_t = 1.0)]
     pub sigma: f64,
@@ -62,6 +67,7 @@ pub fn run(a: PivArgs) -> anyhow::Result<()> {
     piv.window_h = a.window_h.unwrap_or(a.window);
     piv.spacing_y = a.spacing.unwrap_or((piv.window_h / 2).max(1));
     piv.passes = a.passes;
+    piv.pyramid = a.pyramid;
     let opts = StreamOptions {
         piv,
         pseudo: PseudoOptions {

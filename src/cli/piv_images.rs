@@ -26,6 +26,11 @@ pub struct PivImagesArgs {
     /// N > 2 = sum of correlation over N consecutive images.
     #[arg(long, default_value_t = 2)]
     pub frames: usize,
+    /// Pyramid correlation: also correlate frames 2..S apart (pairs k, k+s),
+    /// each plane scaled to the unit separation; lowers the random error.
+    /// 1 = off; needs S < frames and at least 2 passes.
+    #[arg(long, default_value_t = 1, value_name = "S")]
+    pub pyramid: usize,
     /// Treat the list as a sequence (1-2, 2-3, ...) instead of pairs (1-2, 3-4, ...).
     #[arg(long)]
     pub sequence: bool,
@@ -41,6 +46,7 @@ pub fn run(a: PivImagesArgs) -> anyhow::Result<()> {
     o.window_h = a.window_h.unwrap_or(a.window);
     o.spacing_y = a.spacing.unwrap_or((o.window_h / 2).max(1));
     o.passes = a.passes;
+    o.pyramid = a.pyramid;
     let imgs = a
         .images
         .iter()

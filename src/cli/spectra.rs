@@ -248,6 +248,24 @@ pub fn run(a: SpectraArgs) -> anyhow::Result<()> {
             summary["peak_hz"] = json!(r.points[0].peak.map(|k| k.f_hz));
         }
     }
+    // Per-sample noise and dynamic range from pairs of samples at one pulse
+    // (the spectral floor above is the noise of the binned time series).
+    let acc = ebptv::grid::bin_samples(&samples, opt.lattice, Weighting::TopHat)?;
+    let g = ebptv::grid::estimate(
+        &acc,
+        &ebptv::grid::EstimateOptions {
+            fit: ebptv::grid::Fit::Linear,
+            min_count: a.min_count,
+            noise_rms: 0.0,
+        },
+    )?;
+    match ebptv::grid::noise::velocity_noise(&samples, &g, &Default::default()) {
+        Ok(n) => {
+            summary["velocity_noise_rms"] = json!(n.noise_rms);
+            summary["dynamic_range_per_sample"] = json!(n.dynamic_range);
+        }
+        Err(e) => eprintln!("spectra: no per-sample noise estimate: {e}"),
+    }
     AtomicFile::write_all_to(
         a.out.join("spectrum.json"),
         serde_json::to_string_pretty(&summary)?.as_bytes(),

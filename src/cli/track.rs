@@ -22,6 +22,11 @@ pub struct TrackArgs {
     /// Output directory (created if missing).
     #[arg(long)]
     pub out: PathBuf,
+    /// Also bin the tracks onto a grid in one go, into OUT/grid: the options
+    /// of `ebptv grid` as one string, e.g. --grid "--bin 16 --fit linear"
+    /// (an empty string takes grid's defaults).
+    #[arg(long, allow_hyphen_values = true)]
+    pub grid: Option<String>,
     /// Clustering radius (px): events on pixels at most this far apart join.
     #[arg(long, default_value_t = 1.5)]
     pub radius: f64,
@@ -241,6 +246,27 @@ fn read_hot_pixels(path: &Path) -> anyhow::Result<std::collections::HashSet<(u16
 }
 
 pub fn run(args: TrackArgs) -> anyhow::Result<()> {
+    let grid = args.grid.clone();
+    let out = args.out.clone();
+    // Check the grid options before the (long) tracking run.
+    let grid_cli = grid
+        .map(|g| {
+            let mut argv = vec!["ebptv".to_string(), "grid".into()];
+            argv.push(out.join("tracks.csv").display().to_string());
+            argv.extend(["--out".into(), out.join("grid").display().to_string()]);
+            argv.extend(g.split_whitespace().map(String::from));
+            <super::Cli as clap::Parser>::try_parse_from(&argv)
+                .map_err(|e| anyhow::anyhow!("--grid \"{g}\": {e}"))
+        })
+        .transpose()?;
+    run_tracking(args)?;
+    match grid_cli {
+        Some(cli) => super::run(cli),
+        None => Ok(()),
+    }
+}
+
+fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
     let cluster = ClusterParams {
         radius: args.radius,
         on_only: !args.all_polarities,

@@ -22,6 +22,8 @@
 //!   samples in a short window) and point time series for spectra.
 //! * [`profiles`]: a profile at x, the wall position, wall shear, u_τ,
 //!   inner scaling.
+//! * [`noise`]: the per-sample velocity noise from pairs of nearby
+//!   samples at one instant, and the dynamic velocity range.
 //! * [`io`]: the mergeable state file, `grid.csv`, `grid_extra.csv`, maps.
 //!
 //! Typical use: [`GridSpec::covering`] the samples' extent →
@@ -32,6 +34,7 @@ pub mod accumulate;
 pub mod estimate;
 pub mod fields;
 pub mod io;
+pub mod noise;
 pub mod profiles;
 pub mod spec;
 

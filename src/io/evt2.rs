@@ -14,15 +14,14 @@
 //! TIME_HIGH units). Words before the first TIME_HIGH are skipped and
 //! counted. Time is raw sensor time, never clamped or sorted.
 
-use std::io::Write;
 use std::path::Path;
 
-use crate::error::{Error, Result};
-use crate::events::{Chunk, Edge, Geometry, Trigger};
-use crate::io::atomic::AtomicFile;
-use crate::io::evt3::{time_high_steps, RawAppend};
+use crate::error::Result;
+use crate::events::{Chunk, Edge, EventChunk, Geometry, Trigger};
+use crate::io::evt3::RawAppend;
 use crate::io::raw_header::READ_BUFFER_BYTES;
-use crate::io::raw_reader::{create_raw_file, RawReader, WordDecoder};
+use crate::io::raw_reader::{RawReader, WordDecoder};
+use crate::io::raw_writer::{encode_chunk, RawEncoder, RawWordWriter, TimeSplit};
 use crate::io::{Anomalies, Format};
 
 const MAX_TIME_BASE: u64 = ((1 << 28) - 1) << 6;
@@ -203,113 +202,67 @@ impl WordDecoder for Evt2Decoder {
     }
 }
 
-/// EVT 2.0 writer (through [`AtomicFile`]).
+/// EVT 2.0 writer (through [`AtomicFile`]: nothing appears at the target
+/// until [`crate::io::EventWriter::finish`]).
 pub struct Evt2Writer {
-    file: AtomicFile,
-    words: Vec<u32>,
-    th_scratch: Vec<u32>,
-    /// Full time high (t >> 6) last written, incl. loops.
-    time_high: Option<u64>,
-    last_t: i64,
+    raw: RawWordWriter<u32>,
 }
+
+const EVT2_TIME: TimeSplit = TimeSplit {
+    label: "EVT 2.0",
+    low_bits: 6,
+    high_bits: 28,
+    channel_bits: 5,
+};
 
 impl Evt2Writer {
     pub fn create(path: &Path, geometry: Geometry) -> Result<Self> {
-        let file = create_raw_file(path, "EVT2", "EVT 2.0", geometry)?;
         Ok(Evt2Writer {
-            file,
-            words: Vec::with_capacity(1 << 16),
-            th_scratch: Vec::new(),
-            time_high: None,
-            last_t: 0,
+            raw: RawWordWriter::create(path, "EVT2", EVT2_TIME, geometry)?,
         })
     }
 
     /// Make `t >> 6` the decoder's time base; returns the low 6 bits.
     fn set_time(&mut self, t: i64) -> Result<u32> {
-        if t < 0 {
-            return Err(Error::param(
-                "events",
-                format!("time {t} µs is negative; EVT 2.0 stores times from 0"),
-            ));
-        }
-        let th = (t as u64) >> 6;
-        if self.time_high != Some(th) {
-            self.th_scratch.clear();
-            time_high_steps(self.time_high, th, 28, &mut self.th_scratch).map_err(|_| {
-                Error::param(
-                    "events",
-                    format!(
-                        "time steps back from {} µs to {t} µs across a 34-bit clock loop; EVT 2.0 cannot encode that (events must be time-ordered)",
-                        self.last_t
-                    ),
-                )
-            })?;
-            self.words
-                .extend(self.th_scratch.iter().map(|&v| 0x8000_0000 | v));
-            self.time_high = Some(th);
-        }
-        self.last_t = t;
+        self.raw.set_time_high(t, |v| 0x8000_0000 | v)?;
         Ok((t & 0x3F) as u32)
     }
+}
 
-    fn write_trigger(&mut self, tr: &Trigger) -> Result<()> {
-        if tr.channel > 31 {
-            return Err(Error::param(
-                "triggers",
-                format!("channel {} does not fit EVT 2.0's 5-bit id", tr.channel),
-            ));
-        }
+impl RawEncoder for Evt2Writer {
+    fn encode_trigger(&mut self, tr: &Trigger) -> Result<()> {
+        self.raw.check_trigger_channel(tr.channel)?;
         let low = self.set_time(tr.t)?;
         let v = matches!(tr.edge, Edge::Rising) as u32;
-        self.words
+        self.raw
+            .words
             .push(0xA000_0000 | (low << 22) | ((tr.channel as u32) << 8) | v);
         Ok(())
     }
 
-    fn flush_words(&mut self) -> Result<()> {
-        let mut bytes = Vec::with_capacity(self.words.len() * 4);
-        for w in &self.words {
-            bytes.extend_from_slice(&w.to_le_bytes());
-        }
-        self.words.clear();
-        let target = self.file.target().to_path_buf();
-        self.file
-            .write_all(&bytes)
-            .map_err(|e| Error::io(target, e))
+    fn encode_events(&mut self, ev: &EventChunk, i: usize) -> Result<usize> {
+        let (x, y) = (ev.x[i], ev.y[i]);
+        self.raw.check_coordinates(x, y)?;
+        let low = self.set_time(ev.t[i])?;
+        let kind = (ev.p[i] != 0) as u32;
+        self.raw
+            .words
+            .push((kind << 28) | (low << 22) | ((x as u32) << 11) | y as u32);
+        Ok(i + 1)
+    }
+
+    fn flush(&mut self) -> Result<()> {
+        self.raw.flush()
     }
 }
 
 impl crate::io::EventWriter for Evt2Writer {
     fn write_chunk(&mut self, chunk: &Chunk) -> Result<()> {
-        let ev = &chunk.events;
-        let mut trig = chunk.triggers.iter().peekable();
-        for i in 0..ev.len() {
-            let t = ev.t[i];
-            while let Some(tr) = trig.next_if(|tr| tr.t <= t) {
-                self.write_trigger(tr)?;
-            }
-            let (x, y) = (ev.x[i], ev.y[i]);
-            if x >= 2048 || y >= 2048 {
-                return Err(Error::param(
-                    "events",
-                    format!("event at ({x}, {y}) does not fit EVT 2.0's 11-bit coordinates"),
-                ));
-            }
-            let low = self.set_time(t)?;
-            let kind = (ev.p[i] != 0) as u32;
-            self.words
-                .push((kind << 28) | (low << 22) | ((x as u32) << 11) | y as u32);
-        }
-        for tr in trig {
-            self.write_trigger(tr)?;
-        }
-        self.flush_words()
+        encode_chunk(self, chunk)
     }
 
-    fn finish(mut self: Box<Self>) -> Result<()> {
-        self.flush_words()?;
-        self.file.commit()
+    fn finish(self: Box<Self>) -> Result<()> {
+        self.raw.finish()
     }
 }
 

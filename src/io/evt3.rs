@@ -34,14 +34,15 @@
 //! saves words, ADDR_X otherwise, so the reader gives back exactly the same
 //! events in the same order.
 
-use std::io::Write;
 use std::path::Path;
 
 use crate::error::{Error, Result};
 use crate::events::{Chunk, Edge, EventChunk, Geometry, Trigger};
-use crate::io::atomic::AtomicFile;
 use crate::io::raw_header::READ_BUFFER_BYTES;
-use crate::io::raw_reader::{create_raw_file, RawReader, WordDecoder};
+use crate::io::raw_reader::{RawReader, WordDecoder};
+#[cfg(test)]
+use crate::io::raw_writer::time_high_steps;
+use crate::io::raw_writer::{encode_chunk, RawEncoder, RawWordWriter, TimeSplit};
 use crate::io::{Anomalies, Format, StreamInfo};
 
 /// Most events one EVT 3.0 word can produce (VECT_12).
@@ -553,69 +554,27 @@ impl WordDecoder for Evt3Decoder {
 
 // ---------------------------------------------------------------- writer
 
-/// Sequence of TIME_HIGH values (`bits` wide) that takes a decoder from time
-/// high `last` (full value incl. loops, `None` at stream start) to `new`,
-/// such that the decoder's loop rule (a drop of at least `max - 10`) counts
-/// exactly the loops crossed: each loop boundary is crossed as
-/// `max → 0`. Returns `Err` when `new` cannot be reached (time going back
-/// across a loop boundary, or by nearly a full loop).
-pub(crate) fn time_high_steps(
-    last: Option<u64>,
-    new: u64,
-    bits: u32,
-    out: &mut Vec<u32>,
-) -> std::result::Result<(), ()> {
-    let mask = (1u64 << bits) - 1;
-    let mut cur = match last {
-        Some(c) => c,
-        None => {
-            // The decoder starts in loop 0.
-            let start = if new >> bits == 0 { new } else { 0 };
-            out.push((start & mask) as u32);
-            start
-        }
-    };
-    if new < cur {
-        if cur >> bits == new >> bits && cur - new < mask - 10 {
-            out.push((new & mask) as u32);
-            return Ok(());
-        }
-        return Err(());
-    }
-    while cur >> bits < new >> bits {
-        if cur & mask != mask {
-            out.push(mask as u32);
-        }
-        cur = (cur | mask) + 1;
-        out.push(0);
-    }
-    if cur != new {
-        out.push((new & mask) as u32);
-    }
-    Ok(())
-}
-
 /// EVT 3.0 writer (through [`AtomicFile`]: nothing appears at the target
 /// until [`crate::io::EventWriter::finish`]).
 pub struct Evt3Writer {
-    file: AtomicFile,
-    words: Vec<u16>,
-    th_scratch: Vec<u32>,
-    /// Full time high (t >> 12) last written, incl. loops.
-    time_high: Option<u64>,
+    raw: RawWordWriter<u16>,
+    /// Time of the last TIME_LOW written.
     time: Option<i64>,
     y: Option<u16>,
     xs: Vec<u16>,
 }
 
+const EVT3_TIME: TimeSplit = TimeSplit {
+    label: "EVT 3.0",
+    low_bits: 12,
+    high_bits: 12,
+    channel_bits: 4,
+};
+
 impl Evt3Writer {
     pub fn create(path: &Path, geometry: Geometry) -> Result<Self> {
-        let file = create_raw_file(path, "EVT3", "EVT 3.0", geometry)?;
         Ok(Evt3Writer {
-            file,
-            words: Vec::with_capacity(1 << 16),
-            th_scratch: Vec::new(),
-            time_high: None,
+            raw: RawWordWriter::create(path, "EVT3", EVT3_TIME, geometry)?,
             time: None,
             y: None,
             xs: Vec::new(),
@@ -626,36 +585,15 @@ impl Evt3Writer {
         if self.time == Some(t) {
             return Ok(());
         }
-        if t < 0 {
-            return Err(Error::param(
-                "events",
-                format!("time {t} µs is negative; EVT 3.0 stores times from 0"),
-            ));
-        }
-        let th = (t as u64) >> 12;
-        if self.time_high != Some(th) {
-            self.th_scratch.clear();
-            time_high_steps(self.time_high, th, 12, &mut self.th_scratch).map_err(|_| {
-                Error::param(
-                    "events",
-                    format!(
-                        "time steps back from {} µs to {t} µs across a 24-bit clock loop; EVT 3.0 cannot encode that (events must be time-ordered)",
-                        self.time.unwrap_or(0)
-                    ),
-                )
-            })?;
-            self.words
-                .extend(self.th_scratch.iter().map(|&v| 0x8000 | v as u16));
-            self.time_high = Some(th);
-        }
-        self.words.push(0x6000 | (t as u16 & 0xFFF));
+        self.raw.set_time_high(t, |v| 0x8000 | v as u16)?;
+        self.raw.words.push(0x6000 | (t as u16 & 0xFFF));
         self.time = Some(t);
         Ok(())
     }
 
     fn set_y(&mut self, y: u16) {
         if self.y != Some(y) {
-            self.words.push(y & 0x7FF);
+            self.raw.words.push(y & 0x7FF);
             self.y = Some(y);
         }
     }
@@ -663,6 +601,7 @@ impl Evt3Writer {
     /// Encode `xs` (strictly increasing, same t, y, polarity `p`).
     fn encode_row_run(&mut self, p: u8) {
         let xs = std::mem::take(&mut self.xs);
+        let words = &mut self.raw.words;
         let pbit = (p as u16 & 1) << 11;
         let mut i = 0;
         while i < xs.len() {
@@ -670,11 +609,11 @@ impl Evt3Writer {
             // Events in the first 12-wide window decide whether a vector pays.
             let in_window = xs[i..].iter().take_while(|&&x| x < base + 12).count();
             if in_window < 3 {
-                self.words.push(0x2000 | pbit | xs[i]);
+                words.push(0x2000 | pbit | xs[i]);
                 i += 1;
                 continue;
             }
-            self.words.push(0x3000 | pbit | base);
+            words.push(0x3000 | pbit | base);
             let mut block = base;
             // Each further 12-wide block with at least one event costs one word.
             while i < xs.len() && xs[i] < block + 12 {
@@ -684,10 +623,10 @@ impl Evt3Writer {
                     i += 1;
                 }
                 if mask < 0x100 && (i >= xs.len() || xs[i] >= block + 12) {
-                    self.words.push(0x5000 | mask);
+                    words.push(0x5000 | mask);
                     block += 8;
                 } else {
-                    self.words.push(0x4000 | mask);
+                    words.push(0x4000 | mask);
                     block += 12;
                 }
             }
@@ -695,81 +634,53 @@ impl Evt3Writer {
         self.xs = xs;
         self.xs.clear();
     }
+}
 
-    fn flush_words(&mut self) -> Result<()> {
-        let mut bytes = Vec::with_capacity(self.words.len() * 2);
-        for w in &self.words {
-            bytes.extend_from_slice(&w.to_le_bytes());
-        }
-        self.words.clear();
-        let target = self.file.target().to_path_buf();
-        self.file
-            .write_all(&bytes)
-            .map_err(|e| Error::io(target, e))
-    }
-
-    fn write_trigger(&mut self, tr: &Trigger) -> Result<()> {
-        if tr.channel > 15 {
-            return Err(Error::param(
-                "triggers",
-                format!("channel {} does not fit EVT 3.0's 4-bit id", tr.channel),
-            ));
-        }
+impl RawEncoder for Evt3Writer {
+    fn encode_trigger(&mut self, tr: &Trigger) -> Result<()> {
+        self.raw.check_trigger_channel(tr.channel)?;
         self.set_time(tr.t)?;
         let v = matches!(tr.edge, Edge::Rising) as u16;
-        self.words.push(0xA000 | ((tr.channel as u16) << 8) | v);
+        self.raw.words.push(0xA000 | ((tr.channel as u16) << 8) | v);
         Ok(())
+    }
+
+    /// One run of events with the same t, y, p and increasing x.
+    fn encode_events(&mut self, ev: &EventChunk, i: usize) -> Result<usize> {
+        let (t, y, p) = (ev.t[i], ev.y[i], ev.p[i]);
+        self.raw.check_coordinates(ev.x[i], y)?;
+        self.set_time(t)?;
+        self.set_y(y);
+        self.xs.clear();
+        self.xs.push(ev.x[i]);
+        let n = ev.len();
+        let mut j = i + 1;
+        while j < n
+            && ev.t[j] == t
+            && ev.y[j] == y
+            && ev.p[j] == p
+            && ev.x[j] > ev.x[j - 1]
+            && ev.x[j] < 2048
+        {
+            self.xs.push(ev.x[j]);
+            j += 1;
+        }
+        self.encode_row_run(p);
+        Ok(j)
+    }
+
+    fn flush(&mut self) -> Result<()> {
+        self.raw.flush()
     }
 }
 
 impl crate::io::EventWriter for Evt3Writer {
     fn write_chunk(&mut self, chunk: &Chunk) -> Result<()> {
-        let ev = &chunk.events;
-        let n = ev.len();
-        let mut trig = chunk.triggers.iter().peekable();
-        let mut i = 0;
-        while i < n {
-            let (t, y, p) = (ev.t[i], ev.y[i], ev.p[i]);
-            while let Some(tr) = trig.next_if(|tr| tr.t <= t) {
-                self.write_trigger(tr)?;
-            }
-            if ev.x[i] >= 2048 || y >= 2048 {
-                return Err(Error::param(
-                    "events",
-                    format!(
-                        "event at ({}, {y}) does not fit EVT 3.0's 11-bit coordinates",
-                        ev.x[i]
-                    ),
-                ));
-            }
-            self.set_time(t)?;
-            self.set_y(y);
-            // The run of events with the same t, y, p and increasing x.
-            self.xs.clear();
-            self.xs.push(ev.x[i]);
-            let mut j = i + 1;
-            while j < n
-                && ev.t[j] == t
-                && ev.y[j] == y
-                && ev.p[j] == p
-                && ev.x[j] > ev.x[j - 1]
-                && ev.x[j] < 2048
-            {
-                self.xs.push(ev.x[j]);
-                j += 1;
-            }
-            self.encode_row_run(p);
-            i = j;
-        }
-        for tr in trig {
-            self.write_trigger(tr)?;
-        }
-        self.flush_words()
+        encode_chunk(self, chunk)
     }
 
-    fn finish(mut self: Box<Self>) -> Result<()> {
-        self.flush_words()?;
-        self.file.commit()
+    fn finish(self: Box<Self>) -> Result<()> {
+        self.raw.finish()
     }
 }
 

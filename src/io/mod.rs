@@ -252,5 +252,6 @@ pub mod filter;
 pub mod npy;
 pub mod raw_header;
 pub mod raw_reader;
+pub(crate) mod raw_writer;
 pub mod sniff;
 pub mod summary;

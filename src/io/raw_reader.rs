@@ -9,12 +9,8 @@
 
 use crate::error::Result;
 use crate::events::Chunk;
-use std::io::Write;
 use std::path::Path;
 
-use crate::error::Error;
-use crate::events::Geometry;
-use crate::io::atomic::AtomicFile;
 use crate::io::evt3::{check_header_format, check_not_empty, count_out_of_geometry};
 use crate::io::raw_header::{read_raw_header, stream_info, PayloadReader, RawHeader};
 use crate::io::{Anomalies, EventSource, Format, StreamInfo};
@@ -126,38 +122,4 @@ impl<D: WordDecoder> EventSource for RawReader<D> {
     fn bytes_read(&self) -> u64 {
         self.payload.file_offset()
     }
-}
-
-/// Create a RAW output with the modern header (`% format NAME;height;width`,
-/// `% geometry`, `% generator`, `% end`) for the writers; `label` names the
-/// encoding in errors ("EVT 3.0"). Both encodings address 11-bit x and y.
-pub(crate) fn create_raw_file(
-    path: &Path,
-    format_name: &str,
-    label: &str,
-    geometry: Geometry,
-) -> Result<AtomicFile> {
-    if geometry.width == 0
-        || geometry.height == 0
-        || geometry.width > 2048
-        || geometry.height > 2048
-    {
-        return Err(Error::param(
-            "geometry",
-            format!(
-                "{}x{}: {label} holds sensors from 1x1 up to 2048x2048",
-                geometry.width, geometry.height
-            ),
-        ));
-    }
-    let mut file = AtomicFile::create(path)?;
-    let header = format!(
-        "% format {format_name};height={h};width={w}\n% geometry {w}x{h}\n% generator ebptv {v}\n% end\n",
-        w = geometry.width,
-        h = geometry.height,
-        v = env!("CARGO_PKG_VERSION")
-    );
-    file.write_all(header.as_bytes())
-        .map_err(|e| Error::io(path, e))?;
-    Ok(file)
 }

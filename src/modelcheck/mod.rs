@@ -9,6 +9,7 @@
 //!   profile and scalar differences), standardised against
 //!   simulation-vs-simulation replicates, and the ranking table.
 
+pub mod baseline;
 pub mod distance;
 pub mod report;
 pub mod scene;

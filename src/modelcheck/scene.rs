@@ -147,12 +147,9 @@ pub fn timing_of(sc: &Scenario) -> PulseTiming {
     }
 }
 
-/// Split time-ordered events into pulses by `timing` and cluster them.
-pub fn particles_of(
-    events: &EventChunk,
-    timing: &PulseTiming,
-    params: &ClusterParams,
-) -> Result<Vec<Particle>> {
+/// Split time-ordered events into pulses by `timing` (pulses without
+/// events are left out).
+pub fn pulses_of(events: &EventChunk, timing: &PulseTiming) -> Result<Vec<PulseEvents>> {
     let mut pulses: Vec<PulseEvents> = Vec::new();
     for i in 0..events.len() {
         let Some(k) = timing.assign(events.t[i]) else {
@@ -174,6 +171,16 @@ pub fn particles_of(
         p.events
             .push(events.t[i], events.x[i], events.y[i], events.p[i]);
     }
+    Ok(pulses)
+}
+
+/// Split time-ordered events into pulses by `timing` and cluster them.
+pub fn particles_of(
+    events: &EventChunk,
+    timing: &PulseTiming,
+    params: &ClusterParams,
+) -> Result<Vec<Particle>> {
+    let pulses = pulses_of(events, timing)?;
     Ok(cluster_pulses(&pulses, params)?
         .into_iter()
         .flatten()

@@ -16,8 +16,11 @@
 //! | `split_half_min` | histogram of min(even-block, odd-block) count per pixel | fixed-pattern activity (hot pixels) |
 //! | `split_half_correlation` | scalar, Pearson r of even- vs odd-block counts | fixed pattern vs chance |
 //! | `off_burst_rate` | scalar, events/(pixel·s) outside the burst window | background noise |
+//! | `off_burst_pixels` | scalar, fraction of pixels with an event outside the burst window | hot pixels (few) vs background (many) |
+//! | `off_burst_pixel_count` | histogram of events per pixel outside the burst window, over pixels with any | hot-pixel rate (far tail) vs background (ones) |
 //! | `shared_fraction` | scalar, fraction of events sharing (row, timestamp) | arbiter saturation |
 //! | `group_size` | histogram of (row, timestamp) group sizes | arbiter saturation |
+//! | `tick_events_vs_rows` | profile: events per timestamp tick per bin of distinct rows in the tick | arbiter row time vs event time |
 //! | `min_iei` | histogram of per-pixel minimum inter-event interval, µs | refractory period |
 //! | `events_per_cluster` | histogram (needs particles) | brightness, threshold |
 //! | `latency_vs_brightness` | profile: mean first latency per events-per-cluster bin | intensity-dependent latency |
@@ -35,6 +38,23 @@
 //! with one timestamp; an unsaturated sensor gives groups of one (apart from
 //! coincidences). Groups are formed over runs of equal timestamps in stream
 //! order (readers never reorder time), across chunk boundaries.
+//!
+//! Off-burst pixels: background activity spreads a few events over many
+//! pixels, hot pixels many events over few. The fraction of pixels with any
+//! event outside the burst window and the distribution of those pixels'
+//! off-burst counts separate the two and pin a hot pixel's count and rate
+//! independently (their product alone is what `off_burst_rate` sees). Both
+//! need a fixed [`SignatureConfig::burst_window_us`] (the per-pixel counts
+//! are taken while streaming); without one they are left out.
+//!
+//! Timestamp ticks: a saturated row arbiter spends `row_time` per granted
+//! row and `event_time` per event, so in a busy tick R·row_time +
+//! E·event_time ≈ one tick: the mean events per tick E falls along a line
+//! in the distinct rows per tick R whose slope is −row_time/event_time. The
+//! latency histogram sees only the total service time; this profile tells
+//! the two times apart. Only ticks whose neighbours both have events count
+//! (inside a busy period), so the edges of a burst, where the server idles
+//! part of a tick, do not blur the line.
 //!
 //! Everything streams: [`SignatureAccumulator::add_events`] takes chunks in
 //! order; per-pixel state is a few arrays of the sensor size.
@@ -131,6 +151,14 @@ impl Histogram {
         match self.scale {
             BinScale::Linear => self.edges.windows(2).map(|w| 0.5 * (w[0] + w[1])).collect(),
             BinScale::Index => (0..self.counts.len()).map(|k| k as f64).collect(),
+        }
+    }
+
+    /// Centre of the bin holding `v` (`v` itself for NaN).
+    pub fn bin_centre(&self, v: f64) -> f64 {
+        match self.bin_of(v) {
+            Some(k) => 0.5 * (self.edges[k] + self.edges[k + 1]),
+            None => v,
         }
     }
 
@@ -396,6 +424,12 @@ pub struct SignatureAccumulator {
     run_rows: Vec<u16>,
     group_sizes: HashMap<u32, u64>,
     shared_events: u64,
+    tick_events: ProfileAcc,
+    /// The last tick seen: (timestamp, distinct rows, events, whether the
+    /// tick before it had events too).
+    last_tick: Option<(i64, usize, usize, bool)>,
+    /// Events per pixel outside the burst window (only with a fixed window).
+    count_off_burst: Option<Vec<u32>>,
     particles: Vec<(u32, f32)>,
     elongation: Option<ProfileAcc>,
     track_lengths: Vec<u32>,
@@ -427,6 +461,9 @@ impl SignatureAccumulator {
             run_rows: Vec::new(),
             group_sizes: HashMap::new(),
             shared_events: 0,
+            tick_events: ProfileAcc::new(count_edges(65536.0)[1..].to_vec())?,
+            last_tick: None,
+            count_off_burst: cfg.burst_window_us.map(|_| vec![0; n]),
             particles: Vec::new(),
             elongation: None,
             track_lengths: Vec::new(),
@@ -444,6 +481,7 @@ impl SignatureAccumulator {
         let period = self.cfg.timing.period_us;
         let first = self.cfg.timing.first_pulse_us;
         let block = self.cfg.block_pulses as i64;
+        let window = self.cfg.burst_window_us;
         for i in 0..ev.len() {
             let (t, x, y, p) = (ev.t[i], ev.x[i], ev.y[i], ev.p[i]);
             if !g.contains(x, y) {
@@ -456,9 +494,17 @@ impl SignatureAccumulator {
             self.t_max = self.t_max.max(t);
 
             let rel = t as f64 - first;
-            self.latency.add(rel.rem_euclid(period));
+            let folded = rel.rem_euclid(period);
+            self.latency.add(folded);
             let pulse = (rel / period).floor() as i64;
             let pix = y as usize * g.width as usize + x as usize;
+            if let (Some(w), Some(c)) = (window, self.count_off_burst.as_mut()) {
+                // Folded time, binned as the latency histogram bins it, so
+                // the per-pixel counts agree with `off_burst_rate`.
+                if outside_window(self.latency.bin_centre(folded), w, period) {
+                    c[pix] += 1;
+                }
+            }
             if pulse.div_euclid(block) % 2 == 0 {
                 self.count_even[pix] += 1;
             } else {
@@ -487,6 +533,19 @@ impl SignatureAccumulator {
         }
         self.run_rows.sort_unstable();
         let rows = std::mem::take(&mut self.run_rows);
+        let distinct = rows.chunk_by(|a, b| a == b).count();
+        // Only ticks inside a busy period (the ticks before and after have
+        // events too): there the server never idles, and R·row_time +
+        // E·event_time fills the tick.
+        let t = self.run_t;
+        let mut after_busy = false;
+        if let Some((pt, r, e, before)) = self.last_tick {
+            after_busy = pt == t - 1;
+            if before && after_busy {
+                self.tick_events.add(r as f64, e as f64);
+            }
+        }
+        self.last_tick = Some((t, distinct, rows.len(), after_busy));
         for group in rows.chunk_by(|a, b| a == b) {
             let s = group.len() as u32;
             *self.group_sizes.entry(s).or_insert(0) += 1;
@@ -625,7 +684,7 @@ impl SignatureAccumulator {
             .positions()
             .iter()
             .zip(&self.latency.counts)
-            .filter(|(c, _)| (*c - window.0).rem_euclid(period) >= window.1 - window.0)
+            .filter(|(c, _)| outside_window(**c, window, period))
             .map(|(_, n)| n)
             .sum();
         push(
@@ -635,6 +694,28 @@ impl SignatureAccumulator {
                 value: off / n_pix / seconds,
             },
         );
+
+        if let Some(c) = &self.count_off_burst {
+            let mut hist =
+                Histogram::new(count_edges(MAX_COUNT_EDGE)[1..].to_vec(), BinScale::Index)?;
+            let mut active = 0usize;
+            for &k in c.iter().filter(|&&k| k > 0) {
+                hist.add(k as f64);
+                active += 1;
+            }
+            push(
+                "off_burst_pixels",
+                "fraction of pixels with an event outside the burst window",
+                SignatureValue::Scalar {
+                    value: active as f64 / n_pix,
+                },
+            );
+            push(
+                "off_burst_pixel_count",
+                "pixels per bin of their events outside the burst window (pixels with any)",
+                SignatureValue::Histogram(hist),
+            );
+        }
 
         push(
             "shared_fraction",
@@ -659,6 +740,12 @@ impl SignatureAccumulator {
                 iei.add(d as f64);
             }
         }
+        push(
+            "tick_events_vs_rows",
+            "mean events per timestamp tick per bin of distinct rows in the tick",
+            SignatureValue::Profile(self.tick_events.finish()),
+        );
+
         push(
             "min_iei",
             "pixels per bin of their minimum inter-event interval (us)",
@@ -712,6 +799,11 @@ impl SignatureAccumulator {
             duration_us,
         })
     }
+}
+
+/// Is folded time `c` outside the circular window `[w.0, w.1)`?
+fn outside_window(c: f64, w: (f64, f64), period: f64) -> bool {
+    (c - w.0).rem_euclid(period) >= w.1 - w.0
 }
 
 /// Pearson correlation; 0 when either side has no variance.

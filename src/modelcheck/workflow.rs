@@ -38,7 +38,7 @@ use std::collections::BTreeMap;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::distance::{distances, rank, DiscrepancyTable};
+use super::distance::{distances, rank, DiscrepancyTable, Z_CAP};
 use super::signatures::{SignatureAccumulator, SignatureConfig, Signatures};
 use crate::cluster::Particle;
 use crate::error::{Error, Result};
@@ -250,26 +250,47 @@ impl Assessment {
 
     /// Σ d_s / spread_s: the fit objective. Unlike the gap it keeps
     /// decreasing below chance level, so the optimum is well defined.
-    fn scaled_sum(&self, d: &[(String, f64)]) -> f64 {
+    ///
+    /// `floors` (from [`Assessment::spread_floors`]) keep a signature whose
+    /// replicates all agree exactly (no off-burst events in any simulation
+    /// of a clean model) from getting an unbounded weight: such a term
+    /// starts at [`Z_CAP`], as the capped z of the gap does, instead of
+    /// drowning every other signature and leaving the fit to one scalar.
+    fn scaled_sum(&self, d: &[(String, f64)], floors: &BTreeMap<String, f64>) -> f64 {
         d.iter()
             .filter_map(|(name, v)| {
-                let reps: Vec<f64> = self
-                    .replicate_distances
-                    .iter()
-                    .filter_map(|r| r.iter().find(|(n, _)| n == name).map(|x| x.1))
-                    .collect();
-                if reps.len() < 2 {
-                    return None;
-                }
-                let m = reps.iter().sum::<f64>() / reps.len() as f64;
-                let sd = (reps.iter().map(|r| (r - m).powi(2)).sum::<f64>()
-                    / (reps.len() - 1) as f64)
-                    .sqrt();
-                // A floor so that a signature that happens to agree exactly
-                // in every replicate does not get an infinite weight.
-                Some(v / sd.max(0.05 * m).max(1e-12))
+                let (m, sd) = self.replicate_spread(name)?;
+                let floor = floors.get(name).copied().unwrap_or(0.0);
+                // A relative floor too, so that a signature that happens to
+                // agree closely in every replicate is not over-weighted.
+                Some(v / sd.max(0.05 * m).max(floor).max(1e-12))
             })
             .sum()
+    }
+
+    /// Mean and standard deviation of the replicate distances of `name`.
+    fn replicate_spread(&self, name: &str) -> Option<(f64, f64)> {
+        let reps: Vec<f64> = self
+            .replicate_distances
+            .iter()
+            .filter_map(|r| r.iter().find(|(n, _)| n == name).map(|x| x.1))
+            .collect();
+        if reps.len() < 2 {
+            return None;
+        }
+        let m = reps.iter().sum::<f64>() / reps.len() as f64;
+        let sd =
+            (reps.iter().map(|r| (r - m).powi(2)).sum::<f64>() / (reps.len() - 1) as f64).sqrt();
+        Some((m, sd))
+    }
+
+    /// Per-signature spread floors for [`Assessment::scaled_sum`]: the
+    /// measured distance to this model's reference over [`Z_CAP`].
+    fn spread_floors(&self, measured: &Signatures) -> Result<BTreeMap<String, f64>> {
+        Ok(distances(measured, &self.reference)?
+            .into_iter()
+            .map(|(n, d)| (n, d / Z_CAP))
+            .collect())
     }
 
     fn null_sd(&self) -> f64 {
@@ -478,6 +499,7 @@ fn fit_candidate(
     crn_seed: u64,
     refine_from: Option<&[f64]>,
 ) -> Result<(Vec<f64>, f64, usize)> {
+    let floors = base.spread_floors(measured_fit)?;
     let mut objective = |u: &[f64]| -> Result<f64> {
         let mut m = model.to_vec();
         m.push(setting(spec, u));
@@ -485,7 +507,7 @@ fn fit_candidate(
         // Distances to the candidate's simulation, judged by the current
         // model's replicate spreads.
         let d = distances(measured_fit, &s)?;
-        Ok(base.scaled_sum(&d))
+        Ok(base.scaled_sum(&d, &floors))
     };
     if spec.params.len() == 1 {
         let (lo, hi) = match refine_from {

@@ -17,6 +17,9 @@
 //! spectra (`A(k) = (Z(k) + Z*(-k))/2`, `B(k) = (Z(k) − Z*(-k))/2i`). The
 //! products `A*(k)·B(k)` of all pairs are summed in the frequency domain and
 //! transformed back once: `N_f − 1` forward FFTs and one inverse per window.
+//! The summed cross-spectrum of real windows is Hermitian, so only half of
+//! it (`kx ≤ w/2`) is accumulated and the rest filled by symmetry before the
+//! inverse transform.
 //! Plans are built once ([`CorrelationPlan`]) and shared by all threads; each
 //! thread owns its scratch buffers ([`Workspace`]). Windows of any size work
 //! (rustfft handles any length; rectangular windows such as 64×8 are just
@@ -133,7 +136,11 @@ impl Workspace {
 
     /// Start a new sum of correlation.
     pub fn reset(&mut self) {
-        self.acc.iter_mut().for_each(|c| *c = Complex32::default());
+        // Only rows kx <= w/2 are accumulated and read (see `add_pair`).
+        let used = (self.plan.w / 2 + 1) * self.plan.h;
+        self.acc[..used]
+            .iter_mut()
+            .for_each(|c| *c = Complex32::default());
         self.pairs = 0;
     }
 
@@ -164,8 +171,10 @@ impl Workspace {
             .process_with_scratch(&mut self.zt, &mut self.scratch);
         let scale = (1.0 / (ea * eb).sqrt()) as f32;
         // zt index: kx * h + ky; the mirror frequency -k of (kx, ky) is
-        // ((w - kx) % w, (h - ky) % h).
-        for kx in 0..w {
+        // ((w - kx) % w, (h - ky) % h). The cross-spectrum of real windows
+        // is Hermitian, so only kx <= w/2 is accumulated; `finish` fills
+        // the other half by symmetry.
+        for kx in 0..=w / 2 {
             let mkx = if kx == 0 { 0 } else { w - kx };
             let row = &self.zt[kx * h..(kx + 1) * h];
             let mrow = &self.zt[mkx * h..(mkx + 1) * h];
@@ -191,6 +200,13 @@ impl Workspace {
         let (w, h) = (self.plan.w, self.plan.h);
         let n = w * h;
         self.zt.copy_from_slice(&self.acc);
+        for kx in w / 2 + 1..w {
+            let mkx = w - kx;
+            for ky in 0..h {
+                let mky = if ky == 0 { 0 } else { h - ky };
+                self.zt[kx * h + ky] = self.zt[mkx * h + mky].conj();
+            }
+        }
         self.plan
             .inv_h
             .process_with_scratch(&mut self.zt, &mut self.scratch);
@@ -287,14 +303,21 @@ pub fn subpixel3(lm: f32, c: f32, rp: f32) -> f64 {
 /// Highest peak of a circular correlation plane with a 3-point Gaussian
 /// sub-pixel estimate in x and y separately.
 pub fn find_peak(plane: &[f32], w: usize, h: usize) -> Peak {
-    let mut best = 0usize;
-    let mut bv = f32::NEG_INFINITY;
-    for (i, &v) in plane.iter().enumerate() {
-        if v > bv {
-            bv = v;
-            best = i;
+    // Maximum over 8 independent lanes (vectorises), then its first index:
+    // the same peak as a sequential scan, without its dependency chain.
+    let mut lanes = [f32::NEG_INFINITY; 8];
+    let chunks = plane.chunks_exact(8);
+    let rest = chunks.remainder();
+    for c in chunks {
+        for l in 0..8 {
+            lanes[l] = lanes[l].max(c[l]);
         }
     }
+    let bv = rest.iter().fold(
+        lanes.iter().fold(f32::NEG_INFINITY, |m, &v| m.max(v)),
+        |m, &v| m.max(v),
+    );
+    let best = plane.iter().position(|&v| v == bv).unwrap_or(0);
     let (ix, iy) = (best % w, best / w);
     let sx = signed(ix, w);
     let sy = signed(iy, h);

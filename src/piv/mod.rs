@@ -9,7 +9,8 @@
 //! ```text
 //! PulseEvents ─▶ pseudo::PseudoImager ─▶ pseudo::FrameRing (last N_f frames)
 //!             ─▶ multipass::piv_frames (FFT sum of correlation over pairs
-//!                (k, k+1), multi-pass with deformation, median test)
+//!                (k, k+1) — or (k, k+s), s ≤ S, pyramid — multi-pass with
+//!                deformation, median test)
 //!             ─▶ PivStream: one field per step ─▶ FieldStats (mean, stresses)
 //! ```
 //!
@@ -222,6 +223,15 @@ impl PivStream {
             return Err(Error::param(
                 "frames",
                 format!("{}: multi-frame correlation needs N_f >= 2", opts.frames),
+            ));
+        }
+        if opts.piv.pyramid >= opts.frames {
+            return Err(Error::param(
+                "pyramid",
+                format!(
+                    "largest frame separation {} needs more than {} frames (N_f)",
+                    opts.piv.pyramid, opts.frames
+                ),
             ));
         }
         if opts.step == 0 {

@@ -43,6 +43,11 @@ pub struct PivOptions {
     pub median: MedianTest,
     /// Optional mask (`true` = masked), `width*height`, row-major.
     pub mask: Option<Vec<bool>>,
+    /// Pyramid correlation: largest frame separation `S` whose pairs
+    /// `(k, k+s)`, `s = 1 … S`, enter the deformed passes, each plane
+    /// scaled to the unit separation (Sciacchitano et al. 2012). 1 = plain
+    /// sum of correlation over consecutive pairs; must be < `N_f`.
+    pub pyramid: usize,
 }
 
 impl PivOptions {
@@ -55,6 +60,7 @@ impl PivOptions {
             passes: 3,
             median: MedianTest::default(),
             mask: None,
+            pyramid: 1,
         }
     }
 }
@@ -115,6 +121,21 @@ pub fn node_grid(width: usize, height: usize, o: &PivOptions) -> Result<NodeGrid
     }
     if o.passes == 0 {
         return Err(Error::param("passes", "must be at least 1"));
+    }
+    if o.pyramid == 0 {
+        return Err(Error::param(
+            "pyramid",
+            "the largest frame separation must be at least 1 (1 = no pyramid)",
+        ));
+    }
+    if o.pyramid > 1 && o.passes < 2 {
+        return Err(Error::param(
+            "pyramid",
+            format!(
+                "separations up to {} need image deformation: use at least 2 passes",
+                o.pyramid
+            ),
+        ));
     }
     if o.window_w > width || o.window_h > height {
         return Err(Error::param(
@@ -280,23 +301,107 @@ pub fn interp_field(g: &NodeGrid, f: &[f64], x: f64, y: f64) -> f64 {
     a * (1.0 - ty) + b * ty
 }
 
-/// A predictor: displacement per frame step on the node grid.
-struct Predictor<'a> {
-    grid: &'a NodeGrid,
-    u: &'a [f64],
-    v: &'a [f64],
-    /// B-spline coefficients of every frame, for deformation.
-    coefs: &'a [Image],
+/// Per-pixel predictor displacement `d(x)` (px per frame step), bilinear
+/// from the node field: computed once per pass for the whole image rather
+/// than once per window (with 50 % overlap every pixel sits in 4 windows).
+/// The cell and weight of every column and row are tabulated once; the
+/// arithmetic is that of [`interp_field`], so the values are identical.
+fn displacement_image(
+    grid: &NodeGrid,
+    u: &[f64],
+    v: &[f64],
+    w: usize,
+    h: usize,
+) -> Vec<(f32, f32)> {
+    // (lower node, upper node, weight of the upper node) along one axis.
+    let cells = |n: usize, p0: f64, dp: f64, len: usize| -> Vec<(usize, usize, f64)> {
+        (0..len)
+            .map(|p| {
+                let f = ((p as f64 - p0) / dp).clamp(0.0, (n - 1) as f64);
+                let i0 = (f.floor() as usize).min(n.saturating_sub(2));
+                (i0, (i0 + 1).min(n - 1), f - i0 as f64)
+            })
+            .collect()
+    };
+    let cols = cells(grid.nx, grid.x0, grid.dx, w);
+    let rows = cells(grid.ny, grid.y0, grid.dy, h);
+    let nx = grid.nx;
+    let mut d = vec![(0.0f32, 0.0f32); w * h];
+    d.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        let (j0, j1, ty) = rows[y];
+        let at = |f: &[f64], i0: usize, i1: usize, tx: f64| {
+            let a = f[j0 * nx + i0] * (1.0 - tx) + f[j0 * nx + i1] * tx;
+            let b = f[j1 * nx + i0] * (1.0 - tx) + f[j1 * nx + i1] * tx;
+            a * (1.0 - ty) + b * ty
+        };
+        for (px, &(i0, i1, tx)) in row.iter_mut().zip(&cols) {
+            *px = (at(u, i0, i1, tx) as f32, at(v, i0, i1, tx) as f32);
+        }
+    });
+    d
+}
+
+/// Pixels whose samples at `x ± sep·d(x)/2` both fall inside the image.
+/// Pixels outside are left out of both windows (zero after mean removal):
+/// edge-replicated values would correlate with nothing.
+fn inside_mask(disp: &[(f32, f32)], sep: usize, w: usize, h: usize) -> Vec<bool> {
+    let half = 0.5 * sep as f32;
+    let (wmax, hmax) = ((w - 1) as f32, (h - 1) as f32);
+    let inside = |x: f32, y: f32| x >= 0.0 && y >= 0.0 && x <= wmax && y <= hmax;
+    disp.iter()
+        .enumerate()
+        .map(|(i, &(du, dv))| {
+            let (px, py) = ((i % w) as f32, (i / w) as f32);
+            inside(px - half * du, py - half * dv) && inside(px + half * du, py + half * dv)
+        })
+        .collect()
+}
+
+/// The frame deformed by `factor · d(x)`: `out(x) = frame(x + factor·d(x))`
+/// from the frame's B-spline coefficients, 0 where `inside` is false.
+fn deform(coef: &Image, disp: &[(f32, f32)], factor: f32, inside: &[bool]) -> Image {
+    let (w, h) = (coef.width, coef.height);
+    let mut out = Image::zeros(w, h);
+    out.data.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        for (x, o) in row.iter_mut().enumerate() {
+            let i = y * w + x;
+            if inside[i] {
+                let (du, dv) = disp[i];
+                *o = sample_bspline(coef, x as f32 + factor * du, y as f32 + factor * dv);
+            }
+        }
+    });
+    out
+}
+
+/// The frame pairs `(k, k + s)` of one evaluation of `frames` frames, for
+/// separations `s = 1 … max_sep`.
+pub fn frame_pairs(frames: usize, max_sep: usize) -> Vec<(usize, usize)> {
+    (1..=max_sep.min(frames.saturating_sub(1)))
+        .flat_map(|s| (0..frames - s).map(move |k| (k, k + s)))
+        .collect()
+}
+
+/// One pair of images to correlate in a pass (deformed or not).
+struct PairImages<'a> {
+    a: &'a Image,
+    b: &'a Image,
+    /// Frame separation `s` of the pair: its correlation peak lies at `s`
+    /// times the displacement per frame step.
+    sep: usize,
+    /// Pixels usable in this pair (deformed passes), `None` = all.
+    inside: Option<&'a [bool]>,
 }
 
 /// Per-thread state.
 struct Thread {
-    ws: Workspace,
+    /// One accumulator per frame separation.
+    ws: Vec<Workspace>,
     a: Vec<f32>,
     b: Vec<f32>,
-    plane: Vec<f32>,
-    disp: Vec<(f32, f32)>,
     inside: Vec<bool>,
+    plane: Vec<f32>,
+    sep_plane: Vec<f32>,
 }
 
 /// Mean removal over the pixels marked `inside`; the others become 0.
@@ -329,112 +434,139 @@ fn remove_mean_where(a: &mut [f32], b: &mut [f32], inside: &[bool]) -> (f64, f64
     (ea, eb)
 }
 
-/// Measure one node: returns (dx, dy, peak height, ok).
-#[allow(clippy::too_many_arguments)]
+/// Sum of the per-separation correlation planes scaled to the unit
+/// separation (pyramid correlation, Sciacchitano, Scarano & Wieneke 2012):
+/// `R(δ) = Σ_s n_s · R_s(s·δ) / Σ_s n_s`, `R_s` the mean plane of the `n_s`
+/// pairs of separation `s`. The scaled planes are sampled at integer
+/// multiples of `s` (exact, no interpolation); shifts `s·δ` outside the
+/// unambiguous range of `R_s` contribute nothing.
+fn pyramid_plane(t: &mut Thread, ww: usize, wh: usize) -> usize {
+    let n = ww * wh;
+    t.plane[..n].iter_mut().for_each(|v| *v = 0.0);
+    let mut total = 0usize;
+    for s in 1..=t.ws.len() {
+        let np = t.ws[s - 1].pairs();
+        if np == 0 {
+            continue;
+        }
+        total += np;
+        t.ws[s - 1].finish(&mut t.sep_plane[..n]);
+        let wgt = np as f32;
+        let (si, sw, sh) = (s as i64, ww as i64, wh as i64);
+        for iy in 0..wh {
+            let ty = signed(iy, wh) * si;
+            if ty < -(sh / 2) || ty > (sh - 1) / 2 {
+                continue;
+            }
+            let ry = ty.rem_euclid(sh) as usize;
+            for ix in 0..ww {
+                let tx = signed(ix, ww) * si;
+                if tx < -(sw / 2) || tx > (sw - 1) / 2 {
+                    continue;
+                }
+                let rx = tx.rem_euclid(sw) as usize;
+                t.plane[iy * ww + ix] += wgt * t.sep_plane[ry * ww + rx];
+            }
+        }
+    }
+    if total > 0 {
+        let inv = 1.0 / total as f32;
+        t.plane[..n].iter_mut().for_each(|v| *v *= inv);
+    }
+    total
+}
+
+/// Signed circular shift of index `i` in a plane of size `n`.
+#[inline]
+fn signed(i: usize, n: usize) -> i64 {
+    if i <= (n - 1) / 2 {
+        i as i64
+    } else {
+        i as i64 - n as i64
+    }
+}
+
+/// Measure one node: returns (dx, dy, peak height, ok) of the residual
+/// displacement per frame step.
 fn measure_node(
     t: &mut Thread,
-    frames: &[&Image],
+    pairs: &[PairImages],
     x_start: usize,
     y_start: usize,
     ww: usize,
     wh: usize,
-    pred: Option<&Predictor>,
-    node_pred: (f64, f64),
 ) -> (f64, f64, f32, bool) {
     let n = ww * wh;
-    t.ws.reset();
-    // Per-pixel predictor displacement (same for every pair).
-    if let Some(p) = pred {
-        t.disp.clear();
+    t.ws.iter_mut().for_each(|w| w.reset());
+    for p in pairs {
+        let (fa, fb) = (p.a, p.b);
+        let width = fa.width;
         for y in 0..wh {
-            for x in 0..ww {
-                let (px, py) = ((x_start + x) as f64, (y_start + y) as f64);
-                t.disp.push((
-                    interp_field(p.grid, p.u, px, py) as f32,
-                    interp_field(p.grid, p.v, px, py) as f32,
-                ));
+            let row = (y_start + y) * width + x_start;
+            t.a[y * ww..(y + 1) * ww].copy_from_slice(&fa.data[row..row + ww]);
+            t.b[y * ww..(y + 1) * ww].copy_from_slice(&fb.data[row..row + ww]);
+        }
+        let mut any_out = false;
+        if let Some(m) = p.inside {
+            for y in 0..wh {
+                let row = (y_start + y) * width + x_start;
+                let src = &m[row..row + ww];
+                any_out |= src.iter().any(|&k| !k);
+                t.inside[y * ww..(y + 1) * ww].copy_from_slice(src);
             }
         }
+        let (ea, eb) = if any_out {
+            remove_mean_where(&mut t.a[..n], &mut t.b[..n], &t.inside[..n])
+        } else {
+            (remove_mean(&mut t.a[..n]), remove_mean(&mut t.b[..n]))
+        };
+        t.ws[p.sep - 1].add_pair(&t.a[..n], &t.b[..n], ea, eb);
     }
-    for k in 0..frames.len() - 1 {
-        let (fa, fb) = (frames[k], frames[k + 1]);
-        match pred {
-            None => {
-                for y in 0..wh {
-                    let ra = &fa.data[(y_start + y) * fa.width + x_start..][..ww];
-                    let rb = &fb.data[(y_start + y) * fb.width + x_start..][..ww];
-                    t.a[y * ww..(y + 1) * ww].copy_from_slice(ra);
-                    t.b[y * ww..(y + 1) * ww].copy_from_slice(rb);
-                }
-            }
-            Some(p) => {
-                let (ca, cb) = (&p.coefs[k], &p.coefs[k + 1]);
-                // Pixels whose sample in either frame falls outside the image
-                // are left out of both windows (zero after mean removal):
-                // edge-replicated values would correlate with nothing.
-                let (wmax, hmax) = ((fa.width - 1) as f32, (fa.height - 1) as f32);
-                let inside = |x: f32, y: f32| x >= 0.0 && y >= 0.0 && x <= wmax && y <= hmax;
-                let mut any_out = false;
-                for y in 0..wh {
-                    for x in 0..ww {
-                        let i = y * ww + x;
-                        let (du, dv) = t.disp[i];
-                        let (px, py) = ((x_start + x) as f32, (y_start + y) as f32);
-                        let (ax, ay) = (px - 0.5 * du, py - 0.5 * dv);
-                        let (bx, by) = (px + 0.5 * du, py + 0.5 * dv);
-                        let ok = inside(ax, ay) && inside(bx, by);
-                        t.inside[i] = ok;
-                        any_out |= !ok;
-                        if ok {
-                            t.a[i] = sample_bspline(ca, ax, ay);
-                            t.b[i] = sample_bspline(cb, bx, by);
-                        }
-                    }
-                }
-                if any_out {
-                    let (ea, eb) = remove_mean_where(&mut t.a[..n], &mut t.b[..n], &t.inside[..n]);
-                    t.ws.add_pair(&t.a[..n], &t.b[..n], ea, eb);
-                    continue;
-                }
-            }
+    let used = if t.ws.len() == 1 {
+        let np = t.ws[0].pairs();
+        if np > 0 {
+            t.ws[0].finish(&mut t.plane[..n]);
         }
-        let ea = remove_mean(&mut t.a[..n]);
-        let eb = remove_mean(&mut t.b[..n]);
-        t.ws.add_pair(&t.a[..n], &t.b[..n], ea, eb);
-    }
-    if t.ws.pairs() == 0 {
+        np
+    } else {
+        pyramid_plane(t, ww, wh)
+    };
+    if used == 0 {
         return (f64::NAN, f64::NAN, 0.0, false);
     }
-    t.ws.finish(&mut t.plane[..n]);
     let p = find_peak(&t.plane[..n], ww, wh);
     if p.at_border || !(p.height > 0.0) {
         return (f64::NAN, f64::NAN, p.height, false);
     }
-    (node_pred.0 + p.dx, node_pred.1 + p.dy, p.height, true)
+    (p.dx, p.dy, p.height, true)
 }
 
-/// One correlation pass over all nodes.
+/// One correlation pass over all nodes. `pred`: the predictor added to the
+/// measured residual at each node (deformed passes).
+#[allow(clippy::too_many_arguments)]
 fn run_pass(
-    frames: &[&Image],
+    pairs: &[PairImages],
+    width: usize,
+    height: usize,
     grid: &NodeGrid,
     ww: usize,
     wh: usize,
-    pred: Option<&Predictor>,
+    pred: Option<(&[f64], &[f64])>,
     masked: &[bool],
 ) -> VectorField {
-    let (width, height) = (frames[0].width, frames[0].height);
     let plan = CorrelationPlan::new(ww, wh);
+    let max_sep = pairs.iter().map(|p| p.sep).max().unwrap_or(1);
     let n = ww * wh;
     let results: Vec<(f64, f64, f32, u8)> = (0..grid.len())
         .into_par_iter()
         .map_init(
             || Thread {
-                ws: plan.workspace(),
+                ws: (0..max_sep).map(|_| plan.workspace()).collect(),
                 a: vec![0.0; n],
                 b: vec![0.0; n],
-                plane: vec![0.0; n],
-                disp: Vec::with_capacity(n),
                 inside: vec![true; n],
+                plane: vec![0.0; n],
+                sep_plane: vec![0.0; n],
             },
             |t, k| {
                 if masked[k] {
@@ -450,12 +582,17 @@ fn run_pass(
                 let ys = (cy - (wh as f64 - 1.0) / 2.0)
                     .round()
                     .clamp(0.0, (height - wh) as f64) as usize;
-                let node_pred = match pred {
-                    Some(p) => (p.u[k], p.v[k]),
+                let (pu, pv) = match pred {
+                    Some((u, v)) => (u[k], v[k]),
                     None => (0.0, 0.0),
                 };
-                let (u, v, h, ok) = measure_node(t, frames, xs, ys, ww, wh, pred, node_pred);
-                (u, v, h, if ok { flag::VALID } else { flag::NO_PEAK })
+                let (u, v, h, ok) = measure_node(t, pairs, xs, ys, ww, wh);
+                (
+                    pu + u,
+                    pv + v,
+                    h,
+                    if ok { flag::VALID } else { flag::NO_PEAK },
+                )
             },
         )
         .collect();
@@ -499,6 +636,16 @@ pub fn piv_frames(frames: &[&Image], o: &PivOptions) -> Result<VectorField> {
     check_frames(frames)?;
     let (width, height) = (frames[0].width, frames[0].height);
     let grid = node_grid(width, height, o)?;
+    if o.pyramid >= frames.len() {
+        return Err(Error::param(
+            "pyramid",
+            format!(
+                "largest frame separation {} needs more than {} frames (N_f)",
+                o.pyramid,
+                frames.len()
+            ),
+        ));
+    }
     let masked: Vec<bool> = (0..grid.len())
         .map(|k| match &o.mask {
             Some(m) => {
@@ -541,13 +688,64 @@ pub fn piv_frames(frames: &[&Image], o: &PivOptions) -> Result<VectorField> {
         if pass == 1 {
             coefs = frames.par_iter().map(|f| bspline_coefficients(f)).collect();
         }
-        let pred = field.as_ref().map(|f| Predictor {
-            grid: &f.grid,
-            u: &f.u,
-            v: &f.v,
-            coefs: &coefs,
-        });
-        let mut next = run_pass(&frames, &grid, ww, wh, pred.as_ref(), &masked);
+        let mut next = match &field {
+            // First pass: windows at the same place in both frames, unit
+            // separation only (larger separations would move the pattern
+            // further out of the fixed windows).
+            None => {
+                let pairs: Vec<PairImages> = frame_pairs(frames.len(), 1)
+                    .into_iter()
+                    .map(|(ka, kb)| PairImages {
+                        a: frames[ka],
+                        b: frames[kb],
+                        sep: kb - ka,
+                        inside: None,
+                    })
+                    .collect();
+                run_pass(&pairs, width, height, &grid, ww, wh, None, &masked)
+            }
+            // Deformed passes: pair (k, k+s) samples frame k at x − s·d/2
+            // and frame k+s at x + s·d/2; whole images are deformed once per
+            // pass and windows cut from them.
+            Some(pred) => {
+                let disp = displacement_image(&pred.grid, &pred.u, &pred.v, width, height);
+                let fp = frame_pairs(frames.len(), o.pyramid);
+                let masks: Vec<Vec<bool>> = (1..=o.pyramid)
+                    .map(|s| inside_mask(&disp, s, width, height))
+                    .collect();
+                let deformed: Vec<(Image, Image)> = fp
+                    .iter()
+                    .map(|&(ka, kb)| {
+                        let half = 0.5 * (kb - ka) as f32;
+                        let m = &masks[kb - ka - 1];
+                        (
+                            deform(&coefs[ka], &disp, -half, m),
+                            deform(&coefs[kb], &disp, half, m),
+                        )
+                    })
+                    .collect();
+                let pairs: Vec<PairImages> = fp
+                    .iter()
+                    .zip(&deformed)
+                    .map(|(&(ka, kb), (a, b))| PairImages {
+                        a,
+                        b,
+                        sep: kb - ka,
+                        inside: Some(&masks[kb - ka - 1]),
+                    })
+                    .collect();
+                run_pass(
+                    &pairs,
+                    width,
+                    height,
+                    &grid,
+                    ww,
+                    wh,
+                    Some((&pred.u, &pred.v)),
+                    &masked,
+                )
+            }
+        };
         validate::normalized_median_test(
             &next.u,
             &next.v,
@@ -586,6 +784,108 @@ pub fn piv_frames(frames: &[&Image], o: &PivOptions) -> Result<VectorField> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn tabulated_displacement_image_equals_interp_field() {
+        let grid = NodeGrid {
+            nx: 5,
+            ny: 4,
+            x0: 7.5,
+            y0: 3.5,
+            dx: 8.0,
+            dy: 6.0,
+        };
+        let u: Vec<f64> = (0..20).map(|k| (k as f64 * 0.37).sin() * 3.0).collect();
+        let v: Vec<f64> = (0..20).map(|k| (k as f64 * 0.71).cos() - 0.5).collect();
+        let (w, h) = (50, 30);
+        let d = displacement_image(&grid, &u, &v, w, h);
+        for y in 0..h {
+            for x in 0..w {
+                let (eu, ev) = (
+                    interp_field(&grid, &u, x as f64, y as f64) as f32,
+                    interp_field(&grid, &v, x as f64, y as f64) as f32,
+                );
+                assert_eq!(d[y * w + x], (eu, ev), "({x},{y})");
+            }
+        }
+    }
+
+    /// The pyramid plane against the definition: direct (non-FFT)
+    /// correlation of each separation's pairs, sampled at `s·δ`, weighted
+    /// by the pair counts.
+    #[test]
+    fn pyramid_plane_matches_direct_correlation_oracle() {
+        use crate::piv::correlate::direct_correlation;
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(9);
+        for &(w, h) in &[(16usize, 16usize), (12, 7)] {
+            let n = w * h;
+            let frames: Vec<Vec<f32>> = (0..5)
+                .map(|_| (0..n).map(|_| rng.gen::<f32>()).collect())
+                .collect();
+            let max_sep = 3;
+            let plan = CorrelationPlan::new(w, h);
+            let mut t = Thread {
+                ws: (0..max_sep).map(|_| plan.workspace()).collect(),
+                a: vec![0.0; n],
+                b: vec![0.0; n],
+                inside: vec![true; n],
+                plane: vec![0.0; n],
+                sep_plane: vec![0.0; n],
+            };
+            t.ws.iter_mut().for_each(|w| w.reset());
+            let fp = frame_pairs(5, max_sep);
+            for &(ka, kb) in &fp {
+                let (mut a, mut b) = (frames[ka].clone(), frames[kb].clone());
+                let (ea, eb) = (remove_mean(&mut a), remove_mean(&mut b));
+                t.ws[kb - ka - 1].add_pair(&a, &b, ea, eb);
+            }
+            assert_eq!(pyramid_plane(&mut t, w, h), fp.len());
+            let mut expect = vec![0.0f64; n];
+            for s in 1..=max_sep {
+                let pairs: Vec<(&[f32], &[f32])> = fp
+                    .iter()
+                    .filter(|p| p.1 - p.0 == s)
+                    .map(|&(ka, kb)| (frames[ka].as_slice(), frames[kb].as_slice()))
+                    .collect();
+                let d = direct_correlation(&pairs, w, h);
+                for dy in -(h as i64 / 2)..=(h as i64 - 1) / 2 {
+                    for dx in -(w as i64 / 2)..=(w as i64 - 1) / 2 {
+                        let (tx, ty) = (dx * s as i64, dy * s as i64);
+                        if tx < -(w as i64 / 2) || tx > (w as i64 - 1) / 2 {
+                            continue;
+                        }
+                        if ty < -(h as i64 / 2) || ty > (h as i64 - 1) / 2 {
+                            continue;
+                        }
+                        let src =
+                            ty.rem_euclid(h as i64) as usize * w + tx.rem_euclid(w as i64) as usize;
+                        let dst =
+                            dy.rem_euclid(h as i64) as usize * w + dx.rem_euclid(w as i64) as usize;
+                        expect[dst] += pairs.len() as f64 * d[src] as f64;
+                    }
+                }
+            }
+            for i in 0..n {
+                let e = expect[i] / fp.len() as f64;
+                assert!(
+                    (t.plane[i] as f64 - e).abs() < 1e-4,
+                    "{w}x{h} [{i}]: {} vs {e}",
+                    t.plane[i]
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn pyramid_pairs_cover_every_separation() {
+        assert_eq!(frame_pairs(5, 1), vec![(0, 1), (1, 2), (2, 3), (3, 4)]);
+        assert_eq!(
+            frame_pairs(4, 3),
+            vec![(0, 1), (1, 2), (2, 3), (0, 2), (1, 3), (0, 3)]
+        );
+        assert_eq!(frame_pairs(3, 9).len(), 3);
+    }
 
     #[test]
     fn bspline_interpolates_pixels_exactly_and_is_smooth_between() {

@@ -78,34 +78,7 @@ pub fn particle_frames(o: &SynthOptions, disp: &dyn Fn(f64, f64) -> (f64, f64)) 
     let mut tmp = Vec::new();
     let mut frames = Vec::with_capacity(o.frames);
     for _ in 0..o.frames {
-        let mut img = Image::zeros(o.width, o.height);
-        match &kernel {
-            Some(k) => {
-                for &(x, y) in &pts {
-                    let (xi, yi) = (x.round(), y.round());
-                    if xi >= 0.0 && yi >= 0.0 && (xi as usize) < o.width && (yi as usize) < o.height
-                    {
-                        img.data[yi as usize * o.width + xi as usize] = 1.0;
-                    }
-                }
-                blur(&mut img, k, &mut tmp);
-            }
-            None => {
-                let s = o.particle_sigma;
-                let r = (3.0 * s).ceil() as i64;
-                let c = 1.0 / (2.0 * s * s);
-                for &(x, y) in &pts {
-                    let (xc, yc) = (x.round() as i64, y.round() as i64);
-                    for yy in (yc - r).max(0)..=(yc + r).min(o.height as i64 - 1) {
-                        for xx in (xc - r).max(0)..=(xc + r).min(o.width as i64 - 1) {
-                            let d2 = (xx as f64 - x).powi(2) + (yy as f64 - y).powi(2);
-                            img.data[yy as usize * o.width + xx as usize] += (-d2 * c).exp() as f32;
-                        }
-                    }
-                }
-            }
-        }
-        frames.push(img);
+        frames.push(render_frame(o, &pts, kernel.as_deref(), &mut tmp));
         for p in pts.iter_mut() {
             let (u, v) = disp(p.0, p.1);
             let (um, vm) = disp(p.0 + 0.5 * u, p.1 + 0.5 * v);
@@ -114,4 +87,82 @@ pub fn particle_frames(o: &SynthOptions, disp: &dyn Fn(f64, f64) -> (f64, f64)) 
         }
     }
     frames
+}
+
+/// Frames of particles in a spatially uniform but accelerating motion:
+/// frame `k` shows every particle at `p + d0·k + a·k²/2`, so the
+/// displacement from frame `k` to `k+1` is `d0 + a·(k + ½)` and the velocity
+/// (px per frame step) at frame time `t` is `d0 + a·t`.
+pub fn accelerating_frames(o: &SynthOptions, d0: (f64, f64), a: (f64, f64)) -> Vec<Image> {
+    let mut rng = rand_pcg::Pcg64::seed_from_u64(o.seed);
+    let n = o.frames as f64;
+    let reach = |d: f64, a: f64| (d.abs() * n + 0.5 * a.abs() * n * n).ceil() + 4.0;
+    let margin = reach(d0.0, a.0).max(reach(d0.1, a.1));
+    let (ew, eh) = (
+        o.width as f64 + 2.0 * margin,
+        o.height as f64 + 2.0 * margin,
+    );
+    let count = (o.ppp * ew * eh).round() as usize;
+    let start: Vec<(f64, f64)> = (0..count)
+        .map(|_| {
+            (
+                rng.gen::<f64>() * ew - margin,
+                rng.gen::<f64>() * eh - margin,
+            )
+        })
+        .collect();
+    let kernel = o.binary_sigma.map(gaussian_kernel);
+    let mut tmp = Vec::new();
+    (0..o.frames)
+        .map(|k| {
+            let t = k as f64;
+            let pts: Vec<(f64, f64)> = start
+                .iter()
+                .map(|&(x, y)| {
+                    (
+                        x + d0.0 * t + 0.5 * a.0 * t * t,
+                        y + d0.1 * t + 0.5 * a.1 * t * t,
+                    )
+                })
+                .collect();
+            render_frame(o, &pts, kernel.as_deref(), &mut tmp)
+        })
+        .collect()
+}
+
+/// One frame of particles at `pts`: Gaussian particle images, or binary
+/// pixels blurred with `kernel`.
+fn render_frame(
+    o: &SynthOptions,
+    pts: &[(f64, f64)],
+    kernel: Option<&[f32]>,
+    tmp: &mut Vec<f32>,
+) -> Image {
+    let mut img = Image::zeros(o.width, o.height);
+    match kernel {
+        Some(k) => {
+            for &(x, y) in pts {
+                let (xi, yi) = (x.round(), y.round());
+                if xi >= 0.0 && yi >= 0.0 && (xi as usize) < o.width && (yi as usize) < o.height {
+                    img.data[yi as usize * o.width + xi as usize] = 1.0;
+                }
+            }
+            blur(&mut img, k, tmp);
+        }
+        None => {
+            let s = o.particle_sigma;
+            let r = (3.0 * s).ceil() as i64;
+            let c = 1.0 / (2.0 * s * s);
+            for &(x, y) in pts {
+                let (xc, yc) = (x.round() as i64, y.round() as i64);
+                for yy in (yc - r).max(0)..=(yc + r).min(o.height as i64 - 1) {
+                    for xx in (xc - r).max(0)..=(xc + r).min(o.width as i64 - 1) {
+                        let d2 = (xx as f64 - x).powi(2) + (yy as f64 - y).powi(2);
+                        img.data[yy as usize * o.width + xx as usize] += (-d2 * c).exp() as f32;
+                    }
+                }
+            }
+        }
+    }
+    img
 }

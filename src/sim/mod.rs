@@ -27,7 +27,9 @@
 //! [`simulate`] drains a `Simulator` into memory (tests, small scenes).
 //!
 //! ## Effects
-//! Each sensor/readout effect is an `Option` in the [`Scenario`]; `None`
+//! Each sensor/readout effect (and the laser's `clock_drift` against the
+//! camera clock, which moves pulses, triggers and truth together) is an
+//! `Option` in the [`Scenario`]; `None`
 //! means exactly absent (no random draws are taken for it either, so
 //! switching one effect does not reshuffle the others). See
 //! [`scenario`] for the table of names and parameters.
@@ -110,15 +112,24 @@ impl SimStats {
     }
 }
 
+/// SplitMix64's finaliser: a bijective 64-bit mix.
+#[inline]
+pub(crate) fn splitmix(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// The part of [`stream_seed`] that does not depend on the index.
+#[inline]
+pub(crate) fn stream_key(seed: u64, stream: u64) -> u64 {
+    splitmix(splitmix(seed) ^ stream.wrapping_mul(0xA24B_AED4_963E_E407))
+}
+
 /// A seed for an independent random stream (SplitMix64 mixing).
 pub(crate) fn stream_seed(seed: u64, stream: u64, index: u64) -> u64 {
-    fn mix(mut z: u64) -> u64 {
-        z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    mix(mix(mix(seed) ^ stream.wrapping_mul(0xA24B_AED4_963E_E407)) ^ index)
+    splitmix(stream_key(seed, stream) ^ index)
 }
 
 /// Target time span of one block (µs).
@@ -266,8 +277,9 @@ impl Simulator {
         self.pixel.hot_pixels()
     }
 
+    /// Camera-time start of pulse `k` (µs; `clock_drift` included).
     fn pulse_start_us(&self, k: u64) -> f64 {
-        self.sc.light.first_pulse_us + k as f64 * self.sc.period_us()
+        self.sc.pulse_start_us(k)
     }
 
     /// Simulate the next block into `chunk` (cleared first).

@@ -23,6 +23,7 @@
 //! | `arbiter_saturation` | readout  | `row_time_us`, `event_time_us`      |
 //! | `rate_limiter`       | readout  | `max_rate_ev_s`, `window_us`        |
 //! | `pulse_streaks`      | light    | `scale`                             |
+//! | `clock_drift`        | light    | `ppm`, `wander_ppm`, `wander_period_s` |
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -189,6 +190,37 @@ pub struct Light {
     /// Particle motion during the pulse smears the image (effect
     /// `pulse_streaks`); `None` = image at the pulse start position.
     pub pulse_streaks: Option<PulseStreaks>,
+    /// The laser's clock runs at a different rate from the camera's
+    /// (effect `clock_drift`); `None` = one common clock.
+    pub clock_drift: Option<ClockDrift>,
+}
+
+/// Laser clock against camera clock. The laser fires pulse k at
+/// τ_k = k·period on its own clock; in camera time (events, triggers,
+/// truth) it starts at `first_pulse_us + τ_k + δ(τ_k)` with
+/// δ(τ) = 10⁻⁶·(ppm·τ + wander_ppm·P/2π·(1 − cos 2πτ/P)), P the wander
+/// period: a constant rate offset plus a slow sinusoidal wander of the
+/// rate (±wander_ppm), as two free-running crystal oscillators do. The
+/// pulse period seen by the camera is period·(1 + 10⁻⁶·ppm) on average.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ClockDrift {
+    /// Constant rate offset (parts per million; positive = laser slow).
+    pub ppm: f64,
+    /// Amplitude of the rate's sinusoidal wander (ppm).
+    pub wander_ppm: f64,
+    /// Period of the wander (s).
+    pub wander_period_s: f64,
+}
+
+impl ClockDrift {
+    /// δ(τ) (µs) for laser time τ (µs since pulse 0).
+    pub fn offset_us(&self, tau_us: f64) -> f64 {
+        let p = self.wander_period_s * 1e6;
+        let wander = self.wander_ppm * p / std::f64::consts::TAU
+            * (1.0 - (std::f64::consts::TAU * tau_us / p).cos());
+        1e-6 * (self.ppm * tau_us + wander)
+    }
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -357,6 +389,7 @@ impl Default for Light {
             energy: 6.0,
             first_pulse_us: 50.0,
             pulse_streaks: None,
+            clock_drift: None,
         }
     }
 }
@@ -449,7 +482,7 @@ macro_rules! effect_table {
     };
 }
 
-pub const EFFECT_NAMES: [&str; 10] = [
+pub const EFFECT_NAMES: [&str; 11] = [
     "hot_pixels",
     "background_noise",
     "latency_jitter",
@@ -460,6 +493,7 @@ pub const EFFECT_NAMES: [&str; 10] = [
     "threshold_mismatch",
     "rate_limiter",
     "off_events",
+    "clock_drift",
 ];
 
 fn check(ok: bool, name: &str, why: impl FnOnce() -> String) -> Result<()> {
@@ -512,14 +546,30 @@ impl Scenario {
         1e6 / self.light.pulse_hz
     }
 
-    /// Number of pulses starting within the recording.
+    /// Start of pulse `k` in camera time (µs): `first_pulse_us + k·period`,
+    /// moved by the `clock_drift` effect when it is on.
+    pub fn pulse_start_us(&self, k: u64) -> f64 {
+        let tau = k as f64 * self.period_us();
+        let drift = self.light.clock_drift.map_or(0.0, |c| c.offset_us(tau));
+        self.light.first_pulse_us + tau + drift
+    }
+
+    /// Number of pulses starting within the recording (pulse starts
+    /// increase with k: validation keeps the drift's rate change far
+    /// below 100 %).
     pub fn pulse_count(&self) -> u64 {
-        let d = self.duration_s * 1e6 - self.light.first_pulse_us;
-        if d <= 0.0 {
-            0
-        } else {
-            (d / self.period_us()).ceil() as u64
+        let end = self.duration_s * 1e6;
+        if self.light.first_pulse_us >= end {
+            return 0;
         }
+        let mut n = ((end - self.light.first_pulse_us) / self.period_us()).ceil() as u64;
+        while n > 0 && self.pulse_start_us(n - 1) >= end {
+            n -= 1;
+        }
+        while self.pulse_start_us(n) < end {
+            n += 1;
+        }
+        n
     }
 
     /// Refuse impossible values, naming the field.
@@ -605,6 +655,21 @@ impl Scenario {
         non_negative(l.first_pulse_us, "light.first_pulse_us")?;
         if let Some(ps) = l.pulse_streaks {
             non_negative(ps.scale, "light.pulse_streaks.scale")?;
+        }
+        if let Some(c) = l.clock_drift {
+            // Crystal oscillators are within ~±100 ppm; 1000 ppm bounds
+            // anything that is still a drift.
+            check(
+                c.ppm.is_finite() && c.ppm.abs() <= 1000.0,
+                "light.clock_drift.ppm",
+                || format!("must be within ±1000 ppm, got {}", c.ppm),
+            )?;
+            check(
+                c.wander_ppm.is_finite() && c.wander_ppm.abs() <= 1000.0,
+                "light.clock_drift.wander_ppm",
+                || format!("must be within ±1000 ppm, got {}", c.wander_ppm),
+            )?;
+            positive(c.wander_period_s, "light.clock_drift.wander_period_s")?;
         }
         check(
             self.optics.particle_diameter_px.is_finite()
@@ -838,6 +903,7 @@ impl Scenario {
         "threshold_mismatch" => pixel.threshold_mismatch: ThresholdMismatch { sigma },
         "rate_limiter" => readout.rate_limiter: RateLimiter { max_rate_ev_s, window_us },
         "off_events" => pixel.off_events: OffEvents { threshold, tau_us },
+        "clock_drift" => light.clock_drift: ClockDrift { ppm, wander_ppm, wander_period_s },
     }
 }
 

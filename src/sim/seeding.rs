@@ -195,10 +195,10 @@ impl Particles {
                     let slot = ci * CHUNK + k;
                     let mut t = t0;
                     for (ti, &t1) in times.iter().enumerate() {
-                        this.step(p, rng, flow, t, t1, slot, n_slots);
+                        let known = this.step(p, rng, flow, t, t1, slot, n_slots);
                         t = t1;
                         if this.in_sheet(p) {
-                            let (u, v) = flow.velocity(p.x, p.y, t1);
+                            let (u, v) = known.unwrap_or_else(|| flow.velocity(p.x, p.y, t1));
                             out[ti].push(Snapshot {
                                 x: p.x,
                                 y: p.y,
@@ -224,6 +224,9 @@ impl Particles {
         merged
     }
 
+    /// Advance one particle from `t0` to `t1`. Returns its velocity at
+    /// `t1` when that is known without evaluating the field (a steady
+    /// parallel flow, u(y) only, and the particle was not recycled).
     #[allow(clippy::too_many_arguments)]
     fn step(
         &self,
@@ -234,14 +237,16 @@ impl Particles {
         t1: f64,
         slot: usize,
         n_slots: usize,
-    ) {
+    ) -> Option<(f64, f64)> {
         let dt = t1 - t0;
         if dt <= 0.0 {
-            return;
+            return None;
         }
         let (u, v) = flow.velocity(p.x, p.y, t0);
+        let mut known = None;
         if flow.is_parallel_steady() {
             p.x += u * dt;
+            known = Some((u, v));
         } else {
             // RK4 sub-steps of at most 4 px: the fields vary over tens of px,
             // so the pathline error stays far below 1e-3 px.
@@ -272,7 +277,7 @@ impl Particles {
                 p.w = -p.w;
             }
             Self::renew_id(p, slot, n_slots);
-            return;
+            return None;
         }
         let (wx, wy) = (d.x1 - d.x0, d.y1 - d.y0);
         let mut wrapped = false;
@@ -291,6 +296,9 @@ impl Particles {
                 p.z = rng.gen_range(-self.slab_half..self.slab_half);
             }
             Self::renew_id(p, slot, n_slots);
+            // Wrapped in y or re-seeded: the velocity changed.
+            return None;
         }
+        known
     }
 }
