@@ -5,14 +5,19 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use clap::Args;
+use ebptv::pulses::monitor::Follow;
 
 #[derive(Args, Debug)]
 pub struct MonitorArgs {
-    /// Event file being written (RAW EVT 2.0/2.1/3.0, DAT, CSV, …).
+    /// Event file (RAW EVT 2.0/2.1/3.0, DAT, CSV, …), or `-` for a RAW
+    /// stream on standard input.
     pub file: PathBuf,
-    /// Keep reading as the file grows, until Ctrl-C.
+    /// Keep reading as the file grows (RAW), until Ctrl-C or the idle timeout.
     #[arg(long)]
     pub follow: bool,
+    /// With --follow: stop when the file has not grown for this long (s).
+    #[arg(long, requires = "follow")]
+    pub idle_timeout_s: Option<f64>,
     /// Reporting interval (s of recording time).
     #[arg(long, default_value_t = 1.0)]
     pub interval_s: f64,
@@ -37,10 +42,14 @@ pub fn run(args: MonitorArgs) -> anyhow::Result<()> {
             args.interval_s
         );
     }
-    if args.file.as_os_str() == "-" {
-        anyhow::bail!(
-            "reading from stdin is not supported yet: give the file being written and --follow"
-        );
+    if let Some(t) = args.idle_timeout_s {
+        if !(t.is_finite() && t > 0.0) {
+            anyhow::bail!("invalid parameter `--idle-timeout-s`: {t} s, must be > 0");
+        }
+    }
+    let stdin = args.file.as_os_str() == "-";
+    if stdin && args.follow {
+        anyhow::bail!("`--follow` is for a file being written; standard input (`-`) is read until the writer closes it");
     }
     let opts = super::pulses::options(
         args.pulse_hz,
@@ -54,12 +63,23 @@ pub fn run(args: MonitorArgs) -> anyhow::Result<()> {
         let stop = stop.clone();
         ctrlc::set_handler(move || stop.store(true, Ordering::Relaxed))?;
     }
-    let mut src = ebptv::io::open(&args.file)?;
+    let mut src = if stdin {
+        ebptv::pulses::live::open_stdin()?
+    } else if args.follow {
+        ebptv::pulses::live::open_growing(&args.file, std::time::Duration::from_secs(10))?
+    } else {
+        ebptv::io::open(&args.file)?
+    };
+    let follow = match (args.follow, args.idle_timeout_s) {
+        (false, _) => Follow::No,
+        (true, None) => Follow::UntilStopped,
+        (true, Some(t)) => Follow::UntilIdle(std::time::Duration::from_secs_f64(t)),
+    };
     let n = ebptv::pulses::monitor::run(
         &mut src,
         &opts,
         (args.interval_s * 1e6) as i64,
-        args.follow,
+        follow,
         &stop,
         &mut |s| println!("{s}"),
     )?;

@@ -10,7 +10,8 @@ use ebptv::pulses::{Analyzer, PulseOptions, PulseReport};
 
 #[derive(Args, Debug)]
 pub struct PulsesArgs {
-    /// Event file (RAW EVT 2.0/2.1/3.0, DAT, CSV, AEDAT4, ES).
+    /// Event file (RAW EVT 2.0/2.1/3.0, DAT, CSV, AEDAT4, ES), or `-` for a
+    /// RAW stream on standard input.
     pub file: PathBuf,
     /// Nominal pulse frequency (Hz) when estimating from events (±2 % searched).
     #[arg(long, conflicts_with = "pulse_hz_range")]
@@ -72,7 +73,11 @@ pub fn run(args: PulsesArgs) -> anyhow::Result<()> {
         args.ignore_triggers,
         args.onset_latency_us,
     );
-    let mut src = ebptv::io::open(&args.file)?;
+    let mut src = if args.file.as_os_str() == "-" {
+        ebptv::pulses::live::open_stdin()?
+    } else {
+        ebptv::io::open(&args.file)?
+    };
     let size = src.info().file_size.unwrap_or(0);
     let bar = indicatif::ProgressBar::new(size);
     bar.set_style(

@@ -19,7 +19,7 @@
 //!    (2 ms, doubled by pairwise merging so at most 1024 blocks exist), one
 //!    count to its pixel in the rate map, and extends or closes the run of
 //!    events sharing (row, timestamp) (the readout-saturation signature).
-//!    A few short time slices (3 periods each, thinned by doubling) keep
+//!    A few short time slices (2 periods each, thinned by doubling) keep
 //!    their raw events for the pseudo-image statistics.
 //! 3. **Solve.** With triggers, the least-squares train over all rising
 //!    edges (integer pulse numbers: a missing edge leaves a gap, a glitch is
@@ -31,11 +31,15 @@
 //!    up only as a linear phase drift between blocks. Each block's histogram
 //!    is then shifted to the fitted pulse start and summed into the 1 µs
 //!    latency histogram: peak, FWHM, 95 % window, contrast, floor. Without
-//!    triggers the pulse start is the burst onset: the rising flank
-//!    (20–60 % of the peak) extrapolated to the floor; it lags the light
-//!    pulse by the sensor's minimum latency, which
-//!    [`PulseOptions::onset_latency_us`] can subtract when known (e.g. from
-//!    a recording with triggers).
+//!    triggers the pulse start is the burst's *leading edge*: walking back
+//!    from the rising flank's half height to where the excess over the local
+//!    floor falls below 0.2 % of the amplitude
+//!    ([`diagnostics::leading_edge`]). An event cannot precede its light
+//!    pulse, so the earliest burst events bound the start; on the simulator
+//!    presets this lands 2–4 µs after the light (the fastest pixels'
+//!    latency), where the flank extrapolation used before landed 6–10 µs
+//!    late. A known minimum latency ([`PulseOptions::onset_latency_us`],
+//!    e.g. from a recording with triggers) is subtracted.
 //!
 //! Memory is bounded by the warm-up buffer (~26 MB), the block histograms
 //! (≤ 1024 × P_ref bins), the rate map and the trigger times.
@@ -67,11 +71,16 @@ use std::collections::{BTreeMap, VecDeque};
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
-use crate::events::{Chunk, Edge, EventChunk, Geometry, ON};
+use crate::events::{Chunk, Edge, EventChunk, Geometry};
 
+pub mod accum;
 pub mod diagnostics;
+pub mod live;
 pub mod monitor;
 pub mod timing;
+
+use accum::{Accumulator, Block, Fold};
+pub use accum::{LARGE_GROUP, MAX_GROUP};
 
 pub use timing::{ChannelEdges, Periodicity};
 
@@ -148,22 +157,26 @@ pub struct PulseOptions {
 pub const DEFAULT_SEARCH_HZ: (f64, f64) = (500.0, 50_000.0);
 /// Relative half-width of the search band around a nominal frequency.
 pub const NOMINAL_TOLERANCE: f64 = 0.02;
-/// Events sharing (row, timestamp) in a run at least this long are the
-/// arbiter-saturation signature.
-pub const LARGE_GROUP: usize = 4;
 /// A time window counts as saturated when more than this fraction of its
 /// events sit in large (row, timestamp) groups *and* its burst fraction
 /// collapsed (below half the recording's median, or below 10 %).
 pub const SATURATION_GROUP_FRACTION: f64 = 0.10;
+/// Without triggers, the pulse start is where the burst first exceeds its
+/// local floor by this fraction of its amplitude
+/// ([`diagnostics::leading_edge`]).
+pub const LEADING_EDGE_FRACTION: f64 = 0.002;
 /// Reorder window of [`split_pulses`] (µs).
 pub const REORDER_MARGIN_US: i64 = 1000;
 
 const WARMUP_MAX_EVENTS: usize = 2_000_000;
 const WARMUP_MAX_US: i64 = 1_000_000;
+/// Rising edges of a regular trigger train that end the warm-up early.
+const WARMUP_TRIGGER_EDGES: usize = 64;
+/// Events buffered at least before the warm-up may end early.
+const WARMUP_MIN_EVENTS: usize = 10_000;
 const BLOCK_US_INITIAL: i64 = 2_000;
 const MAX_BLOCKS: usize = 1024;
-const MAX_GROUP: usize = 64;
-const MAX_SLICES: usize = 32;
+const MAX_SLICES: usize = 16;
 const HEAD_MAX: usize = 200_000;
 
 impl PulseOptions {
@@ -230,8 +243,8 @@ pub struct EstimateReport {
     pub blocks_used: usize,
     /// RMS of block phases about the fitted line (µs).
     pub phase_residual_rms_us: f64,
-    /// Burst onset found in the latency histogram before subtracting
-    /// `onset_latency_us` (µs after the template's zero; diagnostic).
+    /// The known onset latency subtracted from the leading edge
+    /// (`onset_latency_us`; 0 when not given).
     pub onset_latency_subtracted_us: f64,
 }
 
@@ -340,56 +353,6 @@ pub fn analyze(
     an.finish()
 }
 
-/// Fold reference fixed at the end of the warm-up.
-#[derive(Debug, Clone, Copy)]
-struct Fold {
-    t_ref: i64,
-    p_ref: f64,
-    inv_p: f64,
-    nbins: usize,
-}
-
-#[derive(Debug, Clone)]
-struct Block {
-    start: i64,
-    end: i64,
-    n: u64,
-    /// Sum of (t − start): the block's event-weighted centre.
-    t_rel_sum: i64,
-    shared: u64,
-    large: u64,
-    hist: Vec<u32>,
-}
-
-impl Block {
-    fn new(start: i64, end: i64, nbins: usize) -> Self {
-        Block {
-            start,
-            end,
-            n: 0,
-            t_rel_sum: 0,
-            shared: 0,
-            large: 0,
-            hist: vec![0; nbins],
-        }
-    }
-    fn centre(&self) -> f64 {
-        self.start as f64 + self.t_rel_sum as f64 / self.n.max(1) as f64
-    }
-    fn merge(&mut self, o: Block) {
-        let c = (self.centre() * self.n as f64 + o.centre() * o.n as f64)
-            / (self.n + o.n).max(1) as f64;
-        self.n += o.n;
-        self.t_rel_sum = ((c - self.start as f64) * self.n as f64).round() as i64;
-        self.end = o.end;
-        self.shared += o.shared;
-        self.large += o.large;
-        for (a, b) in self.hist.iter_mut().zip(&o.hist) {
-            *a += b;
-        }
-    }
-}
-
 /// Raw events of a short time slice, kept for pseudo-images.
 #[derive(Debug, Clone, Default)]
 struct Slice {
@@ -410,21 +373,8 @@ pub struct Analyzer {
     edges: BTreeMap<u8, ChannelEdges>,
     fold: Option<Fold>,
     warmup_estimate: Option<Periodicity>,
-    // per-event accumulators
-    width: usize,
-    height: usize,
-    rate: Vec<u32>,
-    n_events: u64,
-    n_on: u64,
-    t_min: i64,
-    t_max: i64,
-    block_us: i64,
-    blocks: Vec<Block>,
-    cur: Block,
-    last_t: i64,
-    last_y: u16,
-    run: usize,
-    groups: Vec<u64>,
+    /// Per-event statistics (fold histograms per block, pixel map, runs).
+    acc: Accumulator,
     head: Vec<i64>,
     head_until: i64,
     // sampler
@@ -453,20 +403,7 @@ impl Analyzer {
             edges: BTreeMap::new(),
             fold: None,
             warmup_estimate: None,
-            width: w.max(1),
-            height: h.max(1),
-            rate: vec![0; w.max(1) * h.max(1)],
-            n_events: 0,
-            n_on: 0,
-            t_min: i64::MAX,
-            t_max: i64::MIN,
-            block_us: BLOCK_US_INITIAL,
-            blocks: Vec::new(),
-            cur: Block::new(i64::MIN, i64::MIN, 0),
-            last_t: i64::MIN,
-            last_y: 0,
-            run: 0,
-            groups: vec![0; MAX_GROUP + 1],
+            acc: Accumulator::new(w, h, BLOCK_US_INITIAL, MAX_BLOCKS),
             head: Vec::new(),
             head_until: i64::MIN,
             slices: Vec::new(),
@@ -486,7 +423,7 @@ impl Analyzer {
         if self.warm.is_some() {
             self.warm_t_max.saturating_sub(self.warm_t_min).max(0)
         } else {
-            self.t_max.saturating_sub(self.t_min).max(0)
+            self.acc.t_max.saturating_sub(self.acc.t_min).max(0)
         }
     }
 
@@ -505,9 +442,10 @@ impl Analyzer {
                 self.warm_t_min = self.warm_t_min.min(t);
                 self.warm_t_max = self.warm_t_max.max(t);
             }
-            if w.len() >= WARMUP_MAX_EVENTS
-                || self.warm_t_max.saturating_sub(self.warm_t_min) >= WARMUP_MAX_US
-            {
+            let buffered = w.len();
+            let enough = buffered >= WARMUP_MAX_EVENTS
+                || self.warm_t_max.saturating_sub(self.warm_t_min) >= WARMUP_MAX_US;
+            if enough || self.trigger_train_ready(buffered) {
                 self.begin_streaming()?;
             }
             return Ok(());
@@ -515,6 +453,21 @@ impl Analyzer {
         let f = self.fold.expect("fold set after warm-up");
         self.accumulate(&f, &chunk.events);
         Ok(())
+    }
+
+    /// With a regular trigger train of ≥ [`WARMUP_TRIGGER_EDGES`] rising
+    /// edges the reference period is known: no need to buffer more events
+    /// (the final timing is fitted over all edges at the end anyway).
+    fn trigger_train_ready(&self, buffered: usize) -> bool {
+        if self.opts.ignore_triggers || buffered < WARMUP_MIN_EVENTS {
+            return false;
+        }
+        let edges = |c: &u8| self.edges.get(c).map_or(0, |e| e.rising.len());
+        let most = match self.opts.trigger_channel {
+            Some(c) => edges(&c),
+            None => self.edges.keys().map(edges).max().unwrap_or(0),
+        };
+        most >= WARMUP_TRIGGER_EDGES && matches!(self.choose_channel(), Ok(Some(_)))
     }
 
     /// The trigger channel to time pulses by, or `None` to estimate.
@@ -558,14 +511,10 @@ impl Analyzer {
             }
         };
         let nbins = (p_ref.round() as usize).max(8);
-        let f = Fold {
-            t_ref,
-            p_ref,
-            inv_p: 1.0 / p_ref,
-            nbins,
-        };
+        let f = Fold::new(t_ref, p_ref, nbins);
         self.fold = Some(f);
-        self.slice_span = (3.0 * p_ref).ceil() as i64 + 1;
+        // Two periods hold one whole assignment window wherever it sits.
+        self.slice_span = (2.0 * p_ref).ceil() as i64 + 2;
         self.slice_next_j = 1;
         self.slice_lo = t_ref + p_ref.round() as i64;
         self.slice_hi = self.slice_lo + self.slice_span;
@@ -598,119 +547,61 @@ impl Analyzer {
         ))
     }
 
-    /// The per-event hot loop: fold histogram of the current block, rate
-    /// map, (row, timestamp) runs, sampled slices.
+    /// Feed events to the statistics: the per-event work is in
+    /// [`Accumulator::push`]; the warm-up head and the sampled slices only
+    /// look at chunks that reach them.
     fn accumulate(&mut self, f: &Fold, ev: &EventChunk) {
-        let nb = f.nbins;
-        let nbf = nb as f64;
-        // The rate map in its own tight loop: its increments are random
-        // memory accesses (a 3.7 MB map), and a short loop body lets the
-        // CPU keep many of those cache misses in flight at once.
-        let (mx, my) = (ev.x.iter().max(), ev.y.iter().max());
-        if let (Some(&mx), Some(&my)) = (mx, my) {
-            if mx as usize >= self.width || my as usize >= self.height {
-                self.grow_map(mx as usize + 1, my as usize + 1);
-            }
-        }
-        let w = self.width;
-        let rate = &mut self.rate[..];
-        for (&x, &y) in ev.x.iter().zip(&ev.y) {
-            rate[y as usize * w + x as usize] += 1;
-        }
-        for i in 0..ev.len() {
-            let t = ev.t[i];
-            let x = ev.x[i] as usize;
-            let y = ev.y[i];
-            if t >= self.cur.end {
-                self.roll_block(f, t);
-            }
-            // +0.5: the timestamp's tick centre, so integer times never sit
-            // on a fold-bin edge where rounding would flip them.
-            let ph = ((t - f.t_ref) as f64 + 0.5) * f.inv_p;
-            let mut fr = ph - (ph as i64) as f64;
-            if fr < 0.0 {
-                fr += 1.0;
-            }
-            let b = ((fr * nbf) as usize).min(nb - 1);
-            self.cur.hist[b] += 1;
-            self.cur.n += 1;
-            self.cur.t_rel_sum += t - self.cur.start;
-            if t == self.last_t && y == self.last_y {
-                self.run += 1;
-            } else {
-                self.close_run();
-                self.last_t = t;
-                self.last_y = y;
-                self.run = 1;
-            }
-            if t >= self.slice_lo {
-                if t < self.slice_hi {
-                    if let Some(s) = self.slice_cur.as_mut() {
-                        s.t.push(t);
-                        s.x.push(x as u16);
-                        s.y.push(y);
-                    } else {
-                        self.open_slice(f, t, x as u16, y);
-                    }
-                } else {
-                    self.advance_slice(f, t, x as u16, y);
-                }
-            }
-            if t < self.head_until && self.head.len() < HEAD_MAX {
-                self.head.push(t);
-            }
-            self.n_on += (ev.p[i] == ON) as u64;
-            self.t_min = self.t_min.min(t);
-            self.t_max = self.t_max.max(t);
-        }
-        self.n_events += ev.len() as u64;
-    }
-
-    fn grow_map(&mut self, w: usize, h: usize) {
-        let (nw, nh) = (w.max(self.width), h.max(self.height));
-        let mut m = vec![0u32; nw * nh];
-        for y in 0..self.height {
-            m[y * nw..y * nw + self.width]
-                .copy_from_slice(&self.rate[y * self.width..(y + 1) * self.width]);
-        }
-        self.rate = m;
-        self.width = nw;
-        self.height = nh;
-    }
-
-    fn close_run(&mut self) {
-        let r = self.run;
-        if r == 0 {
+        if ev.is_empty() {
             return;
         }
-        self.groups[r.min(MAX_GROUP)] += 1;
-        if r >= 2 {
-            self.cur.shared += r as u64;
-            if r >= LARGE_GROUP {
-                self.cur.large += r as u64;
+        let (lo, hi) = self.acc.push(f, ev);
+        if lo < self.head_until && self.head.len() < HEAD_MAX {
+            for &t in &ev.t {
+                if t < self.head_until && self.head.len() < HEAD_MAX {
+                    self.head.push(t);
+                }
             }
         }
-        self.run = 0;
+        if hi >= self.slice_lo {
+            self.sample_slices(f, ev);
+        }
     }
 
-    fn roll_block(&mut self, f: &Fold, t: i64) {
-        let done = std::mem::replace(&mut self.cur, Block::new(0, 0, 0));
-        if done.n > 0 {
-            self.blocks.push(done);
-        }
-        if self.blocks.len() > MAX_BLOCKS {
-            let old = std::mem::take(&mut self.blocks);
-            let mut it = old.into_iter();
-            while let Some(mut a) = it.next() {
-                if let Some(b) = it.next() {
-                    a.merge(b);
-                }
-                self.blocks.push(a);
+    /// Copy the events that fall in the sampled slices: skip to the next
+    /// event at/after the slice start, copy the contiguous run inside the
+    /// slice, move to the next slice at the first event past it. Events
+    /// before the slice start (time stepping back) are not kept.
+    fn sample_slices(&mut self, f: &Fold, ev: &EventChunk) {
+        let (ts, xs, ys) = (&ev.t[..], &ev.x[..], &ev.y[..]);
+        let n = ts.len();
+        let mut i = 0;
+        while i < n {
+            let lo = self.slice_lo;
+            match ts[i..].iter().position(|&t| t >= lo) {
+                Some(k) => i += k,
+                None => break,
             }
-            self.block_us *= 2;
+            let hi = self.slice_hi;
+            if ts[i] >= hi {
+                self.advance_slice(f, ts[i], xs[i], ys[i]);
+                i += 1;
+                continue;
+            }
+            let j = i + ts[i..]
+                .iter()
+                .position(|&t| t < lo || t >= hi)
+                .unwrap_or(n - i);
+            let next_j = self.slice_next_j;
+            let s = self.slice_cur.get_or_insert_with(|| Slice {
+                j: next_j,
+                start: Self::slice_start(f, next_j),
+                ..Default::default()
+            });
+            s.t.extend_from_slice(&ts[i..j]);
+            s.x.extend_from_slice(&xs[i..j]);
+            s.y.extend_from_slice(&ys[i..j]);
+            i = j;
         }
-        let start = f.t_ref + (t - f.t_ref).div_euclid(self.block_us) * self.block_us;
-        self.cur = Block::new(start, start + self.block_us, f.nbins);
     }
 
     fn slice_start(f: &Fold, j: i64) -> i64 {
@@ -759,14 +650,10 @@ impl Analyzer {
             self.begin_streaming()?;
         }
         let f = match self.fold {
-            Some(f) if self.n_events > 0 => f,
+            Some(f) if self.acc.n_events > 0 => f,
             _ => return Err(Error::analysis("no events: nothing to analyse")),
         };
-        self.close_run();
-        let cur = std::mem::replace(&mut self.cur, Block::new(0, 0, 0));
-        if cur.n > 0 {
-            self.blocks.push(cur);
-        }
+        self.acc.close();
         if let Some(s) = self.slice_cur.take() {
             self.slices.push(s);
         }
@@ -788,8 +675,12 @@ impl Analyzer {
             }
             None => {
                 let (anchor, period, used, rms) = self.fit_block_phases(&f)?;
-                let lat = aligned_histogram(&self.blocks, &f, anchor, period, n_lat);
-                let onset = diagnostics::burst_onset(&lat);
+                let lat = aligned_histogram(&self.acc.blocks, &f, anchor, period, n_lat);
+                let mut onset =
+                    diagnostics::leading_edge(&per_us(&lat, period), LEADING_EDGE_FRACTION);
+                if onset > 0.5 * n_lat as f64 {
+                    onset -= n_lat as f64; // the edge wrapped to the period's end
+                }
                 let known = self.opts.onset_latency_us.unwrap_or(0.0);
                 let est = EstimateReport {
                     search_hz: self.opts.search_band(),
@@ -807,7 +698,7 @@ impl Analyzer {
                 )
             }
         };
-        let lat = aligned_histogram(&self.blocks, &f, anchor, period, n_lat);
+        let lat = aligned_histogram(&self.acc.blocks, &f, anchor, period, n_lat);
         let stats = diagnostics::latency_stats(&lat);
         let low = diagnostics::lowest_point(&lat);
         let window_offset = if low <= stats.peak_us {
@@ -820,7 +711,7 @@ impl Analyzer {
         // after the first event.
         let first = match &trig_fit {
             Some(fit) => fit.first_us,
-            None => anchor + ((self.t_min as f64 - anchor) / period).ceil() * period,
+            None => anchor + ((self.acc.t_min as f64 - anchor) / period).ceil() * period,
         };
         let timing = PulseTiming {
             period_us: period,
@@ -833,18 +724,22 @@ impl Analyzer {
         let mut unattributed = self.head.iter().filter(|&&t| (t as f64) < w0).count() as u64;
         if w0 > self.head_until as f64 {
             unattributed += self
+                .acc
                 .blocks
                 .iter()
                 .filter(|b| (b.end as f64) <= w0)
                 .map(|b| b.n)
                 .sum::<u64>();
         }
-        let pulses = timing.assign(self.t_max).map(|k| k as u64 + 1).unwrap_or(0);
+        let pulses = timing
+            .assign(self.acc.t_max)
+            .map(|k| k as u64 + 1)
+            .unwrap_or(0);
 
         // --- saturation per time window ---
         let (w_lo, w_hi) = stats.window95_us;
-        let mut windows = Vec::with_capacity(self.blocks.len());
-        for b in &self.blocks {
+        let mut windows = Vec::with_capacity(self.acc.blocks.len());
+        for b in &self.acc.blocks {
             let h = aligned_histogram(std::slice::from_ref(b), &f, anchor, period, n_lat);
             let wl = (w_hi - w_lo).max(1.0) as usize;
             let inside: f64 = (w_lo as usize..w_lo as usize + wl)
@@ -881,26 +776,26 @@ impl Analyzer {
                 flagged += w.events;
             }
         }
-        let sat_events = flagged as f64 / self.n_events as f64;
-        let shared: u64 = self.blocks.iter().map(|b| b.shared).sum();
-        let large: u64 = self.blocks.iter().map(|b| b.large).sum();
-        let large_fraction = large as f64 / self.n_events as f64;
+        let sat_events = flagged as f64 / self.acc.n_events as f64;
+        let shared: u64 = self.acc.blocks.iter().map(|b| b.shared).sum();
+        let large: u64 = self.acc.blocks.iter().map(|b| b.large).sum();
+        let large_fraction = large as f64 / self.acc.n_events as f64;
         let saturated = sat_events >= 0.5
             || (stats.burst_fraction < 0.1 && large_fraction > SATURATION_GROUP_FRACTION);
 
         // --- rate map ---
-        let duration_s = (self.t_max - self.t_min + 1) as f64 * 1e-6;
-        let (hot, thr) = diagnostics::hot_pixels(&self.rate, self.width, duration_s, 10.0, 100);
-        let active = self.rate.iter().filter(|c| **c > 0).count().max(1);
+        let duration_s = (self.acc.t_max - self.acc.t_min + 1) as f64 * 1e-6;
+        let counts = self.acc.pixel_counts();
+        let (hot, thr) = diagnostics::hot_pixels(&counts, self.acc.width, duration_s, 10.0, 100);
+        let active = counts.iter().filter(|c| **c > 0).count().max(1);
         let rate_map = RateMapReport {
-            width: self.width as u16,
-            height: self.height as u16,
-            mean_active_rate_hz: self.n_events as f64 / active as f64 / duration_s,
-            max_rate_hz: *self.rate.iter().max().unwrap_or(&0) as f64 / duration_s,
+            width: self.acc.width as u16,
+            height: self.acc.height as u16,
+            mean_active_rate_hz: self.acc.n_events as f64 / active as f64 / duration_s,
+            max_rate_hz: *counts.iter().max().unwrap_or(&0) as f64 / duration_s,
             hot_threshold_hz: thr,
             hot_pixels: hot,
-            rate: self
-                .rate
+            rate: counts
                 .iter()
                 .map(|&c| (c as f64 / duration_s) as f32)
                 .collect(),
@@ -933,7 +828,7 @@ impl Analyzer {
         let particles = ParticleImageReport {
             pulses_sampled: sampled,
             ppp: if sampled > 0 {
-                cc.clusters as f64 / sampled as f64 / (self.width * self.height) as f64
+                cc.clusters as f64 / sampled as f64 / (self.acc.width * self.acc.height) as f64
             } else {
                 0.0
             },
@@ -958,13 +853,13 @@ impl Analyzer {
             random_event_fraction: stats.random_fraction,
             histogram_flatness: stats.flatness,
             saturated,
-            saturation_shared_fraction: shared as f64 / self.n_events as f64,
-            events: self.n_events,
-            on_fraction: self.n_on as f64 / self.n_events as f64,
-            t_first_us: self.t_min,
-            t_last_us: self.t_max,
+            saturation_shared_fraction: shared as f64 / self.acc.n_events as f64,
+            events: self.acc.n_events,
+            on_fraction: self.acc.n_on as f64 / self.acc.n_events as f64,
+            t_first_us: self.acc.t_min,
+            t_last_us: self.acc.t_max,
             duration_s,
-            event_rate_hz: self.n_events as f64 / duration_s,
+            event_rate_hz: self.acc.n_events as f64 / duration_s,
             pulses,
             unattributed_events: unattributed,
             triggers: TriggerReport {
@@ -974,7 +869,7 @@ impl Analyzer {
             estimate,
             latency: stats,
             saturation: SaturationReport {
-                group_sizes: self.groups.clone(),
+                group_sizes: self.acc.group_sizes(),
                 large_group_fraction: large_fraction,
                 saturated_event_fraction: sat_events,
                 windows,
@@ -990,7 +885,7 @@ impl Analyzer {
     /// used, rms µs). The anchor is a time where the template's zero sits.
     fn fit_block_phases(&self, f: &Fold) -> Result<(f64, f64, usize, f64)> {
         let bw = f.p_ref / f.nbins as f64;
-        let usable: Vec<&Block> = self.blocks.iter().filter(|b| b.n >= 50).collect();
+        let usable: Vec<&Block> = self.acc.blocks.iter().filter(|b| b.n >= 50).collect();
         if usable.is_empty() {
             return Err(Error::analysis(
                 "too few events per time block to follow the pulse phase",
@@ -1056,6 +951,22 @@ impl Analyzer {
         // is built against.
         Ok((anchor, period, used, rms))
     }
+}
+
+/// Latency histogram as events per µs: the last bin covers only the
+/// fraction `period − (n − 1)` of a µs (a dip that is not in the data).
+fn per_us(lat: &[f64], period: f64) -> Vec<f64> {
+    let mut h = lat.to_vec();
+    let n = h.len();
+    let width = period - (n - 1) as f64;
+    if n >= 3 {
+        h[n - 1] = if width > 0.1 {
+            h[n - 1] / width
+        } else {
+            0.5 * (h[n - 2] + h[0])
+        };
+    }
+    h
 }
 
 /// Circular first difference.

@@ -6,8 +6,12 @@
 //! Each interval gets its own [`Analyzer`] (the pulse period is re-found in
 //! every interval, or taken from the triggers), so a change of conditions
 //! shows at once. Following a growing file relies on the source returning
-//! `Ok(false)` at the current end and delivering new data on a later call:
-//! the monitor sleeps and polls again until `stop` is set (Ctrl-C).
+//! `Ok(false)` at the current end and delivering new data on a later call
+//! ([`super::live::LiveRaw`]): the monitor sleeps and polls again until
+//! `stop` is set (Ctrl-C) or, with an idle timeout, until the file has not
+//! grown for that long. When the data pauses for two intervals (wall time),
+//! the interval in progress is reported as it is, so the operator sees the
+//! latest state of a slowly written file.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -87,18 +91,35 @@ fn summarize(an: Analyzer, t0: i64, t1: i64, events: u64) -> IntervalSummary {
     s
 }
 
+/// How the monitor treats the end of the data.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Follow {
+    /// The first end of the data ends the monitor (a finished file, a pipe).
+    No,
+    /// Keep polling a growing file until `stop` is set.
+    UntilStopped,
+    /// Keep polling until `stop`, or until no new data came for this long.
+    UntilIdle(Duration),
+}
+
 /// Run the monitor over `source`, one summary per `interval_us` of
-/// recording time. With `follow`, `Ok(false)` from the source means "no
-/// data yet": sleep and poll again until `stop`. Returns the number of
+/// recording time. When following, `Ok(false)` from the source means "no
+/// data yet": sleep and poll again (see [`Follow`]). Returns the number of
 /// intervals reported.
 pub fn run(
     source: &mut dyn EventSource,
     opts: &PulseOptions,
     interval_us: i64,
-    follow: bool,
+    follow: Follow,
     stop: &AtomicBool,
     on_interval: &mut dyn FnMut(&IntervalSummary),
 ) -> Result<u64> {
+    if interval_us <= 0 {
+        return Err(crate::error::Error::param(
+            "interval",
+            format!("{interval_us} µs: must be positive"),
+        ));
+    }
     opts.validate()?;
     let geometry = source.info().geometry;
     let mut chunk = Chunk::default();
@@ -111,8 +132,10 @@ pub fn run(
     let mut idle_since = Instant::now();
     while !stop.load(Ordering::Relaxed) {
         if !source.next_chunk(&mut chunk)? {
-            if !follow {
-                break;
+            match follow {
+                Follow::No => break,
+                Follow::UntilIdle(limit) if idle_since.elapsed() >= limit => break,
+                _ => {}
             }
             // A pause of a few intervals in wall time: report what there is.
             if events > 0 && idle_since.elapsed() > Duration::from_micros(2 * interval_us as u64) {

@@ -354,7 +354,11 @@ pub fn estimate_period(times: &[i64], range_hz: (f64, f64)) -> Result<Periodicit
         let k = (best.0.saturating_sub(1)..=best.0 + 1)
             .max_by(|&a, &b| power[a].total_cmp(&power[b]))
             .unwrap();
-        let mut band_pow: Vec<f64> = power[kmin..=kmax.max(kmin + 8).min(power.len() - 1)].to_vec();
+        // The noise level around the band: a narrow band (±2 % of a short
+        // recording) holds few bins, mostly the peak's own sidelobes.
+        let lo = kmin.saturating_sub(64).max(1);
+        let hi = (kmax + 64).min(power.len() - 1);
+        let mut band_pow: Vec<f64> = power[lo..=hi].to_vec();
         let med = median_f64(&mut band_pow).unwrap_or(0.0).max(1e-12);
         Some((k, power[k] / med, med))
     };
