@@ -21,7 +21,9 @@
 //! - a *link* is two consecutive points of one track; it is correct when
 //!   both ends match the same truth id. Link precision = correct links /
 //!   links; link recall = truth links found / truth links, where a truth
-//!   link is a truth particle detected at pulses k and k+1;
+//!   link is a truth particle *present* in the truth at pulses k and k+1,
+//!   whether or not it was detected — so link recall includes the
+//!   detection losses (the stricter of the two usual readings);
 //! - velocity error: rms over matched track points and over both
 //!   components of (u − u_true) · Δt, in px per pulse interval;
 //! - Eulerian error: the truth samples binned exactly like the tracks (the
