@@ -14,6 +14,7 @@
 //! parses arguments, calls these, shows progress and writes files.
 //! See ARCHITECTURE.md for the design and README.md for the file contracts.
 
+pub mod decimal;
 pub mod error;
 pub mod events;
 pub mod io;

@@ -17,6 +17,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use super::{Scenario, SimStats, Simulator, TruthSample};
+use crate::decimal::{push_fixed, push_u64};
 use crate::error::{Error, Result};
 use crate::events::{Chunk, Geometry};
 use crate::io::atomic::AtomicFile;
@@ -88,71 +89,6 @@ pub fn truth_line_reference(line: &mut Vec<u8>, r: &TruthSample) {
         "{},{:.3},{},{:.4},{:.4},{:.3},{:.3}",
         r.pulse, r.t_us, r.particle_id, r.x, r.y, r.u, r.v
     );
-}
-
-/// Append `v` with `decimals` (≤ 6) digits after the point, byte for byte
-/// `format!("{v:.decimals$}")`. Scaling by 10^decimals and rounding to an
-/// integer gives the same digits unless the scaled value sits within a
-/// few ulps of a rounding tie (or is huge, or not finite): those rare
-/// values go through `core::fmt`, which rounds the exact binary value.
-pub fn push_fixed(out: &mut Vec<u8>, v: f64, decimals: u32) {
-    const SCALE: [f64; 7] = [1.0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6];
-    let d = decimals.min(6) as usize;
-    let a = v.abs() * SCALE[d];
-    // `as u64` truncates (no libm call): floor for 0 ≤ a < 2^64.
-    let whole = if a < 1e15 { a as u64 } else { 0 };
-    let frac = a - whole as f64;
-    // The product is within half an ulp of the exact one; stay well away.
-    if !(a < 1e15) || (frac - 0.5).abs() <= a * 4.0 * f64::EPSILON {
-        use std::io::Write as _;
-        let _ = write!(out, "{v:.d$}");
-        return;
-    }
-    let n = whole + (frac > 0.5) as u64;
-    if v.is_sign_negative() {
-        out.push(b'-');
-    }
-    let p = POW10[d];
-    push_u64(out, n / p);
-    if d > 0 {
-        out.push(b'.');
-        push_padded(out, n % p, d);
-    }
-}
-
-const POW10: [u64; 7] = [1, 10, 100, 1000, 10_000, 100_000, 1_000_000];
-
-/// "00", "01", …, "99": two digits per division.
-const DIGIT_PAIRS: &[u8; 200] = b"0001020304050607080910111213141516171819\
-2021222324252627282930313233343536373839\
-4041424344454647484950515253545556575859\
-6061626364656667686970717273747576777879\
-8081828384858687888990919293949596979899";
-
-/// Append `n` in decimal, left-padded with zeros to at least `width`.
-fn push_padded(out: &mut Vec<u8>, mut n: u64, width: usize) {
-    let mut buf = [b'0'; 24];
-    let mut i = buf.len();
-    while n >= 100 {
-        let pair = (n % 100) as usize * 2;
-        n /= 100;
-        i -= 2;
-        buf[i..i + 2].copy_from_slice(&DIGIT_PAIRS[pair..pair + 2]);
-    }
-    if n >= 10 {
-        i -= 2;
-        buf[i..i + 2].copy_from_slice(&DIGIT_PAIRS[n as usize * 2..n as usize * 2 + 2]);
-    } else {
-        i -= 1;
-        buf[i] = b'0' + n as u8;
-    }
-    let start = i.min(buf.len() - width.min(buf.len()));
-    out.extend_from_slice(&buf[start..]);
-}
-
-/// Append `n` in decimal.
-fn push_u64(out: &mut Vec<u8>, n: u64) {
-    push_padded(out, n, 1);
 }
 
 /// `summary.json`.
@@ -323,58 +259,6 @@ pub fn write_recording(
 mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
-
-    #[test]
-    fn fast_fixed_point_matches_core_fmt() {
-        let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
-        let mut specials = vec![
-            0.0,
-            -0.0,
-            0.5,
-            -0.5,
-            0.00005,
-            -0.00005,
-            0.00015,
-            1.0005,
-            2.5e-4,
-            1e-9,
-            -1e-9,
-            123.45650,
-            0.125,
-            0.0625,
-            1e14,
-            1e16,
-            -3.0e20,
-            f64::NAN,
-            f64::INFINITY,
-            f64::NEG_INFINITY,
-            f64::MIN_POSITIVE,
-            1279.99995,
-        ];
-        // Exact binary ties at 3 and 4 decimals (k/2^n with few bits).
-        for k in 0..2000 {
-            specials.push(k as f64 / 2048.0);
-            specials.push(-(k as f64) / 16.0 + 0.0005);
-        }
-        for i in 0..200_000 {
-            let v = match i % 4 {
-                0 => rng.gen_range(-2000.0..2000.0),
-                1 => rng.gen_range(-1e6..1e6),
-                2 => (rng.gen_range(-1e7..1e7) as i64) as f64 * 1e-4 + 5e-5,
-                _ => rng.gen_range(-1.0..1.0) * 10f64.powi(rng.gen_range(-8..12)),
-            };
-            specials.push(v);
-        }
-        let mut a = Vec::new();
-        for &v in &specials {
-            for d in [0, 1, 3, 4, 6] {
-                a.clear();
-                push_fixed(&mut a, v, d);
-                let want = format!("{v:.prec$}", prec = d as usize);
-                assert_eq!(std::str::from_utf8(&a).unwrap(), want, "{v:e} at {d}");
-            }
-        }
-    }
 
     #[test]
     fn truth_line_matches_reference() {

@@ -12,6 +12,7 @@ use serde::{Deserialize, Serialize};
 
 use super::{Track, TrackPoint, TrackerStats};
 use crate::cluster::Particle;
+use crate::decimal::{push_fixed, push_int};
 use crate::error::{Error, Result};
 use crate::io::atomic::AtomicFile;
 
@@ -124,56 +125,6 @@ impl TracksCsvWriter {
     }
     pub fn finish(self) -> Result<()> {
         self.file.commit()
-    }
-}
-
-/// Append the decimal digits of `v`.
-fn push_int(buf: &mut Vec<u8>, v: i64) {
-    if v < 0 {
-        buf.push(b'-');
-    }
-    let mut u = v.unsigned_abs();
-    let mut tmp = [0u8; 20];
-    let mut i = tmp.len();
-    loop {
-        i -= 1;
-        tmp[i] = b'0' + (u % 10) as u8;
-        u /= 10;
-        if u == 0 {
-            break;
-        }
-    }
-    buf.extend_from_slice(&tmp[i..]);
-}
-
-/// Append `v` with `decimals` (≤ 6) digits after the point, exactly as
-/// `format!("{v:.decimals$}")` does: integer arithmetic on `v·10^decimals`
-/// when its rounding is unambiguous (far from a half and below 2^52, where
-/// the scaled value's own rounding error cannot flip it), the exact
-/// formatter otherwise.
-fn push_fixed(buf: &mut Vec<u8>, v: f64, decimals: u32) {
-    const POW: [f64; 7] = [1.0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6];
-    let scaled = v.abs() * POW[decimals.min(6) as usize];
-    let frac = scaled - scaled.floor();
-    if !(scaled < 4.0e15) || (frac - 0.5).abs() < 1e-3 || decimals > 6 {
-        write!(buf, "{v:.*}", decimals as usize).expect("writing to memory");
-        return;
-    }
-    let n = scaled.round() as u64;
-    if v.is_sign_negative() {
-        buf.push(b'-');
-    }
-    let unit = 10u64.pow(decimals);
-    push_int(buf, (n / unit) as i64);
-    if decimals > 0 {
-        buf.push(b'.');
-        let mut f = n % unit;
-        let mut digits = [b'0'; 6];
-        for k in (0..decimals as usize).rev() {
-            digits[k] = b'0' + (f % 10) as u8;
-            f /= 10;
-        }
-        buf.extend_from_slice(&digits[..decimals as usize]);
     }
 }
 
@@ -480,41 +431,6 @@ pub fn write_summary_json(path: &Path, summary: &Summary) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn fast_number_formatting_matches_the_formatter() {
-        use rand::{Rng, SeedableRng};
-        let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
-        let mut specials = vec![
-            0.0, -0.0, 0.5, -0.5, 1.00005, 2.5e-5, -1e-9, 1e15, 9e15, 123.45675, 1e300,
-        ];
-        specials.extend((0..200_000).map(|i| {
-            let mag = 10f64.powi(rng.gen_range(-6..9));
-            let v = rng.gen_range(-1.0..1.0) * mag;
-            if i % 7 == 0 {
-                (v * 1e4).round() / 1e4 + 0.00005 // near a tie
-            } else {
-                v
-            }
-        }));
-        let mut buf = Vec::new();
-        for v in specials {
-            for d in [0u32, 3, 4] {
-                buf.clear();
-                push_fixed(&mut buf, v, d);
-                assert_eq!(
-                    String::from_utf8(buf.clone()).unwrap(),
-                    format!("{v:.*}", d as usize),
-                    "{v:e} with {d} decimals"
-                );
-            }
-        }
-        for v in [0i64, 7, -7, 1234567890123, i64::MIN, i64::MAX] {
-            buf.clear();
-            push_int(&mut buf, v);
-            assert_eq!(String::from_utf8(buf.clone()).unwrap(), v.to_string());
-        }
-    }
 
     #[test]
     fn particles_roundtrip_and_errors() {
