@@ -1,6 +1,7 @@
 //! End-to-end runs of `ebptv piv-images` and `ebptv compare`.
 
-use std::process::Command;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
 
 use ebptv::piv::images::save_png16;
 use ebptv::piv::synth::{particle_frames, SynthOptions};
@@ -9,35 +10,67 @@ fn ebptv() -> Command {
     Command::new(env!("CARGO_BIN_EXE_ebptv"))
 }
 
-#[test]
-fn piv_images_on_png_pair_recovers_the_shift() {
-    let dir = tempfile::tempdir().unwrap();
+/// `frames` synthetic frames of `width`×`height` moving by `shift`, saved
+/// as 16-bit PNGs `f0.png`, `f1.png`, … in `dir`.
+fn png_frames(
+    dir: &Path,
+    width: usize,
+    height: usize,
+    frames: usize,
+    shift: (f64, f64),
+    full_scale: f32,
+) -> Vec<PathBuf> {
     let so = SynthOptions {
-        width: 128,
-        height: 96,
-        frames: 2,
+        width,
+        height,
+        frames,
         seed: 3,
         ..Default::default()
     };
-    let frames = particle_frames(&so, &|_, _| (2.4, -1.2));
-    let (a, b) = (dir.path().join("a.png"), dir.path().join("b.png"));
-    save_png16(&a, &frames[0], 20000.0).unwrap();
-    save_png16(&b, &frames[1], 20000.0).unwrap();
+    let images = particle_frames(&so, &|_, _| shift);
+    images
+        .iter()
+        .enumerate()
+        .map(|(k, im)| {
+            let path = dir.join(format!("f{k}_{width}x{height}.png"));
+            save_png16(&path, im, full_scale).unwrap();
+            path
+        })
+        .collect()
+}
+
+/// `ebptv piv-images IMAGES… OPTIONS… --out OUT`.
+fn piv_images(images: &[&Path], options: &[&str], out: &Path) -> Output {
+    let mut cmd = ebptv();
+    cmd.arg("piv-images")
+        .args(images)
+        .args(options)
+        .arg("--out")
+        .arg(out);
+    cmd.output().unwrap()
+}
+
+/// The run failed and its error message mentions `what`.
+fn assert_refused(r: &Output, what: &str) {
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert!(
+        !r.status.success(),
+        "expected a failure mentioning {what:?}"
+    );
+    assert!(err.contains(what), "{err}");
+}
+
+#[test]
+fn piv_images_on_png_pair_recovers_the_shift() {
+    let dir = tempfile::tempdir().unwrap();
+    let f = png_frames(dir.path(), 128, 96, 2, (2.4, -1.2), 20000.0);
     let out = dir.path().join("out");
-    let st = ebptv()
-        .args([
-            "piv-images",
-            a.to_str().unwrap(),
-            b.to_str().unwrap(),
-            "--window",
-            "32",
-            "--spacing",
-            "16",
-            "--out",
-            out.to_str().unwrap(),
-        ])
-        .status()
-        .unwrap();
+    let st = piv_images(
+        &[&f[0], &f[1]],
+        &["--window", "32", "--spacing", "16"],
+        &out,
+    )
+    .status;
     assert!(st.success());
     let csv = std::fs::read_to_string(out.join("vectors_00000.csv")).unwrap();
     let mut lines = csv.lines();
@@ -56,68 +89,15 @@ fn piv_images_on_png_pair_recovers_the_shift() {
 #[test]
 fn piv_images_rejects_different_sizes_and_big_windows() {
     let dir = tempfile::tempdir().unwrap();
-    let so = SynthOptions {
-        width: 64,
-        height: 64,
-        frames: 1,
-        ..Default::default()
-    };
-    let f = particle_frames(&so, &|_, _| (0.0, 0.0));
-    let so2 = SynthOptions {
-        width: 48,
-        height: 64,
-        frames: 1,
-        ..Default::default()
-    };
-    let g = particle_frames(&so2, &|_, _| (0.0, 0.0));
-    let (a, b) = (dir.path().join("a.png"), dir.path().join("b.png"));
-    save_png16(&a, &f[0], 1000.0).unwrap();
-    save_png16(&b, &g[0], 1000.0).unwrap();
+    let a = &png_frames(dir.path(), 64, 64, 1, (0.0, 0.0), 1000.0)[0];
+    let b = &png_frames(dir.path(), 48, 64, 1, (0.0, 0.0), 1000.0)[0];
     let out = dir.path().join("o");
-    let r = ebptv()
-        .args([
-            "piv-images",
-            a.to_str().unwrap(),
-            b.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-        ])
-        .output()
-        .unwrap();
-    assert!(!r.status.success());
-    assert!(
-        String::from_utf8_lossy(&r.stderr).contains("same size"),
-        "{}",
-        String::from_utf8_lossy(&r.stderr)
+    assert_refused(&piv_images(&[a, b], &[], &out), "same size");
+    assert_refused(
+        &piv_images(&[a, a], &["--window", "128"], &out),
+        "larger than",
     );
-    let r = ebptv()
-        .args([
-            "piv-images",
-            a.to_str().unwrap(),
-            a.to_str().unwrap(),
-            "--window",
-            "128",
-            "--out",
-            out.to_str().unwrap(),
-        ])
-        .output()
-        .unwrap();
-    assert!(!r.status.success());
-    assert!(String::from_utf8_lossy(&r.stderr).contains("larger than"));
-    let r = ebptv()
-        .args([
-            "piv-images",
-            a.to_str().unwrap(),
-            a.to_str().unwrap(),
-            "--spacing",
-            "0",
-            "--out",
-            out.to_str().unwrap(),
-        ])
-        .output()
-        .unwrap();
-    assert!(!r.status.success());
-    assert!(String::from_utf8_lossy(&r.stderr).contains("spacing"));
+    assert_refused(&piv_images(&[a, a], &["--spacing", "0"], &out), "spacing");
 }
 
 #[test]
@@ -207,30 +187,10 @@ fn piv_on_a_recording_without_pulses_is_a_clear_error() {
 #[test]
 fn piv_images_rejects_a_pyramid_deeper_than_the_frames() {
     let dir = tempfile::tempdir().unwrap();
-    let so = SynthOptions {
-        width: 64,
-        height: 64,
-        frames: 2,
-        ..Default::default()
-    };
-    let f = particle_frames(&so, &|_, _| (1.0, 0.0));
-    let (a, b) = (dir.path().join("a.png"), dir.path().join("b.png"));
-    save_png16(&a, &f[0], 1000.0).unwrap();
-    save_png16(&b, &f[1], 1000.0).unwrap();
+    let f = png_frames(dir.path(), 64, 64, 2, (1.0, 0.0), 1000.0);
     let out = dir.path().join("o");
-    let r = ebptv()
-        .args([
-            "piv-images",
-            a.to_str().unwrap(),
-            b.to_str().unwrap(),
-            "--pyramid",
-            "2",
-            "--out",
-            out.to_str().unwrap(),
-        ])
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&r.stderr);
-    assert!(!r.status.success());
-    assert!(err.contains("pyramid"), "{err}");
+    assert_refused(
+        &piv_images(&[&f[0], &f[1]], &["--pyramid", "2"], &out),
+        "pyramid",
+    );
 }
