@@ -265,8 +265,9 @@ pub struct Peak {
     pub at_border: bool,
 }
 
+/// Signed circular shift of index `i` in a correlation plane of size `n`.
 #[inline]
-fn signed(i: usize, n: usize) -> i64 {
+pub(crate) fn signed(i: usize, n: usize) -> i64 {
     if i <= (n - 1) / 2 {
         i as i64
     } else {

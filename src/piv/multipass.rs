@@ -22,7 +22,7 @@
 
 use rayon::prelude::*;
 
-use super::correlate::{find_peak, remove_mean, CorrelationPlan, Workspace};
+use super::correlate::{find_peak, remove_mean, signed, CorrelationPlan, Workspace};
 use super::validate::{self, flag, MedianTest};
 use super::Image;
 use crate::error::{Error, Result};
@@ -394,6 +394,20 @@ struct PairImages<'a> {
 }
 
 /// Per-thread state.
+impl Thread {
+    /// Buffers for windows of `n` pixels and frame separations up to `max_sep`.
+    fn new(plan: &CorrelationPlan, n: usize, max_sep: usize) -> Thread {
+        Thread {
+            ws: (0..max_sep).map(|_| plan.workspace()).collect(),
+            a: vec![0.0; n],
+            b: vec![0.0; n],
+            inside: vec![true; n],
+            plane: vec![0.0; n],
+            sep_plane: vec![0.0; n],
+        }
+    }
+}
+
 struct Thread {
     /// One accumulator per frame separation.
     ws: Vec<Workspace>,
@@ -476,16 +490,6 @@ fn pyramid_plane(t: &mut Thread, ww: usize, wh: usize) -> usize {
     total
 }
 
-/// Signed circular shift of index `i` in a plane of size `n`.
-#[inline]
-fn signed(i: usize, n: usize) -> i64 {
-    if i <= (n - 1) / 2 {
-        i as i64
-    } else {
-        i as i64 - n as i64
-    }
-}
-
 /// Measure one node: returns (dx, dy, peak height, ok) of the residual
 /// displacement per frame step.
 fn measure_node(
@@ -560,14 +564,7 @@ fn run_pass(
     let results: Vec<(f64, f64, f32, u8)> = (0..grid.len())
         .into_par_iter()
         .map_init(
-            || Thread {
-                ws: (0..max_sep).map(|_| plan.workspace()).collect(),
-                a: vec![0.0; n],
-                b: vec![0.0; n],
-                inside: vec![true; n],
-                plane: vec![0.0; n],
-                sep_plane: vec![0.0; n],
-            },
+            || Thread::new(&plan, n, max_sep),
             |t, k| {
                 if masked[k] {
                     return (f64::NAN, f64::NAN, 0.0, flag::MASKED);
@@ -825,14 +822,7 @@ mod tests {
                 .collect();
             let max_sep = 3;
             let plan = CorrelationPlan::new(w, h);
-            let mut t = Thread {
-                ws: (0..max_sep).map(|_| plan.workspace()).collect(),
-                a: vec![0.0; n],
-                b: vec![0.0; n],
-                inside: vec![true; n],
-                plane: vec![0.0; n],
-                sep_plane: vec![0.0; n],
-            };
+            let mut t = Thread::new(&plan, n, max_sep);
             t.ws.iter_mut().for_each(|w| w.reset());
             let fp = frame_pairs(5, max_sep);
             for &(ka, kb) in &fp {
