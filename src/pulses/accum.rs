@@ -171,6 +171,19 @@ pub struct Accumulator {
     ends: Vec<u32>,
 }
 
+/// Halve the time resolution of the block list: blocks 2k and 2k+1 merge
+/// (keeping memory bounded on long recordings).
+fn merge_pairs(blocks: &mut Vec<Block>) {
+    let old = std::mem::take(blocks);
+    let mut it = old.into_iter();
+    while let Some(mut a) = it.next() {
+        if let Some(b) = it.next() {
+            a.merge(b);
+        }
+        blocks.push(a);
+    }
+}
+
 impl Accumulator {
     pub fn new(width: usize, height: usize, block_us: i64, max_blocks: usize) -> Self {
         let (width, height) = (width.max(1), height.max(1));
@@ -308,14 +321,7 @@ impl Accumulator {
             self.blocks.push(done);
         }
         if self.blocks.len() > self.max_blocks {
-            let old = std::mem::take(&mut self.blocks);
-            let mut it = old.into_iter();
-            while let Some(mut a) = it.next() {
-                if let Some(b) = it.next() {
-                    a.merge(b);
-                }
-                self.blocks.push(a);
-            }
+            merge_pairs(&mut self.blocks);
             self.block_us *= 2;
         }
         let start = f.t_ref + (t - f.t_ref).div_euclid(self.block_us) * self.block_us;
@@ -439,14 +445,7 @@ pub(crate) mod tests {
                         self.blocks.push(done);
                     }
                     if self.blocks.len() > max_blocks {
-                        let old = std::mem::take(&mut self.blocks);
-                        let mut it = old.into_iter();
-                        while let Some(mut a) = it.next() {
-                            if let Some(b) = it.next() {
-                                a.merge(b);
-                            }
-                            self.blocks.push(a);
-                        }
+                        merge_pairs(&mut self.blocks);
                         self.block_us *= 2;
                     }
                     let start = f.t_ref + (t - f.t_ref).div_euclid(self.block_us) * self.block_us;
