@@ -2,11 +2,8 @@
 //! simulated event camera (latency, noise, refractory period, …) →
 //! `ebptv piv` → mean field against the analytic truth.
 
-use std::process::Command;
-
-fn ebptv() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_ebptv"))
-}
+mod cli_common;
+use cli_common::{ebptv, run_ok};
 
 #[test]
 fn simulated_vortex_recording_mean_field_within_2_percent() {
@@ -25,42 +22,26 @@ fn simulated_vortex_recording_mean_field_within_2_percent() {
     let cfg = dir.path().join("s.toml");
     std::fs::write(&cfg, scen).unwrap();
     let sim = dir.path().join("sim");
-    let st = ebptv()
-        .args([
-            "simulate",
-            "--config",
-            cfg.to_str().unwrap(),
-            "--out",
-            sim.to_str().unwrap(),
-        ])
-        .output()
-        .unwrap();
-    assert!(
-        st.status.success(),
-        "{}",
-        String::from_utf8_lossy(&st.stderr)
-    );
+    run_ok(ebptv().args([
+        "simulate",
+        "--config",
+        cfg.to_str().unwrap(),
+        "--out",
+        sim.to_str().unwrap(),
+    ]));
     let out = dir.path().join("piv");
-    let st = ebptv()
-        .args([
-            "piv",
-            sim.join("recording.raw").to_str().unwrap(),
-            "--window",
-            "32",
-            "--spacing",
-            "32",
-            "--frames",
-            "5",
-            "--out",
-            out.to_str().unwrap(),
-        ])
-        .output()
-        .unwrap();
-    assert!(
-        st.status.success(),
-        "{}",
-        String::from_utf8_lossy(&st.stderr)
-    );
+    run_ok(ebptv().args([
+        "piv",
+        sim.join("recording.raw").to_str().unwrap(),
+        "--window",
+        "32",
+        "--spacing",
+        "32",
+        "--frames",
+        "5",
+        "--out",
+        out.to_str().unwrap(),
+    ]));
     for f in [
         "piv_u.npy",
         "piv_v.npy",

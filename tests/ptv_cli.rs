@@ -1,13 +1,10 @@
 //! `ebptv track` on a particles.csv: outputs, contracts and bad input.
 
-use std::process::Command;
+mod cli_common;
+use cli_common::{ebptv, run_ok};
 
 use ebptv::cluster::{cluster_pulse, ClusterParams};
 use ebptv::track::synth::{generate, SynthParams};
-
-fn ebptv() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_ebptv"))
-}
 
 #[test]
 fn links_a_particles_csv() {
@@ -25,18 +22,13 @@ fn links_a_particles_csv() {
     let input = dir.path().join("particles.csv");
     ebptv::track::write_particles_csv(&input, &particles).unwrap();
     let out = dir.path().join("out");
-    let st = ebptv()
-        .arg("track")
-        .arg(&input)
-        .arg("--out")
-        .arg(&out)
-        .arg("--npy")
-        .output()
-        .unwrap();
-    assert!(
-        st.status.success(),
-        "{}",
-        String::from_utf8_lossy(&st.stderr)
+    run_ok(
+        ebptv()
+            .arg("track")
+            .arg(&input)
+            .arg("--out")
+            .arg(&out)
+            .arg("--npy"),
     );
     let tracks = ebptv::track::read_tracks_csv(&out.join("tracks.csv")).unwrap();
     assert!(tracks.len() > 50, "{} tracks", tracks.len());

@@ -1,6 +1,8 @@
 //! `ebptv pulses` and `ebptv monitor` end to end on a simulated RAW file.
 
-use std::process::Command;
+mod cli_common;
+use cli_common::{ebptv, run_ok};
+
 
 use ebptv::sim::{presets::preset, simulate};
 
@@ -23,20 +25,12 @@ fn pulses_writes_json_npy_and_figures() {
     let dir = tempfile::tempdir().unwrap();
     let raw = write_demo(dir.path());
     let out = dir.path().join("out");
-    let st = Command::new(env!("CARGO_BIN_EXE_ebptv"))
-        .args([
-            "pulses",
-            raw.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-        ])
-        .output()
-        .unwrap();
-    assert!(
-        st.status.success(),
-        "{}",
-        String::from_utf8_lossy(&st.stderr)
-    );
+    run_ok(ebptv().args([
+        "pulses",
+        raw.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]));
     let v: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("pulses.json")).unwrap()).unwrap();
     assert_eq!(v["source"], "trigger");
@@ -55,7 +49,7 @@ fn pulses_writes_json_npy_and_figures() {
     }
     // Triggers asked on a channel that has none: a clear refusal, no outputs.
     let out2 = dir.path().join("out2");
-    let st = Command::new(env!("CARGO_BIN_EXE_ebptv"))
+    let st = ebptv()
         .args([
             "pulses",
             raw.to_str().unwrap(),
@@ -76,15 +70,7 @@ fn pulses_writes_json_npy_and_figures() {
 fn monitor_reports_intervals() {
     let dir = tempfile::tempdir().unwrap();
     let raw = write_demo(dir.path());
-    let st = Command::new(env!("CARGO_BIN_EXE_ebptv"))
-        .args(["monitor", raw.to_str().unwrap(), "--interval-s", "0.01"])
-        .output()
-        .unwrap();
-    assert!(
-        st.status.success(),
-        "{}",
-        String::from_utf8_lossy(&st.stderr)
-    );
+    let st = run_ok(ebptv().args(["monitor", raw.to_str().unwrap(), "--interval-s", "0.01"]));
     let text = String::from_utf8_lossy(&st.stdout);
     let lines: Vec<&str> = text.lines().filter(|l| l.contains("Mev/s")).collect();
     assert!(lines.len() >= 4, "{text}");
