@@ -3,7 +3,6 @@
 mod cli_common;
 use cli_common::{ebptv, run_ok};
 
-
 use ebptv::sim::{presets::preset, simulate};
 
 fn write_demo(dir: &std::path::Path) -> std::path::PathBuf {
