@@ -53,7 +53,41 @@ fn median(v: &mut [f64]) -> f64 {
     }
 }
 
-/// Neighbour values (u, v) of node (i, j) whose flags carry none of `bad`.
+/// The eight directions to a node's neighbours.
+const DIRECTIONS: [(i64, i64); 8] = [
+    (-1, -1),
+    (0, -1),
+    (1, -1),
+    (-1, 0),
+    (1, 0),
+    (-1, 1),
+    (0, 1),
+    (1, 1),
+];
+
+/// Index of node (i, j) when it lies on the `nx × ny` grid and holds a
+/// usable, finite vector.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn usable_node(
+    u: &[f64],
+    v: &[f64],
+    flags: &[u8],
+    nx: usize,
+    ny: usize,
+    i: i64,
+    j: i64,
+    usable: &impl Fn(u8) -> bool,
+) -> Option<usize> {
+    if i < 0 || j < 0 || i >= nx as i64 || j >= ny as i64 {
+        return None;
+    }
+    let k = j as usize * nx + i as usize;
+    (usable(flags[k]) && u[k].is_finite() && v[k].is_finite()).then_some(k)
+}
+
+/// Neighbour values (u, v) of node (i, j) whose flags pass `usable`.
+#[allow(clippy::too_many_arguments)]
 fn neighbours(
     u: &[f64],
     v: &[f64],
@@ -64,25 +98,12 @@ fn neighbours(
     j: usize,
     usable: impl Fn(u8) -> bool,
 ) -> (Vec<f64>, Vec<f64>) {
-    let mut nu = Vec::with_capacity(8);
-    let mut nv = Vec::with_capacity(8);
-    for dj in -1i64..=1 {
-        for di in -1i64..=1 {
-            if di == 0 && dj == 0 {
-                continue;
-            }
-            let (ii, jj) = (i as i64 + di, j as i64 + dj);
-            if ii < 0 || jj < 0 || ii >= nx as i64 || jj >= ny as i64 {
-                continue;
-            }
-            let k = jj as usize * nx + ii as usize;
-            if usable(flags[k]) && u[k].is_finite() && v[k].is_finite() {
-                nu.push(u[k]);
-                nv.push(v[k]);
-            }
-        }
-    }
-    (nu, nv)
+    let (i, j) = (i as i64, j as i64);
+    DIRECTIONS
+        .iter()
+        .filter_map(|&(di, dj)| usable_node(u, v, flags, nx, ny, i + di, j + dj, &usable))
+        .map(|k| (u[k], v[k]))
+        .unzip()
 }
 
 /// Reference values for a node on the grid border: linear extrapolations
@@ -102,27 +123,15 @@ fn border_extrapolations(
     j: usize,
     usable: impl Fn(u8) -> bool,
 ) -> (Vec<f64>, Vec<f64>) {
-    let mut eu = Vec::with_capacity(8);
-    let mut ev = Vec::with_capacity(8);
-    for dj in -1i64..=1 {
-        for di in -1i64..=1 {
-            if di == 0 && dj == 0 {
-                continue;
-            }
-            let (i1, j1) = (i as i64 + di, j as i64 + dj);
-            let (i2, j2) = (i as i64 + 2 * di, j as i64 + 2 * dj);
-            if i2 < 0 || j2 < 0 || i2 >= nx as i64 || j2 >= ny as i64 || i1 < 0 || j1 < 0 {
-                continue;
-            }
-            let k1 = j1 as usize * nx + i1 as usize;
-            let k2 = j2 as usize * nx + i2 as usize;
-            if usable(flags[k1]) && usable(flags[k2]) && u[k1].is_finite() && u[k2].is_finite() {
-                eu.push(2.0 * u[k1] - u[k2]);
-                ev.push(2.0 * v[k1] - v[k2]);
-            }
-        }
-    }
-    (eu, ev)
+    let (i, j) = (i as i64, j as i64);
+    DIRECTIONS
+        .iter()
+        .filter_map(|&(di, dj)| {
+            let k1 = usable_node(u, v, flags, nx, ny, i + di, j + dj, &usable)?;
+            let k2 = usable_node(u, v, flags, nx, ny, i + 2 * di, j + 2 * dj, &usable)?;
+            Some((2.0 * u[k1] - u[k2], 2.0 * v[k1] - v[k2]))
+        })
+        .unzip()
 }
 
 #[inline]
