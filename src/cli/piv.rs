@@ -6,10 +6,9 @@ use ebptv::piv::{PivOptions, PivStream, PixelMode, PseudoOptions, StreamOptions}
 use ebptv::plot::{heatmap, Heatmap};
 use ebptv::pulses::{analyze, split_pulses, PulseOptions};
 
+/// The correlation options `ebptv piv` and `ebptv piv-images` share.
 #[derive(Args, Debug)]
-pub struct PivArgs {
-    /// Event recording.
-    pub recording: PathBuf,
+pub struct CorrelationArgs {
     /// Final interrogation window width (px).
     #[arg(long, default_value_t = 32)]
     pub window: usize,
@@ -19,12 +18,7 @@ pub struct PivArgs {
     /// Node spacing (px); default = half the window.
     #[arg(long)]
     pub spacing: Option<usize>,
-    /// Frames (pulses) per evaluation, N_f.
-    #[arg(long, default_value_t = 5)]
-    pub frames: usize,
-    /// Pulses between evaluations; default N_f - 1.
-    #[arg(long)]
-    pub step: Option<usize>,
+    /// Multi-pass refinement with window deformation.
     #[arg(long, default_value_t = 3)]
     pub passes: usize,
     /// Pyramid correlation: also correlate frames 2..S apart (pairs k, k+s),
@@ -32,6 +26,34 @@ pub struct PivArgs {
     /// 1 = off; needs S < frames and at least 2 passes.
     #[arg(long, default_value_t = 1, value_name = "S")]
     pub pyramid: usize,
+}
+
+impl CorrelationArgs {
+    pub fn options(&self) -> PivOptions {
+        let mut o = PivOptions::new(
+            self.window,
+            self.spacing.unwrap_or((self.window / 2).max(1)),
+        );
+        o.window_h = self.window_h.unwrap_or(self.window);
+        o.spacing_y = self.spacing.unwrap_or((o.window_h / 2).max(1));
+        o.passes = self.passes;
+        o.pyramid = self.pyramid;
+        o
+    }
+}
+
+#[derive(Args, Debug)]
+pub struct PivArgs {
+    /// Event recording.
+    pub recording: PathBuf,
+    #[command(flatten)]
+    pub correlation: CorrelationArgs,
+    /// Frames (pulses) per evaluation, N_f.
+    #[arg(long, default_value_t = 5)]
+    pub frames: usize,
+    /// Pulses between evaluations; default N_f - 1.
+    #[arg(long)]
+    pub step: Option<usize>,
     /// Gaussian blur of the pseudo-images (px).
     #[arg(long, default_value_t = 1.0)]
     pub sigma: f64,
@@ -63,11 +85,7 @@ pub fn run(a: PivArgs) -> anyhow::Result<()> {
             ..Default::default()
         },
     )?;
-    let mut piv = PivOptions::new(a.window, a.spacing.unwrap_or((a.window / 2).max(1)));
-    piv.window_h = a.window_h.unwrap_or(a.window);
-    piv.spacing_y = a.spacing.unwrap_or((piv.window_h / 2).max(1));
-    piv.passes = a.passes;
-    piv.pyramid = a.pyramid;
+    let piv = a.correlation.options();
     let opts = StreamOptions {
         piv,
         pseudo: PseudoOptions {

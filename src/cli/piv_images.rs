@@ -3,7 +3,9 @@ use std::path::PathBuf;
 use clap::Args;
 use ebptv::piv::images::load_image;
 use ebptv::piv::output::write_vectors_csv;
-use ebptv::piv::{piv_frames, PivOptions};
+use ebptv::piv::piv_frames;
+
+use super::piv::CorrelationArgs;
 use rayon::prelude::*;
 
 #[derive(Args, Debug)]
@@ -11,26 +13,12 @@ pub struct PivImagesArgs {
     /// Images (8/16-bit PNG or TIFF), in time order.
     #[arg(required = true, num_args = 2..)]
     pub images: Vec<PathBuf>,
-    /// Final interrogation window width (px).
-    #[arg(long, default_value_t = 32)]
-    pub window: usize,
-    /// Window height (px); default = width.
-    #[arg(long)]
-    pub window_h: Option<usize>,
-    /// Node spacing (px); default = half the window.
-    #[arg(long)]
-    pub spacing: Option<usize>,
-    #[arg(long, default_value_t = 3)]
-    pub passes: usize,
+    #[command(flatten)]
+    pub correlation: CorrelationArgs,
     /// Frames per evaluation: 2 = independent pairs (A B), (C D)...;
     /// N > 2 = sum of correlation over N consecutive images.
     #[arg(long, default_value_t = 2)]
     pub frames: usize,
-    /// Pyramid correlation: also correlate frames 2..S apart (pairs k, k+s),
-    /// each plane scaled to the unit separation; lowers the random error.
-    /// 1 = off; needs S < frames and at least 2 passes.
-    #[arg(long, default_value_t = 1, value_name = "S")]
-    pub pyramid: usize,
     /// Treat the list as a sequence (1-2, 2-3, ...) instead of pairs (1-2, 3-4, ...).
     #[arg(long)]
     pub sequence: bool,
@@ -42,11 +30,7 @@ pub fn run(a: PivImagesArgs) -> anyhow::Result<()> {
     if a.frames < 2 {
         anyhow::bail!("invalid parameter `frames`: {} (need at least 2)", a.frames);
     }
-    let mut o = PivOptions::new(a.window, a.spacing.unwrap_or((a.window / 2).max(1)));
-    o.window_h = a.window_h.unwrap_or(a.window);
-    o.spacing_y = a.spacing.unwrap_or((o.window_h / 2).max(1));
-    o.passes = a.passes;
-    o.pyramid = a.pyramid;
+    let o = a.correlation.options();
     let imgs = a
         .images
         .iter()
