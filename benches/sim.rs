@@ -46,6 +46,7 @@ fn to_files(sc: &Scenario) -> u64 {
     let dir = tempfile::tempdir().unwrap();
     write_recording(sc, 1, dir.path(), Format::Evt3, |_, _| {})
         .unwrap()
+        .stats
         .events
 }
 

@@ -63,9 +63,9 @@ pub fn run(a: SimulateArgs) -> anyhow::Result<()> {
     println!(
         "{}: {} events ({:.1} Mev/s), {} pulses, {:.2} events per particle per pulse -> {}",
         sc.name,
-        summary.events,
+        summary.stats.events,
         summary.event_rate_ev_s / 1e6,
-        summary.pulses,
+        summary.stats.pulses,
         summary.events_per_particle_per_pulse,
         out.display()
     );

@@ -98,19 +98,11 @@ pub struct RecordingSummary {
     pub seed: u64,
     pub recording: PathBuf,
     pub format: Format,
-    pub events: u64,
-    pub on_events: u64,
-    pub off_events: u64,
-    pub triggers: u64,
-    pub pulses: u64,
-    /// Particle slots simulated (slab over ROI plus margin).
-    pub particles: u64,
-    /// Lit particles in the ROI summed over pulses (= truth rows).
-    pub truth_samples: u64,
-    pub duration_s: f64,
+    /// The run's counters, as top-level keys of the JSON.
+    #[serde(flatten)]
+    pub stats: SimStats,
     pub event_rate_ev_s: f64,
     pub events_per_particle_per_pulse: f64,
-    pub lost_in_readout: u64,
 }
 
 impl RecordingSummary {
@@ -120,17 +112,9 @@ impl RecordingSummary {
             seed,
             recording,
             format,
-            events: st.events,
-            on_events: st.on_events,
-            off_events: st.off_events,
-            triggers: st.triggers,
-            pulses: st.pulses,
-            particles: st.particles,
-            truth_samples: st.truth_samples,
-            duration_s: st.duration_s,
+            stats: st.clone(),
             event_rate_ev_s: st.event_rate_ev_s(),
             events_per_particle_per_pulse: st.events_per_particle_per_pulse(),
-            lost_in_readout: st.lost_in_readout,
         }
     }
 }
