@@ -145,7 +145,7 @@ impl Arbiter {
             let Reverse((_, r)) = self.queue.pop().expect("non-empty");
             let row = &mut self.rows[r as usize];
             row.sort_unstable_by_key(|e| e.1);
-            let ts = t_grant.floor() as i64;
+            let ts = floor_i64(t_grant);
             let y = self.roi_y + r;
             for &(_, x, p) in row.iter() {
                 out.push(ts, x, y, p);
@@ -194,10 +194,21 @@ impl RateLimiter {
     }
 }
 
+/// `v.floor() as i64` (saturating, NaN → 0) without a libm call.
+#[inline]
+pub(crate) fn floor_i64(v: f64) -> i64 {
+    let t = v as i64;
+    if (t as f64) > v {
+        t.saturating_sub(1)
+    } else {
+        t
+    }
+}
+
 /// Stamp requests without a readout bottleneck: each at its own time.
 pub fn stamp_ideal(reqs: &[Arrival], out: &mut EventChunk) {
     for a in reqs {
-        out.push(a.t.floor() as i64, a.x, a.y, a.p);
+        out.push(floor_i64(a.t), a.x, a.y, a.p);
     }
 }
 
@@ -320,6 +331,33 @@ mod tests {
             v.iter().map(|a| a.t).collect::<Vec<_>>(),
             vec![0.0, 6.0, 10.0]
         );
+    }
+
+    #[test]
+    fn floor_matches_libm() {
+        for v in [
+            0.0,
+            -0.0,
+            0.5,
+            -0.5,
+            1.0,
+            -1.0,
+            1e15 + 0.5,
+            -1e15 - 0.5,
+            3e19,
+            -3e19,
+            f64::NAN,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            0.999_999_999_999_999_9,
+            -1e-300,
+        ] {
+            assert_eq!(floor_i64(v), v.floor() as i64, "{v}");
+        }
+        for i in -100_000i64..100_000 {
+            let v = i as f64 * 0.013 + [0.0, 1e-12, -1e-12][(i % 3).unsigned_abs() as usize];
+            assert_eq!(floor_i64(v), v.floor() as i64, "{v}");
+        }
     }
 
     #[test]
