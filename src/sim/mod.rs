@@ -135,27 +135,52 @@ pub(crate) fn stream_seed(seed: u64, stream: u64, index: u64) -> u64 {
 /// Target time span of one block (µs).
 const BLOCK_US: f64 = 2000.0;
 
-/// Bits of a request key below the time (y: 12, x: 12, p: 1).
-const KEY_TIME_SHIFT: u32 = 25;
-
-/// Sort key of a request: time at 1 ns resolution relative to `t_begin`
-/// (ample for 1 µs timestamps; 2^39 ns = 9 min of carry-over), then y, x,
-/// polarity, packed into one u64, so that sorting moves plain integers and
-/// ties break by pixel; times come back rounded to the nanosecond
-/// ([`request_from_key`]).
-#[inline]
-fn request_key(a: &pixel::Arrival, t_begin: f64) -> u64 {
-    let ns = (pixel::round_i64((a.t - t_begin) * 1000.0).max(0) as u64).min((1 << 39) - 1);
-    (ns << KEY_TIME_SHIFT) | ((a.y as u64) << 13) | ((a.x as u64) << 1) | a.p as u64
+/// How a request packs into one u64 sort key: time at 1 ns resolution
+/// relative to the block's `t_begin` (ample for 1 µs timestamps; 2^39 ns
+/// = 9 min of carry-over), then y, x (relative to the ROI, in as few bits
+/// as its size needs) and polarity. Sorting the keys orders requests by
+/// (time, y, x, p), as [`sort_requests_reference`] defines, and moves
+/// plain integers; the fewer bits, the fewer radix passes (4 instead of 5
+/// at full frame). Times come back rounded to the nanosecond.
+#[derive(Debug, Clone, Copy)]
+struct KeyLayout {
+    x0: u16,
+    y0: u16,
+    x_bits: u32,
+    time_shift: u32,
 }
 
-#[inline]
-fn request_from_key(k: u64, t_begin: f64) -> pixel::Arrival {
-    pixel::Arrival {
-        t: t_begin + (k >> KEY_TIME_SHIFT) as f64 * 1e-3,
-        y: ((k >> 13) & 0xFFF) as u16,
-        x: ((k >> 1) & 0xFFF) as u16,
-        p: (k & 1) as u8,
+impl KeyLayout {
+    fn new(roi: scenario::Roi) -> KeyLayout {
+        let bits = |n: u32| 32 - n.saturating_sub(1).leading_zeros();
+        let x_bits = bits(roi.width);
+        KeyLayout {
+            x0: roi.x as u16,
+            y0: roi.y as u16,
+            x_bits,
+            time_shift: 1 + x_bits + bits(roi.height),
+        }
+    }
+
+    #[inline]
+    fn key(&self, a: &pixel::Arrival, t_begin: f64) -> u64 {
+        debug_assert!(a.x >= self.x0 && a.y >= self.y0, "request outside the ROI");
+        let ns = (pixel::round_i64((a.t - t_begin) * 1000.0).max(0) as u64).min((1 << 39) - 1);
+        (ns << self.time_shift)
+            | (((a.y - self.y0) as u64) << (1 + self.x_bits))
+            | (((a.x - self.x0) as u64) << 1)
+            | a.p as u64
+    }
+
+    #[inline]
+    fn arrival(&self, k: u64, t_begin: f64) -> pixel::Arrival {
+        let y_mask = (1u64 << (self.time_shift - 1 - self.x_bits)) - 1;
+        pixel::Arrival {
+            t: t_begin + (k >> self.time_shift) as f64 * 1e-3,
+            y: self.y0 + ((k >> (1 + self.x_bits)) & y_mask) as u16,
+            x: self.x0 + ((k >> 1) & ((1u64 << self.x_bits) - 1)) as u16,
+            p: (k & 1) as u8,
+        }
     }
 }
 
@@ -171,16 +196,23 @@ pub fn sort_requests_reference(reqs: &mut [pixel::Arrival], t_begin: f64) {
         .collect();
     keys.sort_unstable();
     for (a, k) in reqs.iter_mut().zip(keys) {
-        *a = request_from_key(k, t_begin);
+        *a = pixel::Arrival {
+            t: t_begin + (k >> 25) as f64 * 1e-3,
+            y: ((k >> 13) & 0xFFF) as u16,
+            x: ((k >> 1) & 0xFFF) as u16,
+            p: (k & 1) as u8,
+        };
     }
 }
 
-/// [`sort_requests_reference`] through [`radix_sort`] (for tests).
-pub fn sort_requests(reqs: &mut [pixel::Arrival], t_begin: f64) {
-    let mut keys: Vec<u64> = reqs.iter().map(|a| request_key(a, t_begin)).collect();
+/// The simulator's request sort ([`KeyLayout`] keys through
+/// [`radix_sort`]) for requests inside `roi` (for tests).
+pub fn sort_requests(reqs: &mut [pixel::Arrival], t_begin: f64, roi: scenario::Roi) {
+    let layout = KeyLayout::new(roi);
+    let mut keys: Vec<u64> = reqs.iter().map(|a| layout.key(a, t_begin)).collect();
     radix_sort(&mut keys, &mut Vec::new());
     for (a, k) in reqs.iter_mut().zip(keys) {
-        *a = request_from_key(k, t_begin);
+        *a = layout.arrival(k, t_begin);
     }
 }
 
@@ -249,7 +281,7 @@ struct BlockRequests {
     t_end: f64,
     last: bool,
     /// The block's own requests (not the carry-over), sorted keys relative
-    /// to `t_begin` ([`request_key`]).
+    /// to `t_begin` ([`KeyLayout`]).
     keys: Vec<u64>,
     truth: Vec<TruthSample>,
 }
@@ -266,6 +298,7 @@ struct Front {
     n_blocks: u64,
     /// Particle time (s).
     t_particles: f64,
+    layout: KeyLayout,
 }
 
 /// Readout state carried from block to block.
@@ -276,6 +309,7 @@ struct Back {
     /// Requests at or after the current block's end.
     carry: Vec<pixel::Arrival>,
     lost_in_readout: u64,
+    layout: KeyLayout,
     /// Reused buffers.
     merged: Vec<u64>,
     reqs: Vec<pixel::Arrival>,
@@ -346,6 +380,7 @@ impl Simulator {
                     .map(|r| readout::RateLimiter::new(r.max_rate_ev_s, r.window_us)),
                 carry: Vec::new(),
                 lost_in_readout: 0,
+                layout: KeyLayout::new(roi),
                 merged: Vec::new(),
                 reqs: Vec::new(),
             },
@@ -359,6 +394,7 @@ impl Simulator {
                 pulses_per_block,
                 n_blocks,
                 t_particles: 0.0,
+                layout: KeyLayout::new(roi),
             },
             ahead: None,
             info,
@@ -513,6 +549,7 @@ impl Front {
         // Pixel responses, parallel over pulses, as request keys.
         let pixel = &self.pixel;
         let seed = self.seed;
+        let layout = self.layout;
         let per_pulse: Vec<Vec<u64>> = snaps
             .par_iter()
             .enumerate()
@@ -524,7 +561,7 @@ impl Front {
                     let out = &mut *cell.borrow_mut();
                     out.clear();
                     pixel.render_pulse(s, starts[i], stream_seed(seed, 6, k0 + i as u64), out);
-                    out.iter().map(|a| request_key(a, t_begin)).collect()
+                    out.iter().map(|a| layout.key(a, t_begin)).collect()
                 })
             })
             .collect();
@@ -535,7 +572,7 @@ impl Front {
         for v in &per_pulse {
             keys.extend_from_slice(v);
         }
-        keys.extend(noise.iter().map(|a| request_key(a, t_begin)));
+        keys.extend(noise.iter().map(|a| layout.key(a, t_begin)));
         radix_sort(&mut keys, &mut Vec::new());
         BlockRequests {
             block: b,
@@ -558,7 +595,7 @@ impl Back {
         let mut carry: Vec<u64> = self
             .carry
             .iter()
-            .map(|a| request_key(a, r.t_begin))
+            .map(|a| self.layout.key(a, r.t_begin))
             .collect();
         carry.sort_unstable();
         let merged = &mut self.merged;
@@ -577,8 +614,9 @@ impl Back {
         merged.extend_from_slice(&carry[i..]);
         merged.extend_from_slice(&r.keys[j..]);
         let reqs = &mut self.reqs;
+        let layout = self.layout;
         reqs.clear();
-        reqs.extend(merged.iter().map(|&k| request_from_key(k, r.t_begin)));
+        reqs.extend(merged.iter().map(|&k| layout.arrival(k, r.t_begin)));
         let split = reqs.partition_point(|a| a.t < r.t_end);
         self.carry.clear();
         if !r.last {
@@ -588,6 +626,13 @@ impl Back {
         if let Some(rf) = &mut self.refractory {
             rf.apply(reqs);
         }
+        // At most one event per request (plus a few pending ones): grow
+        // the chunk once, not by doubling.
+        let n = reqs.len() + 1024;
+        events.t.reserve(n);
+        events.x.reserve(n);
+        events.y.reserve(n);
+        events.p.reserve(n);
         match &mut self.arbiter {
             Some(a) => {
                 a.run(reqs, r.t_end, events);
@@ -689,21 +734,30 @@ mod tests {
     fn request_sort_matches_reference() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(12);
         let t_begin = 123_456.789;
-        let reqs: Vec<pixel::Arrival> = (0..30_000)
-            .map(|_| pixel::Arrival {
-                // Some before t_begin (clamped), many sharing a time.
-                t: t_begin
-                    + rng.gen_range(-5.0..2500.0_f64) * if rng.gen_bool(0.3) { 1.0 } else { 0.0 },
-                x: rng.gen_range(0..1280),
-                y: rng.gen_range(0..720),
-                p: rng.gen_range(0..2),
-            })
-            .collect();
-        let mut fast = reqs.clone();
-        let mut slow = reqs;
-        sort_requests(&mut fast, t_begin);
-        sort_requests_reference(&mut slow, t_begin);
-        assert_eq!(fast, slow);
-        assert!(fast.windows(2).all(|w| w[0].t <= w[1].t));
+        for (x, y, width, height) in [(0, 0, 1280, 720), (17, 23, 333, 100), (5, 9, 1, 1)] {
+            let roi = scenario::Roi {
+                x,
+                y,
+                width,
+                height,
+            };
+            let reqs: Vec<pixel::Arrival> = (0..30_000)
+                .map(|_| pixel::Arrival {
+                    // Some before t_begin (clamped), many sharing a time.
+                    t: t_begin
+                        + rng.gen_range(-5.0..2500.0_f64)
+                            * if rng.gen_bool(0.3) { 1.0 } else { 0.0 },
+                    x: rng.gen_range(x..x + width) as u16,
+                    y: rng.gen_range(y..y + height) as u16,
+                    p: rng.gen_range(0..2),
+                })
+                .collect();
+            let mut fast = reqs.clone();
+            let mut slow = reqs;
+            sort_requests(&mut fast, t_begin, roi);
+            sort_requests_reference(&mut slow, t_begin);
+            assert_eq!(fast, slow);
+            assert!(fast.windows(2).all(|w| w[0].t <= w[1].t));
+        }
     }
 }

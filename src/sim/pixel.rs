@@ -247,12 +247,34 @@ impl PixelModel {
             order.sort_unstable_by_key(|o| o.0);
             return order;
         }
-        // Keys are unique: the radix sort's order is the comparison sort's.
-        let mut keys: Vec<u64> = order.iter().map(|o| o.0).collect();
-        super::radix_sort(&mut keys, &mut Vec::new());
-        keys.iter()
-            .map(|&k| order[(k & 0xFFFF_FFFF) as usize])
-            .collect()
+        // Keys are (row_lo, index) and `order` is in index order: a stable
+        // counting sort by row_lo gives the comparison sort's order.
+        let lo_min = order.iter().map(|o| o.1).min().unwrap_or(0);
+        let lo_max = order.iter().map(|o| o.1).max().unwrap_or(0);
+        let range = (lo_max - lo_min) as usize + 1;
+        if range > 4 * order.len() + 4096 {
+            // Sparse rows (far-out streaks): the radix sort of the keys.
+            let mut keys: Vec<u64> = order.iter().map(|o| o.0).collect();
+            super::radix_sort(&mut keys, &mut Vec::new());
+            return keys
+                .iter()
+                .map(|&k| order[(k & 0xFFFF_FFFF) as usize])
+                .collect();
+        }
+        let mut start = vec![0u32; range + 1];
+        for o in &order {
+            start[(o.1 - lo_min) as usize + 1] += 1;
+        }
+        for r in 1..=range {
+            start[r] += start[r - 1];
+        }
+        let mut sorted = vec![(0u64, 0i64, 0i64); order.len()];
+        for o in &order {
+            let slot = &mut start[(o.1 - lo_min) as usize];
+            sorted[*slot as usize] = *o;
+            *slot += 1;
+        }
+        sorted
     }
 
     /// Signal contributions of one particle's image: `f(ix, iy, signal)`

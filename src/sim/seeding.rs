@@ -222,7 +222,11 @@ impl Particles {
             .zip(rngs.par_chunks_mut(CHUNK))
             .enumerate()
             .map(|(ci, (pc, rc))| {
-                let mut out: Vec<Vec<Snapshot>> = vec![Vec::new(); times.len()];
+                // Lit: about sheet/slab of the slots.
+                let expect = pc.len() * 3 / 4 + 16;
+                let mut out: Vec<Vec<Snapshot>> = (0..times.len())
+                    .map(|_| Vec::with_capacity(expect))
+                    .collect();
                 for (k, (p, rng)) in pc.iter_mut().zip(rc.iter_mut()).enumerate() {
                     let slot = ci * CHUNK + k;
                     let mut t = t0;
@@ -247,7 +251,9 @@ impl Particles {
             .collect();
         self.particles = particles;
         self.rngs = rngs;
-        let mut merged: Vec<Vec<Snapshot>> = vec![Vec::new(); times.len()];
+        let mut merged: Vec<Vec<Snapshot>> = (0..times.len())
+            .map(|i| Vec::with_capacity(parts.iter().map(|p| p[i].len()).sum()))
+            .collect();
         for part in parts {
             for (m, s) in merged.iter_mut().zip(part) {
                 m.extend(s);
