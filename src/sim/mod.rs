@@ -280,8 +280,8 @@ struct BlockRequests {
     t_begin: f64,
     t_end: f64,
     last: bool,
-    /// The block's own requests (not the carry-over), sorted keys relative
-    /// to `t_begin` ([`KeyLayout`]).
+    /// The block's own requests (not the carry-over) as keys relative to
+    /// `t_begin` ([`KeyLayout`]), not yet sorted.
     keys: Vec<u64>,
     truth: Vec<TruthSample>,
 }
@@ -312,14 +312,15 @@ struct Back {
     layout: KeyLayout,
     /// Reused buffers.
     merged: Vec<u64>,
+    scratch: Vec<u64>,
     reqs: Vec<pixel::Arrival>,
 }
 
 /// The streaming simulator.
 ///
-/// Two stages per block: the front (advection, truth, rendering, noise,
-/// request sort; itself parallel) and the back (carry-over, refractory,
-/// arbiter, limiter: sequential, a queue). The back of block k runs
+/// Two stages per block: the front (advection, truth, rendering, noise;
+/// itself parallel) and the back (request sort with the carry-over,
+/// refractory, arbiter, limiter: sequential, a queue). The back of block k runs
 /// concurrently with the front of block k + 1 (`rayon::join`), so the
 /// sequential part does not leave a core idle; neither stage depends on
 /// the other's output of those blocks, so the result is the same as
@@ -382,6 +383,7 @@ impl Simulator {
                 lost_in_readout: 0,
                 layout: KeyLayout::new(roi),
                 merged: Vec::new(),
+                scratch: Vec::new(),
                 reqs: Vec::new(),
             },
             front: Front {
@@ -573,7 +575,6 @@ impl Front {
             keys.extend_from_slice(v);
         }
         keys.extend(noise.iter().map(|a| layout.key(a, t_begin)));
-        radix_sort(&mut keys, &mut Vec::new());
         BlockRequests {
             block: b,
             starts,
@@ -590,29 +591,15 @@ impl Back {
     /// Read out block `r`'s requests (with those carried over from the
     /// block before) into `events`.
     fn block(&mut self, r: &BlockRequests, duration_us: f64, events: &mut EventChunk) {
-        // The carry-over keyed like this block's requests: merging the two
-        // sorted lists is sorting their union.
-        let mut carry: Vec<u64> = self
-            .carry
-            .iter()
-            .map(|a| self.layout.key(a, r.t_begin))
-            .collect();
-        carry.sort_unstable();
-        let merged = &mut self.merged;
-        merged.clear();
-        merged.reserve(carry.len() + r.keys.len());
-        let (mut i, mut j) = (0, 0);
-        while i < carry.len() && j < r.keys.len() {
-            if carry[i] <= r.keys[j] {
-                merged.push(carry[i]);
-                i += 1;
-            } else {
-                merged.push(r.keys[j]);
-                j += 1;
-            }
-        }
-        merged.extend_from_slice(&carry[i..]);
-        merged.extend_from_slice(&r.keys[j..]);
+        // The carry-over keyed like this block's requests, then one sort of
+        // the union (here, in the sequential stage, which runs while the
+        // next block's front keeps the other core busy).
+        let keys = &mut self.merged;
+        keys.clear();
+        keys.extend_from_slice(&r.keys);
+        keys.extend(self.carry.iter().map(|a| self.layout.key(a, r.t_begin)));
+        radix_sort(keys, &mut self.scratch);
+        let merged = &*keys;
         let reqs = &mut self.reqs;
         let layout = self.layout;
         reqs.clear();

@@ -366,15 +366,15 @@ impl PixelModel {
             edges.x.update(px, rx0, rx1, self.sigma_img, Some(31));
             edges.y.update(py, ry0, ry1, self.sigma_img, None);
             let (ex, ey) = (&edges.x, &edges.y);
-            if ex.f.is_empty() || ey.f.is_empty() {
+            if ex.n == 0 || ey.n == 0 {
                 continue;
             }
-            for (jj, &fy) in ey.f.iter().enumerate() {
+            for (jj, &fy) in ey.fractions().iter().enumerate() {
                 if fy < 1e-6 {
                     continue;
                 }
                 let j = (ey.lo + jj as i64) as u32;
-                for (ii, &fx) in ex.f.iter().enumerate() {
+                for (ii, &fx) in ex.fractions().iter().enumerate() {
                     let w = fx * fy;
                     if w > 1e-6 {
                         let sig = a * w;
@@ -502,6 +502,11 @@ impl PixelModel {
                 let x = wi * 64 + bits.trailing_zeros() as usize;
                 bits &= bits - 1;
                 let v = std::mem::replace(&mut sig[base + x], 0.0) as f64;
+                // Most touched pixels (image rims) are below every
+                // threshold: `respond`'s first test, without the call.
+                if v < self.c_floor {
+                    continue;
+                }
                 let ix = (self.roi.x as usize + x) as u16;
                 self.respond(idx0 + x as u32, ix, y, v, t_pulse_us, rng, out);
             }
@@ -715,16 +720,28 @@ fn ceil_count(x: f64, max: usize) -> usize {
 struct AxisEdges {
     coord: Option<u64>,
     lo: i64,
-    f: Vec<f64>,
+    n: usize,
+    /// Up to 32 pixels along x (`footprint`'s cap) and along y (a valid
+    /// scenario's images, ≤ 20 px across, span at most 32 rows).
+    f: [f64; AXIS_MAX],
 }
+
+const AXIS_MAX: usize = 64;
 
 impl AxisEdges {
     const fn new() -> AxisEdges {
         AxisEdges {
             coord: None,
             lo: 0,
-            f: Vec::new(),
+            n: 0,
+            f: [0.0; AXIS_MAX],
         }
+    }
+
+    /// The fractions.
+    #[inline]
+    fn fractions(&self) -> &[f64] {
+        &self.f[..self.n]
     }
 
     /// `cap`: at most this many pixels (the x axis of `footprint`).
@@ -734,7 +751,7 @@ impl AxisEdges {
             return;
         }
         self.coord = Some(c.to_bits());
-        self.f.clear();
+        self.n = 0;
         let reach = 3.0 * sigma;
         let k = std::f64::consts::FRAC_1_SQRT_2 / sigma;
         let i0 = round_i64(c - reach).max(r0);
@@ -744,23 +761,28 @@ impl AxisEdges {
             return;
         }
         let erf = erf_table();
-        let n = ((i1 - i0 + 1) as usize).min(cap.unwrap_or(usize::MAX));
+        let n = ((i1 - i0 + 1) as usize)
+            .min(cap.unwrap_or(AXIS_MAX))
+            .min(AXIS_MAX);
+        debug_assert!(cap.is_some() || n < AXIS_MAX, "image too large");
+        self.n = n;
+        let f = &mut self.f[..n];
         match cap {
             // The x edges of `footprint`: (i0 + a) − 0.5 − x.
             Some(_) => {
                 let mut e0 = erf.eval((i0 as f64 + 0.0 - 0.5 - c) * k);
-                for a in 1..=n {
-                    let e1 = erf.eval((i0 as f64 + a as f64 - 0.5 - c) * k);
-                    self.f.push(0.5 * (e1 - e0));
+                for (a, fa) in f.iter_mut().enumerate() {
+                    let e1 = erf.eval((i0 as f64 + (a + 1) as f64 - 0.5 - c) * k);
+                    *fa = 0.5 * (e1 - e0);
                     e0 = e1;
                 }
             }
             // The y edges: j0 − 0.5 − y, then j + 0.5 − y.
             None => {
                 let mut e0 = erf.eval((i0 as f64 - 0.5 - c) * k);
-                for j in i0..i0 + n as i64 {
-                    let e1 = erf.eval((j as f64 + 0.5 - c) * k);
-                    self.f.push(0.5 * (e1 - e0));
+                for (a, fa) in f.iter_mut().enumerate() {
+                    let e1 = erf.eval(((i0 + a as i64) as f64 + 0.5 - c) * k);
+                    *fa = 0.5 * (e1 - e0);
                     e0 = e1;
                 }
             }
@@ -810,7 +832,7 @@ impl ErfTable {
         ErfTable { nodes }
     }
 
-    #[inline]
+    #[inline(always)]
     pub fn eval(&self, x: f64) -> f64 {
         let ax = x.abs();
         if !(ax < ERF_TABLE_END) {

@@ -87,6 +87,12 @@ pub struct Arbiter {
     t_free: f64,
     /// Requests lost because their pixel was still blocked.
     pub lost: u64,
+    roi_x: u16,
+    /// Bits per row of `blocked` (the ROI width).
+    row_bits: usize,
+    /// Pixels with a pending request (one bit per ROI pixel): the check
+    /// for a blocked pixel without scanning its row's pending list.
+    blocked: Vec<u64>,
 }
 
 impl Arbiter {
@@ -98,16 +104,22 @@ impl Arbiter {
             queue: BinaryHeap::new(),
             t_free: f64::NEG_INFINITY,
             lost: 0,
+            roi_x: roi.x as u16,
+            row_bits: roi.width as usize,
+            blocked: vec![0; (roi.width as usize * roi.height as usize).div_ceil(64)],
         }
     }
 
     fn admit(&mut self, a: &Arrival) {
         let r = (a.y - self.roi_y) as usize;
-        let row = &mut self.rows[r];
-        if row.iter().any(|e| e.1 == a.x) {
+        let bit = r * self.row_bits + (a.x - self.roi_x) as usize;
+        let (word, mask) = (bit / 64, 1u64 << (bit % 64));
+        if self.blocked[word] & mask != 0 {
             self.lost += 1;
             return;
         }
+        self.blocked[word] |= mask;
+        let row = &mut self.rows[r];
         if row.is_empty() {
             self.queue.push(Reverse((T(a.t), r as u16)));
         }
@@ -147,8 +159,11 @@ impl Arbiter {
             row.sort_unstable_by_key(|e| e.1);
             let ts = floor_i64(t_grant);
             let y = self.roi_y + r;
+            let base = r as usize * self.row_bits;
             for &(_, x, p) in row.iter() {
                 out.push(ts, x, y, p);
+                let bit = base + (x - self.roi_x) as usize;
+                self.blocked[bit / 64] &= !(1u64 << (bit % 64));
             }
             self.t_free =
                 t_grant + self.params.row_time_us + row.len() as f64 * self.params.event_time_us;

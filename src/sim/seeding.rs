@@ -212,7 +212,9 @@ impl Particles {
         times: &[f64],
     ) -> Vec<Vec<Snapshot>> {
         use rayon::prelude::*;
-        const CHUNK: usize = 2048;
+        // Small enough for several tasks per thread (load balance), large
+        // enough to amortise the per-task vectors.
+        const CHUNK: usize = 512;
         let n_slots = self.particles.len();
         let mut particles = std::mem::take(&mut self.particles);
         let mut rngs = std::mem::take(&mut self.rngs);
