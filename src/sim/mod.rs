@@ -21,7 +21,9 @@
 //! 2 ms), so memory is bounded by a block whatever the duration, and the
 //! truth of the pulses produced so far is taken with
 //! [`Simulator::take_truth`]. Particle advection is parallel over particles,
-//! rendering parallel over pulses (rayon); every random draw comes from a
+//! rendering parallel over pulses (rayon), and the sequential readout of a
+//! block (request sort, refractory, arbiter) runs while the next block is
+//! being rendered (see [`Simulator`]); every random draw comes from a
 //! stream derived from the user's seed and the item's index (particle slot,
 //! pulse, block), so the output does not depend on the thread count.
 //! [`simulate`] drains a `Simulator` into memory (tests, small scenes).
