@@ -328,12 +328,36 @@ impl PixelModel {
     /// the erf edge values of an axis reused while the coordinate repeats
     /// (streak positions of a particle moving along x share y); same
     /// contributions in the same order (tested).
-    #[inline]
+    #[cfg(test)]
     fn particle_contributions_fast(
         &self,
         s: &Snapshot,
         edges: &mut FootprintEdges,
         mut f: impl FnMut(u32, u32, f64),
+    ) {
+        struct Each<F>(F, u32);
+        impl<F: FnMut(u32, u32, f64)> ContributionSink for Each<F> {
+            #[inline]
+            fn row(&mut self, iy: u32) {
+                self.1 = iy;
+            }
+            #[inline]
+            fn add(&mut self, ix: u32, sig: f64) {
+                (self.0)(ix, self.1, sig)
+            }
+        }
+        self.particle_rows(s, edges, &mut Each(&mut f, 0));
+    }
+
+    /// [`particle_contributions_fast`] row by row: `sink.row(iy)` before
+    /// the contributions `sink.add(ix, signal)` of row iy, so the ring can
+    /// find its row once per row rather than per pixel.
+    #[inline]
+    fn particle_rows(
+        &self,
+        s: &Snapshot,
+        edges: &mut FootprintEdges,
+        sink: &mut impl ContributionSink,
     ) {
         let amp = self.gain * s.brightness;
         let single = [(0.0, 1.0)];
@@ -373,13 +397,13 @@ impl PixelModel {
                 if fy < 1e-6 {
                     continue;
                 }
-                let j = (ey.lo + jj as i64) as u32;
+                sink.row((ey.lo + jj as i64) as u32);
                 for (ii, &fx) in ex.fractions().iter().enumerate() {
                     let w = fx * fy;
                     if w > 1e-6 {
                         let sig = a * w;
                         if sig >= self.negligible {
-                            f((ex.lo + ii as i64) as u32, j, sig);
+                            sink.add((ex.lo + ii as i64) as u32, sig);
                         }
                     }
                 }
@@ -456,13 +480,19 @@ impl PixelModel {
                     next_row += 1;
                 }
                 let s = &snaps[(key & 0xFFFF_FFFF) as usize];
-                self.particle_contributions_fast(s, edges, |ix, iy, v| {
-                    debug_assert!((iy - self.roi.y) as i64 >= next_row, "row drained early");
-                    let slot = (iy - self.roi.y) as usize & mask;
-                    let x = (ix - self.roi.x) as usize;
-                    touched[slot * words + x / 64] |= 1 << (x % 64);
-                    sig[slot * rw + x] += v as f32;
-                });
+                let mut sink = RingRows {
+                    sig: &mut sig[..],
+                    touched: &mut touched[..],
+                    mask,
+                    rw,
+                    words,
+                    roi_x: self.roi.x,
+                    roi_y: self.roi.y,
+                    sig_at: 0,
+                    touched_at: 0,
+                };
+                debug_assert!((lo - ry0).max(0) >= next_row.min(rh), "row drained early");
+                self.particle_rows(s, edges, &mut sink);
             }
             while next_row < rh {
                 self.drain_row(
@@ -697,6 +727,44 @@ pub(crate) fn round_i64(v: f64) -> i64 {
         t - 1
     } else {
         t
+    }
+}
+
+/// Receives a particle's contributions row by row.
+trait ContributionSink {
+    /// The following contributions are in sensor row `iy`.
+    fn row(&mut self, iy: u32);
+    /// Signal `sig` for sensor column `ix` of the current row.
+    fn add(&mut self, ix: u32, sig: f64);
+}
+
+/// The row ring as a [`ContributionSink`]: the slot's offsets are found
+/// once per row.
+struct RingRows<'a> {
+    sig: &'a mut [f32],
+    touched: &'a mut [u64],
+    mask: usize,
+    rw: usize,
+    words: usize,
+    roi_x: u32,
+    roi_y: u32,
+    sig_at: usize,
+    touched_at: usize,
+}
+
+impl ContributionSink for RingRows<'_> {
+    #[inline]
+    fn row(&mut self, iy: u32) {
+        let slot = (iy - self.roi_y) as usize & self.mask;
+        self.sig_at = slot * self.rw;
+        self.touched_at = slot * self.words;
+    }
+
+    #[inline]
+    fn add(&mut self, ix: u32, v: f64) {
+        let x = (ix - self.roi_x) as usize;
+        self.touched[self.touched_at + x / 64] |= 1 << (x % 64);
+        self.sig[self.sig_at + x] += v as f32;
     }
 }
 
