@@ -246,7 +246,7 @@ pub fn radix_sort(keys: &mut Vec<u64>, scratch: &mut Vec<u64>) {
     let mut src_is_keys = true;
     for p in 0..passes as usize {
         let c = &mut counts[p * radix..(p + 1) * radix];
-        if c.iter().any(|&v| v == n) {
+        if c.contains(&n) {
             continue; // every key has the same digit here
         }
         let mut sum = 0;
