@@ -31,6 +31,17 @@ pub trait PtvSink {
     fn particles(&mut self, pulse: i64, t_us: f64, particles: &[Particle]) -> Result<()>;
     /// Tracks that have ended (final: they will not grow any more).
     fn tracks(&mut self, tracks: &[Track]) -> Result<()>;
+    /// [`PtvSink::tracks`] handing over ownership (what the stream
+    /// calls): a sink that sends tracks to another thread takes them
+    /// without a copy. Defaults to [`PtvSink::tracks`].
+    fn take_tracks(&mut self, tracks: Vec<Track>) -> Result<()> {
+        self.tracks(&tracks)
+    }
+    /// [`PtvSink::particles`] handing over ownership (what the stream
+    /// calls for recordings). Defaults to [`PtvSink::particles`].
+    fn take_particles(&mut self, pulse: i64, t_us: f64, particles: Vec<Particle>) -> Result<()> {
+        self.particles(pulse, t_us, &particles)
+    }
 }
 
 /// Clustering and tracking fed pulse by pulse.
@@ -83,7 +94,7 @@ impl PtvStream {
     ) -> Result<()> {
         sink.particles(pulse, t_us, particles)?;
         let done = self.tracker.push(pulse, t_us, particles)?;
-        sink.tracks(&done)
+        sink.take_tracks(done)
     }
 
     /// Cluster the current batch (rayon, on a helper thread) while the
@@ -99,7 +110,7 @@ impl PtvStream {
         let (parts, tracked) = std::thread::scope(|scope| {
             let worker =
                 (!batch.is_empty()).then(|| scope.spawn(|| cluster_pulses(&batch, cluster)));
-            let tracked = track_batch(tracker, &previous, sink);
+            let tracked = track_batch(tracker, previous, sink);
             let parts = match worker {
                 Some(w) => w.join().unwrap_or_else(|e| std::panic::resume_unwind(e)),
                 None => Ok(Vec::new()),
@@ -134,21 +145,22 @@ impl PtvStream {
 
         let (rest, stats) = self.tracker.finish();
         let rest: Vec<Track> = rest.into_iter().map(|t| t.track).collect();
-        sink.tracks(&rest)?;
+        sink.take_tracks(rest)?;
         Ok(stats)
     }
 }
 
-/// Feed clustered pulses to the tracker and the sink, in order.
+/// Feed clustered pulses to the tracker and the sink, in order (per pulse
+/// the sink gets the particles, then the tracks that ended).
 fn track_batch(
     tracker: &mut Tracker,
-    clustered: &[(i64, f64, Vec<Particle>)],
+    clustered: Vec<(i64, f64, Vec<Particle>)>,
     sink: &mut dyn PtvSink,
 ) -> Result<()> {
     for (pulse, t_us, ps) in clustered {
-        sink.particles(*pulse, *t_us, ps)?;
-        let done = tracker.push(*pulse, *t_us, ps)?;
-        sink.tracks(&done)?;
+        let done = tracker.push(pulse, t_us, &ps)?;
+        sink.take_particles(pulse, t_us, ps)?;
+        sink.take_tracks(done)?;
     }
     Ok(())
 }
