@@ -269,12 +269,7 @@ impl PtvSink for Pipeline {
         self.take_particles(pulse, t_us, ps.to_vec())
     }
 
-    fn take_particles(
-        &mut self,
-        pulse: i64,
-        _t_us: f64,
-        ps: Vec<Particle>,
-    ) -> ebptv::Result<()> {
+    fn take_particles(&mut self, pulse: i64, _t_us: f64, ps: Vec<Particle>) -> ebptv::Result<()> {
         self.progress.inc(1);
         self.send(Output::Particles(pulse, ps))
     }

@@ -236,7 +236,11 @@ impl TracksNpyWriter {
 /// [`TracksNpyWriter`]).
 pub fn write_tracks_npy(path: &Path, tracks: &[Track]) -> Result<()> {
     use crate::io::npy::NpyColumn;
-    let pts = || tracks.iter().flat_map(|t| t.points.iter().map(move |p| (t.id, p)));
+    let pts = || {
+        tracks
+            .iter()
+            .flat_map(|t| t.points.iter().map(move |p| (t.id, p)))
+    };
     let id: Vec<u64> = pts().map(|(id, _)| id).collect();
     let pulse: Vec<i64> = pts().map(|(_, p)| p.pulse).collect();
     let col = |f: fn(&TrackPoint) -> f64| pts().map(|(_, p)| f(p)).collect::<Vec<f64>>();
@@ -646,6 +650,86 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("missing column(s) v"));
+    }
+
+    /// Tracks with varied times, including pulses that share a slot of
+    /// the time-text cache (pulse mod 4096) with different times and one
+    /// time written at two pulses.
+    fn varied_tracks() -> Vec<Track> {
+        let mut tracks = Vec::new();
+        for id in 0..40u64 {
+            let start = (id as i64 * 997) % 9000 - 100;
+            let points = (0..60)
+                .map(|k| {
+                    let pulse = start + k;
+                    TrackPoint {
+                        pulse,
+                        t_us: pulse as f64 * 199.999_7 + (id % 3) as f64 * 1e-3 + 0.1,
+                        x: 0.1 * pulse as f64 + id as f64,
+                        y: 1279.99995 - 0.3 * k as f64,
+                        u: -1234.5678 * k as f64,
+                        v: 0.0005 * id as f64,
+                        ax: 0.0,
+                        ay: 0.0,
+                        interpolated: k % 7 == 0,
+                    }
+                })
+                .collect();
+            tracks.push(Track { id, points });
+        }
+        tracks
+    }
+
+    #[test]
+    fn tracks_csv_matches_core_fmt() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("tracks.csv");
+        let tracks = varied_tracks();
+        let mut w = TracksCsvWriter::create(&path).unwrap();
+        for chunk in tracks.chunks(7) {
+            w.write(chunk).unwrap();
+        }
+        w.finish().unwrap();
+        let mut want = format!("{TRACKS_HEADER}\n");
+        for t in &tracks {
+            for p in &t.points {
+                want += &format!(
+                    "{},{},{},{:.4},{:.4},{:.3},{:.3}\n",
+                    t.id, p.pulse, p.t_us, p.x, p.y, p.u, p.v
+                );
+            }
+        }
+        assert_eq!(std::fs::read_to_string(&path).unwrap(), want);
+    }
+
+    #[test]
+    fn streamed_tracks_npy_matches_the_table_writer() {
+        let dir = tempfile::tempdir().unwrap();
+        let tracks = varied_tracks();
+        let (a, b) = (dir.path().join("a.npy"), dir.path().join("b.npy"));
+        write_tracks_npy(&a, &tracks).unwrap();
+        let mut w = TracksNpyWriter::create(&b).unwrap();
+        for chunk in tracks.chunks(9) {
+            w.write(chunk).unwrap();
+        }
+        w.write(&[]).unwrap();
+        w.finish().unwrap();
+        let (a, b) = (std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
+        let (ha, hb) = (
+            crate::io::npy::parse_npy_header(&a).unwrap(),
+            crate::io::npy::parse_npy_header(&b).unwrap(),
+        );
+        assert_eq!(hb.shape, vec![40 * 60]);
+        assert_eq!((&ha.descr, &ha.shape), (&hb.descr, &hb.shape));
+        assert_eq!(hb.data_offset % 64, 0);
+        assert_eq!(b.len() - hb.data_offset, 40 * 60 * 56);
+        assert_eq!(a[ha.data_offset..], b[hb.data_offset..]);
+        // Nothing written: a valid empty array.
+        let c = dir.path().join("c.npy");
+        TracksNpyWriter::create(&c).unwrap().finish().unwrap();
+        let c = std::fs::read(c).unwrap();
+        let hc = crate::io::npy::parse_npy_header(&c).unwrap();
+        assert_eq!((hc.shape, c.len()), (vec![0], hc.data_offset));
     }
 
     #[test]

@@ -269,6 +269,75 @@ mod tests {
         }
     }
 
+    /// A paper-like synthetic scene (ppp 0.01, ~1.6 events per particle,
+    /// 1 % noise) through the stream in rayon pools of 1, 2 and 3 threads
+    /// and with different batch sizes must give exactly what clustering and
+    /// tracking pulse by pulse on one thread gives: the parallel clustering
+    /// and the parallel output fits change nothing. Short
+    /// `max_track_length` so that segment hand-outs are exercised too.
+    #[test]
+    fn parallel_stream_equals_sequential_tracking() {
+        use crate::cluster::cluster_pulse;
+        use crate::track::synth::{generate, SynthParams};
+        let scene = generate(&SynthParams {
+            width: 200,
+            height: 200,
+            pulses: 120,
+            ..Default::default()
+        });
+        let cparams = ClusterParams::default();
+        let tparams = TrackParams {
+            max_track_length: 32,
+            ..Default::default()
+        };
+        let pool = |n: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .unwrap()
+        };
+        let reference = pool(1).install(|| {
+            let mut tracker = Tracker::new(tparams.clone()).unwrap();
+            let mut sink = Collect::default();
+            for sp in &scene {
+                let ps = cluster_pulse(&sp.pulse, &cparams);
+                sink.particles(sp.pulse.index, sp.pulse.start_us, &ps)
+                    .unwrap();
+                let done = tracker
+                    .push(sp.pulse.index, sp.pulse.start_us, &ps)
+                    .unwrap();
+                sink.tracks(&done).unwrap();
+            }
+            let (rest, stats) = tracker.finish();
+            sink.tracks.extend(rest.into_iter().map(|t| t.track));
+            (sink, stats)
+        });
+        assert!(
+            reference.0.tracks.len() > 100,
+            "{}",
+            reference.0.tracks.len()
+        );
+        assert!(reference.1.tracks_kept > 100 && reference.1.particles_on_tracks > 20_000);
+        for (threads, batch) in [(1, 64), (2, 64), (2, 5), (3, 1)] {
+            let (sink, stats) = pool(threads).install(|| {
+                let mut s = PtvStream::new(cparams.clone(), tparams.clone(), batch).unwrap();
+                let mut sink = Collect::default();
+                for sp in &scene {
+                    s.push_pulse(sp.pulse.clone(), &mut sink).unwrap();
+                }
+                let stats = s.finish(&mut sink).unwrap();
+                (sink, stats)
+            });
+            assert_eq!(stats, reference.1, "{threads} threads, batch {batch}");
+            assert_eq!(sink.pulses, reference.0.pulses);
+            assert_eq!(sink.particles, reference.0.particles);
+            assert!(
+                sink.tracks == reference.0.tracks,
+                "{threads} threads, batch {batch}: tracks differ"
+            );
+        }
+    }
+
     #[test]
     fn zero_batch_is_refused() {
         assert!(PtvStream::new(ClusterParams::default(), TrackParams::default(), 0).is_err());
