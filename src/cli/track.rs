@@ -264,6 +264,18 @@ impl Pipeline {
     }
 }
 
+/// On an error the run ends without `finish`: close the channel and wait
+/// for the writer, whose uncommitted files then remove themselves before
+/// the process exits (no temporary files left behind).
+impl Drop for Pipeline {
+    fn drop(&mut self) {
+        self.tx = None;
+        if let Some(handle) = self.writer.take() {
+            let _ = handle.join();
+        }
+    }
+}
+
 impl PtvSink for Pipeline {
     fn particles(&mut self, pulse: i64, t_us: f64, ps: &[Particle]) -> ebptv::Result<()> {
         self.take_particles(pulse, t_us, ps.to_vec())
