@@ -57,6 +57,33 @@ fn links_a_particles_csv() {
     );
     let rows: usize = tracks.iter().map(|t| t.points.len()).sum();
     assert_eq!(h.shape, vec![rows]);
+    // Streamed records: 56 bytes each, the last one the last CSV row.
+    assert_eq!(npy.len(), h.data_offset + 56 * rows);
+    let last = &npy[npy.len() - 56..];
+    let (t, p) = (
+        tracks.last().unwrap(),
+        tracks.last().unwrap().points.last().unwrap(),
+    );
+    assert_eq!(u64::from_le_bytes(last[..8].try_into().unwrap()), t.id);
+    assert_eq!(i64::from_le_bytes(last[8..16].try_into().unwrap()), p.pulse);
+    let x = f64::from_le_bytes(last[24..32].try_into().unwrap());
+    assert!((x - p.x).abs() <= 5e-5, "{x} vs {}", p.x);
+    // Nothing but the outputs in the directory (no temporary files).
+    let mut names: Vec<String> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    assert_eq!(
+        names,
+        [
+            "particles.csv",
+            "summary.json",
+            "tracks.csv",
+            "tracks.npy",
+            "tracks.png"
+        ]
+    );
 }
 
 #[test]
@@ -93,6 +120,11 @@ fn bad_input_gives_clear_errors_and_no_outputs() {
         .unwrap();
     let err = String::from_utf8_lossy(&st.stderr);
     assert!(!st.status.success() && err.contains("line 3"), "{err}");
+    // Failed runs leave nothing behind, not even temporary files.
+    let left: Vec<_> = std::fs::read_dir(&out)
+        .map(|d| d.map(|e| e.unwrap().file_name()).collect())
+        .unwrap_or_default();
+    assert!(left.is_empty(), "{left:?}");
 
     std::fs::write(&input, "pulse,t_us,x,y,n_events\n0,0,1,1,1\n").unwrap();
     for r in ["--radius=0", "--radius=-1"] {

@@ -11,7 +11,7 @@ use ebptv::cluster::{ClusterParams, Particle};
 use ebptv::pulses::PulseOptions;
 use ebptv::track::{
     track_recording, ParticlesCsvWriter, PtvSink, PtvStream, SummaryAcc, Track, TrackParams,
-    TrackerStats, TracksCsvWriter,
+    TrackerStats, TracksCsvWriter, TracksNpyWriter,
 };
 
 #[derive(Args, Debug)]
@@ -70,7 +70,7 @@ pub struct TrackArgs {
     #[arg(long, default_value_t = 20)]
     pub plot_pulses: i64,
     /// Also write tracks.npy (a structured array with the tracks.csv
-    /// columns). Holds every track point in memory until the end.
+    /// columns), streamed like the CSV files.
     #[arg(long)]
     pub npy: bool,
     /// Pulses clustered per parallel batch.
@@ -78,61 +78,74 @@ pub struct TrackArgs {
     pub batch: usize,
 }
 
-/// The outputs of one run: a [`PtvSink`] that writes files, keeps the
-/// summary, the figure's polylines and the progress bar.
-struct Pipeline {
+/// What the tracking thread hands to the writer thread.
+enum Output {
+    /// A pulse's index and particles.
+    Particles(i64, Vec<Particle>),
+    Tracks(Vec<Track>),
+}
+
+/// The outputs of one run, on their own thread ([`Pipeline`] feeds it):
+/// the CSV/NPY writers, the summary and the figure's polylines. Formatting
+/// ~10⁶ rows per second of recording is about a fifth of the work of a
+/// full-frame run; on a second core it overlaps tracking.
+struct Writer {
     particles_out: ParticlesCsvWriter,
     tracks_out: TracksCsvWriter,
+    npy_out: Option<TracksNpyWriter>,
     summary: SummaryAcc,
     first_pulse: Option<i64>,
     plot_pulses: i64,
     plot_lines: Vec<Vec<(f64, f64)>>,
     plot_speeds: Vec<f64>,
-    /// Columns of tracks.npy when requested.
-    npy: Option<[Vec<f64>; 7]>,
     width: f64,
     height: f64,
-    progress: ProgressBar,
 }
 
-impl PtvSink for Pipeline {
-    fn particles(&mut self, pulse: i64, _t_us: f64, ps: &[Particle]) -> ebptv::Result<()> {
+impl Writer {
+    fn create(out: &Path, npy: bool, plot_pulses: i64) -> ebptv::Result<Self> {
+        Ok(Writer {
+            particles_out: ParticlesCsvWriter::create(&out.join("particles.csv"))?,
+            tracks_out: TracksCsvWriter::create(&out.join("tracks.csv"))?,
+            npy_out: npy
+                .then(|| TracksNpyWriter::create(&out.join("tracks.npy")))
+                .transpose()?,
+            summary: SummaryAcc::default(),
+            first_pulse: None,
+            plot_pulses,
+            plot_lines: Vec::new(),
+            plot_speeds: Vec::new(),
+            width: 0.0,
+            height: 0.0,
+        })
+    }
+
+    /// Write everything that arrives until the channel closes.
+    fn run(mut self, rx: std::sync::mpsc::Receiver<Output>) -> ebptv::Result<Self> {
+        for msg in rx {
+            match msg {
+                Output::Particles(pulse, ps) => self.particles(pulse, &ps)?,
+                Output::Tracks(ts) => self.tracks(&ts)?,
+            }
+        }
+        Ok(self)
+    }
+
+    fn particles(&mut self, pulse: i64, ps: &[Particle]) -> ebptv::Result<()> {
         self.first_pulse.get_or_insert(pulse);
         for p in ps {
             self.width = self.width.max(p.x + 1.0);
             self.height = self.height.max(p.y + 1.0);
         }
-        self.particles_out.write(ps)?;
-        self.progress.inc(1);
-        Ok(())
+        self.particles_out.write(ps)
     }
 
     fn tracks(&mut self, tracks: &[Track]) -> ebptv::Result<()> {
-        self.emit(tracks)
-    }
-}
-
-impl Pipeline {
-    fn emit(&mut self, tracks: &[Track]) -> ebptv::Result<()> {
         self.tracks_out.write(tracks)?;
-        self.summary.add(tracks);
-        if let Some(cols) = &mut self.npy {
-            for t in tracks {
-                for p in &t.points {
-                    for (c, v) in cols.iter_mut().zip([
-                        t.id as f64,
-                        p.pulse as f64,
-                        p.t_us,
-                        p.x,
-                        p.y,
-                        p.u,
-                        p.v,
-                    ]) {
-                        c.push(v);
-                    }
-                }
-            }
+        if let Some(npy) = &mut self.npy_out {
+            npy.write(tracks)?;
         }
+        self.summary.add(tracks);
         let end = self.first_pulse.unwrap_or(0) + self.plot_pulses;
         for t in tracks {
             let pts: Vec<(f64, f64)> = t
@@ -152,36 +165,20 @@ impl Pipeline {
     }
 
     fn finish(
-        mut self,
+        self,
         stats: &TrackerStats,
         out: &Path,
         width: Option<f64>,
         height: Option<f64>,
     ) -> anyhow::Result<()> {
-        self.progress.finish_and_clear();
         let summary = self.summary.summary(stats);
         // Outputs appear together at the end (each atomically).
         self.particles_out.finish()?;
         self.tracks_out.finish()?;
-        ebptv::track::write_summary_json(&out.join("summary.json"), &summary)?;
-        if let Some(cols) = self.npy.take() {
-            let [id, pulse, t, x, y, u, v] = cols;
-            use ebptv::io::npy::NpyColumn;
-            let id: Vec<u64> = id.iter().map(|&a| a as u64).collect();
-            let pulse: Vec<i64> = pulse.iter().map(|&a| a as i64).collect();
-            ebptv::io::npy::write_npy_table(
-                out.join("tracks.npy"),
-                &[
-                    ("track_id", NpyColumn::U64(&id)),
-                    ("pulse", NpyColumn::I64(&pulse)),
-                    ("t_us", NpyColumn::F64(&t)),
-                    ("x", NpyColumn::F64(&x)),
-                    ("y", NpyColumn::F64(&y)),
-                    ("u", NpyColumn::F64(&u)),
-                    ("v", NpyColumn::F64(&v)),
-                ],
-            )?;
+        if let Some(npy) = self.npy_out {
+            npy.finish()?;
         }
+        ebptv::track::write_summary_json(&out.join("summary.json"), &summary)?;
         ebptv::plot::polylines(
             &out.join("tracks.png"),
             &ebptv::plot::Polylines {
@@ -207,6 +204,97 @@ impl Pipeline {
             out.display()
         );
         Ok(())
+    }
+}
+
+/// The [`PtvSink`] of a run: hands results to the [`Writer`] thread (a
+/// bounded channel, so a slow disk holds the tracker back instead of
+/// filling memory) and moves the progress bar.
+struct Pipeline {
+    tx: Option<std::sync::mpsc::SyncSender<Output>>,
+    writer: Option<std::thread::JoinHandle<ebptv::Result<Writer>>>,
+    progress: ProgressBar,
+}
+
+impl Pipeline {
+    fn start(writer: Writer, progress: ProgressBar) -> anyhow::Result<Self> {
+        let (tx, rx) = std::sync::mpsc::sync_channel(128);
+        let handle = std::thread::Builder::new()
+            .name("ebptv-track-writer".into())
+            .spawn(move || writer.run(rx))
+            .context("starting the output writer thread")?;
+        Ok(Pipeline {
+            tx: Some(tx),
+            writer: Some(handle),
+            progress,
+        })
+    }
+
+    fn send(&mut self, msg: Output) -> ebptv::Result<()> {
+        let tx = self.tx.as_ref().expect("sending after finish");
+        if tx.send(msg).is_ok() {
+            return Ok(());
+        }
+        // The writer stopped: it failed; report its error.
+        self.tx = None;
+        match self.join() {
+            Err(e) => Err(e),
+            Ok(_) => Err(ebptv::Error::analysis("the output writer stopped early")),
+        }
+    }
+
+    fn join(&mut self) -> ebptv::Result<Writer> {
+        let handle = self.writer.take().expect("writer joined once");
+        handle
+            .join()
+            .unwrap_or_else(|e| std::panic::resume_unwind(e))
+    }
+
+    fn finish(
+        mut self,
+        stats: &TrackerStats,
+        out: &Path,
+        width: Option<f64>,
+        height: Option<f64>,
+    ) -> anyhow::Result<()> {
+        self.progress.finish_and_clear();
+        self.tx = None; // closes the channel: the writer drains it and returns
+        let writer = self.join()?;
+        writer.finish(stats, out, width, height)
+    }
+}
+
+/// On an error the run ends without `finish`: close the channel and wait
+/// for the writer, whose uncommitted files then remove themselves before
+/// the process exits (no temporary files left behind).
+impl Drop for Pipeline {
+    fn drop(&mut self) {
+        self.tx = None;
+        if let Some(handle) = self.writer.take() {
+            let _ = handle.join();
+        }
+    }
+}
+
+impl PtvSink for Pipeline {
+    fn particles(&mut self, pulse: i64, t_us: f64, ps: &[Particle]) -> ebptv::Result<()> {
+        self.take_particles(pulse, t_us, ps.to_vec())
+    }
+
+    fn take_particles(&mut self, pulse: i64, _t_us: f64, ps: Vec<Particle>) -> ebptv::Result<()> {
+        self.progress.inc(1);
+        self.send(Output::Particles(pulse, ps))
+    }
+
+    fn tracks(&mut self, tracks: &[Track]) -> ebptv::Result<()> {
+        self.take_tracks(tracks.to_vec())
+    }
+
+    fn take_tracks(&mut self, tracks: Vec<Track>) -> ebptv::Result<()> {
+        if tracks.is_empty() {
+            return Ok(());
+        }
+        self.send(Output::Tracks(tracks))
     }
 }
 
@@ -301,19 +389,8 @@ fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
             .expect("valid template"),
     );
     progress.enable_steady_tick(std::time::Duration::from_millis(200));
-    let mut pipe = Pipeline {
-        particles_out: ParticlesCsvWriter::create(&args.out.join("particles.csv"))?,
-        tracks_out: TracksCsvWriter::create(&args.out.join("tracks.csv"))?,
-        summary: SummaryAcc::default(),
-        first_pulse: None,
-        plot_pulses: args.plot_pulses,
-        plot_lines: Vec::new(),
-        plot_speeds: Vec::new(),
-        npy: args.npy.then(Default::default),
-        width: 0.0,
-        height: 0.0,
-        progress,
-    };
+    let writer = Writer::create(&args.out, args.npy, args.plot_pulses)?;
+    let mut pipe = Pipeline::start(writer, progress)?;
 
     if is_particles_csv(&args.input) {
         let particles = ebptv::track::read_particles_csv(&args.input)?;

@@ -60,6 +60,15 @@ pub fn array_header(descr: &str, shape: &[usize]) -> Vec<u8> {
     header_bytes(&format!("'{descr}'"), shape, 0)
 }
 
+/// The header of a 1-D array of `rows` records of the (structured) dtype
+/// `descr` (e.g. `[('a', '<f8'), ('b', '<i8')]`), padded to at least
+/// `min_len` bytes: streaming writers reserve room with `rows =
+/// usize::MAX`, then rewrite it in place with the final count and the same
+/// `min_len`.
+pub fn table_header(descr: &str, rows: usize, min_len: usize) -> Vec<u8> {
+    header_bytes(descr, &[rows], min_len)
+}
+
 /// A column of a structured table for [`write_npy_table`].
 #[derive(Debug, Clone, Copy)]
 pub enum NpyColumn<'a> {

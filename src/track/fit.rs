@@ -34,8 +34,26 @@ pub fn fit_eval(tau: &[f64], xs: &[f64], ys: &[f64], order: usize, at: f64) -> O
     if n == 0 {
         return None;
     }
-    let order = order.min(2).min(n - 1);
-    let p = order + 1;
+    // The polynomial's size as a constant: the loops below unroll (the
+    // output fit calls this ~2 times per track point). The arithmetic is
+    // the same sequence for every size, so results do not depend on it.
+    match order.min(2).min(n - 1) {
+        0 => fit_eval_sized::<1>(tau, xs, ys, at),
+        1 => fit_eval_sized::<2>(tau, xs, ys, at),
+        _ => fit_eval_sized::<3>(tau, xs, ys, at),
+    }
+}
+
+/// [`fit_eval`] with `P = order + 1` coefficients (`P` ≤ `tau.len()`).
+fn fit_eval_sized<const P: usize>(
+    tau: &[f64],
+    xs: &[f64],
+    ys: &[f64],
+    at: f64,
+) -> Option<FitState> {
+    let n = tau.len();
+    let (xs, ys) = (&xs[..n], &ys[..n]);
+    let p = P;
     // Centre time on the evaluation point for conditioning and so that the
     // coefficients are directly the value and derivatives there.
     let mut ata = [[0.0f64; 3]; 3];
@@ -52,7 +70,7 @@ pub fn fit_eval(tau: &[f64], xs: &[f64], ys: &[f64], order: usize, at: f64) -> O
             aty[a] += row[a] * ys[i];
         }
     }
-    let inv = invert(&ata, p)?;
+    let inv = invert::<P>(&ata)?;
     let mut cx = [0.0; 3];
     let mut cy = [0.0; 3];
     for a in 0..p {
@@ -87,7 +105,8 @@ pub fn fit_eval(tau: &[f64], xs: &[f64], ys: &[f64], order: usize, at: f64) -> O
 }
 
 /// Inverse of the leading `p`×`p` block (Gauss–Jordan with pivoting).
-fn invert(m: &[[f64; 3]; 3], p: usize) -> Option<[[f64; 3]; 3]> {
+fn invert<const P: usize>(m: &[[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
+    let p = P;
     let mut a = *m;
     let mut inv = [[0.0; 3]; 3];
     for (i, row) in inv.iter_mut().enumerate().take(p) {
