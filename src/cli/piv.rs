@@ -26,6 +26,10 @@ pub struct CorrelationArgs {
     /// 1 = off; needs S < frames and at least 2 passes.
     #[arg(long, default_value_t = 1, value_name = "S")]
     pub pyramid: usize,
+    /// Keep window values below the window mean (no background clipping):
+    /// plain mean-removed correlation.
+    #[arg(long)]
+    pub no_clip: bool,
 }
 
 impl CorrelationArgs {
@@ -38,6 +42,7 @@ impl CorrelationArgs {
         o.spacing_y = self.spacing.unwrap_or((o.window_h / 2).max(1));
         o.passes = self.passes;
         o.pyramid = self.pyramid;
+        o.clip_background = !self.no_clip;
         o
     }
 }

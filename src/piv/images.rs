@@ -46,6 +46,27 @@ fn grey_from_channels(
     alpha: bool,
     samples: impl Iterator<Item = f32>,
 ) -> Result<Image> {
+    if ch == 1 {
+        // Grey: the samples are the pixels (the common case, no per-sample
+        // channel bookkeeping).
+        let mut data = Vec::with_capacity(w * h);
+        data.extend(samples.take(w * h + 1));
+        if data.len() != w * h {
+            return Err(Error::corrupt(
+                path,
+                0,
+                format!(
+                    "image data holds {} pixels, header says {w}x{h}",
+                    data.len()
+                ),
+            ));
+        }
+        return Ok(Image {
+            width: w,
+            height: h,
+            data,
+        });
+    }
     let colour = if alpha { ch - 1 } else { ch };
     let mut data = Vec::with_capacity(w * h);
     let mut acc = 0.0f32;
@@ -98,6 +119,22 @@ fn load_png(path: &Path) -> Result<Image> {
     let bytes = &buf[..info.buffer_size()];
     let line = info.line_size;
     match info.bit_depth {
+        png::BitDepth::Sixteen if ch == 1 => {
+            // Grey 16 bit, the usual PIV export: rows straight into floats.
+            let mut data = Vec::with_capacity(w * h);
+            for y in 0..h {
+                let row = &bytes[y * line..y * line + w * 2];
+                data.extend(
+                    row.chunks_exact(2)
+                        .map(|b| u16::from_be_bytes([b[0], b[1]]) as f32),
+                );
+            }
+            Ok(Image {
+                width: w,
+                height: h,
+                data,
+            })
+        }
         png::BitDepth::Sixteen => {
             let it = (0..h).flat_map(|y| {
                 let row = &bytes[y * line..y * line + w * ch * 2];

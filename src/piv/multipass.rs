@@ -22,7 +22,9 @@
 
 use rayon::prelude::*;
 
-use super::correlate::{find_peak, remove_mean, signed, CorrelationPlan, Workspace};
+use super::correlate::{
+    clip_below_mean, cut_window, find_peak, signed, CorrelationPlan, Spectrum, Workspace,
+};
 use super::validate::{self, flag, MedianTest};
 use super::Image;
 use crate::error::{Error, Result};
@@ -48,6 +50,15 @@ pub struct PivOptions {
     /// scaled to the unit separation (Sciacchitano et al. 2012). 1 = plain
     /// sum of correlation over consecutive pairs; must be < `N_f`.
     pub pyramid: usize,
+    /// Background clipping in single-pass evaluations (`passes == 1`):
+    /// after mean removal, window values below the window mean are set to
+    /// 0 ([`clip_below_mean`]). Default on. It lowers the single-pass error
+    /// on particle images (3–15 % on the peer-comparison images). Multi-pass
+    /// evaluations keep plain mean removal throughout: in deformed passes
+    /// (residual shift near zero) clipping raised the random error from
+    /// 0.011 to 0.015 px, and a clipped first-pass predictor raised the
+    /// final vortex mean-field error from 1.7 % to 2.0 %.
+    pub clip_background: bool,
 }
 
 impl PivOptions {
@@ -61,6 +72,7 @@ impl PivOptions {
             median: MedianTest::default(),
             mask: None,
             pyramid: 1,
+            clip_background: true,
         }
     }
 }
@@ -395,10 +407,13 @@ struct PairImages<'a> {
 
 /// Per-thread state.
 impl Thread {
-    /// Buffers for windows of `n` pixels and frame separations up to `max_sep`.
-    fn new(plan: &CorrelationPlan, n: usize, max_sep: usize) -> Thread {
+    /// Buffers for windows of `n` pixels, frame separations up to
+    /// `max_sep` and `frames` per-frame spectra (chains of pairs).
+    fn new(plan: &CorrelationPlan, n: usize, max_sep: usize, frames: usize, clip: bool) -> Thread {
         Thread {
+            clip,
             ws: (0..max_sep).map(|_| plan.workspace()).collect(),
+            spectra: (0..frames).map(|_| plan.spectrum()).collect(),
             a: vec![0.0; n],
             b: vec![0.0; n],
             inside: vec![true; n],
@@ -409,8 +424,12 @@ impl Thread {
 }
 
 struct Thread {
+    /// Background clipping of every window ([`PivOptions::clip_background`]).
+    clip: bool,
     /// One accumulator per frame separation.
     ws: Vec<Workspace>,
+    /// Window spectra of the frames of a chain of pairs.
+    spectra: Vec<Spectrum>,
     a: Vec<f32>,
     b: Vec<f32>,
     inside: Vec<bool>,
@@ -420,7 +439,8 @@ struct Thread {
 
 /// Mean removal over the pixels marked `inside`; the others become 0.
 /// Returns the energies of `a` and `b`.
-fn remove_mean_where(a: &mut [f32], b: &mut [f32], inside: &[bool]) -> (f64, f64) {
+#[inline(always)]
+fn remove_mean_where(a: &mut [f32], b: &mut [f32], inside: &[bool], clip: bool) -> (f64, f64) {
     let cnt = inside.iter().filter(|&&k| k).count();
     if cnt == 0 {
         return (0.0, 0.0);
@@ -445,6 +465,9 @@ fn remove_mean_where(a: &mut [f32], b: &mut [f32], inside: &[bool]) -> (f64, f64
             b[i] = 0.0;
         }
     }
+    if clip {
+        return (clip_below_mean(a), clip_below_mean(b));
+    }
     (ea, eb)
 }
 
@@ -454,6 +477,7 @@ fn remove_mean_where(a: &mut [f32], b: &mut [f32], inside: &[bool]) -> (f64, f64
 /// pairs of separation `s`. The scaled planes are sampled at integer
 /// multiples of `s` (exact, no interpolation); shifts `s·δ` outside the
 /// unambiguous range of `R_s` contribute nothing.
+#[inline(always)]
 fn pyramid_plane(t: &mut Thread, ww: usize, wh: usize) -> usize {
     let n = ww * wh;
     t.plane[..n].iter_mut().for_each(|v| *v = 0.0);
@@ -490,11 +514,30 @@ fn pyramid_plane(t: &mut Thread, ww: usize, wh: usize) -> usize {
     total
 }
 
+/// The frames of `pairs` when they form a chain `(f0, f1), (f1, f2), …` of
+/// whole (undeformed) images, so that each frame's window spectrum can
+/// serve both of its pairs.
+fn chain_frames<'a>(pairs: &[PairImages<'a>]) -> Option<Vec<&'a Image>> {
+    let first = pairs.first()?;
+    let mut frames = vec![first.a];
+    for (k, p) in pairs.iter().enumerate() {
+        if p.inside.is_some() || p.sep != 1 || !std::ptr::eq(p.a, frames[k]) {
+            return None;
+        }
+        frames.push(p.b);
+    }
+    Some(frames)
+}
+
 /// Measure one node: returns (dx, dy, peak height, ok) of the residual
-/// displacement per frame step.
+/// displacement per frame step. `chain`: the frames of a chain of pairs
+/// ([`chain_frames`]), correlated through shared frame spectra.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
 fn measure_node(
     t: &mut Thread,
     pairs: &[PairImages],
+    chain: Option<&[&Image]>,
     x_start: usize,
     y_start: usize,
     ww: usize,
@@ -502,29 +545,74 @@ fn measure_node(
 ) -> (f64, f64, f32, bool) {
     let n = ww * wh;
     t.ws.iter_mut().for_each(|w| w.reset());
-    for p in pairs {
-        let (fa, fb) = (p.a, p.b);
-        let width = fa.width;
-        for y in 0..wh {
-            let row = (y_start + y) * width + x_start;
-            t.a[y * ww..(y + 1) * ww].copy_from_slice(&fa.data[row..row + ww]);
-            t.b[y * ww..(y + 1) * ww].copy_from_slice(&fb.data[row..row + ww]);
-        }
-        let mut any_out = false;
-        if let Some(m) = p.inside {
-            for y in 0..wh {
-                let row = (y_start + y) * width + x_start;
-                let src = &m[row..row + ww];
-                any_out |= src.iter().any(|&k| !k);
-                t.inside[y * ww..(y + 1) * ww].copy_from_slice(src);
+    if let Some(frames) = chain {
+        // Two frames per complex FFT, each spectrum used by both its pairs.
+        let nf = frames.len();
+        for k in (0..nf).step_by(2) {
+            let width = frames[k].width;
+            let clip = t.clip;
+            let ea = cut_window(
+                &frames[k].data,
+                width,
+                x_start,
+                y_start,
+                ww,
+                wh,
+                clip,
+                &mut t.a,
+            );
+            let (head, tail) = t.spectra.split_at_mut(k + 1);
+            let sa = &mut head[k];
+            if k + 1 < nf {
+                let eb = cut_window(
+                    &frames[k + 1].data,
+                    width,
+                    x_start,
+                    y_start,
+                    ww,
+                    wh,
+                    clip,
+                    &mut t.b,
+                );
+                let sb = &mut tail[0];
+                t.ws[0].transform_two(&t.a[..n], Some(&t.b[..n]), sa, Some(&mut *sb));
+                sb.energy = eb;
+            } else {
+                t.ws[0].transform_two(&t.a[..n], None, sa, None);
             }
+            sa.energy = ea;
         }
-        let (ea, eb) = if any_out {
-            remove_mean_where(&mut t.a[..n], &mut t.b[..n], &t.inside[..n])
-        } else {
-            (remove_mean(&mut t.a[..n]), remove_mean(&mut t.b[..n]))
-        };
-        t.ws[p.sep - 1].add_pair(&t.a[..n], &t.b[..n], ea, eb);
+        for k in 0..nf - 1 {
+            t.ws[0].accumulate(&t.spectra[k], &t.spectra[k + 1]);
+        }
+    } else {
+        for p in pairs {
+            let (fa, fb) = (p.a, p.b);
+            let width = fa.width;
+            let mut any_out = false;
+            if let Some(m) = p.inside {
+                for y in 0..wh {
+                    let row = (y_start + y) * width + x_start;
+                    let src = &m[row..row + ww];
+                    any_out |= src.iter().any(|&k| !k);
+                    t.inside[y * ww..(y + 1) * ww].copy_from_slice(src);
+                }
+            }
+            let (ea, eb) = if any_out {
+                for y in 0..wh {
+                    let row = (y_start + y) * width + x_start;
+                    t.a[y * ww..(y + 1) * ww].copy_from_slice(&fa.data[row..row + ww]);
+                    t.b[y * ww..(y + 1) * ww].copy_from_slice(&fb.data[row..row + ww]);
+                }
+                remove_mean_where(&mut t.a[..n], &mut t.b[..n], &t.inside[..n], t.clip)
+            } else {
+                (
+                    cut_window(&fa.data, width, x_start, y_start, ww, wh, t.clip, &mut t.a),
+                    cut_window(&fb.data, width, x_start, y_start, ww, wh, t.clip, &mut t.b),
+                )
+            };
+            t.ws[p.sep - 1].add_pair(&t.a[..n], &t.b[..n], ea, eb);
+        }
     }
     let used = if t.ws.len() == 1 {
         let np = t.ws[0].pairs();
@@ -545,6 +633,25 @@ fn measure_node(
     (p.dx, p.dy, p.height, true)
 }
 
+/// [`measure_node`] compiled for AVX2 + FMA (8-wide window arithmetic;
+/// rustfft picks its own AVX kernels either way). No float operation is
+/// reordered or contracted by the wider code, so both builds give
+/// bit-identical results.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn measure_node_avx2(
+    t: &mut Thread,
+    pairs: &[PairImages],
+    chain: Option<&[&Image]>,
+    x_start: usize,
+    y_start: usize,
+    ww: usize,
+    wh: usize,
+) -> (f64, f64, f32, bool) {
+    measure_node(t, pairs, chain, x_start, y_start, ww, wh)
+}
+
 /// One correlation pass over all nodes. `pred`: the predictor added to the
 /// measured residual at each node (deformed passes).
 #[allow(clippy::too_many_arguments)]
@@ -557,14 +664,19 @@ fn run_pass(
     wh: usize,
     pred: Option<(&[f64], &[f64])>,
     masked: &[bool],
+    clip: bool,
 ) -> VectorField {
     let plan = CorrelationPlan::new(ww, wh);
     let max_sep = pairs.iter().map(|p| p.sep).max().unwrap_or(1);
     let n = ww * wh;
+    let chain = chain_frames(pairs);
+    let nf = chain.as_ref().map_or(0, |c| c.len());
+    #[cfg(target_arch = "x86_64")]
+    let avx2 = is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma");
     let results: Vec<(f64, f64, f32, u8)> = (0..grid.len())
         .into_par_iter()
         .map_init(
-            || Thread::new(&plan, n, max_sep),
+            || Thread::new(&plan, n, max_sep, nf, clip),
             |t, k| {
                 if masked[k] {
                     return (f64::NAN, f64::NAN, 0.0, flag::MASKED);
@@ -583,7 +695,16 @@ fn run_pass(
                     Some((u, v)) => (u[k], v[k]),
                     None => (0.0, 0.0),
                 };
-                let (u, v, h, ok) = measure_node(t, pairs, xs, ys, ww, wh);
+                let chain = chain.as_deref();
+                #[cfg(target_arch = "x86_64")]
+                let (u, v, h, ok) = if avx2 {
+                    // SAFETY: the CPU has AVX2 and FMA (checked above).
+                    unsafe { measure_node_avx2(t, pairs, chain, xs, ys, ww, wh) }
+                } else {
+                    measure_node(t, pairs, chain, xs, ys, ww, wh)
+                };
+                #[cfg(not(target_arch = "x86_64"))]
+                let (u, v, h, ok) = measure_node(t, pairs, chain, xs, ys, ww, wh);
                 (
                     pu + u,
                     pv + v,
@@ -699,7 +820,17 @@ pub fn piv_frames(frames: &[&Image], o: &PivOptions) -> Result<VectorField> {
                         inside: None,
                     })
                     .collect();
-                run_pass(&pairs, width, height, &grid, ww, wh, None, &masked)
+                run_pass(
+                    &pairs,
+                    width,
+                    height,
+                    &grid,
+                    ww,
+                    wh,
+                    None,
+                    &masked,
+                    o.clip_background && o.passes == 1,
+                )
             }
             // Deformed passes: pair (k, k+s) samples frame k at x − s·d/2
             // and frame k+s at x + s·d/2; whole images are deformed once per
@@ -740,6 +871,7 @@ pub fn piv_frames(frames: &[&Image], o: &PivOptions) -> Result<VectorField> {
                     wh,
                     Some((&pred.u, &pred.v)),
                     &masked,
+                    false,
                 )
             }
         };
@@ -812,7 +944,7 @@ mod tests {
     /// by the pair counts.
     #[test]
     fn pyramid_plane_matches_direct_correlation_oracle() {
-        use crate::piv::correlate::direct_correlation;
+        use crate::piv::correlate::{direct_correlation, remove_mean};
         use rand::{Rng, SeedableRng};
         let mut rng = rand_pcg::Pcg64::seed_from_u64(9);
         for &(w, h) in &[(16usize, 16usize), (12, 7)] {
@@ -822,7 +954,7 @@ mod tests {
                 .collect();
             let max_sep = 3;
             let plan = CorrelationPlan::new(w, h);
-            let mut t = Thread::new(&plan, n, max_sep);
+            let mut t = Thread::new(&plan, n, max_sep, 0, false);
             t.ws.iter_mut().for_each(|w| w.reset());
             let fp = frame_pairs(5, max_sep);
             for &(ka, kb) in &fp {
@@ -863,6 +995,105 @@ mod tests {
                     "{w}x{h} [{i}]: {} vs {e}",
                     t.plane[i]
                 );
+            }
+        }
+    }
+
+    /// A chain of pairs through shared frame spectra (two frames per FFT,
+    /// odd and even frame counts) against the direct correlation of the
+    /// same windows, and the AVX2 build against the portable one (bit for
+    /// bit), at several window positions and sizes.
+    #[test]
+    fn shared_spectrum_chain_matches_direct_oracle_and_avx2_build() {
+        use crate::piv::correlate::direct_correlation_prepared;
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(21);
+        let (width, height) = (40usize, 30usize);
+        for &(nf, ww, wh) in &[(2usize, 16usize, 16usize), (5, 12, 8), (4, 9, 7)] {
+            let imgs: Vec<Image> = (0..nf)
+                .map(|_| Image {
+                    width,
+                    height,
+                    data: (0..width * height).map(|_| rng.gen::<f32>()).collect(),
+                })
+                .collect();
+            let pairs: Vec<PairImages> = (0..nf - 1)
+                .map(|k| PairImages {
+                    a: &imgs[k],
+                    b: &imgs[k + 1],
+                    sep: 1,
+                    inside: None,
+                })
+                .collect();
+            let chain = chain_frames(&pairs).expect("consecutive pairs form a chain");
+            assert_eq!(chain.len(), nf);
+            let n = ww * wh;
+            let plan = CorrelationPlan::new(ww, wh);
+            let corners = [(0usize, 0usize), (7, 5), (width - ww, height - wh)];
+            let cases = [false, true]
+                .into_iter()
+                .flat_map(|clip| corners.map(|c| (clip, c)));
+            for (clip, (xs, ys)) in cases {
+                let mut t = Thread::new(&plan, n, 1, nf, clip);
+                let portable = measure_node(&mut t, &pairs, Some(&chain), xs, ys, ww, wh);
+                let plane = t.plane[..n].to_vec();
+                let cut = |img: &Image| -> Vec<f32> {
+                    (0..wh)
+                        .flat_map(|y| {
+                            let r = (ys + y) * width + xs;
+                            img.data[r..r + ww].to_vec()
+                        })
+                        .collect()
+                };
+                // The oracle: the definition on windows prepared by hand
+                // (mean removed, then clipped below it when asked).
+                let wins: Vec<Vec<f32>> = imgs
+                    .iter()
+                    .map(|img| {
+                        let mut w = cut(img);
+                        let mean = w.iter().map(|&v| v as f64).sum::<f64>() / w.len() as f64;
+                        for v in w.iter_mut() {
+                            *v -= mean as f32;
+                            if clip && *v < 0.0 {
+                                *v = 0.0;
+                            }
+                        }
+                        w
+                    })
+                    .collect();
+                let refs: Vec<(&[f32], &[f32])> = (0..nf - 1)
+                    .map(|k| (wins[k].as_slice(), wins[k + 1].as_slice()))
+                    .collect();
+                let direct = direct_correlation_prepared(&refs, ww, wh);
+                let err = plane
+                    .iter()
+                    .zip(&direct)
+                    .map(|(a, b)| (a - b).abs())
+                    .fold(0.0f32, f32::max);
+                assert!(
+                    err < 1e-4,
+                    "N_f={nf} {ww}x{wh} at ({xs},{ys}) clip {clip}: {err}"
+                );
+                // Pair by pair (no sharing) gives the same plane.
+                measure_node(&mut t, &pairs, None, xs, ys, ww, wh);
+                let err = plane
+                    .iter()
+                    .zip(&t.plane[..n])
+                    .map(|(a, b)| (a - b).abs())
+                    .fold(0.0f32, f32::max);
+                assert!(err < 1e-5, "chain vs pairs {ww}x{wh}: {err}");
+                #[cfg(target_arch = "x86_64")]
+                if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
+                    // SAFETY: the CPU has AVX2 and FMA (checked).
+                    let wide =
+                        unsafe { measure_node_avx2(&mut t, &pairs, Some(&chain), xs, ys, ww, wh) };
+                    assert_eq!(
+                        format!("{portable:?}"),
+                        format!("{wide:?}"),
+                        "AVX2 build differs"
+                    );
+                    assert_eq!(plane, t.plane[..n].to_vec(), "AVX2 plane differs");
+                }
             }
         }
     }
