@@ -190,7 +190,11 @@ impl Sums {
                 *v = self.s[a + b];
             }
         }
-        let inv = invert(&ata, p)?;
+        let inv = if p == 3 {
+            invert_sym3(&ata)?
+        } else {
+            invert(&ata, p)?
+        };
         let (mut cx, mut cy) = ([0.0; 4], [0.0; 4]);
         for a in 0..p {
             for b in 0..p {
@@ -234,11 +238,17 @@ impl Sums {
     /// `x = … + c₃s³` gives the fit of order `order` the velocity bias
     /// `c₃ · velocity_bias_factor` (the regression of s³ on the basis).
     pub fn velocity_bias_factor(&self, order: usize) -> Option<f64> {
+        self.velocity_variance_and_bias(order).map(|v| v.1)
+    }
+
+    /// `(velocity_variance, velocity_bias_factor)` from one solve.
+    fn velocity_variance_and_bias(&self, order: usize) -> Option<(f64, f64)> {
         let c = self.coefficients(order.min(2))?;
         if c.p < 2 {
-            return Some(0.0);
+            return Some((0.0, 0.0));
         }
-        Some((0..c.p).map(|b| c.inv[1][b] * self.s[b + 3]).sum())
+        let b = (0..c.p).map(|b| c.inv[1][b] * self.s[b + 3]).sum();
+        Some((c.inv[1][1], b))
     }
 
     /// Cubic coefficients (x, y) of an order-3 fit and their variance
@@ -304,9 +314,9 @@ pub fn fit_adaptive(
     let pilot = (2 * wmax + 1).min(n);
     let mut sums = Sums::default();
     let (mut lo, mut hi) = (usize::MAX, 0usize);
-    // (fit, window, bias factor) per candidate.
-    let mut cands: [(Option<FitState>, usize, f64); MAX_CANDIDATES] =
-        [(None, 0, 0.0); MAX_CANDIDATES];
+    // (sums, window, velocity variance factor, bias factor) per candidate;
+    // only the chosen one is evaluated in full.
+    let mut cands = [(Sums::default(), 0usize, 0.0f64, 0.0f64); MAX_CANDIDATES];
     let mut nc = 0;
     let mut w = wmin;
     loop {
@@ -323,9 +333,8 @@ pub fn fit_adaptive(
             hi += 1;
         }
         if w <= wmax && nc < MAX_CANDIDATES {
-            if let Some(f) = sums.solve(rule.order) {
-                let b = sums.velocity_bias_factor(rule.order).unwrap_or(0.0);
-                cands[nc] = (Some(f), w, b);
+            if let Some((v, b)) = sums.velocity_variance_and_bias(rule.order) {
+                cands[nc] = (sums, w, v, b);
                 nc += 1;
             }
         }
@@ -340,15 +349,32 @@ pub fn fit_adaptive(
         None => 0.0,
     };
     let s2 = rule.sigma * rule.sigma;
-    cands[..nc]
+    let best = cands[..nc]
         .iter()
-        .filter_map(|&(f, w, b)| {
-            let f = f?;
-            let mse = rule.bias_weight * c3sq * b * b + 2.0 * s2 * f.velocity_variance;
-            Some((mse, f, w))
-        })
-        .min_by(|a, b| a.0.total_cmp(&b.0).then(b.2.cmp(&a.2)))
-        .map(|(_, f, w)| (f, w))
+        .map(|c| (rule.bias_weight * c3sq * c.3 * c.3 + 2.0 * s2 * c.2, c))
+        .min_by(|a, b| a.0.total_cmp(&b.0).then(b.1 .1.cmp(&a.1 .1)))?
+        .1;
+    best.0.solve(rule.order).map(|f| (f, best.1))
+}
+
+/// Inverse of the leading 3×3 block of a symmetric positive (semi)definite
+/// matrix by cofactors — the hot path of [`fit_adaptive`]'s candidates;
+/// `None` when (numerically) singular. [`invert`] is the reference.
+fn invert_sym3(m: &[[f64; 4]; 4]) -> Option<[[f64; 4]; 4]> {
+    let (a, b, c) = (m[0][0], m[0][1], m[0][2]);
+    let (d, e, f) = (m[1][1], m[1][2], m[2][2]);
+    let (ca, cb, cc) = (d * f - e * e, c * e - b * f, b * e - c * d);
+    let (cd, ce, cf) = (a * f - c * c, b * c - a * e, a * d - b * b);
+    let det = a * ca + b * cb + c * cc;
+    if !(det > 1e-12 * (a * d * f).abs()) || !det.is_finite() {
+        return None;
+    }
+    let r = 1.0 / det;
+    let mut inv = [[0.0; 4]; 4];
+    inv[0][..3].copy_from_slice(&[ca * r, cb * r, cc * r]);
+    inv[1][..3].copy_from_slice(&[cb * r, cd * r, ce * r]);
+    inv[2][..3].copy_from_slice(&[cc * r, ce * r, cf * r]);
+    Some(inv)
 }
 
 /// Inverse of the leading `p`×`p` block (Gauss–Jordan with pivoting).
@@ -506,6 +532,37 @@ mod tests {
         let speed = f.vx.hypot(f.vy);
         let fixed = fit_eval(&tau[10..31], &xs[10..31], &ys[10..31], 2, 20.0).unwrap();
         assert!((speed - 9.0).abs() < (fixed.vx.hypot(fixed.vy) - 9.0).abs() / 4.0);
+    }
+
+    #[test]
+    fn cofactor_inverse_matches_gauss_jordan() {
+        let mut s = Sums::default();
+        for i in 0..9 {
+            s.add(i as f64 - 6.3, 0.0, 0.0);
+        }
+        let mut m = [[0.0; 4]; 4];
+        for (a, row) in m.iter_mut().enumerate().take(3) {
+            for (b, v) in row.iter_mut().enumerate().take(3) {
+                *v = s.s[a + b];
+            }
+        }
+        let (x, y) = (invert_sym3(&m).unwrap(), invert(&m, 3).unwrap());
+        for a in 0..3 {
+            for b in 0..3 {
+                assert!((x[a][b] - y[a][b]).abs() < 1e-9 * y[a][b].abs().max(1e-3));
+            }
+        }
+        let mut two = Sums::default();
+        two.add(0.0, 0.0, 0.0);
+        two.add(1.0, 0.0, 0.0);
+        two.add(1.0, 0.0, 0.0);
+        let mut m = [[0.0; 4]; 4];
+        for (a, row) in m.iter_mut().enumerate().take(3) {
+            for (b, v) in row.iter_mut().enumerate().take(3) {
+                *v = two.s[a + b];
+            }
+        }
+        assert!(invert_sym3(&m).is_none());
     }
 
     #[test]
