@@ -196,11 +196,10 @@ impl Sums {
             invert(&ata, p)?
         };
         let (mut cx, mut cy) = ([0.0; 4], [0.0; 4]);
-        for a in 0..p {
-            for b in 0..p {
-                cx[a] += inv[a][b] * self.sx[b];
-                cy[a] += inv[a][b] * self.sy[b];
-            }
+        for (a, row) in inv.iter().enumerate().take(p) {
+            let dot = |v: &[f64; 4]| row[..p].iter().zip(&v[..p]).map(|(i, x)| i * x).sum();
+            cx[a] = dot(&self.sx);
+            cy[a] = dot(&self.sy);
         }
         Some(Solved { cx, cy, inv, p })
     }
@@ -366,7 +365,7 @@ fn invert_sym3(m: &[[f64; 4]; 4]) -> Option<[[f64; 4]; 4]> {
     let (ca, cb, cc) = (d * f - e * e, c * e - b * f, b * e - c * d);
     let (cd, ce, cf) = (a * f - c * c, b * c - a * e, a * d - b * b);
     let det = a * ca + b * cb + c * cc;
-    if !(det > 1e-12 * (a * d * f).abs()) || !det.is_finite() {
+    if !det.is_finite() || det <= 1e-12 * (a * d * f).abs() {
         return None;
     }
     let r = 1.0 / det;

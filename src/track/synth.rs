@@ -287,12 +287,13 @@ pub fn cluster_with_truth_mixed(
     (p, ids, mixed)
 }
 
+/// Particles, their truth ids, merged flags and event sources (see
+/// [`cluster_with_truth_sources`]).
+pub type TruthClusters = (Vec<Particle>, Vec<Option<u64>>, Vec<bool>, Vec<Vec<u64>>);
+
 /// [`cluster_with_truth_mixed`], also listing for each particle every
 /// truth particle that made at least one of its events (sorted).
-pub fn cluster_with_truth_sources(
-    sp: &SynthPulse,
-    params: &ClusterParams,
-) -> (Vec<Particle>, Vec<Option<u64>>, Vec<bool>, Vec<Vec<u64>>) {
+pub fn cluster_with_truth_sources(sp: &SynthPulse, params: &ClusterParams) -> TruthClusters {
     let pixels = pulse_pixels(&sp.pulse, params);
     let mut labels = pixel_labels(&pixels, params);
     split_wide_clusters(&pixels, &mut labels, params.split_extent);
