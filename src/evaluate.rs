@@ -15,7 +15,12 @@
 //! particle images at paper seeding). Each truth particle is claimed by at
 //! most one detection (the nearest), so merged images count once.
 //!
-//! Definitions (the same as `track::synth::score` uses on in-memory data):
+//! Definitions (the link definition of `track::synth::score`, which scores
+//! in-memory detections with event-level truth; why this file-level score
+//! is more lenient on merged images of two close particles is explained in
+//! `track::synth`'s docs — here a track point is its *fitted* position, so
+//! a link through a merged image counts as correct when the fit still puts
+//! the point on the track's own particle):
 //! - detection recall = matched truth samples / truth samples;
 //!   detection precision = matched detections / detections;
 //! - a *link* is two consecutive points of one track; it is correct when
@@ -23,7 +28,8 @@
 //!   links; link recall = truth links found / truth links, where a truth
 //!   link is a truth particle *present* in the truth at pulses k and k+1,
 //!   whether or not it was detected — so link recall includes the
-//!   detection losses (the stricter of the two usual readings);
+//!   detection losses (the stricter of the two usual readings; `synth`
+//!   reports it as `recall_present` next to its tracker-only `recall`);
 //! - velocity error: rms over matched track points and over both
 //!   components of (u − u_true) · Δt, in px per pulse interval;
 //! - Eulerian error: the truth samples binned exactly like the tracks (the

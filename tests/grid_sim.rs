@@ -163,6 +163,24 @@ fn mean_errors(
     e
 }
 
+/// The tracker with the fixed 11-point output fit of sessions 1–2. The
+/// noise estimators (pairs, spectral floor) are checked against the
+/// robust truth (median-based), which is the noise rms only when every
+/// sample has the same noise; the default adaptive fit mixes long windows
+/// (little noise) with short ones at track ends and turns (more), and then
+/// the median-based truth falls below the rms the estimators see
+/// (turbulence: estimate 109 px/s, robust truth 75, plain rms 289; rib
+/// wake: spectral floor 75 px/s, robust 35, rms 107). The stresses and the
+/// shedding frequency meet their targets with the default fit as well
+/// (turbulence uu 1.6 %, vv 1.1 %, uv 4.2 %; wake peaks within 0.2 Hz).
+fn fixed_window_fit() -> TrackParams {
+    TrackParams {
+        fit_window: 11,
+        fit_min_window: 11,
+        ..TrackParams::default()
+    }
+}
+
 fn vortex_scene(seconds: f64) -> Scenario {
     let mut sc = ebptv::sim::presets::preset("demo").unwrap();
     sc.duration_s = seconds;
@@ -175,20 +193,17 @@ fn vortex_scene(seconds: f64) -> Scenario {
 /// gradient bias, which matches (|∇u|² + |∇v|²)·b²/12, down to the
 /// measurement noise.
 ///
-/// The tracker runs with a 5-point output fit here: its default 11-point
-/// quadratic fit underestimates the speed on curved paths by
+/// The tracker runs with its default, adaptive output fit. A fixed
+/// 11-point quadratic underestimates the speed on curved paths by
 /// ω²⟨τ⁴⟩/(6⟨τ²⟩) (ω the turning angle per pulse), about −2 % of the local
-/// speed in this core (0.086 rad/pulse) and −1.3 % of v_max in the bins
-/// (measured with the default: max error 1.4 %). That bias belongs to the
-/// track stage; with 5 points it is −0.4 %.
+/// speed in this core (0.086 rad/pulse): 1.41 % of v_max at worst in the
+/// bins (session 2); a fixed 5-point fit 0.63 %. The adaptive window
+/// (`track::fit::fit_adaptive`) shortens the window where the path's cubic
+/// term makes the bias exceed the noise.
 #[test]
 fn vortex_mean_and_top_hat_bias() {
     let sc = vortex_scene(0.03);
-    let track = TrackParams {
-        fit_window: 5,
-        ..TrackParams::default()
-    };
-    let (samples, flow) = chain(&sc, 3, track);
+    let (samples, flow) = chain(&sc, 3, TrackParams::default());
     let FlowSpec::LambOseen {
         x0,
         y0,
@@ -265,10 +280,23 @@ fn vortex_mean_and_top_hat_bias() {
     assert!((ratio - 1.0).abs() < 0.2, "excess/predicted {ratio}");
     // What the fits leave is of the order of the measurement noise (2σ² for
     // uu + vv; σ from the pair estimator is a robust core width, the bins'
-    // second moments also hold the tails of wrong links: ~1.7 × 2σ² here).
-    let noise = ebptv::grid::noise::velocity_noise(&samples, &fit, &Default::default()).unwrap();
+    // second moments also hold the tails of wrong links). The noise is that
+    // of the core's samples: the adaptive track fit takes short windows on
+    // the core's tight turns, so their noise is above the scene's.
+    let core: Vec<Sample> = samples
+        .iter()
+        .filter(|s| (s.x - x0).hypot(s.y - y0) <= core_radius + b)
+        .cloned()
+        .collect();
+    let noise = ebptv::grid::noise::velocity_noise(&core, &fit, &Default::default()).unwrap();
     let floor = 2.0 * noise.noise_rms.powi(2);
-    eprintln!("noise floor 2σ² = {floor:.0} (px/s)²");
+    let scene_noise =
+        ebptv::grid::noise::velocity_noise(&samples, &fit, &Default::default()).unwrap();
+    eprintln!(
+        "noise floor 2σ² = {floor:.0} (px/s)² in the core ({} pairs), {:.0} over the scene",
+        noise.pairs,
+        2.0 * scene_noise.noise_rms.powi(2)
+    );
     assert!(lin_m < 0.1 * th_m, "linear fit leaves {lin_m} of {th_m}");
     assert!(fit_m < 0.1 * th_m, "quadratic fit leaves {fit_m} of {th_m}");
     assert!(
@@ -361,7 +389,7 @@ fn turbulent_stresses_through_the_chain() {
         height: 128,
     });
     sc.duration_s = 0.1;
-    let (samples, flow) = chain(&sc, 6, TrackParams::default());
+    let (samples, flow) = chain(&sc, 6, fixed_window_fit());
     let (uu, vv, uv) = flow.known_stresses().unwrap();
     let spec = ebptv::grid::GridSpec::covering(
         Lattice::new(16.0, 16.0, 0.0).unwrap(),
@@ -487,8 +515,9 @@ fn noise_and_dynamic_range_of_the_demo_scene() {
     );
     assert!((est.noise_rms / robust - 1.0).abs() < 0.15);
     assert!(est.pairs > 10_000);
-    // The paper's PIV reached 100:1.
-    assert!(est.dynamic_range > 100.0);
+    // The paper's PIV reached 100:1, the issue aims for 300:1 (467:1 with
+    // the adaptive track fit; 237:1 with the fixed 11-point fit).
+    assert!(est.dynamic_range > 300.0);
 }
 
 /// Square-rib wake (preset `rib_wake`, shedding at St 0.145 → 35.4 Hz) in a
@@ -505,7 +534,7 @@ fn shedding_frequency_through_the_chain() {
         height: 128,
     });
     sc.duration_s = 0.2;
-    let (samples, flow) = chain(&sc, 8, TrackParams::default());
+    let (samples, flow) = chain(&sc, 8, fixed_window_fit());
     let f0 = flow.shedding_frequency_hz().unwrap();
     let opt = SpectraOptions {
         lattice: Lattice::new(32.0, 32.0, 0.0).unwrap(),

@@ -33,6 +33,14 @@ fn paper_like_conditions() {
     // events, up to 8 px/pulse, particles leaving/entering the sheet.
     let s = run(&SynthParams::default());
     assert!(s.precision >= 0.94, "precision {}", s.precision);
+    // Counting a link through an unresolvable merged image of the track's
+    // own particle as correct (`precision_merged_ok`): 0.988 here, 0.991
+    // on the 384² scene of BENCHMARKS.md (issue target 0.99).
+    assert!(
+        s.precision_merged_ok >= 0.985,
+        "precision (merged ok) {}",
+        s.precision_merged_ok
+    );
     assert!(s.recall >= 0.88, "recall {}", s.recall);
     assert!(
         s.velocity_rms_interior_px_per_pulse <= 0.10,

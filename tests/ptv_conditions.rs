@@ -17,8 +17,8 @@ fn conditions_table() {
         ("5 % noise", 0.01, 8.0, 0.05),
         ("all three", 0.02, 12.0, 0.05),
     ];
-    println!("| conditions | ppp | px/pulse | noise | precision | recall | vel rms (px/pulse) | interior vel rms |");
-    println!("|---|---|---|---|---|---|---|---|");
+    println!("| conditions | ppp | px/pulse | noise | precision | precision (merged ok) | recall | recall (present) | vel rms (px/pulse) | interior vel rms |");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
     for (name, ppp, disp, noise) in rows {
         let sp = SynthParams {
             ppp,
@@ -35,9 +35,11 @@ fn conditions_table() {
         };
         let (_, s) = run_and_score(&scene, &ClusterParams::default(), &tp, sp.period_us).unwrap();
         println!(
-            "| {name} | {ppp} | {disp} | {noise} | {:.4} | {:.4} | {:.3} | {:.3} |",
+            "| {name} | {ppp} | {disp} | {noise} | {:.4} | {:.4} | {:.4} | {:.4} | {:.3} | {:.3} |",
             s.precision,
+            s.precision_merged_ok,
             s.recall,
+            s.recall_present,
             s.velocity_rms_px_per_pulse,
             s.velocity_rms_interior_px_per_pulse
         );

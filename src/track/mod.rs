@@ -36,8 +36,10 @@
 //!    pair becomes one track.
 //! 6. **Finish and validate**: a track whose stitch window has passed is
 //!    fitted (local polynomial of order `fit_order` over a sliding window of
-//!    `fit_window` detections around each pulse: position, velocity in px/s
-//!    from the pulse times, acceleration in px/s²), and kept when it has at
+//!    `fit_min_window`..=`fit_window` detections around each pulse, chosen
+//!    per pulse from the position noise by [`fit::fit_adaptive`]: position,
+//!    velocity in px/s from the pulse times, acceleration in px/s²), and
+//!    kept when it has at
 //!    least `min_length` detections and the rms fit residual is at most
 //!    `max_fit_residual`.
 //!
@@ -192,8 +194,21 @@ pub struct TrackParams {
     pub predict_window: usize,
     /// Polynomial order of the predictor (≤ 2).
     pub predict_order: usize,
-    /// Detections in the output fit's sliding window.
+    /// Largest window (detections) of the output fit.
     pub fit_window: usize,
+    /// Smallest window of the output fit: per sample the window between
+    /// `fit_min_window` and `fit_window` of least predicted velocity error
+    /// (noise from the position noise, bias from the path's cubic term) is
+    /// taken ([`fit::fit_adaptive`]): long on straight stretches (less
+    /// noise), short on sharp turns (less curvature bias).
+    /// `fit_min_window ≥ fit_window` gives the fixed window `fit_window`.
+    #[serde(default = "default_fit_min_window")]
+    pub fit_min_window: usize,
+    /// Weight of the squared bias against the noise variance in the choice
+    /// of the window (1: least error of one sample; more: shorter windows,
+    /// for Eulerian means where noise averages out and bias does not).
+    #[serde(default = "default_fit_bias_weight")]
+    pub fit_bias_weight: f64,
     /// Polynomial order of the output fit (≤ 2).
     pub fit_order: usize,
     /// Fewest detections of a kept track.
@@ -239,7 +254,9 @@ impl Default for TrackParams {
             gap_growth: 0.0,
             predict_window: 12,
             predict_order: 2,
-            fit_window: 11,
+            fit_window: 21,
+            fit_min_window: default_fit_min_window(),
+            fit_bias_weight: default_fit_bias_weight(),
             fit_order: 2,
             min_length: 5,
             max_fit_residual: 1.5,
@@ -271,6 +288,18 @@ fn default_sigma_ceiling() -> f64 {
     1.0
 }
 
+fn default_fit_min_window() -> usize {
+    5
+}
+
+fn default_fit_bias_weight() -> f64 {
+    4.0
+}
+
+/// Window of the outlier check at finalisation (the fixed output window of
+/// sessions 1–2; the output fit itself is adaptive now).
+const OUTLIER_WINDOW: usize = 11;
+
 /// Frames (pulses) a new track's initialisation chain spans.
 pub const INIT_FRAMES: usize = 4;
 
@@ -285,6 +314,7 @@ impl TrackParams {
             ("sigma_floor", self.sigma_floor),
             ("sigma_ceiling", self.sigma_ceiling),
             ("max_fit_residual", self.max_fit_residual),
+            ("fit_bias_weight", self.fit_bias_weight),
             ("prior_radius", self.prior_radius),
         ];
         for (name, v) in positive {
@@ -324,6 +354,12 @@ impl TrackParams {
         }
         if self.fit_window < 2 {
             return Err(Error::param("fit_window", "needs at least 2 detections"));
+        }
+        if self.fit_min_window < 2 {
+            return Err(Error::param(
+                "fit_min_window",
+                "needs at least 2 detections",
+            ));
         }
         if self.min_length < INIT_FRAMES {
             return Err(Error::param(
@@ -950,18 +986,19 @@ impl Tracker {
     /// the thread count.
     fn finalise(&mut self, ended: Vec<ActiveTrack>) -> Vec<LinkedTrack> {
         use rayon::prelude::*;
-        let gate = self.params.outlier_sigma * self.position_sigma();
+        let sigma = self.position_sigma();
+        let gate = self.params.outlier_sigma * sigma;
         let params = &self.params;
         let fitted: Vec<Finalised> = if ended.len() >= 2 {
             ended
                 .into_par_iter()
                 .with_max_len(1)
-                .map(|t| finalise_one(t, params, gate))
+                .map(|t| finalise_one(t, params, gate, sigma))
                 .collect()
         } else {
             ended
                 .into_iter()
-                .map(|t| finalise_one(t, params, gate))
+                .map(|t| finalise_one(t, params, gate, sigma))
                 .collect()
         };
         let mut out = Vec::new();
@@ -1036,11 +1073,11 @@ enum Finalised {
 /// Clean (outliers, unconfirmed tail), validate and fit one ended track;
 /// `gate` is the outlier gate in px. Pure: the numbering and the counters
 /// are [`Tracker::finalise`]'s.
-fn finalise_one(mut t: ActiveTrack, params: &TrackParams, gate: f64) -> Finalised {
+fn finalise_one(mut t: ActiveTrack, params: &TrackParams, gate: f64, sigma: f64) -> Finalised {
     // Points up to this pulse went out with an earlier segment.
     let handed_out = (t.context > 0).then(|| t.dets[t.context - 1].pulse);
     if params.outlier_sigma > 0.0 {
-        remove_outliers(&mut t.dets, params.fit_window, gate);
+        remove_outliers(&mut t.dets, params.fit_window.min(OUTLIER_WINDOW), gate);
     }
     trim_unconfirmed_tail(&mut t.dets, params.confirm_after_gap);
     let fresh = match handed_out {
@@ -1053,7 +1090,7 @@ fn finalise_one(mut t: ActiveTrack, params: &TrackParams, gate: f64) -> Finalise
     if handed_out.is_none() && t.dets.len() < params.min_length {
         return Finalised::Short;
     }
-    let (mut points, mut detections, rms) = fit_track(&t.dets, params);
+    let (mut points, mut detections, rms) = fit_track(&t.dets, params, sigma);
     if rms > params.max_fit_residual {
         return Finalised::Rough;
     }
@@ -1149,22 +1186,38 @@ fn extrapolate(dets: &[Det], window: usize, pulse: i64) -> Option<(f64, f64)> {
 }
 
 /// Sliding-window polynomial fit of a track at every pulse from its first
-/// to its last detection. Returns the points, the detection serials and the
-/// rms residual (px per axis) of the detections about the fitted positions.
-fn fit_track(dets: &[Det], p: &TrackParams) -> (Vec<TrackPoint>, Vec<Option<u64>>, f64) {
+/// to its last detection, the window chosen per pulse by
+/// [`fit::fit_adaptive`] for position noise `sigma` (px per axis). Returns
+/// the points, the detection serials and the rms residual (px per axis) of
+/// the detections about the fitted positions.
+fn fit_track(
+    dets: &[Det],
+    p: &TrackParams,
+    sigma: f64,
+) -> (Vec<TrackPoint>, Vec<Option<u64>>, f64) {
     let n = dets.len();
-    let w = p.fit_window.min(n);
     let first = dets[0].pulse;
     let last = dets[n - 1].pulse;
     let mut points = Vec::with_capacity((last - first + 1) as usize);
     let mut serials = Vec::with_capacity(points.capacity());
     let mut ssr = 0.0;
+    // τ in units of the mean period from the first detection.
+    let period_s =
+        ((dets[n - 1].t_us - dets[0].t_us) / (last - first).max(1) as f64).max(1e-9) * 1e-6;
+    let tau: Vec<f64> = dets
+        .iter()
+        .map(|d| (d.t_us - dets[0].t_us) * 1e-6 / period_s)
+        .collect();
+    let xs: Vec<f64> = dets.iter().map(|d| d.x).collect();
+    let ys: Vec<f64> = dets.iter().map(|d| d.y).collect();
+    let rule = fit::WindowRule {
+        min_window: p.fit_min_window,
+        max_window: p.fit_window,
+        order: p.fit_order,
+        sigma,
+        bias_weight: p.fit_bias_weight,
+    };
     let mut j = 0; // index of the first detection at or after the pulse
-    let (mut tau, mut xs, mut ys) = (
-        Vec::with_capacity(w),
-        Vec::with_capacity(w),
-        Vec::with_capacity(w),
-    );
     for pulse in first..=last {
         while dets[j].pulse < pulse {
             j += 1;
@@ -1178,27 +1231,20 @@ fn fit_track(dets: &[Det], p: &TrackParams) -> (Vec<TrackPoint>, Vec<Option<u64>
             let (a, b) = (&dets[j - 1], &dets[j]);
             a.t_us + (b.t_us - a.t_us) * (pulse - a.pulse) as f64 / (b.pulse - a.pulse) as f64
         };
-        let start = j.saturating_sub(w / 2).min(n - w);
-        let win = &dets[start..start + w];
-        // τ in seconds relative to this pulse, scaled by the mean period.
-        let period_s =
-            ((dets[n - 1].t_us - dets[0].t_us) / (last - first).max(1) as f64).max(1e-9) * 1e-6;
-        tau.clear();
-        xs.clear();
-        ys.clear();
-        tau.extend(win.iter().map(|d| (d.t_us - t_us) * 1e-6 / period_s));
-        xs.extend(win.iter().map(|d| d.x));
-        ys.extend(win.iter().map(|d| d.y));
-        let f = fit::fit_eval(&tau, &xs, &ys, p.fit_order, 0.0).unwrap_or(fit::FitState {
-            x: dets[j].x,
-            y: dets[j].y,
-            vx: 0.0,
-            vy: 0.0,
-            ax: 0.0,
-            ay: 0.0,
-            rms_residual: 0.0,
-            leverage: 1.0,
-        });
+        let at = (t_us - dets[0].t_us) * 1e-6 / period_s;
+        let f = fit::fit_adaptive(&tau, &xs, &ys, j, at, &rule)
+            .map(|(f, _)| f)
+            .unwrap_or(fit::FitState {
+                x: dets[j].x,
+                y: dets[j].y,
+                vx: 0.0,
+                vy: 0.0,
+                ax: 0.0,
+                ay: 0.0,
+                rms_residual: 0.0,
+                leverage: 1.0,
+                velocity_variance: 0.0,
+            });
         if here {
             ssr += (dets[j].x - f.x).powi(2) + (dets[j].y - f.y).powi(2);
         }
@@ -1319,7 +1365,7 @@ mod tests {
             .map(|k| particle(k, 5.0 + 2.0 * k as f64, 20.0 + 0.5 * k as f64))
             .collect();
         let p = TrackParams {
-            max_track_length: 40,
+            max_track_length: 44, // ≥ 2 × the largest fit window (21)
             ..Default::default()
         };
         let tracks = link(&ps, &p).unwrap();

@@ -1,0 +1,98 @@
+//! Where the velocity error of the synthetic scene comes from: rms by
+//! distance from the track end and by track length. Ignored by default:
+//! `cargo test --release --test ptv_velocity_breakdown -- --ignored --nocapture`
+
+use std::collections::{BTreeMap, HashMap};
+
+use ebptv::cluster::ClusterParams;
+use ebptv::track::synth::{cluster_with_truth, generate, SynthParams};
+use ebptv::track::{TrackParams, Tracker};
+
+#[test]
+#[ignore]
+fn velocity_error_by_track_position() {
+    let env = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<f64>().ok());
+    let sp = SynthParams {
+        width: 384,
+        height: 384,
+        ..Default::default()
+    };
+    let scene = generate(&sp);
+    let d = TrackParams::default();
+    let tp = TrackParams {
+        fit_window: env("PTV_FIT_WINDOW").map_or(d.fit_window, |v| v as usize),
+        fit_min_window: env("PTV_FIT_MIN_WINDOW").map_or(d.fit_min_window, |v| v as usize),
+        ..d
+    };
+    let mut tracker = Tracker::new(tp).unwrap();
+    let (mut det_truth, mut tracks, mut truth) = (Vec::new(), Vec::new(), HashMap::new());
+    for s in &scene {
+        let (parts, ids) = cluster_with_truth(s, &ClusterParams::default());
+        det_truth.extend(ids);
+        tracks.extend(
+            tracker
+                .push_linked(s.pulse.index, s.pulse.start_us, &parts)
+                .unwrap(),
+        );
+        for t in &s.truth {
+            truth.insert((t.pulse, t.particle_id), (t.u, t.v));
+        }
+    }
+    println!("sigma {:.3}", tracker.position_sigma());
+    tracks.extend(tracker.finish().0);
+    let k = sp.period_us * 1e-6;
+    let mut by_end: BTreeMap<usize, (f64, usize)> = BTreeMap::new();
+    let mut by_len: BTreeMap<usize, (f64, usize)> = BTreeMap::new();
+    let mut clean = (0.0, 0usize);
+    let mut by_end_clean: BTreeMap<usize, (f64, usize)> = BTreeMap::new();
+    let mut all = (0.0, 0usize);
+    for t in &tracks {
+        let n = t.track.points.len();
+        let ids: Vec<Option<u64>> = t
+            .detections
+            .iter()
+            .map(|d| d.and_then(|s| det_truth[s as usize]))
+            .collect();
+        let first = ids.iter().flatten().next().copied();
+        let pure = ids.iter().all(|i| i.is_none() || *i == first);
+        for (i, (pt, id)) in t.track.points.iter().zip(&ids).enumerate() {
+            let Some(id) = id else { continue };
+            let Some(&(u, v)) = truth.get(&(pt.pulse, *id)) else {
+                continue;
+            };
+            let e2 = ((pt.u - u) * k).powi(2) + ((pt.v - v) * k).powi(2);
+            let e = by_end.entry(i.min(n - 1 - i).min(8)).or_default();
+            e.0 += e2;
+            e.1 += 1;
+            let l = by_len.entry((n / 5 * 5).min(40)).or_default();
+            l.0 += e2;
+            l.1 += 1;
+            all.0 += e2;
+            all.1 += 1;
+            if pure {
+                clean.0 += e2;
+                clean.1 += 1;
+                let c = by_end_clean.entry(i.min(n - 1 - i).min(8)).or_default();
+                c.0 += e2;
+                c.1 += 1;
+            }
+        }
+    }
+    let rms = |(s, n): (f64, usize)| (s / (2 * n.max(1)) as f64).sqrt();
+    println!(
+        "all {:.4} ({}), tracks without a wrong link {:.4} ({})",
+        rms(all),
+        all.1,
+        rms(clean),
+        clean.1
+    );
+    for (d, v) in by_end {
+        println!("from end {d}: {:.4} ({})", rms(v), v.1);
+    }
+    for (d, v) in by_end_clean {
+        println!("clean, from end {d}: {:.4} ({})", rms(v), v.1);
+    }
+    for (l, v) in by_len {
+        println!("length {l}..: {:.4} ({})", rms(v), v.1);
+    }
+}
