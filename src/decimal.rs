@@ -22,31 +22,22 @@ pub fn push_int(out: &mut Vec<u8>, v: i64) {
 /// few ulps of a rounding tie (or is huge, or not finite): those rare
 /// values go through `core::fmt`, which rounds the exact binary value.
 pub fn push_fixed(out: &mut Vec<u8>, v: f64, decimals: u32) {
-    const SCALE: [f64; 7] = [1.0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6];
-    let d = decimals.min(6) as usize;
-    let a = v.abs() * SCALE[d];
-    // `as u64` truncates (no libm call): floor for 0 ≤ a < 2^64.
-    let whole = if a < 1e15 { a as u64 } else { 0 };
-    let frac = a - whole as f64;
-    // The product is within half an ulp of the exact one; stay well away.
-    if !(a < 1e15) || (frac - 0.5).abs() <= a * 4.0 * f64::EPSILON {
+    let mut b = RevDigits::<24>::new();
+    if b.fixed(v, decimals) {
+        out.extend_from_slice(b.as_slice());
+    } else {
         use std::io::Write as _;
+        let d = decimals.min(6) as usize;
         let _ = write!(out, "{v:.d$}");
-        return;
-    }
-    let n = whole + (frac > 0.5) as u64;
-    if v.is_sign_negative() {
-        out.push(b'-');
-    }
-    let p = POW10[d];
-    push_u64(out, n / p);
-    if d > 0 {
-        out.push(b'.');
-        push_padded(out, n % p, d);
     }
 }
 
-const POW10: [u64; 7] = [1, 10, 100, 1000, 10_000, 100_000, 1_000_000];
+/// Append `n` in decimal.
+pub fn push_u64(out: &mut Vec<u8>, n: u64) {
+    let mut b = RevDigits::<24>::new();
+    b.u64(n);
+    out.extend_from_slice(b.as_slice());
+}
 
 /// "00", "01", …, "99": two digits per division.
 const DIGIT_PAIRS: &[u8; 200] = b"0001020304050607080910111213141516171819\
@@ -55,30 +46,109 @@ const DIGIT_PAIRS: &[u8; 200] = b"0001020304050607080910111213141516171819\
 6061626364656667686970717273747576777879\
 8081828384858687888990919293949596979899";
 
-/// Append `n` in decimal, left-padded with zeros to at least `width`.
-fn push_padded(out: &mut Vec<u8>, mut n: u64, width: usize) {
-    let mut buf = [b'0'; 24];
-    let mut i = buf.len();
-    while n >= 100 {
-        let pair = (n % 100) as usize * 2;
-        n /= 100;
-        i -= 2;
-        buf[i..i + 2].copy_from_slice(&DIGIT_PAIRS[pair..pair + 2]);
-    }
-    if n >= 10 {
-        i -= 2;
-        buf[i..i + 2].copy_from_slice(&DIGIT_PAIRS[n as usize * 2..n as usize * 2 + 2]);
-    } else {
-        i -= 1;
-        buf[i] = b'0' + n as u8;
-    }
-    let start = i.min(buf.len() - width.min(buf.len()));
-    out.extend_from_slice(&buf[start..]);
+/// Text built right to left in a fixed buffer of `N` bytes: a whole CSV
+/// row (or one number) is written field by field from its end, with two
+/// digits per division and integer and fraction digits in one pass, and
+/// appended with a single copy. The caller keeps the total within `N`
+/// (a number takes at most 20 digits plus sign and point).
+pub struct RevDigits<const N: usize> {
+    buf: [u8; N],
+    start: usize,
 }
 
-/// Append `n` in decimal.
-pub fn push_u64(out: &mut Vec<u8>, n: u64) {
-    push_padded(out, n, 1);
+impl<const N: usize> Default for RevDigits<N> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl<const N: usize> RevDigits<N> {
+    pub fn new() -> Self {
+        RevDigits {
+            buf: [b'0'; N],
+            start: N,
+        }
+    }
+
+    /// The text so far.
+    pub fn as_slice(&self) -> &[u8] {
+        &self.buf[self.start..]
+    }
+
+    /// Prepend one byte.
+    #[inline]
+    pub fn byte(&mut self, b: u8) {
+        self.start -= 1;
+        self.buf[self.start] = b;
+    }
+
+    #[inline]
+    fn pair(&mut self, two: u64) {
+        let p = two as usize * 2;
+        self.start -= 2;
+        self.buf[self.start..self.start + 2].copy_from_slice(&DIGIT_PAIRS[p..p + 2]);
+    }
+
+    /// Prepend `n` in decimal.
+    #[inline]
+    pub fn u64(&mut self, mut n: u64) {
+        while n >= 100 {
+            self.pair(n % 100);
+            n /= 100;
+        }
+        if n >= 10 {
+            self.pair(n);
+        } else {
+            self.byte(b'0' + n as u8);
+        }
+    }
+
+    /// Prepend `n` in decimal, or its negation.
+    #[inline]
+    pub fn i64(&mut self, n: i64) {
+        self.u64(n.unsigned_abs());
+        if n < 0 {
+            self.byte(b'-');
+        }
+    }
+
+    /// Prepend `v` with `decimals` (≤ 6) digits after the point, as
+    /// `format!("{v:.decimals$}")` writes it, when integer arithmetic on
+    /// `v·10^decimals` gives those digits; returns false (and prepends
+    /// nothing) for the rare values near a rounding tie, huge or not
+    /// finite, which need `core::fmt`'s exact rounding.
+    #[inline]
+    pub fn fixed(&mut self, v: f64, decimals: u32) -> bool {
+        const SCALE: [f64; 7] = [1.0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6];
+        let d = decimals.min(6) as usize;
+        let a = v.abs() * SCALE[d];
+        // `as u64` truncates (no libm call): floor for 0 ≤ a < 2^64.
+        let whole = if a < 1e15 { a as u64 } else { 0 };
+        let frac = a - whole as f64;
+        // The product is within half an ulp of the exact one; stay well away.
+        if !(a < 1e15) || (frac - 0.5).abs() <= a * 4.0 * f64::EPSILON {
+            return false;
+        }
+        let mut n = whole + (frac > 0.5) as u64;
+        let mut k = d;
+        while k >= 2 {
+            self.pair(n % 100);
+            n /= 100;
+            k -= 2;
+        }
+        if k == 1 {
+            self.byte(b'0' + (n % 10) as u8);
+            n /= 10;
+        }
+        if d > 0 {
+            self.byte(b'.');
+        }
+        self.u64(n);
+        if v.is_sign_negative() {
+            self.byte(b'-');
+        }
+        true
+    }
 }
 
 #[cfg(test)]

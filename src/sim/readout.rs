@@ -87,6 +87,12 @@ pub struct Arbiter {
     t_free: f64,
     /// Requests lost because their pixel was still blocked.
     pub lost: u64,
+    roi_x: u16,
+    /// Bits per row of `blocked` (the ROI width).
+    row_bits: usize,
+    /// Pixels with a pending request (one bit per ROI pixel): the check
+    /// for a blocked pixel without scanning its row's pending list.
+    blocked: Vec<u64>,
 }
 
 impl Arbiter {
@@ -98,16 +104,22 @@ impl Arbiter {
             queue: BinaryHeap::new(),
             t_free: f64::NEG_INFINITY,
             lost: 0,
+            roi_x: roi.x as u16,
+            row_bits: roi.width as usize,
+            blocked: vec![0; (roi.width as usize * roi.height as usize).div_ceil(64)],
         }
     }
 
     fn admit(&mut self, a: &Arrival) {
         let r = (a.y - self.roi_y) as usize;
-        let row = &mut self.rows[r];
-        if row.iter().any(|e| e.1 == a.x) {
+        let bit = r * self.row_bits + (a.x - self.roi_x) as usize;
+        let (word, mask) = (bit / 64, 1u64 << (bit % 64));
+        if self.blocked[word] & mask != 0 {
             self.lost += 1;
             return;
         }
+        self.blocked[word] |= mask;
+        let row = &mut self.rows[r];
         if row.is_empty() {
             self.queue.push(Reverse((T(a.t), r as u16)));
         }
@@ -145,10 +157,13 @@ impl Arbiter {
             let Reverse((_, r)) = self.queue.pop().expect("non-empty");
             let row = &mut self.rows[r as usize];
             row.sort_unstable_by_key(|e| e.1);
-            let ts = t_grant.floor() as i64;
+            let ts = floor_i64(t_grant);
             let y = self.roi_y + r;
+            let base = r as usize * self.row_bits;
             for &(_, x, p) in row.iter() {
                 out.push(ts, x, y, p);
+                let bit = base + (x - self.roi_x) as usize;
+                self.blocked[bit / 64] &= !(1u64 << (bit % 64));
             }
             self.t_free =
                 t_grant + self.params.row_time_us + row.len() as f64 * self.params.event_time_us;
@@ -194,10 +209,21 @@ impl RateLimiter {
     }
 }
 
+/// `v.floor() as i64` (saturating, NaN → 0) without a libm call.
+#[inline]
+pub(crate) fn floor_i64(v: f64) -> i64 {
+    let t = v as i64;
+    if (t as f64) > v {
+        t.saturating_sub(1)
+    } else {
+        t
+    }
+}
+
 /// Stamp requests without a readout bottleneck: each at its own time.
 pub fn stamp_ideal(reqs: &[Arrival], out: &mut EventChunk) {
     for a in reqs {
-        out.push(a.t.floor() as i64, a.x, a.y, a.p);
+        out.push(floor_i64(a.t), a.x, a.y, a.p);
     }
 }
 
@@ -320,6 +346,33 @@ mod tests {
             v.iter().map(|a| a.t).collect::<Vec<_>>(),
             vec![0.0, 6.0, 10.0]
         );
+    }
+
+    #[test]
+    fn floor_matches_libm() {
+        for v in [
+            0.0,
+            -0.0,
+            0.5,
+            -0.5,
+            1.0,
+            -1.0,
+            1e15 + 0.5,
+            -1e15 - 0.5,
+            3e19,
+            -3e19,
+            f64::NAN,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            0.999_999_999_999_999_9,
+            -1e-300,
+        ] {
+            assert_eq!(floor_i64(v), v.floor() as i64, "{v}");
+        }
+        for i in -100_000i64..100_000 {
+            let v = i as f64 * 0.013 + [0.0, 1e-12, -1e-12][(i % 3).unsigned_abs() as usize];
+            assert_eq!(floor_i64(v), v.floor() as i64, "{v}");
+        }
     }
 
     #[test]

@@ -17,7 +17,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use super::{Scenario, SimStats, Simulator, TruthSample};
-use crate::decimal::{push_fixed, push_u64};
+use crate::decimal::RevDigits;
 use crate::error::{Error, Result};
 use crate::events::{Chunk, Geometry};
 use crate::io::atomic::AtomicFile;
@@ -41,10 +41,14 @@ impl TruthWriter {
         })
     }
 
+    /// Append `rows`, formatted in batches of ~64 kB (one `write_all`
+    /// per batch rather than per row).
     pub fn write(&mut self, rows: &[TruthSample]) -> Result<()> {
-        for r in rows {
+        for batch in rows.chunks(1024) {
             self.line.clear();
-            truth_line(&mut self.line, r);
+            for r in batch {
+                truth_line(&mut self.line, r);
+            }
             self.file
                 .write_all(&self.line)
                 .map_err(|e| Error::io(self.file.target().to_path_buf(), e))?;
@@ -62,23 +66,37 @@ impl TruthWriter {
 /// formatting (which was 40 % of the CPU time of a full-frame
 /// `ebptv simulate`).
 pub fn truth_line(line: &mut Vec<u8>, r: &TruthSample) {
-    if r.pulse < 0 {
-        line.push(b'-');
+    // Built from its end in one buffer (≤ 20 + 6·18 + 7 bytes), appended
+    // with one copy; a row with a value near a rounding tie is written
+    // by the reference instead.
+    let mut b = RevDigits::<160>::new();
+    b.byte(b'\n');
+    let fast = b.fixed(r.v, 3)
+        && {
+            b.byte(b',');
+            b.fixed(r.u, 3)
+        }
+        && {
+            b.byte(b',');
+            b.fixed(r.y, 4)
+        }
+        && {
+            b.byte(b',');
+            b.fixed(r.x, 4)
+        }
+        && {
+            b.byte(b',');
+            b.u64(r.particle_id);
+            b.byte(b',');
+            b.fixed(r.t_us, 3)
+        };
+    if fast {
+        b.byte(b',');
+        b.i64(r.pulse);
+        line.extend_from_slice(b.as_slice());
+    } else {
+        truth_line_reference(line, r);
     }
-    push_u64(line, r.pulse.unsigned_abs());
-    line.push(b',');
-    push_fixed(line, r.t_us, 3);
-    line.push(b',');
-    push_u64(line, r.particle_id);
-    line.push(b',');
-    push_fixed(line, r.x, 4);
-    line.push(b',');
-    push_fixed(line, r.y, 4);
-    line.push(b',');
-    push_fixed(line, r.u, 3);
-    line.push(b',');
-    push_fixed(line, r.v, 3);
-    line.push(b'\n');
 }
 
 /// The plain definition of a truth row.
@@ -263,6 +281,43 @@ mod tests {
             truth_line(&mut a, &r);
             truth_line_reference(&mut b, &r);
             assert_eq!(a, b);
+        }
+        // Values at rounding ties (the row falls back to the reference),
+        // negative zero, huge and non-finite values, in every field.
+        let odd = [
+            0.00005,
+            0.0625,
+            -0.0,
+            2.5e-4,
+            1.0005,
+            1e16,
+            f64::NAN,
+            -f64::INFINITY,
+        ];
+        for (i, &v) in odd.iter().enumerate() {
+            for field in 0..5 {
+                let mut r = TruthSample {
+                    pulse: -(i as i64),
+                    t_us: 12.5,
+                    particle_id: u64::MAX - i as u64,
+                    x: 3.25,
+                    y: -7.125,
+                    u: 1e4,
+                    v: -2e4,
+                };
+                match field {
+                    0 => r.t_us = v,
+                    1 => r.x = v,
+                    2 => r.y = v,
+                    3 => r.u = v,
+                    _ => r.v = v,
+                }
+                a.clear();
+                b.clear();
+                truth_line(&mut a, &r);
+                truth_line_reference(&mut b, &r);
+                assert_eq!(a, b, "{v} in field {field}");
+            }
         }
     }
 }
