@@ -260,7 +260,16 @@ fn main() {
                     .and_then(|s| s.parse().ok())
                     .unwrap_or(5)
                 {
-                    let mut an = Analyzer::new(PulseOptions::default(), Some(geo)).unwrap();
+                    let opts = if std::env::var("EBPTV_BENCH_ESTIMATED").is_ok() {
+                        PulseOptions {
+                            pulse_hz: Some(if name == "demo" { 5_000.0 } else { 10_000.0 }),
+                            ignore_triggers: true,
+                            ..Default::default()
+                        }
+                    } else {
+                        PulseOptions::default()
+                    };
+                    let mut an = Analyzer::new(opts, Some(geo)).unwrap();
                     let c0 = thread_cpu_ns();
                     for c in &chunks {
                         an.push(c).unwrap();
@@ -269,10 +278,11 @@ fn main() {
                     let r = an.finish().unwrap();
                     let c2 = thread_cpu_ns();
                     println!(
-                        "{name}: {} events, push {:.1} ms, finish {:.1} ms",
+                        "{name}: {} events, push {:.1} ms, finish {:.1} ms, groups {:?}",
                         r.events,
                         (c1 - c0) as f64 * 1e-6,
-                        (c2 - c1) as f64 * 1e-6
+                        (c2 - c1) as f64 * 1e-6,
+                        &r.saturation.group_sizes[..8]
                     );
                 }
             }

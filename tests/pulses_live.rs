@@ -218,3 +218,121 @@ fn pulses_and_monitor_read_stdin() {
     let msg = String::from_utf8_lossy(&out.stderr);
     assert!(msg.contains("RAW header"), "{msg}");
 }
+
+/// Serves a recording in fixed chunks and, before some of them, reports
+/// "no data yet" (`Ok(false)`) the way a live source does while its writer
+/// pauses.
+struct PausingSource {
+    info: ebptv::io::StreamInfo,
+    chunks: Vec<ebptv::Chunk>,
+    next: usize,
+    pause_before: Vec<usize>,
+    paused: bool,
+}
+
+impl ebptv::io::EventSource for PausingSource {
+    fn info(&self) -> &ebptv::io::StreamInfo {
+        &self.info
+    }
+    fn next_chunk(&mut self, c: &mut ebptv::Chunk) -> ebptv::Result<bool> {
+        c.clear();
+        if self.next >= self.chunks.len() {
+            return Ok(false);
+        }
+        if self.pause_before.contains(&self.next) && !self.paused {
+            self.paused = true;
+            return Ok(false);
+        }
+        self.paused = false;
+        *c = self.chunks[self.next].clone();
+        self.next += 1;
+        Ok(true)
+    }
+}
+
+/// Intervals are in recording time: a writer that pauses (the live source
+/// returning "no data yet" for a while) changes nothing in what is
+/// reported, and every interval but the last spans exactly the interval on
+/// the grid from the first event.
+#[test]
+fn monitor_intervals_ignore_writer_pauses() {
+    let mut sc = preset("demo").unwrap();
+    sc.duration_s = 0.03;
+    sc.triggers.enabled = true;
+    let out = simulate(&sc, 5).unwrap();
+    let n = out.events.len();
+    let mut chunks = Vec::new();
+    let mut a = 0;
+    for k in 0.. {
+        if a >= n {
+            break;
+        }
+        // Uneven pieces, each trigger with the piece of its time.
+        let b = (a + [70_000usize, 9_000, 150_000][k % 3]).min(n);
+        let mut c = ebptv::Chunk::default();
+        c.events.t.extend_from_slice(&out.events.t[a..b]);
+        c.events.x.extend_from_slice(&out.events.x[a..b]);
+        c.events.y.extend_from_slice(&out.events.y[a..b]);
+        c.events.p.extend_from_slice(&out.events.p[a..b]);
+        let (lo, hi) = (
+            if a == 0 { i64::MIN } else { out.events.t[a] },
+            if b == n { i64::MAX } else { out.events.t[b] },
+        );
+        c.triggers = out
+            .triggers
+            .iter()
+            .filter(|tr| tr.t >= lo && tr.t < hi)
+            .copied()
+            .collect();
+        chunks.push(c);
+        a = b;
+    }
+    assert!(chunks.len() >= 6);
+    let info = ebptv::io::StreamInfo {
+        path: "paused".into(),
+        format: ebptv::io::Format::Evt3,
+        geometry: out.geometry,
+        header: vec![],
+        payload_offset: 0,
+        file_size: None,
+    };
+    let report = |pause_before: Vec<usize>, follow: Follow| {
+        let mut src = PausingSource {
+            info: info.clone(),
+            chunks: chunks.clone(),
+            next: 0,
+            pause_before,
+            paused: false,
+        };
+        let mut seen: Vec<IntervalSummary> = Vec::new();
+        run(
+            &mut src,
+            &PulseOptions::default(),
+            5_000,
+            follow,
+            &AtomicBool::new(false),
+            &mut |s| seen.push(s.clone()),
+        )
+        .unwrap();
+        seen
+    };
+    let steady = report(vec![], Follow::No);
+    // Each pause is one poll (100 ms): far more than two 5 ms intervals of
+    // wall time, which used to close the interval in progress.
+    let paused = report(
+        vec![1, 2, 4, chunks.len() - 1],
+        Follow::UntilIdle(Duration::from_millis(300)),
+    );
+    assert_eq!(paused, steady);
+    let t0 = out.events.t.iter().copied().min().unwrap();
+    assert_eq!(steady[0].t_start_us, out.events.t[0]);
+    assert!(steady.len() >= 5, "{steady:?}");
+    for s in &steady[..steady.len() - 1] {
+        assert_eq!(s.t_end_us - s.t_start_us, 5_000, "{s:?}");
+        assert_eq!((s.t_start_us - steady[0].t_start_us) % 5_000, 0);
+        assert!(s.note.is_none(), "{s:?}");
+    }
+    let events: u64 = steady.iter().map(|s| s.events).sum();
+    assert_eq!(events as usize, n);
+    assert!(t0 >= steady[0].t_start_us - 10, "time steps back little");
+}

@@ -10,28 +10,35 @@
 //! numbers (the unit tests compare it with the naive per-event loop,
 //! [`tests::reference_push`]) but:
 //!
-//! - **one statistic per loop.** Polarity count, time range and time sum
-//!   are separate loops the compiler vectorises; the pixel map has its own
-//!   loop whose body is one increment, so the CPU keeps many cache misses in
-//!   flight.
-//! - **blocks by segments.** The block boundary test is a scan for the
-//!   first event at/after the block end; the events in between are
-//!   processed without a per-event block check.
+//! - **two stages.** Stage 1 (per event, fold-independent): the pixel
+//!   map, the polarity count, and the (row, t) runs, found by a branch-free
+//!   compaction into a scratch list; those runs are grouped into *time
+//!   runs* (consecutive events sharing a timestamp: (t, events, shared,
+//!   large)) by an outer loop per time run around a tight loop per row run.
+//!   Stage 2 (per time run): the block roll, the block's counters and one
+//!   fold-histogram increment. Readouts deliver events sharing a timestamp
+//!   together (EVT 3 vectors, dense bursts), so stage 2 sees ~10× fewer
+//!   items than events. A (row, t) run counts in the block holding its
+//!   events.
+//! - **warm-up without buffering events.** Until the reference period is
+//!   known the time runs wait in [`Accumulator::pending`] (32 B per
+//!   distinct timestamp instead of 13 B per event) and enter their blocks,
+//!   in stream order, when the fold is set: the result is exactly that of
+//!   knowing the fold from the start (unit test). The same log gives the
+//!   warm-up's event-rate series for the period estimate.
+//! - **sub-chunks.** Each statistic's loop runs over 4096 events at a time,
+//!   re-reading them from L1/L2 instead of streaming a 1 M-event chunk
+//!   (13 MB) from memory once per statistic.
 //! - **integer folding.** The fold position `frac((t − t_ref + ½) / P)` is a
 //!   64-bit fixed-point product: `(2(t − t_ref) + 1) · round(2⁶⁴ / 2P)`
 //!   wraps modulo 2⁶⁴ exactly like taking the fractional part, so the fold
 //!   bin is two multiplications and a shift, no float, no branch.
-//! - **runs of equal time.** Readouts deliver events sharing a timestamp
-//!   consecutively (EVT 3 vectors, dense bursts): the histogram gets one
-//!   increment per run of equal `t`, not per event.
-//! - **(row, t) runs without branches.** The end of each run is written
-//!   to a scratch buffer by a branch-free compaction (store always, advance
-//!   the cursor on a boundary); run lengths are then counted from that
-//!   (much shorter) list into four interleaved size tables, so equal
-//!   consecutive sizes do not wait on each other's store.
-//! - **u16 pixel counts.** Half the memory of u32 (1.8 MB for 1280×720,
-//!   closer to the core's cache); a count that wraps to 0 appends the pixel
-//!   to an overflow list, folded back in when the map is read.
+//! - **interleaved size tables.** Run sizes are counted into four tables
+//!   in turn, so equal consecutive sizes do not wait on each other's store.
+//! - **u8 pixel counts.** A quarter of the memory of u32 (0.9 MB for
+//!   1280×720, closer to the core's cache: random pixels make every
+//!   increment a cache miss); a count that wraps to 0 appends the pixel to
+//!   an overflow list, folded back in when the map is read.
 
 use crate::events::{EventChunk, ON};
 
@@ -145,13 +152,35 @@ impl Block {
     }
 }
 
+/// A run of consecutive events sharing one timestamp (a group of
+/// consecutive closed (row, t) runs with equal `t`): everything the
+/// fold-dependent stage needs.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct TimeRun {
+    pub t: i64,
+    pub n: u64,
+    /// Events of this run in (row, t) runs of ≥ 2.
+    pub shared: u64,
+    /// Events of this run in (row, t) runs of ≥ [`LARGE_GROUP`].
+    pub large: u64,
+}
+
+/// Events processed per inner step: the per-statistic loops re-read a
+/// sub-chunk from L1/L2 instead of streaming a whole 1 M-event chunk
+/// (13 MB) from memory once per statistic.
+const SUB_CHUNK: usize = 4096;
+/// Indices into the sub-chunk scratch are masked with this (a no-op, as
+/// they are < SUB_CHUNK) so the compiler drops the bounds checks.
+const SUB_MASK: usize = SUB_CHUNK - 1;
+const _: () = assert!(SUB_CHUNK.is_power_of_two());
+
 /// Per-event statistics of the stream (see the module doc).
 #[derive(Debug, Clone)]
 pub struct Accumulator {
     pub width: usize,
     pub height: usize,
-    /// Pixel counts modulo 2¹⁶, row-major.
-    counts: Vec<u16>,
+    /// Pixel counts modulo 2⁸, row-major.
+    counts: Vec<u8>,
     /// Pixels whose count wrapped, once per wrap.
     overflow: Vec<u32>,
     pub n_events: u64,
@@ -162,14 +191,36 @@ pub struct Accumulator {
     pub max_blocks: usize,
     pub blocks: Vec<Block>,
     pub cur: Block,
-    // The open (row, t) run.
+    /// The fold, once known; until then closed time runs go to `pending`.
+    fold: Option<Fold>,
+    /// Time runs waiting for the fold (the warm-up), in stream order.
+    pub pending: Vec<TimeRun>,
+    // The open (row, t) run; `started` once the first event was seen.
+    started: bool,
     last_t: i64,
     last_y: u16,
     run: u32,
-    group_tables: Vec<u64>,
-    /// Scratch: lengths of the runs that ended, per segment.
-    ends: Vec<u32>,
+    /// The open time run (its closed (row, t) runs so far).
+    open: TimeRun,
+    group_tables: Box<[[u64; MAX_GROUP + 1]; GROUP_TABLES]>,
+    /// Scratch: (t, length) of the (row, t) runs closed in a sub-chunk.
+    row_t: Vec<i64>,
+    row_len: Vec<u32>,
+    /// Scratch: the time runs closed in a sub-chunk.
+    time_runs: Vec<TimeRun>,
+    /// Time runs before this time also go to `head` / `trace` (set with
+    /// the fold; see [`Accumulator::watch_start`]).
+    watch_until: i64,
+    /// (t, events) of the time runs before `head_until` (capped).
+    pub head: Vec<(i64, u64)>,
+    head_until: i64,
+    /// Events per µs from `trace_t0`.
+    pub trace: Vec<u32>,
+    pub trace_t0: i64,
 }
+
+/// Most entries kept in [`Accumulator::head`].
+const HEAD_MAX: usize = 200_000;
 
 /// Halve the time resolution of the block list: blocks 2k and 2k+1 merge
 /// (keeping memory bounded on long recordings).
@@ -200,39 +251,123 @@ impl Accumulator {
             max_blocks,
             blocks: Vec::new(),
             cur: Block::new(i64::MIN, i64::MIN, 0),
+            fold: None,
+            pending: Vec::new(),
+            started: false,
             last_t: i64::MIN,
             last_y: 0,
             run: 0,
-            group_tables: vec![0; GROUP_TABLES * (MAX_GROUP + 1)],
-            ends: Vec::new(),
+            open: TimeRun::default(),
+            group_tables: Box::new([[0; MAX_GROUP + 1]; GROUP_TABLES]),
+            row_t: vec![0; SUB_CHUNK],
+            row_len: vec![0; SUB_CHUNK],
+            time_runs: vec![TimeRun::default(); SUB_CHUNK],
+            watch_until: i64::MIN,
+            head: Vec::new(),
+            head_until: i64::MIN,
+            trace: Vec::new(),
+            trace_t0: 0,
         }
     }
 
-    /// Add the events of `ev` (in stream order); returns the chunk's time
-    /// range (min, max).
+    /// Watch the start of the recording (call before [`Accumulator::set_fold`]):
+    /// the events before `head_until` are kept as (t, count) in `head` (to
+    /// count those before pulse 0), and those in `[trace_t0, trace_t0 +
+    /// trace_len)` are counted per µs in `trace` (the rate figure). Done in
+    /// the fold stage, so every event is seen, warm-up or not, at the cost
+    /// of one predictable comparison per time run.
+    pub fn watch_start(&mut self, head_until: i64, trace_t0: i64, trace_len: usize) {
+        self.head_until = head_until;
+        self.trace_t0 = trace_t0;
+        self.trace = vec![0; trace_len];
+        self.watch_until = head_until.max(trace_t0.saturating_add(trace_len as i64));
+    }
+
+    #[cold]
+    fn watch(&mut self, r: &TimeRun) {
+        if r.t < self.head_until && self.head.len() < HEAD_MAX {
+            self.head.push((r.t, r.n));
+        }
+        let i = r.t.wrapping_sub(self.trace_t0);
+        if (0..self.trace.len() as i64).contains(&i) {
+            self.trace[i as usize] += r.n as u32;
+        }
+    }
+
+    /// Events before this time are listed in `head`.
+    pub fn head_until(&self) -> i64 {
+        self.head_until
+    }
+
+    /// The fold, once set.
+    pub fn fold(&self) -> Option<Fold> {
+        self.fold
+    }
+
+    /// Fix the fold: the pending time runs (warm-up) enter their blocks
+    /// now, in stream order, exactly as if the fold had been known all along.
+    pub fn set_fold(&mut self, f: Fold) {
+        assert!(self.fold.is_none(), "the fold is set once");
+        self.fold = Some(f);
+        let pending = std::mem::take(&mut self.pending);
+        self.fold_runs(&f, &pending);
+    }
+
+    /// Add the events of `ev` (in stream order) with the fold `f` (set on
+    /// the first call if not yet set); returns the chunk's time range
+    /// (min, max).
     pub fn push(&mut self, f: &Fold, ev: &EventChunk) -> (i64, i64) {
+        if self.fold.is_none() {
+            self.set_fold(*f);
+        }
+        self.push_events(ev)
+    }
+
+    /// Add the events of `ev`: before the fold is set their time runs are
+    /// kept in [`Accumulator::pending`]. Returns the chunk's time range.
+    pub fn push_events(&mut self, ev: &EventChunk) -> (i64, i64) {
         let n = ev.len();
         if n == 0 {
             return (i64::MAX, i64::MIN);
         }
-        let (ts, xs, ys) = (&ev.t[..n], &ev.x[..n], &ev.y[..n]);
-        self.count_pixels(xs, ys);
-        self.n_on += ev.p[..n].iter().map(|&p| (p == ON) as u64).sum::<u64>();
-        let (lo, hi) = ts
-            .iter()
-            .fold((i64::MAX, i64::MIN), |(lo, hi), &t| (lo.min(t), hi.max(t)));
+        if !self.started {
+            // The first event opens the first (row, t) run.
+            self.started = true;
+            self.last_t = ev.t[0];
+            self.last_y = ev.y[0];
+            self.run = 0;
+            self.open = TimeRun {
+                t: ev.t[0],
+                ..TimeRun::default()
+            };
+        }
+        let (mut lo, mut hi) = (i64::MAX, i64::MIN);
+        let mut a = 0;
+        while a < n {
+            let b = (a + SUB_CHUNK).min(n);
+            let (ts, xs, ys) = (&ev.t[a..b], &ev.x[a..b], &ev.y[a..b]);
+            self.count_pixels(xs, ys);
+            self.n_on += ev.p[a..b].iter().map(|&p| (p == ON) as u64).sum::<u64>();
+            let m = self.row_runs(ts, ys);
+            let (k, l, h) = self.time_runs_of(m);
+            lo = lo.min(l);
+            hi = hi.max(h);
+            let runs = std::mem::take(&mut self.time_runs);
+            match self.fold {
+                Some(f) => self.fold_runs(&f, &runs[..k]),
+                None => self.pending.extend_from_slice(&runs[..k]),
+            }
+            self.time_runs = runs;
+            a = b;
+        }
+        // Every event's time is that of a closed (row, t) run, seen by
+        // `time_runs_of`, or of the open one. (The first closed run may be
+        // the previous chunk's open run: the range may include one earlier
+        // time, which no caller minds.)
+        lo = lo.min(self.last_t);
+        hi = hi.max(self.last_t);
         self.t_min = self.t_min.min(lo);
         self.t_max = self.t_max.max(hi);
-        let mut i = 0;
-        while i < n {
-            if ts[i] >= self.cur.end {
-                self.roll_block(f, ts[i]);
-            }
-            let end = self.cur.end;
-            let j = i + ts[i..].iter().position(|&t| t >= end).unwrap_or(n - i);
-            self.block_segment(f, &ts[i..j], &ys[i..j]);
-            i = j;
-        }
         self.n_events += n as u64;
         (lo, hi)
     }
@@ -257,7 +392,7 @@ impl Accumulator {
 
     fn grow_map(&mut self, w: usize, h: usize) {
         let (nw, nh) = (w.max(self.width), h.max(self.height));
-        let mut m = vec![0u16; nw * nh];
+        let mut m = vec![0u8; nw * nh];
         for y in 0..self.height {
             m[y * nw..y * nw + self.width]
                 .copy_from_slice(&self.counts[y * self.width..(y + 1) * self.width]);
@@ -275,7 +410,7 @@ impl Accumulator {
     pub fn pixel_counts(&self) -> Vec<u32> {
         let mut out: Vec<u32> = self.counts.iter().map(|&c| c as u32).collect();
         for &i in &self.overflow {
-            out[i as usize] += 1 << 16;
+            out[i as usize] += 1 << 8;
         }
         out
     }
@@ -283,35 +418,123 @@ impl Accumulator {
     /// Number of (row, t) runs of each size (index = size, last bin = larger).
     pub fn group_sizes(&self) -> Vec<u64> {
         let mut g = vec![0u64; MAX_GROUP + 1];
-        for table in self.group_tables.chunks(MAX_GROUP + 1) {
+        for table in self.group_tables.iter() {
             for (a, b) in g.iter_mut().zip(table) {
                 *a += b;
             }
         }
-        g[0] = 0; // the tables' bin 0 collects the no-op entries
         g
     }
 
-    /// Close the open run and the current block (end of stream).
+    /// Close the open runs and the current block (end of stream). Without
+    /// a fold the last time run stays in `pending`.
     pub fn close(&mut self) {
-        let r = self.run;
-        if r > 0 {
-            self.group_tables[(r as usize).min(MAX_GROUP)] += 1;
-            self.account_run_in_block(r);
+        if self.started && self.run > 0 {
+            self.row_t[0] = self.last_t;
+            self.row_len[0] = self.run;
+            let (k, _, _) = self.time_runs_of(1);
+            debug_assert!(k <= 1);
             self.run = 0;
+            self.started = false;
+            let mut runs = self.time_runs[..k].to_vec();
+            let open = std::mem::take(&mut self.open);
+            if open.n > 0 {
+                runs.push(open);
+            }
+            match self.fold {
+                Some(f) => self.fold_runs(&f, &runs),
+                None => self.pending.extend_from_slice(&runs),
+            }
         }
-        let cur = std::mem::replace(&mut self.cur, Block::new(0, 0, 0));
+        // No open block: the next time run opens one.
+        let cur = std::mem::replace(&mut self.cur, Block::new(i64::MIN, i64::MIN, 0));
         if cur.n > 0 {
             self.blocks.push(cur);
         }
     }
 
-    fn account_run_in_block(&mut self, r: u32) {
-        if r >= 2 {
-            self.cur.shared += r as u64;
-            if r as usize >= LARGE_GROUP {
-                self.cur.large += r as u64;
+    /// Stage 1a: the (row, t) runs that end in `ts`/`ys`, as (t, length)
+    /// in `row_t`/`row_len` (branch-free compaction: store always, advance
+    /// the cursor where (t, y) changes); returns their number. The open run
+    /// carries over to the next call.
+    fn row_runs(&mut self, ts: &[i64], ys: &[u16]) -> usize {
+        let rt = &mut self.row_t[..SUB_CHUNK];
+        let rl = &mut self.row_len[..SUB_CHUNK];
+        let (mut lt, mut ly, mut run) = (self.last_t, self.last_y, self.run);
+        let mut m = 0usize;
+        for (&t, &y) in ts.iter().zip(ys) {
+            let new = (t != lt) | (y != ly);
+            rt[m & SUB_MASK] = lt;
+            rl[m & SUB_MASK] = run;
+            m += new as usize;
+            run = if new { 1 } else { run + 1 };
+            lt = t;
+            ly = y;
+        }
+        (self.last_t, self.last_y, self.run) = (lt, ly, run);
+        m
+    }
+
+    /// Stage 1b: the first `m` closed (row, t) runs → run-size tables and
+    /// time runs (consecutive (row, t) runs of equal t) in `time_runs`;
+    /// returns how many time runs closed and the range of their times; the
+    /// open one carries over. An
+    /// outer loop per time run around a tight inner loop per (row, t) run:
+    /// both branches are predictable whether a time run holds hundreds of
+    /// rows (dense random pixels) or one.
+    fn time_runs_of(&mut self, m: usize) -> (usize, i64, i64) {
+        let tables = &mut *self.group_tables;
+        let out = &mut self.time_runs[..SUB_CHUNK];
+        let (rt, rl) = (&self.row_t[..m], &self.row_len[..m]);
+        let mut open = self.open;
+        let mut k = 0usize;
+        let mut i = 0usize;
+        let (mut lo, mut hi) = (i64::MAX, i64::MIN);
+        while i < m {
+            let t = rt[i];
+            lo = lo.min(t);
+            hi = hi.max(t);
+            if t != open.t {
+                if open.n > 0 {
+                    out[k & SUB_MASK] = open;
+                    k += 1;
+                }
+                open = TimeRun {
+                    t,
+                    ..TimeRun::default()
+                };
             }
+            let (mut n, mut shared, mut large) = (open.n, open.shared, open.large);
+            while i < m && rt[i] == t {
+                let r = rl[i];
+                tables[i % GROUP_TABLES][(r as usize).min(MAX_GROUP)] += 1;
+                let r = r as u64;
+                n += r;
+                shared += r * (r >= 2) as u64;
+                large += r * (r >= LARGE_GROUP as u64) as u64;
+                i += 1;
+            }
+            (open.n, open.shared, open.large) = (n, shared, large);
+        }
+        self.open = open;
+        (k, lo, hi)
+    }
+
+    /// Stage 2: time runs into blocks and their fold histograms.
+    fn fold_runs(&mut self, f: &Fold, runs: &[TimeRun]) {
+        for r in runs {
+            if r.t < self.watch_until {
+                self.watch(r);
+            }
+            if r.t >= self.cur.end {
+                self.roll_block(f, r.t);
+            }
+            let cur = &mut self.cur;
+            cur.n += r.n;
+            cur.t_rel_sum += r.n as i64 * (r.t - cur.start);
+            cur.hist[f.bin(r.t)] += r.n as u32;
+            cur.shared += r.shared;
+            cur.large += r.large;
         }
     }
 
@@ -326,60 +549,6 @@ impl Accumulator {
         }
         let start = f.t_ref + (t - f.t_ref).div_euclid(self.block_us) * self.block_us;
         self.cur = Block::new(start, start + self.block_us, f.nbins);
-    }
-
-    /// Events `ts`, `ys` all belonging to the current block.
-    fn block_segment(&mut self, f: &Fold, ts: &[i64], ys: &[u16]) {
-        let n = ts.len();
-        let cur = &mut self.cur;
-        cur.n += n as u64;
-        let start = cur.start;
-        cur.t_rel_sum += ts.iter().map(|&t| t - start).sum::<i64>();
-
-        // Fold histogram: one increment per run of equal timestamps.
-        let hist = &mut cur.hist[..];
-        let mut run_t = ts[0];
-        let mut run_n = 0u32;
-        for &t in ts {
-            if t != run_t {
-                hist[f.bin(run_t)] += run_n;
-                run_t = t;
-                run_n = 0;
-            }
-            run_n += 1;
-        }
-        hist[f.bin(run_t)] += run_n;
-
-        // (row, t) runs: branch-free compaction of the lengths of the runs
-        // that end in this segment (a run ends where (t, y) changes; the
-        // first entry may be the run carried over, or 0 at stream start).
-        if self.ends.len() < n + 1 {
-            self.ends.resize(n + 1, 0);
-        }
-        let ends = &mut self.ends[..n + 1];
-        let (mut lt, mut ly, mut run) = (self.last_t, self.last_y, self.run);
-        let mut m = 0usize;
-        for (&t, &y) in ts.iter().zip(ys) {
-            let new = (t != lt) | (y != ly);
-            ends[m] = run;
-            m += new as usize;
-            run = if new { 1 } else { run + 1 };
-            lt = t;
-            ly = y;
-        }
-        (self.last_t, self.last_y, self.run) = (lt, ly, run);
-        let mut shared = 0u64;
-        let mut large = 0u64;
-        let tables = &mut self.group_tables[..];
-        for (k, &r) in ends[..m].iter().enumerate() {
-            let r64 = r as u64;
-            shared += r64 * (r >= 2) as u64;
-            large += r64 * (r as usize >= LARGE_GROUP) as u64;
-            let table = (k % GROUP_TABLES) * (MAX_GROUP + 1);
-            tables[table + (r as usize).min(MAX_GROUP)] += 1;
-        }
-        self.cur.shared += shared;
-        self.cur.large += large;
     }
 }
 
@@ -439,6 +608,15 @@ pub(crate) mod tests {
             for i in 0..ev.len() {
                 let (t, x, y) = (ev.t[i], ev.x[i] as usize, ev.y[i]);
                 self.counts[y as usize * self.width + x] += 1;
+                // A (row, t) run counts in the block holding its events:
+                // close it before this event may open a new block.
+                if self.last == Some((t, y)) {
+                    self.run += 1;
+                } else {
+                    self.close_run();
+                    self.last = Some((t, y));
+                    self.run = 1;
+                }
                 if t >= self.cur.end {
                     let done = std::mem::replace(&mut self.cur, Block::new(0, 0, 0));
                     if done.n > 0 {
@@ -455,13 +633,6 @@ pub(crate) mod tests {
                 self.cur.hist[b] += 1;
                 self.cur.n += 1;
                 self.cur.t_rel_sum += t - self.cur.start;
-                if self.last == Some((t, y)) {
-                    self.run += 1;
-                } else {
-                    self.close_run();
-                    self.last = Some((t, y));
-                    self.run = 1;
-                }
                 self.n_on += (ev.p[i] == ON) as u64;
                 self.t_min = self.t_min.min(t);
                 self.t_max = self.t_max.max(t);
@@ -490,7 +661,7 @@ pub(crate) mod tests {
     }
 
     /// Events with long and short runs of equal t and (row, t), small steps
-    /// back in time (EVT 3), one pixel firing > 2¹⁶ times, times before
+    /// back in time (EVT 3), one pixel firing > 2¹⁶ times (many u8 wraps), times before
     /// t_ref; split into uneven chunks so runs cross chunk and block edges.
     fn stream() -> Vec<EventChunk> {
         let mut g = Lcg(42);
@@ -550,6 +721,63 @@ pub(crate) mod tests {
 
     /// The fixed-point fold bin against the definition in exact rational
     /// arithmetic: equal except within 10⁻⁵ of a bin edge (times up to 2³⁶ µs).
+    /// The warm-up: events pushed before the fold is known (their time
+    /// runs wait in `pending`), the fold set, the rest pushed: the same
+    /// blocks as the reference that knew the fold from the start. The
+    /// pending runs hold every event's time exactly once.
+    #[test]
+    fn warm_up_then_fold_equals_reference() {
+        for warm_chunks in [0usize, 1, 5, 1000] {
+            let f = Fold::new(-250, 37.77, 38);
+            let mut fast = Accumulator::new(64, 40, 500, 16);
+            let mut slow = Reference::new(64, 40, 500);
+            let mut per_t: std::collections::BTreeMap<i64, u64> = Default::default();
+            let chunks = stream();
+            let mut n_warm = 0u64;
+            for (i, c) in chunks.iter().enumerate() {
+                if i < warm_chunks {
+                    fast.push_events(c);
+                    for &t in &c.t {
+                        *per_t.entry(t).or_default() += 1;
+                    }
+                    n_warm += c.len() as u64;
+                } else {
+                    if fast.fold().is_none() {
+                        let mut logged: std::collections::BTreeMap<i64, u64> = Default::default();
+                        for r in &fast.pending {
+                            *logged.entry(r.t).or_default() += r.n;
+                        }
+                        // The open runs are not logged yet.
+                        let open = n_warm - logged.values().sum::<u64>();
+                        assert!(open <= 64, "{open} events in open runs");
+                        for (t, n) in &logged {
+                            assert!(per_t[t] >= *n);
+                        }
+                        fast.set_fold(f);
+                    }
+                    fast.push(&f, c);
+                }
+                slow.push(&f, c, 16);
+            }
+            if fast.fold().is_none() {
+                let mut logged: std::collections::BTreeMap<i64, u64> = Default::default();
+                fast.close();
+                for r in &fast.pending {
+                    *logged.entry(r.t).or_default() += r.n;
+                }
+                assert_eq!(logged, per_t, "after close every event is logged");
+                fast.set_fold(f);
+                fast.close();
+            } else {
+                fast.close();
+            }
+            slow.close();
+            assert_eq!(fast.blocks, slow.blocks, "warm-up {warm_chunks} chunks");
+            assert_eq!(fast.group_sizes(), slow.groups);
+            assert_eq!(fast.pixel_counts(), slow.counts);
+        }
+    }
+
     #[test]
     fn fold_bin_matches_exact_phase() {
         let mut g = Lcg(5);

@@ -8,12 +8,17 @@
 //! diagnostic is a histogram of event time relative to the pulses. The pass
 //! therefore keeps *compact statistics that can be re-aligned later*:
 //!
-//! 1. **Warm-up.** The first events (≤ 2 M events or ≤ 1 s) are buffered.
+//! 1. **Warm-up.** Over the first events (≤ 2 M events or ≤ 1 s) the
+//!    fold-independent statistics already run; only the compact time runs
+//!    (one per distinct timestamp, [`accum::TimeRun`]) and the first 2¹⁸
+//!    raw events (for pseudo-images) are kept.
 //!    From them a reference period `P_ref` is found: from the trigger train
 //!    when one is recorded, else from the event rate (1 µs bins → FFT
 //!    periodogram → harmonic sum picks the fundamental → a high harmonic
 //!    refines it → epoch folding polishes it; [`timing::estimate_period`]).
-//!    The buffer is then replayed through step 2.
+//!    The time runs then enter step 2's block histograms, exactly as if
+//!    the period had been known from the start (the event-rate series for
+//!    the estimate is built from the same runs: no event times are kept).
 //! 2. **Streaming.** Every event adds one count to the histogram of
 //!    `(t − t_ref) mod P_ref` (≈1 µs bins) of the current *time block*
 //!    (2 ms, doubled by pairwise merging so at most 1024 blocks exist), one
@@ -41,7 +46,8 @@
 //!    late. A known minimum latency ([`PulseOptions::onset_latency_us`],
 //!    e.g. from a recording with triggers) is subtracted.
 //!
-//! Memory is bounded by the warm-up buffer (~26 MB), the block histograms
+//! Memory is bounded by the warm-up log (≤ 1 M time runs, 32 MB; ~3 MB
+//! on dense data) and raw prefix (3.4 MB), the block histograms
 //! (≤ 1024 × P_ref bins), the rate map and the trigger times.
 //!
 //! # Assignment
@@ -169,6 +175,11 @@ pub const LEADING_EDGE_FRACTION: f64 = 0.002;
 pub const REORDER_MARGIN_US: i64 = 1000;
 
 const WARMUP_MAX_EVENTS: usize = 2_000_000;
+/// Time runs (distinct timestamps, about) that end the warm-up: bounds its
+/// memory (32 B each) on data with few events per µs.
+const WARMUP_MAX_RUNS: usize = 1_000_000;
+/// Raw events kept from the warm-up for the pseudo-image sampler.
+const WARMUP_RAW_EVENTS: usize = 1 << 18;
 const WARMUP_MAX_US: i64 = 1_000_000;
 /// Rising edges of a regular trigger train that end the warm-up early.
 const WARMUP_TRIGGER_EDGES: usize = 64;
@@ -177,7 +188,6 @@ const WARMUP_MIN_EVENTS: usize = 10_000;
 const BLOCK_US_INITIAL: i64 = 2_000;
 const MAX_BLOCKS: usize = 1024;
 const MAX_SLICES: usize = 16;
-const HEAD_MAX: usize = 200_000;
 
 impl PulseOptions {
     /// Check the user's values; name the parameter that is wrong.
@@ -367,16 +377,18 @@ struct Slice {
 /// then [`Analyzer::finish`]. The monitor uses one per interval.
 pub struct Analyzer {
     opts: PulseOptions,
-    warm: Option<EventChunk>,
-    warm_t_min: i64,
-    warm_t_max: i64,
+    /// Until the reference period is known (the warm-up).
+    warming: bool,
+    /// Raw events of the warm-up's first [`WARMUP_RAW_EVENTS`], replayed
+    /// into the pseudo-image sampler once the period is known.
+    prefix: EventChunk,
+    /// The warm-up held more events than `prefix`.
+    prefix_truncated: bool,
     edges: BTreeMap<u8, ChannelEdges>,
     fold: Option<Fold>,
     warmup_estimate: Option<Periodicity>,
     /// Per-event statistics (fold histograms per block, pixel map, runs).
     acc: Accumulator,
-    head: Vec<i64>,
-    head_until: i64,
     // sampler
     slices: Vec<Slice>,
     slice_every: i64,
@@ -385,8 +397,6 @@ pub struct Analyzer {
     slice_next_j: i64,
     slice_lo: i64,
     slice_hi: i64,
-    trace: Vec<u32>,
-    trace_t0: i64,
 }
 
 impl Analyzer {
@@ -397,15 +407,13 @@ impl Analyzer {
             .unwrap_or((1280, 720));
         Ok(Analyzer {
             opts,
-            warm: Some(EventChunk::default()),
-            warm_t_min: i64::MAX,
-            warm_t_max: i64::MIN,
+            warming: true,
+            prefix: EventChunk::default(),
+            prefix_truncated: false,
             edges: BTreeMap::new(),
             fold: None,
             warmup_estimate: None,
             acc: Accumulator::new(w, h, BLOCK_US_INITIAL, MAX_BLOCKS),
-            head: Vec::new(),
-            head_until: i64::MIN,
             slices: Vec::new(),
             slice_every: 1,
             slice_span: 0,
@@ -413,18 +421,12 @@ impl Analyzer {
             slice_next_j: 0,
             slice_lo: i64::MAX,
             slice_hi: i64::MAX,
-            trace: Vec::new(),
-            trace_t0: 0,
         })
     }
 
     /// Time span of the events fed so far (µs).
     pub fn span_us(&self) -> i64 {
-        if self.warm.is_some() {
-            self.warm_t_max.saturating_sub(self.warm_t_min).max(0)
-        } else {
-            self.acc.t_max.saturating_sub(self.acc.t_min).max(0)
-        }
+        self.acc.t_max.saturating_sub(self.acc.t_min).max(0)
     }
 
     /// Feed one chunk.
@@ -436,16 +438,26 @@ impl Analyzer {
                 Edge::Falling => e.falling.push(tr.t),
             }
         }
-        if let Some(w) = self.warm.as_mut() {
-            w.extend_from(&chunk.events);
-            for &t in &chunk.events.t {
-                self.warm_t_min = self.warm_t_min.min(t);
-                self.warm_t_max = self.warm_t_max.max(t);
+        if self.warming {
+            // The per-event statistics run now; only the fold-dependent
+            // stage waits, on compact time runs (Accumulator::pending).
+            let ev = &chunk.events;
+            self.acc.push_events(ev);
+            let room = WARMUP_RAW_EVENTS - self.prefix.len();
+            if ev.len() <= room {
+                self.prefix.extend_from(ev);
+            } else {
+                self.prefix.t.extend_from_slice(&ev.t[..room]);
+                self.prefix.x.extend_from_slice(&ev.x[..room]);
+                self.prefix.y.extend_from_slice(&ev.y[..room]);
+                self.prefix.p.extend_from_slice(&ev.p[..room]);
+                self.prefix_truncated = true;
             }
-            let buffered = w.len();
-            let enough = buffered >= WARMUP_MAX_EVENTS
-                || self.warm_t_max.saturating_sub(self.warm_t_min) >= WARMUP_MAX_US;
-            if enough || self.trigger_train_ready(buffered) {
+            let seen = self.acc.n_events as usize;
+            let enough = seen >= WARMUP_MAX_EVENTS
+                || self.span_us() >= WARMUP_MAX_US
+                || self.acc.pending.len() >= WARMUP_MAX_RUNS;
+            if enough || self.trigger_train_ready(seen) {
                 self.begin_streaming()?;
             }
             return Ok(());
@@ -493,18 +505,20 @@ impl Analyzer {
     }
 
     fn begin_streaming(&mut self) -> Result<()> {
-        let buf = self.warm.take().unwrap_or_default();
-        if buf.is_empty() {
+        if self.acc.n_events == 0 {
             return Ok(());
         }
-        let (t_min, t_max) = (self.warm_t_min, self.warm_t_max);
+        self.warming = false;
+        let (t_min, t_max) = (self.acc.t_min, self.acc.t_max);
         let channel = self.choose_channel()?;
         let fit = channel.and_then(|c| timing::fit_trigger_train(c, &self.edges[&c]).ok());
         let (p_ref, t_ref) = match fit {
             Some(f) => (f.period_us, f.first_us.floor() as i64),
             None => {
                 let band = self.opts.search_band();
-                let per = timing::estimate_period(&buf.t, band).map_err(|e| self.explain(e))?;
+                let counts = self.warmup_rate();
+                let per = timing::estimate_period_from_counts(&counts, band)
+                    .map_err(|e| self.explain(e))?;
                 let p = per.period_us;
                 self.warmup_estimate = Some(per);
                 (p, t_min)
@@ -518,20 +532,36 @@ impl Analyzer {
         self.slice_next_j = 1;
         self.slice_lo = t_ref + p_ref.round() as i64;
         self.slice_hi = self.slice_lo + self.slice_span;
-        self.head_until = t_min + (2.0 * p_ref) as i64 + REORDER_MARGIN_US;
+        let head_until = t_min + (2.0 * p_ref) as i64 + REORDER_MARGIN_US;
         let trace_len = ((20.0 * p_ref) as i64)
             .clamp(100, 20_000)
             .min(t_max - t_min + 1) as usize;
-        self.trace = vec![0; trace_len];
-        self.trace_t0 = t_min;
-        for &t in &buf.t {
-            let i = t - t_min;
-            if (0..trace_len as i64).contains(&i) {
-                self.trace[i as usize] += 1;
+        self.acc.watch_start(head_until, t_min, trace_len);
+        self.acc.set_fold(f);
+        let prefix = std::mem::take(&mut self.prefix);
+        if !prefix.is_empty() {
+            self.sample_slices(&f, &prefix);
+        }
+        if self.prefix_truncated {
+            // The slice in progress saw only part of its window.
+            self.slice_cur = None;
+        }
+        Ok(())
+    }
+
+    /// Events per µs of the warm-up (from its time runs), over at most
+    /// [`WARMUP_MAX_US`] from its first time.
+    fn warmup_rate(&self) -> Vec<f32> {
+        let t0 = self.acc.t_min;
+        let span = (self.acc.t_max - t0 + 1).clamp(1, WARMUP_MAX_US) as usize;
+        let mut counts = vec![0f32; span];
+        for r in &self.acc.pending {
+            let i = (r.t - t0) as usize;
+            if i < span {
+                counts[i] += r.n as f32;
             }
         }
-        self.accumulate(&f, &buf);
-        Ok(())
+        counts
     }
 
     /// Add what the trigger channels hold to an estimation error, so the
@@ -554,14 +584,7 @@ impl Analyzer {
         if ev.is_empty() {
             return;
         }
-        let (lo, hi) = self.acc.push(f, ev);
-        if lo < self.head_until && self.head.len() < HEAD_MAX {
-            for &t in &ev.t {
-                if t < self.head_until && self.head.len() < HEAD_MAX {
-                    self.head.push(t);
-                }
-            }
-        }
+        let (_, hi) = self.acc.push(f, ev);
         if hi >= self.slice_lo {
             self.sample_slices(f, ev);
         }
@@ -646,7 +669,7 @@ impl Analyzer {
 
     /// Solve for the pulse timing and compute every diagnostic.
     pub fn finish(mut self) -> Result<PulseReport> {
-        if self.warm.is_some() {
+        if self.warming {
             self.begin_streaming()?;
         }
         let f = match self.fold {
@@ -721,8 +744,14 @@ impl Analyzer {
             pulse_width_us: trig_fit.as_ref().and_then(|t| t.width_us),
         };
         let w0 = first + window_offset;
-        let mut unattributed = self.head.iter().filter(|&&t| (t as f64) < w0).count() as u64;
-        if w0 > self.head_until as f64 {
+        let mut unattributed: u64 = self
+            .acc
+            .head
+            .iter()
+            .filter(|&&(t, _)| (t as f64) < w0)
+            .map(|&(_, n)| n)
+            .sum();
+        if w0 > self.acc.head_until() as f64 {
             unattributed += self
                 .acc
                 .blocks
@@ -876,8 +905,8 @@ impl Analyzer {
             },
             particles,
             rate_map,
-            rate_trace: self.trace.clone(),
-            rate_trace_t0_us: self.trace_t0,
+            rate_trace: self.acc.trace.clone(),
+            rate_trace_t0_us: self.acc.trace_t0,
         })
     }
 

@@ -9,9 +9,16 @@
 //! `Ok(false)` at the current end and delivering new data on a later call
 //! ([`super::live::LiveRaw`]): the monitor sleeps and polls again until
 //! `stop` is set (Ctrl-C) or, with an idle timeout, until the file has not
-//! grown for that long. When the data pauses for two intervals (wall time),
-//! the interval in progress is reported as it is, so the operator sees the
-//! latest state of a slowly written file.
+//! grown for that long.
+//!
+//! Intervals are in *recording* time: interval k covers
+//! `[t₀ + k·Δ, t₀ + (k + 1)·Δ)` of event time, t₀ the first event's time,
+//! and is reported when the first event at or past its end arrives (or at
+//! the end of the data, as a shorter last interval). How the bytes arrive
+//! (read chunks, a writer that pauses) does not change the intervals, so
+//! following a growing file reports exactly what reading the finished file
+//! does; a pause only delays the report. Triggers go with the interval of
+//! their time.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -124,12 +131,15 @@ pub fn run(
     let geometry = source.info().geometry;
     let mut chunk = Chunk::default();
     let mut an = Analyzer::new(opts.clone(), geometry)?;
-    let mut t0: Option<i64> = None;
+    // The interval in progress: [start, end) of recording time.
+    let mut interval: Option<(i64, i64)> = None;
     let mut t_last = 0i64;
     let mut events = 0u64;
     let mut reported = 0u64;
     let poll = Duration::from_millis(100);
     let mut idle_since = Instant::now();
+    // Triggers not yet handed to an interval (in stream order).
+    let mut triggers: Vec<crate::Trigger> = Vec::new();
     while !stop.load(Ordering::Relaxed) {
         if !source.next_chunk(&mut chunk)? {
             match follow {
@@ -137,51 +147,63 @@ pub fn run(
                 Follow::UntilIdle(limit) if idle_since.elapsed() >= limit => break,
                 _ => {}
             }
-            // A pause of a few intervals in wall time: report what there is.
-            if events > 0 && idle_since.elapsed() > Duration::from_micros(2 * interval_us as u64) {
-                let done = std::mem::replace(&mut an, Analyzer::new(opts.clone(), geometry)?);
-                on_interval(&summarize(done, t0.unwrap_or(0), t_last, events));
-                reported += 1;
-                t0 = None;
-                events = 0;
-            }
             std::thread::sleep(poll);
             continue;
         }
         idle_since = Instant::now();
-        // Split the chunk at interval boundaries of recording time.
+        triggers.extend_from_slice(&chunk.triggers);
+        // Split the chunk where events reach the end of the interval.
         let ev = &chunk.events;
         let mut start = 0;
         for i in 0..ev.len() {
             let t = ev.t[i];
-            let first = *t0.get_or_insert(t);
-            if t - first >= interval_us {
-                let part = slice_chunk(&chunk, start, i);
+            let (s, e) = *interval.get_or_insert((t, t + interval_us));
+            if t >= e {
+                let part = slice_chunk(&chunk, start, i, &mut triggers, e);
                 an.push(&part)?;
                 events += (i - start) as u64;
                 let done = std::mem::replace(&mut an, Analyzer::new(opts.clone(), geometry)?);
-                on_interval(&summarize(done, first, t, events));
+                on_interval(&summarize(done, s, e, events));
                 reported += 1;
                 events = 0;
-                t0 = Some(t);
                 start = i;
+                // The next interval of the grid holding t (empty ones skipped).
+                let s = s + (t - s) / interval_us * interval_us;
+                interval = Some((s, s + interval_us));
             }
-            t_last = t;
+            t_last = t_last.max(t);
         }
-        let mut rest = slice_chunk(&chunk, start, ev.len());
-        rest.triggers = chunk.triggers.clone();
+        // Triggers past the interval's end wait for their interval.
+        let end = interval.map_or(i64::MAX, |(_, e)| e);
+        let rest = slice_chunk(&chunk, start, ev.len(), &mut triggers, end);
         an.push(&rest)?;
         events += (ev.len() - start) as u64;
     }
     if events > 0 {
-        on_interval(&summarize(an, t0.unwrap_or(0), t_last, events));
+        let rest = Chunk {
+            triggers,
+            ..Chunk::default()
+        };
+        an.push(&rest)?;
+        let s = interval.map_or(0, |(s, _)| s);
+        on_interval(&summarize(an, s, t_last + 1, events));
         reported += 1;
     }
     Ok(reported)
 }
 
-fn slice_chunk(c: &Chunk, a: usize, b: usize) -> Chunk {
+/// Events `a..b` of `c`, with the leading `triggers` before `t_end`
+/// (removed from `triggers`).
+fn slice_chunk(
+    c: &Chunk,
+    a: usize,
+    b: usize,
+    triggers: &mut Vec<crate::Trigger>,
+    t_end: i64,
+) -> Chunk {
     let mut out = Chunk::default();
+    let n = triggers.iter().take_while(|tr| tr.t < t_end).count();
+    out.triggers.extend(triggers.drain(..n));
     out.events.t.extend_from_slice(&c.events.t[a..b]);
     out.events.x.extend_from_slice(&c.events.x[a..b]);
     out.events.y.extend_from_slice(&c.events.y[a..b]);

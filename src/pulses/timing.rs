@@ -9,6 +9,7 @@ use rustfft::num_complex::Complex;
 use rustfft::FftPlanner;
 use serde::{Deserialize, Serialize};
 
+use super::accum::Fold;
 use crate::error::{Error, Result};
 
 /// Rising and falling trigger edges of one channel, in stream order.
@@ -294,14 +295,32 @@ const MAX_REFINE_HARMONIC: usize = 16;
 /// polishes the period. Errors say what was found instead.
 pub fn estimate_period(times: &[i64], range_hz: (f64, f64)) -> Result<Periodicity> {
     if times.len() < 100 {
-        return Err(Error::analysis(format!(
-            "only {} events: too few to estimate the pulse period",
-            times.len()
-        )));
+        return Err(too_few(times.len() as f64));
     }
     let t0 = *times.iter().min().unwrap();
     let t1 = *times.iter().max().unwrap();
-    let span = (t1 - t0 + 1) as usize;
+    let mut counts = vec![0f32; (t1 - t0 + 1) as usize];
+    for &t in times {
+        counts[(t - t0) as usize] += 1.0;
+    }
+    estimate_period_from_counts(&counts, range_hz)
+}
+
+fn too_few(n: f64) -> Error {
+    Error::analysis(format!(
+        "only {n} events: too few to estimate the pulse period"
+    ))
+}
+
+/// [`estimate_period`] of an event-rate series: `counts[i]` events in the
+/// µs `i` (the streaming pass builds it from its time runs, without
+/// keeping event times).
+pub fn estimate_period_from_counts(counts: &[f32], range_hz: (f64, f64)) -> Result<Periodicity> {
+    let total: f64 = counts.iter().map(|&c| c as f64).sum();
+    if total < 100.0 {
+        return Err(too_few(total));
+    }
+    let span = counts.len();
     let n = span.next_power_of_two().max(1024);
     let nyquist_hz = 0.5e6;
     let df = 1e6 / n as f64;
@@ -318,11 +337,7 @@ pub fn estimate_period(times: &[i64], range_hz: (f64, f64)) -> Result<Periodicit
             "the events span only {span} µs: fewer than {min_cycles} pulse periods at {lo_hz:.0} Hz"
         )));
     }
-    let mut counts = vec![0f32; span];
-    for &t in times {
-        counts[(t - t0) as usize] += 1.0;
-    }
-    let mean = times.len() as f32 / span as f32;
+    let mean = (total / span as f64) as f32;
     let mut buf: Vec<Complex<f32>> = counts
         .iter()
         .map(|&c| Complex::new(c - mean, 0.0))
@@ -409,11 +424,11 @@ pub fn estimate_period(times: &[i64], range_hz: (f64, f64)) -> Result<Periodicit
     // Epoch folding around the estimate: the uncertainty is ~ one
     // resolution cell of the harmonic.
     let dp = p * p * df / h_best as f64 / 1e6;
-    let nz: Vec<(f64, f32)> = counts
+    let nz: Vec<(i64, f32)> = counts
         .iter()
         .enumerate()
         .filter(|(_, c)| **c > 0.0)
-        .map(|(i, c)| (i as f64, *c))
+        .map(|(i, c)| (i as i64, *c))
         .collect();
     let steps = 40;
     let mut grid = Vec::with_capacity(steps + 1);
@@ -440,19 +455,23 @@ pub fn estimate_period(times: &[i64], range_hz: (f64, f64)) -> Result<Periodicit
 }
 
 /// Variance of the series folded at `period` (2 µs fold bins): the epoch
-/// folding statistic, maximal at the true period.
-fn fold_variance(nz: &[(f64, f32)], period: f64) -> f64 {
+/// folding statistic, maximal at the true period. The fold bin of sample
+/// `i` is that of its centre `i + ½` ([`Fold::bin`], fixed-point: no float
+/// floor per sample, which was half the warm-up's time).
+fn fold_variance(nz: &[(i64, f32)], period: f64) -> f64 {
     let nb = ((period / 2.0).round() as usize).max(8);
+    let fold = Fold::new(0, period, nb);
     let mut h = vec![0f64; nb];
-    let inv = 1.0 / period;
     for &(t, c) in nz {
-        let ph = t * inv;
-        let fr = ph - ph.floor();
-        let b = ((fr * nb as f64) as usize).min(nb - 1);
-        h[b] += c as f64;
+        h[fold.bin(t)] += c as f64;
     }
-    let m = h.iter().sum::<f64>() / nb as f64;
-    h.iter().map(|v| (v - m) * (v - m)).sum::<f64>() / nb as f64
+    variance(&h)
+}
+
+fn variance(h: &[f64]) -> f64 {
+    let nb = h.len() as f64;
+    let m = h.iter().sum::<f64>() / nb;
+    h.iter().map(|v| (v - m) * (v - m)).sum::<f64>() / nb
 }
 
 fn max_around(p: &[f64], k: usize, r: usize) -> f64 {
@@ -558,6 +577,35 @@ mod tests {
                 ca.total_cmp(&cb)
             })
             .unwrap()
+    }
+
+    /// The fixed-point epoch folding against the float definition
+    /// (fold phase of the sample centre `(i + ½) / P`).
+    #[test]
+    fn fold_variance_matches_float_reference() {
+        let mut s: u64 = 7;
+        let nz: Vec<(i64, f32)> = (0..50_000i64)
+            .map(|i| {
+                s = s
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                (i * 3 + (s >> 62) as i64, 1.0 + ((s >> 40) % 7) as f32)
+            })
+            .collect();
+        for period in [100.0, 199.9931, 50.0007, 37.51] {
+            let nb = ((period / 2.0f64).round() as usize).max(8);
+            let mut h = vec![0f64; nb];
+            for &(t, c) in &nz {
+                let ph = (t as f64 + 0.5) / period;
+                let b = (((ph - ph.floor()) * nb as f64) as usize).min(nb - 1);
+                h[b] += c as f64;
+            }
+            let (fast, slow) = (fold_variance(&nz, period), variance(&h));
+            assert!(
+                (fast - slow).abs() <= 1e-9 * slow,
+                "{period}: {fast} vs {slow}"
+            );
+        }
     }
 
     #[test]
