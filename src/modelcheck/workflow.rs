@@ -102,6 +102,13 @@ pub struct WorkflowOptions {
     pub chance_factor: f64,
     /// Base seed; every simulation seed derives from it.
     pub seed: u64,
+    /// Start two-parameter fits with the profile along the first parameter
+    /// ([`profile_then_simplex`]) instead of Nelder–Mead from the box
+    /// centre. Needed for the arbiter's row/event-time valley; off by
+    /// default because on small scenes it also lets intensity latency
+    /// mimic latency jitter closely enough that neither clearly wins.
+    #[serde(default)]
+    pub profile_fit: bool,
 }
 
 impl Default for WorkflowOptions {
@@ -113,6 +120,7 @@ impl Default for WorkflowOptions {
             max_evaluations: 30,
             chance_factor: 3.0,
             seed: 1,
+            profile_fit: false,
         }
     }
 }
@@ -522,6 +530,7 @@ fn fit_candidate(
     max_evaluations: usize,
     crn_seed: u64,
     refine_from: Option<&[f64]>,
+    profile_fit: bool,
 ) -> Result<(Vec<f64>, f64, usize)> {
     let floors = base.spread_floors(measured_fit)?;
     let mut objective = |u: &[f64]| -> Result<f64> {
@@ -572,11 +581,12 @@ fn fit_candidate(
         };
         let (u, v, e) = minimise_1d_in(&mut |x| objective(&[x]), lo, hi, max_evaluations)?;
         Ok((vec![u], v, e))
-    } else if spec.params.len() == 2 && refine_from.is_none() {
+    } else if profile_fit && spec.params.len() == 2 && refine_from.is_none() {
         profile_then_simplex(&mut objective, max_evaluations)
     } else {
         let (start, step) = match refine_from {
-            Some(u) => (u.to_vec(), REFINE_SIMPLEX_STEP),
+            Some(u) if profile_fit => (u.to_vec(), REFINE_SIMPLEX_STEP),
+            Some(u) => (u.to_vec(), REFINE_HALF_WIDTH),
             None => (vec![0.5; spec.params.len()], 0.3),
         };
         // Nelder–Mead needs more steps per dimension than a line search.
@@ -687,6 +697,7 @@ fn joint_refit(
                 opts.max_evaluations,
                 crn,
                 Some(&u0),
+                opts.profile_fit,
             )?;
             model[pos] = setting(spec, &u);
             refitted = true;
@@ -797,6 +808,7 @@ pub fn run(
                     opts.max_evaluations,
                     crn,
                     None,
+                    opts.profile_fit,
                 )?;
                 // Stage 2: the effect changes the noise of the signatures it
                 // drives (hot pixels make the off-burst rate noisy), so take
@@ -814,6 +826,7 @@ pub fn run(
                     opts.max_evaluations,
                     crn,
                     Some(&u1),
+                    opts.profile_fit,
                 )?;
                 let evaluations = e1 + e2;
                 let set = setting(spec, &u);
