@@ -46,13 +46,24 @@ fn opts() -> WorkflowOptions {
         max_evaluations: 14,
         max_effects: 2,
         seed: 77,
+        profile_fit: true,
         ..WorkflowOptions::default()
     }
 }
 
 /// Measured = the scene with `truth` on, two seeds the search never uses.
 fn check_hidden(truth: Option<EffectSetting>, seed: u64, order_seed: u64) -> ModelCheckResult {
-    let mut catalogue = default_catalogue(&base());
+    check_hidden_with(truth, seed, order_seed, None)
+}
+
+/// [`check_hidden`] with a given catalogue (default: all effects).
+fn check_hidden_with(
+    truth: Option<EffectSetting>,
+    seed: u64,
+    order_seed: u64,
+    catalogue: Option<Vec<ebptv::modelcheck::workflow::EffectSpec>>,
+) -> ModelCheckResult {
+    let mut catalogue = catalogue.unwrap_or_else(|| default_catalogue(&base()));
     catalogue.shuffle(&mut Pcg64::seed_from_u64(order_seed));
     let sim = SceneSimulator::new(base())
         .unwrap()
@@ -139,8 +150,8 @@ fn real_sim_hidden_hot_pixels() {
 // The remaining catalogue effects take ~10-20 s of CPU each: the full sweep
 // is `cargo test --release --test modelcheck_scene -- --include-ignored
 // --test-threads 1 --nocapture` (results in BENCHMARKS.md). The arbiter
-// test fails: on this 120-row scene row time and event time are not
-// separable (the held-out gap calls a wrong split consistent).
+// passes since session 3 (busy-window slope signature, profile fit); the
+// intensity-latency test fails since then (exponent 0.31 for 0.55).
 
 #[test]
 #[ignore]
@@ -180,4 +191,82 @@ fn real_sim_hidden_arbiter_saturation() {
         ],
     );
     assert_recovered(&check_hidden(Some(truth.clone()), 9, 19), &truth);
+}
+
+// The effects added in session 3 (pulse streaks, threshold mismatch, rate
+// limiter, OFF events): each has a signature that sees it (extent_x,
+// visit_yield / yield_split_correlation, events_per_pulse / latency,
+// on_fraction / off_latency).
+
+// Not met (session 3): scale 10.3 → verdict unexplained, nothing named
+// (pulse_streaks does not reduce the gap beyond chance on this 0.02 s
+// scene); threshold mismatch σ 0.32 → "consistent" (no signature sees it
+// at ~1.5 particle visits per pixel). Run with --include-ignored.
+#[test]
+#[ignore]
+fn real_sim_hidden_pulse_streaks() {
+    let truth = setting("pulse_streaks", &[("scale", strength(21, 10.0, 25.0))]);
+    assert_recovered(&check_hidden(Some(truth.clone()), 21, 31), &truth);
+}
+
+#[test]
+#[ignore]
+fn real_sim_hidden_threshold_mismatch() {
+    let truth = setting("threshold_mismatch", &[("sigma", strength(22, 0.15, 0.35))]);
+    assert_recovered(&check_hidden(Some(truth.clone()), 22, 32), &truth);
+}
+
+#[test]
+fn real_sim_hidden_off_events() {
+    let truth = setting(
+        "off_events",
+        &[
+            ("threshold", strength(23, 0.15, 0.4)),
+            ("tau_us", strength(24, 10.0, 50.0)),
+        ],
+    );
+    assert_recovered(&check_hidden(Some(truth.clone()), 23, 33), &truth);
+}
+
+#[test]
+fn real_sim_hidden_rate_limiter() {
+    // A ceiling below the burst: each window keeps 40-70 % of what the
+    // clean scene puts into it at the burst's peak (~300 events per pulse
+    // in ~15 µs).
+    let window = strength(25, 10.0, 30.0);
+    let keep = strength(26, 0.4, 0.7);
+    let max_rate = keep * 20.0 * 1e6;
+    let truth = setting(
+        "rate_limiter",
+        &[("max_rate_ev_s", max_rate), ("window_us", window)],
+    );
+    assert_recovered(&check_hidden(Some(truth.clone()), 25, 35), &truth);
+}
+
+// Out-of-catalogue, null and order checks with the real simulator.
+
+#[test]
+fn real_sim_effect_outside_the_catalogue_is_unexplained() {
+    // Long pulse streaks, with `pulse_streaks` removed from the catalogue:
+    // no other candidate elongates particle images along the flow.
+    let truth = setting("pulse_streaks", &[("scale", strength(41, 20.0, 30.0))]);
+    let mut catalogue = default_catalogue(&base());
+    catalogue.retain(|c| c.name != "pulse_streaks");
+    let res = check_hidden_with(Some(truth), 41, 51, Some(catalogue));
+    assert_eq!(res.verdict, Verdict::Unexplained, "{:#?}", res.rounds);
+    assert!(
+        res.effects.is_empty(),
+        "named {:?} for an effect outside the catalogue",
+        res.effects
+    );
+}
+
+#[test]
+fn real_sim_catalogue_order_does_not_change_the_answer() {
+    let truth = setting("background_noise", &[("rate_hz", strength(42, 2.0, 20.0))]);
+    let a = check_hidden(Some(truth.clone()), 42, 52);
+    let b = check_hidden(Some(truth.clone()), 42, 53);
+    assert_recovered(&a, &truth);
+    assert_eq!(a.effects, b.effects);
+    assert_eq!(a.verdict, b.verdict);
 }

@@ -54,6 +54,22 @@ pub fn default_catalogue(base: &Scenario) -> Vec<EffectSpec> {
             ],
         ),
         e("refractory", vec![p("period_us", 1.0, 300.0, true)]),
+        e("pulse_streaks", vec![p("scale", 1.0, 100.0, true)]),
+        e("threshold_mismatch", vec![p("sigma", 0.02, 0.6, true)]),
+        e(
+            "rate_limiter",
+            vec![
+                p("max_rate_ev_s", 1e5, 1e9, true),
+                p("window_us", 1.0, 1000.0, true),
+            ],
+        ),
+        e(
+            "off_events",
+            vec![
+                p("threshold", 0.05, 2.0, true),
+                p("tau_us", 1.0, 300.0, true),
+            ],
+        ),
     ]
 }
 

@@ -21,6 +21,12 @@
 //! | `shared_fraction` | scalar, fraction of events sharing (row, timestamp) | arbiter saturation |
 //! | `group_size` | histogram of (row, timestamp) group sizes | arbiter saturation |
 //! | `tick_events_vs_rows` | profile: events per timestamp tick per bin of distinct rows in the tick | arbiter row time vs event time |
+//! | `busy_window_slope` | scalar: slope of events on groups over windows of 8 busy ticks | arbiter row time / event time |
+//! | `off_latency` | histogram of the folded time of OFF events | OFF events (their decay time) |
+//! | `events_per_pulse` | histogram of events per pulse period | rate limiter (a ceiling), everything that adds or removes events |
+//! | `visit_yield` | histogram of events per (pixel, pulse) visit | threshold mismatch (a spread of yields), refractory |
+//! | `yield_split_correlation` | scalar, Pearson r of per-pixel events per visit, even vs odd blocks | threshold mismatch (a fixed pattern of yields) |
+//! | `extent_x`, `extent_y` | histograms of particle bounding-box extents (needs particles) | pulse streaks (elongation along the flow) |
 //! | `min_iei` | histogram of per-pixel minimum inter-event interval, µs | refractory period |
 //! | `events_per_cluster` | histogram (needs particles) | brightness, threshold |
 //! | `latency_vs_brightness` | profile: mean first latency per events-per-cluster bin | intensity-dependent latency |
@@ -55,6 +61,18 @@
 //! the two times apart. Only ticks whose neighbours both have events count
 //! (inside a busy period), so the edges of a burst, where the server idles
 //! part of a tick, do not blur the line.
+//!
+//! Busy windows: the same relation summed over [`BUSY_WINDOW_TICKS`]
+//! consecutive busy ticks, G·row_time + E·event_time ≈ 8 µs for the G
+//! (row, timestamp) groups (one per grant) and E events in them. A single
+//! tick holds only one to three grants of a few hundred ns, so which tick
+//! a grant falls in blurs the per-tick line; over eight ticks the edges
+//! cut about one grant each and the line (slope −row_time/event_time)
+//! stands out. Its least-squares slope over all windows is the signature
+//! (a profile's per-bin means spread the few hundred windows of a short
+//! recording too thin). This is what tells the row time from the event time when
+//! the event time dominates the readout of a burst (the latency histogram
+//! then pins only their weighted sum).
 //!
 //! Everything streams: [`SignatureAccumulator::add_events`] takes chunks in
 //! order; per-pixel state is a few arrays of the sensor size.
@@ -410,6 +428,20 @@ pub fn burst_window(latency: &Histogram, fraction: f64) -> Result<(f64, f64)> {
 pub struct SignatureAccumulator {
     cfg: SignatureConfig,
     latency: Histogram,
+    /// Folded time of OFF events (same bins as `latency`).
+    off_latency: Histogram,
+    /// Events per pulse: the pulse being counted and its count so far.
+    pulse_now: i64,
+    pulse_count: u64,
+    pulse_counts: Vec<u64>,
+    /// Per pixel: the pulse of its current visit (events in one pulse)
+    /// and the events in it so far; visits in even / odd blocks.
+    visit_pulse: Vec<i64>,
+    visit_events: Vec<u16>,
+    visits_even: Vec<u32>,
+    visits_odd: Vec<u32>,
+    /// Visits per bin of their events.
+    visit_yield: Histogram,
     count_even: Vec<u32>,
     count_odd: Vec<u32>,
     last_t: Vec<i64>,
@@ -428,14 +460,26 @@ pub struct SignatureAccumulator {
     /// The last tick seen: (timestamp, distinct rows, events, whether the
     /// tick before it had events too).
     last_tick: Option<(i64, usize, usize, bool)>,
+    /// The last busy tick and the (groups, events) of the busy ticks up to
+    /// it (at most a window's worth, all consecutive).
+    busy_last: i64,
+    busy_ticks: std::collections::VecDeque<(usize, usize)>,
+    /// Σ over busy windows of (1, G, E, G², G·E).
+    window_sums: [f64; 5],
     /// Events per pixel outside the burst window (only with a fixed window).
     count_off_burst: Option<Vec<u32>>,
-    particles: Vec<(u32, f32)>,
+    /// (events, first latency, extent x, extent y) per particle.
+    particles: Vec<(u32, f32, f32, f32)>,
     elongation: Option<ProfileAcc>,
     track_lengths: Vec<u32>,
 }
 
 const NO_TIME: i64 = i64::MIN;
+
+/// Ticks per busy window of `busy_window_slope`: long enough
+/// that the grants cut by the window's edges (about one per edge) are a
+/// small part of it, short enough for a few windows per burst.
+pub const BUSY_WINDOW_TICKS: usize = 8;
 
 /// Upper end of the per-pixel count binning (the last bin is "≥ this").
 /// Fixed, never taken from the data, so every data set shares the bins.
@@ -448,6 +492,15 @@ impl SignatureAccumulator {
         let n = cfg.geometry.pixels();
         Ok(SignatureAccumulator {
             latency,
+            off_latency: Histogram::new(cfg.latency_edges(), BinScale::Linear)?,
+            pulse_now: NO_TIME,
+            pulse_count: 0,
+            pulse_counts: Vec::new(),
+            visit_pulse: vec![NO_TIME; n],
+            visit_events: vec![0; n],
+            visits_even: vec![0; n],
+            visits_odd: vec![0; n],
+            visit_yield: Histogram::new((1..=17).map(|k| k as f64).collect(), BinScale::Index)?,
             count_even: vec![0; n],
             count_odd: vec![0; n],
             last_t: vec![NO_TIME; n],
@@ -463,6 +516,9 @@ impl SignatureAccumulator {
             shared_events: 0,
             tick_events: ProfileAcc::new(count_edges(65536.0)[1..].to_vec())?,
             last_tick: None,
+            busy_last: NO_TIME,
+            busy_ticks: Default::default(),
+            window_sums: [0.0; 5],
             count_off_burst: cfg.burst_window_us.map(|_| vec![0; n]),
             particles: Vec::new(),
             elongation: None,
@@ -497,7 +553,31 @@ impl SignatureAccumulator {
             let folded = rel.rem_euclid(period);
             self.latency.add(folded);
             let pulse = (rel / period).floor() as i64;
+            if p != ON {
+                self.off_latency.add(folded);
+            }
+            if pulse != self.pulse_now {
+                if self.pulse_count > 0 {
+                    self.pulse_counts.push(self.pulse_count);
+                }
+                self.pulse_now = pulse;
+                self.pulse_count = 0;
+            }
+            self.pulse_count += 1;
             let pix = y as usize * g.width as usize + x as usize;
+            if self.visit_pulse[pix] != pulse {
+                if self.visit_pulse[pix] != NO_TIME {
+                    self.visit_yield.add(self.visit_events[pix] as f64);
+                }
+                self.visit_pulse[pix] = pulse;
+                self.visit_events[pix] = 0;
+                if pulse.div_euclid(block) % 2 == 0 {
+                    self.visits_even[pix] += 1;
+                } else {
+                    self.visits_odd[pix] += 1;
+                }
+            }
+            self.visit_events[pix] = self.visit_events[pix].saturating_add(1);
             if let (Some(w), Some(c)) = (window, self.count_off_burst.as_mut()) {
                 // Folded time, binned as the latency histogram bins it, so
                 // the per-pixel counts agree with `off_burst_rate`.
@@ -543,6 +623,7 @@ impl SignatureAccumulator {
             after_busy = pt == t - 1;
             if before && after_busy {
                 self.tick_events.add(r as f64, e as f64);
+                self.add_busy_tick(pt, r, e);
             }
         }
         self.last_tick = Some((t, distinct, rows.len(), after_busy));
@@ -557,10 +638,39 @@ impl SignatureAccumulator {
         self.run_rows.clear();
     }
 
+    /// A tick inside a busy period extends the current run of busy ticks
+    /// (or starts one when it does not follow the last); every window of
+    /// [`BUSY_WINDOW_TICKS`] consecutive busy ticks (sliding: overlapping
+    /// windows use every phase of the grants against the tick grid) adds
+    /// its (groups, events) point to the regression sums.
+    fn add_busy_tick(&mut self, t: i64, groups: usize, events: usize) {
+        if self.busy_last != NO_TIME && t != self.busy_last + 1 {
+            self.busy_ticks.clear();
+        }
+        self.busy_last = t;
+        self.busy_ticks.push_back((groups, events));
+        if self.busy_ticks.len() > BUSY_WINDOW_TICKS {
+            self.busy_ticks.pop_front();
+        }
+        if self.busy_ticks.len() == BUSY_WINDOW_TICKS {
+            let (g, e) = self
+                .busy_ticks
+                .iter()
+                .fold((0usize, 0usize), |a, b| (a.0 + b.0, a.1 + b.1));
+            let (g, e) = (g as f64, e as f64);
+            for (s, v) in self.window_sums.iter_mut().zip([1.0, g, e, g * g, g * e]) {
+                *s += v;
+            }
+        }
+    }
+
     /// Add clustered particles (any order).
     pub fn add_particles(&mut self, particles: &[Particle]) {
-        self.particles
-            .extend(particles.iter().map(|p| (p.n_events, p.first_latency_us)));
+        self.particles.extend(
+            particles
+                .iter()
+                .map(|p| (p.n_events, p.first_latency_us, p.extent_x, p.extent_y)),
+        );
     }
 
     /// Add tracks, with the particles they were built from (for the
@@ -747,18 +857,84 @@ impl SignatureAccumulator {
         );
 
         push(
+            "busy_window_slope",
+            "least-squares slope of events on (row, timestamp) groups over windows of 8 busy ticks",
+            SignatureValue::Scalar {
+                value: regression_slope(&self.window_sums),
+            },
+        );
+
+        push(
             "min_iei",
             "pixels per bin of their minimum inter-event interval (us)",
             SignatureValue::Histogram(iei),
         );
 
+        push(
+            "off_latency",
+            "OFF events per folded time bin (us)",
+            SignatureValue::Histogram(self.off_latency.clone()),
+        );
+        if self.pulse_count > 0 {
+            self.pulse_counts.push(self.pulse_count);
+        }
+        let mut per_pulse =
+            Histogram::new(count_edges(MAX_COUNT_EDGE)[1..].to_vec(), BinScale::Index)?;
+        for &c in &self.pulse_counts {
+            per_pulse.add(c as f64);
+        }
+        push(
+            "events_per_pulse",
+            "pulse periods per bin of their events (periods with any)",
+            SignatureValue::Histogram(per_pulse),
+        );
+        let mut visit_yield = self.visit_yield.clone();
+        let (mut ye, mut yo) = (Vec::new(), Vec::new());
+        for pix in 0..self.visit_pulse.len() {
+            if self.visit_pulse[pix] != NO_TIME {
+                visit_yield.add(self.visit_events[pix] as f64);
+            }
+            let (ve, vo) = (self.visits_even[pix], self.visits_odd[pix]);
+            if ve > 0 && vo > 0 {
+                ye.push(self.count_even[pix] as f64 / ve as f64);
+                yo.push(self.count_odd[pix] as f64 / vo as f64);
+            }
+        }
+        push(
+            "visit_yield",
+            "(pixel, pulse) visits per number of events in them",
+            SignatureValue::Histogram(visit_yield),
+        );
+        push(
+            "yield_split_correlation",
+            "Pearson r of per-pixel events per visit in even vs odd pulse blocks (pixels visited in both)",
+            SignatureValue::Scalar {
+                value: pearson_f64(&ye, &yo),
+            },
+        );
+
         if !self.particles.is_empty() {
             let mut epc = Histogram::new((1..=17).map(|k| k as f64).collect(), BinScale::Index)?;
             let mut lat = ProfileAcc::new(vec![1.0, 2.0, 3.0, 4.0, 5.0, 7.0, 10.0, 16.0])?;
-            for &(n, l) in &self.particles {
+            let extent_edges: Vec<f64> = (1..=13).map(|k| k as f64).collect();
+            let mut ext_x = Histogram::new(extent_edges.clone(), BinScale::Index)?;
+            let mut ext_y = Histogram::new(extent_edges, BinScale::Index)?;
+            for &(n, l, ex, ey) in &self.particles {
                 epc.add(n as f64);
                 lat.add(n as f64, l as f64);
+                ext_x.add(ex as f64);
+                ext_y.add(ey as f64);
             }
+            push(
+                "extent_x",
+                "particles per bounding-box extent along x (px)",
+                SignatureValue::Histogram(ext_x),
+            );
+            push(
+                "extent_y",
+                "particles per bounding-box extent along y (px)",
+                SignatureValue::Histogram(ext_y),
+            );
             push(
                 "events_per_cluster",
                 "particles per number of events",
@@ -804,6 +980,39 @@ impl SignatureAccumulator {
 /// Is folded time `c` outside the circular window `[w.0, w.1)`?
 fn outside_window(c: f64, w: (f64, f64), period: f64) -> bool {
     (c - w.0).rem_euclid(period) >= w.1 - w.0
+}
+
+/// Slope of the least-squares line through points given by their sums
+/// [n, Σx, Σy, Σx², Σxy]; NaN with fewer than three points or no spread
+/// in x (then the signature is not compared).
+fn regression_slope(s: &[f64; 5]) -> f64 {
+    let [n, sx, sy, sxx, sxy] = *s;
+    let var = n * sxx - sx * sx;
+    if n < 3.0 || var <= 1e-9 * n * sxx.max(1.0) {
+        return f64::NAN;
+    }
+    (n * sxy - sx * sy) / var
+}
+
+/// [`pearson`] on floats.
+fn pearson_f64(a: &[f64], b: &[f64]) -> f64 {
+    let n = a.len() as f64;
+    if n < 2.0 {
+        return 0.0;
+    }
+    let (ma, mb) = (a.iter().sum::<f64>() / n, b.iter().sum::<f64>() / n);
+    let (mut cov, mut va, mut vb) = (0.0, 0.0, 0.0);
+    for (&x, &y) in a.iter().zip(b) {
+        let (dx, dy) = (x - ma, y - mb);
+        cov += dx * dy;
+        va += dx * dx;
+        vb += dy * dy;
+    }
+    if va <= 0.0 || vb <= 0.0 {
+        0.0
+    } else {
+        cov / (va * vb).sqrt()
+    }
 }
 
 /// Pearson correlation; 0 when either side has no variance.

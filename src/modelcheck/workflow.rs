@@ -102,6 +102,13 @@ pub struct WorkflowOptions {
     pub chance_factor: f64,
     /// Base seed; every simulation seed derives from it.
     pub seed: u64,
+    /// Start two-parameter fits with the profile along the first parameter
+    /// ([`profile_then_simplex`]) instead of Nelder–Mead from the box
+    /// centre. Needed for the arbiter's row/event-time valley; off by
+    /// default because on small scenes it also lets intensity latency
+    /// mimic latency jitter closely enough that neither clearly wins.
+    #[serde(default)]
+    pub profile_fit: bool,
 }
 
 impl Default for WorkflowOptions {
@@ -113,6 +120,7 @@ impl Default for WorkflowOptions {
             max_evaluations: 30,
             chance_factor: 3.0,
             seed: 1,
+            profile_fit: false,
         }
     }
 }
@@ -337,6 +345,30 @@ fn to_value(p: &ParamSpec, u: f64) -> f64 {
     }
 }
 
+/// Parameter value → unit-cube coordinate (inverse of [`to_value`],
+/// clamped to the box).
+fn to_unit(p: &ParamSpec, v: f64) -> f64 {
+    let u = if p.log {
+        (v.max(p.lo).ln() - p.lo.ln()) / (p.hi.ln() - p.lo.ln())
+    } else {
+        (v - p.lo) / (p.hi - p.lo)
+    };
+    if u.is_finite() {
+        u.clamp(0.0, 1.0)
+    } else {
+        0.5
+    }
+}
+
+/// Unit-cube coordinates of an effect setting (a parameter missing from
+/// the setting sits at the box centre).
+fn unit_of(spec: &EffectSpec, set: &EffectSetting) -> Vec<f64> {
+    spec.params
+        .iter()
+        .map(|p| set.parameters.get(&p.name).map_or(0.5, |&v| to_unit(p, v)))
+        .collect()
+}
+
 fn setting(spec: &EffectSpec, u: &[f64]) -> EffectSetting {
     EffectSetting {
         name: spec.name.clone(),
@@ -498,17 +530,50 @@ fn fit_candidate(
     max_evaluations: usize,
     crn_seed: u64,
     refine_from: Option<&[f64]>,
+    profile_fit: bool,
 ) -> Result<(Vec<f64>, f64, usize)> {
     let floors = base.spread_floors(measured_fit)?;
     let mut objective = |u: &[f64]| -> Result<f64> {
         let mut m = model.to_vec();
         m.push(setting(spec, u));
-        let s = signatures_of(cfg, &sim.simulate(&m, crn_seed)?)?;
+        let rec = sim.simulate(&m, crn_seed)?;
+        if rec.events.is_empty() {
+            // Parameters that silence the sensor (a rate limit of less than
+            // one event per window) are as far from any measurement as can be.
+            return Ok(f64::INFINITY);
+        }
+        let s = signatures_of(cfg, &rec)?;
         // Distances to the candidate's simulation, judged by the current
         // model's replicate spreads.
         let d = distances(measured_fit, &s)?;
-        Ok(base.scaled_sum(&d, &floors))
+        let v = base.scaled_sum(&d, &floors);
+        if std::env::var("EBPTV_MC_TRACE").is_ok() {
+            eprintln!(
+                "TRACE {} {:?} -> {v:.2}",
+                spec.name,
+                setting(spec, u).parameters
+            );
+        }
+        Ok(v)
     };
+    if let Ok(probe) = std::env::var("EBPTV_MC_PROBE") {
+        // Diagnostics: the objective at given parameters, e.g.
+        // EBPTV_MC_PROBE="intensity_latency:exponent=0.55,reference=2.09".
+        if let Some((name, rest)) = probe.split_once(':') {
+            if name == spec.name {
+                let set = EffectSetting {
+                    name: name.into(),
+                    parameters: rest
+                        .split(',')
+                        .filter_map(|kv| kv.split_once('='))
+                        .filter_map(|(k, v)| Some((k.to_string(), v.parse().ok()?)))
+                        .collect(),
+                };
+                let u = unit_of(spec, &set);
+                eprintln!("PROBE {} {:?}: {:.2}", name, set.parameters, objective(&u)?);
+            }
+        }
+    }
     if spec.params.len() == 1 {
         let (lo, hi) = match refine_from {
             Some(u) => (u[0] - REFINE_HALF_WIDTH, u[0] + REFINE_HALF_WIDTH),
@@ -516,8 +581,11 @@ fn fit_candidate(
         };
         let (u, v, e) = minimise_1d_in(&mut |x| objective(&[x]), lo, hi, max_evaluations)?;
         Ok((vec![u], v, e))
+    } else if profile_fit && spec.params.len() == 2 && refine_from.is_none() {
+        profile_then_simplex(&mut objective, max_evaluations)
     } else {
         let (start, step) = match refine_from {
+            Some(u) if profile_fit => (u.to_vec(), REFINE_SIMPLEX_STEP),
             Some(u) => (u.to_vec(), REFINE_HALF_WIDTH),
             None => (vec![0.5; spec.params.len()], 0.3),
         };
@@ -531,8 +599,123 @@ fn fit_candidate(
     }
 }
 
+/// Outer grid of [`profile_then_simplex`]: values of the first parameter
+/// (cell centres of the unit interval).
+const PROFILE_OUTER: [f64; 4] = [0.125, 0.375, 0.625, 0.875];
+
+/// First-stage search for two parameters: the profile of the objective
+/// along the first (for each of [`PROFILE_OUTER`], the second parameter
+/// fitted by [`minimise_1d`]), then Nelder–Mead from the best profile point.
+///
+/// Why not Nelder–Mead from the centre: two parameters of one effect often
+/// trade off along a narrow curved valley (the arbiter's row and event time
+/// both lengthen the readout of a burst: only row·groups + event·events is
+/// pinned sharply, the split between them only weakly). A simplex started
+/// far from the valley falls into it wherever it first meets it and then
+/// shrinks there, 5× off along the valley. The profile meets the valley at
+/// every outer value and compares the objective *along* it.
+fn profile_then_simplex(
+    objective: &mut dyn FnMut(&[f64]) -> Result<f64>,
+    max_evaluations: usize,
+) -> Result<(Vec<f64>, f64, usize)> {
+    // Budget: about 4.5 × max_evaluations + 8 (each inner search needs
+    // enough points to land in the valley: it is often narrow, 15 % of a
+    // range spanning decades).
+    let inner = max_evaluations.max(5);
+    let mut evals = 0;
+    let mut best = (vec![0.5, 0.5], f64::INFINITY);
+    for &a in &PROFILE_OUTER {
+        let (b, v, e) = minimise_1d(&mut |b| objective(&[a, b]), inner)?;
+        evals += e;
+        if v < best.1 {
+            best = (vec![a, b], v);
+        }
+    }
+    let rest = (max_evaluations / 2).max(6);
+    let (x, v, e) = nelder_mead(objective, &best.0, 0.5 / PROFILE_OUTER.len() as f64, rest)?;
+    evals += e;
+    Ok(if v <= best.1 {
+        (x, v, evals)
+    } else {
+        (best.0, best.1, evals)
+    })
+}
+
+/// Initial simplex step of the second-stage search for several
+/// parameters: wide enough to move along a valley the first stage's
+/// weights left flat (intensity latency: exponent and reference trade off,
+/// and only the second stage's weights tell them apart).
+const REFINE_SIMPLEX_STEP: f64 = 0.25;
+
 /// Half width (unit-cube coordinates) of the second-stage search.
 const REFINE_HALF_WIDTH: f64 = 0.15;
+
+/// Joint refit of the effects found so far, after a new one was accepted:
+/// each in turn is refitted (second-stage search around its current
+/// value, common random numbers, the others held) with the current model's
+/// replicate spreads as weights; two sweeps. An effect accepted early may
+/// have absorbed part of a later one's signature (latency jitter widening
+/// to mimic an intensity-dependent latency spread): once the later effect
+/// is in the model, the earlier one's parameters move back.
+///
+/// Returns the refitted model, its held-out assessment and gap, or `None`
+/// when no found effect is in the catalogue (nothing to refit).
+#[allow(clippy::too_many_arguments)]
+fn joint_refit(
+    sim: &dyn Simulator,
+    cfg: &SignatureConfig,
+    catalogue: &[EffectSpec],
+    model: &[EffectSetting],
+    effects: &[FoundEffect],
+    m_fit: &Signatures,
+    m_hold: &Signatures,
+    current: &Assessment,
+    opts: &WorkflowOptions,
+    round_no: u64,
+) -> Result<Option<(Vec<EffectSetting>, Assessment, f64)>> {
+    let mut model = model.to_vec();
+    let crn = seed_for(opts.seed, 5000 + round_no, 0);
+    let mut refitted = false;
+    for _sweep in 0..JOINT_REFIT_SWEEPS {
+        for e in effects {
+            let Some(spec) = catalogue.iter().find(|c| c.name == e.name) else {
+                continue;
+            };
+            let Some(pos) = model.iter().position(|m| m.name == e.name) else {
+                continue;
+            };
+            let u0 = unit_of(spec, &model[pos]);
+            let mut others = model.clone();
+            others.remove(pos);
+            let (u, _, _) = fit_candidate(
+                sim,
+                cfg,
+                &others,
+                spec,
+                m_fit,
+                current,
+                opts.max_evaluations,
+                crn,
+                Some(&u0),
+                opts.profile_fit,
+            )?;
+            model[pos] = setting(spec, &u);
+            refitted = true;
+        }
+    }
+    if !refitted {
+        return Ok(None);
+    }
+    let seeds: Vec<u64> = (0..opts.replicates as u64 + 1)
+        .map(|k| seed_for(opts.seed, 6000 + round_no, k))
+        .collect();
+    let a = Assessment::new(sim, cfg, &model, &seeds, opts.z_threshold)?;
+    let gap = a.table(m_hold, opts.z_threshold)?.gap();
+    Ok(Some((model, a, gap)))
+}
+
+/// Sweeps over the found effects in [`joint_refit`].
+const JOINT_REFIT_SWEEPS: usize = 2;
 
 /// Run the search. `measured_fit` and `measured_holdout` are two disjoint
 /// time blocks of the measurement, each as long as one simulated recording.
@@ -625,6 +808,7 @@ pub fn run(
                     opts.max_evaluations,
                     crn,
                     None,
+                    opts.profile_fit,
                 )?;
                 // Stage 2: the effect changes the noise of the signatures it
                 // drives (hot pixels make the off-burst rate noisy), so take
@@ -642,6 +826,7 @@ pub fn run(
                     opts.max_evaluations,
                     crn,
                     Some(&u1),
+                    opts.profile_fit,
                 )?;
                 let evaluations = e1 + e2;
                 let set = setting(spec, &u);
@@ -697,6 +882,37 @@ pub fn run(
             });
             model.push(set);
             current = assessment;
+            if effects.len() >= 2 {
+                let refit = joint_refit(
+                    sim, cfg, &catalogue, &model, &effects, &m_fit, &m_hold, &current, opts,
+                    round_no,
+                )?;
+                if let Some((new_model, new_assessment, gap)) = refit {
+                    let gap_now = current.table(&m_hold, z)?.gap();
+                    let round = rounds.last_mut().expect("pushed above");
+                    round.note.push_str(&format!(
+                        "; joint refit of the {} effects found: held-out gap {:.2} -> {:.2}",
+                        effects.len(),
+                        gap_now,
+                        gap
+                    ));
+                    // Keep the refit only when the held-out data agree.
+                    if gap <= gap_now {
+                        for e in effects.iter_mut() {
+                            if let Some(m) = new_model.iter().find(|m| m.name == e.name) {
+                                e.parameters = m.parameters.clone();
+                            }
+                        }
+                        if let Some(last) = effects.last_mut() {
+                            last.gap_after = gap;
+                        }
+                        model = new_model;
+                        current = new_assessment;
+                    } else {
+                        round.note.push_str(" (kept the greedy fit)");
+                    }
+                }
+            }
         } else {
             let note = if !beats_chance {
                 format!(
