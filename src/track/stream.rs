@@ -287,7 +287,7 @@ mod tests {
         });
         let cparams = ClusterParams::default();
         let tparams = TrackParams {
-            max_track_length: 32,
+            max_track_length: 44,
             ..Default::default()
         };
         let pool = |n: usize| {
