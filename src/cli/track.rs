@@ -7,7 +7,7 @@ use anyhow::Context;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use ebptv::cluster::{ClusterParams, Particle};
+use ebptv::cluster::{ClusterParams, NeighbourSearch, Particle};
 use ebptv::pulses::PulseOptions;
 use ebptv::track::{
     track_recording, ParticlesCsvWriter, PtvSink, PtvStream, SummaryAcc, Track, TrackParams,
@@ -59,6 +59,10 @@ pub struct TrackArgs {
     /// two (merged images of close particle pairs); 0 = never.
     #[arg(long, default_value_t = 3)]
     pub split_extent: u32,
+    /// Neighbour search for clustering: `row-sweep` (default, fastest) or
+    /// `kd-tree` (kiddo); both give identical clusters.
+    #[arg(long, value_enum, default_value = "row-sweep")]
+    pub neighbour_search: NeighbourSearchArg,
     /// File of pixels to ignore, one `x,y` per line.
     #[arg(long)]
     pub hot_pixels: Option<PathBuf>,
@@ -369,6 +373,10 @@ fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
             None => Default::default(),
         },
         split_extent: args.split_extent,
+        neighbour_search: match args.neighbour_search {
+            NeighbourSearchArg::RowSweep => NeighbourSearch::RowSweep,
+            NeighbourSearchArg::KdTree => NeighbourSearch::KdTree,
+        },
     };
     let mut tparams = TrackParams {
         max_disp: args.max_disp,
@@ -444,4 +452,11 @@ fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
         geometry.map(|g| g.width as f64),
         geometry.map(|g| g.height as f64),
     )
+}
+
+/// `--neighbour-search` values (clap's mirror of [`NeighbourSearch`]).
+#[derive(Debug, Clone, Copy, clap::ValueEnum)]
+pub enum NeighbourSearchArg {
+    RowSweep,
+    KdTree,
 }

@@ -78,7 +78,8 @@ use serde::{Deserialize, Serialize};
 
 use super::LinkedTrack;
 use crate::cluster::{
-    particles_from_labels, pixel_labels, pulse_pixels, split_wide_clusters, ClusterParams, Particle,
+    particles_from_labels, pixel_labels_with, pulse_pixels, split_wide_clusters, ClusterParams,
+    Particle,
 };
 use crate::events::{EventChunk, ON};
 use crate::pulses::PulseEvents;
@@ -295,7 +296,7 @@ pub type TruthClusters = (Vec<Particle>, Vec<Option<u64>>, Vec<bool>, Vec<Vec<u6
 /// truth particle that made at least one of its events (sorted).
 pub fn cluster_with_truth_sources(sp: &SynthPulse, params: &ClusterParams) -> TruthClusters {
     let pixels = pulse_pixels(&sp.pulse, params);
-    let mut labels = pixel_labels(&pixels, params);
+    let mut labels = pixel_labels_with(&pixels, params);
     split_wide_clusters(&pixels, &mut labels, params.split_extent);
     let particles = particles_from_labels(&sp.pulse, &pixels, &labels, params);
     let label_of: HashMap<(u16, u16), u32> = pixels
