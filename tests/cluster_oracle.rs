@@ -4,7 +4,7 @@
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
 use ebptv::cluster::{
-    cluster_pulse, pixel_labels, pixel_labels_kdtree, pulse_pixels, ClusterParams,
+    cluster_pulse, pixel_labels, pixel_labels_kdtree, pulse_pixels, ClusterParams, NeighbourSearch,
 };
 use ebptv::events::EventChunk;
 use ebptv::pulses::PulseEvents;
@@ -133,7 +133,7 @@ fn random_pulse() -> impl Strategy<Value = PulseEvents> {
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(300))]
     #[test]
-    fn kdtree_matches_brute_force(pulse in random_pulse(), r10 in 5u32..40, on_only in any::<bool>(), min_events in 1u32..3, hot in prop::collection::vec((0u16..40, 0u16..40), 0..5)) {
+    fn kdtree_matches_brute_force(pulse in random_pulse(), r10 in 5u32..40, on_only in any::<bool>(), min_events in 1u32..3, hot in prop::collection::vec((0u16..40, 0u16..40), 0..5), kd_tree in any::<bool>()) {
         let params = ClusterParams {
             radius: r10 as f64 / 10.0,
             on_only,
@@ -141,6 +141,8 @@ proptest! {
             max_events: 12,
             hot_pixels: hot.into_iter().collect(),
             split_extent: 0, // the partition oracle; splitting has its own below
+            // cluster_pulse below runs either neighbour search
+            neighbour_search: if kd_tree { NeighbourSearch::KdTree } else { NeighbourSearch::RowSweep },
         };
         let brute = brute_partition(&pulse, &params);
         prop_assert_eq!(&fast_partition(&pulse, &params, false), &brute);

@@ -286,22 +286,33 @@ impl StreamingNpy {
         Ok(())
     }
     fn finish(mut self) -> Result<()> {
-        let target = self.file.target().to_path_buf();
         self.flush_buf()?;
-        let header = header_bytes(self.descr, &[self.rows], self.header_len);
-        if header.len() != self.header_len {
-            return Err(Error::corrupt(
-                &target,
-                0,
-                "npy header outgrew its reserved room (internal error)",
-            ));
-        }
-        self.file
-            .seek(SeekFrom::Start(0))
-            .and_then(|_| self.file.write_all(&header))
-            .map_err(|e| Error::io(&target, e))?;
-        self.file.commit()
+        commit_streamed_table(self.file, self.descr, self.rows, self.header_len)
     }
+}
+
+/// Finish a streamed 1-D structured array: overwrite its provisional header
+/// (written with room for any row count, `header_len` bytes) with the final
+/// row count, then commit the file.
+pub(crate) fn commit_streamed_table(
+    mut file: AtomicFile,
+    descr: &str,
+    rows: usize,
+    header_len: usize,
+) -> Result<()> {
+    let target = file.target().to_path_buf();
+    let header = header_bytes(descr, &[rows], header_len);
+    if header.len() != header_len {
+        return Err(Error::corrupt(
+            &target,
+            0,
+            "npy header outgrew its reserved room (internal error)",
+        ));
+    }
+    file.seek(SeekFrom::Start(0))
+        .and_then(|_| file.write_all(&header))
+        .map_err(|e| Error::io(&target, e))?;
+    file.commit()
 }
 
 /// Streaming writer of events to a structured `.npy` (see the module docs).

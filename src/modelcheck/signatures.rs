@@ -1017,26 +1017,8 @@ fn pearson_f64(a: &[f64], b: &[f64]) -> f64 {
 
 /// Pearson correlation; 0 when either side has no variance.
 fn pearson(a: &[u32], b: &[u32]) -> f64 {
-    let n = a.len() as f64;
-    if n == 0.0 {
-        return 0.0;
-    }
-    let (sa, sb) = a.iter().zip(b).fold((0.0, 0.0), |(sa, sb), (&x, &y)| {
-        (sa + x as f64, sb + y as f64)
-    });
-    let (ma, mb) = (sa / n, sb / n);
-    let (mut cov, mut va, mut vb) = (0.0, 0.0, 0.0);
-    for (&x, &y) in a.iter().zip(b) {
-        let (dx, dy) = (x as f64 - ma, y as f64 - mb);
-        cov += dx * dy;
-        va += dx * dx;
-        vb += dy * dy;
-    }
-    if va <= 0.0 || vb <= 0.0 {
-        0.0
-    } else {
-        cov / (va * vb).sqrt()
-    }
+    let as_f64 = |v: &[u32]| v.iter().map(|&x| x as f64).collect::<Vec<f64>>();
+    pearson_f64(&as_f64(a), &as_f64(b))
 }
 
 /// Convenience: signatures of one in-memory event set.

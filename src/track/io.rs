@@ -212,22 +212,13 @@ impl TracksNpyWriter {
             .map_err(|e| werr(self.file.target(), e))
     }
 
-    pub fn finish(mut self) -> Result<()> {
-        use std::io::{Seek, SeekFrom};
-        let target = self.file.target().to_path_buf();
-        let header = crate::io::npy::table_header(TRACKS_NPY_DESCR, self.rows, self.header_len);
-        if header.len() != self.header_len {
-            return Err(Error::corrupt(
-                &target,
-                0,
-                "npy header outgrew its reserved room (internal error)",
-            ));
-        }
-        self.file
-            .seek(SeekFrom::Start(0))
-            .and_then(|_| self.file.write_all(&header))
-            .map_err(|e| werr(&target, e))?;
-        self.file.commit()
+    pub fn finish(self) -> Result<()> {
+        crate::io::npy::commit_streamed_table(
+            self.file,
+            TRACKS_NPY_DESCR,
+            self.rows,
+            self.header_len,
+        )
     }
 }
 
