@@ -582,3 +582,52 @@ fn hot_pixel_is_listed_and_json_is_flat() {
     }
     assert_eq!(v["source"], "estimated");
 }
+
+#[test]
+fn saturation_that_comes_and_goes_is_flagged_per_window() {
+    // The same pulse train; the first half of the recording clean, the
+    // second half saturated (as when seeding or laser power rises
+    // mid-recording). Only windows of the second half may be flagged.
+    let mut clean = Scene::new(10_000.0);
+    clean.trigger_channel = Some(1);
+    let mut sat = Scene::new(10_000.0);
+    sat.trigger_channel = Some(1);
+    sat.saturated = true;
+    let (a, tr, _) = generate(&clean);
+    let (b, _, _) = generate(&sat);
+    let half = (clean.duration_us / 2.0) as i64;
+    let mut merged: Vec<(i64, u16, u16, u8)> = Vec::new();
+    for i in 0..a.len() {
+        if a.t[i] < half {
+            merged.push((a.t[i], a.x[i], a.y[i], a.p[i]));
+        }
+    }
+    for i in 0..b.len() {
+        if b.t[i] >= half {
+            merged.push((b.t[i], b.x[i], b.y[i], b.p[i]));
+        }
+    }
+    merged.sort_by_key(|e| e.0);
+    let mut ev = EventChunk::default();
+    for (t, x, y, p) in merged {
+        ev.push(t, x, y, p);
+    }
+    let mut src = MemSource::new(ev, tr);
+    let r = analyze(&mut src, &PulseOptions::default()).unwrap();
+    let w = &r.saturation.windows;
+    assert!(w.len() >= 4, "{} windows", w.len());
+    // Windows straddling the switch may go either way.
+    let early: Vec<_> = w.iter().filter(|w| w.t_end_us <= half).collect();
+    let late: Vec<_> = w.iter().filter(|w| w.t_start_us >= half).collect();
+    assert!(!early.is_empty() && !late.is_empty());
+    assert!(
+        early.iter().all(|w| !w.saturated),
+        "clean windows flagged: {early:?}"
+    );
+    assert!(
+        late.iter().all(|w| w.saturated),
+        "saturated windows missed: {late:?}"
+    );
+    let f = r.saturation.saturated_event_fraction;
+    assert!(f > 0.3 && f < 0.99, "saturated event fraction {f}");
+}
