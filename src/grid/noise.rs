@@ -239,6 +239,11 @@ mod tests {
     /// Particles in a sheared flow with a travelling wave (fluctuations
     /// shared by neighbours) plus white noise of known rms: the estimate
     /// recovers the noise, not the wave or the mean shear.
+    /// The samples binned on 16 px top-hat bins.
+    fn top_hat_16(s: &[Sample]) -> crate::grid::GridAccumulator {
+        bin_samples(s, Lattice::new(16.0, 16.0, 0.0).unwrap(), Weighting::TopHat).unwrap()
+    }
+
     fn samples(sigma: f64, wave: f64, seed: u64) -> Vec<Sample> {
         let mut rng = Pcg64::seed_from_u64(seed);
         let noise = Normal::new(0.0, sigma).unwrap();
@@ -265,12 +270,7 @@ mod tests {
     fn recovers_white_noise_under_shear_and_waves() {
         for (sigma, wave) in [(50.0, 0.0), (50.0, 300.0), (200.0, 1000.0)] {
             let s = samples(sigma, wave, 7);
-            let acc = bin_samples(
-                &s,
-                Lattice::new(16.0, 16.0, 0.0).unwrap(),
-                Weighting::TopHat,
-            )
-            .unwrap();
+            let acc = top_hat_16(&s);
             let g = estimate(
                 &acc,
                 &EstimateOptions {
@@ -294,12 +294,7 @@ mod tests {
     #[test]
     fn sweep_equals_brute_force_pairs() {
         let s: Vec<Sample> = samples(80.0, 200.0, 3).into_iter().take(4000).collect();
-        let acc = bin_samples(
-            &s,
-            Lattice::new(16.0, 16.0, 0.0).unwrap(),
-            Weighting::TopHat,
-        )
-        .unwrap();
+        let acc = top_hat_16(&s);
         let g = estimate(&acc, &EstimateOptions::default()).unwrap();
         let opt = NoiseOptions::default();
         let e = velocity_noise(&s, &g, &opt).unwrap();
@@ -338,12 +333,7 @@ mod tests {
     #[test]
     fn bad_options_and_sparse_data() {
         let s = samples(50.0, 0.0, 1);
-        let acc = bin_samples(
-            &s,
-            Lattice::new(16.0, 16.0, 0.0).unwrap(),
-            Weighting::TopHat,
-        )
-        .unwrap();
+        let acc = top_hat_16(&s);
         let g = estimate(&acc, &EstimateOptions::default()).unwrap();
         let bad = NoiseOptions {
             min_sep: 5.0,

@@ -46,6 +46,24 @@ impl Default for SynthOptions {
     }
 }
 
+/// Uniformly random particle positions at density `o.ppp` over the image
+/// enlarged by `margin` on every side (so particles move in and out).
+fn seed_particles(o: &SynthOptions, rng: &mut rand_pcg::Pcg64, margin: f64) -> Vec<(f64, f64)> {
+    let (ew, eh) = (
+        o.width as f64 + 2.0 * margin,
+        o.height as f64 + 2.0 * margin,
+    );
+    let n = (o.ppp * ew * eh).round() as usize;
+    (0..n)
+        .map(|_| {
+            (
+                rng.gen::<f64>() * ew - margin,
+                rng.gen::<f64>() * eh - margin,
+            )
+        })
+        .collect()
+}
+
 /// Generate `o.frames` frames of particles moved by `disp` per frame step.
 pub fn particle_frames(o: &SynthOptions, disp: &dyn Fn(f64, f64) -> (f64, f64)) -> Vec<Image> {
     let mut rng = rand_pcg::Pcg64::seed_from_u64(o.seed);
@@ -61,19 +79,7 @@ pub fn particle_frames(o: &SynthOptions, disp: &dyn Fn(f64, f64) -> (f64, f64)) 
         }
     }
     let margin = (vmax * o.frames as f64).ceil() + 4.0;
-    let (ew, eh) = (
-        o.width as f64 + 2.0 * margin,
-        o.height as f64 + 2.0 * margin,
-    );
-    let n = (o.ppp * ew * eh).round() as usize;
-    let mut pts: Vec<(f64, f64)> = (0..n)
-        .map(|_| {
-            (
-                rng.gen::<f64>() * ew - margin,
-                rng.gen::<f64>() * eh - margin,
-            )
-        })
-        .collect();
+    let mut pts = seed_particles(o, &mut rng, margin);
     let kernel = o.binary_sigma.map(gaussian_kernel);
     let mut tmp = Vec::new();
     let mut frames = Vec::with_capacity(o.frames);
@@ -98,19 +104,7 @@ pub fn accelerating_frames(o: &SynthOptions, d0: (f64, f64), a: (f64, f64)) -> V
     let n = o.frames as f64;
     let reach = |d: f64, a: f64| (d.abs() * n + 0.5 * a.abs() * n * n).ceil() + 4.0;
     let margin = reach(d0.0, a.0).max(reach(d0.1, a.1));
-    let (ew, eh) = (
-        o.width as f64 + 2.0 * margin,
-        o.height as f64 + 2.0 * margin,
-    );
-    let count = (o.ppp * ew * eh).round() as usize;
-    let start: Vec<(f64, f64)> = (0..count)
-        .map(|_| {
-            (
-                rng.gen::<f64>() * ew - margin,
-                rng.gen::<f64>() * eh - margin,
-            )
-        })
-        .collect();
+    let start = seed_particles(o, &mut rng, margin);
     let kernel = o.binary_sigma.map(gaussian_kernel);
     let mut tmp = Vec::new();
     (0..o.frames)
