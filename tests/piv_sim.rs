@@ -83,4 +83,37 @@ fn simulated_vortex_recording_mean_field_within_2_percent() {
     );
     assert!(rel < 0.02, "rms error {rel} of peak speed");
     assert!(valid / nodes > 0.9);
+
+    // Time steps in parallel: the same files, byte for byte, with one
+    // thread evaluating one step at a time and with two threads running
+    // batches of 3 steps (the run above: the default batch).
+    for (threads, batch) in [("1", "1"), ("2", "3")] {
+        let again = dir.path().join(format!("piv_{threads}_{batch}"));
+        run_ok(ebptv().env("RAYON_NUM_THREADS", threads).args([
+            "piv",
+            sim.join("recording.raw").to_str().unwrap(),
+            "--window",
+            "32",
+            "--spacing",
+            "32",
+            "--frames",
+            "5",
+            "--batch",
+            batch,
+            "--out",
+            again.to_str().unwrap(),
+        ]));
+        for f in [
+            "piv_u.npy",
+            "piv_v.npy",
+            "piv_flag.npy",
+            "piv_steps.csv",
+            "piv_mean.csv",
+        ] {
+            assert!(
+                std::fs::read(out.join(f)).unwrap() == std::fs::read(again.join(f)).unwrap(),
+                "{f} differs with {threads} thread(s), batch {batch}"
+            );
+        }
+    }
 }

@@ -71,6 +71,10 @@ pub struct PivArgs {
     /// Nominal pulse frequency (Hz) when the recording has no triggers.
     #[arg(long)]
     pub pulse_hz: Option<f64>,
+    /// Time steps evaluated in parallel (default: the number of rayon
+    /// threads); the fields do not depend on it, memory grows with it.
+    #[arg(long)]
+    pub batch: Option<usize>,
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -116,17 +120,20 @@ pub fn run(a: PivArgs) -> anyhow::Result<()> {
     let hz = stream.pulse_hz();
     let bar = indicatif::ProgressBar::new_spinner();
     let mut src = ebptv::io::open(&a.recording)?;
-    split_pulses(src.as_mut(), &report.timing, &mut |pe| {
-        if let Some(f) = stream.push_pulse(&pe)? {
-            su.push_f32(f.field.u.iter().map(|&x| (x * hz) as f32))?;
-            sv.push_f32(f.field.v.iter().map(|&x| (x * hz) as f32))?;
-            sf.push_u8(&f.field.flags)?;
-            times.push((f.first_pulse, f.t_us));
-            bar.set_message(format!("{} fields", times.len()));
-            bar.tick();
-        }
+    stream.set_batch(a.batch.unwrap_or_else(rayon::current_num_threads))?;
+    let mut emit = |f: ebptv::piv::StepField| -> ebptv::Result<()> {
+        su.push_f32(f.field.u.iter().map(|&x| (x * hz) as f32))?;
+        sv.push_f32(f.field.v.iter().map(|&x| (x * hz) as f32))?;
+        sf.push_u8(&f.field.flags)?;
+        times.push((f.first_pulse, f.t_us));
+        bar.set_message(format!("{} fields", times.len()));
+        bar.tick();
         Ok(())
+    };
+    split_pulses(src.as_mut(), &report.timing, &mut |pe| {
+        stream.feed(&pe, &mut emit)
     })?;
+    stream.flush(&mut emit)?;
     bar.finish_and_clear();
     if times.is_empty() {
         anyhow::bail!(

@@ -40,6 +40,8 @@ pub use pseudo::{FrameRing, PixelMode, PseudoImager, PseudoOptions};
 
 use crate::error::{Error, Result};
 use crate::pulses::{PulseEvents, PulseTiming};
+use rayon::prelude::*;
+use std::sync::Arc;
 
 /// A grey-value image, row-major, `data[y * width + x]`.
 #[derive(Debug, Clone, PartialEq)]
@@ -209,7 +211,18 @@ pub struct PivStream {
     timing: PulseTiming,
     pulse_hz: f64,
     since_eval: usize,
+    /// Evaluations run together, in parallel ([`set_batch`](Self::set_batch)).
+    batch: usize,
+    /// Evaluations due but not yet run (at most `batch`).
+    pending: Vec<PendingEval>,
     pub stats: FieldStats,
+}
+
+/// An evaluation that is due: its first pulse and its `N_f` frames, shared
+/// with the ring (no copy).
+struct PendingEval {
+    first_pulse: i64,
+    frames: Vec<Arc<Image>>,
 }
 
 impl PivStream {
@@ -251,6 +264,8 @@ impl PivStream {
             timing,
             pulse_hz: 1e6 / timing.period_us,
             since_eval: 0,
+            batch: 1,
+            pending: Vec::new(),
             stats: FieldStats::new(grid),
             opts,
         })
@@ -277,10 +292,29 @@ impl PivStream {
         self.since_eval += 1;
     }
 
-    /// Add the events of the next pulse. Pulses skipped by the splitter
-    /// (no events) become empty frames; a gap longer than `N_f` restarts the
-    /// ring. Returns a field when one was evaluated.
-    pub fn push_pulse(&mut self, pe: &PulseEvents) -> Result<Option<StepField>> {
+    /// Evaluate up to `n` time steps together, in parallel (rayon), when
+    /// pulses are fed with [`feed`](Self::feed). Each evaluation is already
+    /// parallel over its nodes; running several at once also keeps the
+    /// cores busy through their sequential parts (validation, B-spline
+    /// prefilter, pass barriers). Results do not depend on `n` or on the
+    /// thread count: evaluations are independent and their fields are
+    /// emitted, and added to the statistics, in time order. Memory: the
+    /// frames of `n` evaluations (`n·step + N_f` pseudo-images at most) plus
+    /// each running evaluation's deformed images.
+    pub fn set_batch(&mut self, n: usize) -> Result<()> {
+        if n == 0 {
+            return Err(Error::param(
+                "batch",
+                "at least 1 evaluation at a time (1 = one after the other)",
+            ));
+        }
+        self.batch = n;
+        Ok(())
+    }
+
+    /// Ring bookkeeping for the next pulse: render it (and the empty
+    /// frames of skipped pulses) and return the evaluation that became due.
+    fn advance(&mut self, pe: &PulseEvents) -> Result<Option<PendingEval>> {
         if let Some(last) = self.ring.last_index() {
             if pe.index <= last {
                 return Err(Error::analysis(format!(
@@ -304,19 +338,86 @@ impl PivStream {
         }
         // A full ring has seen N_f >= step pushes since it (re)started, so the
         // first evaluation comes at once; then one every `step` pulses.
-        let first = self.ring.first_index().unwrap_or(0);
         if self.since_eval < self.opts.step {
             return Ok(None);
         }
         self.since_eval = 0;
-        let frames = self.ring.images();
-        let field = piv_frames(&frames, &self.opts.piv)?;
+        Ok(Some(PendingEval {
+            first_pulse: self.ring.first_index().unwrap_or(0),
+            frames: self.ring.shared_images(),
+        }))
+    }
+
+    /// The field of one evaluation, added to the statistics.
+    fn conclude(&mut self, first: i64, field: VectorField) -> StepField {
         self.stats.add(&field, self.pulse_hz);
         let mid = first as f64 + (self.opts.frames as f64 - 1.0) / 2.0;
-        Ok(Some(StepField {
+        StepField {
             first_pulse: first,
             t_us: self.timing.first_pulse_us + mid * self.timing.period_us,
             field,
-        }))
+        }
+    }
+
+    /// Add the events of the next pulse. Pulses skipped by the splitter
+    /// (no events) become empty frames; a gap longer than `N_f` restarts the
+    /// ring. Returns a field when one was evaluated (at once, whatever the
+    /// batch; [`feed`](Self::feed) runs batches in parallel).
+    pub fn push_pulse(&mut self, pe: &PulseEvents) -> Result<Option<StepField>> {
+        if !self.pending.is_empty() {
+            return Err(Error::analysis(
+                "push_pulse after feed: flush the queued evaluations first",
+            ));
+        }
+        match self.advance(pe)? {
+            None => Ok(None),
+            Some(job) => {
+                let refs: Vec<&Image> = job.frames.iter().map(|f| &**f).collect();
+                let field = piv_frames(&refs, &self.opts.piv)?;
+                Ok(Some(self.conclude(job.first_pulse, field)))
+            }
+        }
+    }
+
+    /// Add the events of the next pulse (as [`push_pulse`](Self::push_pulse));
+    /// due evaluations are queued and run in parallel once `batch` of them
+    /// are waiting; each field is passed to `emit`, in time order. Call
+    /// [`flush`](Self::flush) after the last pulse.
+    pub fn feed(
+        &mut self,
+        pe: &PulseEvents,
+        emit: &mut dyn FnMut(StepField) -> Result<()>,
+    ) -> Result<()> {
+        if let Some(job) = self.advance(pe)? {
+            self.pending.push(job);
+            if self.pending.len() >= self.batch {
+                self.flush(emit)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Run the queued evaluations (in parallel) and emit their fields in
+    /// time order.
+    pub fn flush(&mut self, emit: &mut dyn FnMut(StepField) -> Result<()>) -> Result<()> {
+        if self.pending.is_empty() {
+            return Ok(());
+        }
+        let jobs = std::mem::take(&mut self.pending);
+        let piv = &self.opts.piv;
+        let fields: Vec<Result<VectorField>> = jobs
+            .par_iter()
+            .map(|job| {
+                let refs: Vec<&Image> = job.frames.iter().map(|f| &**f).collect();
+                piv_frames(&refs, piv)
+            })
+            .collect();
+        for (job, field) in jobs.into_iter().zip(fields) {
+            let sf = self.conclude(job.first_pulse, field?);
+            // Buffers no longer shared go back to the ring for reuse.
+            job.frames.into_iter().for_each(|f| self.ring.recycle(f));
+            emit(sf)?;
+        }
+        Ok(())
     }
 }

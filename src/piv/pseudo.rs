@@ -13,6 +13,7 @@
 //! recording's length.
 
 use std::collections::VecDeque;
+use std::sync::Arc;
 
 use super::Image;
 use crate::error::{Error, Result};
@@ -218,9 +219,14 @@ impl PseudoImager {
 }
 
 /// The last `capacity` frames, oldest first, with recycled buffers.
+///
+/// Frames are reference-counted so that evaluations queued for parallel
+/// processing ([`PivStream`](super::PivStream) with a batch) can hold on to
+/// them after they left the ring without copying; a buffer is recycled
+/// when the ring held its last reference.
 pub struct FrameRing {
     capacity: usize,
-    frames: VecDeque<(i64, Image)>,
+    frames: VecDeque<(i64, Arc<Image>)>,
     spare: Vec<Image>,
 }
 
@@ -238,20 +244,27 @@ impl FrameRing {
         self.spare.pop().unwrap_or_else(|| Image::zeros(0, 0))
     }
 
+    /// Keep the buffer of a frame for reuse if `f` was its last reference.
+    pub fn recycle(&mut self, f: Arc<Image>) {
+        if let Ok(img) = Arc::try_unwrap(f) {
+            self.spare.push(img);
+        }
+    }
+
     /// Append a frame with its pulse index, dropping the oldest when full.
     pub fn push(&mut self, index: i64, img: Image) {
         if self.frames.len() == self.capacity {
             if let Some((_, old)) = self.frames.pop_front() {
-                self.spare.push(old);
+                self.recycle(old);
             }
         }
-        self.frames.push_back((index, img));
+        self.frames.push_back((index, Arc::new(img)));
     }
 
     /// Forget all frames (e.g. after a gap in the pulse sequence).
     pub fn clear(&mut self) {
         while let Some((_, f)) = self.frames.pop_front() {
-            self.spare.push(f);
+            self.recycle(f);
         }
     }
 
@@ -278,7 +291,12 @@ impl FrameRing {
     }
 
     pub fn images(&self) -> Vec<&Image> {
-        self.frames.iter().map(|f| &f.1).collect()
+        self.frames.iter().map(|f| &*f.1).collect()
+    }
+
+    /// The frames, shared (no copy): for evaluations run later.
+    pub fn shared_images(&self) -> Vec<Arc<Image>> {
+        self.frames.iter().map(|f| Arc::clone(&f.1)).collect()
     }
 }
 

@@ -53,6 +53,37 @@ fn median(v: &mut [f64]) -> f64 {
     }
 }
 
+/// Up to 8 values on the stack: a node has at most 8 neighbours (or
+/// extrapolation directions), and the test runs at every node of every
+/// pass — heap vectors there cost more than the medians.
+#[derive(Clone, Copy, Default)]
+struct Vals {
+    v: [f64; 8],
+    n: usize,
+}
+
+impl Extend<f64> for Vals {
+    fn extend<I: IntoIterator<Item = f64>>(&mut self, it: I) {
+        for x in it {
+            self.v[self.n] = x;
+            self.n += 1;
+        }
+    }
+}
+
+impl std::ops::Deref for Vals {
+    type Target = [f64];
+    fn deref(&self) -> &[f64] {
+        &self.v[..self.n]
+    }
+}
+
+impl std::ops::DerefMut for Vals {
+    fn deref_mut(&mut self) -> &mut [f64] {
+        &mut self.v[..self.n]
+    }
+}
+
 /// The eight directions to a node's neighbours.
 const DIRECTIONS: [(i64, i64); 8] = [
     (-1, -1),
@@ -97,7 +128,7 @@ fn neighbours(
     i: usize,
     j: usize,
     usable: impl Fn(u8) -> bool,
-) -> (Vec<f64>, Vec<f64>) {
+) -> (Vals, Vals) {
     let (i, j) = (i as i64, j as i64);
     DIRECTIONS
         .iter()
@@ -122,7 +153,7 @@ fn border_extrapolations(
     i: usize,
     j: usize,
     usable: impl Fn(u8) -> bool,
-) -> (Vec<f64>, Vec<f64>) {
+) -> (Vals, Vals) {
     let (i, j) = (i as i64, j as i64);
     DIRECTIONS
         .iter()
@@ -168,9 +199,10 @@ pub fn normalized_median_test(
             if nu.len() < 3 {
                 continue;
             }
-            let residual = |vals: &mut Vec<f64>, x0: f64| -> f64 {
+            let residual = |vals: &mut [f64], x0: f64| -> f64 {
                 let m = median(vals);
-                let mut r: Vec<f64> = vals.iter().map(|x| (x - m).abs()).collect();
+                let mut r = Vals::default();
+                r.extend(vals.iter().map(|x| (x - m).abs()));
                 let rm = median(&mut r);
                 (x0 - m).abs() / (rm + test.epsilon)
             };
