@@ -672,8 +672,8 @@ fn elongation_is_extent_x_minus_extent_y() {
         8 | 6 | 4 | 12 => 1.0, // +2, 0, −2 and +9 (in the last bin)
         _ => 0.0,
     };
-    for k in 0..13 {
-        assert_eq!(h.counts[k], expect(k), "bin {k}");
+    for (k, &c) in h.counts.iter().enumerate() {
+        assert_eq!(c, expect(k), "bin {k}");
     }
     // Streaks along x move the histogram right by the added length; a
     // brighter copy (both extents + 1) does not move it.
