@@ -148,7 +148,7 @@ fn bad_input_gives_clear_errors_and_no_outputs() {
     assert!(!st.status.success() && String::from_utf8_lossy(&st.stderr).contains("max_disp"));
 }
 
-/// The sliced linker (default) and the sequential one on the same
+/// The sliced linker and the sequential one (default) on the same
 /// particles.csv, with short slices so that several seams are crossed:
 /// both link nearly every particle the same way (the accuracy comparison
 /// on truth is tests/ptv_slice.rs), detections are never shared, and a
@@ -184,7 +184,17 @@ fn sliced_and_sequential_linkers_agree() {
         (tracks, summary)
     };
     let (seq, seq_summary) = run("seq", &["--linker", "sequential"]);
-    let (sli, sli_summary) = run("sli", &["--slice-pulses", "16", "--slice-overlap", "12"]);
+    let (sli, sli_summary) = run(
+        "sli",
+        &[
+            "--linker",
+            "sliced",
+            "--slice-pulses",
+            "16",
+            "--slice-overlap",
+            "12",
+        ],
+    );
     let points = |ts: &[ebptv::track::Track]| ts.iter().map(|t| t.points.len()).sum::<usize>();
     let (a, b) = (points(&seq) as f64, points(&sli) as f64);
     assert!(
@@ -205,7 +215,7 @@ fn sliced_and_sequential_linkers_agree() {
     assert_eq!(sli_summary["tracks"].as_u64().unwrap(), sli.len() as u64);
 
     let st = ebptv()
-        .args(["track", "--slice-pulses", "0"])
+        .args(["track", "--linker", "sliced", "--slice-pulses", "0"])
         .arg(&input)
         .arg("--out")
         .arg(dir.path().join("zero"))
