@@ -9,7 +9,7 @@ use ebptv::modelcheck::scene::{default_catalogue, SceneSimulator};
 use ebptv::modelcheck::workflow::{
     run, EffectSetting, ModelCheckResult, Simulator, Verdict, WorkflowOptions,
 };
-use ebptv::sim::scenario::{Scenario, Sensor};
+use ebptv::sim::scenario::{FlowSpec, Scenario, Sensor};
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
@@ -26,6 +26,35 @@ fn base() -> Scenario {
         ..Scenario::default()
     };
     s.seeding.ppp = 0.006;
+    s.light.energy = ebptv::sim::presets::WATER_ENERGY;
+    s
+}
+
+/// A scene whose particles change paths over the recording (out-of-plane
+/// motion, a flow of 9300, 1300 px/s: not a whole number of pixels per
+/// pulse) on a small sensor for many pulses (0.1 s = 500 pulses on 64x48:
+/// ~6 particle visits per pixel). On [`base`] the lit particles never leave
+/// the sheet and move exactly 2 px per pulse, so the same particles cross
+/// the same pixels at the same sub-pixel phase all recording long: a fixed
+/// pattern of their own that hides threshold mismatch, and a few hundred
+/// independent particle images whose brightness swamps the streak length.
+fn mixing() -> Scenario {
+    let mut s = Scenario {
+        name: "modelcheck-mixing".into(),
+        duration_s: 0.1,
+        sensor: Sensor {
+            width: 64,
+            height: 48,
+            roi: None,
+        },
+        flow: FlowSpec::Uniform {
+            u: 9300.0,
+            v: 1300.0,
+        },
+        ..Scenario::default()
+    };
+    s.seeding.ppp = 0.006;
+    s.seeding.out_of_plane_rms = 2000.0;
     s.light.energy = ebptv::sim::presets::WATER_ENERGY;
     s
 }
@@ -63,9 +92,20 @@ fn check_hidden_with(
     order_seed: u64,
     catalogue: Option<Vec<ebptv::modelcheck::workflow::EffectSpec>>,
 ) -> ModelCheckResult {
-    let mut catalogue = catalogue.unwrap_or_else(|| default_catalogue(&base()));
+    check_hidden_on(base(), truth, seed, order_seed, catalogue)
+}
+
+/// [`check_hidden_with`] on a given scene.
+fn check_hidden_on(
+    scene: Scenario,
+    truth: Option<EffectSetting>,
+    seed: u64,
+    order_seed: u64,
+    catalogue: Option<Vec<ebptv::modelcheck::workflow::EffectSpec>>,
+) -> ModelCheckResult {
+    let mut catalogue = catalogue.unwrap_or_else(|| default_catalogue(&scene));
     catalogue.shuffle(&mut Pcg64::seed_from_u64(order_seed));
-    let sim = SceneSimulator::new(base())
+    let sim = SceneSimulator::new(scene)
         .unwrap()
         .with_catalogue(catalogue);
     let truth_v: Vec<EffectSetting> = truth.into_iter().collect();
@@ -81,12 +121,20 @@ fn check_hidden_with(
     );
     let t = Instant::now();
     let res = run(&sim, &cfg, &fit, &hold, &[], &opts()).unwrap();
+    let worst: Vec<(String, f64)> = res
+        .final_table
+        .rows
+        .iter()
+        .take(3)
+        .map(|r| (r.signature.clone(), r.stats.z))
+        .collect();
     println!(
-        "truth {:?}\n -> {:?} {:?} in {:?}",
+        "truth {:?}\n -> {:?} {:?} in {:?}; worst rows after: {:?}",
         truth_v,
         res.verdict,
         res.effects,
-        t.elapsed()
+        t.elapsed(),
+        worst
     );
     res
 }
@@ -147,21 +195,20 @@ fn real_sim_hidden_hot_pixels() {
     assert_recovered(&check_hidden(Some(truth.clone()), 5, 15), &truth);
 }
 
-// The remaining catalogue effects take ~10-20 s of CPU each: the full sweep
-// is `cargo test --release --test modelcheck_scene -- --include-ignored
-// --test-threads 1 --nocapture` (results in BENCHMARKS.md). The arbiter
-// passes since session 3 (busy-window slope signature, profile fit); the
-// intensity-latency test fails since then (exponent 0.31 for 0.55).
+// Every hidden-effect test below runs in CI (8-21 s of CPU each, measured
+// in session 4) except intensity latency, which fails: exponent 0.31,
+// reference 4.30 for a true 0.551, 2.09 (the stage-1 objective is flat
+// along the exponent-reference valley; BENCHMARKS.md). Run it with
+// `cargo test --release --test modelcheck_scene -- --include-ignored
+// --test-threads 1 --nocapture`.
 
 #[test]
-#[ignore]
 fn real_sim_hidden_background_noise() {
     let truth = setting("background_noise", &[("rate_hz", strength(3, 2.0, 20.0))]);
     assert_recovered(&check_hidden(Some(truth.clone()), 3, 13), &truth);
 }
 
 #[test]
-#[ignore]
 fn real_sim_hidden_refractory() {
     let truth = setting("refractory", &[("period_us", strength(4, 4.0, 15.0))]);
     assert_recovered(&check_hidden(Some(truth.clone()), 4, 14), &truth);
@@ -181,7 +228,6 @@ fn real_sim_hidden_intensity_latency() {
 }
 
 #[test]
-#[ignore]
 fn real_sim_hidden_arbiter_saturation() {
     let truth = setting(
         "arbiter_saturation",
@@ -194,26 +240,45 @@ fn real_sim_hidden_arbiter_saturation() {
 }
 
 // The effects added in session 3 (pulse streaks, threshold mismatch, rate
-// limiter, OFF events): each has a signature that sees it (extent_x,
-// visit_yield / yield_split_correlation, events_per_pulse / latency,
-// on_fraction / off_latency).
-
-// Not met (session 3): scale 10.3 → verdict unexplained, nothing named
-// (pulse_streaks does not reduce the gap beyond chance on this 0.02 s
-// scene); threshold mismatch σ 0.32 → "consistent" (no signature sees it
-// at ~1.5 particle visits per pixel). Run with --include-ignored.
+// limiter, OFF events): each has a signature that sees it (elongation,
+// yield_split_covariance / yield_split_correlation, events_per_pulse /
+// latency, on_fraction / off_latency).
+//
+// Streaks and mismatch run on the `mixing` scene (session 4). On `base`
+// they were not met in session 3 (streaks 10.3 → unexplained, nothing
+// named; mismatch σ 0.32 → "consistent"): its lit particles cross the same
+// pixels at the same sub-pixel phase all recording long, so the per-pixel
+// yields carry a fixed pattern without any mismatch (split-half r 0.33 ±
+// 0.07 clean) and extent_x follows the brightness of a few hundred
+// particles (replicate spread as large as a scale-10 streak).
 #[test]
-#[ignore]
 fn real_sim_hidden_pulse_streaks() {
     let truth = setting("pulse_streaks", &[("scale", strength(21, 10.0, 25.0))]);
-    assert_recovered(&check_hidden(Some(truth.clone()), 21, 31), &truth);
+    assert_recovered(
+        &check_hidden_on(mixing(), Some(truth.clone()), 21, 31, None),
+        &truth,
+    );
 }
 
 #[test]
-#[ignore]
 fn real_sim_hidden_threshold_mismatch() {
     let truth = setting("threshold_mismatch", &[("sigma", strength(22, 0.15, 0.35))]);
-    assert_recovered(&check_hidden(Some(truth.clone()), 22, 32), &truth);
+    assert_recovered(
+        &check_hidden_on(mixing(), Some(truth.clone()), 22, 32, None),
+        &truth,
+    );
+}
+
+#[test]
+fn real_sim_mixing_scene_null_case_names_nothing() {
+    let res = check_hidden_on(mixing(), None, 27, 37, None);
+    assert!(res.effects.is_empty(), "{:#?}", res.rounds);
+    assert_eq!(
+        res.verdict,
+        Verdict::Consistent,
+        "{}",
+        res.final_table.to_markdown()
+    );
 }
 
 #[test]

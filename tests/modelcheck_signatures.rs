@@ -651,3 +651,128 @@ fn tick_profile_counts_busy_ticks_only() {
     assert_eq!((p.count[k2], p.mean[k2]), (1.0, 3.0));
     assert_eq!((p.count[k3], p.mean[k3]), (1.0, 3.0));
 }
+
+#[test]
+fn elongation_is_extent_x_minus_extent_y() {
+    let cfg = SignatureConfig::new(Geometry::new(64, 64), timing(100.0, 0.0));
+    let ev = chunk(&[(10, 1, 1, 1)]);
+    let parts = vec![
+        particle(0, 10.0, 10.0, 4, 30.0, 3.0, 1.0),
+        particle(0, 20.0, 10.0, 1, 30.0, 1.0, 1.0),
+        particle(1, 30.0, 10.0, 6, 30.0, 2.0, 4.0),
+        particle(1, 40.0, 10.0, 9, 30.0, 10.0, 1.0),
+    ];
+    let s = compute(&cfg, &ev, &parts, None).unwrap();
+    let h = s.histogram("elongation").unwrap();
+    // Bins centred on −6 … 6 px, the end bins open.
+    assert_eq!(h.n_bins(), 13);
+    assert_eq!(h.positions()[0], -6.0);
+    assert_eq!(h.scale, BinScale::Linear);
+    let expect = |k: usize| match k {
+        8 | 6 | 4 | 12 => 1.0, // +2, 0, −2 and +9 (in the last bin)
+        _ => 0.0,
+    };
+    for (k, &c) in h.counts.iter().enumerate() {
+        assert_eq!(c, expect(k), "bin {k}");
+    }
+    // Streaks along x move the histogram right by the added length; a
+    // brighter copy (both extents + 1) does not move it.
+    let brighter: Vec<Particle> = parts
+        .iter()
+        .map(|p| Particle {
+            extent_x: p.extent_x + 1.0,
+            extent_y: p.extent_y + 1.0,
+            ..*p
+        })
+        .collect();
+    let streaked: Vec<Particle> = parts
+        .iter()
+        .map(|p| Particle {
+            extent_x: p.extent_x + 1.0,
+            ..*p
+        })
+        .collect();
+    let d = |other: &[Particle]| {
+        let o = compute(&cfg, &ev, other, None).unwrap();
+        histogram_wasserstein(h, o.histogram("elongation").unwrap()).unwrap()
+    };
+    assert_eq!(d(&brighter), 0.0);
+    // Three particles move by 1 px; the one in the open end bin cannot.
+    assert!((d(&streaked) - 0.75).abs() < 1e-12, "{}", d(&streaked));
+}
+
+/// Events of `visits` (pixel, pulse, events) visits, time-ordered.
+fn visit_events(visits: &[(u16, u16, i64, u32)], period: i64) -> EventChunk {
+    let mut ev: Vec<(i64, u16, u16, u8)> = Vec::new();
+    for &(x, y, pulse, n) in visits {
+        for j in 0..n as i64 {
+            ev.push((pulse * period + 10 + j, x, y, 1));
+        }
+    }
+    ev.sort();
+    chunk(&ev)
+}
+
+#[test]
+fn yield_split_correlation_known_case() {
+    // Blocks of one pulse: even and odd pulses are the two halves. Pixel
+    // yields (even, odd): A (3, 2), B (1, 1), C (2, 3); D is visited in
+    // even pulses only and left out. Means 2, 2; covariance 1/3, variances
+    // 2/3: r = 1/2.
+    let mut cfg = SignatureConfig::new(Geometry::new(8, 8), timing(100.0, 0.0));
+    cfg.block_pulses = 1;
+    let ev = visit_events(
+        &[
+            (0, 0, 0, 3),
+            (0, 0, 1, 2),
+            (1, 0, 0, 1),
+            (1, 0, 1, 1),
+            (2, 0, 2, 2),
+            (2, 0, 3, 3),
+            (3, 0, 0, 4),
+            (3, 0, 2, 4),
+        ],
+        100,
+    );
+    let s = compute(&cfg, &ev, &[], None).unwrap();
+    let r = s.scalar("yield_split_correlation").unwrap();
+    assert!((r - 0.5).abs() < 1e-12, "{r}");
+}
+
+#[test]
+fn yield_split_correlation_sees_a_fixed_pattern_not_chance() {
+    // Each pixel's visits give 1 + Binomial(3, p) events with its own p:
+    // a fixed pattern of variance Var(3p) = 9 · 0.8² / 12 = 0.48 (p uniform
+    // on (0.1, 0.9)) plus chance, 3p(1 − p) per visit, 0.59 on average,
+    // 0.1475 for the mean of a half's 4 visits. Expected r = 0.48 / (0.48 +
+    // 0.1475) = 0.765; with one p for all pixels r ≈ 0 (standard error
+    // 1/√4096 ≈ 0.016).
+    let g = Geometry::new(64, 64);
+    let mut cfg = SignatureConfig::new(g, timing(100.0, 0.0));
+    cfg.block_pulses = 1;
+    let run = |pattern: bool, seed: u64| -> f64 {
+        let mut rng = Pcg64::seed_from_u64(seed);
+        let mut visits = Vec::new();
+        for y in 0..64u16 {
+            for x in 0..64u16 {
+                let p: f64 = if pattern {
+                    rng.gen_range(0.1..0.9)
+                } else {
+                    0.5
+                };
+                for pulse in 0..8i64 {
+                    let n = 1 + (0..3).filter(|_| rng.gen_bool(p)).count() as u32;
+                    visits.push((x, y, pulse, n));
+                }
+            }
+        }
+        let s = compute(&cfg, &visit_events(&visits, 100), &[], None).unwrap();
+        s.scalar("yield_split_correlation").unwrap()
+    };
+    for seed in 0..3 {
+        let none = run(false, seed);
+        assert!(none.abs() < 0.05, "no pattern: r = {none}");
+        let with = run(true, seed);
+        assert!((with - 0.765).abs() < 0.03, "pattern: r = {with}");
+    }
+}

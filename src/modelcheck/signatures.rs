@@ -27,6 +27,7 @@
 //! | `visit_yield` | histogram of events per (pixel, pulse) visit | threshold mismatch (a spread of yields), refractory |
 //! | `yield_split_correlation` | scalar, Pearson r of per-pixel events per visit, even vs odd blocks | threshold mismatch (a fixed pattern of yields) |
 //! | `extent_x`, `extent_y` | histograms of particle bounding-box extents (needs particles) | pulse streaks (elongation along the flow) |
+//! | `elongation` | histogram of extent_x − extent_y per particle (needs particles) | pulse streaks, independent of brightness |
 //! | `min_iei` | histogram of per-pixel minimum inter-event interval, µs | refractory period |
 //! | `events_per_cluster` | histogram (needs particles) | brightness, threshold |
 //! | `latency_vs_brightness` | profile: mean first latency per events-per-cluster bin | intensity-dependent latency |
@@ -44,6 +45,25 @@
 //! with one timestamp; an unsaturated sensor gives groups of one (apart from
 //! coincidences). Groups are formed over runs of equal timestamps in stream
 //! order (readers never reorder time), across chunk boundaries.
+//!
+//! Yield per visit: a visit is a (pixel, pulse) with events. How many
+//! events a visit gives depends on the particle image over the pixel
+//! (chance) and on the pixel's contrast threshold (a fixed pattern under
+//! threshold mismatch). The even- and odd-block mean yields of a pixel
+//! share only the fixed part, so their correlation over pixels is ≈ 0 by
+//! chance and grows with the pattern's share of the yield variance. It
+//! needs particles whose paths change over the recording (out-of-plane
+//! motion, a flow that is not a whole number of pixels per pulse): a
+//! uniform flow whose lit particles stay in the sheet sends the same
+//! particles at the same sub-pixel phase over the same pixels again and
+//! again, a fixed pattern of its own.
+//!
+//! Elongation: the bounding box of a particle image grows along the motion
+//! under pulse streaks. Brightness grows both extents alike, so the
+//! difference extent_x − extent_y isolates the streak from the (chancy)
+//! brightness of the few hundred particles of a short recording, which
+//! swamps `extent_x` alone. Signed: a flow with a dominant direction shifts
+//! it (x: up, y: down); mixed directions widen it.
 //!
 //! Off-burst pixels: background activity spreads a few events over many
 //! pixels, hot pixels many events over few. The fraction of pixels with any
@@ -919,11 +939,16 @@ impl SignatureAccumulator {
             let extent_edges: Vec<f64> = (1..=13).map(|k| k as f64).collect();
             let mut ext_x = Histogram::new(extent_edges.clone(), BinScale::Index)?;
             let mut ext_y = Histogram::new(extent_edges, BinScale::Index)?;
+            // Integer differences at the bin centres, ±6 px and beyond in
+            // the end bins.
+            let mut elongation =
+                Histogram::new((-6..=7).map(|k| k as f64 - 0.5).collect(), BinScale::Linear)?;
             for &(n, l, ex, ey) in &self.particles {
                 epc.add(n as f64);
                 lat.add(n as f64, l as f64);
                 ext_x.add(ex as f64);
                 ext_y.add(ey as f64);
+                elongation.add(ex as f64 - ey as f64);
             }
             push(
                 "extent_x",
@@ -934,6 +959,11 @@ impl SignatureAccumulator {
                 "extent_y",
                 "particles per bounding-box extent along y (px)",
                 SignatureValue::Histogram(ext_y),
+            );
+            push(
+                "elongation",
+                "particles per bounding-box extent x minus extent y (px)",
+                SignatureValue::Histogram(elongation),
             );
             push(
                 "events_per_cluster",
