@@ -147,3 +147,80 @@ fn bad_input_gives_clear_errors_and_no_outputs() {
         .unwrap();
     assert!(!st.status.success() && String::from_utf8_lossy(&st.stderr).contains("max_disp"));
 }
+
+/// The sliced linker and the sequential one (default) on the same
+/// particles.csv, with short slices so that several seams are crossed:
+/// both link nearly every particle the same way (the accuracy comparison
+/// on truth is tests/ptv_slice.rs), detections are never shared, and a
+/// slice of zero pulses is refused.
+#[test]
+fn sliced_and_sequential_linkers_agree() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = generate(&SynthParams {
+        pulses: 80,
+        width: 128,
+        height: 128,
+        ..Default::default()
+    });
+    let particles: Vec<_> = scene
+        .iter()
+        .flat_map(|s| cluster_pulse(&s.pulse, &ClusterParams::default()))
+        .collect();
+    let input = dir.path().join("particles.csv");
+    ebptv::track::write_particles_csv(&input, &particles).unwrap();
+    let run = |name: &str, args: &[&str]| {
+        let out = dir.path().join(name);
+        run_ok(
+            ebptv()
+                .arg("track")
+                .arg(&input)
+                .arg("--out")
+                .arg(&out)
+                .args(args),
+        );
+        let summary: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+        let tracks = ebptv::track::read_tracks_csv(&out.join("tracks.csv")).unwrap();
+        (tracks, summary)
+    };
+    let (seq, seq_summary) = run("seq", &["--linker", "sequential"]);
+    let (sli, sli_summary) = run(
+        "sli",
+        &[
+            "--linker",
+            "sliced",
+            "--slice-pulses",
+            "16",
+            "--slice-overlap",
+            "12",
+        ],
+    );
+    let points = |ts: &[ebptv::track::Track]| ts.iter().map(|t| t.points.len()).sum::<usize>();
+    let (a, b) = (points(&seq) as f64, points(&sli) as f64);
+    assert!(
+        a > 10_000.0 && (a - b).abs() < 0.01 * a,
+        "{a} vs {b} points"
+    );
+    let mut seen = std::collections::HashSet::new();
+    for t in &sli {
+        assert!(t.points.len() >= 5);
+        assert!(t.points.windows(2).all(|w| w[1].pulse == w[0].pulse + 1));
+        for p in &t.points {
+            assert!(seen.insert((p.pulse, p.x.to_bits(), t.id)));
+        }
+    }
+    let fa = seq_summary["fraction_on_tracks"].as_f64().unwrap();
+    let fb = sli_summary["fraction_on_tracks"].as_f64().unwrap();
+    assert!((fa - fb).abs() < 0.01, "{fa} vs {fb}");
+    assert_eq!(sli_summary["tracks"].as_u64().unwrap(), sli.len() as u64);
+
+    let st = ebptv()
+        .args(["track", "--linker", "sliced", "--slice-pulses", "0"])
+        .arg(&input)
+        .arg("--out")
+        .arg(dir.path().join("zero"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert!(!st.status.success() && err.contains("slice"), "{err}");
+}

@@ -51,6 +51,7 @@ pub mod fit;
 pub mod grid_index;
 pub mod io;
 pub mod lap;
+pub mod slice;
 pub mod stream;
 pub mod synth;
 
@@ -67,6 +68,7 @@ pub use io::{
     read_particles_csv, read_tracks_csv, write_particles_csv, write_summary_json, write_tracks_csv,
     write_tracks_npy, ParticlesCsvWriter, Summary, SummaryAcc, TracksCsvWriter, TracksNpyWriter,
 };
+pub use slice::{SliceParams, SliceTracker};
 pub use stream::{track_recording, PtvSink, PtvStream};
 
 /// One point of a track: the track's fitted state at one pulse.

@@ -22,7 +22,16 @@ use crate::error::Result;
 use crate::io::EventSource;
 use crate::pulses::{self, PulseEvents, PulseOptions, PulseReport};
 
+use super::slice::{SliceParams, SliceTracker};
 use super::{Track, TrackParams, Tracker, TrackerStats};
+
+/// The linking stage of a [`PtvStream`].
+enum Linker {
+    /// One [`Tracker`] over the whole stream.
+    Sequential(Tracker),
+    /// Independent trackers on time slices, joined at the seams.
+    Sliced(SliceTracker),
+}
 
 /// Receives the PTV stage's results while streaming.
 pub trait PtvSink {
@@ -47,7 +56,7 @@ pub trait PtvSink {
 /// Clustering and tracking fed pulse by pulse.
 pub struct PtvStream {
     cluster: ClusterParams,
-    tracker: Tracker,
+    linker: Linker,
     batch: Vec<PulseEvents>,
     /// The previous batch, clustered, waiting to be tracked while the
     /// current one is clustered (two-stage pipeline).
@@ -57,15 +66,33 @@ pub struct PtvStream {
 }
 
 impl PtvStream {
-    /// `batch_size`: pulses clustered per parallel batch (≥ 1).
+    /// `batch_size`: pulses clustered per parallel batch (≥ 1). Links
+    /// with one sequential [`Tracker`].
     pub fn new(cluster: ClusterParams, track: TrackParams, batch_size: usize) -> Result<Self> {
+        let linker = Linker::Sequential(Tracker::new(track)?);
+        Self::with_linker(cluster, linker, batch_size)
+    }
+
+    /// [`PtvStream::new`] linking with the parallel slice-and-stitch
+    /// tracker ([`crate::track::slice`]).
+    pub fn sliced(
+        cluster: ClusterParams,
+        track: TrackParams,
+        slicing: SliceParams,
+        batch_size: usize,
+    ) -> Result<Self> {
+        let linker = Linker::Sliced(SliceTracker::new(track, slicing)?);
+        Self::with_linker(cluster, linker, batch_size)
+    }
+
+    fn with_linker(cluster: ClusterParams, linker: Linker, batch_size: usize) -> Result<Self> {
         cluster.validate()?;
         if batch_size == 0 {
             return Err(crate::Error::param("batch", "must be at least 1 pulse"));
         }
         Ok(PtvStream {
             cluster,
-            tracker: Tracker::new(track)?,
+            linker,
             batch: Vec::with_capacity(batch_size),
             clustered: Vec::new(),
             batch_size,
@@ -93,7 +120,10 @@ impl PtvStream {
         sink: &mut dyn PtvSink,
     ) -> Result<()> {
         sink.particles(pulse, t_us, particles)?;
-        let done = self.tracker.push(pulse, t_us, particles)?;
+        let done = match &mut self.linker {
+            Linker::Sequential(tracker) => tracker.push(pulse, t_us, particles)?,
+            Linker::Sliced(st) => unlinked(st.push(pulse, t_us, particles.to_vec())?),
+        };
         sink.take_tracks(done)
     }
 
@@ -106,11 +136,11 @@ impl PtvStream {
         let batch = std::mem::take(&mut self.batch);
         let previous = std::mem::take(&mut self.clustered);
         let cluster = &self.cluster;
-        let tracker = &mut self.tracker;
+        let linker = &mut self.linker;
         let (parts, tracked) = std::thread::scope(|scope| {
             let worker =
                 (!batch.is_empty()).then(|| scope.spawn(|| cluster_pulses(&batch, cluster)));
-            let tracked = track_batch(tracker, previous, sink);
+            let tracked = track_batch(linker, previous, sink);
             let parts = match worker {
                 Some(w) => w.join().unwrap_or_else(|e| std::panic::resume_unwind(e)),
                 None => Ok(Vec::new()),
@@ -135,7 +165,10 @@ impl PtvStream {
 
     /// Particles seen and tracks active (for progress reports).
     pub fn progress(&self) -> (u64, usize) {
-        (self.tracker.stats().particles, self.tracker.active_tracks())
+        match &self.linker {
+            Linker::Sequential(t) => (t.stats().particles, t.active_tracks()),
+            Linker::Sliced(t) => (t.stats().particles, t.active_tracks()),
+        }
     }
 
     /// Cluster what is left, end all tracks, hand them to the sink.
@@ -143,24 +176,41 @@ impl PtvStream {
         self.flush(sink)?; // tracks the previous batch, clusters the last
         self.flush(sink)?; // tracks the last
 
-        let (rest, stats) = self.tracker.finish();
-        let rest: Vec<Track> = rest.into_iter().map(|t| t.track).collect();
-        sink.take_tracks(rest)?;
+        let (rest, stats) = match self.linker {
+            Linker::Sequential(t) => t.finish(),
+            Linker::Sliced(t) => t.finish()?,
+        };
+        sink.take_tracks(unlinked(rest))?;
         Ok(stats)
     }
 }
 
+fn unlinked(tracks: Vec<super::LinkedTrack>) -> Vec<Track> {
+    tracks.into_iter().map(|t| t.track).collect()
+}
+
 /// Feed clustered pulses to the tracker and the sink, in order (per pulse
 /// the sink gets the particles, then the tracks that ended).
+/// The sliced linker keeps the particles until their slices are tracked,
+/// so the sink gets a copy.
 fn track_batch(
-    tracker: &mut Tracker,
+    linker: &mut Linker,
     clustered: Vec<(i64, f64, Vec<Particle>)>,
     sink: &mut dyn PtvSink,
 ) -> Result<()> {
     for (pulse, t_us, ps) in clustered {
-        let done = tracker.push(pulse, t_us, &ps)?;
-        sink.take_particles(pulse, t_us, ps)?;
-        sink.take_tracks(done)?;
+        match linker {
+            Linker::Sequential(tracker) => {
+                let done = tracker.push(pulse, t_us, &ps)?;
+                sink.take_particles(pulse, t_us, ps)?;
+                sink.take_tracks(done)?;
+            }
+            Linker::Sliced(st) => {
+                sink.particles(pulse, t_us, &ps)?;
+                let done = st.push(pulse, t_us, ps)?;
+                sink.take_tracks(unlinked(done))?;
+            }
+        }
     }
     Ok(())
 }
