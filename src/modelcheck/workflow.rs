@@ -38,7 +38,9 @@
 //!      gap (at least [`RIVAL_OVERLAP`] of its per-signature reductions
 //!      lie where the winner reduces as much). A candidate that removes
 //!      another part is a second real effect, not a competing explanation:
-//!      it does not block the winner and is tried again next round.
+//!      it does not block the winner and is tried again next round. A
+//!      runner-up that removes nothing needs no relative margin: the
+//!      winner then only has to lead by one null spread.
 //!
 //!    Otherwise stop with "unexplained" (the note names both candidates).
 //!    The relative margin is what "clearly" means when the gaps are large:
@@ -858,7 +860,8 @@ fn rivals(before: &DiscrepancyTable, best: &DiscrepancyTable, other: &Discrepanc
 pub const RIVAL_OVERLAP: f64 = 0.5;
 
 /// "Clearly beats the runner-up": the winner's held-out gap must be below
-/// (1 − this) × the runner-up's (and the lead at least one null spread).
+/// (1 − this) × the best rival's (and the lead at least one null spread),
+/// when that rival removes part of the gap at all.
 pub const RUNNER_UP_MARGIN: f64 = 0.25;
 
 /// Sweeps over the found effects in [`joint_refit`].
@@ -1017,8 +1020,14 @@ pub fn run(
         let chance = opts.chance_factor * null_sd;
         let beats_chance = best.improvement > chance && best.improvement > 0.0;
         let lead = best.improvement - runner_up.max(0.0);
-        let runner_up_left = gap_before - runner_up.max(0.0);
-        let clear_lead = null_sd.max(RUNNER_UP_MARGIN * runner_up_left);
+        // The relative margin only against a rival that removes part of
+        // the gap: a runner-up that removes nothing (or makes it worse)
+        // competes with nothing, and the winner needs only a chance lead.
+        let clear_lead = if runner_up > 0.0 {
+            null_sd.max(RUNNER_UP_MARGIN * (gap_before - runner_up))
+        } else {
+            null_sd
+        };
         let beats_runner_up = lead > clear_lead;
         let candidates: Vec<CandidateResult> = fitted.iter().map(|f| f.0.clone()).collect();
         if beats_chance && beats_runner_up {
