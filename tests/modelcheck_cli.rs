@@ -61,6 +61,7 @@ fn model_check_cli_names_a_hidden_latency_jitter() {
         serde_json::from_slice(&std::fs::read(dir.path().join("check/model_check.json")).unwrap())
             .unwrap();
     let effects = json["effects"].as_array().unwrap();
+    assert!(!effects.is_empty(), "nothing named: {:#}", json["rounds"]);
     assert_eq!(effects[0]["name"], "latency_jitter", "{json:#}");
     let spread = effects[0]["parameters"]["spread_us"].as_f64().unwrap();
     assert!((spread - 10.0).abs() < 3.0, "spread {spread}");

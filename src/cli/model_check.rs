@@ -48,6 +48,14 @@ pub struct ModelCheckArgs {
     /// grows with it; 100 pulses of a 640x360 sensor hold ~0.4 M events.
     #[arg(long, default_value_t = 100)]
     pub block_pulses: u64,
+    /// Start two-parameter fits from the profile along the first parameter
+    /// (then refine by a local profile) instead of Nelder–Mead from the
+    /// box centre: finds narrow curved valleys (the arbiter's row/event
+    /// time, intensity latency's exponent/reference), but on small scenes
+    /// it also lets intensity latency mimic a latency jitter to a near tie
+    /// (then nothing is named). Off by default; `--profile-fit true`.
+    #[arg(long, default_value_t = false, action = clap::ArgAction::Set)]
+    pub profile_fit: bool,
 }
 
 pub fn run(a: ModelCheckArgs) -> anyhow::Result<()> {
@@ -156,6 +164,7 @@ pub fn run(a: ModelCheckArgs) -> anyhow::Result<()> {
         max_evaluations: a.evaluations,
         max_effects: a.max_effects,
         seed: a.seed,
+        profile_fit: a.profile_fit,
         ..WorkflowOptions::default()
     };
     let bar = ProgressBar::new_spinner();

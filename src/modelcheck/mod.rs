@@ -7,7 +7,15 @@
 //!   a shared [`signatures::SignatureConfig`];
 //! - [`distance`]: distances between signatures (Wasserstein, chi-square,
 //!   profile and scalar differences), standardised against
-//!   simulation-vs-simulation replicates, and the ranking table.
+//!   simulation-vs-simulation replicates, and the ranking table;
+//! - [`workflow`]: the search (assess, fit every candidate, judge on
+//!   held-out data, accept only a winner that beats chance and clearly
+//!   beats its best rival, joint refit, repeat);
+//! - [`scene`]: the bridge to `crate::sim` (the catalogue of switchable
+//!   effects, including `clock_drift`, and the processing the measurement
+//!   went through);
+//! - [`baseline`]: the starting model built from the measurement itself;
+//! - [`report`]: `model_check.json`, the fitted scenario, Markdown + PNG.
 
 pub mod baseline;
 pub mod distance;

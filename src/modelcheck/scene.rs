@@ -70,7 +70,31 @@ pub fn default_catalogue(base: &Scenario) -> Vec<EffectSpec> {
                 p("tau_us", 1.0, 300.0, true),
             ],
         ),
+        // The constant rate offset only: the wander (a slow sinusoid of the
+        // rate) stays off (see [`NEUTRAL_PARAMETERS`]); over one
+        // 100-pulse block it is indistinguishable from an offset.
+        e("clock_drift", vec![p("ppm", -500.0, 500.0, false)]),
     ]
+}
+
+/// Values of effect parameters that a catalogue entry does not search:
+/// the value at which that part of the effect is absent. Filled in by
+/// [`SceneSimulator::scenario_with`] when a setting leaves them out.
+pub const NEUTRAL_PARAMETERS: &[(&str, &str, f64)] = &[
+    ("clock_drift", "wander_ppm", 0.0),
+    ("clock_drift", "wander_period_s", 1.0),
+];
+
+/// `set` with the parameters it leaves out taken from
+/// [`NEUTRAL_PARAMETERS`].
+pub fn with_neutral_parameters(set: &EffectSetting) -> EffectSetting {
+    let mut out = set.clone();
+    for &(effect, name, value) in NEUTRAL_PARAMETERS {
+        if effect == set.name {
+            out.parameters.entry(name.to_string()).or_insert(value);
+        }
+    }
+    out
 }
 
 /// Drives `crate::sim` for the search.
@@ -110,6 +134,7 @@ impl SceneSimulator {
     pub fn scenario_with(&self, effects: &[EffectSetting]) -> Result<Scenario> {
         let mut sc = self.base.clone();
         for e in effects {
+            let e = with_neutral_parameters(e);
             sc.set_effect(&e.name, Some(&e.parameters))?;
         }
         sc.validate()?;

@@ -1066,3 +1066,113 @@ pub fn compute(
     }
     acc.finish()
 }
+
+// ---------------------------------------------------------------------------
+// Clock drift (session 4, appended as its own block; computed by
+// `workflow::signatures_of` next to the accumulator's signatures).
+
+/// Time blocks of [`latency_drift`]: enough points for a slope, each block
+/// still holding thousands of events on a 100-pulse recording.
+pub const DRIFT_BLOCKS: usize = 8;
+
+/// Name of the clock-drift signature.
+pub const LATENCY_DRIFT: &str = "latency_drift";
+
+/// `latency_drift`: the slope of the burst's latency over the recording,
+/// in ppm (µs of latency per s of recording).
+///
+/// When the camera's clock and the laser's run at different rates, the
+/// pulses drift through the folding period `cfg.timing` assumes: the folded
+/// latency of every event moves by `ppm · 10⁻⁶` µs per µs of recording. The
+/// latency histogram only smears (a few µs over a 100-pulse block at
+/// 100 ppm, inside its own width); the slope shows the drift directly, with
+/// its sign.
+///
+/// How: ON events (OFF events decay after the pulse and follow other
+/// physics) are folded with the configured timing and unwrapped around the
+/// burst window's centre (the configured window, or the data's own 95 %
+/// window when none is set), so a burst near the period's edge does not
+/// wrap. The pulses spanned by the events are cut into [`DRIFT_BLOCKS`]
+/// equal blocks; each block's latency is the interquartile mean of its
+/// events (robust against the flat floor of noise events, and finer than
+/// the 1 µs timestamp grid, which a median would snap to). The signature is
+/// the least-squares slope of block latency on block centre time; NaN (not
+/// compared) with fewer than three populated blocks.
+pub fn latency_drift(cfg: &SignatureConfig, events: &EventChunk) -> Result<Signature> {
+    cfg.validate()?;
+    let period = cfg.timing.period_us;
+    let first = cfg.timing.first_pulse_us;
+    let g = cfg.geometry;
+    let on: Vec<usize> = (0..events.len())
+        .filter(|&i| events.p[i] == ON && g.contains(events.x[i], events.y[i]))
+        .collect();
+    let value = if on.is_empty() {
+        f64::NAN
+    } else {
+        let window = match cfg.burst_window_us {
+            Some(w) => w,
+            None => {
+                let mut h = Histogram::new(cfg.latency_edges(), BinScale::Linear)?;
+                for &i in &on {
+                    h.add((events.t[i] as f64 - first).rem_euclid(period));
+                }
+                burst_window(&h, 0.95)?
+            }
+        };
+        let centre = 0.5 * (window.0 + window.1);
+        let pulse_of = |t: i64| ((t as f64 - first) / period).floor() as i64;
+        let (k_lo, k_hi) = on.iter().fold((i64::MAX, i64::MIN), |(lo, hi), &i| {
+            let k = pulse_of(events.t[i]);
+            (lo.min(k), hi.max(k))
+        });
+        let span = (k_hi - k_lo + 1) as f64;
+        let mut blocks: Vec<Vec<f64>> = vec![Vec::new(); DRIFT_BLOCKS];
+        for &i in &on {
+            let rel = events.t[i] as f64 - first;
+            let k = (rel / period).floor();
+            // Folded, then unwrapped into [centre − P/2, centre + P/2).
+            let unwrapped = (rel - k * period - centre + 0.5 * period).rem_euclid(period) + centre
+                - 0.5 * period;
+            let b = (((k - k_lo as f64) / span) * DRIFT_BLOCKS as f64) as usize;
+            blocks[b.min(DRIFT_BLOCKS - 1)].push(unwrapped);
+        }
+        let mut points: Vec<(f64, f64)> = Vec::with_capacity(DRIFT_BLOCKS);
+        for (b, lat) in blocks.iter_mut().enumerate() {
+            if lat.len() < 8 {
+                continue;
+            }
+            lat.sort_unstable_by(f64::total_cmp);
+            let (q1, q3) = (lat.len() / 4, lat.len() - lat.len() / 4);
+            let iqm = lat[q1..q3].iter().sum::<f64>() / (q3 - q1) as f64;
+            let t_centre = (k_lo as f64 + (b as f64 + 0.5) * span / DRIFT_BLOCKS as f64) * period;
+            points.push((t_centre, iqm));
+        }
+        line_slope(&points) * 1e6
+    };
+    Ok(Signature {
+        name: LATENCY_DRIFT.into(),
+        description: "slope of the burst's latency over the recording (ppm: us per s)".into(),
+        value: SignatureValue::Scalar { value },
+    })
+}
+
+/// Least-squares slope of y on x, centred (no cancellation for large x);
+/// NaN with fewer than three points or no spread in x.
+fn line_slope(points: &[(f64, f64)]) -> f64 {
+    let n = points.len() as f64;
+    if n < 3.0 {
+        return f64::NAN;
+    }
+    let mx = points.iter().map(|p| p.0).sum::<f64>() / n;
+    let my = points.iter().map(|p| p.1).sum::<f64>() / n;
+    let (mut cov, mut var) = (0.0, 0.0);
+    for &(x, y) in points {
+        cov += (x - mx) * (y - my);
+        var += (x - mx) * (x - mx);
+    }
+    if var <= 0.0 {
+        f64::NAN
+    } else {
+        cov / var
+    }
+}

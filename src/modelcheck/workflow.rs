@@ -20,15 +20,41 @@
 //!    values, so the objective changes with the parameters, not with the
 //!    noise): a grid then golden-section refinement for one parameter,
 //!    Nelder–Mead for more, in a box (log-scaled where the parameter spans
-//!    decades). The objective is Σ d_s / spread_s, the distances scaled by
-//!    replicate spreads: first those of the current model, then (second,
-//!    narrower stage) those of the model with the stage-1 fit added, since
-//!    an effect changes the noise of the signatures it drives.
+//!    decades; with `profile_fit`, profiles for two parameters, see
+//!    [`WorkflowOptions::profile_fit`]). The objective is Σ d_s / spread_s,
+//!    the distances scaled by replicate spreads: first those of the
+//!    current model, then (second, narrower stage) those of the model
+//!    with the stage-1 fit added, since an effect changes the noise of the
+//!    signatures it drives.
 //! 4. **Judge on held-out data**: assess each fitted candidate against the
-//!    *held-out* measurement with fresh seeds. Accept the best only if its
-//!    gap reduction beats chance (`chance_factor` × the gap's null spread)
-//!    and beats the runner-up's by at least one null spread; otherwise
-//!    stop with "unexplained".
+//!    *held-out* measurement with fresh seeds (the same seeds for every
+//!    candidate of a round). Accept the best only if
+//!    - its gap reduction beats chance: more than `chance_factor` × the
+//!      gap's null spread (leave-one-out over the replicates), and
+//!    - it beats the runner-up clearly: the gap the winner leaves is below
+//!      (1 − [`RUNNER_UP_MARGIN`]) × the gap the runner-up leaves, and
+//!      the difference exceeds one null spread. The runner-up here is the
+//!      best *rival*: a candidate that removes mostly the same part of the
+//!      gap (at least [`RIVAL_OVERLAP`] of its per-signature reductions
+//!      lie where the winner reduces as much). A candidate that removes
+//!      another part is a second real effect, not a competing explanation:
+//!      it does not block the winner and is tried again next round. A
+//!      runner-up that removes nothing needs no relative margin: the
+//!      winner then only has to lead by one null spread.
+//!
+//!    Otherwise stop with "unexplained" (the note names both candidates).
+//!    The relative margin is what "clearly" means when the gaps are large:
+//!    two candidates that explain the same discrepancy can leave 8573 and
+//!    8612 of a gap of 10 250 (the session-3 many-effect recording), a
+//!    difference of many null spreads (the spreads are those of a model
+//!    that explains its own replicates) but no evidence for either. A
+//!    winner that leaves chance level while its rival leaves 10× as much
+//!    passes easily; intensity latency leaving 47.5 against latency
+//!    jitter's 43.7 does not (nothing is named: the data cannot tell them
+//!    apart through these signatures).
+//! 5. After an acceptance with two or more effects found, the found effects
+//!    are refitted jointly (see `joint_refit`), kept only if the held-out
+//!    gap does not grow.
 //!
 //! Fit and held-out measurements are different time blocks of the recording
 //! (the caller splits), so a candidate cannot win by fitting noise.
@@ -39,7 +65,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::distance::{distances, rank, DiscrepancyTable, Z_CAP};
-use super::signatures::{SignatureAccumulator, SignatureConfig, Signatures};
+use super::signatures::{latency_drift, SignatureAccumulator, SignatureConfig, Signatures};
 use crate::cluster::Particle;
 use crate::error::{Error, Result};
 use crate::events::EventChunk;
@@ -102,11 +128,16 @@ pub struct WorkflowOptions {
     pub chance_factor: f64,
     /// Base seed; every simulation seed derives from it.
     pub seed: u64,
-    /// Start two-parameter fits with the profile along the first parameter
-    /// ([`profile_then_simplex`]) instead of Nelder–Mead from the box
-    /// centre. Needed for the arbiter's row/event-time valley; off by
-    /// default because on small scenes it also lets intensity latency
-    /// mimic latency jitter closely enough that neither clearly wins.
+    /// Two-parameter fits: stage 1 is the profile along the first
+    /// parameter ([`profile_then_simplex`]) instead of Nelder–Mead from
+    /// the box centre, stage 2 a local profile around the stage-1 value
+    /// ([`local_profile_then_simplex`]). Needed for the arbiter's
+    /// row/event-time valley and intensity latency's exponent/reference
+    /// valley (both recovered within 30 % only with it). Off by default:
+    /// on small scenes it also lets intensity latency mimic a latency
+    /// jitter to a near tie (the CLI test's 160×120, 0.04 s scene:
+    /// held-out gap 47.5 vs 43.7 of 2114), and the acceptance rule then
+    /// names nothing.
     #[serde(default)]
     pub profile_fit: bool,
 }
@@ -190,7 +221,11 @@ pub fn signatures_of(cfg: &SignatureConfig, rec: &Recording) -> Result<Signature
     if let Some(t) = &rec.tracks {
         acc.add_tracks(t, &rec.particles)?;
     }
-    acc.finish()
+    let mut sigs = acc.finish()?;
+    // Clock drift: the slope of the burst's latency over the recording
+    // (its own pass: it needs the events of each time block together).
+    sigs.items.push(latency_drift(cfg, &rec.events)?);
+    Ok(sigs)
 }
 
 /// Seeds: disjoint streams per purpose so that nothing reuses another's
@@ -583,6 +618,8 @@ fn fit_candidate(
         Ok((vec![u], v, e))
     } else if profile_fit && spec.params.len() == 2 && refine_from.is_none() {
         profile_then_simplex(&mut objective, max_evaluations)
+    } else if let (true, 2, Some(u0)) = (profile_fit, spec.params.len(), refine_from) {
+        local_profile_then_simplex(&mut objective, u0, max_evaluations)
     } else {
         let (start, step) = match refine_from {
             Some(u) if profile_fit => (u.to_vec(), REFINE_SIMPLEX_STEP),
@@ -633,6 +670,72 @@ fn profile_then_simplex(
     }
     let rest = (max_evaluations / 2).max(6);
     let (x, v, e) = nelder_mead(objective, &best.0, 0.5 / PROFILE_OUTER.len() as f64, rest)?;
+    evals += e;
+    Ok(if v <= best.1 {
+        (x, v, evals)
+    } else {
+        (best.0, best.1, evals)
+    })
+}
+
+/// Outer offsets (unit-cube coordinates of the first parameter) of
+/// [`local_profile_then_simplex`] around the stage-1 value.
+const LOCAL_PROFILE_OUTER: [f64; 3] = [-0.15, 0.0, 0.15];
+
+/// Half width of the inner search of [`local_profile_then_simplex`] around
+/// the stage-1 value of the second parameter.
+const LOCAL_PROFILE_INNER_HALF_WIDTH: f64 = 0.25;
+
+/// Second-stage search for two parameters (with `profile_fit`): the
+/// profile along the first parameter at the stage-1 value and
+/// ± [`LOCAL_PROFILE_OUTER`], the second fitted by [`minimise_1d_in`] in a
+/// window around its stage-1 value, then Nelder–Mead from the best
+/// profile point.
+///
+/// Why: the stage-1 weights can leave a valley flat (intensity latency:
+/// exponent and reference trade off, τ ∝ reference^exponent, and the
+/// stage-1 objective is 246 at exponent 0.31 vs 253 at the true 0.55),
+/// so stage 1 stops anywhere along it. The stage-2 weights tilt the
+/// valley towards the truth (104.6 vs 110.2), but a simplex started on the
+/// valley's floor with a step across it shrinks before it has walked
+/// along it. Stepping the first parameter and re-finding the valley's
+/// floor in the second at each step walks along it by construction. Local
+/// (not over the whole box), so a stage-1 fit already in the right basin
+/// stays there.
+fn local_profile_then_simplex(
+    objective: &mut dyn FnMut(&[f64]) -> Result<f64>,
+    u0: &[f64],
+    max_evaluations: usize,
+) -> Result<(Vec<f64>, f64, usize)> {
+    let inner = (2 * max_evaluations / 3).max(5);
+    let mut evals = 0;
+    let mut best = (u0.to_vec(), f64::INFINITY);
+    let mut outer: Vec<f64> = LOCAL_PROFILE_OUTER
+        .iter()
+        .map(|d| (u0[0] + d).clamp(0.0, 1.0))
+        .collect();
+    outer.dedup_by(|a, b| (*a - *b).abs() < 1e-9);
+    for a in outer {
+        let (b, v, e) = minimise_1d_in(
+            &mut |b| objective(&[a, b]),
+            u0[1] - LOCAL_PROFILE_INNER_HALF_WIDTH,
+            u0[1] + LOCAL_PROFILE_INNER_HALF_WIDTH,
+            inner,
+        )?;
+        evals += e;
+        if v < best.1 {
+            best = (vec![a, b], v);
+        }
+    }
+    // The profile's outer steps are coarse (a factor 2.5 on a parameter
+    // spanning decades); the simplex walks the rest of the way along the
+    // valley, with the budget the plain second stage had.
+    let (x, v, e) = nelder_mead(
+        objective,
+        &best.0,
+        0.5 * LOCAL_PROFILE_OUTER[2],
+        2 * max_evaluations,
+    )?;
     evals += e;
     Ok(if v <= best.1 {
         (x, v, evals)
@@ -714,6 +817,53 @@ fn joint_refit(
     Ok(Some((model, a, gap)))
 }
 
+/// Per-signature part of the gap a candidate removes: max(z, 0) before
+/// minus after (signatures missing after count as unchanged).
+fn gap_reductions(before: &DiscrepancyTable, after: &DiscrepancyTable) -> Vec<f64> {
+    before
+        .rows
+        .iter()
+        .map(|r| {
+            let b = r.stats.z.max(0.0);
+            let a = after
+                .rows
+                .iter()
+                .find(|x| x.signature == r.signature)
+                .map_or(b, |x| x.stats.z.max(0.0));
+            b - a
+        })
+        .collect()
+}
+
+/// Is `other` a rival of `best`: does at least [`RIVAL_OVERLAP`] of what
+/// `other` removes from the gap (summed over signatures it improves) lie
+/// in signatures `best` improves as much? Complementary candidates (two
+/// real effects seen by different signatures) are not rivals.
+fn rivals(before: &DiscrepancyTable, best: &DiscrepancyTable, other: &DiscrepancyTable) -> bool {
+    let rb = gap_reductions(before, best);
+    let ro = gap_reductions(before, other);
+    let total: f64 = ro.iter().map(|r| r.max(0.0)).sum();
+    if total <= 0.0 {
+        // It removes nothing: as a runner-up it is harmless either way,
+        // and counting it keeps the chance check of the lead.
+        return true;
+    }
+    let shared: f64 = rb
+        .iter()
+        .zip(&ro)
+        .map(|(b, o)| b.max(0.0).min(o.max(0.0)))
+        .sum();
+    shared >= RIVAL_OVERLAP * total
+}
+
+/// See [`rivals`].
+pub const RIVAL_OVERLAP: f64 = 0.5;
+
+/// "Clearly beats the runner-up": the winner's held-out gap must be below
+/// (1 − this) × the best rival's (and the lead at least one null spread),
+/// when that rival removes part of the gap at all.
+pub const RUNNER_UP_MARGIN: f64 = 0.25;
+
 /// Sweeps over the found effects in [`joint_refit`].
 const JOINT_REFIT_SWEEPS: usize = 2;
 
@@ -794,7 +944,7 @@ pub fn run(
         let scale_seeds = seeds(4000 + round_no, opts.replicates + 1);
         // Candidates in parallel; each fit is sequential (its evaluations
         // share the common random numbers).
-        let fitted: Vec<(CandidateResult, Assessment, EffectSetting)> = remaining
+        let fitted: Vec<(CandidateResult, Assessment, EffectSetting, DiscrepancyTable)> = remaining
             .par_iter()
             .map(|spec| {
                 // Stage 1: weights from the current model's replicate spreads.
@@ -833,7 +983,8 @@ pub fn run(
                 let mut m = model.clone();
                 m.push(set.clone());
                 let a = Assessment::new(sim, cfg, &m, &hold_seeds, z)?;
-                let gap_after = a.table(&m_hold, z)?.gap();
+                let table_after = a.table(&m_hold, z)?;
+                let gap_after = table_after.gap();
                 Ok((
                     CandidateResult {
                         name: spec.name.clone(),
@@ -845,6 +996,7 @@ pub fn run(
                     },
                     a,
                     set,
+                    table_after,
                 ))
             })
             .collect::<Result<_>>()?;
@@ -856,13 +1008,30 @@ pub fn run(
                 .then_with(|| a.0.name.cmp(&b.0.name))
         });
         let best = &fitted[0].0;
-        let runner_up = fitted.get(1).map(|f| f.0.improvement).unwrap_or(0.0);
+        // The runner-up that matters is the best *rival*: a candidate that
+        // removes the same part of the gap. One that removes another part
+        // (a second real effect) is no evidence against the winner; it is
+        // next round's candidate.
+        let rival = fitted[1..]
+            .iter()
+            .find(|f| rivals(&table, &fitted[0].3, &f.3))
+            .map(|f| &f.0);
+        let runner_up = rival.map(|r| r.improvement).unwrap_or(0.0);
         let chance = opts.chance_factor * null_sd;
         let beats_chance = best.improvement > chance && best.improvement > 0.0;
-        let beats_runner_up = best.improvement - runner_up.max(0.0) > null_sd;
+        let lead = best.improvement - runner_up.max(0.0);
+        // The relative margin only against a rival that removes part of
+        // the gap: a runner-up that removes nothing (or makes it worse)
+        // competes with nothing, and the winner needs only a chance lead.
+        let clear_lead = if runner_up > 0.0 {
+            null_sd.max(RUNNER_UP_MARGIN * (gap_before - runner_up))
+        } else {
+            null_sd
+        };
+        let beats_runner_up = lead > clear_lead;
         let candidates: Vec<CandidateResult> = fitted.iter().map(|f| f.0.clone()).collect();
         if beats_chance && beats_runner_up {
-            let (res, assessment, set) = fitted.swap_remove(0);
+            let (res, assessment, set, _) = fitted.swap_remove(0);
             effects.push(FoundEffect {
                 name: res.name.clone(),
                 parameters: res.parameters.clone(),
@@ -921,8 +1090,14 @@ pub fn run(
                 )
             } else {
                 format!(
-                    "best candidate `{}` ({:.2}) does not clearly beat the runner-up ({:.2})",
-                    best.name, best.improvement, runner_up
+                    "best candidate `{}` (improvement {:.2}) does not clearly beat the runner-up \
+                     `{}` ({:.2}): lead {:.2}, needs {:.2}",
+                    best.name,
+                    best.improvement,
+                    rival.map_or("", |r| r.name.as_str()),
+                    runner_up,
+                    lead,
+                    clear_lead
                 )
             };
             rounds.push(Round {
