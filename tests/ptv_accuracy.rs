@@ -41,7 +41,9 @@ fn paper_like_conditions() {
         "precision (merged ok) {}",
         s.precision_merged_ok
     );
-    assert!(s.recall >= 0.88, "recall {}", s.recall);
+    // 0.921 with the backward extension of new tracks and the fixed-lag
+    // repair (session 4; 0.922 → 0.940 on the 384² scene).
+    assert!(s.recall >= 0.91, "recall {}", s.recall);
     assert!(
         s.velocity_rms_interior_px_per_pulse <= 0.10,
         "interior velocity rms {}",

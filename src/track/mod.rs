@@ -236,6 +236,24 @@ pub struct TrackParams {
     /// particles stay in view for thousands of pulses.
     #[serde(default = "default_max_track_length")]
     pub max_track_length: usize,
+    /// Pulses before its first four frames that a new track is extended
+    /// backwards into, through the particles no track took (with the
+    /// predictor's gate and up to `max_gap` missed pulses): a particle
+    /// whose first pulses could not start a track (a missed detection, a
+    /// merged image, a chain conflict) gets its early detections back.
+    /// 0 = off.
+    #[serde(default = "default_back_extend")]
+    pub back_extend: usize,
+    /// Pulses after which the links of a pulse are revisited (0 = never):
+    /// once `repair_lag` later detections are in, every track that missed
+    /// the pulse is fitted on both sides of it, and the particles of that
+    /// pulse in its gate are assigned again among it and the tracks that
+    /// hold them, with two-sided positions (a fixed-lag smoother): a track
+    /// gets back a particle the forward step could not place (outside the
+    /// one-sided gate, or taken by a neighbour whose two-sided fit says
+    /// it is not its own).
+    #[serde(default = "default_repair_lag")]
+    pub repair_lag: usize,
     /// Search radius (px) around the prior's prediction for the first step.
     pub prior_radius: f64,
     /// Mean-flow prior for initialisation.
@@ -267,6 +285,8 @@ impl Default for TrackParams {
             confirm_after_gap: 2,
             outlier_sigma: 3.5,
             max_track_length: default_max_track_length(),
+            back_extend: default_back_extend(),
+            repair_lag: default_repair_lag(),
             prior_radius: 3.0,
             prior: None,
         }
@@ -284,6 +304,14 @@ fn clipped_second_moment(k: f64) -> f64 {
 
 fn default_max_track_length() -> usize {
     512
+}
+
+fn default_repair_lag() -> usize {
+    1
+}
+
+fn default_back_extend() -> usize {
+    8
 }
 
 fn default_sigma_ceiling() -> f64 {
@@ -369,6 +397,15 @@ impl TrackParams {
                 format!("tracks start with {INIT_FRAMES} detections; min_length must be >= {INIT_FRAMES}, got {}", self.min_length),
             ));
         }
+        if self.repair_lag >= INIT_FRAMES {
+            return Err(Error::param(
+                "repair_lag",
+                format!("must be below {INIT_FRAMES}, got {}", self.repair_lag),
+            ));
+        }
+        if self.back_extend > 1000 {
+            return Err(Error::param("back_extend", "at most 1000 pulses"));
+        }
         if self.max_gap > 1000 || self.stitch_gap > 1000 {
             return Err(Error::param("max_gap/stitch_gap", "at most 1000 pulses"));
         }
@@ -387,6 +424,9 @@ struct Det {
 
 #[derive(Debug, Clone)]
 struct ActiveTrack {
+    /// Identity for the frames' owner lists (kept through stitching and
+    /// cuts; `NO_OWNER` for handed-out segments).
+    uid: u64,
     dets: Vec<Det>,
     /// Leading detections that only give context (the predictor and the
     /// fit) because an earlier segment of the track already handed them
@@ -400,10 +440,35 @@ impl ActiveTrack {
     }
 }
 
+/// Owner of a particle no track took.
+const NO_OWNER: u64 = u64::MAX;
+
+/// Detections on each side of the repaired pulse that its two-sided fit
+/// uses at most (before it; after it there are `repair_lag`).
+const REPAIR_WINDOW: i64 = 8;
+
+/// Most detections the backward extension fits (its predictor window).
+const BACK_FIT_WINDOW: usize = 16;
+
+/// What [`Tracker::extend_active`] did with the particles of a pulse.
+struct FrameLinks {
+    used: Vec<bool>,
+    owner: Vec<u64>,
+    hungry: Vec<u64>,
+    /// The scratch grid does not hold this pulse's particles.
+    grid_stale: bool,
+}
+
 /// Particles of one recent pulse with their "already used" flags.
 struct Frame {
     pulse: i64,
     t_us: f64,
+    /// The track (uid) each particle went to (`NO_OWNER`: none).
+    owner: Vec<u64>,
+    /// Tracks (uids) that found no particle at this pulse.
+    hungry: Vec<u64>,
+    /// Grid over `dets` (for the delayed repair).
+    grid: GridIndex,
     dets: Vec<Det>,
     used: Vec<bool>,
 }
@@ -429,10 +494,14 @@ pub struct Tracker {
     params: TrackParams,
     active: Vec<ActiveTrack>,
     frames: VecDeque<Frame>,
+    /// The `back_extend` pulses before `frames` (oldest first), for the
+    /// backward extension of new tracks.
+    back_frames: VecDeque<Frame>,
     /// Ended tracks waiting for a possible stitch.
     pool: Vec<ActiveTrack>,
     next_serial: u64,
     next_id: u64,
+    next_uid: u64,
     /// Sum and count of squared normalised innovations (px², per axis),
     /// seeded with `sigma_floor` as a prior worth a few dozen links.
     innov_sum: f64,
@@ -511,9 +580,11 @@ impl Tracker {
             params,
             active: Vec::new(),
             frames: VecDeque::new(),
+            back_frames: VecDeque::new(),
             pool: Vec::new(),
             next_serial: 0,
             next_id: 0,
+            next_uid: 0,
             innov_sum: floor2 * 30.0,
             innov_n: 30.0,
             last_pulse: None,
@@ -590,33 +661,65 @@ impl Tracker {
             .collect();
 
         // Tracks that missed too many pulses end (and wait for a stitch).
+        // Removal keeps the order: active tracks stay sorted by uid (new
+        // tracks get the next uids, revived ones are inserted in place), so
+        // the order is deterministic and the delayed repair finds tracks
+        // by binary search.
         let max_gap = self.params.max_gap as i64;
-        let mut i = 0;
-        while i < self.active.len() {
+        let mut kept = 0;
+        for i in 0..self.active.len() {
             if let Some(ahead) = self.active.get(i + PREFETCH_AHEAD) {
                 prefetch_window(&ahead.dets, 1);
             }
             if pulse - self.active[i].last().pulse - 1 > max_gap {
-                let t = self.active.swap_remove(i);
+                let t = std::mem::replace(
+                    &mut self.active[i],
+                    ActiveTrack {
+                        uid: NO_OWNER,
+                        dets: Vec::new(),
+                        context: 0,
+                    },
+                );
                 self.pool.push(t);
             } else {
-                i += 1;
+                self.active.swap(kept, i);
+                kept += 1;
             }
         }
-        // Deterministic order whatever the removal history. Keys read once
-        // per track (each read is a cache miss into the track's history).
-        self.active.sort_by_cached_key(|t| t.dets[0].serial);
+        self.active.truncate(kept);
+        debug_assert!(self.active.windows(2).all(|w| w[0].uid < w[1].uid));
 
-        let used = self.extend_active(&dets, pulse);
+        let links = self.extend_active(&dets, pulse);
         let segments = self.cut_long_tracks();
+        let mut grid = std::mem::take(&mut self.scratch.grid);
+        if links.grid_stale {
+            grid.rebuild(dets.iter().map(|d| (d.x, d.y)));
+        }
         self.frames.push_back(Frame {
             pulse,
             t_us,
             dets,
-            used,
+            used: links.used,
+            owner: links.owner,
+            hungry: links.hungry,
+            grid,
         });
+        if self.params.repair_lag > 0 {
+            self.repair(pulse - self.params.repair_lag as i64);
+        }
         while self.frames.len() > INIT_FRAMES {
-            self.frames.pop_front();
+            let mut old = self
+                .frames
+                .pop_front()
+                .expect("more than INIT_FRAMES frames");
+            // The grid goes back to the scratch for reuse.
+            self.scratch.grid = std::mem::take(&mut old.grid);
+            if self.params.back_extend > 0 {
+                self.back_frames.push_back(old);
+            }
+        }
+        while self.back_frames.len() > self.params.back_extend {
+            self.back_frames.pop_front();
         }
         self.initialise();
 
@@ -644,6 +747,7 @@ impl Tracker {
                 let tail = t.dets[t.dets.len() - keep..].to_vec();
                 let seg = std::mem::replace(&mut t.dets, tail);
                 segments.push(ActiveTrack {
+                    uid: NO_OWNER,
                     dets: seg,
                     context: t.context,
                 });
@@ -756,11 +860,18 @@ impl Tracker {
 
     /// Extend active tracks with this pulse's detections (global
     /// assignment); returns the used flags of the detections.
-    fn extend_active(&mut self, dets: &[Det], pulse: i64) -> Vec<bool> {
-        let mut used = vec![false; dets.len()];
+    fn extend_active(&mut self, dets: &[Det], pulse: i64) -> FrameLinks {
+        let mut links = FrameLinks {
+            used: vec![false; dets.len()],
+            owner: vec![NO_OWNER; dets.len()],
+            hungry: Vec::new(),
+            grid_stale: true,
+        };
         if self.active.is_empty() || dets.is_empty() {
-            return used;
+            links.hungry.extend(self.active.iter().map(|t| t.uid));
+            return links;
         }
+        links.grid_stale = false;
         let mut sc = std::mem::take(&mut self.scratch);
         sc.grid.rebuild(dets.iter().map(|d| (d.x, d.y)));
         sc.edges.clear();
@@ -787,9 +898,14 @@ impl Tracker {
         sc.miss.resize(self.active.len(), 1.0);
         let sol = lap::assign_sparse(dets.len(), &sc.edges, &sc.miss);
         for (ti, c) in sol.into_iter().enumerate() {
-            if let Some(c) = c {
+            let Some(c) = c else {
+                links.hungry.push(self.active[ti].uid);
+                continue;
+            };
+            {
                 self.active[ti].dets.push(dets[c]);
-                used[c] = true;
+                links.used[c] = true;
+                links.owner[c] = self.active[ti].uid;
                 let row = sc.row_start[ti]..sc.row_start[ti + 1];
                 if let Some(k) = row.clone().find(|&k| sc.edges[k].1 == c) {
                     // Squared innovation per axis, normalised by the
@@ -808,7 +924,7 @@ impl Tracker {
             }
         }
         self.scratch = sc;
-        used
+        links
     }
 
     /// Four-frame initialisation over the unused particles of the last
@@ -902,6 +1018,7 @@ impl Tracker {
                 taken[k][ids[k]] = true;
             }
             new_tracks.push(ActiveTrack {
+                uid: self.next_uid + new_tracks.len() as u64,
                 dets: (0..INIT_FRAMES).map(|k| f[k].dets[ids[k]]).collect(),
                 context: 0,
             });
@@ -910,8 +1027,254 @@ impl Tracker {
             self.frames[k].used = std::mem::take(&mut taken[k]);
         }
         self.stats.tracks_started += new_tracks.len() as u64;
+        self.next_uid += new_tracks.len() as u64;
+        self.extend_backward(&mut new_tracks);
         let new_tracks = self.stitch(new_tracks);
+        for t in &new_tracks {
+            self.set_owner(t);
+        }
         self.active.extend(new_tracks);
+    }
+
+    /// Record `t` as the owner of its detections in the kept frames.
+    fn set_owner(&mut self, t: &ActiveTrack) {
+        for f in self.frames.iter_mut().chain(self.back_frames.iter_mut()) {
+            let Some(first) = f.dets.first().map(|d| d.serial) else {
+                continue;
+            };
+            if let Ok(i) = t.dets.binary_search_by_key(&f.pulse, |d| d.pulse) {
+                let j = (t.dets[i].serial - first) as usize;
+                if j < f.owner.len() {
+                    f.owner[j] = t.uid;
+                }
+            }
+        }
+    }
+
+    /// Position of an active track at `pulse` from a fit of its
+    /// detections on both sides (pulse itself excluded), with the gate
+    /// for a particle there: (x, y, radius).
+    fn smoothed(&self, t: &ActiveTrack, pulse: i64) -> Option<(f64, f64, f64)> {
+        const N: usize = 2 * REPAIR_WINDOW as usize;
+        let lo = t.dets.partition_point(|d| d.pulse < pulse - REPAIR_WINDOW);
+        let hi = t.dets.partition_point(|d| d.pulse <= pulse + REPAIR_WINDOW);
+        let (mut tau, mut xs, mut ys) = ([0.0; N], [0.0; N], [0.0; N]);
+        let mut n = 0;
+        for d in t.dets[lo..hi].iter().filter(|d| d.pulse != pulse).take(N) {
+            tau[n] = (d.pulse - pulse) as f64;
+            xs[n] = d.x;
+            ys[n] = d.y;
+            n += 1;
+        }
+        if n < 3 {
+            return None;
+        }
+        let f = fit::fit_eval(&tau[..n], &xs[..n], &ys[..n], self.predict_order(n), 0.0)?;
+        let (r, _) = self.search_radius(f.leverage, 1);
+        Some((f.x, f.y, r))
+    }
+
+    /// Revisit the links of pulse `k` (see `TrackParams::repair_lag`).
+    fn repair(&mut self, k: i64) {
+        let Some(fi) = self.frames.iter().position(|f| f.pulse == k) else {
+            return;
+        };
+        let frame = &self.frames[fi];
+        if frame.dets.is_empty() {
+            return;
+        }
+        let find =
+            |active: &[ActiveTrack], uid: u64| active.binary_search_by_key(&uid, |t| t.uid).ok();
+        // Seeds: tracks that missed k. (Seeding also the owners of
+        // particles in several gates or far from their prediction helps
+        // the densest scenes, ppp 0.02 at 12 px/pulse: precision 0.754 →
+        // 0.768, but not paper-like ones, and costs 7 % more linking.)
+        let mut rows: Vec<usize> = frame
+            .hungry
+            .iter()
+            .filter_map(|&uid| find(&self.active, uid))
+            .collect();
+        if rows.is_empty() {
+            return;
+        }
+        rows.sort_unstable();
+        rows.dedup();
+        let mut row_of = vec![usize::MAX; self.active.len()];
+        for (row, &ti) in rows.iter().enumerate() {
+            row_of[ti] = row;
+        }
+        // Two-sided positions; owners of the seeds' candidates join in.
+        let mut fits: Vec<Option<(f64, f64, f64)>> = Vec::new();
+        let mut near = Vec::new();
+        let mut i = 0;
+        while i < rows.len() {
+            let t = &self.active[rows[i]];
+            let fit = if t.dets.len() < INIT_FRAMES
+                || t.dets.partition_point(|d| d.pulse < k) < t.context
+            {
+                // Too short to lose a detection, or inside an already
+                // handed-out segment: keeps what it has.
+                None
+            } else {
+                self.smoothed(t, k)
+            };
+            fits.push(fit);
+            if let Some((x, y, r)) = fit {
+                near.clear();
+                frame.grid.within(x, y, r, &mut near);
+                for &(j, _) in &near {
+                    let o = frame.owner[j as usize];
+                    if o != NO_OWNER {
+                        if let Some(ti) = find(&self.active, o) {
+                            if row_of[ti] == usize::MAX {
+                                row_of[ti] = rows.len();
+                                rows.push(ti);
+                            }
+                        }
+                    }
+                }
+            }
+            i += 1;
+        }
+        // Particles in play: unused ones and those of the rows' tracks.
+        let mut edges = Vec::new();
+        let current: Vec<Option<usize>> = rows
+            .iter()
+            .map(|&ti| {
+                let t = &self.active[ti];
+                t.dets
+                    .binary_search_by_key(&k, |d| d.pulse)
+                    .ok()
+                    .map(|i| (t.dets[i].serial - frame.dets[0].serial) as usize)
+            })
+            .collect();
+        // Particles of rows without a fit stay where they are.
+        let mut locked = vec![false; frame.dets.len()];
+        for (fit, cur) in fits.iter().zip(&current) {
+            if let (None, Some(c)) = (fit, cur) {
+                locked[*c] = true;
+            }
+        }
+        for (row, (fit, &cur)) in fits.iter().zip(&current).enumerate() {
+            let Some((x, y, r)) = *fit else {
+                if let Some(c) = cur {
+                    edges.push((row, c, 0.0));
+                }
+                continue;
+            };
+            near.clear();
+            frame.grid.within(x, y, r, &mut near);
+            for &(j, d2) in &near {
+                let o = frame.owner[j as usize];
+                if locked[j as usize] {
+                    continue;
+                }
+                let free = o == NO_OWNER && !frame.used[j as usize];
+                if free || find(&self.active, o).is_some_and(|ti| row_of[ti] != usize::MAX) {
+                    edges.push((row, j as usize, d2 / (r * r)));
+                }
+            }
+        }
+        let sol = lap::assign_sparse(frame.dets.len(), &edges, &vec![1.0; rows.len()]);
+        if sol == current {
+            return;
+        }
+        let frame = &mut self.frames[fi];
+        for (row, &ti) in rows.iter().enumerate() {
+            if sol[row] == current[row] {
+                continue;
+            }
+            let t = &mut self.active[ti];
+            if let Some(c) = current[row] {
+                let i = t
+                    .dets
+                    .binary_search_by_key(&k, |d| d.pulse)
+                    .expect("current particle");
+                t.dets.remove(i);
+                if frame.owner[c] == t.uid {
+                    frame.owner[c] = NO_OWNER;
+                    frame.used[c] = false;
+                }
+            }
+            if let Some(c) = sol[row] {
+                let i = t.dets.partition_point(|d| d.pulse < k);
+                t.dets.insert(i, frame.dets[c]);
+                frame.owner[c] = t.uid;
+                frame.used[c] = true;
+            }
+        }
+    }
+
+    /// Extend new tracks backwards through the unused particles of the
+    /// `back_extend` pulses before their first detection: per older pulse
+    /// each track predicts where its particle was (the predictor's fit over
+    /// its first detections, extrapolated backwards, with the forward
+    /// gate), and the candidates are assigned globally like a forward step.
+    /// A track stops when it would bridge more than `max_gap` pulses.
+    fn extend_backward(&mut self, tracks: &mut [ActiveTrack]) {
+        if tracks.is_empty() || self.back_frames.is_empty() {
+            return;
+        }
+        let p = &self.params;
+        let w = p.predict_window;
+        let max_gap = p.max_gap as i64;
+        let mut sc = std::mem::take(&mut self.scratch);
+        let mut idx: Vec<usize> = Vec::new();
+        for fi in (0..self.back_frames.len()).rev() {
+            let frame = &self.back_frames[fi];
+            let open: Vec<usize> = (0..tracks.len())
+                .filter(|&ti| tracks[ti].dets[0].pulse - frame.pulse - 1 <= max_gap)
+                .collect();
+            if open.is_empty() {
+                break;
+            }
+            idx.clear();
+            idx.extend((0..frame.dets.len()).filter(|&i| !frame.used[i]));
+            if idx.is_empty() {
+                continue;
+            }
+            sc.grid
+                .rebuild(idx.iter().map(|&i| (frame.dets[i].x, frame.dets[i].y)));
+            sc.edges.clear();
+            for (row, &ti) in open.iter().enumerate() {
+                let dets = &tracks[ti].dets;
+                let n = dets.len().min(w).min(BACK_FIT_WINDOW);
+                let first = dets[0].pulse;
+                let (mut tau, mut xs, mut ys) = (
+                    [0.0; BACK_FIT_WINDOW],
+                    [0.0; BACK_FIT_WINDOW],
+                    [0.0; BACK_FIT_WINDOW],
+                );
+                for (i, d) in dets[..n].iter().enumerate() {
+                    tau[i] = (d.pulse - first) as f64;
+                    xs[i] = d.x;
+                    ys[i] = d.y;
+                }
+                let order = self.predict_order(n);
+                let at = (frame.pulse - first) as f64;
+                let Some(f) = fit::fit_eval(&tau[..n], &xs[..n], &ys[..n], order, at) else {
+                    continue;
+                };
+                let (r, _) = self.search_radius(f.leverage, first - frame.pulse);
+                sc.near.clear();
+                sc.grid.within(f.x, f.y, r, &mut sc.near);
+                for &(j, d2) in &sc.near {
+                    sc.edges.push((row, idx[j as usize], d2 / (r * r)));
+                }
+            }
+            if sc.edges.is_empty() {
+                continue;
+            }
+            let sol = lap::assign_sparse(frame.dets.len(), &sc.edges, &vec![1.0; open.len()]);
+            let frame = &mut self.back_frames[fi];
+            for (row, c) in sol.into_iter().enumerate() {
+                if let Some(c) = c {
+                    frame.used[c] = true;
+                    tracks[open[row]].dets.insert(0, frame.dets[c]);
+                }
+            }
+        }
+        self.scratch = sc;
     }
 
     /// Join new chains to ended tracks in the pool where both extrapolate
@@ -922,21 +1285,34 @@ impl Tracker {
         }
         let p = &self.params;
         let mut edges = Vec::new();
-        // All chains of one call start at the same pulse, so each ended
-        // track is extrapolated once.
-        let start_pulse = chains[0].dets[0].pulse;
         for (ri, old) in self.pool.iter().enumerate() {
             let end = old.last();
-            let gap = start_pulse - end.pulse - 1;
-            if gap < 0 || gap > p.stitch_gap as i64 {
-                continue;
-            }
-            let r = p.min_search_radius * (1.0 + p.stitch_growth * gap as f64);
-            let Some(fwd) = extrapolate(&old.dets, p.predict_window, start_pulse) else {
-                continue;
-            };
+            // Chains start at the same pulse unless extended backwards:
+            // each ended track is extrapolated once per start pulse.
+            let mut fwd_at: Vec<(i64, Option<(f64, f64)>)> = Vec::new();
             for (ci, new) in chains.iter().enumerate() {
                 let start = &new.dets[0];
+                let gap = start.pulse - end.pulse - 1;
+                if gap < 0 || gap > p.stitch_gap as i64 {
+                    continue;
+                }
+                let r = p.min_search_radius * (1.0 + p.stitch_growth * gap as f64);
+                // Out of reach whatever the extrapolation (cheap test first).
+                let reach = (gap + 1) as f64 * p.max_disp + 2.0 * r;
+                if (end.x - start.x).powi(2) + (end.y - start.y).powi(2) > reach * reach {
+                    continue;
+                }
+                let fwd = match fwd_at.iter().find(|e| e.0 == start.pulse) {
+                    Some(e) => e.1,
+                    None => {
+                        let f = extrapolate(&old.dets, p.predict_window, start.pulse);
+                        fwd_at.push((start.pulse, f));
+                        f
+                    }
+                };
+                let Some(fwd) = fwd else {
+                    continue;
+                };
                 if (fwd.0 - start.x).powi(2) + (fwd.1 - start.y).powi(2) > 2.0 * r * r {
                     continue;
                 }
@@ -973,7 +1349,9 @@ impl Tracker {
             let mut old = pool[ri].take().expect("each pool row matched once");
             old.dets
                 .extend(chains[c].take().expect("each chain matched once").dets);
-            self.active.push(old);
+            self.set_owner(&old);
+            let at = self.active.partition_point(|t| t.uid < old.uid);
+            self.active.insert(at, old);
             self.stats.tracks_stitched += 1;
         }
         self.pool = pool.into_iter().flatten().collect();
