@@ -140,10 +140,13 @@ const BLOCK_US: f64 = 2000.0;
 /// How a request packs into one u64 sort key: time at 1 ns resolution
 /// relative to the block's `t_begin` (ample for 1 µs timestamps; 2^39 ns
 /// = 9 min of carry-over), then y, x (relative to the ROI, in as few bits
-/// as its size needs) and polarity. Sorting the keys orders requests by
-/// (time, y, x, p), as [`sort_requests_reference`] defines, and moves
-/// plain integers; the fewer bits, the fewer radix passes (4 instead of 5
-/// at full frame). Times come back rounded to the nanosecond.
+/// as its size needs) and polarity. Requests are ordered by (time, y),
+/// equal ones in input order, as [`sort_requests_reference`] defines: a
+/// stable radix sort of the keys on the bits above x ([`Self::x_shift`]),
+/// 3 passes of 11 bits at full frame (x and p need not be sorted on:
+/// same-row requests at the same nanosecond are rare, and a pulse's
+/// pixels come in x order anyway). Times come back rounded to the
+/// nanosecond.
 #[derive(Debug, Clone, Copy)]
 struct KeyLayout {
     x0: u16,
@@ -162,6 +165,11 @@ impl KeyLayout {
             x_bits,
             time_shift: 1 + x_bits + bits(roi.height),
         }
+    }
+
+    /// The key bits below y (x and p), which the sort does not compare.
+    fn x_shift(&self) -> u32 {
+        1 + self.x_bits
     }
 
     #[inline]
@@ -186,8 +194,22 @@ impl KeyLayout {
     }
 }
 
+/// Pixel events straight into request keys (no intermediate list).
+struct KeySink {
+    layout: KeyLayout,
+    t_begin: f64,
+    keys: Vec<u64>,
+}
+
+impl pixel::ArrivalSink for KeySink {
+    #[inline]
+    fn arrive(&mut self, a: pixel::Arrival) {
+        self.keys.push(self.layout.key(&a, self.t_begin));
+    }
+}
+
 /// The plain definition of the request order (test reference): keys,
-/// comparison sort, decode.
+/// stable comparison sort by (time in ns, y), decode.
 pub fn sort_requests_reference(reqs: &mut [pixel::Arrival], t_begin: f64) {
     let mut keys: Vec<u64> = reqs
         .iter()
@@ -196,7 +218,7 @@ pub fn sort_requests_reference(reqs: &mut [pixel::Arrival], t_begin: f64) {
             (ns << 25) | ((a.y as u64) << 13) | ((a.x as u64) << 1) | a.p as u64
         })
         .collect();
-    keys.sort_unstable();
+    keys.sort_by_key(|k| k >> 13);
     for (a, k) in reqs.iter_mut().zip(keys) {
         *a = pixel::Arrival {
             t: t_begin + (k >> 25) as f64 * 1e-3,
@@ -208,11 +230,11 @@ pub fn sort_requests_reference(reqs: &mut [pixel::Arrival], t_begin: f64) {
 }
 
 /// The simulator's request sort ([`KeyLayout`] keys through
-/// [`radix_sort`]) for requests inside `roi` (for tests).
+/// [`radix_sort_above`]) for requests inside `roi` (for tests).
 pub fn sort_requests(reqs: &mut [pixel::Arrival], t_begin: f64, roi: scenario::Roi) {
     let layout = KeyLayout::new(roi);
     let mut keys: Vec<u64> = reqs.iter().map(|a| layout.key(a, t_begin)).collect();
-    radix_sort(&mut keys, &mut Vec::new());
+    radix_sort_above(&mut keys, &mut Vec::new(), layout.x_shift());
     for (a, k) in reqs.iter_mut().zip(keys) {
         *a = layout.arrival(k, t_begin);
     }
@@ -224,12 +246,23 @@ pub fn sort_requests(reqs: &mut [pixel::Arrival], t_begin: f64, roi: scenario::R
 /// integers), in a few linear passes instead of ~log2(n) comparisons per
 /// key: the request sort was ~10 % of the simulator's instructions.
 pub fn radix_sort(keys: &mut Vec<u64>, scratch: &mut Vec<u64>) {
+    radix_sort_above(keys, scratch, 0);
+}
+
+/// Sort `keys` stably by `key >> low_bits` (the low bits are carried,
+/// not compared: equal high parts keep their input order), by
+/// [`radix_sort`]'s passes.
+pub fn radix_sort_above(keys: &mut Vec<u64>, scratch: &mut Vec<u64>, low_bits: u32) {
     let n = keys.len();
     if n < 512 {
-        keys.sort_unstable();
+        if low_bits == 0 {
+            keys.sort_unstable();
+        } else {
+            keys.sort_by_key(|&k| k >> low_bits);
+        }
         return;
     }
-    let used = keys.iter().fold(0u64, |m, &k| m | k);
+    let used = keys.iter().fold(0u64, |m, &k| m | k) >> low_bits;
     let bits = 64 - used.leading_zeros();
     let passes = bits.div_ceil(11).max(1);
     let digit = bits.div_ceil(passes);
@@ -237,6 +270,7 @@ pub fn radix_sort(keys: &mut Vec<u64>, scratch: &mut Vec<u64>) {
     let mask = radix as u64 - 1;
     let mut counts = vec![0usize; radix * passes as usize];
     for &k in keys.iter() {
+        let k = k >> low_bits;
         for p in 0..passes as usize {
             counts[p * radix + ((k >> (p as u32 * digit)) & mask) as usize] += 1;
         }
@@ -255,7 +289,7 @@ pub fn radix_sort(keys: &mut Vec<u64>, scratch: &mut Vec<u64>) {
             *v = sum;
             sum += here;
         }
-        let shift = p as u32 * digit;
+        let shift = low_bits + p as u32 * digit;
         let (src, dst) = if src_is_keys {
             (&keys[..], &mut scratch[..])
         } else {
@@ -558,15 +592,14 @@ impl Front {
             .par_iter()
             .enumerate()
             .map(|(i, s)| {
-                thread_local! {
-                    static OUT: std::cell::RefCell<Vec<pixel::Arrival>> = const { std::cell::RefCell::new(Vec::new()) };
-                }
-                OUT.with(|cell| {
-                    let out = &mut *cell.borrow_mut();
-                    out.clear();
-                    pixel.render_pulse(s, starts[i], stream_seed(seed, 6, k0 + i as u64), out);
-                    out.iter().map(|a| layout.key(a, t_begin)).collect()
-                })
+                let mut sink = KeySink {
+                    layout,
+                    t_begin,
+                    // ~2 events per lit particle: one allocation, no regrowth.
+                    keys: Vec::with_capacity(3 * s.len() + 64),
+                };
+                pixel.render_pulse(s, starts[i], stream_seed(seed, 6, k0 + i as u64), &mut sink);
+                sink.keys
             })
             .collect();
         let mut noise = Vec::new();
@@ -600,7 +633,7 @@ impl Back {
         keys.clear();
         keys.extend_from_slice(&r.keys);
         keys.extend(self.carry.iter().map(|a| self.layout.key(a, r.t_begin)));
-        radix_sort(keys, &mut self.scratch);
+        radix_sort_above(keys, &mut self.scratch, self.layout.x_shift());
         let merged = &*keys;
         let reqs = &mut self.reqs;
         let layout = self.layout;
@@ -711,6 +744,15 @@ mod tests {
             // Some constant high bits, as request keys have.
             if bits == 57 {
                 keys.iter_mut().for_each(|k| *k |= 1 << 56);
+            }
+            // Stable on the high part only: equal high parts keep their
+            // input order (the low bits are carried, not compared).
+            for low in [1, 12, 40] {
+                let mut above = keys.clone();
+                let mut expect = keys.clone();
+                expect.sort_by_key(|k| k >> low);
+                radix_sort_above(&mut above, &mut scratch, low);
+                assert_eq!(above, expect, "n {n}, bits {bits}, low {low}");
             }
             let mut expect = keys.clone();
             expect.sort_unstable();

@@ -19,8 +19,7 @@
 //! timestamp per row (horizontal stripes) and the folded histogram flattens.
 //! Off: each event is stamped with its own request time.
 
-use std::cmp::Reverse;
-use std::collections::BinaryHeap;
+use std::collections::VecDeque;
 
 use super::pixel::Arrival;
 use super::scenario::{ArbiterSaturation, Roi};
@@ -61,28 +60,17 @@ impl Refractory {
     }
 }
 
-/// Total order on f64 times for the heap (times are finite).
-#[derive(Debug, Clone, Copy, PartialEq)]
-struct T(f64);
-impl Eq for T {}
-impl PartialOrd for T {
-    fn partial_cmp(&self, o: &Self) -> Option<std::cmp::Ordering> {
-        Some(self.cmp(o))
-    }
-}
-impl Ord for T {
-    fn cmp(&self, o: &Self) -> std::cmp::Ordering {
-        self.0.total_cmp(&o.0)
-    }
-}
-
 pub struct Arbiter {
     params: ArbiterSaturation,
     roi_y: u16,
     /// Pending (request time, x, polarity) per ROI row.
     rows: Vec<Vec<(f64, u16, u8)>>,
-    /// Rows with pending requests, by first request time.
-    queue: BinaryHeap<Reverse<(T, u16)>>,
+    /// Rows with pending requests, by first pending request time (ties:
+    /// lower row first). Requests are admitted in (time, row) order, so
+    /// a row that becomes non-empty is always last in that order: a FIFO
+    /// (a priority queue keyed by the first request time gives the same
+    /// order, at log n per grant).
+    queue: VecDeque<u16>,
     /// When the server is next free (µs).
     t_free: f64,
     /// Requests lost because their pixel was still blocked.
@@ -93,6 +81,9 @@ pub struct Arbiter {
     /// Pixels with a pending request (one bit per ROI pixel): the check
     /// for a blocked pixel without scanning its row's pending list.
     blocked: Vec<u64>,
+    /// (time, row) of the last admitted request (checks the FIFO's premise).
+    #[cfg(debug_assertions)]
+    last_admitted: (f64, u16),
 }
 
 impl Arbiter {
@@ -101,12 +92,14 @@ impl Arbiter {
             params,
             roi_y: roi.y as u16,
             rows: vec![Vec::new(); roi.height as usize],
-            queue: BinaryHeap::new(),
+            queue: VecDeque::new(),
             t_free: f64::NEG_INFINITY,
             lost: 0,
             roi_x: roi.x as u16,
             row_bits: roi.width as usize,
             blocked: vec![0; (roi.width as usize * roi.height as usize).div_ceil(64)],
+            #[cfg(debug_assertions)]
+            last_admitted: (f64::NEG_INFINITY, 0),
         }
     }
 
@@ -121,14 +114,20 @@ impl Arbiter {
         self.blocked[word] |= mask;
         let row = &mut self.rows[r];
         if row.is_empty() {
-            self.queue.push(Reverse((T(a.t), r as u16)));
+            self.queue.push_back(r as u16);
+        }
+        #[cfg(debug_assertions)]
+        {
+            assert!(self.last_admitted <= (a.t, a.y), "requests out of order");
+            self.last_admitted = (a.t, a.y);
         }
         row.push((a.t, a.x, a.p));
     }
 
-    /// Serve the time-ordered requests `reqs` (all requests before `t_end`
-    /// are known; none later is in `reqs`), emitting events granted before
-    /// `t_end`. Requests not yet granted stay pending inside.
+    /// Serve the requests `reqs`, in (time, row) order (all requests
+    /// before `t_end` are known; none later is in `reqs`), emitting events
+    /// granted before `t_end`. Requests not yet granted stay pending
+    /// inside.
     pub fn run(&mut self, reqs: &[Arrival], t_end: f64, out: &mut EventChunk) {
         let mut i = 0;
         loop {
@@ -154,7 +153,7 @@ impl Arbiter {
                 }
                 break;
             }
-            let Reverse((_, r)) = self.queue.pop().expect("non-empty");
+            let r = self.queue.pop_front().expect("non-empty");
             let row = &mut self.rows[r as usize];
             row.sort_unstable_by_key(|e| e.1);
             let ts = floor_i64(t_grant);
@@ -287,7 +286,8 @@ mod tests {
                 p: 1,
             })
             .collect();
-        reqs.sort_by(|a, b| a.t.total_cmp(&b.t));
+        // (time, row) order, as the simulator's request sort delivers.
+        reqs.sort_by(|a, b| a.t.total_cmp(&b.t).then(a.y.cmp(&b.y)));
         let p = ArbiterSaturation {
             row_time_us: 0.5,
             event_time_us: 0.25,
