@@ -464,7 +464,20 @@ impl Gridded {
         if x >= axis[last] {
             return (last - 1, 1.0);
         }
-        let i = axis.partition_point(|a| *a <= x) - 1;
+        // The last node at or below x, as `partition_point(|a| *a <= x) - 1`
+        // would find it, but started from the uniform-spacing guess: the
+        // gridded fields the baseline builds are uniform, so the two
+        // correction loops run zero or one step instead of a binary search
+        // per velocity lookup (11 % of a model check's CPU). Exact for any
+        // axis: the loops walk to the same node.
+        let guess = (x - axis[0]) / (axis[last] - axis[0]) * last as f64;
+        let mut i = (guess as usize).min(last - 1);
+        while i + 1 < last && axis[i + 1] <= x {
+            i += 1;
+        }
+        while axis[i] > x {
+            i -= 1;
+        }
         (i, (x - axis[i]) / (axis[i + 1] - axis[i]))
     }
 
@@ -494,6 +507,29 @@ mod tests {
         let (_, v1) = f.velocity(x, y + h, t);
         let (_, v0) = f.velocity(x, y - h, t);
         (u1 - u0 + v1 - v0) / (2.0 * h)
+    }
+
+    #[test]
+    fn locate_matches_binary_search_on_any_axis() {
+        let uniform: Vec<f64> = (0..41).map(|k| 16.0 * k as f64 + 8.0).collect();
+        let skewed: Vec<f64> = (0..30).map(|k| (k as f64).powi(3) * 0.01 - 5.0).collect();
+        for axis in [&uniform, &skewed] {
+            let (lo, hi) = (axis[0], axis[axis.len() - 1]);
+            let mut xs: Vec<f64> = (0..5000)
+                .map(|k| lo + (hi - lo) * (k as f64 / 4999.0))
+                .collect();
+            xs.extend(axis.iter().copied());
+            xs.extend(axis.iter().map(|a| a + 1e-12));
+            xs.extend(axis.iter().map(|a| a - 1e-12));
+            for x in xs {
+                if x <= lo || x >= hi {
+                    continue;
+                }
+                let i = axis.partition_point(|a| *a <= x) - 1;
+                let want = (i, (x - axis[i]) / (axis[i + 1] - axis[i]));
+                assert_eq!(Gridded::locate(axis, x), want, "x = {x}");
+            }
+        }
     }
 
     #[test]
