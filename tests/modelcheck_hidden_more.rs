@@ -3,6 +3,9 @@
 //! once (both named, joint refit). "Measured" recordings are simulated with
 //! seeds the search never uses.
 
+mod modelcheck_common;
+use modelcheck_common::{base, setting, strength};
+
 use std::collections::BTreeMap;
 use std::time::Instant;
 
@@ -12,37 +15,10 @@ use ebptv::modelcheck::workflow::{
     run, signatures_of, EffectSetting, EffectSpec, ModelCheckResult, Simulator, Verdict,
     WorkflowOptions,
 };
-use ebptv::sim::scenario::{Scenario, Sensor};
+
 use rand::seq::SliceRandom;
-use rand::{Rng, SeedableRng};
+use rand::SeedableRng;
 use rand_pcg::Pcg64;
-
-/// The scene of tests/modelcheck_scene.rs: 160×120, 0.02 s (100 pulses).
-fn base() -> Scenario {
-    let mut s = Scenario {
-        name: "modelcheck-small".into(),
-        duration_s: 0.02,
-        sensor: Sensor {
-            width: 160,
-            height: 120,
-            roi: None,
-        },
-        ..Scenario::default()
-    };
-    s.seeding.ppp = 0.006;
-    s.light.energy = ebptv::sim::presets::WATER_ENERGY;
-    s
-}
-
-fn setting(name: &str, ps: &[(&str, f64)]) -> EffectSetting {
-    EffectSetting {
-        name: name.into(),
-        parameters: ps
-            .iter()
-            .map(|&(k, v)| (k.to_string(), v))
-            .collect::<BTreeMap<_, _>>(),
-    }
-}
 
 fn opts(max_effects: usize) -> WorkflowOptions {
     WorkflowOptions {
@@ -53,12 +29,6 @@ fn opts(max_effects: usize) -> WorkflowOptions {
         profile_fit: true,
         ..WorkflowOptions::default()
     }
-}
-
-/// A strength drawn from a seed the search never sees (log-uniform).
-fn strength(seed: u64, lo: f64, hi: f64) -> f64 {
-    let u: f64 = Pcg64::seed_from_u64(seed ^ 0x5EED).gen();
-    (lo.ln() + u * (hi.ln() - lo.ln())).exp()
 }
 
 /// Measured = the scene with `truth` on (fit and held-out blocks from two

@@ -2,7 +2,9 @@
 //! hidden effects in "measured" recordings simulated with seeds the search
 //! never sees.
 
-use std::collections::BTreeMap;
+mod modelcheck_common;
+use modelcheck_common::{base, setting, strength};
+
 use std::time::Instant;
 
 use ebptv::modelcheck::scene::{default_catalogue, SceneSimulator};
@@ -11,24 +13,8 @@ use ebptv::modelcheck::workflow::{
 };
 use ebptv::sim::scenario::{FlowSpec, Scenario, Sensor};
 use rand::seq::SliceRandom;
-use rand::{Rng, SeedableRng};
+use rand::SeedableRng;
 use rand_pcg::Pcg64;
-
-fn base() -> Scenario {
-    let mut s = Scenario {
-        name: "modelcheck-small".into(),
-        duration_s: 0.02,
-        sensor: Sensor {
-            width: 160,
-            height: 120,
-            roi: None,
-        },
-        ..Scenario::default()
-    };
-    s.seeding.ppp = 0.006;
-    s.light.energy = ebptv::sim::presets::WATER_ENERGY;
-    s
-}
 
 /// A scene whose particles change paths over the recording (out-of-plane
 /// motion, a flow of 9300, 1300 px/s: not a whole number of pixels per
@@ -57,16 +43,6 @@ fn mixing() -> Scenario {
     s.seeding.out_of_plane_rms = 2000.0;
     s.light.energy = ebptv::sim::presets::WATER_ENERGY;
     s
-}
-
-fn setting(name: &str, ps: &[(&str, f64)]) -> EffectSetting {
-    EffectSetting {
-        name: name.into(),
-        parameters: ps
-            .iter()
-            .map(|&(k, v)| (k.to_string(), v))
-            .collect::<BTreeMap<_, _>>(),
-    }
 }
 
 fn opts() -> WorkflowOptions {
@@ -154,12 +130,6 @@ fn assert_recovered(res: &ModelCheckResult, truth: &EffectSetting) {
         );
     }
     assert!(first.gap_after <= 0.5 * first.gap_before, "{first:?}");
-}
-
-/// A strength drawn from a seed the search never sees (log-uniform).
-fn strength(seed: u64, lo: f64, hi: f64) -> f64 {
-    let u: f64 = Pcg64::seed_from_u64(seed ^ 0x5EED).gen();
-    (lo.ln() + u * (hi.ln() - lo.ln())).exp()
 }
 
 #[test]
