@@ -6,11 +6,14 @@ use cli_common::{ebptv, run_ok};
 use ebptv::cluster::{cluster_pulse, ClusterParams};
 use ebptv::track::synth::{generate, SynthParams};
 
-#[test]
-fn links_a_particles_csv() {
-    let dir = tempfile::tempdir().unwrap();
+/// A synthetic 128×128 scene of `pulses` pulses, clustered with the
+/// defaults and written as `dir/particles.csv` (its path and particles).
+fn synthetic_particles_csv(
+    dir: &std::path::Path,
+    pulses: usize,
+) -> (std::path::PathBuf, Vec<ebptv::cluster::Particle>) {
     let scene = generate(&SynthParams {
-        pulses: 30,
+        pulses,
         width: 128,
         height: 128,
         ..Default::default()
@@ -19,8 +22,15 @@ fn links_a_particles_csv() {
         .iter()
         .flat_map(|s| cluster_pulse(&s.pulse, &ClusterParams::default()))
         .collect();
-    let input = dir.path().join("particles.csv");
+    let input = dir.join("particles.csv");
     ebptv::track::write_particles_csv(&input, &particles).unwrap();
+    (input, particles)
+}
+
+#[test]
+fn links_a_particles_csv() {
+    let dir = tempfile::tempdir().unwrap();
+    let (input, particles) = synthetic_particles_csv(dir.path(), 30);
     let out = dir.path().join("out");
     run_ok(
         ebptv()
@@ -156,18 +166,7 @@ fn bad_input_gives_clear_errors_and_no_outputs() {
 #[test]
 fn sliced_and_sequential_linkers_agree() {
     let dir = tempfile::tempdir().unwrap();
-    let scene = generate(&SynthParams {
-        pulses: 80,
-        width: 128,
-        height: 128,
-        ..Default::default()
-    });
-    let particles: Vec<_> = scene
-        .iter()
-        .flat_map(|s| cluster_pulse(&s.pulse, &ClusterParams::default()))
-        .collect();
-    let input = dir.path().join("particles.csv");
-    ebptv::track::write_particles_csv(&input, &particles).unwrap();
+    let (input, _) = synthetic_particles_csv(dir.path(), 80);
     let run = |name: &str, args: &[&str]| {
         let out = dir.path().join(name);
         run_ok(
