@@ -5,7 +5,8 @@
 //! fitted; the workflow must name that effect first, recover its parameters,
 //! and at least halve the gap.
 
-use std::collections::BTreeMap;
+mod modelcheck_common;
+use modelcheck_common::setting;
 
 use ebptv::cluster::Particle;
 use ebptv::events::{EventChunk, Geometry};
@@ -276,16 +277,6 @@ fn measured(
         m.simulate(effects, truth_seed).unwrap(),
         m.simulate(effects, truth_seed + 1).unwrap(),
     )
-}
-
-fn setting(name: &str, ps: &[(&str, f64)]) -> EffectSetting {
-    EffectSetting {
-        name: name.into(),
-        parameters: ps
-            .iter()
-            .map(|&(k, v)| (k.to_string(), v))
-            .collect::<BTreeMap<_, _>>(),
-    }
 }
 
 /// Run the hidden-effect case: the effect must be named first, parameters
