@@ -374,6 +374,405 @@ pub fn fit_adaptive(
     best.0.solve(rule.order).map(|f| (f, best.1))
 }
 
+/// Tolerance (in pulse periods) within which a detection's τ counts as
+/// lying on the integer grid: [`grid_tolerance`] adds the rounding of the
+/// time values themselves.
+const GRID_TOLERANCE: f64 = 1e-9;
+
+/// How far (in τ units) a τ computed from times up to `t_max_abs` µs with
+/// period `period_us` may stray from its integer value by rounding alone:
+/// the fast path takes a detection as on the grid within this distance.
+pub fn grid_tolerance(t_max_abs: f64, period_us: f64) -> f64 {
+    GRID_TOLERANCE + 64.0 * f64::EPSILON * (t_max_abs / period_us.abs().max(1e-300))
+}
+
+/// The samples one [`fit_adaptive`] call reads (its pilot window; for a
+/// fixed window, that window): `n` samples, evaluation at `centre`.
+pub fn adaptive_span(n: usize, centre: usize, rule: &WindowRule) -> std::ops::Range<usize> {
+    if n == 0 {
+        return 0..0;
+    }
+    let wmax = rule.max_window.clamp(1, n);
+    let wmin = rule.min_window.clamp(1, wmax);
+    let centre = centre.min(n - 1);
+    let w = if wmin == wmax {
+        wmax
+    } else {
+        (2 * wmax + 1).min(n)
+    };
+    let start = centre.saturating_sub(w / 2).min(n - w);
+    start..start + w
+}
+
+/// One candidate window on the integer grid: what [`fit_adaptive`]
+/// derives from the window's time moments alone, tabulated.
+#[derive(Debug, Clone, Copy, Default)]
+struct GridWindow {
+    /// The moments give a fit at all (never false for distinct τ).
+    ok: bool,
+    /// Velocity variance factor `(XᵀX)⁻¹₁₁` and cubic bias factor.
+    variance: f64,
+    bias: f64,
+    /// Coefficients of the fit (`p = order + 1`, lowered to what the
+    /// window allows) and the inverse normal matrix.
+    p: usize,
+    inv: [[f64; 3]; 3],
+}
+
+/// Tables of [`fit_adaptive`] for samples on the integer τ grid without
+/// gaps (detections at consecutive pulses, evaluation at one of them).
+///
+/// On such a window the normal matrix `XᵀX`, its inverse, the velocity
+/// variance and bias factors of every candidate and the pilot's cubic
+/// coefficient filter (Savitzky–Golay-like weights) depend only on the
+/// window's length and its offset from the evaluation sample, not on the
+/// data: they are computed once here (with the reference's own [`Sums`]
+/// arithmetic on the exact integer moments) and a sample costs the
+/// pilot's cubic dot products and the chosen window's moments.
+/// [`fit_adaptive_grid`] is the fast path; [`fit_adaptive`] the reference
+/// and the path for windows with gaps or irregular times.
+#[derive(Debug, Clone)]
+pub struct GridTables {
+    min_window: usize,
+    max_window: usize,
+    order: usize,
+    /// Candidate windows, `w` in 1..=max_window, offset `o = start −
+    /// centre` in −(w−1)..=0, at `w(w−1)/2 + (o + w − 1)`.
+    windows: Vec<GridWindow>,
+    /// Pilot windows, `w` in 1..=2·max_window+1: start of the cubic
+    /// filter in `cubic_weights` (length `w`), and its variance factor;
+    /// `None` where [`Sums::cubic`] gives none.
+    cubic: Vec<Option<(usize, f64)>>,
+    cubic_weights: Vec<f64>,
+}
+
+#[inline]
+fn grid_index(w: usize, offset: isize) -> usize {
+    w * (w - 1) / 2 + (offset + w as isize - 1) as usize
+}
+
+impl GridTables {
+    /// Tables for the window shape of `rule` (its σ and bias weight are
+    /// applied per sample, so they do not enter).
+    pub fn new(rule: &WindowRule) -> Self {
+        let max_window = rule.max_window.max(1);
+        let min_window = rule.min_window.clamp(1, max_window);
+        let sums_of = |w: usize, o: isize| {
+            let mut s = Sums::default();
+            for k in 0..w {
+                s.add((o + k as isize) as f64, 0.0, 0.0);
+            }
+            s
+        };
+        let mut windows = Vec::with_capacity(grid_index(max_window + 1, 0));
+        for w in 1..=max_window {
+            for o in -(w as isize - 1)..=0 {
+                let s = sums_of(w, o);
+                let vb = s.velocity_variance_and_bias(rule.order);
+                let c = s.coefficients(rule.order.min(2));
+                let mut gw = GridWindow::default();
+                if let (Some((variance, bias)), Some(c)) = (vb, c) {
+                    gw.ok = true;
+                    gw.variance = variance;
+                    gw.bias = bias;
+                    gw.p = c.p;
+                    for a in 0..3 {
+                        gw.inv[a].copy_from_slice(&c.inv[a][..3]);
+                    }
+                }
+                debug_assert_eq!(windows.len(), grid_index(w, o));
+                windows.push(gw);
+            }
+        }
+        let pilot_max = 2 * max_window + 1;
+        let mut cubic = Vec::with_capacity(grid_index(pilot_max + 1, 0));
+        let mut cubic_weights = Vec::new();
+        for w in 1..=pilot_max {
+            for o in -(w as isize - 1)..=0 {
+                let s = sums_of(w, o);
+                let entry = match (s.n >= 5).then(|| s.coefficients(3)).flatten() {
+                    Some(c) if c.p == 4 => {
+                        let at = cubic_weights.len();
+                        for k in 0..w {
+                            let t = (o + k as isize) as f64;
+                            let row = &c.inv[3];
+                            cubic_weights.push(row[0] + t * (row[1] + t * (row[2] + t * row[3])));
+                        }
+                        Some((at, c.inv[3][3]))
+                    }
+                    _ => None,
+                };
+                cubic.push(entry);
+            }
+        }
+        GridTables {
+            min_window,
+            max_window,
+            order: rule.order,
+            windows,
+            cubic,
+            cubic_weights,
+        }
+    }
+
+    /// Whether these tables serve `rule` (same windows and order).
+    pub fn serves(&self, rule: &WindowRule) -> bool {
+        let max_window = rule.max_window.max(1);
+        self.max_window == max_window
+            && self.min_window == rule.min_window.clamp(1, max_window)
+            && self.order == rule.order
+    }
+
+    /// Shared tables for `rule`'s shape, built once per process.
+    pub fn cached(rule: &WindowRule) -> std::sync::Arc<GridTables> {
+        use std::sync::{Arc, Mutex, OnceLock};
+        static CACHE: OnceLock<Mutex<Vec<Arc<GridTables>>>> = OnceLock::new();
+        let mut cache = CACHE
+            .get_or_init(Default::default)
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        if let Some(t) = cache.iter().find(|t| t.serves(rule)) {
+            return t.clone();
+        }
+        let t = Arc::new(GridTables::new(rule));
+        cache.push(t.clone());
+        t
+    }
+
+    #[inline]
+    fn window(&self, w: usize, start: usize, centre: usize) -> &GridWindow {
+        &self.windows[grid_index(w, start as isize - centre as isize)]
+    }
+}
+
+/// [`fit_adaptive`] for samples on the integer τ grid: the samples of
+/// [`adaptive_span`]`(xs.len(), centre, rule)` are at τ = index (their
+/// pulses consecutive, their times regular) and the evaluation is at
+/// sample `centre`. The caller checks that; the result then equals
+/// [`fit_adaptive`]'s up to rounding (tested), the same window chosen
+/// unless two candidates' criteria agree to rounding. `tables` must
+/// [`GridTables::serves`] `rule` (else the reference is used).
+pub fn fit_adaptive_grid(
+    tables: &GridTables,
+    xs: &[f64],
+    ys: &[f64],
+    centre: usize,
+    rule: &WindowRule,
+) -> Option<(FitState, usize)> {
+    let n = xs.len().min(ys.len());
+    if n == 0 {
+        return None;
+    }
+    if !tables.serves(rule) {
+        let tau: Vec<f64> = (0..n).map(|i| i as f64).collect();
+        let c = centre.min(n - 1);
+        return fit_adaptive(&tau, xs, ys, c, c as f64, rule);
+    }
+    let wmax = rule.max_window.clamp(1, n);
+    let wmin = rule.min_window.clamp(1, wmax);
+    let centre = centre.min(n - 1);
+    let start_of = |w: usize| centre.saturating_sub(w / 2).min(n - w);
+    if wmin == wmax {
+        let start = start_of(wmax);
+        return grid_solve(
+            tables.window(wmax, start, centre),
+            xs,
+            ys,
+            start,
+            wmax,
+            centre,
+        )
+        .map(|f| (f, wmax));
+    }
+    let pilot = (2 * wmax + 1).min(n);
+    let c3sq = if rule.order >= 2 {
+        let start = start_of(pilot);
+        match tables.cubic[grid_index(pilot, start as isize - centre as isize)] {
+            Some((at, v)) => {
+                let g = &tables.cubic_weights[at..at + pilot];
+                let (x0, y0) = (xs[centre], ys[centre]);
+                let (mut cx, mut cy) = (0.0, 0.0);
+                for ((g, x), y) in g.iter().zip(&xs[start..start + pilot]).zip(&ys[start..]) {
+                    cx += g * (x - x0);
+                    cy += g * (y - y0);
+                }
+                (cx * cx + cy * cy - 2.0 * rule.sigma.powi(2) * v).max(0.0)
+            }
+            None => 0.0,
+        }
+    } else {
+        0.0
+    };
+    // The candidates in increasing size: the least criterion wins, on a
+    // tie the larger window (as in the reference).
+    let s2 = rule.sigma * rule.sigma;
+    let mut best: Option<(f64, usize, usize)> = None;
+    let (mut w, mut nc) = (wmin, 0);
+    while nc < MAX_CANDIDATES {
+        let start = start_of(w);
+        let g = tables.window(w, start, centre);
+        if g.ok {
+            nc += 1;
+            let crit = rule.bias_weight * c3sq * g.bias * g.bias + 2.0 * s2 * g.variance;
+            if best.map_or(true, |b| crit.total_cmp(&b.0).is_le()) {
+                best = Some((crit, w, start));
+            }
+        }
+        if w >= wmax {
+            break;
+        }
+        w = (w + 2).min(wmax);
+    }
+    let (_, w, start) = best?;
+    grid_solve(tables.window(w, start, centre), xs, ys, start, w, centre).map(|f| (f, w))
+}
+
+/// The fit over samples `start..start + w` at τ = index, evaluated at
+/// `centre`, from the tabulated inverse: [`Sums::solve`]'s arithmetic on
+/// moments taken about the centre sample.
+fn grid_solve(
+    g: &GridWindow,
+    xs: &[f64],
+    ys: &[f64],
+    start: usize,
+    w: usize,
+    centre: usize,
+) -> Option<FitState> {
+    if !g.ok {
+        return None;
+    }
+    let p = g.p;
+    let (x0, y0) = (xs[centre], ys[centre]);
+    let (mut mx, mut my) = ([0.0f64; 3], [0.0f64; 3]);
+    let (mut xx, mut yy) = (0.0, 0.0);
+    let mut s = start as f64 - centre as f64;
+    for (x, y) in xs[start..start + w].iter().zip(&ys[start..start + w]) {
+        let (x, y) = (x - x0, y - y0);
+        mx[0] += x;
+        my[0] += y;
+        mx[1] += s * x;
+        my[1] += s * y;
+        mx[2] += s * s * x;
+        my[2] += s * s * y;
+        xx += x * x;
+        yy += y * y;
+        s += 1.0;
+    }
+    let (mut cx, mut cy) = ([0.0f64; 3], [0.0f64; 3]);
+    for a in 0..p {
+        for b in 0..p {
+            cx[a] += g.inv[a][b] * mx[b];
+            cy[a] += g.inv[a][b] * my[b];
+        }
+    }
+    let ssr: f64 = xx + yy - (0..p).map(|a| cx[a] * mx[a] + cy[a] * my[a]).sum::<f64>();
+    let dof = w - p;
+    Some(FitState {
+        x: cx[0] + x0,
+        y: cy[0] + y0,
+        vx: cx[1],
+        vy: cy[1],
+        ax: 2.0 * cx[2],
+        ay: 2.0 * cy[2],
+        rms_residual: if dof > 0 {
+            (ssr.max(0.0) / (2 * dof) as f64).sqrt()
+        } else {
+            0.0
+        },
+        leverage: g.inv[0][0],
+        velocity_variance: if p > 1 { g.inv[1][1] } else { 0.0 },
+    })
+}
+
+/// Leave-one-out quadratic predictions on the integer grid, for the
+/// tracker's outlier pass: a quadratic fitted to `w + 1` samples at
+/// consecutive τ with sample `e` left out, evaluated at sample `e`. On a
+/// gap-free window the prediction is a fixed weighting of the other
+/// samples (and its leverage a number): tabulated here for every `w` up to
+/// `max_window` and every `e`, from the reference's own normal matrices
+/// ([`fit_eval`] is what the tables are tested against).
+#[derive(Debug, Clone)]
+pub struct LeaveOneOut {
+    max_window: usize,
+    /// Per `w` (index `w`), per `e` in `0..=w`: weights of the `w + 1`
+    /// samples (0 at `e`) and the leverage; `None` when the fit is singular.
+    table: Vec<Vec<Option<(Vec<f64>, f64)>>>,
+}
+
+impl LeaveOneOut {
+    /// Tables for windows of up to `max_window` fitted samples.
+    pub fn new(max_window: usize) -> Self {
+        let mut table = vec![Vec::new()];
+        for w in 1..=max_window {
+            let mut per_e = Vec::with_capacity(w + 1);
+            for e in 0..=w {
+                let taus: Vec<f64> = (0..=w)
+                    .filter(|&k| k != e)
+                    .map(|k| k as f64 - e as f64)
+                    .collect();
+                let p = 2.min(w - 1) + 1;
+                let mut ata = [[0.0f64; 3]; 3];
+                for &t in &taus {
+                    let row = [1.0, t, t * t];
+                    for a in 0..p {
+                        for b in 0..p {
+                            ata[a][b] += row[a] * row[b];
+                        }
+                    }
+                }
+                per_e.push(invert(&ata, p).map(|inv| {
+                    let weights = (0..=w)
+                        .map(|k| {
+                            if k == e {
+                                return 0.0;
+                            }
+                            let t = k as f64 - e as f64;
+                            let row = [1.0, t, t * t];
+                            (0..p).map(|b| inv[0][b] * row[b]).sum()
+                        })
+                        .collect();
+                    (weights, inv[0][0])
+                }));
+            }
+            table.push(per_e);
+        }
+        LeaveOneOut { max_window, table }
+    }
+
+    /// Shared tables for `max_window`, built once per process.
+    pub fn cached(max_window: usize) -> std::sync::Arc<LeaveOneOut> {
+        use std::sync::{Arc, Mutex, OnceLock};
+        static CACHE: OnceLock<Mutex<Vec<Arc<LeaveOneOut>>>> = OnceLock::new();
+        let mut cache = CACHE
+            .get_or_init(Default::default)
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        if let Some(t) = cache.iter().find(|t| t.max_window == max_window) {
+            return t.clone();
+        }
+        let t = Arc::new(LeaveOneOut::new(max_window));
+        cache.push(t.clone());
+        t
+    }
+
+    /// `(dx, dy, leverage)`: the quadratic through `xs`, `ys` (at τ =
+    /// index, `w + 1 = xs.len()` samples, `w ≤ max_window`) without
+    /// sample `e`, evaluated at τ = `e`, minus sample `e`. The same as
+    /// [`fit_eval`] over the other samples (order 2) up to rounding; `None`
+    /// outside the tables or for a singular fit.
+    pub fn predict(&self, xs: &[f64], ys: &[f64], e: usize) -> Option<(f64, f64, f64)> {
+        let w = xs.len().checked_sub(1)?;
+        let (weights, leverage) = self.table.get(w)?.get(e)?.as_ref()?;
+        let (x0, y0) = (xs[e], ys[e]);
+        let (mut dx, mut dy) = (0.0, 0.0);
+        for ((g, x), y) in weights.iter().zip(xs).zip(ys) {
+            dx += g * (x - x0);
+            dy += g * (y - y0);
+        }
+        Some((dx, dy, *leverage))
+    }
+}
+
 /// Inverse of the leading 3×3 block of a symmetric positive (semi)definite
 /// matrix by cofactors — the hot path of [`fit_adaptive`]'s candidates;
 /// `None` when (numerically) singular. [`invert`] is the reference.
@@ -580,6 +979,175 @@ mod tests {
             }
         }
         assert!(invert_sym3(&m).is_none());
+    }
+
+    /// Compare two fits to ~1e-9 relative (absolute below 1).
+    fn assert_close(a: &FitState, b: &FitState, what: &str) {
+        for (name, p, q) in [
+            ("x", a.x, b.x),
+            ("y", a.y, b.y),
+            ("vx", a.vx, b.vx),
+            ("vy", a.vy, b.vy),
+            ("ax", a.ax, b.ax),
+            ("ay", a.ay, b.ay),
+            ("rms", a.rms_residual, b.rms_residual),
+            ("leverage", a.leverage, b.leverage),
+            (
+                "velocity_variance",
+                a.velocity_variance,
+                b.velocity_variance,
+            ),
+        ] {
+            assert!(
+                (p - q).abs() <= 1e-9 * q.abs().max(1.0),
+                "{what}: {name} {p} vs {q}"
+            );
+        }
+    }
+
+    #[test]
+    fn grid_fit_matches_the_reference() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(11);
+        let rules = [
+            (5, 21, 2, 1.0),
+            (5, 21, 2, 4.0),
+            (3, 9, 1, 1.0),
+            (2, 11, 2, 4.0),
+            (7, 7, 2, 1.0),
+            (1, 5, 0, 1.0),
+        ];
+        let mut compared = 0;
+        for (case, &(min_window, max_window, order, bias_weight)) in rules.iter().enumerate() {
+            let tables = GridTables::new(&WindowRule {
+                min_window,
+                max_window,
+                order,
+                sigma: 0.0,
+                bias_weight,
+            });
+            for n in [1usize, 2, 4, 6, 9, 15, 22, 30, 43, 44, 80] {
+                // Straight, curved and sharply turning paths with noise; τ
+                // off the integers by rounding-sized amounts, as computed
+                // from real pulse times.
+                let turn = [0.0, 0.05, 0.4][n % 3];
+                let sigma = [0.05, 0.3, 1.0][case % 3];
+                let rule = WindowRule {
+                    min_window,
+                    max_window,
+                    order,
+                    sigma,
+                    bias_weight,
+                };
+                let tau: Vec<f64> = (0..n).map(|i| i as f64 * (1.0 + 1e-15) + 1e-13).collect();
+                let xs: Vec<f64> = (0..n)
+                    .map(|i| {
+                        400.0
+                            + 40.0 * (turn * i as f64).sin()
+                            + 6.0 * i as f64
+                            + rng.gen_range(-sigma..=sigma)
+                    })
+                    .collect();
+                let ys: Vec<f64> = (0..n)
+                    .map(|i| {
+                        90.0 + 40.0 * (turn * i as f64).cos() - 2.0 * i as f64
+                            + rng.gen_range(-sigma..=sigma)
+                    })
+                    .collect();
+                for c in 0..n {
+                    let r = fit_adaptive(&tau, &xs, &ys, c, tau[c], &rule);
+                    let f = fit_adaptive_grid(&tables, &xs, &ys, c, &rule);
+                    match (f, r) {
+                        (Some((f, fw)), Some((r, rw))) => {
+                            let what = format!("rule {case} n {n} centre {c}");
+                            assert_eq!(fw, rw, "{what}: window");
+                            assert_close(&f, &r, &what);
+                            compared += 1;
+                        }
+                        (None, None) => {}
+                        (f, r) => panic!("rule {case} n {n} centre {c}: {f:?} vs {r:?}"),
+                    }
+                }
+            }
+        }
+        assert!(compared > 1500, "{compared}");
+    }
+
+    #[test]
+    fn grid_tables_follow_the_rule_and_span() {
+        let rule = WindowRule {
+            min_window: 5,
+            max_window: 21,
+            order: 2,
+            sigma: 0.2,
+            bias_weight: 4.0,
+        };
+        let t = GridTables::cached(&rule);
+        assert!(t.serves(&WindowRule { sigma: 3.0, ..rule }));
+        assert!(!t.serves(&WindowRule {
+            max_window: 19,
+            ..rule
+        }));
+        assert!(std::sync::Arc::ptr_eq(&t, &GridTables::cached(&rule)));
+        // The pilot window: 43 samples, centred where the ends allow.
+        assert_eq!(adaptive_span(100, 50, &rule), 29..72);
+        assert_eq!(adaptive_span(100, 3, &rule), 0..43);
+        assert_eq!(adaptive_span(30, 29, &rule), 0..30);
+        assert_eq!(adaptive_span(0, 0, &rule), 0..0);
+        let fixed = WindowRule {
+            min_window: 21,
+            ..rule
+        };
+        assert_eq!(adaptive_span(100, 99, &fixed), 79..100);
+        // Tables for another shape fall back to the reference.
+        let other = WindowRule {
+            max_window: 9,
+            ..rule
+        };
+        let xs: Vec<f64> = (0..30).map(|i| (i * i) as f64 * 0.1).collect();
+        let tau: Vec<f64> = (0..30).map(|i| i as f64).collect();
+        assert_eq!(
+            fit_adaptive_grid(&t, &xs, &xs, 12, &other),
+            fit_adaptive(&tau, &xs, &xs, 12, 12.0, &other)
+        );
+        // Rounding-sized τ errors are on the grid, real jitter is not.
+        assert!(grid_tolerance(1e6, 200.0) < 1e-8);
+        assert!(grid_tolerance(1e6, 200.0) > 1e-11 / 200.0);
+    }
+
+    #[test]
+    fn leave_one_out_matches_the_reference() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(12);
+        let loo = LeaveOneOut::new(11);
+        for w in 2..=11 {
+            for e in 0..=w {
+                let xs: Vec<f64> = (0..=w)
+                    .map(|k| 500.0 + 4.0 * k as f64 + rng.gen_range(-1.0..1.0))
+                    .collect();
+                let ys: Vec<f64> = (0..=w)
+                    .map(|k| 20.0 - 0.1 * (k * k) as f64 + rng.gen_range(-1.0..1.0))
+                    .collect();
+                let others: Vec<usize> = (0..=w).filter(|&k| k != e).collect();
+                let tau: Vec<f64> = others.iter().map(|&k| k as f64 - e as f64).collect();
+                let ox: Vec<f64> = others.iter().map(|&k| xs[k]).collect();
+                let oy: Vec<f64> = others.iter().map(|&k| ys[k]).collect();
+                let r = fit_eval(&tau, &ox, &oy, 2, 0.0).unwrap();
+                let (dx, dy, lev) = loo.predict(&xs, &ys, e).unwrap();
+                assert!((xs[e] + dx - r.x).abs() < 1e-9 * r.x.abs(), "{w} {e}");
+                assert!(
+                    (ys[e] + dy - r.y).abs() < 1e-9 * r.y.abs().max(1.0),
+                    "{w} {e}"
+                );
+                assert_eq!(lev, r.leverage, "{w} {e}");
+            }
+        }
+        assert!(loo.predict(&[0.0; 13], &[0.0; 13], 0).is_none());
+        assert!(loo.predict(&[], &[], 0).is_none());
+        assert!(std::sync::Arc::ptr_eq(
+            &LeaveOneOut::cached(11),
+            &LeaveOneOut::cached(11)
+        ));
     }
 
     #[test]

@@ -1496,11 +1496,23 @@ fn finalise_one(mut t: ActiveTrack, params: &TrackParams, gate: f64, sigma: f64)
 /// detection becomes a bridged gap. Catches the stray particle a track
 /// grabs while its own is missing, and wrong first/last detections.
 fn remove_outliers(dets: &mut Vec<Det>, window: usize, gate: f64) {
+    remove_outliers_with(dets, window, gate, true)
+}
+
+/// [`remove_outliers`]; `grid` takes the tabulated predictions
+/// ([`fit::LeaveOneOut`]) on gap-free windows, `false` the plain fit
+/// everywhere (the reference).
+fn remove_outliers_with(dets: &mut Vec<Det>, window: usize, gate: f64, grid: bool) {
     let n = dets.len();
     if n < 6 {
         return;
     }
     let w = window.min(n - 1).max(5);
+    // Gap-free windows (τ = pulse offsets, exact integers) take the
+    // tabulated leave-one-out weights; windows with gaps the plain fit.
+    let loo = fit::LeaveOneOut::cached(window.max(5));
+    let all_x: Vec<f64> = dets.iter().map(|d| d.x).collect();
+    let all_y: Vec<f64> = dets.iter().map(|d| d.y).collect();
     let mut keep = vec![true; n];
     let mut tau = Vec::with_capacity(w);
     let mut xs = Vec::with_capacity(w);
@@ -1510,6 +1522,16 @@ fn remove_outliers(dets: &mut Vec<Det>, window: usize, gate: f64) {
         let mut lo = i.saturating_sub(w / 2);
         if lo + w + 1 > n {
             lo = n - w - 1;
+        }
+        if grid && dets[lo + w].pulse - dets[lo].pulse == w as i64 {
+            let win = lo..lo + w + 1;
+            if let Some((dx, dy, leverage)) = loo.predict(&all_x[win.clone()], &all_y[win], i - lo)
+            {
+                if dx * dx + dy * dy > gate * gate * (1.0 + leverage) {
+                    keep[i] = false;
+                }
+                continue;
+            }
         }
         tau.clear();
         xs.clear();
@@ -1575,6 +1597,20 @@ fn fit_track(
     p: &TrackParams,
     sigma: f64,
 ) -> (Vec<TrackPoint>, Vec<Option<u64>>, f64) {
+    fit_track_with(dets, p, sigma, true, &mut 0)
+}
+
+/// [`fit_track`]; `grid` takes [`fit::fit_adaptive_grid`] (tabulated
+/// windows) at the detections whose fit windows are gap-free with regular
+/// times, `false` runs [`fit::fit_adaptive`] everywhere (the reference the
+/// tests compare with); `grid_fits` counts the tabulated fits.
+fn fit_track_with(
+    dets: &[Det],
+    p: &TrackParams,
+    sigma: f64,
+    grid: bool,
+    grid_fits: &mut usize,
+) -> (Vec<TrackPoint>, Vec<Option<u64>>, f64) {
     let n = dets.len();
     let first = dets[0].pulse;
     let last = dets[n - 1].pulse;
@@ -1597,6 +1633,21 @@ fn fit_track(
         sigma,
         bias_weight: p.fit_bias_weight,
     };
+    // The tabulated fit needs τ = pulse offset: `run_start[i]` is the
+    // first detection of the gap-free, regularly timed run holding i.
+    let tables = grid.then(|| fit::GridTables::cached(&rule));
+    let mut run_start = Vec::new();
+    if grid {
+        let t_max = dets[0].t_us.abs().max(dets[n - 1].t_us.abs());
+        let tol = fit::grid_tolerance(t_max, period_s * 1e6);
+        let on_grid = |i: usize| (tau[i] - (dets[i].pulse - first) as f64).abs() <= tol;
+        run_start.reserve(n);
+        for i in 0..n {
+            let joined =
+                i > 0 && dets[i].pulse == dets[i - 1].pulse + 1 && on_grid(i) && on_grid(i - 1);
+            run_start.push(if joined { run_start[i - 1] } else { i });
+        }
+    }
     let mut j = 0; // index of the first detection at or after the pulse
     for pulse in first..=last {
         while dets[j].pulse < pulse {
@@ -1612,19 +1663,25 @@ fn fit_track(
             a.t_us + (b.t_us - a.t_us) * (pulse - a.pulse) as f64 / (b.pulse - a.pulse) as f64
         };
         let at = (t_us - dets[0].t_us) * 1e-6 / period_s;
-        let f = fit::fit_adaptive(&tau, &xs, &ys, j, at, &rule)
-            .map(|(f, _)| f)
-            .unwrap_or(fit::FitState {
-                x: dets[j].x,
-                y: dets[j].y,
-                vx: 0.0,
-                vy: 0.0,
-                ax: 0.0,
-                ay: 0.0,
-                rms_residual: 0.0,
-                leverage: 1.0,
-                velocity_variance: 0.0,
-            });
+        let span = fit::adaptive_span(n, j, &rule);
+        let fitted = match &tables {
+            Some(t) if here && run_start[span.end - 1] <= span.start => {
+                *grid_fits += 1;
+                fit::fit_adaptive_grid(t, &xs, &ys, j, &rule)
+            }
+            _ => fit::fit_adaptive(&tau, &xs, &ys, j, at, &rule),
+        };
+        let f = fitted.map(|(f, _)| f).unwrap_or(fit::FitState {
+            x: dets[j].x,
+            y: dets[j].y,
+            vx: 0.0,
+            vy: 0.0,
+            ax: 0.0,
+            ay: 0.0,
+            rms_residual: 0.0,
+            leverage: 1.0,
+            velocity_variance: 0.0,
+        });
         if here {
             ssr += (dets[j].x - f.x).powi(2) + (dets[j].y - f.y).powi(2);
         }
@@ -1823,5 +1880,121 @@ mod tests {
         assert!((u - 15.0).abs() < 1e-12);
         assert!(((g.0)(-5.0, 100.0).0 - 20.0).abs() < 1e-12);
         assert!(FlowPrior::grid(0.0, 0.0, 1.0, 1.0, 2, 2, vec![0.0; 3], vec![0.0; 4]).is_err());
+    }
+
+    #[test]
+    fn tabulated_outlier_pass_matches_the_reference() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(8);
+        let (mut removed, mut kept) = (0, 0);
+        for case in 0..40 {
+            let mut dets = Vec::new();
+            let mut pulse = 0i64;
+            for k in 0..[7, 12, 40, 90][case % 4] {
+                if case % 2 == 1 && rng.gen_range(0.0..1.0) < 0.05 {
+                    pulse += rng.gen_range(1..=2);
+                }
+                // Noise 0.2 px and now and then a stray detection.
+                let stray = if rng.gen_range(0.0..1.0) < 0.05 {
+                    3.0
+                } else {
+                    0.0
+                };
+                let s = k as f64;
+                dets.push(Det {
+                    serial: k as u64,
+                    pulse,
+                    t_us: pulse as f64 * 200.0,
+                    x: 100.0 + 6.0 * s + 0.05 * s * s + rng.gen_range(-0.2..0.2) + stray,
+                    y: 300.0 - 2.0 * s + rng.gen_range(-0.2..0.2) - stray,
+                });
+                pulse += 1;
+            }
+            let (mut fast, mut reference) = (dets.clone(), dets.clone());
+            remove_outliers_with(&mut fast, OUTLIER_WINDOW, 1.0, true);
+            remove_outliers_with(&mut reference, OUTLIER_WINDOW, 1.0, false);
+            let serials = |d: &[Det]| d.iter().map(|d| d.serial).collect::<Vec<_>>();
+            assert_eq!(serials(&fast), serials(&reference), "case {case}");
+            removed += dets.len() - fast.len();
+            kept += fast.len();
+        }
+        assert!(removed > 5 && kept > 500, "{removed} {kept}");
+    }
+
+    #[test]
+    fn tabulated_output_fit_matches_the_reference() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
+        let params = TrackParams::default();
+        let mut compared = 0;
+        for case in 0..12 {
+            // Pulse times as the pulses stage gives them (first + k·period,
+            // far into a recording), or jittered (off the grid: the
+            // reference path throughout).
+            let (t0, period) = (3.7e6 + 1234.5 * case as f64, 199.987);
+            let jitter = if case % 4 == 3 { 0.01 } else { 0.0 };
+            let mut dets = Vec::new();
+            let mut pulse = 1000 * case as i64;
+            let n = [12, 150, 60, 30][case % 4];
+            for k in 0..n {
+                // Gaps of 1–3 pulses in half of the tracks.
+                if case % 2 == 1 && k > 0 && rng.gen_range(0.0..1.0) < 0.03 {
+                    pulse += rng.gen_range(1..=3);
+                }
+                let s = k as f64;
+                dets.push(Det {
+                    serial: k as u64,
+                    pulse,
+                    t_us: t0 + pulse as f64 * period + rng.gen_range(-jitter..=jitter),
+                    x: 200.0
+                        + 5.0 * s
+                        + 30.0 * (0.02 * case as f64 * s).sin()
+                        + rng.gen_range(-0.3..0.3),
+                    y: 400.0 - 3.0 * s + 0.01 * s * s + rng.gen_range(-0.3..0.3),
+                });
+                pulse += 1;
+            }
+            let sigma = 0.2;
+            let mut grid_fits = 0;
+            let (fp, fs, frms) = fit_track_with(&dets, &params, sigma, true, &mut grid_fits);
+            let (rp, rs, rrms) = fit_track_with(&dets, &params, sigma, false, &mut 0);
+            // On the grid the tabulated path takes every detection whose
+            // pilot window has no gap; jittered times never.
+            if jitter > 0.0 {
+                assert_eq!(grid_fits, 0, "case {case}");
+            } else if case % 2 == 0 {
+                assert_eq!(grid_fits, n, "case {case}");
+            } else {
+                assert!(grid_fits > 0, "case {case}");
+            }
+            assert_eq!(fs, rs);
+            assert_eq!(fp.len(), rp.len());
+            assert!((frms - rrms).abs() <= 1e-9 * rrms.max(1.0));
+            for (f, r) in fp.iter().zip(&rp) {
+                assert_eq!(
+                    (f.pulse, f.t_us.to_bits(), f.interpolated),
+                    (r.pulse, r.t_us.to_bits(), r.interpolated)
+                );
+                // 1e-9 relative, absolute below 1 px/pulse (px/pulse²):
+                // the reference's τ are off the integers by ~1e-11 here.
+                let (pu, pa) = (1e6 / period, (1e6 / period).powi(2));
+                for (a, b, unit) in [
+                    (f.x, r.x, 1.0),
+                    (f.y, r.y, 1.0),
+                    (f.u, r.u, pu),
+                    (f.v, r.v, pu),
+                    (f.ax, r.ax, pa),
+                    (f.ay, r.ay, pa),
+                ] {
+                    assert!(
+                        (a - b).abs() <= 1e-9 * b.abs().max(unit),
+                        "case {case} pulse {}: {a} vs {b}",
+                        f.pulse
+                    );
+                }
+                compared += 1;
+            }
+        }
+        assert!(compared > 500);
     }
 }
