@@ -82,6 +82,19 @@ impl<const N: usize> RevDigits<N> {
         self.buf[self.start] = b;
     }
 
+    /// Prepend `text` (the caller keeps the total within `N`).
+    #[inline]
+    pub fn bytes(&mut self, text: &[u8]) {
+        self.start -= text.len();
+        self.buf[self.start..self.start + text.len()].copy_from_slice(text);
+    }
+
+    /// Bytes still free in front of the text.
+    #[inline]
+    pub fn room(&self) -> usize {
+        self.start
+    }
+
     #[inline]
     fn pair(&mut self, two: u64) {
         let p = two as usize * 2;

@@ -197,7 +197,9 @@ impl Sums {
         self.n == 0
     }
 
-    fn coefficients(&self, order: usize) -> Option<Solved> {
+    /// The inverse normal matrix of the fit of order ≤ `order` and its
+    /// size `p` (the order lowered to what the samples allow, plus one).
+    fn inverse(&self, order: usize) -> Option<([[f64; 4]; 4], usize)> {
         if self.n == 0 {
             return None;
         }
@@ -213,6 +215,11 @@ impl Sums {
         } else {
             invert(&ata, p)?
         };
+        Some((inv, p))
+    }
+
+    fn coefficients(&self, order: usize) -> Option<Solved> {
+        let (inv, p) = self.inverse(order)?;
         let (mut cx, mut cy) = ([0.0; 4], [0.0; 4]);
         for (a, row) in inv.iter().enumerate().take(p) {
             let dot = |v: &[f64; 4]| row[..p].iter().zip(&v[..p]).map(|(i, x)| i * x).sum();
@@ -260,12 +267,13 @@ impl Sums {
 
     /// `(velocity_variance, velocity_bias_factor)` from one solve.
     fn velocity_variance_and_bias(&self, order: usize) -> Option<(f64, f64)> {
-        let c = self.coefficients(order.min(2))?;
-        if c.p < 2 {
+        // Only the inverse: the candidates' coefficients are not needed.
+        let (inv, p) = self.inverse(order.min(2))?;
+        if p < 2 {
             return Some((0.0, 0.0));
         }
-        let b = (0..c.p).map(|b| c.inv[1][b] * self.s[b + 3]).sum();
-        Some((c.inv[1][1], b))
+        let b = (0..p).map(|b| inv[1][b] * self.s[b + 3]).sum();
+        Some((inv[1][1], b))
     }
 
     /// Cubic coefficients (x, y) of an order-3 fit and their variance
@@ -591,11 +599,8 @@ pub fn fit_adaptive_grid(
             Some((at, v)) => {
                 let g = &tables.cubic_weights[at..at + pilot];
                 let (x0, y0) = (xs[centre], ys[centre]);
-                let (mut cx, mut cy) = (0.0, 0.0);
-                for ((g, x), y) in g.iter().zip(&xs[start..start + pilot]).zip(&ys[start..]) {
-                    cx += g * (x - x0);
-                    cy += g * (y - y0);
-                }
+                let cx = centred_dot(g, &xs[start..start + pilot], x0);
+                let cy = centred_dot(g, &ys[start..start + pilot], y0);
                 (cx * cx + cy * cy - 2.0 * rule.sigma.powi(2) * v).max(0.0)
             }
             None => 0.0,
@@ -627,6 +632,57 @@ pub fn fit_adaptive_grid(
     grid_solve(tables.window(w, start, centre), xs, ys, start, w, centre).map(|f| (f, w))
 }
 
+/// `Σ gₖ(xₖ − x0)`, in four interleaved partial sums (which the compiler
+/// keeps in vector registers).
+#[inline]
+fn centred_dot(g: &[f64], xs: &[f64], x0: f64) -> f64 {
+    let n = g.len().min(xs.len());
+    let (g, xs) = (&g[..n], &xs[..n]);
+    let mut acc = [0.0f64; 4];
+    let (gc, xc) = (g.chunks_exact(4), xs.chunks_exact(4));
+    let (gr, xr) = (gc.remainder(), xc.remainder());
+    for (g, x) in gc.zip(xc) {
+        for k in 0..4 {
+            acc[k] += g[k] * (x[k] - x0);
+        }
+    }
+    let mut tail = 0.0;
+    for (g, x) in gr.iter().zip(xr) {
+        tail += g * (x - x0);
+    }
+    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
+}
+
+/// `(Σ sᵃ(xₖ − x0) for a = 0..3, Σ (xₖ − x0)²)` with `s = s0 + k`, in
+/// two interleaved partial sums.
+#[inline]
+fn centred_moments(xs: &[f64], s0: f64, x0: f64) -> ([f64; 3], f64) {
+    let mut m = [[0.0f64; 2]; 4];
+    let chunks = xs.chunks_exact(2);
+    let rest = chunks.remainder();
+    let mut s = [s0, s0 + 1.0];
+    for x in chunks {
+        for k in 0..2 {
+            let d = x[k] - x0;
+            m[0][k] += d;
+            m[1][k] += s[k] * d;
+            m[2][k] += s[k] * s[k] * d;
+            m[3][k] += d * d;
+            s[k] += 2.0;
+        }
+    }
+    let mut out = [m[0][0] + m[0][1], m[1][0] + m[1][1], m[2][0] + m[2][1]];
+    let mut sq = m[3][0] + m[3][1];
+    if let Some(x) = rest.first() {
+        let d = x - x0;
+        out[0] += d;
+        out[1] += s[0] * d;
+        out[2] += s[0] * s[0] * d;
+        sq += d * d;
+    }
+    (out, sq)
+}
+
 /// The fit over samples `start..start + w` at τ = index, evaluated at
 /// `centre`, from the tabulated inverse: [`Sums::solve`]'s arithmetic on
 /// moments taken about the centre sample.
@@ -643,21 +699,9 @@ fn grid_solve(
     }
     let p = g.p;
     let (x0, y0) = (xs[centre], ys[centre]);
-    let (mut mx, mut my) = ([0.0f64; 3], [0.0f64; 3]);
-    let (mut xx, mut yy) = (0.0, 0.0);
-    let mut s = start as f64 - centre as f64;
-    for (x, y) in xs[start..start + w].iter().zip(&ys[start..start + w]) {
-        let (x, y) = (x - x0, y - y0);
-        mx[0] += x;
-        my[0] += y;
-        mx[1] += s * x;
-        my[1] += s * y;
-        mx[2] += s * s * x;
-        my[2] += s * s * y;
-        xx += x * x;
-        yy += y * y;
-        s += 1.0;
-    }
+    let s0 = start as f64 - centre as f64;
+    let (mx, xx) = centred_moments(&xs[start..start + w], s0, x0);
+    let (my, yy) = centred_moments(&ys[start..start + w], s0, y0);
     let (mut cx, mut cy) = ([0.0f64; 3], [0.0f64; 3]);
     for a in 0..p {
         for b in 0..p {

@@ -12,7 +12,7 @@ use serde::{Deserialize, Serialize};
 
 use super::{Track, TrackPoint, TrackerStats};
 use crate::cluster::Particle;
-use crate::decimal::{push_fixed, push_int};
+use crate::decimal::{push_fixed, push_int, RevDigits};
 use crate::error::{Error, Result};
 use crate::io::atomic::AtomicFile;
 
@@ -24,6 +24,11 @@ pub const TRACKS_HEADER: &str = "track_id,pulse,t_us,x,y,u,v";
 fn werr(path: &Path, e: std::io::Error) -> Error {
     Error::io(path, e)
 }
+
+/// Formatted rows are handed to the file in blocks of at least this many
+/// bytes: as large as [`AtomicFile`]'s buffer, so the blocks go to the
+/// kernel directly instead of being copied through it first.
+const WRITE_BLOCK: usize = 1 << 20;
 
 /// Streaming writer of `particles.csv` (`pulse,t_us,x,y,n_events`; µs and
 /// px): rows are appended as pulses are clustered; the file appears under
@@ -40,13 +45,12 @@ impl ParticlesCsvWriter {
         writeln!(file, "{PARTICLES_HEADER}").map_err(|e| werr(path, e))?;
         Ok(ParticlesCsvWriter {
             file,
-            line: Vec::with_capacity(1 << 16),
+            line: Vec::with_capacity(WRITE_BLOCK + (1 << 16)),
         })
     }
     pub fn write(&mut self, particles: &[Particle]) -> Result<()> {
         // All particles of a pulse share pulse and t_us: format them once.
         let mut prefix: Option<(i64, f64, Vec<u8>)> = None;
-        self.line.clear();
         for p in particles {
             match &prefix {
                 Some((k, t, _)) if *k == p.pulse && t.to_bits() == p.t_us.to_bits() => {}
@@ -68,11 +72,18 @@ impl ParticlesCsvWriter {
             push_int(&mut self.line, p.n_events as i64);
             self.line.push(b'\n');
         }
+        if self.line.len() >= WRITE_BLOCK {
+            self.file
+                .write_all(&self.line)
+                .map_err(|e| werr(self.file.target(), e))?;
+            self.line.clear();
+        }
+        Ok(())
+    }
+    pub fn finish(mut self) -> Result<()> {
         self.file
             .write_all(&self.line)
-            .map_err(|e| werr(self.file.target(), e))
-    }
-    pub fn finish(self) -> Result<()> {
+            .map_err(|e| werr(self.file.target(), e))?;
         self.file.commit()
     }
 }
@@ -91,6 +102,8 @@ pub struct TracksCsvWriter {
 /// checked by the value's bits, so a stale slot is never used.
 struct TimeTextCache {
     slots: Vec<(u64, u8, [u8; 31])>,
+    /// The text of an uncacheable value.
+    spill: Vec<u8>,
 }
 
 impl TimeTextCache {
@@ -99,7 +112,30 @@ impl TimeTextCache {
     fn new() -> Self {
         TimeTextCache {
             slots: vec![(0, 0, [0; 31]); Self::SLOTS],
+            spill: Vec::new(),
         }
+    }
+
+    /// The cached text of `t_us` at `pulse` (formatted on a miss).
+    fn text(&mut self, pulse: i64, t_us: f64) -> &[u8] {
+        let i = pulse.rem_euclid(Self::SLOTS as i64) as usize;
+        let bits = t_us.to_bits();
+        let slot = &self.slots[i];
+        if !(slot.1 > 0 && slot.0 == bits) {
+            let text = t_us.to_string();
+            let slot = &mut self.slots[i];
+            if text.len() > slot.2.len() {
+                // Longer than any finite f64's shortest form: not cached.
+                slot.1 = 0;
+                self.spill = text.into_bytes();
+                return &self.spill;
+            }
+            slot.0 = bits;
+            slot.1 = text.len() as u8;
+            slot.2[..text.len()].copy_from_slice(text.as_bytes());
+        }
+        let slot = &self.slots[i];
+        &slot.2[..slot.1 as usize]
     }
 
     fn push(&mut self, out: &mut Vec<u8>, pulse: i64, t_us: f64) {
@@ -126,14 +162,16 @@ impl TracksCsvWriter {
         writeln!(file, "{TRACKS_HEADER}").map_err(|e| werr(path, e))?;
         Ok(TracksCsvWriter {
             file,
-            line: Vec::with_capacity(1 << 16),
+            line: Vec::with_capacity(WRITE_BLOCK + (1 << 16)),
             t_text: TimeTextCache::new(),
         })
     }
     pub fn write(&mut self, tracks: &[Track]) -> Result<()> {
-        self.line.clear();
         for t in tracks {
             for p in &t.points {
+                if self.push_row(t.id, p) {
+                    continue;
+                }
                 push_int(&mut self.line, t.id as i64);
                 self.line.push(b',');
                 push_int(&mut self.line, p.pulse);
@@ -149,18 +187,48 @@ impl TracksCsvWriter {
                 push_fixed(&mut self.line, p.v, 3);
                 self.line.push(b'\n');
             }
-            if self.line.len() > 1 << 16 {
+            if self.line.len() >= WRITE_BLOCK {
                 self.file
                     .write_all(&self.line)
                     .map_err(|e| werr(self.file.target(), e))?;
                 self.line.clear();
             }
         }
+        Ok(())
+    }
+
+    /// Append the row of point `p` of track `id`, built right to left in
+    /// one buffer and appended with one copy; false (nothing appended)
+    /// when a value needs `core::fmt` (near a rounding tie, huge, not
+    /// finite): the caller then formats the row field by field.
+    #[inline]
+    fn push_row(&mut self, id: u64, p: &TrackPoint) -> bool {
+        let mut row = RevDigits::<160>::new();
+        row.byte(b'\n');
+        for (v, d) in [(p.v, 3), (p.u, 3), (p.y, 4), (p.x, 4)] {
+            if !row.fixed(v, d) {
+                return false;
+            }
+            row.byte(b',');
+        }
+        let t = self.t_text.text(p.pulse, p.t_us);
+        // Two integers (≤ 20 digits and a sign each) and two commas follow.
+        if t.len() + 44 > row.room() {
+            return false;
+        }
+        row.bytes(t);
+        row.byte(b',');
+        row.i64(p.pulse);
+        row.byte(b',');
+        row.i64(id as i64); // as the field-by-field path writes it
+        self.line.extend_from_slice(row.as_slice());
+        true
+    }
+
+    pub fn finish(mut self) -> Result<()> {
         self.file
             .write_all(&self.line)
-            .map_err(|e| werr(self.file.target(), e))
-    }
-    pub fn finish(self) -> Result<()> {
+            .map_err(|e| werr(self.file.target(), e))?;
         self.file.commit()
     }
 }
@@ -191,28 +259,36 @@ impl TracksNpyWriter {
             file,
             header_len: header.len(),
             rows: 0,
-            buf: Vec::with_capacity(1 << 16),
+            buf: Vec::with_capacity(WRITE_BLOCK + (1 << 16)),
         })
     }
 
     pub fn write(&mut self, tracks: &[Track]) -> Result<()> {
-        self.buf.clear();
         for t in tracks {
             for p in &t.points {
-                self.buf.extend_from_slice(&t.id.to_le_bytes());
-                self.buf.extend_from_slice(&p.pulse.to_le_bytes());
-                for v in [p.t_us, p.x, p.y, p.u, p.v] {
-                    self.buf.extend_from_slice(&v.to_le_bytes());
+                let mut rec = [0u8; 56];
+                rec[..8].copy_from_slice(&t.id.to_le_bytes());
+                rec[8..16].copy_from_slice(&p.pulse.to_le_bytes());
+                for (k, v) in [p.t_us, p.x, p.y, p.u, p.v].into_iter().enumerate() {
+                    rec[16 + 8 * k..24 + 8 * k].copy_from_slice(&v.to_le_bytes());
                 }
+                self.buf.extend_from_slice(&rec);
             }
             self.rows += t.points.len();
+            if self.buf.len() >= WRITE_BLOCK {
+                self.file
+                    .write_all(&self.buf)
+                    .map_err(|e| werr(self.file.target(), e))?;
+                self.buf.clear();
+            }
         }
-        self.file
-            .write_all(&self.buf)
-            .map_err(|e| werr(self.file.target(), e))
+        Ok(())
     }
 
-    pub fn finish(self) -> Result<()> {
+    pub fn finish(mut self) -> Result<()> {
+        self.file
+            .write_all(&self.buf)
+            .map_err(|e| werr(self.file.target(), e))?;
         crate::io::npy::commit_streamed_table(
             self.file,
             TRACKS_NPY_DESCR,
@@ -675,7 +751,28 @@ mod tests {
     fn tracks_csv_matches_core_fmt() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("tracks.csv");
-        let tracks = varied_tracks();
+        // Enough rows for several write blocks, and values the row
+        // formatter hands to `core::fmt` (not finite, huge, ties).
+        let mut tracks = Vec::new();
+        for copy in 0..12u64 {
+            tracks.extend(varied_tracks().into_iter().map(|mut t| {
+                t.id += 1000 * copy;
+                t
+            }));
+        }
+        let mut odd = varied_tracks().remove(3);
+        odd.id = u64::MAX - 5;
+        for (k, p) in odd.points.iter_mut().enumerate() {
+            match k % 6 {
+                0 => p.u = f64::NAN,
+                1 => p.x = f64::INFINITY,
+                2 => p.y = -0.0,
+                3 => p.v = 3.0e20,
+                4 => p.t_us = -1e-300,
+                _ => p.x = 0.00005,
+            }
+        }
+        tracks.push(odd);
         let mut w = TracksCsvWriter::create(&path).unwrap();
         for chunk in tracks.chunks(7) {
             w.write(chunk).unwrap();
@@ -686,7 +783,7 @@ mod tests {
             for p in &t.points {
                 want += &format!(
                     "{},{},{},{:.4},{:.4},{:.3},{:.3}\n",
-                    t.id, p.pulse, p.t_us, p.x, p.y, p.u, p.v
+                    t.id as i64, p.pulse, p.t_us, p.x, p.y, p.u, p.v
                 );
             }
         }
