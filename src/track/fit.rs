@@ -452,6 +452,12 @@ pub struct GridTables {
     /// `None` where [`Sums::cubic`] gives none.
     cubic: Vec<Option<(usize, f64)>>,
     cubic_weights: Vec<f64>,
+    /// Whether the centred candidates (every window centred on its
+    /// sample, windows `min_window, min_window + 2, …, max_window`) have a
+    /// unimodal criterion for any cubic coefficient (see
+    /// [`GridTables::centred_unimodal`]): then the search runs down from
+    /// the largest window and stops at the first rise.
+    centred_unimodal: bool,
 }
 
 #[inline]
@@ -513,14 +519,56 @@ impl GridTables {
                 cubic.push(entry);
             }
         }
-        GridTables {
+        let mut t = GridTables {
             min_window,
             max_window,
             order: rule.order,
             windows,
             cubic,
             cubic_weights,
+            centred_unimodal: false,
+        };
+        t.centred_unimodal = t.centred_unimodal();
+        t
+    }
+
+    /// The criterion of candidate k is `λ·Bₖ + Vₖ` (`Bₖ` the squared bias
+    /// factor, `Vₖ` the variance factor, λ ≥ 0 from the sample's cubic
+    /// coefficient). With `B` increasing and `V` decreasing in the window,
+    /// going from window k+1 down to k lowers the criterion iff λ exceeds
+    /// `λₖ = (Vₖ − Vₖ₊₁)/(Bₖ₊₁ − Bₖ)`; when `λₖ` never increases with k
+    /// the windows where it does form a top run for every λ, so a search
+    /// down from the largest window that stops at the first rise finds the
+    /// least criterion.
+    fn centred_unimodal(&self) -> bool {
+        let mut ws = Vec::new();
+        let mut w = self.min_window;
+        while ws.len() < MAX_CANDIDATES {
+            ws.push(w);
+            if w >= self.max_window {
+                break;
+            }
+            w = (w + 2).min(self.max_window);
         }
+        let c = self.max_window; // any sample far enough from the ends
+        let g: Vec<&GridWindow> = ws.iter().map(|&w| self.window(w, c - w / 2, c)).collect();
+        if ws.len() < 2 || g.iter().any(|g| !g.ok) {
+            return false;
+        }
+        let mut last = f64::INFINITY;
+        for k in 0..g.len() - 1 {
+            let db = g[k + 1].bias.powi(2) - g[k].bias.powi(2);
+            let dv = g[k].variance - g[k + 1].variance;
+            if !(db > 0.0 && dv > 0.0) {
+                return false;
+            }
+            let lambda = dv / db;
+            if lambda > last {
+                return false;
+            }
+            last = lambda;
+        }
+        true
     }
 
     /// Whether these tables serve `rule` (same windows and order).
@@ -553,28 +601,30 @@ impl GridTables {
     }
 }
 
-/// [`fit_adaptive`] for samples on the integer τ grid: the samples of
-/// [`adaptive_span`]`(xs.len(), centre, rule)` are at τ = index (their
-/// pulses consecutive, their times regular) and the evaluation is at
-/// sample `centre`. The caller checks that; the result then equals
+/// [`fit_adaptive`] for samples on the integer τ grid: the points `xy`
+/// (x, y) of [`adaptive_span`]`(xy.len(), centre, rule)` are at τ = index
+/// (their pulses consecutive, their times regular) and the evaluation is
+/// at sample `centre`. The caller checks that; the result then equals
 /// [`fit_adaptive`]'s up to rounding (tested), the same window chosen
 /// unless two candidates' criteria agree to rounding. `tables` must
-/// [`GridTables::serves`] `rule` (else the reference is used).
+/// [`GridTables::serves`] `rule` (else the reference is used). Points are
+/// interleaved so that x and y go through the sums side by side (the
+/// compiler pairs them in one vector register).
 pub fn fit_adaptive_grid(
     tables: &GridTables,
-    xs: &[f64],
-    ys: &[f64],
+    xy: &[[f64; 2]],
     centre: usize,
     rule: &WindowRule,
 ) -> Option<(FitState, usize)> {
-    let n = xs.len().min(ys.len());
+    let n = xy.len();
     if n == 0 {
         return None;
     }
     if !tables.serves(rule) {
         let tau: Vec<f64> = (0..n).map(|i| i as f64).collect();
+        let (xs, ys): (Vec<f64>, Vec<f64>) = xy.iter().map(|p| (p[0], p[1])).unzip();
         let c = centre.min(n - 1);
-        return fit_adaptive(&tau, xs, ys, c, c as f64, rule);
+        return fit_adaptive(&tau, &xs, &ys, c, c as f64, rule);
     }
     let wmax = rule.max_window.clamp(1, n);
     let wmin = rule.min_window.clamp(1, wmax);
@@ -582,15 +632,8 @@ pub fn fit_adaptive_grid(
     let start_of = |w: usize| centre.saturating_sub(w / 2).min(n - w);
     if wmin == wmax {
         let start = start_of(wmax);
-        return grid_solve(
-            tables.window(wmax, start, centre),
-            xs,
-            ys,
-            start,
-            wmax,
-            centre,
-        )
-        .map(|f| (f, wmax));
+        return grid_solve(tables.window(wmax, start, centre), xy, start, wmax, centre)
+            .map(|f| (f, wmax));
     }
     let pilot = (2 * wmax + 1).min(n);
     let c3sq = if rule.order >= 2 {
@@ -598,19 +641,57 @@ pub fn fit_adaptive_grid(
         match tables.cubic[grid_index(pilot, start as isize - centre as isize)] {
             Some((at, v)) => {
                 let g = &tables.cubic_weights[at..at + pilot];
-                let (x0, y0) = (xs[centre], ys[centre]);
-                let cx = centred_dot(g, &xs[start..start + pilot], x0);
-                let cy = centred_dot(g, &ys[start..start + pilot], y0);
-                (cx * cx + cy * cy - 2.0 * rule.sigma.powi(2) * v).max(0.0)
+                let p0 = xy[centre];
+                let mut c = [0.0f64; 2];
+                for (g, p) in g.iter().zip(&xy[start..start + pilot]) {
+                    c[0] += g * (p[0] - p0[0]);
+                    c[1] += g * (p[1] - p0[1]);
+                }
+                (c[0] * c[0] + c[1] * c[1] - 2.0 * rule.sigma.powi(2) * v).max(0.0)
             }
             None => 0.0,
         }
     } else {
         0.0
     };
+    let s2 = rule.sigma * rule.sigma;
+    let criterion =
+        |g: &GridWindow| rule.bias_weight * c3sq * g.bias * g.bias + 2.0 * s2 * g.variance;
+    // Every candidate centred (the sample at least max_window/2 from both
+    // ends) and the criterion unimodal in the window: search down from the
+    // largest window, stop at the first rise. The same window as the full
+    // search below (up to criteria equal to rounding).
+    if tables.centred_unimodal
+        && wmax == tables.max_window
+        && centre >= wmax / 2
+        && centre + wmax - wmax / 2 <= n
+        && (wmax - wmin + 1) / 2 < MAX_CANDIDATES
+    {
+        let mut w = wmax;
+        let g = tables.window(w, centre - w / 2, centre);
+        let mut best = (criterion(g), w);
+        while w > wmin {
+            let next = if (w - wmin) % 2 == 1 { w - 1 } else { w - 2 };
+            let crit = criterion(tables.window(next, centre - next / 2, centre));
+            if crit < best.0 {
+                best = (crit, next);
+                w = next;
+            } else {
+                break;
+            }
+        }
+        let w = best.1;
+        return grid_solve(
+            tables.window(w, centre - w / 2, centre),
+            xy,
+            centre - w / 2,
+            w,
+            centre,
+        )
+        .map(|f| (f, w));
+    }
     // The candidates in increasing size: the least criterion wins, on a
     // tie the larger window (as in the reference).
-    let s2 = rule.sigma * rule.sigma;
     let mut best: Option<(f64, usize, usize)> = None;
     let (mut w, mut nc) = (wmin, 0);
     while nc < MAX_CANDIDATES {
@@ -618,7 +699,7 @@ pub fn fit_adaptive_grid(
         let g = tables.window(w, start, centre);
         if g.ok {
             nc += 1;
-            let crit = rule.bias_weight * c3sq * g.bias * g.bias + 2.0 * s2 * g.variance;
+            let crit = criterion(g);
             if best.map_or(true, |b| crit.total_cmp(&b.0).is_le()) {
                 best = Some((crit, w, start));
             }
@@ -629,67 +710,15 @@ pub fn fit_adaptive_grid(
         w = (w + 2).min(wmax);
     }
     let (_, w, start) = best?;
-    grid_solve(tables.window(w, start, centre), xs, ys, start, w, centre).map(|f| (f, w))
+    grid_solve(tables.window(w, start, centre), xy, start, w, centre).map(|f| (f, w))
 }
 
-/// `Σ gₖ(xₖ − x0)`, in four interleaved partial sums (which the compiler
-/// keeps in vector registers).
-#[inline]
-fn centred_dot(g: &[f64], xs: &[f64], x0: f64) -> f64 {
-    let n = g.len().min(xs.len());
-    let (g, xs) = (&g[..n], &xs[..n]);
-    let mut acc = [0.0f64; 4];
-    let (gc, xc) = (g.chunks_exact(4), xs.chunks_exact(4));
-    let (gr, xr) = (gc.remainder(), xc.remainder());
-    for (g, x) in gc.zip(xc) {
-        for k in 0..4 {
-            acc[k] += g[k] * (x[k] - x0);
-        }
-    }
-    let mut tail = 0.0;
-    for (g, x) in gr.iter().zip(xr) {
-        tail += g * (x - x0);
-    }
-    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
-}
-
-/// `(Σ sᵃ(xₖ − x0) for a = 0..3, Σ (xₖ − x0)²)` with `s = s0 + k`, in
-/// two interleaved partial sums.
-#[inline]
-fn centred_moments(xs: &[f64], s0: f64, x0: f64) -> ([f64; 3], f64) {
-    let mut m = [[0.0f64; 2]; 4];
-    let chunks = xs.chunks_exact(2);
-    let rest = chunks.remainder();
-    let mut s = [s0, s0 + 1.0];
-    for x in chunks {
-        for k in 0..2 {
-            let d = x[k] - x0;
-            m[0][k] += d;
-            m[1][k] += s[k] * d;
-            m[2][k] += s[k] * s[k] * d;
-            m[3][k] += d * d;
-            s[k] += 2.0;
-        }
-    }
-    let mut out = [m[0][0] + m[0][1], m[1][0] + m[1][1], m[2][0] + m[2][1]];
-    let mut sq = m[3][0] + m[3][1];
-    if let Some(x) = rest.first() {
-        let d = x - x0;
-        out[0] += d;
-        out[1] += s[0] * d;
-        out[2] += s[0] * s[0] * d;
-        sq += d * d;
-    }
-    (out, sq)
-}
-
-/// The fit over samples `start..start + w` at τ = index, evaluated at
+/// The fit over points `start..start + w` at τ = index, evaluated at
 /// `centre`, from the tabulated inverse: [`Sums::solve`]'s arithmetic on
-/// moments taken about the centre sample.
+/// moments taken about the centre point.
 fn grid_solve(
     g: &GridWindow,
-    xs: &[f64],
-    ys: &[f64],
+    xy: &[[f64; 2]],
     start: usize,
     w: usize,
     centre: usize,
@@ -698,10 +727,22 @@ fn grid_solve(
         return None;
     }
     let p = g.p;
-    let (x0, y0) = (xs[centre], ys[centre]);
-    let s0 = start as f64 - centre as f64;
-    let (mx, xx) = centred_moments(&xs[start..start + w], s0, x0);
-    let (my, yy) = centred_moments(&ys[start..start + w], s0, y0);
+    let p0 = xy[centre];
+    // Σ sᵃ·d for a = 0, 1, 2 and Σ d², d the offset from the centre point.
+    let (mut m0, mut m1, mut m2, mut sq) = ([0.0f64; 2], [0.0f64; 2], [0.0f64; 2], [0.0f64; 2]);
+    let mut s = start as f64 - centre as f64;
+    for q in &xy[start..start + w] {
+        let d = [q[0] - p0[0], q[1] - p0[1]];
+        let ss = s * s;
+        for k in 0..2 {
+            m0[k] += d[k];
+            m1[k] += s * d[k];
+            m2[k] += ss * d[k];
+            sq[k] += d[k] * d[k];
+        }
+        s += 1.0;
+    }
+    let (mx, my) = ([m0[0], m1[0], m2[0]], [m0[1], m1[1], m2[1]]);
     let (mut cx, mut cy) = ([0.0f64; 3], [0.0f64; 3]);
     for a in 0..p {
         for b in 0..p {
@@ -709,11 +750,11 @@ fn grid_solve(
             cy[a] += g.inv[a][b] * my[b];
         }
     }
-    let ssr: f64 = xx + yy - (0..p).map(|a| cx[a] * mx[a] + cy[a] * my[a]).sum::<f64>();
+    let ssr: f64 = sq[0] + sq[1] - (0..p).map(|a| cx[a] * mx[a] + cy[a] * my[a]).sum::<f64>();
     let dof = w - p;
     Some(FitState {
-        x: cx[0] + x0,
-        y: cy[0] + y0,
+        x: cx[0] + p0[0],
+        y: cy[0] + p0[1],
         vx: cx[1],
         vy: cy[1],
         ax: 2.0 * cx[2],
@@ -799,21 +840,21 @@ impl LeaveOneOut {
         t
     }
 
-    /// `(dx, dy, leverage)`: the quadratic through `xs`, `ys` (at τ =
-    /// index, `w + 1 = xs.len()` samples, `w ≤ max_window`) without
-    /// sample `e`, evaluated at τ = `e`, minus sample `e`. The same as
-    /// [`fit_eval`] over the other samples (order 2) up to rounding; `None`
+    /// `(dx, dy, leverage)`: the quadratic through the points `xy` (at τ
+    /// = index, `w + 1 = xy.len()` points, `w ≤ max_window`) without
+    /// point `e`, evaluated at τ = `e`, minus point `e`. The same as
+    /// [`fit_eval`] over the other points (order 2) up to rounding; `None`
     /// outside the tables or for a singular fit.
-    pub fn predict(&self, xs: &[f64], ys: &[f64], e: usize) -> Option<(f64, f64, f64)> {
-        let w = xs.len().checked_sub(1)?;
+    pub fn predict(&self, xy: &[[f64; 2]], e: usize) -> Option<(f64, f64, f64)> {
+        let w = xy.len().checked_sub(1)?;
         let (weights, leverage) = self.table.get(w)?.get(e)?.as_ref()?;
-        let (x0, y0) = (xs[e], ys[e]);
-        let (mut dx, mut dy) = (0.0, 0.0);
-        for ((g, x), y) in weights.iter().zip(xs).zip(ys) {
-            dx += g * (x - x0);
-            dy += g * (y - y0);
+        let p0 = xy[e];
+        let mut d = [0.0f64; 2];
+        for (g, p) in weights.iter().zip(xy) {
+            d[0] += g * (p[0] - p0[0]);
+            d[1] += g * (p[1] - p0[1]);
         }
-        Some((dx, dy, *leverage))
+        Some((d[0], d[1], *leverage))
     }
 }
 
@@ -1098,9 +1139,10 @@ mod tests {
                             + rng.gen_range(-sigma..=sigma)
                     })
                     .collect();
+                let xy: Vec<[f64; 2]> = xs.iter().zip(&ys).map(|(&x, &y)| [x, y]).collect();
                 for c in 0..n {
                     let r = fit_adaptive(&tau, &xs, &ys, c, tau[c], &rule);
-                    let f = fit_adaptive_grid(&tables, &xs, &ys, c, &rule);
+                    let f = fit_adaptive_grid(&tables, &xy, c, &rule);
                     match (f, r) {
                         (Some((f, fw)), Some((r, rw))) => {
                             let what = format!("rule {case} n {n} centre {c}");
@@ -1127,6 +1169,9 @@ mod tests {
             bias_weight: 4.0,
         };
         let t = GridTables::cached(&rule);
+        // The default windows take the short search in the interior
+        // (which grid_fit_matches_the_reference compares).
+        assert!(t.centred_unimodal);
         assert!(t.serves(&WindowRule { sigma: 3.0, ..rule }));
         assert!(!t.serves(&WindowRule {
             max_window: 19,
@@ -1151,7 +1196,12 @@ mod tests {
         let xs: Vec<f64> = (0..30).map(|i| (i * i) as f64 * 0.1).collect();
         let tau: Vec<f64> = (0..30).map(|i| i as f64).collect();
         assert_eq!(
-            fit_adaptive_grid(&t, &xs, &xs, 12, &other),
+            fit_adaptive_grid(
+                &t,
+                &xs.iter().map(|&x| [x, x]).collect::<Vec<_>>(),
+                12,
+                &other
+            ),
             fit_adaptive(&tau, &xs, &xs, 12, 12.0, &other)
         );
         // Rounding-sized τ errors are on the grid, real jitter is not.
@@ -1177,7 +1227,8 @@ mod tests {
                 let ox: Vec<f64> = others.iter().map(|&k| xs[k]).collect();
                 let oy: Vec<f64> = others.iter().map(|&k| ys[k]).collect();
                 let r = fit_eval(&tau, &ox, &oy, 2, 0.0).unwrap();
-                let (dx, dy, lev) = loo.predict(&xs, &ys, e).unwrap();
+                let xy: Vec<[f64; 2]> = xs.iter().zip(&ys).map(|(&x, &y)| [x, y]).collect();
+                let (dx, dy, lev) = loo.predict(&xy, e).unwrap();
                 assert!((xs[e] + dx - r.x).abs() < 1e-9 * r.x.abs(), "{w} {e}");
                 assert!(
                     (ys[e] + dy - r.y).abs() < 1e-9 * r.y.abs().max(1.0),
@@ -1186,8 +1237,8 @@ mod tests {
                 assert_eq!(lev, r.leverage, "{w} {e}");
             }
         }
-        assert!(loo.predict(&[0.0; 13], &[0.0; 13], 0).is_none());
-        assert!(loo.predict(&[], &[], 0).is_none());
+        assert!(loo.predict(&[[0.0; 2]; 13], 0).is_none());
+        assert!(loo.predict(&[], 0).is_none());
         assert!(std::sync::Arc::ptr_eq(
             &LeaveOneOut::cached(11),
             &LeaveOneOut::cached(11)

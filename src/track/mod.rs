@@ -1511,8 +1511,7 @@ fn remove_outliers_with(dets: &mut Vec<Det>, window: usize, gate: f64, grid: boo
     // Gap-free windows (τ = pulse offsets, exact integers) take the
     // tabulated leave-one-out weights; windows with gaps the plain fit.
     let loo = fit::LeaveOneOut::cached(window.max(5));
-    let all_x: Vec<f64> = dets.iter().map(|d| d.x).collect();
-    let all_y: Vec<f64> = dets.iter().map(|d| d.y).collect();
+    let all_xy: Vec<[f64; 2]> = dets.iter().map(|d| [d.x, d.y]).collect();
     let mut keep = vec![true; n];
     let mut tau = Vec::with_capacity(w);
     let mut xs = Vec::with_capacity(w);
@@ -1524,9 +1523,7 @@ fn remove_outliers_with(dets: &mut Vec<Det>, window: usize, gate: f64, grid: boo
             lo = n - w - 1;
         }
         if grid && dets[lo + w].pulse - dets[lo].pulse == w as i64 {
-            let win = lo..lo + w + 1;
-            if let Some((dx, dy, leverage)) = loo.predict(&all_x[win.clone()], &all_y[win], i - lo)
-            {
+            if let Some((dx, dy, leverage)) = loo.predict(&all_xy[lo..=lo + w], i - lo) {
                 if dx * dx + dy * dy > gate * gate * (1.0 + leverage) {
                     keep[i] = false;
                 }
@@ -1637,7 +1634,9 @@ fn fit_track_with(
     // first detection of the gap-free, regularly timed run holding i.
     let tables = grid.then(|| fit::GridTables::cached(&rule));
     let mut run_start = Vec::new();
+    let mut xy = Vec::new();
     if grid {
+        xy.extend(dets.iter().map(|d| [d.x, d.y]));
         let t_max = dets[0].t_us.abs().max(dets[n - 1].t_us.abs());
         let tol = fit::grid_tolerance(t_max, period_s * 1e6);
         let on_grid = |i: usize| (tau[i] - (dets[i].pulse - first) as f64).abs() <= tol;
@@ -1667,7 +1666,7 @@ fn fit_track_with(
         let fitted = match &tables {
             Some(t) if here && run_start[span.end - 1] <= span.start => {
                 *grid_fits += 1;
-                fit::fit_adaptive_grid(t, &xs, &ys, j, &rule)
+                fit::fit_adaptive_grid(t, &xy, j, &rule)
             }
             _ => fit::fit_adaptive(&tau, &xs, &ys, j, at, &rule),
         };
