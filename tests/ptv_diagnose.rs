@@ -35,6 +35,8 @@ fn breakdown_of_link_errors() {
             stitch_gap: env("PTV_STITCH_GAP").map_or(d.stitch_gap, |v| v as u32),
             back_extend: env("PTV_BACK_EXTEND").map_or(d.back_extend, |v| v as usize),
             repair_lag: env("PTV_REPAIR_LAG").map_or(d.repair_lag, |v| v as usize),
+            init_gap: env("PTV_INIT_GAP").map_or(d.init_gap, |v| v != 0.0),
+            sigma_ceiling: env("PTV_SIGMA_CEILING").unwrap_or(d.sigma_ceiling),
             ..d
         };
         let s = ebptv::track::synth::run_and_score(
@@ -100,6 +102,7 @@ fn linking_cost() {
     let tp = TrackParams {
         back_extend: env("PTV_BACK_EXTEND").unwrap_or(d.back_extend),
         repair_lag: env("PTV_REPAIR_LAG").unwrap_or(d.repair_lag),
+        init_gap: env("PTV_INIT_GAP").map_or(d.init_gap, |v| v != 0),
         ..d
     };
     let cpu = || {
