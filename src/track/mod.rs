@@ -1836,6 +1836,46 @@ mod tests {
     }
 
     #[test]
+    fn init_gap_starts_a_particle_never_seen_four_times_in_a_row() {
+        // Seen at pulses 0, 1, 3, 4, 5 (runs of 2 and 3): no four-frame
+        // chain, but four detections in the five pulses 0..=4. A second
+        // particle far away makes every pulse non-empty.
+        let mut ps: Vec<Particle> = (0..6)
+            .map(|k| particle(k, 200.0 + 3.0 * k as f64, 200.0))
+            .collect();
+        ps.extend(
+            [0, 1, 3, 4, 5]
+                .iter()
+                .map(|&k| particle(k, 10.0 + 5.0 * k as f64, 30.0 + 0.5 * k as f64)),
+        );
+        assert_eq!(link(&ps, &TrackParams::default()).unwrap().len(), 1);
+        let p = TrackParams {
+            init_gap: true,
+            ..Default::default()
+        };
+        let tracks = link(&ps, &p).unwrap();
+        assert_eq!(tracks.len(), 2);
+        let pts = &tracks
+            .iter()
+            .find(|t| t.points[0].x < 100.0)
+            .unwrap()
+            .points;
+        assert_eq!(pts.len(), 6);
+        assert!(pts[2].interpolated && !pts[3].interpolated);
+        for q in pts {
+            assert!((q.u - 5.0 * 5000.0).abs() < 1e-6, "u = {}", q.u);
+        }
+        // With gap-free chains around, the gap-tolerant pass adds nothing.
+        let ps: Vec<Particle> = (0..12)
+            .map(|k| particle(k, 10.0 + 5.0 * k as f64, 30.0))
+            .collect();
+        assert_eq!(
+            link(&ps, &p).unwrap(),
+            link(&ps, &TrackParams::default()).unwrap()
+        );
+    }
+
+    #[test]
     fn long_gaps_are_stitched() {
         let mut ps = Vec::new();
         for k in 0..30 {
