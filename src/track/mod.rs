@@ -510,6 +510,8 @@ pub struct Tracker {
     stats: TrackerStats,
     /// Predictor weights for gap-free windows (see [`PredictWeights`]).
     weights: Vec<PredictWeights>,
+    /// Index in `weights` of the last used entry.
+    weights_hint: usize,
     /// Reused buffers of [`Tracker::extend_active`] and
     /// [`Tracker::initialise`] (no allocation per pulse in steady state).
     scratch: Scratch,
@@ -590,6 +592,7 @@ impl Tracker {
             last_pulse: None,
             stats: TrackerStats::default(),
             weights: Vec::new(),
+            weights_hint: 0,
             scratch: Scratch::default(),
         })
     }
@@ -668,7 +671,9 @@ impl Tracker {
         let max_gap = self.params.max_gap as i64;
         let mut kept = 0;
         for i in 0..self.active.len() {
-            if let Some(ahead) = self.active.get(i + PREFETCH_AHEAD) {
+            // A short loop body: the misses need more lead than in
+            // `extend_active`.
+            if let Some(ahead) = self.active.get(i + 4 * PREFETCH_AHEAD) {
                 prefetch_window(&ahead.dets, 1);
             }
             if pulse - self.active[i].last().pulse - 1 > max_gap {
@@ -791,11 +796,15 @@ impl Tracker {
         }
         let order = self.predict_order(n);
         let ahead = pulse - last.pulse;
-        let k = match self
-            .weights
-            .iter()
-            .position(|c| c.window == w && c.order == order && c.ahead == ahead)
-        {
+        // Most tracks use the same weights as the previous one: try those
+        // first (the list holds a dozen or more combinations).
+        let hint = self.weights_hint;
+        let same = |c: &PredictWeights| c.window == w && c.order == order && c.ahead == ahead;
+        let found = match self.weights.get(hint) {
+            Some(c) if same(c) => Some(hint),
+            _ => self.weights.iter().position(same),
+        };
+        let k = match found {
             Some(k) => k,
             None => match PredictWeights::new(w, order, ahead) {
                 Some(c) => {
@@ -805,6 +814,7 @@ impl Tracker {
                 None => return self.predict_reference(&self.active[ti], pulse),
             },
         };
+        self.weights_hint = k;
         let c = &self.weights[k];
         let (mut x, mut y) = (0.0, 0.0);
         for (ci, d) in c.c.iter().zip(win) {
