@@ -331,6 +331,7 @@ impl UnionFind {
             size: vec![1; n],
         }
     }
+    #[inline]
     pub(crate) fn find(&mut self, mut a: u32) -> u32 {
         while self.parent[a as usize] != a {
             let g = self.parent[self.parent[a as usize] as usize];
@@ -339,6 +340,7 @@ impl UnionFind {
         }
         a
     }
+    #[inline]
     pub(crate) fn union(&mut self, a: u32, b: u32) {
         let (ra, rb) = (self.find(a), self.find(b));
         if ra == rb {
@@ -362,6 +364,58 @@ impl UnionFind {
 /// [`pixel_labels_kdtree`] is the general k-d tree path; both match the
 /// brute-force oracle exactly.
 pub fn pixel_labels(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u32> {
+    let n = pixels.len();
+    let mut uf = UnionFind::new(n);
+    let max_d2 = params.max_d2();
+    if n > 1 && max_d2 >= 1 {
+        let r = (max_d2 as f64).sqrt().floor() as u32;
+        let keys: Vec<u32> = pixels
+            .iter()
+            .map(|p| ((p.y as u32) << 16) | p.x as u32)
+            .collect();
+        // Cursors for the rows below (dy = 1..=r).
+        let mut cursor = vec![0usize; r as usize + 1];
+        for i in 0..n {
+            let (xi, yi) = (pixels[i].x as u32, pixels[i].y as u32);
+            // Same row: every pixel at most r to the right is a partner
+            // (dx ≤ r ⇒ dx² ≤ max_d2); keys are distinct and sorted.
+            let row_end = (yi << 16) | (xi + r).min(u16::MAX as u32);
+            let mut j = i + 1;
+            while j < n && keys[j] <= row_end {
+                uf.union(i as u32, j as u32);
+                j += 1;
+            }
+            for dy in 1..=r {
+                let row = yi + dy;
+                if row > u16::MAX as u32 {
+                    break;
+                }
+                let lo_key = (row << 16) | xi.saturating_sub(r);
+                let hi_key = (row << 16) | (xi + r).min(u16::MAX as u32);
+                let c = &mut cursor[dy as usize];
+                while *c < n && keys[*c] < lo_key {
+                    *c += 1;
+                }
+                let dy2 = (dy * dy) as i64;
+                let mut j = *c;
+                while j < n && keys[j] <= hi_key {
+                    let dx = pixels[j].x as i64 - xi as i64;
+                    if dx * dx + dy2 <= max_d2 {
+                        uf.union(i as u32, j as u32);
+                    }
+                    j += 1;
+                }
+            }
+        }
+    }
+    canonical_labels(&mut uf, n)
+}
+
+/// The row sweep as it was first written (one forward cursor per row
+/// offset, the same row included, every pair distance-tested): the
+/// reference of [`pixel_labels`], which takes same-row partners without a
+/// test.
+pub fn pixel_labels_reference(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u32> {
     let n = pixels.len();
     let mut uf = UnionFind::new(n);
     let max_d2 = params.max_d2();
@@ -491,20 +545,23 @@ pub fn particles_from_labels(
         a.y1 = a.y1.max(p.y);
         a.t0 = a.t0.min(p.first_t);
     }
-    acc.iter()
-        .filter(|a| a.n >= params.min_events && a.n <= params.max_events)
-        .map(|a| Particle {
-            pulse: pulse.index,
-            t_us: pulse.start_us,
-            x: a.sx / a.n as f64,
-            y: a.sy / a.n as f64,
-            n_events: a.n,
-            n_pixels: a.npix,
-            extent_x: (a.x1 - a.x0 + 1) as f32,
-            extent_y: (a.y1 - a.y0 + 1) as f32,
-            first_latency_us: (a.t0 as f64 - pulse.start_us) as f32,
-        })
-        .collect()
+    let mut out = Vec::with_capacity(acc.len());
+    for a in &acc {
+        if a.n >= params.min_events && a.n <= params.max_events {
+            out.push(Particle {
+                pulse: pulse.index,
+                t_us: pulse.start_us,
+                x: a.sx / a.n as f64,
+                y: a.sy / a.n as f64,
+                n_events: a.n,
+                n_pixels: a.npix,
+                extent_x: (a.x1 - a.x0 + 1) as f32,
+                extent_y: (a.y1 - a.y0 + 1) as f32,
+                first_latency_us: (a.t0 as f64 - pulse.start_us) as f32,
+            });
+        }
+    }
+    out
 }
 
 /// Cluster the events of one pulse into particles. `params` is assumed
@@ -545,11 +602,19 @@ pub fn split_wide_clusters(pixels: &[PixelHits], labels: &mut [u32], split_exten
     if !wide.iter().any(|&w| w) {
         return;
     }
-    // Pixel indices of each wide component.
-    let mut members: Vec<Vec<usize>> = vec![Vec::new(); n_labels];
+    // Pixel indices of each wide component, wide components numbered in
+    // label order (few: one list per wide one, not per label).
+    let mut slot = vec![u32::MAX; n_labels];
+    let mut n_wide = 0;
+    for (l, _) in wide.iter().enumerate().filter(|(_, &w)| w) {
+        slot[l] = n_wide;
+        n_wide += 1;
+    }
+    let mut members: Vec<Vec<usize>> = vec![Vec::new(); n_wide as usize];
     for (i, &l) in labels.iter().enumerate() {
-        if wide[l as usize] {
-            members[l as usize].push(i);
+        let s = slot[l as usize];
+        if s != u32::MAX {
+            members[s as usize].push(i);
         }
     }
     let mut next = n_labels as u32;
@@ -776,6 +841,47 @@ mod tests {
             }
         }
         assert!(counted > 30, "{counted} rounds took the counting sort");
+    }
+
+    /// The row sweep against its first form on dense random patches (so
+    /// that rows hold runs of neighbours) and at the u16 edges, radii 1–4.
+    #[test]
+    fn pixel_labels_equal_the_reference() {
+        let mut state = 4242u64;
+        let mut next = |m: u64| {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 33) % m
+        };
+        for round in 0..200 {
+            let (w, h, n) =
+                [(30, 20, 250), (200, 3, 300), (5, 5, 40), (1280, 720, 3000)][round % 4];
+            let edge = if round % 5 == 0 { 65535 - w } else { 0 };
+            let evs: Vec<(i64, u16, u16, u8)> = (0..n)
+                .map(|_| {
+                    (
+                        0,
+                        (edge + next(w)) as u16,
+                        (edge.min(65535 - h) + next(h)) as u16,
+                        1,
+                    )
+                })
+                .collect();
+            let p = pulse_of(&evs);
+            for radius in [1.0, 1.5, 2.0, 2.9, 4.0] {
+                let params = ClusterParams {
+                    radius,
+                    ..Default::default()
+                };
+                let pixels = pulse_pixels(&p, &params);
+                assert_eq!(
+                    pixel_labels(&pixels, &params),
+                    pixel_labels_reference(&pixels, &params),
+                    "round {round}, radius {radius}"
+                );
+            }
+        }
     }
 
     #[test]
