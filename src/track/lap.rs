@@ -41,19 +41,18 @@ pub fn assign_sparse(
     for &(_, c, _) in edges {
         col_rows[c] = col_rows[c].saturating_add(1);
     }
-    // A row touching a shared column (or one column twice) is not alone.
+    // A row touching a shared column (or one column twice) is not alone;
+    // the others take their best positive gain (miss - cost), the first
+    // one on ties. (A row found shared after a pick gets the reference's
+    // answer below.)
     let mut shared = vec![false; n_rows];
     let mut any_shared = false;
-    for &(r, c, _) in edges {
+    let mut best_gain = vec![0.0f64; n_rows];
+    for &(r, c, w) in edges {
         if col_rows[c] > 1 {
             shared[r] = true;
             any_shared = true;
-        }
-    }
-    // Lone rows: the best positive gain (miss - cost), first one on ties.
-    let mut best_gain = vec![0.0f64; n_rows];
-    for &(r, c, w) in edges {
-        if !shared[r] {
+        } else {
             let gain = miss_cost[r] - w;
             if gain > best_gain[r] {
                 best_gain[r] = gain;

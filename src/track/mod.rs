@@ -959,7 +959,7 @@ impl Tracker {
         for k in 1..INIT_FRAMES {
             let idx = &mut sc.init_idx[k - 1];
             idx.clear();
-            idx.extend((0..f[k].dets.len()).filter(|&i| !f[k].used[i]));
+            unused_indices(&f[k].used[..f[k].dets.len()], idx);
             sc.init_grids[k - 1].rebuild(idx.iter().map(|&i| (f[k].dets[i].x, f[k].dets[i].y)));
         }
         let near = |k: usize, x: f64, y: f64, r: f64, out: &mut Vec<(u32, f64)>| {
@@ -1239,7 +1239,7 @@ impl Tracker {
                 break;
             }
             idx.clear();
-            idx.extend((0..frame.dets.len()).filter(|&i| !frame.used[i]));
+            unused_indices(&frame.used[..frame.dets.len()], &mut idx);
             if idx.is_empty() {
                 continue;
             }
@@ -1421,6 +1421,17 @@ impl Tracker {
 
 /// Tracks ahead of the current one whose recent detections are prefetched.
 const PREFETCH_AHEAD: usize = 6;
+
+/// Append the indices of the `false` entries of `used` to `idx` (a plain
+/// loop: the filtered `extend` it replaces cost ~20 instructions per
+/// particle, 4 % of the linking).
+fn unused_indices(used: &[bool], idx: &mut Vec<usize>) {
+    for (i, &u) in used.iter().enumerate() {
+        if !u {
+            idx.push(i);
+        }
+    }
+}
 
 /// Ask the CPU to fetch the last `window` detections of a track into the
 /// cache. Every pulse the tracker touches the recent history of each of
