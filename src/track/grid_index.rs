@@ -16,8 +16,9 @@
 pub struct GridIndex {
     /// Requested cell size (px); 0 (the `Default`) means 4 px.
     base_cell: f64,
-    /// Cell size of the current build.
+    /// Cell size of the current build and its inverse.
     cell: f64,
+    inv_cell: f64,
     x0: f64,
     y0: f64,
     nx: usize,
@@ -124,6 +125,7 @@ impl GridIndex {
         }
         self.start[0] = 0;
         self.cell = cell;
+        self.inv_cell = inv;
     }
 
     /// Append to `out` every point within `r` of `(x, y)` (inclusive) as
@@ -133,7 +135,7 @@ impl GridIndex {
             return;
         }
         let base = out.len();
-        let inv = 1.0 / self.cell;
+        let inv = self.inv_cell;
         let r2 = r * r;
         // The cell range is widened by a hair so that rounding can never
         // leave out a point the exact distance test accepts.
@@ -163,7 +165,10 @@ impl GridIndex {
                 }
             }
         }
-        out[base..].sort_unstable_by_key(|e| e.0);
+        // A single cell holds its points in index order already.
+        if cy0 != cy1 || cx0 != cx1 {
+            out[base..].sort_unstable_by_key(|e| e.0);
+        }
     }
 }
 

@@ -17,7 +17,67 @@ const FORBIDDEN: f64 = 1e15;
 /// Solve the sparse assignment. `edges` are `(row, col, cost)` candidate
 /// pairs (costs finite, non-negative); `miss_cost[row]` is paid when `row`
 /// stays unmatched. Returns the column of each row, if any.
+///
+/// Most rows of a tracking step are alone in their component: none of
+/// their candidate columns is anyone else's candidate. Such a row takes
+/// its cheapest candidate when that beats its miss — exactly what
+/// [`assign_sparse_reference`] does for a one-row component (same
+/// tie-break: the first of equal gains in edge order) — so they are solved
+/// in one pass over the edges, and only the edges of rows that share a
+/// column go through the component search and the Hungarian algorithm.
+/// The result is identical to [`assign_sparse_reference`] (tested).
 pub fn assign_sparse(
+    n_cols: usize,
+    edges: &[(usize, usize, f64)],
+    miss_cost: &[f64],
+) -> Vec<Option<usize>> {
+    let n_rows = miss_cost.len();
+    let mut result = vec![None; n_rows];
+    if edges.is_empty() {
+        return result;
+    }
+    // Candidate rows per column (saturating: only "more than one" matters).
+    let mut col_rows = vec![0u8; n_cols];
+    for &(_, c, _) in edges {
+        col_rows[c] = col_rows[c].saturating_add(1);
+    }
+    // A row touching a shared column (or one column twice) is not alone;
+    // the others take their best positive gain (miss - cost), the first
+    // one on ties. (A row found shared after a pick gets the reference's
+    // answer below.)
+    let mut shared = vec![false; n_rows];
+    let mut any_shared = false;
+    let mut best_gain = vec![0.0f64; n_rows];
+    for &(r, c, w) in edges {
+        if col_rows[c] > 1 {
+            shared[r] = true;
+            any_shared = true;
+        } else {
+            let gain = miss_cost[r] - w;
+            if gain > best_gain[r] {
+                best_gain[r] = gain;
+                result[r] = Some(c);
+            }
+        }
+    }
+    if any_shared {
+        let rest: Vec<(usize, usize, f64)> =
+            edges.iter().copied().filter(|e| shared[e.0]).collect();
+        let solved = assign_sparse_reference(n_cols, &rest, miss_cost);
+        for (r, c) in solved.into_iter().enumerate() {
+            if shared[r] {
+                result[r] = c;
+            }
+        }
+    }
+    result
+}
+
+/// The plain form of [`assign_sparse`]: every connected component of the
+/// candidate graph solved on its own (one-row and one-column components by
+/// their best pair, the others by [`hungarian`]). The reference the fast
+/// path is tested against, and its solver for rows that share columns.
+pub fn assign_sparse_reference(
     n_cols: usize,
     edges: &[(usize, usize, f64)],
     miss_cost: &[f64],
@@ -252,6 +312,55 @@ mod tests {
             let want = brute(n_cols, &edges, &miss);
             assert!((got - want).abs() < 1e-9, "got {got}, optimum {want}");
         }
+    }
+
+    /// The lone-row fast path must give exactly the reference's
+    /// assignment, ties included: costs from a small set of values (many
+    /// equal gains), duplicate edges, rows without candidates, sparse
+    /// scenes (mostly lone rows) and dense ones (mostly shared columns).
+    #[test]
+    fn fast_path_equals_reference() {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(23);
+        let mut lone_rows = 0;
+        for round in 0..3000 {
+            let n_rows = rng.gen_range(0..40);
+            let n_cols = rng.gen_range(1..60);
+            let density = [0.01, 0.05, 0.2][round % 3];
+            let mut edges = Vec::new();
+            for r in 0..n_rows {
+                for c in 0..n_cols {
+                    if rng.gen_bool(density) {
+                        edges.push((r, c, rng.gen_range(0..8) as f64 * 0.25));
+                        if rng.gen_bool(0.05) {
+                            edges.push((r, c, rng.gen_range(0..8) as f64 * 0.25));
+                        }
+                    }
+                }
+            }
+            // Rows visited in any order (as the repair's are).
+            if round % 2 == 1 {
+                for i in (1..edges.len()).rev() {
+                    edges.swap(i, rng.gen_range(0..=i));
+                }
+            }
+            let miss: Vec<f64> = (0..n_rows)
+                .map(|_| rng.gen_range(1..6) as f64 * 0.25)
+                .collect();
+            let fast = assign_sparse(n_cols, &edges, &miss);
+            assert_eq!(fast, assign_sparse_reference(n_cols, &edges, &miss));
+            let mut deg = vec![0; n_cols];
+            edges.iter().for_each(|e| deg[e.1] += 1);
+            lone_rows += (0..n_rows)
+                .filter(|&r| {
+                    edges.iter().any(|e| e.0 == r)
+                        && edges.iter().all(|e| e.0 != r || deg[e.1] == 1)
+                })
+                .count();
+        }
+        assert!(
+            lone_rows > 2_000,
+            "{lone_rows} lone rows: the fast path was hardly used"
+        );
     }
 
     #[test]
