@@ -635,6 +635,37 @@ impl IntBins {
     }
 }
 
+/// Events ahead whose pixel record [`SignatureAccumulator::add_events`]
+/// prefetches: enough to cover a memory latency with the work of the
+/// events between.
+const PREFETCH_AHEAD: usize = 12;
+
+/// Hint the cache to fetch `*r` (no effect on results; a no-op off x86-64).
+#[inline(always)]
+fn prefetch<T>(r: &T) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        // SAFETY: a prefetch never faults, and the address is a live reference.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(r as *const T as *const i8) };
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = r;
+}
+
+/// `x.floor() as i64` without the libm call (the baseline x86-64 target
+/// has no rounding instruction): truncation, one down for negative
+/// non-integers; saturating as `as` does, 0 for NaN.
+#[inline(always)]
+fn floor_i64(x: f64) -> i64 {
+    let q = x as i64;
+    if (q as f64) > x {
+        q.saturating_sub(1)
+    } else {
+        q
+    }
+}
+
 const NO_TIME: i64 = i64::MIN;
 
 /// Ticks per busy window of `busy_window_slope`: long enough
@@ -712,6 +743,13 @@ impl SignatureAccumulator {
         let first = self.cfg.timing.first_pulse_us;
         let block = self.cfg.block_pulses as i64;
         for i in 0..ev.len() {
+            // The events of a burst land all over the sensor: ask for the
+            // pixel record of an event a few ahead while this one is done.
+            if let Some(j) = i.checked_add(PREFETCH_AHEAD).filter(|&j| j < ev.len()) {
+                if g.contains(ev.x[j], ev.y[j]) {
+                    prefetch(&self.pix[ev.y[j] as usize * width + ev.x[j] as usize]);
+                }
+            }
             let (t, x, y, p) = (ev.t[i], ev.x[i], ev.y[i], ev.p[i]);
             if !g.contains(x, y) {
                 self.n_outside += 1;
@@ -731,7 +769,7 @@ impl SignatureAccumulator {
                     self.off_latency_counts[k] += 1;
                 }
             }
-            let pulse = (rel / period).floor() as i64;
+            let pulse = floor_i64(rel / period);
             if pulse != self.pulse_now {
                 if self.pulse_count > 0 {
                     self.pulse_counts.push(self.pulse_count);
@@ -749,7 +787,7 @@ impl SignatureAccumulator {
             let last = s.last_t;
             // A new visit unless the pixel's last event is in this pulse
             // (its pulse computed exactly as this event's).
-            if last == NO_TIME || ((last as f64 - first) / period).floor() as i64 != pulse {
+            if last == NO_TIME || floor_i64((last as f64 - first) / period) != pulse {
                 if last != NO_TIME {
                     self.visit_yield[(s.visit_events as usize).min(16)] += 1;
                 }
@@ -1382,5 +1420,41 @@ fn line_slope(points: &[(f64, f64)]) -> f64 {
         f64::NAN
     } else {
         cov / var
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::floor_i64;
+
+    #[test]
+    fn floor_i64_is_floor_as_i64() {
+        let mut xs = vec![
+            0.0,
+            -0.0,
+            0.5,
+            -0.5,
+            1.0,
+            -1.0,
+            -1e-300,
+            2.5e15 + 0.5,
+            -2.5e15 - 0.5,
+            9.3e18,
+            -9.3e18,
+            1e300,
+            -1e300,
+            f64::NAN,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            (1u64 << 53) as f64,
+            -((1u64 << 53) as f64) - 2.0,
+        ];
+        for k in -3000..3000 {
+            xs.push(k as f64 * 0.37 + 1e-9 * k as f64);
+            xs.push((k as f64 - 13.3) / 199.7);
+        }
+        for x in xs {
+            assert_eq!(floor_i64(x), x.floor() as i64, "x = {x}");
+        }
     }
 }
