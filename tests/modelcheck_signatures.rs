@@ -925,3 +925,56 @@ fn fast_accumulator_equals_reference_on_odd_streams() {
         }
     }
 }
+
+#[test]
+fn pulses_of_equals_its_reference() {
+    use ebptv::modelcheck::scene::{pulses_of, pulses_of_reference};
+    let mut rng = Pcg64::seed_from_u64(5);
+    let tm = timing(199.7, 37.3);
+    // Time-ordered, with events before the first pulse, empty pulses, and
+    // equal times; then a stream that steps back across a pulse (an error).
+    let mut ev = EventChunk::default();
+    let mut t = -300i64;
+    for _ in 0..20_000 {
+        t += if rng.gen::<f64>() < 0.01 {
+            rng.gen_range(300..900)
+        } else {
+            rng.gen_range(0..3)
+        };
+        ev.push(
+            t,
+            rng.gen_range(0..50),
+            rng.gen_range(0..50),
+            rng.gen_range(0..2),
+        );
+    }
+    let fast = pulses_of(&ev, &tm).unwrap();
+    let slow = pulses_of_reference(&ev, &tm).unwrap();
+    assert!(fast.len() > 100);
+    assert_eq!(fast.len(), slow.len());
+    for (a, b) in fast.iter().zip(&slow) {
+        assert_eq!(
+            (a.index, a.start_us.to_bits()),
+            (b.index, b.start_us.to_bits())
+        );
+        assert_eq!(a.events, b.events);
+    }
+    // Before the first pulse, inside a run: skipped by both.
+    let mixed = chunk(&[
+        (100, 1, 1, 1),
+        (-50, 2, 2, 1),
+        (101, 3, 3, 1),
+        (400, 4, 4, 0),
+    ]);
+    let (a, b) = (
+        pulses_of(&mixed, &tm).unwrap(),
+        pulses_of_reference(&mixed, &tm).unwrap(),
+    );
+    assert_eq!(a.len(), b.len());
+    for (a, b) in a.iter().zip(&b) {
+        assert_eq!(a.events, b.events);
+    }
+    let back = chunk(&[(100, 1, 1, 1), (700, 2, 2, 1), (300, 3, 3, 1)]);
+    assert!(pulses_of(&back, &tm).is_err());
+    assert!(pulses_of_reference(&back, &tm).is_err());
+}
