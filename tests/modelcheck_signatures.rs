@@ -776,3 +776,205 @@ fn yield_split_correlation_sees_a_fixed_pattern_not_chance() {
         assert!((with - 0.765).abs() < 0.03, "pattern: r = {with}");
     }
 }
+
+// ------------------------------------- fast accumulator vs its reference
+
+/// Signatures of `events` (in `chunks` pieces), particles and tracks by the
+/// fast accumulator and by the reference, as exact text (Debug prints
+/// every float round-trip exactly, and NaN equal to NaN).
+fn fast_and_reference(
+    cfg: &SignatureConfig,
+    events: &EventChunk,
+    chunks: usize,
+    particles: &[Particle],
+    tracks: Option<&[Track]>,
+) -> (String, String) {
+    use ebptv::modelcheck::signatures::reference::ReferenceAccumulator;
+    let mut fast = SignatureAccumulator::new(cfg.clone()).unwrap();
+    let mut slow = ReferenceAccumulator::new(cfg.clone()).unwrap();
+    let n = events.len();
+    let step = n.div_ceil(chunks.max(1)).max(1);
+    let mut start = 0;
+    while start < n {
+        let end = (start + step).min(n);
+        let mut c = EventChunk::default();
+        for i in start..end {
+            c.push(events.t[i], events.x[i], events.y[i], events.p[i]);
+        }
+        fast.add_events(&c);
+        slow.add_events(&c);
+        start = end;
+    }
+    fast.add_particles(particles);
+    slow.add_particles(particles);
+    if let Some(t) = tracks {
+        fast.add_tracks(t, particles).unwrap();
+        slow.add_tracks(t, particles).unwrap();
+    }
+    (
+        format!("{:?}", fast.finish().unwrap()),
+        format!("{:?}", slow.finish().unwrap()),
+    )
+}
+
+#[test]
+fn fast_accumulator_equals_reference_on_simulated_recordings() {
+    use ebptv::modelcheck::scene::SceneSimulator;
+    use ebptv::modelcheck::workflow::{EffectSetting, Simulator};
+    let mut scene = ebptv::sim::scenario::Scenario {
+        duration_s: 0.01,
+        sensor: ebptv::sim::scenario::Sensor {
+            width: 96,
+            height: 64,
+            roi: None,
+        },
+        ..Default::default()
+    };
+    scene.seeding.ppp = 0.01;
+    scene.light.energy = ebptv::sim::presets::WATER_ENERGY;
+    let sim = SceneSimulator::new(scene).unwrap();
+    let set = |name: &str, ps: &[(&str, f64)]| EffectSetting {
+        name: name.into(),
+        parameters: ps.iter().map(|&(k, v)| (k.to_string(), v)).collect(),
+    };
+    // Every effect that moves a per-pixel or per-tick quantity: hot pixels
+    // (huge counts, short intervals), background (off-burst pixels),
+    // arbiter saturation (shared timestamps), OFF events, refractory,
+    // threshold mismatch (yields).
+    let all = vec![
+        set("hot_pixels", &[("count", 12.0), ("rate_hz", 20_000.0)]),
+        set("background_noise", &[("rate_hz", 50.0)]),
+        set(
+            "arbiter_saturation",
+            &[("row_time_us", 0.05), ("event_time_us", 0.1)],
+        ),
+        set("off_events", &[("threshold", 0.2), ("tau_us", 30.0)]),
+        set("refractory", &[("period_us", 20.0)]),
+        set("threshold_mismatch", &[("sigma", 0.3)]),
+    ];
+    let mut compared = 0;
+    for (k, effects) in [vec![], all].iter().enumerate() {
+        let rec = sim.simulate(effects, 40 + k as u64).unwrap();
+        assert!(rec.events.len() > 1000, "{} events", rec.events.len());
+        let mut cfg = sim.signature_config();
+        for window in [None, Some((3.0, 60.0)), Some((150.0, 230.0))] {
+            cfg.burst_window_us = window;
+            for chunks in [1, 7] {
+                let (fast, slow) =
+                    fast_and_reference(&cfg, &rec.events, chunks, &rec.particles, None);
+                assert_eq!(fast, slow, "effects {effects:?}, window {window:?}");
+                compared += 1;
+            }
+        }
+    }
+    assert_eq!(compared, 12);
+}
+
+#[test]
+fn fast_accumulator_equals_reference_on_odd_streams() {
+    // Random events: times mostly rising with backward steps, long gaps
+    // (intervals beyond the table and beyond u32 µs), negative times,
+    // events outside the geometry, both polarities, clumps of equal
+    // timestamps; a period that is not a whole number of µs.
+    let mut rng = Pcg64::seed_from_u64(11);
+    let g = Geometry::new(40, 30);
+    let mut cfg = SignatureConfig::new(g, timing(199.7, -13.3));
+    cfg.block_pulses = 3;
+    let mut ev = EventChunk::default();
+    let mut t: i64 = -5000;
+    for _ in 0..60_000 {
+        let r: f64 = rng.gen();
+        t += if r < 0.3 {
+            0
+        } else if r < 0.95 {
+            rng.gen_range(1..40)
+        } else if r < 0.98 {
+            -rng.gen_range(1..300)
+        } else if r < 0.999 {
+            rng.gen_range(1_000..100_000)
+        } else {
+            rng.gen_range(5_000_000_000i64..6_000_000_000)
+        };
+        let (x, y) = if rng.gen::<f64>() < 0.01 {
+            (rng.gen_range(40..60), rng.gen_range(0..40))
+        } else if rng.gen::<f64>() < 0.2 {
+            (3, 4) // a busy pixel
+        } else {
+            (rng.gen_range(0..40), rng.gen_range(0..30))
+        };
+        ev.push(t, x, y, rng.gen_range(0..2));
+    }
+    let particles: Vec<Particle> = (0..300)
+        .map(|k| {
+            particle(
+                k / 10,
+                rng.gen_range(0.0..40.0),
+                rng.gen_range(0.0..30.0),
+                rng.gen_range(1..30),
+                rng.gen_range(0.0..90.0),
+                rng.gen_range(1.0..9.0),
+                rng.gen_range(1.0..9.0),
+            )
+        })
+        .collect();
+    for window in [None, Some((-20.0, 40.0)), Some((120.0, 250.0))] {
+        cfg.burst_window_us = window;
+        for chunks in [1, 13] {
+            let (fast, slow) = fast_and_reference(&cfg, &ev, chunks, &particles, Some(&[]));
+            assert_eq!(fast, slow, "window {window:?}, {chunks} chunks");
+        }
+    }
+}
+
+#[test]
+fn pulses_of_equals_its_reference() {
+    use ebptv::modelcheck::scene::{pulses_of, pulses_of_reference};
+    let mut rng = Pcg64::seed_from_u64(5);
+    let tm = timing(199.7, 37.3);
+    // Time-ordered, with events before the first pulse, empty pulses, and
+    // equal times; then a stream that steps back across a pulse (an error).
+    let mut ev = EventChunk::default();
+    let mut t = -300i64;
+    for _ in 0..20_000 {
+        t += if rng.gen::<f64>() < 0.01 {
+            rng.gen_range(300..900)
+        } else {
+            rng.gen_range(0..3)
+        };
+        ev.push(
+            t,
+            rng.gen_range(0..50),
+            rng.gen_range(0..50),
+            rng.gen_range(0..2),
+        );
+    }
+    let fast = pulses_of(&ev, &tm).unwrap();
+    let slow = pulses_of_reference(&ev, &tm).unwrap();
+    assert!(fast.len() > 100);
+    assert_eq!(fast.len(), slow.len());
+    for (a, b) in fast.iter().zip(&slow) {
+        assert_eq!(
+            (a.index, a.start_us.to_bits()),
+            (b.index, b.start_us.to_bits())
+        );
+        assert_eq!(a.events, b.events);
+    }
+    // Before the first pulse, inside a run: skipped by both.
+    let mixed = chunk(&[
+        (100, 1, 1, 1),
+        (-50, 2, 2, 1),
+        (101, 3, 3, 1),
+        (400, 4, 4, 0),
+    ]);
+    let (a, b) = (
+        pulses_of(&mixed, &tm).unwrap(),
+        pulses_of_reference(&mixed, &tm).unwrap(),
+    );
+    assert_eq!(a.len(), b.len());
+    for (a, b) in a.iter().zip(&b) {
+        assert_eq!(a.events, b.events);
+    }
+    let back = chunk(&[(100, 1, 1, 1), (700, 2, 2, 1), (300, 3, 3, 1)]);
+    assert!(pulses_of(&back, &tm).is_err());
+    assert!(pulses_of_reference(&back, &tm).is_err());
+}

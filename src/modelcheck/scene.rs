@@ -190,7 +190,56 @@ pub fn timing_of(sc: &Scenario) -> PulseTiming {
 
 /// Split time-ordered events into pulses by `timing` (pulses without
 /// events are left out).
+///
+/// The events of a pulse are copied a run at a time (a run: consecutive
+/// events of one pulse), not one by one: the same pulses and events as
+/// [`pulses_of_reference`], which the tests compare it with.
 pub fn pulses_of(events: &EventChunk, timing: &PulseTiming) -> Result<Vec<PulseEvents>> {
+    fn copy_run(pulses: &mut [PulseEvents], events: &EventChunk, a: usize, b: usize) {
+        let p = &mut pulses.last_mut().expect("a run belongs to a pulse").events;
+        p.t.extend_from_slice(&events.t[a..b]);
+        p.x.extend_from_slice(&events.x[a..b]);
+        p.y.extend_from_slice(&events.y[a..b]);
+        p.p.extend_from_slice(&events.p[a..b]);
+    }
+    let mut pulses: Vec<PulseEvents> = Vec::new();
+    // The current run: its first event and its pulse.
+    let mut run: Option<(usize, i64)> = None;
+    for i in 0..events.len() {
+        let k = timing.assign(events.t[i]);
+        if let (Some((_, kr)), Some(k)) = (run, k) {
+            if kr == k {
+                continue;
+            }
+        }
+        if let Some((a, _)) = run.take() {
+            copy_run(&mut pulses, events, a, i);
+        }
+        let Some(k) = k else {
+            continue;
+        };
+        if pulses.last().map(|p| p.index) != Some(k) {
+            if pulses.last().is_some_and(|p| p.index > k) {
+                return Err(Error::analysis(
+                    "events are not in time order: cannot split them into pulses",
+                ));
+            }
+            pulses.push(PulseEvents {
+                index: k,
+                start_us: timing.pulse_start(k),
+                events: EventChunk::default(),
+            });
+        }
+        run = Some((i, k));
+    }
+    if let Some((a, _)) = run {
+        copy_run(&mut pulses, events, a, events.len());
+    }
+    Ok(pulses)
+}
+
+/// [`pulses_of`] event by event: the reference it is tested against.
+pub fn pulses_of_reference(events: &EventChunk, timing: &PulseTiming) -> Result<Vec<PulseEvents>> {
     let mut pulses: Vec<PulseEvents> = Vec::new();
     for i in 0..events.len() {
         let Some(k) = timing.assign(events.t[i]) else {

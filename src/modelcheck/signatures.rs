@@ -99,6 +99,8 @@
 
 use std::collections::HashMap;
 
+pub mod reference;
+
 use serde::{Deserialize, Serialize};
 
 use crate::cluster::Particle;
@@ -445,27 +447,38 @@ pub fn burst_window(latency: &Histogram, fraction: f64) -> Result<(f64, f64)> {
 }
 
 /// Streaming computation of [`Signatures`].
+///
+/// Fast path (session 5; [`reference::ReferenceAccumulator`] is the plain
+/// version the tests compare it with, signature for signature): the
+/// per-pixel state is one 32-byte record per pixel ([`PixelState`]), so
+/// an event touches one cache line instead of eight arrays of the sensor
+/// size (a 640x360 sensor's state does not fit in cache, and the events of
+/// a burst land all over it); every histogram fed per event or per pixel
+/// counts integers per bin and bins through a lookup table or the uniform
+/// spacing ([`IntBins`], [`UniformBins`]) instead of a binary search per
+/// value. Counts are exact integers either way, so the signatures are
+/// identical, not just close.
 pub struct SignatureAccumulator {
     cfg: SignatureConfig,
-    latency: Histogram,
+    latency: UniformBins,
+    latency_counts: Vec<u64>,
+    /// Per latency bin: is its centre outside the burst window (only with
+    /// a fixed window)?
+    latency_outside: Option<Vec<bool>>,
     /// Folded time of OFF events (same bins as `latency`).
-    off_latency: Histogram,
+    off_latency_counts: Vec<u64>,
     /// Events per pulse: the pulse being counted and its count so far.
     pulse_now: i64,
     pulse_count: u64,
     pulse_counts: Vec<u64>,
-    /// Per pixel: the pulse of its current visit (events in one pulse)
-    /// and the events in it so far; visits in even / odd blocks.
-    visit_pulse: Vec<i64>,
-    visit_events: Vec<u16>,
-    visits_even: Vec<u32>,
-    visits_odd: Vec<u32>,
-    /// Visits per bin of their events.
-    visit_yield: Histogram,
-    count_even: Vec<u32>,
-    count_odd: Vec<u32>,
-    last_t: Vec<i64>,
-    min_dt: Vec<i64>,
+    /// The pulse the even/odd flag was taken for, and whether it lies in
+    /// an even block.
+    block_pulse: i64,
+    block_even: bool,
+    pix: Vec<PixelState>,
+    /// Visits per number of events (index: events, saturating at 16 and
+    /// above, which share the last bin).
+    visit_yield: Vec<u64>,
     n_events: u64,
     n_on: u64,
     n_outside: u64,
@@ -474,7 +487,8 @@ pub struct SignatureAccumulator {
     // (row, timestamp) grouping over runs of equal timestamps.
     run_t: i64,
     run_rows: Vec<u16>,
-    group_sizes: HashMap<u32, u64>,
+    /// Groups per size (index: size).
+    group_sizes: Vec<u64>,
     shared_events: u64,
     tick_events: ProfileAcc,
     /// The last tick seen: (timestamp, distinct rows, events, whether the
@@ -486,12 +500,170 @@ pub struct SignatureAccumulator {
     busy_ticks: std::collections::VecDeque<(usize, usize)>,
     /// Σ over busy windows of (1, G, E, G², G·E).
     window_sums: [f64; 5],
-    /// Events per pixel outside the burst window (only with a fixed window).
+    /// Events per pixel outside the burst window (only with a fixed window;
+    /// apart from [`PixelState`]: it is touched only by the few events
+    /// outside the burst).
     count_off_burst: Option<Vec<u32>>,
     /// (events, first latency, extent x, extent y) per particle.
     particles: Vec<(u32, f32, f32, f32)>,
     elongation: Option<ProfileAcc>,
     track_lengths: Vec<u32>,
+}
+
+/// Everything the accumulator keeps per pixel, in one record.
+///
+/// The pixel's current visit (the pulse of its last event) is not stored:
+/// it is the pulse of `last_t`, recomputed (a division costs less than the
+/// cache line another 8 bytes per pixel would spill into).
+#[derive(Debug, Clone, Copy)]
+#[repr(C, align(32))]
+struct PixelState {
+    /// Time of the last event (`NO_TIME`: none yet).
+    last_t: i64,
+    /// Smallest interval between two events, µs, capped at
+    /// `u32::MAX - 1` (far inside the last `min_iei` bin, which starts at
+    /// 10⁷ µs); `u32::MAX`: no interval yet.
+    min_dt: u32,
+    count_even: u32,
+    count_odd: u32,
+    visits_even: u32,
+    visits_odd: u32,
+    /// Events in the current visit (saturating).
+    visit_events: u16,
+}
+
+const NO_INTERVAL: u32 = u32::MAX;
+
+impl PixelState {
+    const EMPTY: PixelState = PixelState {
+        last_t: NO_TIME,
+        min_dt: NO_INTERVAL,
+        count_even: 0,
+        count_odd: 0,
+        visits_even: 0,
+        visits_odd: 0,
+        visit_events: 0,
+    };
+}
+
+/// Binning of a histogram with uniformly spaced edges (the folded latency):
+/// the bin from the spacing, corrected against the edges so that it is the
+/// bin [`Histogram::bin_of`] finds.
+#[derive(Debug, Clone)]
+struct UniformBins {
+    hist: Histogram,
+    inv_width: f64,
+}
+
+impl UniformBins {
+    fn new(hist: Histogram) -> Self {
+        let n = hist.n_bins();
+        let inv_width = n as f64 / (hist.edges[n] - hist.edges[0]);
+        UniformBins { hist, inv_width }
+    }
+
+    /// Same as `self.hist.bin_of(v)`.
+    #[inline]
+    fn bin_of(&self, v: f64) -> Option<usize> {
+        if v.is_nan() {
+            return None;
+        }
+        let e = &self.hist.edges;
+        let n = e.len() - 1;
+        let guess = (v - e[0]) * self.inv_width;
+        // `as usize` saturates (and maps a negative guess to 0).
+        let mut k = (guess as usize).min(n - 1);
+        while k > 0 && e[k] > v {
+            k -= 1;
+        }
+        while k + 1 < n && e[k + 1] <= v {
+            k += 1;
+        }
+        Some(k)
+    }
+
+    /// The histogram with `counts` in its bins.
+    fn with_counts(&self, counts: &[u64]) -> Histogram {
+        let mut h = self.hist.clone();
+        for (c, &n) in h.counts.iter_mut().zip(counts) {
+            *c = n as f64;
+        }
+        h
+    }
+}
+
+/// Binning of non-negative integers (counts, intervals in µs) on any
+/// edges: a table of [`Histogram::bin_of`] for the small values, which
+/// are nearly all of them, the binary search beyond.
+#[derive(Debug, Clone)]
+struct IntBins {
+    hist: Histogram,
+    table: Vec<u16>,
+    counts: Vec<u64>,
+}
+
+/// Values binned by table in [`IntBins`].
+const INT_TABLE: usize = 4096;
+
+impl IntBins {
+    fn new(hist: Histogram) -> Self {
+        let table = (0..INT_TABLE)
+            .map(|v| hist.bin_of(v as f64).expect("not NaN") as u16)
+            .collect();
+        let counts = vec![0; hist.n_bins()];
+        IntBins {
+            hist,
+            table,
+            counts,
+        }
+    }
+
+    #[inline]
+    fn add(&mut self, v: u64) {
+        let k = match self.table.get(v as usize) {
+            Some(&k) => k as usize,
+            None => self.hist.bin_of(v as f64).expect("not NaN"),
+        };
+        self.counts[k] += 1;
+    }
+
+    fn finish(mut self) -> Histogram {
+        for (c, &n) in self.hist.counts.iter_mut().zip(&self.counts) {
+            *c = n as f64;
+        }
+        self.hist
+    }
+}
+
+/// Events ahead whose pixel record [`SignatureAccumulator::add_events`]
+/// prefetches: enough to cover a memory latency with the work of the
+/// events between.
+const PREFETCH_AHEAD: usize = 12;
+
+/// Hint the cache to fetch `*r` (no effect on results; a no-op off x86-64).
+#[inline(always)]
+fn prefetch<T>(r: &T) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        // SAFETY: a prefetch never faults, and the address is a live reference.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(r as *const T as *const i8) };
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = r;
+}
+
+/// `x.floor() as i64` without the libm call (the baseline x86-64 target
+/// has no rounding instruction): truncation, one down for negative
+/// non-integers; saturating as `as` does, 0 for NaN.
+#[inline(always)]
+fn floor_i64(x: f64) -> i64 {
+    let q = x as i64;
+    if (q as f64) > x {
+        q.saturating_sub(1)
+    } else {
+        q
+    }
 }
 
 const NO_TIME: i64 = i64::MIN;
@@ -505,26 +677,38 @@ pub const BUSY_WINDOW_TICKS: usize = 8;
 /// Fixed, never taken from the data, so every data set shares the bins.
 const MAX_COUNT_EDGE: f64 = (1u64 << 24) as f64;
 
+/// Bins of `visit_yield` and `events_per_cluster`: 1, 2, …, 16 and more.
+fn yield_edges() -> Vec<f64> {
+    (1..=17).map(|k| k as f64).collect()
+}
+
 impl SignatureAccumulator {
     pub fn new(cfg: SignatureConfig) -> Result<Self> {
         cfg.validate()?;
-        let latency = Histogram::new(cfg.latency_edges(), BinScale::Linear)?;
+        let latency = UniformBins::new(Histogram::new(cfg.latency_edges(), BinScale::Linear)?);
+        let n_lat = latency.hist.n_bins();
+        let period = cfg.timing.period_us;
+        let latency_outside = cfg.burst_window_us.map(|w| {
+            latency
+                .hist
+                .edges
+                .windows(2)
+                .map(|e| outside_window(0.5 * (e[0] + e[1]), w, period))
+                .collect()
+        });
         let n = cfg.geometry.pixels();
         Ok(SignatureAccumulator {
             latency,
-            off_latency: Histogram::new(cfg.latency_edges(), BinScale::Linear)?,
+            latency_counts: vec![0; n_lat],
+            latency_outside,
+            off_latency_counts: vec![0; n_lat],
             pulse_now: NO_TIME,
             pulse_count: 0,
             pulse_counts: Vec::new(),
-            visit_pulse: vec![NO_TIME; n],
-            visit_events: vec![0; n],
-            visits_even: vec![0; n],
-            visits_odd: vec![0; n],
-            visit_yield: Histogram::new((1..=17).map(|k| k as f64).collect(), BinScale::Index)?,
-            count_even: vec![0; n],
-            count_odd: vec![0; n],
-            last_t: vec![NO_TIME; n],
-            min_dt: vec![i64::MAX; n],
+            block_pulse: NO_TIME,
+            block_even: true,
+            pix: vec![PixelState::EMPTY; n],
+            visit_yield: vec![0; 17],
             n_events: 0,
             n_on: 0,
             n_outside: 0,
@@ -532,7 +716,7 @@ impl SignatureAccumulator {
             t_max: i64::MIN,
             run_t: NO_TIME,
             run_rows: Vec::new(),
-            group_sizes: HashMap::new(),
+            group_sizes: Vec::new(),
             shared_events: 0,
             tick_events: ProfileAcc::new(count_edges(65536.0)[1..].to_vec())?,
             last_tick: None,
@@ -554,11 +738,18 @@ impl SignatureAccumulator {
     /// Add a chunk of events (chunks in stream order).
     pub fn add_events(&mut self, ev: &EventChunk) {
         let g = self.cfg.geometry;
+        let width = g.width as usize;
         let period = self.cfg.timing.period_us;
         let first = self.cfg.timing.first_pulse_us;
         let block = self.cfg.block_pulses as i64;
-        let window = self.cfg.burst_window_us;
         for i in 0..ev.len() {
+            // The events of a burst land all over the sensor: ask for the
+            // pixel record of an event a few ahead while this one is done.
+            if let Some(j) = i.checked_add(PREFETCH_AHEAD).filter(|&j| j < ev.len()) {
+                if g.contains(ev.x[j], ev.y[j]) {
+                    prefetch(&self.pix[ev.y[j] as usize * width + ev.x[j] as usize]);
+                }
+            }
             let (t, x, y, p) = (ev.t[i], ev.x[i], ev.y[i], ev.p[i]);
             if !g.contains(x, y) {
                 self.n_outside += 1;
@@ -571,11 +762,14 @@ impl SignatureAccumulator {
 
             let rel = t as f64 - first;
             let folded = rel.rem_euclid(period);
-            self.latency.add(folded);
-            let pulse = (rel / period).floor() as i64;
-            if p != ON {
-                self.off_latency.add(folded);
+            let lat_bin = self.latency.bin_of(folded);
+            if let Some(k) = lat_bin {
+                self.latency_counts[k] += 1;
+                if p != ON {
+                    self.off_latency_counts[k] += 1;
+                }
             }
+            let pulse = floor_i64(rel / period);
             if pulse != self.pulse_now {
                 if self.pulse_count > 0 {
                     self.pulse_counts.push(self.pulse_count);
@@ -584,40 +778,50 @@ impl SignatureAccumulator {
                 self.pulse_count = 0;
             }
             self.pulse_count += 1;
-            let pix = y as usize * g.width as usize + x as usize;
-            if self.visit_pulse[pix] != pulse {
-                if self.visit_pulse[pix] != NO_TIME {
-                    self.visit_yield.add(self.visit_events[pix] as f64);
+            if pulse != self.block_pulse {
+                self.block_pulse = pulse;
+                self.block_even = pulse.div_euclid(block) % 2 == 0;
+            }
+            let pix = y as usize * width + x as usize;
+            let s = &mut self.pix[pix];
+            let last = s.last_t;
+            // A new visit unless the pixel's last event is in this pulse
+            // (its pulse computed exactly as this event's).
+            if last == NO_TIME || floor_i64((last as f64 - first) / period) != pulse {
+                if last != NO_TIME {
+                    self.visit_yield[(s.visit_events as usize).min(16)] += 1;
                 }
-                self.visit_pulse[pix] = pulse;
-                self.visit_events[pix] = 0;
-                if pulse.div_euclid(block) % 2 == 0 {
-                    self.visits_even[pix] += 1;
+                s.visit_events = 0;
+                if self.block_even {
+                    s.visits_even += 1;
                 } else {
-                    self.visits_odd[pix] += 1;
+                    s.visits_odd += 1;
                 }
             }
-            self.visit_events[pix] = self.visit_events[pix].saturating_add(1);
-            if let (Some(w), Some(c)) = (window, self.count_off_burst.as_mut()) {
-                // Folded time, binned as the latency histogram bins it, so
-                // the per-pixel counts agree with `off_burst_rate`.
-                if outside_window(self.latency.bin_centre(folded), w, period) {
-                    c[pix] += 1;
-                }
-            }
-            if pulse.div_euclid(block) % 2 == 0 {
-                self.count_even[pix] += 1;
+            s.visit_events = s.visit_events.saturating_add(1);
+            if self.block_even {
+                s.count_even += 1;
             } else {
-                self.count_odd[pix] += 1;
+                s.count_odd += 1;
             }
-            let last = self.last_t[pix];
             if last != NO_TIME {
                 // Readers never reorder time; a backwards step is data, and
                 // its size is still an interval between two events.
-                let dt = (t - last).abs();
-                self.min_dt[pix] = self.min_dt[pix].min(dt);
+                let dt = (t - last).unsigned_abs().min(NO_INTERVAL as u64 - 1) as u32;
+                s.min_dt = s.min_dt.min(dt);
             }
-            self.last_t[pix] = t;
+            s.last_t = t;
+            if let (Some(out), Some(c), Some(k)) = (
+                self.latency_outside.as_ref(),
+                self.count_off_burst.as_mut(),
+                lat_bin,
+            ) {
+                // Folded time, binned as the latency histogram bins it, so
+                // the per-pixel counts agree with `off_burst_rate`.
+                if out[k] {
+                    c[pix] += 1;
+                }
+            }
 
             if t != self.run_t {
                 self.flush_run();
@@ -649,7 +853,11 @@ impl SignatureAccumulator {
         self.last_tick = Some((t, distinct, rows.len(), after_busy));
         for group in rows.chunk_by(|a, b| a == b) {
             let s = group.len() as u32;
-            *self.group_sizes.entry(s).or_insert(0) += 1;
+            let s = s as usize;
+            if self.group_sizes.len() <= s {
+                self.group_sizes.resize(s + 1, 0);
+            }
+            self.group_sizes[s] += 1;
             if s >= 2 {
                 self.shared_events += s as u64;
             }
@@ -759,10 +967,11 @@ impl SignatureAccumulator {
             })
         };
 
+        let latency = self.latency.with_counts(&self.latency_counts);
         push(
             "latency",
             "events per folded time bin, (t - first pulse) mod period (us)",
-            SignatureValue::Histogram(self.latency.clone()),
+            SignatureValue::Histogram(latency.clone()),
         );
         push(
             "event_rate",
@@ -779,41 +988,61 @@ impl SignatureAccumulator {
             },
         );
 
+        // One pass over the pixels for every per-pixel histogram; the
+        // yields of pixels visited in both halves in pixel order (the
+        // correlation sums in that order, as the reference does).
         let edges = count_edges(MAX_COUNT_EDGE);
-        let mut pixel_count = Histogram::new(edges.clone(), BinScale::Index)?;
-        let mut split_min = Histogram::new(edges, BinScale::Index)?;
-        for (&a, &b) in self.count_even.iter().zip(&self.count_odd) {
-            pixel_count.add((a + b) as f64);
-            split_min.add(a.min(b) as f64);
+        let mut pixel_count = IntBins::new(Histogram::new(edges.clone(), BinScale::Index)?);
+        let mut split_min = IntBins::new(Histogram::new(edges, BinScale::Index)?);
+        let mut iei = IntBins::new(Histogram::new(interval_edges(), BinScale::Index)?);
+        let mut visit_yield = self.visit_yield.clone();
+        let (mut ye, mut yo) = (Vec::new(), Vec::new());
+        let (mut sum_even, mut sum_odd) = (0u64, 0u64);
+        for s in &self.pix {
+            let (a, b) = (s.count_even, s.count_odd);
+            pixel_count.add((a + b) as u64);
+            split_min.add(a.min(b) as u64);
+            sum_even += a as u64;
+            sum_odd += b as u64;
+            if s.min_dt != NO_INTERVAL {
+                iei.add(s.min_dt as u64);
+            }
+            if s.last_t != NO_TIME {
+                visit_yield[(s.visit_events as usize).min(16)] += 1;
+            }
+            let (ve, vo) = (s.visits_even, s.visits_odd);
+            if ve > 0 && vo > 0 {
+                ye.push(a as f64 / ve as f64);
+                yo.push(b as f64 / vo as f64);
+            }
         }
         push(
             "pixel_count",
             "pixels per bin of events per pixel",
-            SignatureValue::Histogram(pixel_count),
+            SignatureValue::Histogram(pixel_count.finish()),
         );
         push(
             "split_half_min",
             "pixels per bin of min(even-block, odd-block) event count",
-            SignatureValue::Histogram(split_min),
+            SignatureValue::Histogram(split_min.finish()),
         );
         push(
             "split_half_correlation",
             "Pearson r of per-pixel counts in even vs odd pulse blocks",
             SignatureValue::Scalar {
-                value: pearson(&self.count_even, &self.count_odd),
+                value: pixel_pearson(&self.pix, sum_even, sum_odd),
             },
         );
 
         let window = match self.cfg.burst_window_us {
             Some(w) => w,
-            None => burst_window(&self.latency, 0.95)?,
+            None => burst_window(&latency, 0.95)?,
         };
         let period = self.cfg.timing.period_us;
-        let off: f64 = self
-            .latency
+        let off: f64 = latency
             .positions()
             .iter()
-            .zip(&self.latency.counts)
+            .zip(&latency.counts)
             .filter(|(c, _)| outside_window(**c, window, period))
             .map(|(_, n)| n)
             .sum();
@@ -826,11 +1055,13 @@ impl SignatureAccumulator {
         );
 
         if let Some(c) = &self.count_off_burst {
-            let mut hist =
-                Histogram::new(count_edges(MAX_COUNT_EDGE)[1..].to_vec(), BinScale::Index)?;
+            let mut hist = IntBins::new(Histogram::new(
+                count_edges(MAX_COUNT_EDGE)[1..].to_vec(),
+                BinScale::Index,
+            )?);
             let mut active = 0usize;
             for &k in c.iter().filter(|&&k| k > 0) {
-                hist.add(k as f64);
+                hist.add(k as u64);
                 active += 1;
             }
             push(
@@ -843,7 +1074,7 @@ impl SignatureAccumulator {
             push(
                 "off_burst_pixel_count",
                 "pixels per bin of their events outside the burst window (pixels with any)",
-                SignatureValue::Histogram(hist),
+                SignatureValue::Histogram(hist.finish()),
             );
         }
 
@@ -855,8 +1086,10 @@ impl SignatureAccumulator {
             },
         );
         let mut groups = Histogram::new(count_edges(65536.0)[1..].to_vec(), BinScale::Index)?;
-        for (&s, &n) in &self.group_sizes {
-            groups.add_weighted(s as f64, n as f64);
+        for (s, &n) in self.group_sizes.iter().enumerate() {
+            if n > 0 {
+                groups.add_weighted(s as f64, n as f64);
+            }
         }
         push(
             "group_size",
@@ -864,12 +1097,6 @@ impl SignatureAccumulator {
             SignatureValue::Histogram(groups),
         );
 
-        let mut iei = Histogram::new(interval_edges(), BinScale::Index)?;
-        for &d in &self.min_dt {
-            if d != i64::MAX {
-                iei.add(d as f64);
-            }
-        }
         push(
             "tick_events_vs_rows",
             "mean events per timestamp tick per bin of distinct rows in the tick",
@@ -887,43 +1114,39 @@ impl SignatureAccumulator {
         push(
             "min_iei",
             "pixels per bin of their minimum inter-event interval (us)",
-            SignatureValue::Histogram(iei),
+            SignatureValue::Histogram(iei.finish()),
         );
 
         push(
             "off_latency",
             "OFF events per folded time bin (us)",
-            SignatureValue::Histogram(self.off_latency.clone()),
+            SignatureValue::Histogram(self.latency.with_counts(&self.off_latency_counts)),
         );
         if self.pulse_count > 0 {
             self.pulse_counts.push(self.pulse_count);
         }
-        let mut per_pulse =
-            Histogram::new(count_edges(MAX_COUNT_EDGE)[1..].to_vec(), BinScale::Index)?;
+        let mut per_pulse = IntBins::new(Histogram::new(
+            count_edges(MAX_COUNT_EDGE)[1..].to_vec(),
+            BinScale::Index,
+        )?);
         for &c in &self.pulse_counts {
-            per_pulse.add(c as f64);
+            per_pulse.add(c);
         }
         push(
             "events_per_pulse",
             "pulse periods per bin of their events (periods with any)",
-            SignatureValue::Histogram(per_pulse),
+            SignatureValue::Histogram(per_pulse.finish()),
         );
-        let mut visit_yield = self.visit_yield.clone();
-        let (mut ye, mut yo) = (Vec::new(), Vec::new());
-        for pix in 0..self.visit_pulse.len() {
-            if self.visit_pulse[pix] != NO_TIME {
-                visit_yield.add(self.visit_events[pix] as f64);
-            }
-            let (ve, vo) = (self.visits_even[pix], self.visits_odd[pix]);
-            if ve > 0 && vo > 0 {
-                ye.push(self.count_even[pix] as f64 / ve as f64);
-                yo.push(self.count_odd[pix] as f64 / vo as f64);
+        let mut yields = Histogram::new(yield_edges(), BinScale::Index)?;
+        for (v, &n) in visit_yield.iter().enumerate() {
+            if n > 0 {
+                yields.add_weighted(v as f64, n as f64);
             }
         }
         push(
             "visit_yield",
             "(pixel, pulse) visits per number of events in them",
-            SignatureValue::Histogram(visit_yield),
+            SignatureValue::Histogram(yields),
         );
         push(
             "yield_split_correlation",
@@ -1007,6 +1230,29 @@ impl SignatureAccumulator {
     }
 }
 
+/// [`pearson`] of the per-pixel even- and odd-block counts, straight from
+/// the pixel records (`sum_even`, `sum_odd`: the counts' sums). The same
+/// arithmetic in the same order as `pearson(count_even, count_odd)`: the
+/// means from exact integer sums, the products summed in pixel order.
+fn pixel_pearson(pix: &[PixelState], sum_even: u64, sum_odd: u64) -> f64 {
+    let n = pix.len() as f64;
+    if n < 2.0 {
+        return 0.0;
+    }
+    let (ma, mb) = (sum_even as f64 / n, sum_odd as f64 / n);
+    let (mut cov, mut va, mut vb) = (0.0, 0.0, 0.0);
+    for s in pix {
+        let (dx, dy) = (s.count_even as f64 - ma, s.count_odd as f64 - mb);
+        cov += dx * dy;
+        va += dx * dx;
+        vb += dy * dy;
+    }
+    if va <= 0.0 || vb <= 0.0 {
+        0.0
+    } else {
+        cov / (va * vb).sqrt()
+    }
+}
 /// Is folded time `c` outside the circular window `[w.0, w.1)`?
 fn outside_window(c: f64, w: (f64, f64), period: f64) -> bool {
     (c - w.0).rem_euclid(period) >= w.1 - w.0
@@ -1141,9 +1387,7 @@ pub fn latency_drift(cfg: &SignatureConfig, events: &EventChunk) -> Result<Signa
             if lat.len() < 8 {
                 continue;
             }
-            lat.sort_unstable_by(f64::total_cmp);
-            let (q1, q3) = (lat.len() / 4, lat.len() - lat.len() / 4);
-            let iqm = lat[q1..q3].iter().sum::<f64>() / (q3 - q1) as f64;
+            let iqm = interquartile_mean(lat);
             let t_centre = (k_lo as f64 + (b as f64 + 0.5) * span / DRIFT_BLOCKS as f64) * period;
             points.push((t_centre, iqm));
         }
@@ -1154,6 +1398,25 @@ pub fn latency_drift(cfg: &SignatureConfig, events: &EventChunk) -> Result<Signa
         description: "slope of the burst's latency over the recording (ppm: us per s)".into(),
         value: SignatureValue::Scalar { value },
     })
+}
+
+/// Mean of the middle half of `v` (ranks len/4 .. len − len/4), summed in
+/// sorted order; reorders `v`. Partitions at both quartiles and sorts only
+/// what lies between: the same sum as after a full sort (tested).
+fn interquartile_mean(v: &mut [f64]) -> f64 {
+    let (q1, q3) = (v.len() / 4, v.len() - v.len() / 4);
+    if q3 <= q1 {
+        return f64::NAN;
+    }
+    if q1 < v.len() {
+        v.select_nth_unstable_by(q1, f64::total_cmp);
+    }
+    let upper = &mut v[q1..];
+    if q3 - q1 < upper.len() {
+        upper.select_nth_unstable_by(q3 - q1, f64::total_cmp);
+    }
+    v[q1..q3].sort_unstable_by(f64::total_cmp);
+    v[q1..q3].iter().sum::<f64>() / (q3 - q1) as f64
 }
 
 /// Least-squares slope of y on x, centred (no cancellation for large x);
@@ -1174,5 +1437,70 @@ fn line_slope(points: &[(f64, f64)]) -> f64 {
         f64::NAN
     } else {
         cov / var
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{floor_i64, interquartile_mean};
+
+    #[test]
+    fn interquartile_mean_equals_full_sort() {
+        let mut state = 12345u64;
+        let mut next = || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for n in [1usize, 3, 4, 5, 8, 9, 31, 100, 1001, 5000] {
+            // Few distinct values too: ties across the quartile cuts.
+            for distinct in [3.0, 1e9] {
+                let v: Vec<f64> = (0..n)
+                    .map(|_| (next() * distinct).floor() * 0.37 - 11.1)
+                    .collect();
+                let mut full = v.clone();
+                full.sort_unstable_by(f64::total_cmp);
+                let (q1, q3) = (n / 4, n - n / 4);
+                let want = full[q1..q3].iter().sum::<f64>() / (q3 - q1) as f64;
+                let mut w = v.clone();
+                assert_eq!(
+                    interquartile_mean(&mut w).to_bits(),
+                    want.to_bits(),
+                    "n = {n}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn floor_i64_is_floor_as_i64() {
+        let mut xs = vec![
+            0.0,
+            -0.0,
+            0.5,
+            -0.5,
+            1.0,
+            -1.0,
+            -1e-300,
+            2.5e15 + 0.5,
+            -2.5e15 - 0.5,
+            9.3e18,
+            -9.3e18,
+            1e300,
+            -1e300,
+            f64::NAN,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            (1u64 << 53) as f64,
+            -((1u64 << 53) as f64) - 2.0,
+        ];
+        for k in -3000..3000 {
+            xs.push(k as f64 * 0.37 + 1e-9 * k as f64);
+            xs.push((k as f64 - 13.3) / 199.7);
+        }
+        for x in xs {
+            assert_eq!(floor_i64(x), x.floor() as i64, "x = {x}");
+        }
     }
 }
