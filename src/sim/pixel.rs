@@ -1867,6 +1867,22 @@ mod tests {
             let v = i as f64 * 0.000_25 + [0.0, 1e-12, -1e-12][(i % 3).unsigned_abs() as usize];
             assert_eq!(round_i64(v), v.round() as i64, "{v}");
         }
+        // Around ±2^52 (where the fraction test stops mattering), NaN.
+        let big = 4_503_599_627_370_496.0f64; // 2^52
+        for v in [
+            big - 0.5,
+            big - 1.5,
+            big,
+            big + 2.0,
+            -big + 0.5,
+            -big,
+            -big - 2.0,
+            1e17,
+            -1e17,
+        ] {
+            assert_eq!(round_i64(v), v.round() as i64, "{v}");
+        }
+        assert_eq!(round_i64(f64::NAN), 0);
     }
 
     #[test]
