@@ -2,7 +2,9 @@
 //! (`ebptv::track::synth::diagnose`). Ignored by default:
 //! `cargo test --release --test ptv_diagnose -- --ignored --nocapture`
 
-use ebptv::cluster::ClusterParams;
+use std::collections::{BTreeMap, HashMap};
+
+use ebptv::cluster::{pixel_labels_with, pulse_pixels, split_wide_clusters, ClusterParams};
 use ebptv::track::synth::{cluster_with_truth_mixed, generate, run_and_diagnose, SynthParams};
 use ebptv::track::TrackParams;
 
@@ -35,6 +37,8 @@ fn breakdown_of_link_errors() {
             stitch_gap: env("PTV_STITCH_GAP").map_or(d.stitch_gap, |v| v as u32),
             back_extend: env("PTV_BACK_EXTEND").map_or(d.back_extend, |v| v as usize),
             repair_lag: env("PTV_REPAIR_LAG").map_or(d.repair_lag, |v| v as usize),
+            init_gap: env("PTV_INIT_GAP").map_or(d.init_gap, |v| v != 0.0),
+            sigma_ceiling: env("PTV_SIGMA_CEILING").unwrap_or(d.sigma_ceiling),
             ..d
         };
         let s = ebptv::track::synth::run_and_score(
@@ -100,6 +104,7 @@ fn linking_cost() {
     let tp = TrackParams {
         back_extend: env("PTV_BACK_EXTEND").unwrap_or(d.back_extend),
         repair_lag: env("PTV_REPAIR_LAG").unwrap_or(d.repair_lag),
+        init_gap: env("PTV_INIT_GAP").map_or(d.init_gap, |v| v != 0),
         ..d
     };
     let cpu = || {
@@ -124,4 +129,72 @@ fn linking_cost() {
         }
     }
     println!("linking: {:.3} CPU-s (best of 5)", best);
+}
+
+/// Merged images of two particles on the paper-like scene, by the
+/// particles' true distance (0.25 px bins), whether a pixel holds events of
+/// both, and the image's pixel count: which of them could be split at all,
+/// given to which two tracks they belong (session 5: ~3 800 of 83 200
+/// images; most are 1–2.5 px pairs on disjoint pixels, 2–3 pixels).
+#[test]
+#[ignore]
+fn merged_image_geometry() {
+    let sp = SynthParams {
+        width: 384,
+        height: 384,
+        ..Default::default()
+    };
+    let cp = ClusterParams::default();
+    let mut hist: BTreeMap<(u32, bool, usize), u32> = BTreeMap::new();
+    let mut images = 0;
+    for s in &generate(&sp) {
+        let pixels = pulse_pixels(&s.pulse, &cp);
+        let mut labels = pixel_labels_with(&pixels, &cp);
+        split_wide_clusters(&pixels, &mut labels, cp.split_extent);
+        let index: HashMap<(u16, u16), usize> = pixels
+            .iter()
+            .enumerate()
+            .map(|(i, p)| ((p.x, p.y), i))
+            .collect();
+        // Truth particles of each pixel's events (noise: none).
+        let mut sources: Vec<Vec<u64>> = vec![Vec::new(); pixels.len()];
+        let ev = &s.pulse.events;
+        for i in 0..ev.len() {
+            if let Some(id) = s.event_truth[i] {
+                let v = &mut sources[index[&(ev.x[i], ev.y[i])]];
+                if !v.contains(&id) {
+                    v.push(id);
+                }
+            }
+        }
+        let n_labels = labels.iter().map(|&l| l as usize + 1).max().unwrap_or(0);
+        images += n_labels;
+        let mut members: Vec<Vec<usize>> = vec![Vec::new(); n_labels];
+        for (i, &l) in labels.iter().enumerate() {
+            members[l as usize].push(i);
+        }
+        let pos: HashMap<u64, (f64, f64)> = s
+            .truth
+            .iter()
+            .map(|t| (t.particle_id, (t.x, t.y)))
+            .collect();
+        for m in &members {
+            let mut ids: Vec<u64> = m.iter().flat_map(|&j| sources[j].clone()).collect();
+            ids.sort_unstable();
+            ids.dedup();
+            if ids.len() != 2 {
+                continue;
+            }
+            let (a, b) = (pos[&ids[0]], pos[&ids[1]]);
+            let d = (a.0 - b.0).hypot(a.1 - b.1);
+            let shared = m.iter().any(|&j| sources[j].len() > 1);
+            *hist
+                .entry(((d * 4.0) as u32, shared, m.len().min(4)))
+                .or_default() += 1;
+        }
+    }
+    println!("{images} images; merged pairs (distance from, shared pixel, pixels): count");
+    for ((d, shared, n), c) in hist {
+        println!("{:.2} px  shared {shared:5}  {n} px: {c}", d as f64 / 4.0);
+    }
 }
