@@ -98,18 +98,21 @@ pub(crate) fn time_high_steps(
 
 /// A word of a RAW encoding, written little-endian.
 pub(crate) trait RawWord: Copy {
-    fn append_le(self, out: &mut Vec<u8>);
+    /// Write the word into `out` (exactly its size).
+    fn put_le(self, out: &mut [u8]);
 }
 
 impl RawWord for u16 {
-    fn append_le(self, out: &mut Vec<u8>) {
-        out.extend_from_slice(&self.to_le_bytes());
+    #[inline]
+    fn put_le(self, out: &mut [u8]) {
+        out.copy_from_slice(&self.to_le_bytes());
     }
 }
 
 impl RawWord for u32 {
-    fn append_le(self, out: &mut Vec<u8>) {
-        out.extend_from_slice(&self.to_le_bytes());
+    #[inline]
+    fn put_le(self, out: &mut [u8]) {
+        out.copy_from_slice(&self.to_le_bytes());
     }
 }
 
@@ -213,9 +216,12 @@ impl<W: RawWord> RawWordWriter<W> {
     }
 
     pub fn flush(&mut self) -> Result<()> {
-        let mut bytes = Vec::with_capacity(self.words.len() * std::mem::size_of::<W>());
-        for &w in &self.words {
-            w.append_le(&mut bytes);
+        // Fixed-size stores into a sized buffer (no capacity check per
+        // word).
+        let size = std::mem::size_of::<W>();
+        let mut bytes = vec![0u8; self.words.len() * size];
+        for (out, &w) in bytes.chunks_exact_mut(size).zip(&self.words) {
+            w.put_le(out);
         }
         self.words.clear();
         let target = self.file.target().to_path_buf();

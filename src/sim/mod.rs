@@ -186,11 +186,34 @@ impl KeyLayout {
     fn arrival(&self, k: u64, t_begin: f64) -> pixel::Arrival {
         let y_mask = (1u64 << (self.time_shift - 1 - self.x_bits)) - 1;
         pixel::Arrival {
-            t: t_begin + (k >> self.time_shift) as f64 * 1e-3,
+            t: self.time(k, t_begin),
             y: self.y0 + ((k >> (1 + self.x_bits)) & y_mask) as u16,
             x: self.x0 + ((k >> 1) & ((1u64 << self.x_bits) - 1)) as u16,
             p: (k & 1) as u8,
         }
+    }
+
+    /// The key bits of pixel (x, y) (for [`Self::key_at`]).
+    #[inline]
+    fn pixel_bits(&self, x: u16, y: u16) -> u64 {
+        debug_assert!(x >= self.x0 && y >= self.y0, "request outside the ROI");
+        (((y - self.y0) as u64) << (1 + self.x_bits)) | (((x - self.x0) as u64) << 1)
+    }
+
+    /// [`Self::key`] from the pixel's [`Self::pixel_bits`], the time and
+    /// the polarity.
+    #[inline]
+    fn key_at(&self, pixel_bits: u64, t: f64, p: u8, t_begin: f64) -> u64 {
+        let ns = pixel::round_i64((t - t_begin) * 1000.0).clamp(0, (1 << 39) - 1) as u64;
+        (ns << self.time_shift) | pixel_bits | p as u64
+    }
+
+    /// The request time of key `k` (µs).
+    #[inline]
+    fn time(&self, k: u64, t_begin: f64) -> f64 {
+        // (< 2^39 ns: through i64, the same value without the u64 → f64
+        // sequence.)
+        t_begin + (k >> self.time_shift) as i64 as f64 * 1e-3
     }
 }
 
@@ -205,6 +228,18 @@ impl pixel::ArrivalSink for KeySink {
     #[inline]
     fn arrive(&mut self, a: pixel::Arrival) {
         self.keys.push(self.layout.key(&a, self.t_begin));
+    }
+
+    #[inline]
+    fn arrive_pixel(&mut self, x: u16, y: u16, p: u8, times: &[f64]) {
+        // The layout in locals: the pushes would make the compiler
+        // reload it per event.
+        let (layout, t_begin) = (self.layout, self.t_begin);
+        let bits = layout.pixel_bits(x, y);
+        self.keys.reserve(times.len());
+        for &t in times {
+            self.keys.push(layout.key_at(bits, t, p, t_begin));
+        }
     }
 }
 
@@ -346,9 +381,9 @@ struct Back {
     carry: Vec<pixel::Arrival>,
     lost_in_readout: u64,
     layout: KeyLayout,
-    /// Reused buffers.
-    merged: Vec<u64>,
+    /// The radix sort's reused buffer.
     scratch: Vec<u64>,
+    /// Decoded requests that passed the refractory filter.
     reqs: Vec<pixel::Arrival>,
 }
 
@@ -418,7 +453,6 @@ impl Simulator {
                 carry: Vec::new(),
                 lost_in_readout: 0,
                 layout: KeyLayout::new(roi),
-                merged: Vec::new(),
                 scratch: Vec::new(),
                 reqs: Vec::new(),
             },
@@ -483,7 +517,7 @@ impl Simulator {
     fn run_block(&mut self, chunk: &mut Chunk) {
         chunk.clear();
         let b = self.block;
-        let req = match self.ahead.take() {
+        let mut req = match self.ahead.take() {
             Some(r) => r,
             None => self.front.block(b),
         };
@@ -492,12 +526,12 @@ impl Simulator {
         if b + 1 < self.front.n_blocks {
             let (front, back) = (&mut self.front, &mut self.back);
             let ((), next) = rayon::join(
-                || back.block(&req, duration_us, &mut chunk.events),
+                || back.block(&mut req, duration_us, &mut chunk.events),
                 || front.block(b + 1),
             );
             self.ahead = Some(next);
         } else {
-            self.back.block(&req, duration_us, &mut chunk.events);
+            self.back.block(&mut req, duration_us, &mut chunk.events);
         }
         let sc = &self.front.sc;
         if sc.triggers.enabled {
@@ -624,29 +658,37 @@ impl Front {
 
 impl Back {
     /// Read out block `r`'s requests (with those carried over from the
-    /// block before) into `events`.
-    fn block(&mut self, r: &BlockRequests, duration_us: f64, events: &mut EventChunk) {
-        // The carry-over keyed like this block's requests, then one sort of
-        // the union (here, in the sequential stage, which runs while the
-        // next block's front keeps the other core busy).
-        let keys = &mut self.merged;
-        keys.clear();
-        keys.extend_from_slice(&r.keys);
+    /// block before) into `events`. Takes `r.keys`.
+    fn block(&mut self, r: &mut BlockRequests, duration_us: f64, events: &mut EventChunk) {
+        // The block's keys with the carry-over keyed like them, then one
+        // sort of the union (here, in the sequential stage, which runs
+        // while the next block's front keeps the other core busy).
+        let mut keys = std::mem::take(&mut r.keys);
         keys.extend(self.carry.iter().map(|a| self.layout.key(a, r.t_begin)));
-        radix_sort_above(keys, &mut self.scratch, self.layout.x_shift());
-        let merged = &*keys;
-        let reqs = &mut self.reqs;
+        radix_sort_above(&mut keys, &mut self.scratch, self.layout.x_shift());
         let layout = self.layout;
-        reqs.clear();
-        reqs.extend(merged.iter().map(|&k| layout.arrival(k, r.t_begin)));
-        let split = reqs.partition_point(|a| a.t < r.t_end);
+        let t_begin = r.t_begin;
+        // Requests from the block's end on wait for the next block.
+        let split = keys.partition_point(|&k| layout.time(k, t_begin) < r.t_end);
         self.carry.clear();
         if !r.last {
-            self.carry.extend_from_slice(&reqs[split..]);
+            self.carry
+                .extend(keys[split..].iter().map(|&k| layout.arrival(k, t_begin)));
         }
-        reqs.truncate(split);
-        if let Some(rf) = &mut self.refractory {
-            rf.apply(reqs);
+        // Decoded and through the refractory filter in one pass.
+        let reqs = &mut self.reqs;
+        reqs.clear();
+        reqs.reserve(split);
+        match &mut self.refractory {
+            Some(rf) => {
+                for &k in &keys[..split] {
+                    let a = layout.arrival(k, t_begin);
+                    if rf.keep(&a) {
+                        reqs.push(a);
+                    }
+                }
+            }
+            None => reqs.extend(keys[..split].iter().map(|&k| layout.arrival(k, t_begin))),
         }
         // At most one event per request (plus a few pending ones): grow
         // the chunk once, not by doubling.

@@ -75,6 +75,9 @@ pub struct PixelModel {
     hot: Vec<(u16, u16, f64)>,
     /// The fast path's tabulated pixel fractions (see [`FractionTable`]).
     table: FractionTable,
+    /// Four-pixel windows of `table` for small images (σ < ½), see
+    /// [`QuadTable`]; None for larger images.
+    quad: Option<QuadTable>,
     /// The fast path's logarithm.
     ln: &'static LnTable,
 }
@@ -121,6 +124,7 @@ impl PixelModel {
             .pixel
             .off_events
             .map_or(c_floor, |o| c_floor.min(o.threshold));
+        let table = FractionTable::new(sc.optics.particle_diameter_px / 4.0);
         PixelModel {
             roi,
             light: sc.light,
@@ -143,7 +147,8 @@ impl PixelModel {
             background_rate: sc.noise.background_noise.map(|b| b.rate_hz),
             hot,
             c_floor,
-            table: FractionTable::new(sc.optics.particle_diameter_px / 4.0),
+            quad: QuadTable::new(&table),
+            table,
             ln: ln_table(),
         }
     }
@@ -340,6 +345,18 @@ impl PixelModel {
                     (self.0)(ix0 + a as u32, self.1, (scale * fx) as f64)
                 }
             }
+            #[inline]
+            fn add_window<const W: usize>(
+                &mut self,
+                wx: i64,
+                window: &[f32; W],
+                scale: f32,
+                x0: i64,
+                n: usize,
+            ) {
+                let a = (x0 - wx) as usize;
+                self.add_run(x0 as u32, &window[a..a + n], scale);
+            }
         }
         self.particle_rows(s, &mut Profiles::new(), &mut Each(&mut f, 0));
     }
@@ -394,6 +411,11 @@ impl PixelModel {
     /// profile — added to the ring once instead of once per position.
     #[inline]
     fn particle_rows(&self, s: &Snapshot, prof: &mut Profiles, sink: &mut impl ContributionSink) {
+        if let Some(q) = &self.quad {
+            if self.particle_rows_quad(q, s, prof, sink) {
+                return;
+            }
+        }
         let amp = self.gain * s.brightness;
         let nodes = self.streak_nodes_of(s);
         let (rx0, ry0) = (self.roi.x as i64, self.roi.y as i64);
@@ -484,6 +506,138 @@ impl PixelModel {
             self.table.eval(py, ylo, &mut fy[..ny]);
             emit_rows(sink, xlo, &fx[..nx], ylo, &fy[..ny], (amp * pw) as f32);
         }
+    }
+
+    /// [`Self::particle_rows`] for small images through the [`QuadTable`]:
+    /// the same cases, numbers and operations, with each profile in a
+    /// fixed four-pixel window (eight for a merged streak) instead of a
+    /// slice. Returns false, having emitted nothing, when a profile does
+    /// not fit its window (the caller then takes the general path).
+    #[inline]
+    fn particle_rows_quad(
+        &self,
+        q: &QuadTable,
+        s: &Snapshot,
+        prof: &mut Profiles,
+        sink: &mut impl ContributionSink,
+    ) -> bool {
+        let amp = self.gain * s.brightness;
+        let nodes = self.streak_nodes_of(s);
+        let (rx0, ry0) = (self.roi.x as i64, self.roi.y as i64);
+        let (rx1, ry1) = (
+            rx0 + self.roi.width as i64 - 1,
+            ry0 + self.roi.height as i64 - 1,
+        );
+        let at = |c: f64, dir: f64, dt: f64| c + dir * dt;
+        if nodes.len() == 1 || s.v == 0.0 || s.u == 0.0 {
+            let shared_y = nodes.len() == 1 || s.v == 0.0;
+            let dt0 = nodes[0].0;
+            let (c_shared, c_moving, v_moving) = if shared_y {
+                (at(s.y, s.v, dt0), s.x, s.u)
+            } else {
+                (at(s.x, s.u, dt0), s.y, s.v)
+            };
+            let (s0, s1, m0, m1, s_cap, m_cap) = if shared_y {
+                (ry0, ry1, rx0, rx1, AXIS_MAX, X_CAP)
+            } else {
+                (rx0, rx1, ry0, ry1, X_CAP, AXIS_MAX)
+            };
+            let (slo, sn) = self.axis_range(c_shared, s0, s1, s_cap);
+            if sn == 0 {
+                return true;
+            }
+            let Some((sw, shared)) = q.eval_masked(c_shared, slo, sn) else {
+                return false;
+            };
+            // The moving axis: the weighted sum of the positions' windows
+            // in an eight-pixel window starting at `mw`.
+            let mut moving = [0.0f32; 8];
+            let (mut lo, mut hi) = (i64::MAX, i64::MIN);
+            let mw;
+            if nodes.len() == 1 {
+                let c = at(c_moving, v_moving, dt0);
+                let (r0, rn) = self.axis_range(c, m0, m1, m_cap);
+                if rn == 0 {
+                    return true;
+                }
+                let Some((w, v)) = q.eval_masked(c, r0, rn) else {
+                    return false;
+                };
+                moving[..4].copy_from_slice(&v);
+                (mw, lo, hi) = (w, r0, r0 + rn as i64 - 1);
+            } else {
+                let mut win = [(0i64, [0.0f32; 4], 0.0f32); 32];
+                let mut n = 0;
+                for &(dt, pw) in nodes {
+                    let c = at(c_moving, v_moving, dt);
+                    let (r0, rn) = self.axis_range(c, m0, m1, m_cap);
+                    if rn == 0 {
+                        continue;
+                    }
+                    let Some((w, v)) = q.eval_masked(c, r0, rn) else {
+                        return false;
+                    };
+                    lo = lo.min(r0);
+                    hi = hi.max(r0 + rn as i64 - 1);
+                    win[n] = (w, v, pw as f32);
+                    n += 1;
+                }
+                if n == 0 {
+                    return true;
+                }
+                let first = win[..n].iter().map(|w| w.0).min().unwrap_or(0);
+                let last = win[..n].iter().map(|w| w.0).max().unwrap_or(0);
+                if last + 4 - first > 8 {
+                    return false;
+                }
+                mw = first;
+                for (w, v, pw) in &win[..n] {
+                    let at = (w - first) as usize;
+                    for (d, &o) in moving[at..at + 4].iter_mut().zip(v) {
+                        *d += pw * o;
+                    }
+                }
+            }
+            let mn = (hi - lo + 1) as usize;
+            let amp = amp as f32;
+            if shared_y {
+                for y in slo..slo + sn as i64 {
+                    sink.row(y as u32);
+                    sink.add_window(mw, &moving, amp * shared[(y - sw) as usize], lo, mn);
+                }
+            } else {
+                for y in lo..=hi {
+                    sink.row(y as u32);
+                    sink.add_window(sw, &shared, amp * moving[(y - mw) as usize], slo, sn);
+                }
+            }
+            return true;
+        }
+        // General streak: position by position.
+        for &(dt, pw) in nodes {
+            let (px, py) = (at(s.x, s.u, dt), at(s.y, s.v, dt));
+            let (xlo, nx) = self.axis_range(px, rx0, rx1, X_CAP);
+            let (ylo, ny) = self.axis_range(py, ry0, ry1, AXIS_MAX);
+            if nx == 0 || ny == 0 {
+                continue;
+            }
+            let scale = (amp * pw) as f32;
+            match (q.eval_masked(px, xlo, nx), q.eval_masked(py, ylo, ny)) {
+                (Some((wx, fx)), Some((wy, fy))) => {
+                    for y in ylo..ylo + ny as i64 {
+                        sink.row(y as u32);
+                        sink.add_window(wx, &fx, scale * fy[(y - wy) as usize], xlo, nx);
+                    }
+                }
+                _ => {
+                    let Profiles { fx, fy, .. } = prof;
+                    self.table.eval(px, xlo, &mut fx[..nx]);
+                    self.table.eval(py, ylo, &mut fy[..ny]);
+                    emit_rows(sink, xlo, &fx[..nx], ylo, &fy[..ny], scale);
+                }
+            }
+        }
+        true
     }
 
     /// Signal contributions of a pulse's particle images, particles taken
@@ -626,7 +780,7 @@ impl PixelModel {
         pixel: &mut impl FnMut(u32, u16, u16, f32),
     ) {
         let slot = row as usize & mask;
-        let base = slot * rw;
+        let base = slot * (rw + 2 * RING_PAD) + RING_PAD;
         let idx0 = row as u32 * self.roi.width;
         let y = (self.roi.y as i64 + row) as u16;
         for (wi, word) in touched[slot * words..(slot + 1) * words]
@@ -676,7 +830,9 @@ impl PixelModel {
         let h = super::splitmix(key ^ idx as u64);
         let q = normal_quantiles();
         let bin = (h >> 52) as usize; // 12 bits
-        let frac = (h & 0xF_FFFF_FFFF_FFFF) as f64 * (1.0 / (1u64 << 52) as f64);
+                                      // (Through i64: the same value, one instruction instead of the
+                                      // u64 → f64 sequence.)
+        let frac = (h & 0xF_FFFF_FFFF_FFFF) as i64 as f64 * (1.0 / (1u64 << 52) as f64);
         let g = q[bin] + (q[bin + 1] - q[bin]) * frac;
         (1.0 + sigma * g.clamp(-MISMATCH_CLAMP, MISMATCH_CLAMP)).max(MIN_MISMATCH_FACTOR)
     }
@@ -726,25 +882,51 @@ impl PixelModel {
             Some((e, r)) => self.tau_us * (r / sig).powf(e).min(100.0),
             None => self.tau_us,
         };
+        // Times go to the sink in batches of a pixel's events.
+        let mut times = [0.0f64; 16];
+        let mut n = 0;
+        let jitter = |t: f64, rng: &mut Pcg64| match self.jitter_us {
+            Some(j) => {
+                let g: f64 = StandardNormal.sample(rng);
+                // (`max` without its NaN handling: t is finite.)
+                let t = t + j * g;
+                if t < t0 {
+                    t0
+                } else {
+                    t
+                }
+            }
+            None => t,
+        };
         for k in 1..=n_on {
             let frac = 0.95 * (k as f64 * c / dl).min(1.0);
-            let mut t = t0 + self.latency_us + tau * -ln(1.0 - frac);
-            if let Some(j) = self.jitter_us {
-                let g: f64 = StandardNormal.sample(rng);
-                t = (t + j * g).max(t0);
+            times[n] = jitter(t0 + self.latency_us + tau * -ln(1.0 - frac), rng);
+            n += 1;
+            if n == times.len() {
+                out.arrive_pixel(x, y, ON, &times);
+                n = 0;
             }
-            out.arrive(Arrival { t, x, y, p: ON });
+        }
+        if n > 0 {
+            out.arrive_pixel(x, y, ON, &times[..n]);
+            n = 0;
         }
         if let Some((c_off, tau_off)) = self.off {
             let n_off = ((dl / c_off) as u32).min(self.max_events);
             for k in 1..=n_off {
                 let frac = 0.95 * (k as f64 * c_off / dl).min(1.0);
-                let mut t = t0 + self.shape.end_us + self.latency_us + tau_off * -ln(1.0 - frac);
-                if let Some(j) = self.jitter_us {
-                    let g: f64 = StandardNormal.sample(rng);
-                    t = (t + j * g).max(t0);
+                times[n] = jitter(
+                    t0 + self.shape.end_us + self.latency_us + tau_off * -ln(1.0 - frac),
+                    rng,
+                );
+                n += 1;
+                if n == times.len() {
+                    out.arrive_pixel(x, y, OFF, &times);
+                    n = 0;
                 }
-                out.arrive(Arrival { t, x, y, p: OFF });
+            }
+            if n > 0 {
+                out.arrive_pixel(x, y, OFF, &times[..n]);
             }
         }
     }
@@ -829,6 +1011,15 @@ pub(crate) fn round_i64(v: f64) -> i64 {
 /// or the simulator's request keys.
 pub trait ArrivalSink {
     fn arrive(&mut self, a: Arrival);
+    /// Events of pixel (x, y), all of polarity `p`, at `times` (in this
+    /// order): what [`PixelModel::respond`] hands over, so a sink can do
+    /// its per-pixel work once.
+    #[inline]
+    fn arrive_pixel(&mut self, x: u16, y: u16, p: u8, times: &[f64]) {
+        for &t in times {
+            self.arrive(Arrival { t, x, y, p });
+        }
+    }
 }
 
 impl ArrivalSink for Vec<Arrival> {
@@ -845,7 +1036,23 @@ trait ContributionSink {
     /// Add `scale·fractions[a]` to sensor column `ix0 + a` of the current
     /// row.
     fn add_run(&mut self, ix0: u32, fractions: &[f32], scale: f32);
+    /// Add `scale·window[a]` to sensor column `wx + a` of the current row
+    /// for the pixels `x0 .. x0 + n` (inside the window and the ROI); the
+    /// other lanes are 0 and may be added as such (the ring keeps
+    /// [`RING_PAD`] columns either side for them) or skipped.
+    fn add_window<const W: usize>(
+        &mut self,
+        wx: i64,
+        window: &[f32; W],
+        scale: f32,
+        x0: i64,
+        n: usize,
+    );
 }
+
+/// Columns of padding either side of a ring row, for the zero lanes of a
+/// window that reach past the ROI's edge.
+const RING_PAD: usize = 8;
 
 /// Longest axis profile of one image position: up to 31 pixels along x
 /// (`footprint`'s cap) and along y (a valid scenario's images, ≤ 20 px
@@ -891,7 +1098,7 @@ impl ContributionSink for RingRows<'_> {
     #[inline]
     fn row(&mut self, iy: u32) {
         let slot = (iy - self.roi_y) as usize & self.mask;
-        self.sig_at = slot * self.rw;
+        self.sig_at = slot * (self.rw + 2 * RING_PAD);
         self.touched_at = slot * self.words;
     }
 
@@ -899,9 +1106,38 @@ impl ContributionSink for RingRows<'_> {
     fn add_run(&mut self, ix0: u32, fractions: &[f32], scale: f32) {
         let x0 = (ix0 - self.roi_x) as usize;
         let n = fractions.len();
-        for (d, &f) in self.sig[self.sig_at + x0..][..n].iter_mut().zip(fractions) {
+        for (d, &f) in self.sig[self.sig_at + RING_PAD + x0..][..n]
+            .iter_mut()
+            .zip(fractions)
+        {
             *d += scale * f;
         }
+        self.mark(x0, n);
+    }
+
+    #[inline]
+    fn add_window<const W: usize>(
+        &mut self,
+        wx: i64,
+        window: &[f32; W],
+        scale: f32,
+        x0: i64,
+        n: usize,
+    ) {
+        // (wx ≥ ROI x − RING_PAD: the window holds an ROI pixel.)
+        let at = (self.sig_at as i64 + RING_PAD as i64 + wx - self.roi_x as i64) as usize;
+        let dst: &mut [f32; W] = (&mut self.sig[at..at + W]).try_into().expect("window");
+        for (d, &f) in dst.iter_mut().zip(window) {
+            *d += scale * f;
+        }
+        self.mark((x0 - self.roi_x as i64) as usize, n);
+    }
+}
+
+impl RingRows<'_> {
+    /// Mark ROI columns x0 .. x0 + n of the current row touched.
+    #[inline]
+    fn mark(&mut self, x0: usize, n: usize) {
         // Bits x0 .. x0 + n of the row's touched set: one or two words
         // for an image (n ≤ 64), a loop for a long merged streak.
         let (w, b) = (x0 / 64, x0 % 64);
@@ -936,6 +1172,8 @@ impl ContributionSink for RingRows<'_> {
 /// dominates.
 struct FractionTable {
     steps: usize,
+    /// 3σ: pixels within this of the centre are covered.
+    reach: f64,
     r: i64,
     width: usize,
     /// Node i (d = −½ + i/steps), entry a + r: (f_a(d), f_a'(d)/steps).
@@ -946,7 +1184,10 @@ impl FractionTable {
     fn new(sigma: f64) -> FractionTable {
         let r = (3.0 * sigma).ceil() as i64 + 1;
         let width = (2 * r + 1) as usize;
-        let steps = ((48.0 / sigma).ceil() as usize).clamp(64, 2048);
+        // (Even, so the middle node sits at d = 0: see [`QuadTable`].)
+        let steps = ((48.0 / sigma).ceil() as usize)
+            .clamp(64, 2048)
+            .next_multiple_of(2);
         let h = 1.0 / steps as f64;
         let k = std::f64::consts::FRAC_1_SQRT_2 / sigma;
         let mut nodes = Vec::with_capacity((steps + 1) * width);
@@ -966,6 +1207,7 @@ impl FractionTable {
         }
         FractionTable {
             steps,
+            reach: 3.0 * sigma,
             r,
             width,
             nodes,
@@ -993,6 +1235,109 @@ impl FractionTable {
         for ((o, p), q) in out.iter_mut().zip(row0).zip(row1) {
             *o = h00 * p[0] + h10 * p[1] + h01 * q[0] + h11 * q[1];
         }
+    }
+}
+
+/// The [`FractionTable`] cut into four-pixel windows, for images narrow
+/// enough (σ < ½: at most 4 pixels along an axis, the presets' 1.3–1.5 px
+/// particles) that one window holds every pixel of an image position.
+///
+/// For a centre `c = base + d`, [`PixelModel::axis_range`]'s pixels lie
+/// in `base − 2 ..= base + 1` when d < 0 and in `base − 1 ..= base + 2`
+/// when d ≥ 0 (3σ < 1.5). A table interval lies on one side of d = 0
+/// (the table's step count is even), so each interval stores its two
+/// nodes' values and slopes for its window's four pixels side by side:
+/// one 64-byte cell, four-lane arithmetic (the same f32 operations in the
+/// same order as [`FractionTable::eval`], so the same numbers), no
+/// slicing. Callers check that the pixels they need lie in the window
+/// (they always do unless `d + ½` rounds across the middle node) and
+/// take the general path otherwise.
+struct QuadTable {
+    steps: usize,
+    /// `steps` as f64 (no integer conversion per call).
+    steps_f: f64,
+    /// Per interval: f and slope at its lower node, then at its upper
+    /// node, for window pixels 0..4.
+    cells: Vec<[[f32; 4]; 4]>,
+}
+
+impl QuadTable {
+    fn new(t: &FractionTable) -> Option<QuadTable> {
+        // σ < ½ ⇔ 3σ < 1.5; the table's r is ceil(3σ) + 1 ≥ 2.
+        if !(t.reach < 1.5) || t.r < 2 || t.steps % 2 != 0 {
+            return None;
+        }
+        let cells = (0..t.steps)
+            .map(|i| {
+                let a0 = Self::window_offset(t.steps, i);
+                let mut cell = [[0.0f32; 4]; 4];
+                for j in 0..4 {
+                    let a = (a0 + j as i64 + t.r) as usize;
+                    let (lo, hi) = (t.nodes[i * t.width + a], t.nodes[(i + 1) * t.width + a]);
+                    cell[0][j] = lo[0];
+                    cell[1][j] = lo[1];
+                    cell[2][j] = hi[0];
+                    cell[3][j] = hi[1];
+                }
+                cell
+            })
+            .collect();
+        Some(QuadTable {
+            steps: t.steps,
+            steps_f: t.steps as f64,
+            cells,
+        })
+    }
+
+    /// First window pixel relative to round(c) for table interval `i`.
+    #[inline(always)]
+    fn window_offset(steps: usize, i: usize) -> i64 {
+        if 2 * i < steps {
+            -2
+        } else {
+            -1
+        }
+    }
+
+    /// Fractions of the window's four pixels for a centre at `c`: (first
+    /// pixel of the window, fractions), as [`FractionTable::eval`]
+    /// computes them.
+    #[inline(always)]
+    fn eval(&self, c: f64) -> (i64, [f32; 4]) {
+        let base = round_i64(c);
+        let d = c - base as f64;
+        let u = (d + 0.5) * self.steps_f;
+        // (0 ≤ u ≤ steps; through i64, the short conversions.)
+        let i = (u as i64).min(self.steps as i64 - 1) as usize;
+        let t = (u - i as i64 as f64) as f32;
+        let t2 = t * t;
+        let t3 = t2 * t;
+        let (h00, h10) = (2.0 * t3 - 3.0 * t2 + 1.0, t3 - 2.0 * t2 + t);
+        let (h01, h11) = (3.0 * t2 - 2.0 * t3, t3 - t2);
+        let cell = &self.cells[i];
+        let mut out = [0.0f32; 4];
+        for j in 0..4 {
+            out[j] = h00 * cell[0][j] + h10 * cell[1][j] + h01 * cell[2][j] + h11 * cell[3][j];
+        }
+        (base + Self::window_offset(self.steps, i), out)
+    }
+
+    /// [`Self::eval`] with the lanes outside pixels `lo .. lo + n` set to
+    /// 0 (window start, fractions), or None when those pixels are not
+    /// all in the window.
+    #[inline(always)]
+    fn eval_masked(&self, c: f64, lo: i64, n: usize) -> Option<(i64, [f32; 4])> {
+        let (w, mut v) = self.eval(c);
+        let (a, b) = (lo - w, lo - w + n as i64);
+        if a < 0 || b > 4 {
+            return None;
+        }
+        for (j, x) in v.iter_mut().enumerate() {
+            if (j as i64) < a || (j as i64) >= b {
+                *x = 0.0;
+            }
+        }
+        Some((w, v))
     }
 }
 
@@ -1054,8 +1399,9 @@ fn ceil_count(x: f64, max: usize) -> usize {
     if x > max as f64 {
         max
     } else if x > 0.0 {
-        let t = x as usize;
-        (t + ((t as f64) < x) as usize).clamp(1, max)
+        // (Through i64: 0 < x ≤ max, the short conversions.)
+        let t = x as i64;
+        (t + ((t as f64) < x) as i64).clamp(1, max as i64) as usize
     } else {
         1
     }
@@ -1180,8 +1526,9 @@ impl RowRing {
         self.rows = rows;
         self.width = width;
         self.words = width.div_ceil(64);
-        if self.sig.len() < rows * width {
-            self.sig.resize(rows * width, 0.0);
+        let stride = width + 2 * RING_PAD;
+        if self.sig.len() < rows * stride {
+            self.sig.resize(rows * stride, 0.0);
         }
         if self.touched.len() < rows * self.words {
             self.touched.resize(rows * self.words, 0);
@@ -1399,6 +1746,60 @@ mod tests {
     }
 
     #[test]
+    fn quad_path_matches_general_fast_path_exactly() {
+        // The four-pixel windows give the general table's numbers bit for
+        // bit (0 outside the image's pixels) ...
+        for diameter in [0.3, 1.0, 1.3, 1.5, 1.99] {
+            let sigma = diameter / 4.0;
+            let table = FractionTable::new(sigma);
+            let q = QuadTable::new(&table).expect("σ < ½");
+            let mut rng = Pcg64::seed_from_u64(21);
+            for _ in 0..20_000 {
+                let c: f64 = rng.gen_range(-3.0..50.0);
+                let (lo, hi) = (round_i64(c - 3.0 * sigma), round_i64(c + 3.0 * sigma));
+                let n = (hi - lo + 1) as usize;
+                let mut want = vec![0.0f32; n];
+                table.eval(c, lo, &mut want);
+                let (w, v) = q.eval_masked(c, lo, n).expect("the image fits the window");
+                for (a, &f) in v.iter().enumerate() {
+                    let px = w + a as i64;
+                    if (lo..=hi).contains(&px) {
+                        assert_eq!(f.to_bits(), want[(px - lo) as usize].to_bits(), "{c}");
+                    } else {
+                        assert_eq!(f, 0.0);
+                    }
+                }
+            }
+        }
+        assert!(QuadTable::new(&FractionTable::new(0.5)).is_none());
+        // ... so whole pulses (single images, merged streaks, general and
+        // too-long streaks that fall back, ROI edges) give the same
+        // per-pixel signals as the general fast path, bit for bit.
+        for (streaks, diameter) in [
+            (None, 1.3),
+            (Some(1.0), 1.5),
+            (Some(30.0), 1.5),
+            (Some(1.0), 0.3),
+            (Some(3.0), 1.99),
+        ] {
+            let mut sc = Scenario::default();
+            sc.sensor = small_sensor();
+            sc.optics.particle_diameter_px = diameter;
+            sc.light.pulse_streaks = streaks.map(|scale| PulseStreaks { scale });
+            let model = PixelModel::new(&sc, 4);
+            assert!(model.quad.is_some());
+            let mut general = PixelModel::new(&sc, 4);
+            general.quad = None;
+            let snaps = scene(600, 80.0, 60.0, 3);
+            let (a, b) = (model.pixel_signals(&snaps), general.pixel_signals(&snaps));
+            assert_eq!(a.len(), b.len(), "{streaks:?} {diameter}");
+            for (x, y) in a.iter().zip(&b) {
+                assert_eq!((x.0, x.1.to_bits()), (y.0, y.1.to_bits()));
+            }
+        }
+    }
+
+    #[test]
     fn fraction_table_matches_erf() {
         for sigma in [0.025, 0.1, 0.325, 0.375, 1.0, 5.0] {
             let t = FractionTable::new(sigma);
@@ -1466,6 +1867,22 @@ mod tests {
             let v = i as f64 * 0.000_25 + [0.0, 1e-12, -1e-12][(i % 3).unsigned_abs() as usize];
             assert_eq!(round_i64(v), v.round() as i64, "{v}");
         }
+        // Around ±2^52 (where the fraction test stops mattering), NaN.
+        let big = 4_503_599_627_370_496.0f64; // 2^52
+        for v in [
+            big - 0.5,
+            big - 1.5,
+            big,
+            big + 2.0,
+            -big + 0.5,
+            -big,
+            -big - 2.0,
+            1e17,
+            -1e17,
+        ] {
+            assert_eq!(round_i64(v), v.round() as i64, "{v}");
+        }
+        assert_eq!(round_i64(f64::NAN), 0);
     }
 
     #[test]

@@ -43,20 +43,20 @@ impl Refractory {
 
     /// Filter time-ordered requests in place.
     pub fn apply(&mut self, reqs: &mut Vec<Arrival>) {
-        let (w, rx, ry) = (
-            self.roi.width as usize,
-            self.roi.x as usize,
-            self.roi.y as usize,
-        );
-        reqs.retain(|a| {
-            let i = (a.y as usize - ry) * w + (a.x as usize - rx);
-            if a.t - self.last[i] >= self.period_us {
-                self.last[i] = a.t;
-                true
-            } else {
-                false
-            }
-        });
+        reqs.retain(|a| self.keep(a));
+    }
+
+    /// Whether request `a` passes (requests in time order).
+    #[inline]
+    pub fn keep(&mut self, a: &Arrival) -> bool {
+        let i = (a.y as usize - self.roi.y as usize) * self.roi.width as usize
+            + (a.x as usize - self.roi.x as usize);
+        if a.t - self.last[i] >= self.period_us {
+            self.last[i] = a.t;
+            true
+        } else {
+            false
+        }
     }
 }
 

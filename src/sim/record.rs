@@ -29,10 +29,51 @@ pub struct TruthWriter {
     /// row costs no copy of its own; written out per ~64 kB.
     buf: Vec<u8>,
     pos: usize,
+    /// The formatted `pulse,t_us,` of the last row (rows of one pulse
+    /// share it): formatted once per pulse, copied per row.
+    prefix: RowPrefix,
 }
 
-/// Bytes of formatted rows per `write_all`.
-const BATCH: usize = 64 * 1024;
+/// `pulse,t_us,` as formatted for one (pulse, t_us).
+struct RowPrefix {
+    key: Option<(i64, u64)>,
+    len: usize,
+    bytes: [u8; PREFIX_MAX],
+}
+
+/// Longest `pulse,t_us,`: a 20-byte pulse, a t_us below 1e15 with sign,
+/// point and 3 decimals (≤ 20 bytes), two commas, in whole u64 words.
+const PREFIX_MAX: usize = 48;
+
+impl RowPrefix {
+    /// The prefix of `r`'s pulse, or None when its `t_us` needs the
+    /// exact formatter.
+    #[inline]
+    fn of(&mut self, r: &TruthSample) -> Option<&RowPrefix> {
+        let key = (r.pulse, r.t_us.to_bits());
+        if self.key != Some(key) {
+            let mut w = [0u8; ROW_WINDOW];
+            let mut p = 0;
+            if r.pulse < 0 {
+                p = put_byte(&mut w, p, b'-');
+            }
+            p = put_uint(&mut w, p, r.pulse.unsigned_abs());
+            p = put_byte(&mut w, p, b',');
+            p = put_fixed::<3>(&mut w, p, r.t_us)?;
+            p = put_byte(&mut w, p, b',');
+            debug_assert!(p <= PREFIX_MAX);
+            self.bytes.copy_from_slice(&w[..PREFIX_MAX]);
+            self.len = p;
+            self.key = Some(key);
+        }
+        Some(self)
+    }
+}
+
+/// Bytes of formatted rows per `write_all`: the output's buffer size
+/// (`AtomicFile`'s 1 MiB), so a batch goes to the file directly instead
+/// of being copied into that buffer first.
+const BATCH: usize = 1 << 20;
 
 /// The window a row is formatted into. The longest row the fast path
 /// writes is 152 bytes (numbers below 1e15 — ≤ 12 integer digits, sign,
@@ -52,6 +93,11 @@ impl TruthWriter {
             file,
             buf: vec![0; BATCH + ROW_WINDOW],
             pos: 0,
+            prefix: RowPrefix {
+                key: None,
+                len: 0,
+                bytes: [0; PREFIX_MAX],
+            },
         })
     }
 
@@ -71,7 +117,20 @@ impl TruthWriter {
             let window: &mut [u8; ROW_WINDOW] = (&mut self.buf[self.pos..self.pos + ROW_WINDOW])
                 .try_into()
                 .expect("window size");
-            match truth_row_fast(window, r) {
+            let row = match self.prefix.of(r) {
+                Some(prefix) => {
+                    for (k, word) in prefix.bytes.chunks_exact(8).enumerate() {
+                        put8(
+                            window,
+                            8 * k,
+                            u64::from_le_bytes(word.try_into().expect("8")),
+                        );
+                    }
+                    truth_row_rest(window, prefix.len, r)
+                }
+                None => None,
+            };
+            match row {
                 Some(n) => self.pos += n,
                 None => {
                     // A value near a rounding tie, huge or not finite: the
@@ -118,7 +177,14 @@ fn truth_row_fast(w: &mut [u8; ROW_WINDOW], r: &TruthSample) -> Option<usize> {
     p = put_byte(w, p, b',');
     p = put_fixed::<3>(w, p, r.t_us)?;
     p = put_byte(w, p, b',');
-    p = put_uint(w, p, r.particle_id);
+    truth_row_rest(w, p, r)
+}
+
+/// The fields of `r` after `pulse,t_us,` from position `p` of `w` (see
+/// [`truth_row_fast`]): the row's length, or None.
+#[inline(always)]
+fn truth_row_rest(w: &mut [u8; ROW_WINDOW], p: usize, r: &TruthSample) -> Option<usize> {
+    let mut p = put_uint(w, p, r.particle_id);
     p = put_byte(w, p, b',');
     p = put_fixed::<4>(w, p, r.x)?;
     p = put_byte(w, p, b',');
@@ -510,6 +576,53 @@ mod tests {
         w.write(&rows[..1234]).unwrap();
         w.write(&[]).unwrap();
         w.write(&rows[1234..]).unwrap();
+        w.finish().unwrap();
+        let mut want = format!("{}\n", TruthWriter::HEADER).into_bytes();
+        for r in &rows {
+            truth_line_reference(&mut want, r);
+        }
+        assert_eq!(std::fs::read(&path).unwrap(), want);
+    }
+
+    #[test]
+    fn truth_writer_reuses_the_pulse_prefix_correctly() {
+        // Rows in runs sharing (pulse, t_us), as the simulator writes
+        // them: the prefix is formatted once per run and copied. Runs
+        // with the longest pulses and times, negative ones, a t_us at a
+        // rounding tie (the whole row through the reference) and runs
+        // that differ in only one of pulse and t_us.
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(10);
+        let runs: Vec<(i64, f64)> = vec![
+            (0, 37.0),
+            (1, 237.0),
+            (1, 237.5),
+            (2, 237.5),
+            (i64::MIN, -999_999_999_999.999),
+            (i64::MAX, 999_999_999_999.999),
+            (-7, 0.0625),
+            (-7, 1e300),
+            (12_345_678, 2_469_135_637.0),
+        ];
+        let mut rows = Vec::new();
+        for (k, &(pulse, t_us)) in runs.iter().enumerate() {
+            for _ in 0..(50 + 40 * k) {
+                rows.push(TruthSample {
+                    pulse,
+                    t_us,
+                    particle_id: rng.gen_range(0..1u64 << 40),
+                    x: rng.gen_range(-5.0..1285.0),
+                    y: rng.gen_range(-5.0..725.0),
+                    u: rng.gen_range(-3e4..3e4),
+                    v: rng.gen_range(-3e4..3e4),
+                });
+            }
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("truth.csv");
+        let mut w = TruthWriter::create(&path).unwrap();
+        // Split inside runs too.
+        w.write(&rows[..77]).unwrap();
+        w.write(&rows[77..]).unwrap();
         w.finish().unwrap();
         let mut want = format!("{}\n", TruthWriter::HEADER).into_bytes();
         for r in &rows {
