@@ -218,24 +218,32 @@ pub fn pulses_of(events: &EventChunk, timing: &PulseTiming) -> Result<Vec<PulseE
         let Some(k) = k else {
             continue;
         };
-        if pulses.last().map(|p| p.index) != Some(k) {
-            if pulses.last().is_some_and(|p| p.index > k) {
-                return Err(Error::analysis(
-                    "events are not in time order: cannot split them into pulses",
-                ));
-            }
-            pulses.push(PulseEvents {
-                index: k,
-                start_us: timing.pulse_start(k),
-                events: EventChunk::default(),
-            });
-        }
+        open_pulse(&mut pulses, k, timing)?;
         run = Some((i, k));
     }
     if let Some((a, _)) = run {
         copy_run(&mut pulses, events, a, events.len());
     }
     Ok(pulses)
+}
+
+/// Makes pulse `k` the last of `pulses` (events arrive in time order, so
+/// a pulse is only ever appended; an earlier one means disorder).
+fn open_pulse(pulses: &mut Vec<PulseEvents>, k: i64, timing: &PulseTiming) -> Result<()> {
+    if pulses.last().map(|p| p.index) == Some(k) {
+        return Ok(());
+    }
+    if pulses.last().is_some_and(|p| p.index > k) {
+        return Err(Error::analysis(
+            "events are not in time order: cannot split them into pulses",
+        ));
+    }
+    pulses.push(PulseEvents {
+        index: k,
+        start_us: timing.pulse_start(k),
+        events: EventChunk::default(),
+    });
+    Ok(())
 }
 
 /// [`pulses_of`] event by event: the reference it is tested against.
@@ -245,18 +253,7 @@ pub fn pulses_of_reference(events: &EventChunk, timing: &PulseTiming) -> Result<
         let Some(k) = timing.assign(events.t[i]) else {
             continue;
         };
-        if pulses.last().map(|p| p.index) != Some(k) {
-            if pulses.last().is_some_and(|p| p.index > k) {
-                return Err(Error::analysis(
-                    "events are not in time order: cannot split them into pulses",
-                ));
-            }
-            pulses.push(PulseEvents {
-                index: k,
-                start_us: timing.pulse_start(k),
-                events: EventChunk::default(),
-            });
-        }
+        open_pulse(&mut pulses, k, timing)?;
         let p = pulses.last_mut().expect("pushed above");
         p.events
             .push(events.t[i], events.x[i], events.y[i], events.p[i]);

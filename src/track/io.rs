@@ -29,6 +29,18 @@ fn werr(path: &Path, e: std::io::Error) -> Error {
 /// bytes: as large as [`AtomicFile`]'s buffer, so the blocks go to the
 /// kernel directly instead of being copied through it first.
 const WRITE_BLOCK: usize = 1 << 20;
+/// Row buffers hold a block plus the rows of one more track or pulse.
+const BLOCK_CAPACITY: usize = WRITE_BLOCK + (1 << 16);
+
+/// Hands `buf` to the file once it holds at least `min` bytes (0: always),
+/// then empties it.
+fn write_block(file: &mut AtomicFile, buf: &mut Vec<u8>, min: usize) -> Result<()> {
+    if buf.len() >= min {
+        file.write_all(buf).map_err(|e| werr(file.target(), e))?;
+        buf.clear();
+    }
+    Ok(())
+}
 
 /// Streaming writer of `particles.csv` (`pulse,t_us,x,y,n_events`; µs and
 /// px): rows are appended as pulses are clustered; the file appears under
@@ -45,7 +57,7 @@ impl ParticlesCsvWriter {
         writeln!(file, "{PARTICLES_HEADER}").map_err(|e| werr(path, e))?;
         Ok(ParticlesCsvWriter {
             file,
-            line: Vec::with_capacity(WRITE_BLOCK + (1 << 16)),
+            line: Vec::with_capacity(BLOCK_CAPACITY),
         })
     }
     pub fn write(&mut self, particles: &[Particle]) -> Result<()> {
@@ -72,18 +84,11 @@ impl ParticlesCsvWriter {
             push_int(&mut self.line, p.n_events as i64);
             self.line.push(b'\n');
         }
-        if self.line.len() >= WRITE_BLOCK {
-            self.file
-                .write_all(&self.line)
-                .map_err(|e| werr(self.file.target(), e))?;
-            self.line.clear();
-        }
+        write_block(&mut self.file, &mut self.line, WRITE_BLOCK)?;
         Ok(())
     }
     pub fn finish(mut self) -> Result<()> {
-        self.file
-            .write_all(&self.line)
-            .map_err(|e| werr(self.file.target(), e))?;
+        write_block(&mut self.file, &mut self.line, 0)?;
         self.file.commit()
     }
 }
@@ -162,7 +167,7 @@ impl TracksCsvWriter {
         writeln!(file, "{TRACKS_HEADER}").map_err(|e| werr(path, e))?;
         Ok(TracksCsvWriter {
             file,
-            line: Vec::with_capacity(WRITE_BLOCK + (1 << 16)),
+            line: Vec::with_capacity(BLOCK_CAPACITY),
             t_text: TimeTextCache::new(),
         })
     }
@@ -187,12 +192,7 @@ impl TracksCsvWriter {
                 push_fixed(&mut self.line, p.v, 3);
                 self.line.push(b'\n');
             }
-            if self.line.len() >= WRITE_BLOCK {
-                self.file
-                    .write_all(&self.line)
-                    .map_err(|e| werr(self.file.target(), e))?;
-                self.line.clear();
-            }
+            write_block(&mut self.file, &mut self.line, WRITE_BLOCK)?;
         }
         Ok(())
     }
@@ -226,9 +226,7 @@ impl TracksCsvWriter {
     }
 
     pub fn finish(mut self) -> Result<()> {
-        self.file
-            .write_all(&self.line)
-            .map_err(|e| werr(self.file.target(), e))?;
+        write_block(&mut self.file, &mut self.line, 0)?;
         self.file.commit()
     }
 }
@@ -259,7 +257,7 @@ impl TracksNpyWriter {
             file,
             header_len: header.len(),
             rows: 0,
-            buf: Vec::with_capacity(WRITE_BLOCK + (1 << 16)),
+            buf: Vec::with_capacity(BLOCK_CAPACITY),
         })
     }
 
@@ -275,20 +273,13 @@ impl TracksNpyWriter {
                 self.buf.extend_from_slice(&rec);
             }
             self.rows += t.points.len();
-            if self.buf.len() >= WRITE_BLOCK {
-                self.file
-                    .write_all(&self.buf)
-                    .map_err(|e| werr(self.file.target(), e))?;
-                self.buf.clear();
-            }
+            write_block(&mut self.file, &mut self.buf, WRITE_BLOCK)?;
         }
         Ok(())
     }
 
     pub fn finish(mut self) -> Result<()> {
-        self.file
-            .write_all(&self.buf)
-            .map_err(|e| werr(self.file.target(), e))?;
+        write_block(&mut self.file, &mut self.buf, 0)?;
         crate::io::npy::commit_streamed_table(
             self.file,
             TRACKS_NPY_DESCR,
