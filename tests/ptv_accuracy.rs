@@ -99,3 +99,56 @@ fn dense_noisy_fast_conditions() {
         s.velocity_rms_px_per_pulse
     );
 }
+
+#[test]
+fn splitting_merged_images_between_tracks() {
+    // The paper-like scene at 384² (BENCHMARKS.md's), tracked without and
+    // with the track-guided split of merged images
+    // (`TrackParams::split_merged`, off by default). Session 6: precision
+    // 0.9628 → 0.9635, recall 0.9395 → 0.9404, velocity rms 0.149 → 0.149.
+    let sp = SynthParams {
+        width: 384,
+        height: 384,
+        ..Default::default()
+    };
+    let scene = generate(&sp);
+    let score = |split: bool| {
+        let tp = TrackParams {
+            split_merged: split,
+            ..Default::default()
+        };
+        let run = ebptv::track::synth::run_scene(&scene, &ClusterParams::default(), &tp).unwrap();
+        let s = ebptv::track::synth::score_with_sources(
+            &run.tracks,
+            &run.det_truth,
+            &run.det_sources,
+            &run.det_pulse,
+            &run.truth,
+            sp.period_us,
+            ebptv::track::synth::INTERIOR_MARGIN,
+        );
+        println!(
+            "split {split}: {} images split, {s:?}",
+            run.stats.images_split
+        );
+        (s, run.stats.images_split)
+    };
+    let (off, none) = score(false);
+    let (on, split) = score(true);
+    assert_eq!(none, 0);
+    assert!(split > 100, "{split} images split");
+    assert!(on.precision >= 0.9632, "precision {}", on.precision);
+    assert!(on.precision > off.precision);
+    assert!(
+        on.recall >= off.recall,
+        "recall {} vs {}",
+        on.recall,
+        off.recall
+    );
+    assert!(
+        on.velocity_rms_px_per_pulse <= off.velocity_rms_px_per_pulse + 0.002,
+        "velocity rms {} vs {}",
+        on.velocity_rms_px_per_pulse,
+        off.velocity_rms_px_per_pulse
+    );
+}

@@ -12,6 +12,9 @@ use ebptv::track::TrackParams;
 #[ignore]
 fn breakdown_of_link_errors() {
     for (ppp, disp, noise) in [(0.01, 8.0, 0.01), (0.02, 12.0, 0.05)] {
+        if std::env::var("PTV_ONLY_PAPER").is_ok() && ppp > 0.01 {
+            continue;
+        }
         let sp = SynthParams {
             ppp,
             max_disp: disp,
@@ -39,22 +42,33 @@ fn breakdown_of_link_errors() {
             repair_lag: env("PTV_REPAIR_LAG").map_or(d.repair_lag, |v| v as usize),
             init_gap: env("PTV_INIT_GAP").map_or(d.init_gap, |v| v != 0.0),
             sigma_ceiling: env("PTV_SIGMA_CEILING").unwrap_or(d.sigma_ceiling),
+            split_merged: env("PTV_SPLIT").map_or(d.split_merged, |v| v != 0.0),
+            split_penalty: env("PTV_SPLIT_PENALTY").unwrap_or(d.split_penalty),
             ..d
         };
-        let s = ebptv::track::synth::run_and_score(
-            &scene,
-            &ClusterParams::default(),
-            &tp,
+        let run = ebptv::track::synth::run_scene(&scene, &ClusterParams::default(), &tp).unwrap();
+        let s = ebptv::track::synth::score_with_sources(
+            &run.tracks,
+            &run.det_truth,
+            &run.det_sources,
+            &run.det_pulse,
+            &run.truth,
             sp.period_us,
-        )
-        .unwrap()
-        .1;
+            ebptv::track::synth::INTERIOR_MARGIN,
+        );
         println!(
-            "precision {:.4} recall {:.4} vel {:.3} interior {:.3}",
+            "precision {:.4} (merged ok {:.4}) recall {:.4} ({} of {} truth links; present {:.4}) \
+             vel {:.3} interior {:.3}; {} links, {} images split",
             s.precision,
+            s.precision_merged_ok,
             s.recall,
+            s.found_truth_links,
+            s.truth_links,
+            s.recall_present,
             s.velocity_rms_px_per_pulse,
-            s.velocity_rms_interior_px_per_pulse
+            s.velocity_rms_interior_px_per_pulse,
+            s.links,
+            run.stats.images_split
         );
         // Merged images by size: does extent or event count single them out?
         let mut table = std::collections::BTreeMap::new();
@@ -73,6 +87,91 @@ fn breakdown_of_link_errors() {
         if std::env::var("PTV_TABLE").is_ok() {
             println!("(max extent, events): (clean, merged) {table:?}");
         }
+        // Split parts: does the track that took a part follow the part's
+        // particle (its neighbours on the track are that particle's)?
+        let mut track_of: HashMap<usize, (usize, usize)> = HashMap::new();
+        for (ti, t) in run.tracks.iter().enumerate() {
+            for (i, d) in t.detections.iter().flatten().enumerate() {
+                track_of.insert(*d as usize, (ti, i));
+            }
+        }
+        let mut quality: BTreeMap<&str, u32> = BTreeMap::new();
+        for &(part, _, was_mixed) in &run.split_parts {
+            let Some(&(ti, i)) = track_of.get(&part) else {
+                *quality.entry("part on no kept track").or_default() += 1;
+                continue;
+            };
+            let dets: Vec<usize> = run.tracks[ti]
+                .detections
+                .iter()
+                .flatten()
+                .map(|&d| d as usize)
+                .collect();
+            let me = run.det_truth[part];
+            let agree = [i.checked_sub(1), Some(i + 1)]
+                .into_iter()
+                .flatten()
+                .filter_map(|k| dets.get(k))
+                .filter(|&&k| me.is_some() && run.det_truth[k] == me)
+                .count();
+            let key = match (was_mixed, agree) {
+                (true, 0) => "merged image, part's particle not the track's",
+                (true, _) => "merged image, part's particle is the track's",
+                (false, 0) => "clean image, part's particle not the track's",
+                (false, _) => "clean image, part's particle is the track's",
+            };
+            *quality.entry(key).or_default() += 1;
+        }
+        println!("split parts: {quality:#?}");
+        // Per split image: the previous detections' particles of its two
+        // tracks, against the image's particles.
+        let mut by_parent: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
+        for &(part, parent, _) in &run.split_parts {
+            by_parent.entry(parent).or_default().push(part);
+        }
+        let mut pairs: BTreeMap<String, u32> = BTreeMap::new();
+        for (_, parts) in by_parent {
+            let prev = |part: usize| {
+                let &(ti, i) = track_of.get(&part)?;
+                let d = run.tracks[ti]
+                    .detections
+                    .iter()
+                    .flatten()
+                    .nth(i.checked_sub(1)?)?;
+                run.det_truth[*d as usize]
+            };
+            let (a, b) = (parts[0], parts[1]);
+            let (ta, tb) = (run.det_truth[a], run.det_truth[b]);
+            let (pa, pb) = (prev(a), prev(b));
+            let good = ta != tb && pa.is_some() && pa == ta && pb.is_some() && pb == tb;
+            let key = format!(
+                "{} events {}",
+                if good {
+                    "good"
+                } else if ta == tb {
+                    "one particle"
+                } else {
+                    "other"
+                },
+                run.det_sources.len() // placeholder replaced below
+            );
+            let _ = key;
+            let ev = |d: usize| -> u32 { run.det_events[d] };
+            let key = format!(
+                "{} events {}+{}",
+                if good {
+                    "good"
+                } else if ta == tb {
+                    "one particle"
+                } else {
+                    "other"
+                },
+                ev(a).min(ev(b)),
+                ev(a).max(ev(b))
+            );
+            *pairs.entry(key).or_default() += 1;
+        }
+        println!("split images: {pairs:#?}");
         let d = run_and_diagnose(&scene, &ClusterParams::default(), &tp).unwrap();
         println!("ppp {ppp} disp {disp} noise {noise}: {d:#?}");
         let detail =

@@ -39,6 +39,12 @@ pub struct TrackArgs {
     /// Missed pulses a track may bridge.
     #[arg(long, default_value_t = 1)]
     pub gap: u32,
+    /// Split merged images between the two tracks that predict into them
+    /// (recordings and the sequential linker only: needs each image's
+    /// pixels; a particles.csv input is linked without it). See
+    /// `TrackParams::split_merged`.
+    #[arg(long)]
+    pub split_merged: bool,
     /// Nominal pulse frequency (Hz) when pulse times are estimated from the
     /// events (no trigger channel).
     #[arg(long)]
@@ -412,6 +418,7 @@ fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
         max_disp: args.max_disp,
         min_length: args.min_length,
         max_gap: args.gap,
+        split_merged: args.split_merged,
         ..Default::default()
     };
     if let Some(p) = &args.prior {

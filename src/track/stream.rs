@@ -17,7 +17,9 @@
 //! its pulse; reading a file twice from the page cache costs far less than
 //! holding it.
 
-use crate::cluster::{cluster_pulses, ClusterParams, Particle};
+use crate::cluster::{
+    cluster_pulses, cluster_pulses_with_pixels, ClusterParams, Particle, ParticlePixels,
+};
 use crate::error::Result;
 use crate::io::EventSource;
 use crate::pulses::{self, PulseEvents, PulseOptions, PulseReport};
@@ -59,8 +61,12 @@ pub struct PtvStream {
     linker: Linker,
     batch: Vec<PulseEvents>,
     /// The previous batch, clustered, waiting to be tracked while the
-    /// current one is clustered (two-stage pipeline).
-    clustered: Vec<(i64, f64, Vec<Particle>)>,
+    /// current one is clustered (two-stage pipeline), with the pixel
+    /// tables when the tracker splits merged images.
+    clustered: Vec<(i64, f64, Vec<Particle>, Option<ParticlePixels>)>,
+    /// Cluster with pixel tables (`TrackParams::split_merged`, sequential
+    /// linker only).
+    with_pixels: bool,
     batch_size: usize,
     events: u64,
 }
@@ -69,8 +75,11 @@ impl PtvStream {
     /// `batch_size`: pulses clustered per parallel batch (≥ 1). Links
     /// with one sequential [`Tracker`].
     pub fn new(cluster: ClusterParams, track: TrackParams, batch_size: usize) -> Result<Self> {
+        let with_pixels = track.split_merged;
         let linker = Linker::Sequential(Tracker::new(track)?);
-        Self::with_linker(cluster, linker, batch_size)
+        let mut s = Self::with_linker(cluster, linker, batch_size)?;
+        s.with_pixels = with_pixels;
+        Ok(s)
     }
 
     /// [`PtvStream::new`] linking with the parallel slice-and-stitch
@@ -95,6 +104,7 @@ impl PtvStream {
             linker,
             batch: Vec::with_capacity(batch_size),
             clustered: Vec::new(),
+            with_pixels: false,
             batch_size,
             events: 0,
         })
@@ -137,9 +147,23 @@ impl PtvStream {
         let previous = std::mem::take(&mut self.clustered);
         let cluster = &self.cluster;
         let linker = &mut self.linker;
+        let with_pixels = self.with_pixels;
         let (parts, tracked) = std::thread::scope(|scope| {
-            let worker =
-                (!batch.is_empty()).then(|| scope.spawn(|| cluster_pulses(&batch, cluster)));
+            let worker = (!batch.is_empty()).then(|| {
+                scope.spawn(|| -> Result<Vec<(Vec<Particle>, Option<ParticlePixels>)>> {
+                    Ok(if with_pixels {
+                        cluster_pulses_with_pixels(&batch, cluster)?
+                            .into_iter()
+                            .map(|(p, px)| (p, Some(px)))
+                            .collect()
+                    } else {
+                        cluster_pulses(&batch, cluster)?
+                            .into_iter()
+                            .map(|p| (p, None))
+                            .collect()
+                    })
+                })
+            });
             let tracked = track_batch(linker, previous, sink);
             let parts = match worker {
                 Some(w) => w.join().unwrap_or_else(|e| std::panic::resume_unwind(e)),
@@ -151,7 +175,7 @@ impl PtvStream {
         self.clustered = batch
             .iter()
             .zip(parts?)
-            .map(|(pe, ps)| (pe.index, pe.start_us, ps))
+            .map(|(pe, (ps, px))| (pe.index, pe.start_us, ps, px))
             .collect();
         self.batch = batch;
         self.batch.clear();
@@ -195,13 +219,16 @@ fn unlinked(tracks: Vec<super::LinkedTrack>) -> Vec<Track> {
 /// so the sink gets a copy.
 fn track_batch(
     linker: &mut Linker,
-    clustered: Vec<(i64, f64, Vec<Particle>)>,
+    clustered: Vec<(i64, f64, Vec<Particle>, Option<ParticlePixels>)>,
     sink: &mut dyn PtvSink,
 ) -> Result<()> {
-    for (pulse, t_us, ps) in clustered {
+    for (pulse, t_us, ps, px) in clustered {
         match linker {
             Linker::Sequential(tracker) => {
-                let done = tracker.push(pulse, t_us, &ps)?;
+                let done = match &px {
+                    Some(px) => tracker.push_with_pixels(pulse, t_us, &ps, px)?,
+                    None => tracker.push(pulse, t_us, &ps)?,
+                };
                 sink.take_particles(pulse, t_us, ps)?;
                 sink.take_tracks(done)?;
             }

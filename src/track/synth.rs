@@ -78,8 +78,8 @@ use serde::{Deserialize, Serialize};
 
 use super::LinkedTrack;
 use crate::cluster::{
-    particles_from_labels, pixel_labels_with, pulse_pixels, split_wide_clusters, ClusterParams,
-    Particle,
+    particle_pixels_from_labels, particles_from_labels, pixel_labels_with, pulse_pixels,
+    split_wide_clusters, ClusterParams, Particle, ParticlePixels,
 };
 use crate::events::{EventChunk, ON};
 use crate::pulses::PulseEvents;
@@ -295,10 +295,20 @@ pub type TruthClusters = (Vec<Particle>, Vec<Option<u64>>, Vec<bool>, Vec<Vec<u6
 /// [`cluster_with_truth_mixed`], also listing for each particle every
 /// truth particle that made at least one of its events (sorted).
 pub fn cluster_with_truth_sources(sp: &SynthPulse, params: &ClusterParams) -> TruthClusters {
+    cluster_with_truth_pixels(sp, params).0
+}
+
+/// [`cluster_with_truth_sources`], also with the pixels of each particle
+/// (for the tracker's split of merged images).
+pub fn cluster_with_truth_pixels(
+    sp: &SynthPulse,
+    params: &ClusterParams,
+) -> (TruthClusters, ParticlePixels) {
     let pixels = pulse_pixels(&sp.pulse, params);
     let mut labels = pixel_labels_with(&pixels, params);
     split_wide_clusters(&pixels, &mut labels, params.split_extent);
     let particles = particles_from_labels(&sp.pulse, &pixels, &labels, params);
+    let table = particle_pixels_from_labels(&pixels, &labels, params);
     let label_of: HashMap<(u16, u16), u32> = pixels
         .iter()
         .zip(&labels)
@@ -337,25 +347,33 @@ pub fn cluster_with_truth_sources(sp: &SynthPulse, params: &ClusterParams) -> Tr
     let ids: Vec<Option<u64>> = kept
         .iter()
         .zip(&particles)
-        .map(|(&l, part)| {
-            let top = votes[l].values().copied().max().unwrap_or(0);
-            // Among the particles with the most events here, the one whose
-            // true position is nearest the centroid; noise never wins a tie.
-            let best = votes[l]
-                .iter()
-                .filter_map(|(id, &c)| match id {
-                    Some(id) if c == top => {
-                        let (x, y) = truth_xy.get(id).copied().unwrap_or((f64::MAX, f64::MAX));
-                        Some(((x - part.x).hypot(y - part.y), *id))
-                    }
-                    _ => None,
-                })
-                .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-            best.map(|(_, id)| id)
-        })
+        .map(|(&l, part)| attribute_votes(&votes[l], (part.x, part.y), &truth_xy))
         .collect();
     debug_assert_eq!(ids.len(), particles.len());
-    (particles, ids, mixed, sources)
+    ((particles, ids, mixed, sources), table)
+}
+
+/// The truth particle an image belongs to, from the sources of its events
+/// (`votes`: events per source, `None` = noise): the one that made most;
+/// among equals the one whose true position is nearest the centroid;
+/// noise never wins a tie.
+fn attribute_votes(
+    votes: &HashMap<Option<u64>, u32>,
+    centroid: (f64, f64),
+    truth_xy: &HashMap<u64, (f64, f64)>,
+) -> Option<u64> {
+    let top = votes.values().copied().max().unwrap_or(0);
+    votes
+        .iter()
+        .filter_map(|(id, &c)| match id {
+            Some(id) if c == top => {
+                let (x, y) = truth_xy.get(id).copied().unwrap_or((f64::MAX, f64::MAX));
+                Some(((x - centroid.0).hypot(y - centroid.1), *id))
+            }
+            _ => None,
+        })
+        .min_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)))
+        .map(|(_, id)| id)
 }
 
 /// Attribute each particle to the nearest truth particle of its pulse
@@ -562,38 +580,159 @@ pub fn score_with_sources(
 /// 11-point output window of sessions 1–2, kept so numbers compare).
 pub const INTERIOR_MARGIN: usize = 5;
 
-/// Run the whole PTV stage on a scene: cluster every pulse, track, score.
+/// A scene clustered and tracked, with the truth of every detection
+/// (indexed by detection: the serials of [`super::Tracker`], with the parts
+/// of split images renumbered after all pushed particles).
+#[derive(Debug, Clone)]
+pub struct SceneRun {
+    pub tracks: Vec<LinkedTrack>,
+    pub det_truth: Vec<Option<u64>>,
+    pub det_sources: Vec<Vec<u64>>,
+    pub det_mixed: Vec<bool>,
+    pub det_pulse: Vec<i64>,
+    /// Events of each detection.
+    pub det_events: Vec<u32>,
+    pub truth: Vec<TruthSample>,
+    /// The tracker's position noise estimate at the end (px per axis).
+    pub position_sigma: f64,
+    pub stats: super::TrackerStats,
+    /// Per part of a split image: (its detection index, the image's index,
+    /// whether the image held events of more than one source).
+    pub split_parts: Vec<(usize, usize, bool)>,
+}
+
+/// Cluster every pulse (with the pixel table, so that the tracker can
+/// split merged images when `tparams.split_merged`), track, and attribute
+/// every detection — also the parts of split images, by the events on
+/// their pixels, with the rule of [`cluster_with_truth`]. A split image
+/// is replaced by its parts: it keeps no truth (it is on no track, and a
+/// particle it was attributed to is detected by the part with its events).
+pub fn run_scene(
+    scene: &[SynthPulse],
+    cparams: &ClusterParams,
+    tparams: &super::TrackParams,
+) -> crate::Result<SceneRun> {
+    let mut tracker = super::Tracker::new(tparams.clone())?;
+    tracker.record_splits(true);
+    let mut run = SceneRun {
+        tracks: Vec::new(),
+        det_truth: Vec::new(),
+        det_sources: Vec::new(),
+        det_mixed: Vec::new(),
+        det_pulse: Vec::new(),
+        det_events: Vec::new(),
+        truth: Vec::new(),
+        position_sigma: 0.0,
+        stats: Default::default(),
+        split_parts: Vec::new(),
+    };
+    // Split parts: (serial, truth, sources, mixed, pulse, parent serial,
+    // events).
+    type Part = (u64, Option<u64>, Vec<u64>, bool, i64, u64, u32);
+    let mut parts_of_splits: Vec<Part> = Vec::new();
+    for sp in scene {
+        let ((parts, ids, mixed, sources), table) = cluster_with_truth_pixels(sp, cparams);
+        run.det_pulse
+            .extend(std::iter::repeat(sp.pulse.index).take(parts.len()));
+        run.det_truth.extend(ids);
+        run.det_events.extend(parts.iter().map(|p| p.n_events));
+        run.det_mixed.extend(mixed);
+        run.det_sources.extend(sources);
+        run.tracks.extend(tracker.push_linked_with_pixels(
+            sp.pulse.index,
+            sp.pulse.start_us,
+            &parts,
+            Some(&table),
+        )?);
+        run.truth.extend_from_slice(&sp.truth);
+        let splits = tracker.take_splits();
+        if splits.is_empty() {
+            continue;
+        }
+        let mut at_pixel: HashMap<(u16, u16), Vec<Option<u64>>> = HashMap::new();
+        let ev = &sp.pulse.events;
+        for i in 0..ev.len() {
+            if !(cparams.on_only && ev.p[i] != ON) {
+                at_pixel
+                    .entry((ev.x[i], ev.y[i]))
+                    .or_default()
+                    .push(sp.event_truth[i]);
+            }
+        }
+        let truth_xy: HashMap<u64, (f64, f64)> = sp
+            .truth
+            .iter()
+            .map(|t| (t.particle_id, (t.x, t.y)))
+            .collect();
+        for d in splits {
+            let mut votes: HashMap<Option<u64>, u32> = HashMap::new();
+            for p in &d.pixels {
+                for id in at_pixel.get(&(p.x, p.y)).into_iter().flatten() {
+                    *votes.entry(*id).or_default() += 1;
+                }
+            }
+            let mut src: Vec<u64> = votes.keys().flatten().copied().collect();
+            src.sort_unstable();
+            let id = attribute_votes(&votes, (d.x, d.y), &truth_xy);
+            let n: u32 = d.pixels.iter().map(|p| p.count).sum();
+            parts_of_splits.push((d.serial, id, src, votes.len() > 1, d.pulse, d.parent, n));
+        }
+    }
+    run.position_sigma = tracker.position_sigma();
+    let (rest, stats) = tracker.finish();
+    run.tracks.extend(rest);
+    run.stats = stats;
+    if !parts_of_splits.is_empty() {
+        let base = run.det_truth.len() as u64;
+        let index: HashMap<u64, u64> = parts_of_splits
+            .iter()
+            .enumerate()
+            .map(|(k, p)| (p.0, base + k as u64))
+            .collect();
+        for (_, id, src, mixed, pulse, parent, n) in parts_of_splits {
+            run.det_events.push(n);
+            let parent = parent as usize;
+            let was_mixed = run.det_mixed[parent] || run.det_sources[parent].len() > 1;
+            run.split_parts
+                .push((run.det_truth.len(), parent, was_mixed));
+            run.det_truth[parent] = None;
+            run.det_sources[parent].clear();
+            run.det_mixed[parent] = false;
+            run.det_truth.push(id);
+            run.det_sources.push(src);
+            run.det_mixed.push(mixed);
+            run.det_pulse.push(pulse);
+        }
+        for t in &mut run.tracks {
+            for d in t.detections.iter_mut().flatten() {
+                if *d & super::SPLIT_SERIAL_BIT != 0 {
+                    *d = index[d];
+                }
+            }
+        }
+    }
+    Ok(run)
+}
+
+/// Run the whole PTV stage on a scene: cluster every pulse, track, score
+/// ([`run_scene`]; detections of the returned tracks numbered as there).
 pub fn run_and_score(
     scene: &[SynthPulse],
     cparams: &ClusterParams,
     tparams: &super::TrackParams,
     period_us: f64,
 ) -> crate::Result<(Vec<LinkedTrack>, LinkScore)> {
-    let mut tracker = super::Tracker::new(tparams.clone())?;
-    let mut det_truth = Vec::new();
-    let mut det_sources = Vec::new();
-    let mut det_pulse = Vec::new();
-    let mut tracks = Vec::new();
-    let mut truth = Vec::new();
-    for sp in scene {
-        let (parts, ids, _, sources) = cluster_with_truth_sources(sp, cparams);
-        det_pulse.extend(std::iter::repeat(sp.pulse.index).take(parts.len()));
-        det_truth.extend(ids);
-        det_sources.extend(sources);
-        tracks.extend(tracker.push_linked(sp.pulse.index, sp.pulse.start_us, &parts)?);
-        truth.extend_from_slice(&sp.truth);
-    }
-    tracks.extend(tracker.finish().0);
+    let run = run_scene(scene, cparams, tparams)?;
     let s = score_with_sources(
-        &tracks,
-        &det_truth,
-        &det_sources,
-        &det_pulse,
-        &truth,
+        &run.tracks,
+        &run.det_truth,
+        &run.det_sources,
+        &run.det_pulse,
+        &run.truth,
         period_us,
         INTERIOR_MARGIN,
     );
-    Ok((tracks, s))
+    Ok((run.tracks, s))
 }
 
 /// Where wrong links and missed truth links come from (see [`diagnose`]).
@@ -724,22 +863,15 @@ pub fn run_and_diagnose(
     cparams: &ClusterParams,
     tparams: &super::TrackParams,
 ) -> crate::Result<LinkDiagnosis> {
-    let mut tracker = super::Tracker::new(tparams.clone())?;
-    let (mut det_truth, mut det_mixed, mut det_pulse) = (Vec::new(), Vec::new(), Vec::new());
-    let mut tracks = Vec::new();
-    let mut truth = Vec::new();
-    for sp in scene {
-        let (parts, ids, mixed) = cluster_with_truth_mixed(sp, cparams);
-        det_pulse.extend(std::iter::repeat(sp.pulse.index).take(parts.len()));
-        det_truth.extend(ids);
-        det_mixed.extend(mixed);
-        tracks.extend(tracker.push_linked(sp.pulse.index, sp.pulse.start_us, &parts)?);
-        truth.extend_from_slice(&sp.truth);
-    }
-    let sigma = tracker.position_sigma();
-    tracks.extend(tracker.finish().0);
-    let mut d = diagnose(&tracks, &det_truth, &det_mixed, &det_pulse, &truth);
-    d.position_sigma = sigma;
+    let run = run_scene(scene, cparams, tparams)?;
+    let mut d = diagnose(
+        &run.tracks,
+        &run.det_truth,
+        &run.det_mixed,
+        &run.det_pulse,
+        &run.truth,
+    );
+    d.position_sigma = run.position_sigma;
     Ok(d)
 }
 
@@ -890,21 +1022,11 @@ pub fn run_and_diagnose_detail(
     cparams: &ClusterParams,
     tparams: &super::TrackParams,
 ) -> crate::Result<std::collections::BTreeMap<String, u64>> {
-    let mut tracker = super::Tracker::new(tparams.clone())?;
-    let (mut det_truth, mut det_sources, mut det_pulse) = (Vec::new(), Vec::new(), Vec::new());
-    let mut tracks = Vec::new();
-    for sp in scene {
-        let (parts, ids, _, sources) = cluster_with_truth_sources(sp, cparams);
-        det_pulse.extend(std::iter::repeat(sp.pulse.index).take(parts.len()));
-        det_truth.extend(ids);
-        det_sources.extend(sources);
-        tracks.extend(tracker.push_linked(sp.pulse.index, sp.pulse.start_us, &parts)?);
-    }
-    tracks.extend(tracker.finish().0);
+    let run = run_scene(scene, cparams, tparams)?;
     Ok(diagnose_detail(
-        &tracks,
-        &det_truth,
-        &det_sources,
-        &det_pulse,
+        &run.tracks,
+        &run.det_truth,
+        &run.det_sources,
+        &run.det_pulse,
     ))
 }
