@@ -72,3 +72,60 @@ fn demo_scenario_tracks_against_truth() {
         s.velocity_rms_px_per_pulse
     );
 }
+
+/// The recording path (`PtvStream`, what `ebptv track --split-merged` runs
+/// on a recording) clusters with pixel tables and splits merged images
+/// exactly as the tracker fed pulse by pulse with the pixels does.
+#[test]
+fn stream_splits_merged_images_like_the_tracker() {
+    use ebptv::cluster::cluster_pulse_with_pixels;
+    use ebptv::track::synth::{generate, SynthParams};
+    use ebptv::track::{PtvSink, PtvStream, Track};
+    struct Tracks(Vec<Track>);
+    impl PtvSink for Tracks {
+        fn particles(
+            &mut self,
+            _: i64,
+            _: f64,
+            _: &[ebptv::cluster::Particle],
+        ) -> ebptv::Result<()> {
+            Ok(())
+        }
+        fn tracks(&mut self, t: &[Track]) -> ebptv::Result<()> {
+            self.0.extend_from_slice(t);
+            Ok(())
+        }
+    }
+    let scene = generate(&SynthParams {
+        width: 256,
+        height: 256,
+        pulses: 40,
+        ..Default::default()
+    });
+    let cp = ClusterParams::default();
+    let tp = TrackParams {
+        split_merged: true,
+        ..Default::default()
+    };
+    let mut tracker = Tracker::new(tp.clone()).unwrap();
+    let mut direct = Vec::new();
+    for sp in &scene {
+        let (ps, px) = cluster_pulse_with_pixels(&sp.pulse, &cp);
+        direct.extend(
+            tracker
+                .push_with_pixels(sp.pulse.index, sp.pulse.start_us, &ps, &px)
+                .unwrap(),
+        );
+    }
+    let (rest, stats) = tracker.finish();
+    direct.extend(rest.into_iter().map(|t| t.track));
+    assert!(stats.images_split > 10, "{stats:?}");
+    let mut stream = PtvStream::new(cp.clone(), tp, 16).unwrap();
+    let mut sink = Tracks(Vec::new());
+    for sp in &scene {
+        stream.push_pulse(sp.pulse.clone(), &mut sink).unwrap();
+    }
+    let streamed = stream.finish(&mut sink).unwrap();
+    assert_eq!(streamed, stats);
+    assert!(sink.0 == direct, "the stream's tracks differ");
+}

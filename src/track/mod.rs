@@ -298,10 +298,11 @@ pub struct TrackParams {
     /// particles in one image. The parts' separation earns a bonus (its
     /// squared length times `na·nb/(na + nb)` events, over (n_σ σ)²: one
     /// particle's image is seldom that wide). 1.3 on the paper-like scene:
-    /// 0.3 / 0.6 / 1.0 split 1161 / 837 / 442 images there, about half of
-    /// them one particle's image (precision 0.9586 / 0.9618 / 0.9639,
-    /// velocity rms 0.200 / 0.177 / 0.169 px/pulse); 1.3 splits 176, 85 %
-    /// of them right.
+    /// 0.3 / 0.6 / 1.0 split 1161 / 837 / 442 images there (at 0.6 as
+    /// many one particle's images, 362, as right splits, 362; precision
+    /// 0.9586 / 0.9618 / 0.9639, velocity rms 0.200 / 0.177 / 0.169
+    /// px/pulse against 0.149 unsplit); 1.3 splits 176, 130 of them (74 %)
+    /// between the two tracks' own particles, 27 one particle's image.
     #[serde(default = "default_split_penalty")]
     pub split_penalty: f64,
     /// Search radius (px) around the prior's prediction for the first step.
