@@ -290,7 +290,10 @@ pub struct TrackParams {
     /// part sits ~0.45 px from its particle, about what separates a
     /// merged pair from one particle's two-pixel image whose neighbour
     /// did not fire, so about as many wrong splits as right ones are made
-    /// unless `split_penalty` keeps only the clearest.
+    /// unless `split_penalty` keeps only the clearest. On the full
+    /// simulator's demo scene it helps: `ebptv demo`'s recording with
+    /// `track --split-merged`, link precision 0.9941 → 0.9950, recall
+    /// 0.9607 → 0.9682, velocity rms 0.0236 → 0.0219 px/pulse.
     #[serde(default = "default_split_merged")]
     pub split_merged: bool,
     /// Cost (in units of a missed detection) a split must save, against

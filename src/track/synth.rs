@@ -44,6 +44,16 @@
 //! fitted track velocity minus the true velocity at every detection of a
 //! correctly identified track point, in px per pulse interval.
 //!
+//! # Split images
+//! With `TrackParams::split_merged` the tracker may replace a merged image
+//! by two parts (new detections, serials with `SPLIT_SERIAL_BIT`).
+//! [`run_scene`] renumbers them after the pushed particles and attributes
+//! each part by the events on its pixels, with the rule above; the split
+//! image keeps no truth (it is on no track, and the particle it was
+//! attributed to is detected by its part). A part is a detection like any
+//! other, so a particle outvoted in a merged image becomes detected there
+//! and the truth-link count grows.
+//!
 //! # One definition, two kinds of truth
 //! A correct link is the same everywhere: two consecutive detections of
 //! one track that are images of one truth particle. What differs is how a
