@@ -14,7 +14,7 @@
 //! ```text
 //! caller's thread            cluster stage             tracker stage
 //! decode + split ──batch──▶ cluster (rayon pool) ──▶ link + output fits
-//!   ▲ (bounded, 1)            (bounded, 1)              (its own pool)
+//!   ▲ (bounded, 1)            (bounded, 1)          (fits: global pool)
 //!   └──────────── particles, ended tracks, progress ◀───────┘
 //!   sink calls (in pulse order)
 //! ```
@@ -29,15 +29,17 @@
 //! two bounded stages passed on while the caller waited for room, so it
 //! stays bounded too.
 //!
-//! The clustering and the tracker's output fits run in two separate rayon
-//! pools (each as many threads as the caller's pool): in one shared pool
-//! the fits of the tracker — which waits for them — queued behind a whole
-//! batch of clustering jobs, and the linking thread, the longest serial
-//! chain of the run, stood still. The tracker runs *inside* its pool, so
-//! it works on its own fits instead of sleeping. Neither the batch size
-//! nor any thread count changes a result: clustering is per pulse, the
-//! tracker sees the pulses in order, and its fits are numbered in order
-//! (`parallel_stream_equals_sequential_tracking` checks 1–3 threads).
+//! The clustering runs in a rayon pool of its own (as many threads as the
+//! caller's pool), the tracker's output fits in the global pool: in one
+//! shared pool the fits — which the tracker waits for — queued behind a
+//! whole batch of clustering jobs, and the linking thread, the longest
+//! serial chain of the run, stood still. (Run from inside a rayon pool,
+//! the tracker gets a pool of its own too and runs inside it, so that its
+//! fits never wait for workers that may be blocked feeding the stream.)
+//! Neither the batch size nor any thread count changes a result:
+//! clustering is per pulse, the tracker sees the pulses in order, and its
+//! fits are numbered in order (`parallel_stream_equals_sequential_tracking`
+//! checks 1–3 threads).
 //!
 //! Two passes over the file instead of one because pulse timing (the
 //! period fitted over the whole recording) must be known before the first
@@ -185,10 +187,22 @@ impl Stages {
                 cluster_pool.install(|| cluster_stage(&cluster, batches, to_track, &stop))
             }),
         )?;
+        // The tracker's fits go to the global pool — unless the stream
+        // is driven from inside a rayon pool: the caller's thread may then
+        // be one of the global workers, blocked on a channel, and the fits
+        // must not depend on them (the tracker then runs inside a pool of
+        // its own and takes part in its fits).
+        let track_pool = match rayon::current_thread_index() {
+            Some(_) => Some(pool("track")?),
+            None => None,
+        };
         let stop = cancel.clone();
         let tracker = spawn(
             "ebptv-track",
-            Box::new(move || track_stage(linker, clustered, to_caller, &stop)),
+            Box::new(move || match track_pool {
+                Some(p) => p.install(|| track_stage(linker, clustered, to_caller, &stop)),
+                None => track_stage(linker, clustered, to_caller, &stop),
+            }),
         );
         let mut stages = Stages {
             to_cluster: Some(to_cluster),
