@@ -726,6 +726,11 @@ impl Tracker {
         &self.stats
     }
 
+    /// The options the tracker runs with.
+    pub fn params(&self) -> &TrackParams {
+        &self.params
+    }
+
     /// Number of tracks currently being extended.
     pub fn active_tracks(&self) -> usize {
         self.active.len()
