@@ -34,6 +34,7 @@ fn bench(c: &mut Criterion) {
         order: 2,
         sigma: 0.12,
         bias_weight: 4.0,
+        accel_rms: 0.0,
     };
     let tables = GridTables::new(&rule);
     let xy: Vec<[f64; 2]> = xs.iter().zip(&ys).map(|(&x, &y)| [x, y]).collect();
