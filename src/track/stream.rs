@@ -2,23 +2,57 @@
 //!
 //! The one entry point of the PTV stage for a recording:
 //! [`track_recording`] runs the pulse analysis (one pass), then streams the
-//! recording a second time through [`crate::pulses::split_pulses`], clusters
-//! pulses in parallel batches (rayon, in [`crate::cluster::cluster_pulses`])
-//! and feeds the particles, in pulse order, to the [`Tracker`] — the
-//! clustering of one batch (on a scoped helper thread) overlapping the
-//! tracking of the previous one on the caller's thread. Results go
-//! to a [`PtvSink`] as they appear — particles per pulse, tracks when they
-//! end — so memory is bounded by the batch and the active tracks, not by the
-//! recording. What the sink does with them (write CSV, bin onto a grid,
-//! score against truth) is the caller's business.
+//! recording a second time through [`crate::pulses::split_pulses`] into a
+//! [`PtvStream`]. Results go to a [`PtvSink`] as they appear — particles
+//! per pulse, tracks when they end — so memory is bounded by the batches
+//! in flight and the active tracks, not by the recording. What the sink
+//! does with them (write CSV, bin onto a grid, score against truth) is the
+//! caller's business.
 //!
-//! Two passes instead of one because pulse timing (the period fitted over
-//! the whole recording) must be known before the first event can be tied to
-//! its pulse; reading a file twice from the page cache costs far less than
-//! holding it.
+//! **A pipeline of three stages** keeps every core busy:
+//!
+//! ```text
+//! caller's thread            cluster stage             tracker stage
+//! decode + split ──batch──▶ cluster (rayon pool) ──▶ link + output fits
+//!   ▲ (bounded, 1)            (bounded, 1)          (fits: global pool)
+//!   └──────────── particles, ended tracks, progress ◀───────┘
+//!   sink calls (in pulse order)
+//! ```
+//!
+//! Each stage runs on its own thread; the two channels between them hold
+//! at most one batch each, so a slow stage holds the earlier ones back
+//! instead of filling memory. The results flow back to the caller's
+//! thread, which calls the sink — the sink need not be `Send`, and its
+//! calls come in exactly the order of the sequential loop (per pulse the
+//! particles, then the tracks that ended), only later. That channel is
+//! drained at every [`PtvStream::push_pulse`]; it can only hold what the
+//! two bounded stages passed on while the caller waited for room, so it
+//! stays bounded too.
+//!
+//! The clustering runs in a rayon pool of its own (as many threads as the
+//! caller's pool), the tracker's output fits in the global pool: in one
+//! shared pool the fits — which the tracker waits for — queued behind a
+//! whole batch of clustering jobs, and the linking thread, the longest
+//! serial chain of the run, stood still. (Run from inside a rayon pool,
+//! the tracker gets a pool of its own too and runs inside it, so that its
+//! fits never wait for workers that may be blocked feeding the stream.)
+//! Neither the batch size nor any thread count changes a result:
+//! clustering is per pulse, the tracker sees the pulses in order, and its
+//! fits are numbered in order (`parallel_stream_equals_sequential_tracking`
+//! checks 1–3 threads).
+//!
+//! Two passes over the file instead of one because pulse timing (the
+//! period fitted over the whole recording) must be known before the first
+//! event can be tied to its pulse; reading a file twice from the page
+//! cache costs far less than holding it.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::{self, Receiver, Sender, SyncSender, TryRecvError};
+use std::sync::Arc;
+use std::thread::JoinHandle;
 
 use crate::cluster::{cluster_pulses, ClusterParams, Particle};
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::io::EventSource;
 use crate::pulses::{self, PulseEvents, PulseOptions, PulseReport};
 
@@ -31,6 +65,50 @@ enum Linker {
     Sequential(Tracker),
     /// Independent trackers on time slices, joined at the seams.
     Sliced(SliceTracker),
+}
+
+impl Linker {
+    /// Particles seen and tracks active.
+    fn progress(&self) -> (u64, usize) {
+        match self {
+            Linker::Sequential(t) => (t.stats().particles, t.active_tracks()),
+            Linker::Sliced(t) => (t.stats().particles, t.active_tracks()),
+        }
+    }
+
+    /// Link one clustered pulse; the particles, then the tracks that
+    /// ended, go to `out` (the order the sink sees them in).
+    fn push(
+        &mut self,
+        pulse: i64,
+        t_us: f64,
+        ps: Vec<Particle>,
+        out: &mut dyn FnMut(Output),
+    ) -> Result<()> {
+        match self {
+            Linker::Sequential(tracker) => {
+                let done = tracker.push(pulse, t_us, &ps)?;
+                out(Output::Particles(pulse, t_us, ps));
+                out(Output::Tracks(done));
+            }
+            Linker::Sliced(st) => {
+                // It keeps the particles until their slices are tracked.
+                out(Output::Particles(pulse, t_us, ps.clone()));
+                let done = st.push(pulse, t_us, ps)?;
+                out(Output::Tracks(unlinked(done)));
+            }
+        }
+        Ok(())
+    }
+
+    /// End all tracks.
+    fn finish(self) -> Result<(Vec<Track>, TrackerStats)> {
+        let (rest, stats) = match self {
+            Linker::Sequential(t) => t.finish(),
+            Linker::Sliced(t) => t.finish()?,
+        };
+        Ok((unlinked(rest), stats))
+    }
 }
 
 /// Receives the PTV stage's results while streaming.
@@ -53,16 +131,197 @@ pub trait PtvSink {
     }
 }
 
-/// Clustering and tracking fed pulse by pulse.
+/// What the tracker stage sends back to the caller's thread.
+enum Output {
+    Particles(i64, f64, Vec<Particle>),
+    Tracks(Vec<Track>),
+    /// Particles seen and tracks active after a batch.
+    Progress(u64, usize),
+    /// The stage stopped on this error.
+    Failed(Error),
+    /// All tracks ended and handed out (after their `Tracks`).
+    Finished(TrackerStats),
+}
+
+/// A clustered batch: per pulse its index, start time and particles.
+type Clustered = Vec<(i64, f64, Vec<Particle>)>;
+
+/// The running stages of a [`PtvStream`].
+struct Stages {
+    /// Batches to the cluster stage (`None` once closed).
+    to_cluster: Option<SyncSender<Vec<PulseEvents>>>,
+    /// Results from the tracker stage.
+    outputs: Receiver<Output>,
+    /// Asks both stages to drop what is queued (the stream was dropped
+    /// without `finish`, or failed).
+    cancel: Arc<AtomicBool>,
+    threads: Vec<JoinHandle<()>>,
+}
+
+impl Stages {
+    /// Start the cluster and tracker threads, each with a rayon pool of
+    /// `threads` threads.
+    fn start(cluster: ClusterParams, linker: Linker, threads: usize) -> Result<Self> {
+        let pool = |name: &'static str| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .thread_name(move |i| format!("ebptv-{name}-{i}"))
+                .build()
+                .map_err(|e| Error::analysis(format!("starting the {name} threads: {e}")))
+        };
+        let cluster_pool = pool("cluster")?;
+        let (to_cluster, batches) = mpsc::sync_channel::<Vec<PulseEvents>>(1);
+        let (to_track, clustered) = mpsc::sync_channel::<Result<Clustered>>(1);
+        let (to_caller, outputs) = mpsc::channel::<Output>();
+        let cancel = Arc::new(AtomicBool::new(false));
+        let spawn = |name: &str, f: Box<dyn FnOnce() + Send>| {
+            std::thread::Builder::new()
+                .name(name.into())
+                .spawn(f)
+                .map_err(|e| Error::analysis(format!("starting the {name} thread: {e}")))
+        };
+        let stop = cancel.clone();
+        let clusterer = spawn(
+            "ebptv-cluster",
+            Box::new(move || {
+                cluster_pool.install(|| cluster_stage(&cluster, batches, to_track, &stop))
+            }),
+        )?;
+        // The tracker's fits go to the global pool — unless the stream
+        // is driven from inside a rayon pool: the caller's thread may then
+        // be one of the global workers, blocked on a channel, and the fits
+        // must not depend on them (the tracker then runs inside a pool of
+        // its own and takes part in its fits).
+        let track_pool = match rayon::current_thread_index() {
+            Some(_) => Some(pool("track")?),
+            None => None,
+        };
+        let stop = cancel.clone();
+        let tracker = spawn(
+            "ebptv-track",
+            Box::new(move || match track_pool {
+                Some(p) => p.install(|| track_stage(linker, clustered, to_caller, &stop)),
+                None => track_stage(linker, clustered, to_caller, &stop),
+            }),
+        );
+        let mut stages = Stages {
+            to_cluster: Some(to_cluster),
+            outputs,
+            cancel,
+            threads: vec![clusterer],
+        };
+        // On failure `stages` drops: the cluster thread sees its input
+        // closed and ends.
+        stages.threads.push(tracker?);
+        Ok(stages)
+    }
+
+    /// Close the input, wait for both threads; a panic in one is resumed
+    /// here.
+    fn join(&mut self) {
+        self.to_cluster = None;
+        let mut panic = None;
+        for h in self.threads.drain(..) {
+            if let Err(e) = h.join() {
+                panic.get_or_insert(e);
+            }
+        }
+        if let Some(e) = panic {
+            // Not while unwinding already (a drop on the way out).
+            if !std::thread::panicking() {
+                std::panic::resume_unwind(e);
+            }
+        }
+    }
+}
+
+/// Cluster batches until the input closes (or the tracker stage stops).
+fn cluster_stage(
+    params: &ClusterParams,
+    batches: Receiver<Vec<PulseEvents>>,
+    to_track: SyncSender<Result<Clustered>>,
+    cancel: &AtomicBool,
+) {
+    for batch in batches {
+        if cancel.load(Ordering::Relaxed) {
+            return;
+        }
+        let clustered = cluster_pulses(&batch, params).map(|parts| {
+            batch
+                .iter()
+                .zip(parts)
+                .map(|(pe, ps)| (pe.index, pe.start_us, ps))
+                .collect()
+        });
+        drop(batch); // free the events before waiting for room
+        let failed = clustered.is_err();
+        if to_track.send(clustered).is_err() || failed {
+            return;
+        }
+    }
+}
+
+/// Link clustered batches in order until the input closes, then end all
+/// tracks; everything goes back to the caller's thread as [`Output`]s.
+fn track_stage(
+    mut linker: Linker,
+    clustered: Receiver<Result<Clustered>>,
+    to_caller: Sender<Output>,
+    cancel: &AtomicBool,
+) {
+    // A send fails only when the caller is gone: nothing left to do then.
+    let mut send = |o: Output| {
+        let _ = to_caller.send(o);
+    };
+    for batch in clustered {
+        if cancel.load(Ordering::Relaxed) {
+            return;
+        }
+        let linked = batch.and_then(|batch| {
+            batch
+                .into_iter()
+                .try_for_each(|(pulse, t_us, ps)| linker.push(pulse, t_us, ps, &mut send))
+        });
+        if let Err(e) = linked {
+            send(Output::Failed(e));
+            return;
+        }
+        let (particles, active) = linker.progress();
+        send(Output::Progress(particles, active));
+    }
+    if cancel.load(Ordering::Relaxed) {
+        return;
+    }
+    match linker.finish() {
+        Ok((rest, stats)) => {
+            send(Output::Tracks(rest));
+            send(Output::Finished(stats));
+        }
+        Err(e) => send(Output::Failed(e)),
+    }
+}
+
+/// Where a [`PtvStream`] stands.
+enum State {
+    /// No batch handed on yet: clustering and linking could still run on
+    /// the caller's thread ([`PtvStream::push_particles`]).
+    Idle(Box<(ClusterParams, Linker)>),
+    /// The stage threads run.
+    Running(Stages),
+    /// Finished or failed.
+    Stopped,
+}
+
+/// Clustering and tracking fed pulse by pulse (module docs: a pipeline of
+/// threads; the sink is called on the caller's thread, in pulse order).
 pub struct PtvStream {
-    cluster: ClusterParams,
-    linker: Linker,
+    state: State,
     batch: Vec<PulseEvents>,
-    /// The previous batch, clustered, waiting to be tracked while the
-    /// current one is clustered (two-stage pipeline).
-    clustered: Vec<(i64, f64, Vec<Particle>)>,
     batch_size: usize,
     events: u64,
+    /// Particles seen and tracks active, as last reported by the tracker.
+    progress: (u64, usize),
+    stats: Option<TrackerStats>,
 }
 
 impl PtvStream {
@@ -88,30 +347,33 @@ impl PtvStream {
     fn with_linker(cluster: ClusterParams, linker: Linker, batch_size: usize) -> Result<Self> {
         cluster.validate()?;
         if batch_size == 0 {
-            return Err(crate::Error::param("batch", "must be at least 1 pulse"));
+            return Err(Error::param("batch", "must be at least 1 pulse"));
         }
         Ok(PtvStream {
-            cluster,
-            linker,
+            state: State::Idle(Box::new((cluster, linker))),
             batch: Vec::with_capacity(batch_size),
-            clustered: Vec::new(),
             batch_size,
             events: 0,
+            progress: (0, 0),
+            stats: None,
         })
     }
 
     /// Add the events of the next pulse (pulses in increasing order).
+    /// Results of earlier pulses reach the sink here, as they come out of
+    /// the pipeline.
     pub fn push_pulse(&mut self, pulse: PulseEvents, sink: &mut dyn PtvSink) -> Result<()> {
         self.events += pulse.events.len() as u64;
         self.batch.push(pulse);
         if self.batch.len() >= self.batch_size {
-            self.flush(sink)?;
+            self.hand_on(sink)?;
         }
-        Ok(())
+        self.drain(sink, false)
     }
 
     /// Link already-detected particles of one pulse (e.g. read from a
-    /// `particles.csv`); pulses in increasing order.
+    /// `particles.csv`) on the caller's thread; pulses in increasing
+    /// order. Not after [`PtvStream::push_pulse`] started the pipeline.
     pub fn push_particles(
         &mut self,
         pulse: i64,
@@ -119,43 +381,98 @@ impl PtvStream {
         particles: &[Particle],
         sink: &mut dyn PtvSink,
     ) -> Result<()> {
+        let State::Idle(idle) = &mut self.state else {
+            return Err(Error::param(
+                "particles",
+                "a stream fed with events cannot also link particles",
+            ));
+        };
         sink.particles(pulse, t_us, particles)?;
-        let done = match &mut self.linker {
+        let done = match &mut idle.1 {
             Linker::Sequential(tracker) => tracker.push(pulse, t_us, particles)?,
             Linker::Sliced(st) => unlinked(st.push(pulse, t_us, particles.to_vec())?),
         };
+        self.progress = idle.1.progress();
         sink.take_tracks(done)
     }
 
-    /// Cluster the current batch (rayon, on a helper thread) while the
-    /// previous, already clustered batch is tracked on this thread: the
-    /// tracker is sequential, so this overlaps the two stages. Results are
-    /// the same as clustering and tracking one after the other (pulses
-    /// reach the tracker and the sink in order).
-    fn flush(&mut self, sink: &mut dyn PtvSink) -> Result<()> {
-        let batch = std::mem::take(&mut self.batch);
-        let previous = std::mem::take(&mut self.clustered);
-        let cluster = &self.cluster;
-        let linker = &mut self.linker;
-        let (parts, tracked) = std::thread::scope(|scope| {
-            let worker =
-                (!batch.is_empty()).then(|| scope.spawn(|| cluster_pulses(&batch, cluster)));
-            let tracked = track_batch(linker, previous, sink);
-            let parts = match worker {
-                Some(w) => w.join().unwrap_or_else(|e| std::panic::resume_unwind(e)),
-                None => Ok(Vec::new()),
+    /// Hand the current batch to the cluster stage (starting the stages
+    /// on the first one); waits while the stage still holds a batch.
+    fn hand_on(&mut self, sink: &mut dyn PtvSink) -> Result<()> {
+        if self.batch.is_empty() {
+            return Ok(());
+        }
+        if matches!(self.state, State::Idle(_)) {
+            let State::Idle(idle) = std::mem::replace(&mut self.state, State::Stopped) else {
+                unreachable!("checked above");
             };
-            (parts, tracked)
-        });
-        tracked?;
-        self.clustered = batch
-            .iter()
-            .zip(parts?)
-            .map(|(pe, ps)| (pe.index, pe.start_us, ps))
-            .collect();
-        self.batch = batch;
-        self.batch.clear();
+            let (cluster, linker) = *idle;
+            let threads = rayon::current_num_threads().max(1);
+            self.state = State::Running(Stages::start(cluster, linker, threads)?);
+        }
+        let State::Running(stages) = &mut self.state else {
+            return Err(Error::analysis("the tracking stream has stopped"));
+        };
+        let batch = std::mem::replace(&mut self.batch, Vec::with_capacity(self.batch_size));
+        let sent = stages
+            .to_cluster
+            .as_ref()
+            .is_some_and(|tx| tx.send(batch).is_ok());
+        if sent {
+            Ok(())
+        } else {
+            // A stage stopped: its error is in the outputs.
+            self.drain(sink, true)?;
+            Err(Error::analysis("the tracking stages stopped early"))
+        }
+    }
+
+    /// Pass the results that came out of the pipeline to the sink; with
+    /// `to_end`, wait for all of them (the input must be closed). On an
+    /// error (the stages' or the sink's) the stages are stopped.
+    fn drain(&mut self, sink: &mut dyn PtvSink, to_end: bool) -> Result<()> {
+        let State::Running(stages) = &mut self.state else {
+            return Ok(());
+        };
+        loop {
+            let out = if to_end {
+                match stages.outputs.recv() {
+                    Ok(o) => o,
+                    Err(_) => break,
+                }
+            } else {
+                match stages.outputs.try_recv() {
+                    Ok(o) => o,
+                    Err(TryRecvError::Empty | TryRecvError::Disconnected) => break,
+                }
+            };
+            let r = match out {
+                Output::Particles(pulse, t_us, ps) => sink.take_particles(pulse, t_us, ps),
+                Output::Tracks(ts) => sink.take_tracks(ts),
+                Output::Progress(particles, active) => {
+                    self.progress = (particles, active);
+                    Ok(())
+                }
+                Output::Failed(e) => Err(e),
+                Output::Finished(stats) => {
+                    self.stats = Some(stats);
+                    Ok(())
+                }
+            };
+            if let Err(e) = r {
+                self.stop();
+                return Err(e);
+            }
+        }
         Ok(())
+    }
+
+    /// Stop the stages (dropping what they still hold) and join them.
+    fn stop(&mut self) {
+        if let State::Running(mut stages) = std::mem::replace(&mut self.state, State::Stopped) {
+            stages.cancel.store(true, Ordering::Relaxed);
+            stages.join();
+        }
     }
 
     /// Events handed over so far.
@@ -163,56 +480,50 @@ impl PtvStream {
         self.events
     }
 
-    /// Particles seen and tracks active (for progress reports).
+    /// Particles seen and tracks active (for progress reports; from the
+    /// tracker stage's last report while the pipeline runs).
     pub fn progress(&self) -> (u64, usize) {
-        match &self.linker {
-            Linker::Sequential(t) => (t.stats().particles, t.active_tracks()),
-            Linker::Sliced(t) => (t.stats().particles, t.active_tracks()),
+        match &self.state {
+            State::Idle(idle) => idle.1.progress(),
+            _ => self.progress,
         }
     }
 
-    /// Cluster what is left, end all tracks, hand them to the sink.
+    /// Cluster and track what is left, end all tracks, hand everything to
+    /// the sink.
     pub fn finish(mut self, sink: &mut dyn PtvSink) -> Result<TrackerStats> {
-        self.flush(sink)?; // tracks the previous batch, clusters the last
-        self.flush(sink)?; // tracks the last
+        self.hand_on(sink)?;
+        match std::mem::replace(&mut self.state, State::Stopped) {
+            State::Idle(idle) => {
+                let (rest, stats) = idle.1.finish()?;
+                sink.take_tracks(rest)?;
+                Ok(stats)
+            }
+            State::Running(mut stages) => {
+                // Close the input; the stages end after the last batch.
+                stages.to_cluster = None;
+                self.state = State::Running(stages);
+                self.drain(sink, true)?;
+                self.stop();
+                self.stats
+                    .take()
+                    .ok_or_else(|| Error::analysis("the tracking stage ended without its result"))
+            }
+            State::Stopped => Err(Error::analysis("the tracking stream has stopped")),
+        }
+    }
+}
 
-        let (rest, stats) = match self.linker {
-            Linker::Sequential(t) => t.finish(),
-            Linker::Sliced(t) => t.finish()?,
-        };
-        sink.take_tracks(unlinked(rest))?;
-        Ok(stats)
+/// Dropped without [`PtvStream::finish`] (an error on the way): the stages
+/// drop what they hold and end.
+impl Drop for PtvStream {
+    fn drop(&mut self) {
+        self.stop();
     }
 }
 
 fn unlinked(tracks: Vec<super::LinkedTrack>) -> Vec<Track> {
     tracks.into_iter().map(|t| t.track).collect()
-}
-
-/// Feed clustered pulses to the tracker and the sink, in order (per pulse
-/// the sink gets the particles, then the tracks that ended).
-/// The sliced linker keeps the particles until their slices are tracked,
-/// so the sink gets a copy.
-fn track_batch(
-    linker: &mut Linker,
-    clustered: Vec<(i64, f64, Vec<Particle>)>,
-    sink: &mut dyn PtvSink,
-) -> Result<()> {
-    for (pulse, t_us, ps) in clustered {
-        match linker {
-            Linker::Sequential(tracker) => {
-                let done = tracker.push(pulse, t_us, &ps)?;
-                sink.take_particles(pulse, t_us, ps)?;
-                sink.take_tracks(done)?;
-            }
-            Linker::Sliced(st) => {
-                sink.particles(pulse, t_us, &ps)?;
-                let done = st.push(pulse, t_us, ps)?;
-                sink.take_tracks(unlinked(done))?;
-            }
-        }
-    }
-    Ok(())
 }
 
 /// The whole PTV stage on a recording. `open` opens the recording afresh
@@ -386,6 +697,97 @@ mod tests {
                 "{threads} threads, batch {batch}: tracks differ"
             );
         }
+    }
+
+    /// Pulses of the uniform-motion scene of
+    /// `batches_do_not_change_the_result`, `n` of them.
+    fn moving_pulses(n: i64) -> Vec<PulseEvents> {
+        (0..n)
+            .map(|k| {
+                let mut ev = EventChunk::default();
+                for (x0, y0) in [(20, 20), (60, 40), (100, 70)] {
+                    let t = k * 200 + 50;
+                    ev.push(t, x0 + 2 * k as u16, y0 + k as u16, 1);
+                }
+                PulseEvents {
+                    index: k,
+                    start_us: k as f64 * 200.0,
+                    events: ev,
+                }
+            })
+            .collect()
+    }
+
+    /// A sink that fails on the `fail_at`-th pulse of particles.
+    struct Failing {
+        seen: usize,
+        fail_at: usize,
+    }
+
+    impl PtvSink for Failing {
+        fn particles(&mut self, _: i64, _: f64, _: &[Particle]) -> Result<()> {
+            self.seen += 1;
+            if self.seen == self.fail_at {
+                return Err(Error::analysis("disk full"));
+            }
+            Ok(())
+        }
+        fn tracks(&mut self, _: &[Track]) -> Result<()> {
+            Ok(())
+        }
+    }
+
+    /// Errors of the sink, of the tracker stage (pulses out of order) and
+    /// a stream dropped half-way: each ends the pipeline's threads and
+    /// reaches the caller (the test would hang otherwise).
+    #[test]
+    fn errors_and_drops_end_the_pipeline() {
+        let pulses = moving_pulses(40);
+        let mut s = PtvStream::new(ClusterParams::default(), TrackParams::default(), 3).unwrap();
+        let mut sink = Failing {
+            seen: 0,
+            fail_at: 10,
+        };
+        let mut result = Ok(());
+        for p in pulses.iter().cloned() {
+            result = s.push_pulse(p, &mut sink);
+            if result.is_err() {
+                break;
+            }
+        }
+        let err = match result {
+            Err(e) => e,
+            Ok(()) => s.finish(&mut sink).unwrap_err(),
+        };
+        assert!(err.to_string().contains("disk full"), "{err}");
+
+        // Pulse 5 twice: the tracker refuses it.
+        let mut s = PtvStream::new(ClusterParams::default(), TrackParams::default(), 2).unwrap();
+        let mut sink = Collect::default();
+        let mut result = Ok(());
+        for p in pulses[..6].iter().chain(&pulses[5..20]).cloned() {
+            result = s.push_pulse(p, &mut sink);
+            if result.is_err() {
+                break;
+            }
+        }
+        let err = match result {
+            Err(e) => e,
+            Ok(()) => s.finish(&mut sink).unwrap_err(),
+        };
+        assert!(err.to_string().contains("pulses must increase"), "{err}");
+        assert_eq!(sink.pulses, (0..6).collect::<Vec<_>>());
+
+        let mut s = PtvStream::new(ClusterParams::default(), TrackParams::default(), 2).unwrap();
+        let mut sink = Collect::default();
+        for p in pulses.iter().cloned() {
+            s.push_pulse(p, &mut sink).unwrap();
+        }
+        drop(s);
+        // Linking particles after events is refused, not mixed in.
+        let mut s = PtvStream::new(ClusterParams::default(), TrackParams::default(), 1).unwrap();
+        s.push_pulse(pulses[0].clone(), &mut sink).unwrap();
+        assert!(s.push_particles(1, 200.0, &[], &mut sink).is_err());
     }
 
     #[test]
