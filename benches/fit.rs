@@ -2,7 +2,10 @@
 //! of a long gap-free track, by the reference ([`fit_adaptive`], sums and
 //! solves per sample) and by the tabulated grid path
 //! ([`fit_adaptive_grid`]); and the outlier pass's leave-one-out
-//! prediction, plain fit against [`LeaveOneOut`]. One thread.
+//! prediction, plain fit against [`LeaveOneOut`]. One thread. The
+//! `_prior` variants run with the curvature prior (`accel_rms` 0.1
+//! px/pulse², the tracker's default estimates one): the grid path's
+//! rank-one update and full candidate search.
 //!
 //! `cargo bench --bench fit`
 
@@ -34,6 +37,7 @@ fn bench(c: &mut Criterion) {
         order: 2,
         sigma: 0.12,
         bias_weight: 4.0,
+        accel_rms: 0.0,
     };
     let tables = GridTables::new(&rule);
     let xy: Vec<[f64; 2]> = xs.iter().zip(&ys).map(|(&x, &y)| [x, y]).collect();
@@ -51,6 +55,29 @@ fn bench(c: &mut Criterion) {
         b.iter(|| {
             (0..n)
                 .map(|j| fit_adaptive_grid(&tables, &xy, j, &rule).unwrap().0.vx)
+                .sum::<f64>()
+        })
+    });
+    let prior = WindowRule {
+        accel_rms: 0.1,
+        ..rule
+    };
+    g.bench_function("adaptive_reference_prior", |b| {
+        b.iter(|| {
+            (0..n)
+                .map(|j| {
+                    fit_adaptive(&tau, &xs, &ys, j, tau[j], &prior)
+                        .unwrap()
+                        .0
+                        .vx
+                })
+                .sum::<f64>()
+        })
+    });
+    g.bench_function("adaptive_grid_prior", |b| {
+        b.iter(|| {
+            (0..n)
+                .map(|j| fit_adaptive_grid(&tables, &xy, j, &prior).unwrap().0.vx)
                 .sum::<f64>()
         })
     });

@@ -1,6 +1,7 @@
 //! The table of BENCHMARKS.md: link scores as conditions get harder.
 //! Ignored by default (a few seconds per row):
 //! `cargo test --release --test ptv_conditions -- --ignored --nocapture`
+//! (`PTV_MIN_LENGTH`, `PTV_FIT_ACCEL` override those parameters).
 
 use ebptv::cluster::ClusterParams;
 use ebptv::track::synth::{generate, run_and_score, SynthParams};
@@ -9,6 +10,9 @@ use ebptv::track::TrackParams;
 #[test]
 #[ignore]
 fn conditions_table() {
+    // Overrides for comparisons: PTV_MIN_LENGTH, PTV_FIT_ACCEL (px/pulse²;
+    // 0 = the output fit without the curvature prior).
+    let env = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<f64>().ok());
     let rows: [(&str, f64, f64, f64); 6] = [
         ("paper-like", 0.01, 8.0, 0.01),
         ("ppp 0.005", 0.005, 8.0, 0.01),
@@ -29,9 +33,12 @@ fn conditions_table() {
             ..Default::default()
         };
         let scene = generate(&sp);
+        let d = TrackParams::default();
         let tp = TrackParams {
             max_disp: (disp * 1.25).max(10.0),
-            ..Default::default()
+            min_length: env("PTV_MIN_LENGTH").map_or(d.min_length, |v| v as usize),
+            fit_accel_rms: env("PTV_FIT_ACCEL").map_or(d.fit_accel_rms, Some),
+            ..d
         };
         let (_, s) = run_and_score(&scene, &ClusterParams::default(), &tp, sp.period_us).unwrap();
         println!(

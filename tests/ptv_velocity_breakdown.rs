@@ -22,13 +22,17 @@ fn velocity_error_by_track_position() {
     let tp = TrackParams {
         fit_window: env("PTV_FIT_WINDOW").map_or(d.fit_window, |v| v as usize),
         fit_min_window: env("PTV_FIT_MIN_WINDOW").map_or(d.fit_min_window, |v| v as usize),
+        min_length: env("PTV_MIN_LENGTH").map_or(d.min_length, |v| v as usize),
+        fit_accel_rms: env("PTV_FIT_ACCEL").map_or(d.fit_accel_rms, Some),
         ..d
     };
     let mut tracker = Tracker::new(tp).unwrap();
     let (mut det_truth, mut tracks, mut truth) = (Vec::new(), Vec::new(), HashMap::new());
+    let mut all_parts = Vec::new();
     for s in &scene {
         let (parts, ids) = cluster_with_truth(s, &ClusterParams::default());
         det_truth.extend(ids);
+        all_parts.extend(parts.iter().copied());
         tracks.extend(
             tracker
                 .push_linked(s.pulse.index, s.pulse.start_us, &parts)
@@ -38,9 +42,44 @@ fn velocity_error_by_track_position() {
             truth.insert((t.pulse, t.particle_id), (t.u, t.v));
         }
     }
-    println!("sigma {:.3}", tracker.position_sigma());
+    println!(
+        "sigma {:.3}, prior acceleration {:.4} px/pulse²",
+        tracker.position_sigma(),
+        tracker.fit_accel_rms()
+    );
     tracks.extend(tracker.finish().0);
     let k = sp.period_us * 1e-6;
+    // Optional dump for prototyping fits elsewhere: one row per output
+    // point (detections with their centroid, event count and truth).
+    if let Ok(path) = std::env::var("PTV_DUMP") {
+        use std::fmt::Write as _;
+        let mut out = String::from("track,pulse,det,x,y,n_events,truth,tu,tv,u,v\n");
+        for (ti, t) in tracks.iter().enumerate() {
+            for (pt, d) in t.track.points.iter().zip(&t.detections) {
+                let (x, y, n, id) = match d {
+                    Some(s) => {
+                        let p = &all_parts[*s as usize];
+                        (p.x, p.y, p.n_events, det_truth[*s as usize])
+                    }
+                    None => (f64::NAN, f64::NAN, 0, None),
+                };
+                let (tu, tv) = id
+                    .and_then(|id| truth.get(&(pt.pulse, id)))
+                    .map_or((f64::NAN, f64::NAN), |&(u, v)| (u * k, v * k));
+                writeln!(
+                    out,
+                    "{ti},{},{},{x},{y},{n},{},{tu},{tv},{},{}",
+                    pt.pulse,
+                    d.is_some() as u8,
+                    id.map_or(-1, |i| i as i64),
+                    pt.u * k,
+                    pt.v * k
+                )
+                .unwrap();
+            }
+        }
+        std::fs::write(path, out).unwrap();
+    }
     let mut by_end: BTreeMap<usize, (f64, usize)> = BTreeMap::new();
     let mut by_len: BTreeMap<usize, (f64, usize)> = BTreeMap::new();
     let mut clean = (0.0, 0usize);

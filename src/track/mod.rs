@@ -220,6 +220,12 @@ pub struct TrackParams {
     pub fit_bias_weight: f64,
     /// Polynomial order of the output fit (≤ 2).
     pub fit_order: usize,
+    /// Prior rms acceleration per axis (px/pulse²) of the output fit's
+    /// quadratics ([`fit::WindowRule::accel_rms`]): `None` (default)
+    /// estimates it from the tracks kept so far ([`fit::AccelPrior`]),
+    /// `Some(0.0)` fits without a prior.
+    #[serde(default)]
+    pub fit_accel_rms: Option<f64>,
     /// Fewest detections of a kept track.
     pub min_length: usize,
     /// Largest rms residual (px per axis) of a kept track's fit.
@@ -332,6 +338,7 @@ impl Default for TrackParams {
             fit_min_window: default_fit_min_window(),
             fit_bias_weight: default_fit_bias_weight(),
             fit_order: 2,
+            fit_accel_rms: None,
             min_length: 5,
             max_fit_residual: 1.5,
             stitch_gap: 3,
@@ -423,6 +430,14 @@ impl TrackParams {
                 return Err(Error::param(
                     name,
                     format!("must be a positive finite number, got {v}"),
+                ));
+            }
+        }
+        if let Some(a) = self.fit_accel_rms {
+            if !(a.is_finite() && a >= 0.0) {
+                return Err(Error::param(
+                    "fit_accel_rms",
+                    format!("must be a finite number >= 0, got {a}"),
                 ));
             }
         }
@@ -630,6 +645,8 @@ pub struct Tracker {
     weights: Vec<PredictWeights>,
     /// Index in `weights` of the last used entry.
     weights_hint: usize,
+    /// The output fit's curvature prior, from the tracks kept so far.
+    accel_prior: fit::AccelPrior,
     /// Reused buffers of [`Tracker::extend_active`] and
     /// [`Tracker::initialise`] (no allocation per pulse in steady state).
     scratch: Scratch,
@@ -718,6 +735,7 @@ impl Tracker {
             stats: TrackerStats::default(),
             weights: Vec::new(),
             weights_hint: 0,
+            accel_prior: fit::AccelPrior::default(),
             scratch: Scratch::default(),
         })
     }
@@ -967,6 +985,15 @@ impl Tracker {
             .sqrt()
             .min(self.params.sigma_ceiling)
             .max(self.params.sigma_floor)
+    }
+
+    /// The output fit's prior rms acceleration per axis (px/pulse²) for
+    /// the next tracks: `fit_accel_rms` if set, else the estimate from the
+    /// tracks kept so far (0 until there are enough).
+    pub fn fit_accel_rms(&self) -> f64 {
+        self.params
+            .fit_accel_rms
+            .unwrap_or_else(|| self.accel_prior.accel_rms(self.position_sigma()))
     }
 
     /// Predicted position, search radius and fit leverage of a track at
@@ -1774,16 +1801,21 @@ impl Tracker {
         let sigma = self.position_sigma();
         let gate = self.params.outlier_sigma * sigma;
         let params = &self.params;
+        // The prior as of the tracks kept before this call: the same for
+        // every track of the call, whatever the thread count.
+        let accel = params
+            .fit_accel_rms
+            .unwrap_or_else(|| self.accel_prior.accel_rms(sigma));
         let fitted: Vec<Finalised> = if ended.len() >= 2 {
             ended
                 .into_par_iter()
                 .with_max_len(1)
-                .map(|t| finalise_one(t, params, gate, sigma))
+                .map(|t| finalise_one(t, params, gate, sigma, accel))
                 .collect()
         } else {
             ended
                 .into_iter()
-                .map(|t| finalise_one(t, params, gate, sigma))
+                .map(|t| finalise_one(t, params, gate, sigma, accel))
                 .collect()
         };
         let mut out = Vec::new();
@@ -1796,7 +1828,9 @@ impl Tracker {
                     points,
                     detections,
                     fresh,
+                    curvature,
                 } => {
+                    self.accel_prior.merge(&curvature);
                     self.stats.tracks_kept += 1;
                     self.stats.particles_on_tracks += fresh as u64;
                     out.push(LinkedTrack {
@@ -1990,18 +2024,26 @@ enum Finalised {
     Short,
     /// Fit residual above `max_fit_residual`.
     Rough,
-    /// Kept, with `fresh` detections not handed out before.
+    /// Kept, with `fresh` detections not handed out before, and their
+    /// curvature samples for the output fit's prior.
     Kept {
         points: Vec<TrackPoint>,
         detections: Vec<Option<u64>>,
         fresh: usize,
+        curvature: fit::AccelPrior,
     },
 }
 
 /// Clean (outliers, unconfirmed tail), validate and fit one ended track;
 /// `gate` is the outlier gate in px. Pure: the numbering and the counters
 /// are [`Tracker::finalise`]'s.
-fn finalise_one(mut t: ActiveTrack, params: &TrackParams, gate: f64, sigma: f64) -> Finalised {
+fn finalise_one(
+    mut t: ActiveTrack,
+    params: &TrackParams,
+    gate: f64,
+    sigma: f64,
+    accel_rms: f64,
+) -> Finalised {
     // Points up to this pulse went out with an earlier segment.
     let handed_out = (t.context > 0).then(|| t.dets[t.context - 1].pulse);
     if params.outlier_sigma > 0.0 {
@@ -2018,9 +2060,16 @@ fn finalise_one(mut t: ActiveTrack, params: &TrackParams, gate: f64, sigma: f64)
     if handed_out.is_none() && t.dets.len() < params.min_length {
         return Finalised::Short;
     }
-    let (mut points, mut detections, rms) = fit_track(&t.dets, params, sigma);
+    let (mut points, mut detections, rms) = fit_track(&t.dets, params, sigma, accel_rms);
     if rms > params.max_fit_residual {
         return Finalised::Rough;
+    }
+    let mut curvature = fit::AccelPrior::default();
+    {
+        let new = &t.dets[t.dets.len() - fresh..];
+        let pulses: Vec<i64> = new.iter().map(|d| d.pulse).collect();
+        let xy: Vec<[f64; 2]> = new.iter().map(|d| [d.x, d.y]).collect();
+        curvature.add_track(&pulses, &xy);
     }
     if let Some(h) = handed_out {
         let first = points
@@ -2034,6 +2083,7 @@ fn finalise_one(mut t: ActiveTrack, params: &TrackParams, gate: f64, sigma: f64)
         points,
         detections,
         fresh,
+        curvature,
     }
 }
 
@@ -2141,8 +2191,9 @@ fn fit_track(
     dets: &[Det],
     p: &TrackParams,
     sigma: f64,
+    accel_rms: f64,
 ) -> (Vec<TrackPoint>, Vec<Option<u64>>, f64) {
-    fit_track_with(dets, p, sigma, true, &mut 0)
+    fit_track_with(dets, p, sigma, accel_rms, true, &mut 0)
 }
 
 /// [`fit_track`]; `grid` takes [`fit::fit_adaptive_grid`] (tabulated
@@ -2153,6 +2204,7 @@ fn fit_track_with(
     dets: &[Det],
     p: &TrackParams,
     sigma: f64,
+    accel_rms: f64,
     grid: bool,
     grid_fits: &mut usize,
 ) -> (Vec<TrackPoint>, Vec<Option<u64>>, f64) {
@@ -2177,6 +2229,8 @@ fn fit_track_with(
         order: p.fit_order,
         sigma,
         bias_weight: p.fit_bias_weight,
+        // px/pulse² to px/τ² (τ in mean periods: the same on the grid).
+        accel_rms,
     };
     // The tabulated fit needs τ = pulse offset: `run_start[i]` is the
     // first detection of the gap-free, regularly timed run holding i.
@@ -2679,8 +2733,10 @@ mod tests {
             }
             let sigma = 0.2;
             let mut grid_fits = 0;
-            let (fp, fs, frms) = fit_track_with(&dets, &params, sigma, true, &mut grid_fits);
-            let (rp, rs, rrms) = fit_track_with(&dets, &params, sigma, false, &mut 0);
+            // Half the cases with the curvature prior.
+            let accel = [0.0, 0.0, 0.08, 0.3][(case / 2) % 4];
+            let (fp, fs, frms) = fit_track_with(&dets, &params, sigma, accel, true, &mut grid_fits);
+            let (rp, rs, rrms) = fit_track_with(&dets, &params, sigma, accel, false, &mut 0);
             // On the grid the tabulated path takes every detection whose
             // pilot window has no gap; jittered times never.
             if jitter > 0.0 {
