@@ -45,6 +45,12 @@ pub struct TrackArgs {
     /// `TrackParams::split_merged`.
     #[arg(long)]
     pub split_merged: bool,
+    /// Typical particle acceleration (px/pulse², rms) of the output fit's
+    /// curvature prior; 0 = no prior (the fit of sessions before 6); unset
+    /// = estimated from the tracks kept so far. See
+    /// `TrackParams::fit_accel_rms`.
+    #[arg(long)]
+    pub fit_accel_rms: Option<f64>,
     /// Nominal pulse frequency (Hz) when pulse times are estimated from the
     /// events (no trigger channel).
     #[arg(long)]
@@ -419,6 +425,7 @@ fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
         min_length: args.min_length,
         max_gap: args.gap,
         split_merged: args.split_merged,
+        fit_accel_rms: args.fit_accel_rms,
         ..Default::default()
     };
     if let Some(p) = &args.prior {
