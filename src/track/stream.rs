@@ -764,44 +764,43 @@ mod tests {
         }
     }
 
+    /// Pushes pulses until one is refused, else finishes: the error the
+    /// stream must report.
+    fn feed_until_error(
+        mut s: PtvStream,
+        pulses: impl Iterator<Item = PulseEvents>,
+        sink: &mut impl PtvSink,
+    ) -> Error {
+        for p in pulses {
+            if let Err(e) = s.push_pulse(p, sink) {
+                return e;
+            }
+        }
+        s.finish(sink).unwrap_err()
+    }
+
     /// Errors of the sink, of the tracker stage (pulses out of order) and
     /// a stream dropped half-way: each ends the pipeline's threads and
     /// reaches the caller (the test would hang otherwise).
     #[test]
     fn errors_and_drops_end_the_pipeline() {
         let pulses = moving_pulses(40);
-        let mut s = PtvStream::new(ClusterParams::default(), TrackParams::default(), 3).unwrap();
+        let s = PtvStream::new(ClusterParams::default(), TrackParams::default(), 3).unwrap();
         let mut sink = Failing {
             seen: 0,
             fail_at: 10,
         };
-        let mut result = Ok(());
-        for p in pulses.iter().cloned() {
-            result = s.push_pulse(p, &mut sink);
-            if result.is_err() {
-                break;
-            }
-        }
-        let err = match result {
-            Err(e) => e,
-            Ok(()) => s.finish(&mut sink).unwrap_err(),
-        };
+        let err = feed_until_error(s, pulses.iter().cloned(), &mut sink);
         assert!(err.to_string().contains("disk full"), "{err}");
 
         // Pulse 5 twice: the tracker refuses it.
-        let mut s = PtvStream::new(ClusterParams::default(), TrackParams::default(), 2).unwrap();
+        let s = PtvStream::new(ClusterParams::default(), TrackParams::default(), 2).unwrap();
         let mut sink = Collect::default();
-        let mut result = Ok(());
-        for p in pulses[..6].iter().chain(&pulses[5..20]).cloned() {
-            result = s.push_pulse(p, &mut sink);
-            if result.is_err() {
-                break;
-            }
-        }
-        let err = match result {
-            Err(e) => e,
-            Ok(()) => s.finish(&mut sink).unwrap_err(),
-        };
+        let err = feed_until_error(
+            s,
+            pulses[..6].iter().chain(&pulses[5..20]).cloned(),
+            &mut sink,
+        );
         assert!(err.to_string().contains("pulses must increase"), "{err}");
         assert_eq!(sink.pulses, (0..6).collect::<Vec<_>>());
 
