@@ -144,18 +144,6 @@ fn breakdown_of_link_errors() {
             let (ta, tb) = (run.det_truth[a], run.det_truth[b]);
             let (pa, pb) = (prev(a), prev(b));
             let good = ta != tb && pa.is_some() && pa == ta && pb.is_some() && pb == tb;
-            let key = format!(
-                "{} events {}",
-                if good {
-                    "good"
-                } else if ta == tb {
-                    "one particle"
-                } else {
-                    "other"
-                },
-                run.det_sources.len() // placeholder replaced below
-            );
-            let _ = key;
             let ev = |d: usize| -> u32 { run.det_events[d] };
             let key = format!(
                 "{} events {}+{}",
