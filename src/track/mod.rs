@@ -633,7 +633,6 @@ pub struct Tracker {
     /// Keep a [`SplitDetection`] of every split part (for scoring).
     record_splits: bool,
     splits: Vec<SplitDetection>,
-    next_id: u64,
     next_uid: u64,
     /// Sum and count of squared normalised innovations (px², per axis),
     /// seeded with `sigma_floor` as a prior worth a few dozen links.
@@ -645,8 +644,12 @@ pub struct Tracker {
     weights: Vec<PredictWeights>,
     /// Index in `weights` of the last used entry.
     weights_hint: usize,
-    /// The output fit's curvature prior, from the tracks kept so far.
-    accel_prior: fit::AccelPrior,
+    /// Fits, validates and numbers ended tracks (the output fit's
+    /// curvature prior and the track ids live there).
+    finaliser: Finaliser,
+    /// Ended tracks waiting for [`Tracker::take_ended`] instead of being
+    /// fitted here ([`Tracker::defer_fits`]).
+    deferred: Option<Vec<EndedTracks>>,
     /// Reused buffers of [`Tracker::extend_active`] and
     /// [`Tracker::initialise`] (no allocation per pulse in steady state).
     scratch: Scratch,
@@ -718,7 +721,7 @@ impl Tracker {
         params.validate()?;
         let floor2 = params.sigma_floor.powi(2);
         Ok(Tracker {
-            params,
+            params: params.clone(),
             active: Vec::new(),
             frames: VecDeque::new(),
             back_frames: VecDeque::new(),
@@ -727,7 +730,6 @@ impl Tracker {
             next_split: 0,
             record_splits: false,
             splits: Vec::new(),
-            next_id: 0,
             next_uid: 0,
             innov_sum: floor2 * 30.0,
             innov_n: 30.0,
@@ -735,7 +737,8 @@ impl Tracker {
             stats: TrackerStats::default(),
             weights: Vec::new(),
             weights_hint: 0,
-            accel_prior: fit::AccelPrior::default(),
+            finaliser: Finaliser::new(params.clone()),
+            deferred: None,
             scratch: Scratch::default(),
         })
     }
@@ -993,7 +996,43 @@ impl Tracker {
     pub fn fit_accel_rms(&self) -> f64 {
         self.params
             .fit_accel_rms
-            .unwrap_or_else(|| self.accel_prior.accel_rms(self.position_sigma()))
+            .unwrap_or_else(|| self.finaliser.accel_prior.accel_rms(self.position_sigma()))
+    }
+
+    /// From now on, tracks that end are not fitted on this thread: they
+    /// wait, unfitted, for [`Tracker::take_ended`] (and `push*` return no
+    /// tracks), and the returned [`Finaliser`] — the fits' state so far:
+    /// curvature prior, track numbering — fits them elsewhere, in the
+    /// order they are taken. Outputs are those of the synchronous path
+    /// (`stream::parallel_stream_equals_sequential_tracking`); only the
+    /// counters of the fits (`tracks_kept`, `tracks_rejected_*`,
+    /// `particles_on_tracks`) are then the finaliser's, not
+    /// [`Tracker::stats`]'s.
+    pub fn defer_fits(&mut self) -> Finaliser {
+        self.deferred.get_or_insert_with(Vec::new);
+        std::mem::replace(&mut self.finaliser, Finaliser::new(self.params.clone()))
+    }
+
+    /// The ended tracks waiting since the last call (after
+    /// [`Tracker::defer_fits`]), one entry per batch the tracker would
+    /// have fitted at once, in order.
+    pub fn take_ended(&mut self) -> Vec<EndedTracks> {
+        self.deferred
+            .as_mut()
+            .map(std::mem::take)
+            .unwrap_or_default()
+    }
+
+    /// [`Tracker::finish`] for a tracker that defers its fits (after
+    /// [`Tracker::defer_fits`]): end every track and return all that wait
+    /// unfitted.
+    pub fn finish_unfitted(mut self) -> (Vec<EndedTracks>, TrackerStats) {
+        self.deferred.get_or_insert_with(Vec::new);
+        let mut all = std::mem::take(&mut self.pool);
+        all.append(&mut self.active);
+        all.sort_unstable_by_key(|t| t.dets[0].serial);
+        self.finalise(all);
+        (self.take_ended(), self.stats)
     }
 
     /// Predicted position, search radius and fit leverage of a track at
@@ -1790,19 +1829,86 @@ impl Tracker {
         chains.into_iter().flatten().collect()
     }
 
-    /// Fit, validate and number the given ended tracks. The fit of each
-    /// track depends only on its detections, the parameters and the outlier
-    /// gate (fixed for the call), so the tracks are fitted in parallel
-    /// (rayon; ~⅓ of the CPU time of a full-frame run) and counted and
-    /// numbered afterwards in input order: the result does not depend on
-    /// the thread count.
+    /// Fit, validate and number the given ended tracks — here, or, after
+    /// [`Tracker::defer_fits`], later by the [`Finaliser`] (with the
+    /// outlier gate and noise of this moment either way).
     fn finalise(&mut self, ended: Vec<ActiveTrack>) -> Vec<LinkedTrack> {
-        use rayon::prelude::*;
         let sigma = self.position_sigma();
-        let gate = self.params.outlier_sigma * sigma;
+        let ended = EndedTracks {
+            tracks: ended,
+            sigma,
+            gate: self.params.outlier_sigma * sigma,
+        };
+        match &mut self.deferred {
+            Some(queue) => {
+                if !ended.tracks.is_empty() {
+                    queue.push(ended);
+                }
+                Vec::new()
+            }
+            None => self.finaliser.finalise(ended, &mut self.stats),
+        }
+    }
+}
+
+/// Tracks that ended together (one call of the tracker's fits), not yet
+/// fitted: their detections and the position noise and outlier gate of
+/// the moment they ended. [`Finaliser::finalise`] turns them into tracks.
+pub struct EndedTracks {
+    tracks: Vec<ActiveTrack>,
+    sigma: f64,
+    gate: f64,
+}
+
+impl EndedTracks {
+    /// Number of ended tracks (kept or not).
+    pub fn len(&self) -> usize {
+        self.tracks.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.tracks.is_empty()
+    }
+}
+
+/// The output fits' sequential state: the curvature prior estimated from
+/// the tracks kept so far ([`fit::AccelPrior`]) and the next track id.
+/// Batches of [`EndedTracks`] must be finalised in the order they ended:
+/// each batch's fits use the prior of the batches before it (and run in
+/// parallel among themselves), its tracks are numbered after them.
+pub struct Finaliser {
+    params: TrackParams,
+    accel_prior: fit::AccelPrior,
+    next_id: u64,
+}
+
+impl Finaliser {
+    fn new(params: TrackParams) -> Self {
+        Finaliser {
+            params,
+            accel_prior: fit::AccelPrior::default(),
+            next_id: 0,
+        }
+    }
+
+    /// Fit, validate and number one batch of ended tracks; the fits'
+    /// counters (`tracks_kept`, `tracks_rejected_*`,
+    /// `particles_on_tracks`) are added to `stats`. The fit of each
+    /// track depends only on its detections, the parameters, the noise
+    /// and gate of the batch and the prior (fixed for the batch), so the
+    /// tracks are fitted in parallel (rayon, in the caller's pool) and
+    /// counted and numbered afterwards in input order: the result does
+    /// not depend on the thread count.
+    pub fn finalise(&mut self, ended: EndedTracks, stats: &mut TrackerStats) -> Vec<LinkedTrack> {
+        use rayon::prelude::*;
+        let EndedTracks {
+            tracks: ended,
+            sigma,
+            gate,
+        } = ended;
         let params = &self.params;
-        // The prior as of the tracks kept before this call: the same for
-        // every track of the call, whatever the thread count.
+        // The prior as of the tracks kept before this batch: the same for
+        // every track of the batch, whatever the thread count.
         let accel = params
             .fit_accel_rms
             .unwrap_or_else(|| self.accel_prior.accel_rms(sigma));
@@ -1822,8 +1928,8 @@ impl Tracker {
         for f in fitted {
             match f {
                 Finalised::NothingNew => {}
-                Finalised::Short => self.stats.tracks_rejected_short += 1,
-                Finalised::Rough => self.stats.tracks_rejected_rough += 1,
+                Finalised::Short => stats.tracks_rejected_short += 1,
+                Finalised::Rough => stats.tracks_rejected_rough += 1,
                 Finalised::Kept {
                     points,
                     detections,
@@ -1831,8 +1937,8 @@ impl Tracker {
                     curvature,
                 } => {
                     self.accel_prior.merge(&curvature);
-                    self.stats.tracks_kept += 1;
-                    self.stats.particles_on_tracks += fresh as u64;
+                    stats.tracks_kept += 1;
+                    stats.particles_on_tracks += fresh as u64;
                     out.push(LinkedTrack {
                         track: Track {
                             id: self.next_id,

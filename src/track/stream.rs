@@ -9,37 +9,47 @@
 //! does with them (write CSV, bin onto a grid, score against truth) is the
 //! caller's business.
 //!
-//! **A pipeline of three stages** keeps every core busy:
+//! **A pipeline of four stages** keeps every core busy:
 //!
 //! ```text
-//! caller's thread            cluster stage             tracker stage
-//! decode + split ──batch──▶ cluster (rayon pool) ──▶ link + output fits
-//!   ▲ (bounded, 1)            (bounded, 1)          (fits: global pool)
-//!   └──────────── particles, ended tracks, progress ◀───────┘
+//! caller's thread          cluster stage            tracker stage     fit stage
+//! decode + split ──batch─▶ cluster (rayon pool) ──▶ link ──ended────▶ output fits
+//!   ▲ (bounded, 1)          (bounded, 1)              (bounded, 1)     (global pool)
+//!   └──────────── particles, fitted tracks, progress ◀──────────────────────┘
 //!   sink calls (in pulse order)
 //! ```
 //!
-//! Each stage runs on its own thread; the two channels between them hold
-//! at most one batch each, so a slow stage holds the earlier ones back
+//! Each stage runs on its own thread; the channels between them hold at
+//! most one batch each, so a slow stage holds the earlier ones back
 //! instead of filling memory. The results flow back to the caller's
 //! thread, which calls the sink — the sink need not be `Send`, and its
 //! calls come in exactly the order of the sequential loop (per pulse the
 //! particles, then the tracks that ended), only later. That channel is
 //! drained at every [`PtvStream::push_pulse`]; it can only hold what the
-//! two bounded stages passed on while the caller waited for room, so it
-//! stays bounded too.
+//! bounded stages passed on while the caller waited for room, so it stays
+//! bounded too.
+//!
+//! **The output fits have a stage of their own** (session 7): linking is
+//! the longest serial chain of the run, and while the tracker waited for
+//! the fits of each batch of ended tracks it stood still. The tracker now
+//! hands its ended tracks over unfitted ([`Tracker::defer_fits`]), with
+//! the position noise and outlier gate of the moment they ended; the fit
+//! stage fits them batch by batch, in the order they ended, with the
+//! [`Finaliser`] the tracker would have used — the curvature prior of the
+//! tracks kept before each batch, the same numbering — so the result is
+//! the synchronous tracker's, bit for bit. Only the batches follow one
+//! another; the tracks of a batch are fitted in parallel, as before.
 //!
 //! The clustering runs in a rayon pool of its own (as many threads as the
-//! caller's pool), the tracker's output fits in the global pool: in one
-//! shared pool the fits — which the tracker waits for — queued behind a
-//! whole batch of clustering jobs, and the linking thread, the longest
-//! serial chain of the run, stood still. (Run from inside a rayon pool,
-//! the tracker gets a pool of its own too and runs inside it, so that its
-//! fits never wait for workers that may be blocked feeding the stream.)
-//! Neither the batch size nor any thread count changes a result:
-//! clustering is per pulse, the tracker sees the pulses in order, and its
-//! fits are numbered in order (`parallel_stream_equals_sequential_tracking`
-//! checks 1–3 threads).
+//! caller's pool), the output fits in the global pool: in one shared pool
+//! the fits queued behind a whole batch of clustering jobs. (Run from
+//! inside a rayon pool, the tracker and fit stages get pools of their own
+//! too, so that their work never waits for workers that may be blocked
+//! feeding the stream.) Neither the batch size nor any thread count
+//! changes a result: clustering is per pulse, the tracker sees the pulses
+//! in order, and its fits are numbered in order
+//! (`parallel_stream_equals_sequential_tracking` checks 1–4 threads and
+//! the global pool).
 //!
 //! Two passes over the file instead of one because pulse timing (the
 //! period fitted over the whole recording) must be known before the first
@@ -59,7 +69,7 @@ use crate::io::EventSource;
 use crate::pulses::{self, PulseEvents, PulseOptions, PulseReport};
 
 use super::slice::{SliceParams, SliceTracker};
-use super::{Track, TrackParams, Tracker, TrackerStats};
+use super::{EndedTracks, Finaliser, Track, TrackParams, Tracker, TrackerStats};
 
 /// The linking stage of a [`PtvStream`].
 enum Linker {
@@ -97,12 +107,19 @@ impl Linker {
     ) -> Result<()> {
         match self {
             Linker::Sequential(tracker) => {
+                // The tracker defers its fits (`Stages::start`): `done` is
+                // empty, the ended tracks wait in `take_ended`.
                 let done = match &px {
                     Some(px) => tracker.push_with_pixels(pulse, t_us, &ps, px)?,
                     None => tracker.push(pulse, t_us, &ps)?,
                 };
                 out(Output::Particles(pulse, t_us, ps));
-                out(Output::Tracks(done));
+                if !done.is_empty() {
+                    out(Output::Tracks(done));
+                }
+                for ended in tracker.take_ended() {
+                    out(Output::Ended(ended));
+                }
             }
             Linker::Sliced(st) => {
                 // It keeps the particles until their slices are tracked.
@@ -112,6 +129,25 @@ impl Linker {
             }
         }
         Ok(())
+    }
+
+    /// End all tracks (in the pipeline: the sequential tracker's
+    /// unfitted, as [`Output::Ended`]).
+    fn finish_into(self, out: &mut dyn FnMut(Output)) -> Result<TrackerStats> {
+        match self {
+            Linker::Sequential(t) => {
+                let (ended, stats) = t.finish_unfitted();
+                for e in ended {
+                    out(Output::Ended(e));
+                }
+                Ok(stats)
+            }
+            Linker::Sliced(t) => {
+                let (rest, stats) = t.finish()?;
+                out(Output::Tracks(unlinked(rest)));
+                Ok(stats)
+            }
+        }
     }
 
     /// End all tracks.
@@ -144,10 +180,14 @@ pub trait PtvSink {
     }
 }
 
-/// What the tracker stage sends back to the caller's thread.
+/// What the tracker stage sends on to the fit stage, and the fit stage
+/// back to the caller's thread.
 enum Output {
     Particles(i64, f64, Vec<Particle>),
     Tracks(Vec<Track>),
+    /// Tracks that ended together, still to be fitted (tracker → fit
+    /// stage only).
+    Ended(EndedTracks),
     /// Particles seen and tracks active after a batch.
     Progress(u64, usize),
     /// The stage stopped on this error.
@@ -173,9 +213,9 @@ struct Stages {
 }
 
 impl Stages {
-    /// Start the cluster and tracker threads, each with a rayon pool of
-    /// `threads` threads.
-    fn start(cluster: ClusterParams, linker: Linker, threads: usize) -> Result<Self> {
+    /// Start the cluster, tracker and fit threads; the clustering gets
+    /// a rayon pool of `threads` threads.
+    fn start(cluster: ClusterParams, mut linker: Linker, threads: usize) -> Result<Self> {
         let pool = |name: &'static str| {
             rayon::ThreadPoolBuilder::new()
                 .num_threads(threads)
@@ -184,8 +224,15 @@ impl Stages {
                 .map_err(|e| Error::analysis(format!("starting the {name} threads: {e}")))
         };
         let cluster_pool = pool("cluster")?;
+        // The sequential tracker hands its ended tracks over unfitted; the
+        // fit stage continues its fits' state (prior, numbering).
+        let finaliser = match &mut linker {
+            Linker::Sequential(t) => Some(t.defer_fits()),
+            Linker::Sliced(_) => None,
+        };
         let (to_cluster, batches) = mpsc::sync_channel::<Vec<PulseEvents>>(1);
         let (to_track, clustered) = mpsc::sync_channel::<Result<Clustered>>(1);
+        let (to_fit, linked) = mpsc::sync_channel::<Vec<Output>>(1);
         let (to_caller, outputs) = mpsc::channel::<Output>();
         let cancel = Arc::new(AtomicBool::new(false));
         let spawn = |name: &str, f: Box<dyn FnOnce() + Send>| {
@@ -203,32 +250,43 @@ impl Stages {
                     .install(|| cluster_stage(&cluster, with_pixels, batches, to_track, &stop))
             }),
         )?;
-        // The tracker's fits go to the global pool — unless the stream
-        // is driven from inside a rayon pool: the caller's thread may then
-        // be one of the global workers, blocked on a channel, and the fits
-        // must not depend on them (the tracker then runs inside a pool of
-        // its own and takes part in its fits).
-        let track_pool = match rayon::current_thread_index() {
-            Some(_) => Some(pool("track")?),
-            None => None,
-        };
-        let stop = cancel.clone();
-        let tracker = spawn(
-            "ebptv-track",
-            Box::new(move || match track_pool {
-                Some(p) => p.install(|| track_stage(linker, clustered, to_caller, &stop)),
-                None => track_stage(linker, clustered, to_caller, &stop),
-            }),
-        );
         let mut stages = Stages {
             to_cluster: Some(to_cluster),
             outputs,
             cancel,
             threads: vec![clusterer],
         };
-        // On failure `stages` drops: the cluster thread sees its input
-        // closed and ends.
-        stages.threads.push(tracker?);
+        // On a failure below `stages` drops: the threads started see their
+        // input (or output) closed and end.
+        // The tracker's and the fits' parallel work (the sliced linker's
+        // slices, the output fits) goes to the global pool — unless the
+        // stream is driven from inside a rayon pool: the caller's thread
+        // may then be one of the global workers, blocked on a channel, and
+        // the work must not depend on them (each stage then runs inside a
+        // pool of its own and takes part in its work).
+        let own_pools = rayon::current_thread_index().is_some();
+        let track_pool = if own_pools {
+            Some(pool("track")?)
+        } else {
+            None
+        };
+        let fit_pool = if own_pools { Some(pool("fit")?) } else { None };
+        let stop = stages.cancel.clone();
+        stages.threads.push(spawn(
+            "ebptv-track",
+            Box::new(move || match track_pool {
+                Some(p) => p.install(|| track_stage(linker, clustered, to_fit, &stop)),
+                None => track_stage(linker, clustered, to_fit, &stop),
+            }),
+        )?);
+        let stop = stages.cancel.clone();
+        stages.threads.push(spawn(
+            "ebptv-fit",
+            Box::new(move || match fit_pool {
+                Some(p) => p.install(|| fit_stage(finaliser, linked, to_caller, &stop)),
+                None => fit_stage(finaliser, linked, to_caller, &stop),
+            }),
+        )?);
         Ok(stages)
     }
 
@@ -289,42 +347,91 @@ fn cluster_stage(
 }
 
 /// Link clustered batches in order until the input closes, then end all
-/// tracks; everything goes back to the caller's thread as [`Output`]s.
+/// tracks; everything goes on to the fit stage as [`Output`]s, one batch
+/// at a time.
 fn track_stage(
     mut linker: Linker,
     clustered: Receiver<Result<Clustered>>,
-    to_caller: Sender<Output>,
+    to_fit: SyncSender<Vec<Output>>,
     cancel: &AtomicBool,
 ) {
-    // A send fails only when the caller is gone: nothing left to do then.
-    let mut send = |o: Output| {
-        let _ = to_caller.send(o);
-    };
+    // A send fails only when the fit stage is gone: nothing left to do then.
     for batch in clustered {
         if cancel.load(Ordering::Relaxed) {
             return;
         }
+        let mut outs = Vec::new();
         let linked = batch.and_then(|batch| {
-            batch
-                .into_iter()
-                .try_for_each(|(pulse, t_us, ps, px)| linker.push(pulse, t_us, ps, px, &mut send))
+            batch.into_iter().try_for_each(|(pulse, t_us, ps, px)| {
+                linker.push(pulse, t_us, ps, px, &mut |o| outs.push(o))
+            })
         });
-        if let Err(e) = linked {
-            send(Output::Failed(e));
+        let failed = match linked {
+            Ok(()) => {
+                let (particles, active) = linker.progress();
+                outs.push(Output::Progress(particles, active));
+                false
+            }
+            Err(e) => {
+                outs.push(Output::Failed(e));
+                true
+            }
+        };
+        if to_fit.send(outs).is_err() || failed {
             return;
         }
-        let (particles, active) = linker.progress();
-        send(Output::Progress(particles, active));
     }
     if cancel.load(Ordering::Relaxed) {
         return;
     }
-    match linker.finish() {
-        Ok((rest, stats)) => {
-            send(Output::Tracks(rest));
-            send(Output::Finished(stats));
+    let mut outs = Vec::new();
+    match linker.finish_into(&mut |o| outs.push(o)) {
+        Ok(stats) => outs.push(Output::Finished(stats)),
+        Err(e) => outs.push(Output::Failed(e)),
+    }
+    let _ = to_fit.send(outs);
+}
+
+/// Fit the sequential tracker's ended tracks ([`Output::Ended`]) in the
+/// order they ended, each batch in parallel (rayon, the pool this runs
+/// in), and pass everything on to the caller's thread in order. Off the
+/// tracker's thread, the fits no longer hold the linking up; the result
+/// is the synchronous tracker's: the same batches, fitted with the same
+/// prior, numbered in the same order.
+fn fit_stage(
+    mut finaliser: Option<Finaliser>,
+    linked: Receiver<Vec<Output>>,
+    to_caller: Sender<Output>,
+    cancel: &AtomicBool,
+) {
+    // The fits' counters, added to the tracker's at the end.
+    let mut fit_stats = TrackerStats::default();
+    for outs in linked {
+        for o in outs {
+            if cancel.load(Ordering::Relaxed) {
+                return;
+            }
+            let o = match o {
+                Output::Ended(ended) => match &mut finaliser {
+                    Some(f) => Output::Tracks(unlinked(f.finalise(ended, &mut fit_stats))),
+                    None => Output::Failed(Error::analysis(
+                        "unfitted tracks from a linker that fits its own",
+                    )),
+                },
+                Output::Finished(mut stats) => {
+                    stats.tracks_kept += fit_stats.tracks_kept;
+                    stats.tracks_rejected_short += fit_stats.tracks_rejected_short;
+                    stats.tracks_rejected_rough += fit_stats.tracks_rejected_rough;
+                    stats.particles_on_tracks += fit_stats.particles_on_tracks;
+                    Output::Finished(stats)
+                }
+                o => o,
+            };
+            // A send fails only when the caller is gone.
+            if to_caller.send(o).is_err() {
+                return;
+            }
         }
-        Err(e) => send(Output::Failed(e)),
     }
 }
 
@@ -481,6 +588,7 @@ impl PtvStream {
                     Ok(())
                 }
                 Output::Failed(e) => Err(e),
+                Output::Ended(_) => Err(Error::analysis("unfitted tracks passed the fit stage")),
                 Output::Finished(stats) => {
                     self.stats = Some(stats);
                     Ok(())
@@ -660,8 +768,10 @@ mod tests {
     /// A paper-like synthetic scene (ppp 0.01, ~1.6 events per particle,
     /// 1 % noise) through the stream in rayon pools of 1, 2 and 3 threads
     /// and with different batch sizes must give exactly what clustering and
-    /// tracking pulse by pulse on one thread gives: the parallel clustering
-    /// and the parallel output fits change nothing. Short
+    /// tracking pulse by pulse on one thread gives: the parallel clustering,
+    /// the output fits on their own stage (the tracker's ended tracks
+    /// fitted later, on another thread, with the curvature prior of the
+    /// tracks kept before them) and in parallel change nothing. Short
     /// `max_track_length` so that segment hand-outs are exercised too.
     #[test]
     fn parallel_stream_equals_sequential_tracking() {
@@ -696,6 +806,9 @@ mod tests {
                     .unwrap();
                 sink.tracks(&done).unwrap();
             }
+            // The fits used the curvature prior (the order of the fits
+            // matters).
+            assert!(tracker.fit_accel_rms() > 0.0);
             let (rest, stats) = tracker.finish();
             sink.tracks.extend(rest.into_iter().map(|t| t.track));
             (sink, stats)
@@ -706,16 +819,22 @@ mod tests {
             reference.0.tracks.len()
         );
         assert!(reference.1.tracks_kept > 100 && reference.1.particles_on_tracks > 20_000);
-        for (threads, batch) in [(1, 64), (2, 64), (2, 5), (3, 1)] {
-            let (sink, stats) = pool(threads).install(|| {
-                let mut s = PtvStream::new(cparams.clone(), tparams.clone(), batch).unwrap();
-                let mut sink = Collect::default();
-                for sp in &scene {
-                    s.push_pulse(sp.pulse.clone(), &mut sink).unwrap();
-                }
-                let stats = s.finish(&mut sink).unwrap();
-                (sink, stats)
-            });
+        let run = |batch: usize| {
+            let mut s = PtvStream::new(cparams.clone(), tparams.clone(), batch).unwrap();
+            let mut sink = Collect::default();
+            for sp in &scene {
+                s.push_pulse(sp.pulse.clone(), &mut sink).unwrap();
+            }
+            let stats = s.finish(&mut sink).unwrap();
+            (sink, stats)
+        };
+        // Thread count 0: driven from outside any rayon pool (as the
+        // CLI is), the fits run in the global pool.
+        for (threads, batch) in [(1, 64), (2, 64), (2, 5), (3, 1), (4, 3), (0, 2), (0, 17)] {
+            let (sink, stats) = match threads {
+                0 => run(batch),
+                n => pool(n).install(|| run(batch)),
+            };
             assert_eq!(stats, reference.1, "{threads} threads, batch {batch}");
             assert_eq!(sink.pulses, reference.0.pulses);
             assert_eq!(sink.particles, reference.0.particles);
