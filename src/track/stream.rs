@@ -232,7 +232,7 @@ impl Stages {
         };
         let (to_cluster, batches) = mpsc::sync_channel::<Vec<PulseEvents>>(1);
         let (to_track, clustered) = mpsc::sync_channel::<Result<Clustered>>(1);
-        let (to_fit, linked) = mpsc::sync_channel::<Vec<Output>>(1);
+        let (to_fit, linked) = mpsc::sync_channel::<Vec<Output>>(FIT_QUEUE_PULSES);
         let (to_caller, outputs) = mpsc::channel::<Output>();
         let cancel = Arc::new(AtomicBool::new(false));
         let spawn = |name: &str, f: Box<dyn FnOnce() + Send>| {
@@ -347,8 +347,10 @@ fn cluster_stage(
 }
 
 /// Link clustered batches in order until the input closes, then end all
-/// tracks; everything goes on to the fit stage as [`Output`]s, one batch
-/// at a time.
+/// tracks; everything goes on to the fit stage as [`Output`]s, one pulse
+/// at a time (the channel holds [`FIT_QUEUE_PULSES`]: a batch at a time,
+/// the fit stage would hold a whole batch's particles and ended tracks
+/// more, ~20 MB at full frame).
 fn track_stage(
     mut linker: Linker,
     clustered: Receiver<Result<Clustered>>,
@@ -360,24 +362,29 @@ fn track_stage(
         if cancel.load(Ordering::Relaxed) {
             return;
         }
-        let mut outs = Vec::new();
-        let linked = batch.and_then(|batch| {
-            batch.into_iter().try_for_each(|(pulse, t_us, ps, px)| {
-                linker.push(pulse, t_us, ps, px, &mut |o| outs.push(o))
-            })
-        });
-        let failed = match linked {
-            Ok(()) => {
-                let (particles, active) = linker.progress();
-                outs.push(Output::Progress(particles, active));
-                false
-            }
+        let batch = match batch {
+            Ok(b) => b,
             Err(e) => {
-                outs.push(Output::Failed(e));
-                true
+                let _ = to_fit.send(vec![Output::Failed(e)]);
+                return;
             }
         };
-        if to_fit.send(outs).is_err() || failed {
+        for (pulse, t_us, ps, px) in batch {
+            let mut outs = Vec::with_capacity(3);
+            if let Err(e) = linker.push(pulse, t_us, ps, px, &mut |o| outs.push(o)) {
+                outs.push(Output::Failed(e));
+                let _ = to_fit.send(outs);
+                return;
+            }
+            if to_fit.send(outs).is_err() {
+                return;
+            }
+        }
+        let (particles, active) = linker.progress();
+        if to_fit
+            .send(vec![Output::Progress(particles, active)])
+            .is_err()
+        {
             return;
         }
     }
@@ -391,6 +398,9 @@ fn track_stage(
     }
     let _ = to_fit.send(outs);
 }
+
+/// Pulses of linked output queued between the tracker and the fit stage.
+const FIT_QUEUE_PULSES: usize = 16;
 
 /// Fit the sequential tracker's ended tracks ([`Output::Ended`]) in the
 /// order they ended, each batch in parallel (rayon, the pool this runs
