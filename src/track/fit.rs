@@ -491,8 +491,11 @@ pub fn fit_adaptive(
     let mut sums = Sums::default();
     let (mut lo, mut hi) = (usize::MAX, 0usize);
     // (sums, window, velocity variance factor, bias factor) per candidate;
-    // only the chosen one is evaluated in full.
-    let mut cands = [(Sums::default(), 0usize, 0.0f64, 0.0f64); MAX_CANDIDATES];
+    // only the chosen one is evaluated in full. A vector of the candidates
+    // there are, not an array of MAX_CANDIDATES: zeroing that array (6 KB)
+    // cost more than the rest of the call.
+    let mut cands: Vec<(Sums, usize, f64, f64)> =
+        Vec::with_capacity(((wmax - wmin) / 2 + 2).min(MAX_CANDIDATES));
     let mut nc = 0;
     let mut w = wmin;
     loop {
@@ -509,7 +512,7 @@ pub fn fit_adaptive(
             hi += 1;
         }
         if w <= wmax && nc < MAX_CANDIDATES {
-            cands[nc] = (sums, w, 0.0, 0.0);
+            cands.push((sums, w, 0.0, 0.0));
             nc += 1;
         }
         if w >= pilot {
