@@ -372,13 +372,95 @@ impl UnionFind {
 }
 
 /// Component label of every pixel (labels numbered in order of each
-/// component's first pixel in (y, x) order). The default path: a sweep over
-/// the (y, x)-sorted pixels that exploits integer coordinates — for each
-/// pixel only rows `y..=y+R` (`R = ⌊√max_d2⌋`) can hold partners, and one
-/// forward-only cursor per row offset finds them in amortised O(1).
-/// [`pixel_labels_kdtree`] is the general k-d tree path; both match the
-/// brute-force oracle exactly.
+/// component's first pixel in (y, x) order). The default path: for join
+/// radii of 1 to √3 px ([`ClusterParams::max_d2`] 1–3, the default 1.5 px
+/// among them) the run-length pass [`pixel_labels_runs`], else the row
+/// sweep [`pixel_labels_sweep`]. [`pixel_labels_kdtree`] is the general
+/// k-d tree path; all match the brute-force oracle exactly.
 pub fn pixel_labels(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u32> {
+    if (1..=3).contains(&params.max_d2()) {
+        pixel_labels_runs(pixels, params)
+    } else {
+        pixel_labels_sweep(pixels, params)
+    }
+}
+
+/// [`pixel_labels`] by runs, for `max_d2` 1–3 (a join radius of 1 to √3
+/// px): then two pixels of one row join only when adjacent, and pixels of
+/// adjacent rows when `|dx| ≤ slack` (0 for `max_d2` 1, else 1); rows
+/// further apart never. The (y, x)-sorted pixels of a pulse come as
+/// row-major runs of adjacent pixels (a particle image is one or two
+/// short runs): the pass joins the runs of each row with those of the row
+/// above in one merge of two sorted interval lists — `[a, b]` above and
+/// `[c, d]` below touch iff `c ≤ b + slack` and `a ≤ d + slack` — with
+/// union-find over runs instead of pixels, then labels the pixels by run.
+/// Components are numbered by their first run, whose first pixel is the
+/// component's first pixel: the same labels as the sweep (tested, and
+/// `tests/cluster_oracle.rs`). Other radii go to the sweep.
+pub fn pixel_labels_runs(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u32> {
+    let max_d2 = params.max_d2();
+    if !(1..=3).contains(&max_d2) {
+        return pixel_labels_sweep(pixels, params);
+    }
+    let slack = (max_d2 >= 2) as u32;
+    let n = pixels.len();
+    // Runs as (y, first x, last x) and the index of their first pixel.
+    let mut runs: Vec<(u32, u32, u32)> = Vec::with_capacity(n);
+    let mut run_start: Vec<u32> = Vec::with_capacity(n + 1);
+    for (i, p) in pixels.iter().enumerate() {
+        let (x, y) = (p.x as u32, p.y as u32);
+        match runs.last_mut() {
+            Some(r) if r.0 == y && r.2 + 1 == x => r.2 = x,
+            _ => {
+                runs.push((y, x, x));
+                run_start.push(i as u32);
+            }
+        }
+    }
+    run_start.push(n as u32);
+    let nr = runs.len();
+    let mut uf = UnionFind::new(nr);
+    // `above..row`: the runs of the row before (if it is y − 1).
+    let (mut above, mut row) = (0usize, 0usize);
+    while row < nr {
+        let y = runs[row].0;
+        let mut row_end = row + 1;
+        while row_end < nr && runs[row_end].0 == y {
+            row_end += 1;
+        }
+        if above < row && runs[above].0 + 1 == y {
+            let (mut i, mut j) = (above, row);
+            while i < row && j < row_end {
+                let (_, a, b) = runs[i];
+                let (_, c, d) = runs[j];
+                if c <= b + slack && a <= d + slack {
+                    uf.union(i as u32, j as u32);
+                }
+                // The one ending first meets no later run of the other row.
+                if b <= d {
+                    i += 1;
+                } else {
+                    j += 1;
+                }
+            }
+        }
+        above = row;
+        row = row_end;
+    }
+    let run_labels = canonical_labels(&mut uf, nr);
+    let mut labels = Vec::with_capacity(n);
+    for (r, &l) in run_labels.iter().enumerate() {
+        let len = (run_start[r + 1] - run_start[r]) as usize;
+        labels.extend(std::iter::repeat(l).take(len));
+    }
+    labels
+}
+
+/// The row sweep: over the (y, x)-sorted pixels, exploiting integer
+/// coordinates — for each pixel only rows `y..=y+R` (`R = ⌊√max_d2⌋`) can
+/// hold partners, and one forward-only cursor per row offset finds them
+/// in amortised O(1). Any radius; [`pixel_labels`] for radii above √3 px.
+pub fn pixel_labels_sweep(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u32> {
     let n = pixels.len();
     let mut uf = UnionFind::new(n);
     let max_d2 = params.max_d2();
@@ -1013,8 +1095,10 @@ mod tests {
         assert!(counted > 30, "{counted} rounds took the counting sort");
     }
 
-    /// The row sweep against its first form on dense random patches (so
-    /// that rows hold runs of neighbours) and at the u16 edges, radii 1–4.
+    /// The row sweep and the run-length pass against the sweep's first
+    /// form on dense random patches (so that rows hold runs of
+    /// neighbours) and at the u16 edges, radii 1–4 (the run pass for 1 to
+    /// √3, the sweep beyond).
     #[test]
     fn pixel_labels_equal_the_reference() {
         let mut state = 4242u64;
@@ -1039,17 +1123,24 @@ mod tests {
                 })
                 .collect();
             let p = pulse_of(&evs);
-            for radius in [1.0, 1.5, 2.0, 2.9, 4.0] {
+            for radius in [1.0, 1.2, 1.5, 1.7, 2.0, 2.9, 4.0] {
                 let params = ClusterParams {
                     radius,
                     ..Default::default()
                 };
                 let pixels = pulse_pixels(&p, &params);
+                let reference = pixel_labels_reference(&pixels, &params);
                 assert_eq!(
-                    pixel_labels(&pixels, &params),
-                    pixel_labels_reference(&pixels, &params),
+                    pixel_labels_sweep(&pixels, &params),
+                    reference,
                     "round {round}, radius {radius}"
                 );
+                assert_eq!(
+                    pixel_labels_runs(&pixels, &params),
+                    reference,
+                    "runs: round {round}, radius {radius}"
+                );
+                assert_eq!(pixel_labels(&pixels, &params), reference);
             }
         }
     }
