@@ -404,20 +404,22 @@ pub fn pixel_labels_runs(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u3
     }
     let slack = (max_d2 >= 2) as u32;
     let n = pixels.len();
-    // Runs as (y, first x, last x) and the index of their first pixel.
+    // Runs as (y, first x, last x), and the run of every pixel.
     let mut runs: Vec<(u32, u32, u32)> = Vec::with_capacity(n);
-    let mut run_start: Vec<u32> = Vec::with_capacity(n + 1);
-    for (i, p) in pixels.iter().enumerate() {
+    let mut run_of: Vec<u32> = Vec::with_capacity(n);
+    let (mut y_last, mut x_last) = (u32::MAX, u32::MAX);
+    for p in pixels {
         let (x, y) = (p.x as u32, p.y as u32);
-        match runs.last_mut() {
-            Some(r) if r.0 == y && r.2 + 1 == x => r.2 = x,
-            _ => {
-                runs.push((y, x, x));
-                run_start.push(i as u32);
+        if y == y_last && x == x_last.wrapping_add(1) {
+            if let Some(r) = runs.last_mut() {
+                r.2 = x;
             }
+        } else {
+            runs.push((y, x, x));
         }
+        run_of.push(runs.len() as u32 - 1);
+        (y_last, x_last) = (y, x);
     }
-    run_start.push(n as u32);
     let nr = runs.len();
     let mut uf = UnionFind::new(nr);
     // `above..row`: the runs of the row before (if it is y − 1).
@@ -448,12 +450,7 @@ pub fn pixel_labels_runs(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u3
         row = row_end;
     }
     let run_labels = canonical_labels(&mut uf, nr);
-    let mut labels = Vec::with_capacity(n);
-    for (r, &l) in run_labels.iter().enumerate() {
-        let len = (run_start[r + 1] - run_start[r]) as usize;
-        labels.extend(std::iter::repeat(l).take(len));
-    }
-    labels
+    run_of.iter().map(|&r| run_labels[r as usize]).collect()
 }
 
 /// The row sweep: over the (y, x)-sorted pixels, exploiting integer
