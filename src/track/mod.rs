@@ -992,7 +992,8 @@ impl Tracker {
 
     /// The output fit's prior rms acceleration per axis (px/pulse²) for
     /// the next tracks: `fit_accel_rms` if set, else the estimate from the
-    /// tracks kept so far (0 until there are enough).
+    /// tracks kept so far (0 until there are enough; after
+    /// [`Tracker::defer_fits`] the estimate lives in the [`Finaliser`]).
     pub fn fit_accel_rms(&self) -> f64 {
         self.params
             .fit_accel_rms
