@@ -156,6 +156,8 @@ struct KeyLayout {
     time_shift: u32,
     /// The largest time field (ns).
     ns_max: u64,
+    /// Mask of the y field (after shifting it down).
+    y_mask: u64,
 }
 
 /// Key bit (below x, so the sort carries it without comparing it) marking
@@ -175,6 +177,7 @@ impl KeyLayout {
             x_bits,
             time_shift,
             ns_max: (1u64 << (64 - time_shift).min(39)) - 1,
+            y_mask: (1u64 << bits(roi.height)) - 1,
         }
     }
 
@@ -196,10 +199,9 @@ impl KeyLayout {
 
     #[inline]
     fn arrival(&self, k: u64, t_begin: f64) -> pixel::Arrival {
-        let y_mask = (1u64 << (self.time_shift - 2 - self.x_bits)) - 1;
         pixel::Arrival {
             t: self.time(k, t_begin),
-            y: self.y0 + ((k >> (2 + self.x_bits)) & y_mask) as u16,
+            y: self.y0 + ((k >> (2 + self.x_bits)) & self.y_mask) as u16,
             x: self.x0 + ((k >> 2) & ((1u64 << self.x_bits) - 1)) as u16,
             p: (k & 1) as u8,
         }
@@ -354,10 +356,22 @@ pub fn radix_sort_above(keys: &mut Vec<u64>, scratch: &mut Vec<u64>, low_bits: u
     let radix = 1usize << digit;
     let mask = radix as u64 - 1;
     let mut counts = vec![0usize; radix * passes as usize];
-    for &k in keys.iter() {
-        let k = k >> low_bits;
-        for p in 0..passes as usize {
-            counts[p * radix + ((k >> (p as u32 * digit)) & mask) as usize] += 1;
+    if passes == 3 {
+        // (The usual case, request keys of a block: unrolled.)
+        let (c0, rest) = counts.split_at_mut(radix);
+        let (c1, c2) = rest.split_at_mut(radix);
+        for &k in keys.iter() {
+            let k = k >> low_bits;
+            c0[(k & mask) as usize] += 1;
+            c1[((k >> digit) & mask) as usize] += 1;
+            c2[((k >> (2 * digit)) & mask) as usize] += 1;
+        }
+    } else {
+        for &k in keys.iter() {
+            let k = k >> low_bits;
+            for p in 0..passes as usize {
+                counts[p * radix + ((k >> (p as u32 * digit)) & mask) as usize] += 1;
+            }
         }
     }
     scratch.clear();
@@ -404,8 +418,9 @@ struct BlockRequests {
     /// The block's own requests (not the carry-over) as keys relative to
     /// `t_begin` ([`KeyLayout`]), not yet sorted.
     keys: Vec<u64>,
-    /// Refractory groups: (head key, member key), see [`KeySink`].
-    tails: Vec<(u64, u64)>,
+    /// Refractory groups: (head key, member key), see [`KeySink`]; one
+    /// list per pulse (concatenated only if a lookup needs them sorted).
+    tails: Vec<Vec<(u64, u64)>>,
     truth: Vec<TruthSample>,
 }
 
@@ -715,10 +730,10 @@ impl Front {
         pixel.noise(t_begin, t_end, stream_seed(seed, 7, b), &mut noise);
         let n = per_pulse.iter().map(|v| v.0.len()).sum::<usize>() + noise.len();
         let mut keys = Vec::with_capacity(n);
-        let mut tails = Vec::with_capacity(per_pulse.iter().map(|v| v.1.len()).sum());
-        for (k, t) in &per_pulse {
-            keys.extend_from_slice(k);
-            tails.extend_from_slice(t);
+        let mut tails = Vec::with_capacity(per_pulse.len());
+        for (k, t) in per_pulse {
+            keys.extend_from_slice(&k);
+            tails.push(t);
         }
         keys.extend(noise.iter().map(|a| layout.key(a, t_begin)));
         BlockRequests {
@@ -762,23 +777,26 @@ impl Back {
         // busy).
         let mut keys = std::mem::take(&mut r.keys);
         let mut tails = TailIndex {
-            pairs: std::mem::take(&mut r.tails),
+            parts: std::mem::take(&mut r.tails),
+            pairs: Vec::new(),
             sorted: false,
             lookups: 0,
             last_head: None,
         };
         let mut ct = 0;
+        let mut carried = Vec::new();
         for (i, a) in self.carry.iter().enumerate() {
             let head = layout.key(a, t_begin);
             let mut flag = 0;
             while ct < self.carry_tails.len() && self.carry_tails[ct].0 == i {
                 let m = layout.key(&self.carry_tails[ct].1, t_begin);
-                tails.pairs.push((head | GROUP_FLAG, m));
+                carried.push((head | GROUP_FLAG, m));
                 flag = GROUP_FLAG;
                 ct += 1;
             }
             keys.push(head | flag);
         }
+        tails.parts.push(carried);
         radix_sort_above(&mut keys, &mut self.scratch, layout.x_shift());
         // Requests from the block's end on wait for the next block.
         let split = keys.partition_point(|&k| layout.time(k, t_begin) < r.t_end);
@@ -914,6 +932,9 @@ fn carry_push(
 /// block): the first lookups scan the list, later ones sort it once (by
 /// head, then member) and search.
 struct TailIndex {
+    /// The block's lists of (head, member), as the pulses made them.
+    parts: Vec<Vec<(u64, u64)>>,
+    /// `parts` concatenated and sorted, once lookups are many.
     pairs: Vec<(u64, u64)>,
     sorted: bool,
     /// Lookups so far (by scanning while few).
@@ -935,8 +956,9 @@ impl TailIndex {
         if !self.sorted && self.lookups <= 16 {
             // A scan is ~n instructions, the sort ~n·log n.
             let mut m: Vec<u64> = self
-                .pairs
+                .parts
                 .iter()
+                .flatten()
                 .filter(|p| p.0 == k)
                 .map(|p| p.1)
                 .collect();
@@ -944,6 +966,7 @@ impl TailIndex {
             return m;
         }
         if !self.sorted {
+            self.pairs = self.parts.concat();
             self.pairs.sort_unstable();
             self.sorted = true;
         }

@@ -80,6 +80,8 @@ pub struct PixelModel {
     quad: Option<QuadTable>,
     /// The fast path's logarithm.
     ln: &'static LnTable,
+    /// [`normal_quantiles`].
+    quantiles: &'static [f64; 4097],
 }
 
 impl PixelModel {
@@ -150,6 +152,7 @@ impl PixelModel {
             quad: QuadTable::new(&table),
             table,
             ln: ln_table(),
+            quantiles: normal_quantiles(),
         }
     }
 
@@ -827,8 +830,14 @@ impl PixelModel {
     /// quantile), so a 1280×720 array lacks its ~225 most extreme pixels.
     #[inline]
     pub fn mismatch_factor(sigma: f64, key: u64, idx: u32) -> f64 {
+        Self::mismatch_factor_in(normal_quantiles(), sigma, key, idx)
+    }
+
+    /// [`Self::mismatch_factor`] with the quantile table at hand (no
+    /// once-lock check per pixel).
+    #[inline(always)]
+    fn mismatch_factor_in(q: &[f64; 4097], sigma: f64, key: u64, idx: u32) -> f64 {
         let h = super::splitmix(key ^ idx as u64);
-        let q = normal_quantiles();
         let bin = (h >> 52) as usize; // 12 bits
                                       // (Through i64: the same value, one instruction instead of the
                                       // u64 → f64 sequence.)
@@ -860,7 +869,9 @@ impl PixelModel {
             return;
         }
         let c = match self.mismatch {
-            Some((sigma, key)) => self.threshold * Self::mismatch_factor(sigma, key, idx),
+            Some((sigma, key)) => {
+                self.threshold * Self::mismatch_factor_in(self.quantiles, sigma, key, idx)
+            }
             None => self.threshold,
         };
         // The same bound with this pixel's threshold.
