@@ -577,8 +577,9 @@ pub fn write_recording(
         // writer is the slower side.
         let (events_tx, events_rx) = std::sync::mpsc::sync_channel::<Msg<Chunk>>(2);
         let (truth_tx, truth_rx) = std::sync::mpsc::sync_channel::<Msg<Vec<TruthSample>>>(2);
-        // Written chunks go back to the simulator for reuse.
+        // Written chunks and truth lists go back to the simulator for reuse.
         let (back_tx, back_rx) = std::sync::mpsc::channel::<Chunk>();
+        let (truth_back_tx, truth_back_rx) = std::sync::mpsc::channel::<Vec<TruthSample>>();
         let events_thread = scope.spawn(move || -> Result<()> {
             let mut writer = crate::io::create(dir.join(name), Some(format), geometry)?;
             for msg in events_rx.iter() {
@@ -600,7 +601,10 @@ pub fn write_recording(
             truth.set_particle_slots(particle_slots);
             for msg in truth_rx.iter() {
                 match msg {
-                    Msg::Block(rows) => truth.write(&rows)?,
+                    Msg::Block(rows) => {
+                        truth.write(&rows)?;
+                        let _ = truth_back_tx.send(rows);
+                    }
                     Msg::End => return truth.finish(),
                 }
             }
@@ -610,6 +614,9 @@ pub fn write_recording(
         let mut sim_result = Ok(());
         loop {
             let mut chunk = back_rx.try_recv().unwrap_or_default();
+            while let Ok(rows) = truth_back_rx.try_recv() {
+                sim.recycle_truth(rows);
+            }
             let more = match sim.next_chunk(&mut chunk) {
                 Ok(m) => m,
                 Err(e) => {

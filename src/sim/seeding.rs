@@ -224,6 +224,22 @@ impl Particles {
         t0: f64,
         times: &[f64],
     ) -> Vec<Vec<Snapshot>> {
+        let mut merged = Vec::new();
+        self.advance_and_snapshot_into(flow, t0, times, &mut merged);
+        merged
+    }
+
+    /// [`Particles::advance_and_snapshot`] into `merged` (one list per
+    /// time, the lists of an earlier call reused: a block's snapshots are
+    /// ~1.5 MB at full frame, whose fresh pages cost more system time
+    /// than the copy into them).
+    pub fn advance_and_snapshot_into(
+        &mut self,
+        flow: &Flow,
+        t0: f64,
+        times: &[f64],
+        merged: &mut Vec<Vec<Snapshot>>,
+    ) {
         use rayon::prelude::*;
         // Small enough for several tasks per thread (load balance), large
         // enough to amortise the per-task vectors.
@@ -271,15 +287,16 @@ impl Particles {
             .collect();
         self.particles = particles;
         self.rngs = rngs;
-        let mut merged: Vec<Vec<Snapshot>> = (0..times.len())
-            .map(|i| Vec::with_capacity(parts.iter().map(|p| p[i].len()).sum()))
-            .collect();
+        merged.resize_with(times.len(), Vec::new);
+        for (i, m) in merged.iter_mut().enumerate() {
+            m.clear();
+            m.reserve(parts.iter().map(|p| p[i].len()).sum());
+        }
         for part in parts {
             for (m, s) in merged.iter_mut().zip(part) {
                 m.extend(s);
             }
         }
-        merged
     }
 
     /// Advance one particle from `t0` to `t1`. Returns its velocity at
