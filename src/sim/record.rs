@@ -855,7 +855,7 @@ mod tests {
             P {
                 id: match kind {
                     0 => id + (1 << 40),      // above 2^32
-                    1 => id + 123_456_789_00, // 11 digits
+                    1 => id + 12_345_678_900, // 11 digits
                     _ => id,
                 },
                 x: rng.gen_range(-5.0..1285.0),

@@ -443,7 +443,10 @@ impl Particles {
             for (&t1, snaps) in times.iter().zip(out.iter_mut()) {
                 let dt = t1 - t;
                 let mut known = false;
-                if !(dt <= 0.0) {
+                // As `step`: only dt ≤ 0 skips the move (a NaN dt moves).
+                #[allow(clippy::neg_cmp_op_on_partial_ord)]
+                let moves = !(dt <= 0.0);
+                if moves {
                     let (u, _) = p.velocity_in(flow, true, t);
                     p.x += u * dt;
                     known = true;
