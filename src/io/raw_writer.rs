@@ -97,19 +97,28 @@ pub(crate) fn time_high_steps(
 }
 
 /// A word of a RAW encoding, written little-endian.
-pub(crate) trait RawWord: Copy {
-    /// Write the word into `out` (exactly its size).
+///
+/// # Safety
+/// Implemented only for plain unsigned integers (u16, u32): on
+/// little-endian targets [`RawWordWriter::flush`] writes the words'
+/// memory as their bytes, which needs types without padding.
+pub(crate) unsafe trait RawWord: Copy {
+    /// Write the word into `out` (exactly its size; the byte order of
+    /// big-endian targets).
+    #[cfg_attr(target_endian = "little", allow(dead_code))]
     fn put_le(self, out: &mut [u8]);
 }
 
-impl RawWord for u16 {
+// SAFETY: a plain integer.
+unsafe impl RawWord for u16 {
     #[inline]
     fn put_le(self, out: &mut [u8]) {
         out.copy_from_slice(&self.to_le_bytes());
     }
 }
 
-impl RawWord for u32 {
+// SAFETY: a plain integer.
+unsafe impl RawWord for u32 {
     #[inline]
     fn put_le(self, out: &mut [u8]) {
         out.copy_from_slice(&self.to_le_bytes());
@@ -216,18 +225,38 @@ impl<W: RawWord> RawWordWriter<W> {
     }
 
     pub fn flush(&mut self) -> Result<()> {
-        // Fixed-size stores into a sized buffer (no capacity check per
-        // word).
-        let size = std::mem::size_of::<W>();
-        let mut bytes = vec![0u8; self.words.len() * size];
-        for (out, &w) in bytes.chunks_exact_mut(size).zip(&self.words) {
-            w.put_le(out);
-        }
-        self.words.clear();
         let target = self.file.target().to_path_buf();
-        self.file
-            .write_all(&bytes)
-            .map_err(|e| Error::io(target, e))
+        #[cfg(target_endian = "little")]
+        {
+            // The words' memory is already their little-endian bytes.
+            // SAFETY: `W` is u16 or u32 (the only `RawWord`s): plain
+            // integers without padding, every byte initialised; the slice
+            // covers exactly the words' memory and lives while they are
+            // borrowed.
+            let bytes = unsafe {
+                std::slice::from_raw_parts(
+                    self.words.as_ptr().cast::<u8>(),
+                    std::mem::size_of_val(&self.words[..]),
+                )
+            };
+            let written = self.file.write_all(bytes);
+            self.words.clear();
+            written.map_err(|e| Error::io(target, e))
+        }
+        #[cfg(not(target_endian = "little"))]
+        {
+            // Fixed-size stores into a sized buffer (no capacity check per
+            // word).
+            let size = std::mem::size_of::<W>();
+            let mut bytes = vec![0u8; self.words.len() * size];
+            for (out, &w) in bytes.chunks_exact_mut(size).zip(&self.words) {
+                w.put_le(out);
+            }
+            self.words.clear();
+            self.file
+                .write_all(&bytes)
+                .map_err(|e| Error::io(target, e))
+        }
     }
 
     /// Flush and move the file to its target.

@@ -477,6 +477,11 @@ struct Front {
     /// Particle time (s).
     t_particles: f64,
     layout: KeyLayout,
+    /// The snapshot lists of the last block, reused (their pages stay
+    /// mapped).
+    snaps: Vec<Vec<seeding::Snapshot>>,
+    /// Truth lists given back by [`Simulator::recycle_truth`].
+    truth_pool: Vec<Vec<TruthSample>>,
     /// [`KeySink::group_ns`].
     group_ns: u64,
     buffers: std::sync::Arc<Buffers>,
@@ -588,6 +593,8 @@ impl Simulator {
                 n_blocks,
                 t_particles: 0.0,
                 layout: KeyLayout::new(roi),
+                snaps: Vec::new(),
+                truth_pool: Vec::new(),
                 group_ns: sc.pixel.refractory.map_or(0, |r| group_ns(r.period_us)),
                 buffers,
             },
@@ -619,6 +626,15 @@ impl Simulator {
     /// Truth of the pulses simulated so far (and not taken before).
     pub fn take_truth(&mut self) -> Vec<TruthSample> {
         std::mem::take(&mut self.truth)
+    }
+
+    /// Give back a list from [`Simulator::take_truth`] once its rows are
+    /// used: later blocks fill it instead of fresh memory (the truth of a
+    /// full-frame block is ~2 MB, whose new pages cost system time).
+    pub fn recycle_truth(&mut self, rows: Vec<TruthSample>) {
+        if self.front.truth_pool.len() < 4 && rows.capacity() > 0 {
+            self.front.truth_pool.push(rows);
+        }
     }
 
     /// Start times of all pulses simulated so far (µs).
@@ -723,9 +739,13 @@ impl Front {
         };
         let starts: Vec<f64> = (k0..k1).map(|k| sc.pulse_start_us(k)).collect();
         let times_s: Vec<f64> = starts.iter().map(|t| t * 1e-6).collect();
-        let snaps = self
-            .particles
-            .advance_and_snapshot(&self.flow, self.t_particles, &times_s);
+        let mut snaps = std::mem::take(&mut self.snaps);
+        self.particles.advance_and_snapshot_into(
+            &self.flow,
+            self.t_particles,
+            &times_s,
+            &mut snaps,
+        );
         if let Some(&t) = times_s.last() {
             self.t_particles = t;
         }
@@ -733,7 +753,9 @@ impl Front {
         let roi = sc.roi();
         let (rx0, ry0) = (roi.x as f64 - 0.5, roi.y as f64 - 0.5);
         let (rx1, ry1) = (rx0 + roi.width as f64, ry0 + roi.height as f64);
-        let mut truth = Vec::with_capacity(snaps.iter().map(|s| s.len()).sum());
+        let mut truth = self.truth_pool.pop().unwrap_or_default();
+        truth.clear();
+        truth.reserve(snaps.iter().map(|s| s.len()).sum());
         for (i, s) in snaps.iter().enumerate() {
             for p in s {
                 if p.x >= rx0 && p.x < rx1 && p.y >= ry0 && p.y < ry1 {
@@ -787,6 +809,7 @@ impl Front {
             tails.push(t);
         }
         keys.extend(noise.iter().map(|a| layout.key(a, t_begin)));
+        self.snaps = snaps;
         BlockRequests {
             block: b,
             starts,

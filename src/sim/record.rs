@@ -23,17 +23,110 @@ use crate::io::atomic::AtomicFile;
 use crate::io::{EventSource, Format};
 
 /// Streams truth rows to `truth_particles.csv`.
+///
+/// Rows are formatted in place into a large batch buffer (see
+/// [`truth_row_rest`]). Two things rows share are formatted once: the
+/// `pulse,t_us,` of a pulse ([`RowPrefix`]) and the `y,u,v` tail of a
+/// particle ([`TailCache`]): in a steady parallel flow (jet, channel,
+/// boundary layer, uniform) a particle keeps its y and velocity from pulse
+/// to pulse while only x moves, so the tail's text is reused for as long
+/// as the same three numbers come back; in other flows the cache misses
+/// and costs a comparison and a 64-byte store per row.
 pub struct TruthWriter {
     file: AtomicFile,
     /// Rows formatted in place (`BATCH` bytes plus one row window), so a
-    /// row costs no copy of its own; written out per ~64 kB.
+    /// row costs no copy of its own; written out per `BATCH` bytes.
     buf: Vec<u8>,
     pos: usize,
     /// The formatted `pulse,t_us,` of the last row (rows of one pulse
     /// share it): formatted once per pulse, copied per row.
     prefix: RowPrefix,
+    /// The formatted `y,u,v` tails of recent rows.
+    tails: TailCache,
     /// Batches written since the last [`AtomicFile::start_writeback`].
     batches_since_writeback: u32,
+}
+
+/// The formatted `particle_id` and tail `y,u,v\n` of a particle's last
+/// row, each keyed by the numbers it shows (so a hit is exact whatever
+/// particle it came from).
+#[derive(Clone, Copy)]
+#[repr(C, align(16))]
+struct TailText {
+    /// Bits of y, u, v.
+    key: [u64; 3],
+    /// Bytes of `text` in use; 0: empty.
+    len: u32,
+    /// Digits of `id_text` in use; 0: empty.
+    id_len: u32,
+    id: u64,
+    id_text: u64,
+    text: [u64; TAIL_WORDS],
+}
+
+/// Longest cached tail (bytes): `719.9999,-19999.999,-19999.999\n` is 31.
+/// Longer tails are formatted every time.
+const TAIL_WORDS: usize = 4;
+
+/// Direct-mapped cache of row tails, indexed by particle slot: the
+/// simulator's particle ids are `slot + slots · generation` (a slot's new
+/// particle gets a new id), so `id mod slots` gives every slot its own
+/// entry. With another id scheme (or too many slots for the table) entries
+/// are shared and simply miss more often: a hit needs the same key.
+struct TailCache {
+    entries: Vec<TailText>,
+    /// `entries.len()` and its [`fastmod_u32`] multiplier.
+    n: u64,
+    n_inv: u64,
+}
+
+/// Largest tail table (entries of 80 bytes: 5 MiB).
+const TAIL_TABLE_MAX: u64 = 1 << 16;
+
+impl TailCache {
+    fn new(slots: u64) -> TailCache {
+        let n = slots.clamp(1, TAIL_TABLE_MAX);
+        TailCache {
+            entries: vec![
+                TailText {
+                    key: [0; 3],
+                    len: 0,
+                    id_len: 0,
+                    id: 0,
+                    id_text: 0,
+                    text: [0; TAIL_WORDS],
+                };
+                n as usize
+            ],
+            n,
+            n_inv: fastmod_u32_inverse(n as u32),
+        }
+    }
+
+    /// The entry for particle `id`.
+    #[inline(always)]
+    fn entry(&mut self, id: u64) -> &mut TailText {
+        let i = if id <= u32::MAX as u64 {
+            fastmod_u32(id as u32, self.n_inv, self.n as u32) as usize
+        } else {
+            (id % self.n) as usize
+        };
+        // (i < n by construction; the index check stays cheap.)
+        &mut self.entries[i]
+    }
+}
+
+/// The multiplier of [`fastmod_u32`] for divisor `d` ≥ 1.
+fn fastmod_u32_inverse(d: u32) -> u64 {
+    (u64::MAX / d as u64).wrapping_add(1)
+}
+
+/// `a % d` by two multiplications (Lemire, Kaser and Kurz, "Faster
+/// remainder by direct computation", 2019; exact for 32-bit `a` and `d`).
+#[inline(always)]
+fn fastmod_u32(a: u32, inverse: u64, d: u32) -> u32 {
+    let low = inverse.wrapping_mul(a as u64);
+    ((low as u128 * d as u128) >> 64) as u32
 }
 
 /// `pulse,t_us,` as formatted for one (pulse, t_us).
@@ -72,6 +165,9 @@ impl RowPrefix {
     }
 }
 
+/// Tail-cache entries when the slot count is not given.
+const DEFAULT_SLOTS: u64 = 4096;
+
 /// Bytes of formatted rows per `write_all`: the output's buffer size
 /// (`AtomicFile`'s 1 MiB), so a batch goes to the file directly instead
 /// of being copied into that buffer first.
@@ -105,8 +201,17 @@ impl TruthWriter {
                 len: 0,
                 bytes: [0; PREFIX_MAX],
             },
+            tails: TailCache::new(DEFAULT_SLOTS),
             batches_since_writeback: 0,
         })
+    }
+
+    /// Tell the writer the simulator's number of particle slots (ids are
+    /// `slot + slots · generation`), so each slot's row tail has its own
+    /// cache entry. Only speed depends on it; any value gives the same
+    /// file.
+    pub fn set_particle_slots(&mut self, slots: u64) {
+        self.tails = TailCache::new(slots);
     }
 
     fn flush_batch(&mut self) -> Result<()> {
@@ -135,14 +240,18 @@ impl TruthWriter {
                 .expect("window size");
             let row = match self.prefix.of(r) {
                 Some(prefix) => {
-                    for (k, word) in prefix.bytes.chunks_exact(8).enumerate() {
+                    // Most prefixes (pulse < 10^6, t_us < 10^7) fit in 16
+                    // bytes.
+                    let words = if prefix.len <= 16 { 2 } else { PREFIX_MAX / 8 };
+                    for k in 0..words {
+                        let word = &prefix.bytes[8 * k..8 * k + 8];
                         put8(
                             window,
                             8 * k,
                             u64::from_le_bytes(word.try_into().expect("8")),
                         );
                     }
-                    truth_row_rest(window, prefix.len, r)
+                    truth_row_cached(window, prefix.len, r, &mut self.tails)
                 }
                 None => None,
             };
@@ -204,12 +313,60 @@ fn truth_row_rest(w: &mut [u8; ROW_WINDOW], p: usize, r: &TruthSample) -> Option
     p = put_byte(w, p, b',');
     p = put_fixed::<4>(w, p, r.x)?;
     p = put_byte(w, p, b',');
-    p = put_fixed::<4>(w, p, r.y)?;
+    put_tail(w, p, r)
+}
+
+/// `y,u,v\n` of `r` from position `p`: the row's length, or None.
+#[inline(always)]
+fn put_tail(w: &mut [u8; ROW_WINDOW], p: usize, r: &TruthSample) -> Option<usize> {
+    let mut p = put_fixed::<4>(w, p, r.y)?;
     p = put_byte(w, p, b',');
     p = put_fixed::<3>(w, p, r.u)?;
     p = put_byte(w, p, b',');
     p = put_fixed::<3>(w, p, r.v)?;
     Some(put_byte(w, p, b'\n'))
+}
+
+/// [`truth_row_rest`] with the id and the tail from (or into) `tails`.
+#[inline(always)]
+fn truth_row_cached(
+    w: &mut [u8; ROW_WINDOW],
+    p: usize,
+    r: &TruthSample,
+    tails: &mut TailCache,
+) -> Option<usize> {
+    let entry = tails.entry(r.particle_id);
+    let mut p = if entry.id_len != 0 && entry.id == r.particle_id {
+        put8(w, p, entry.id_text);
+        p + entry.id_len as usize
+    } else {
+        let end = put_uint(w, p, r.particle_id);
+        if end - p <= 8 {
+            entry.id = r.particle_id;
+            entry.id_text = get8(w, p);
+            entry.id_len = (end - p) as u32;
+        }
+        end
+    };
+    p = put_byte(w, p, b',');
+    p = put_fixed::<4>(w, p, r.x)?;
+    p = put_byte(w, p, b',');
+    let key = [r.y.to_bits(), r.u.to_bits(), r.v.to_bits()];
+    if entry.len != 0 && entry.key == key {
+        for (k, &word) in entry.text.iter().enumerate() {
+            put8(w, p + 8 * k, word);
+        }
+        return Some(p + entry.len as usize);
+    }
+    let end = put_tail(w, p, r)?;
+    if end - p <= 8 * TAIL_WORDS {
+        entry.key = key;
+        entry.len = (end - p) as u32;
+        for (k, word) in entry.text.iter_mut().enumerate() {
+            *word = get8(w, p + 8 * k);
+        }
+    }
+    Some(end)
 }
 
 /// Eight decimal digits of `n` (< 10^8, leading zeros included) as the
@@ -249,6 +406,13 @@ fn put_byte(w: &mut [u8; ROW_WINDOW], p: usize, b: u8) -> usize {
 fn put8(w: &mut [u8; ROW_WINDOW], p: usize, v: u64) {
     let at = p & ROW_MASK;
     w[at..at + 8].copy_from_slice(&v.to_le_bytes());
+}
+
+/// The 8 bytes at `p`.
+#[inline(always)]
+fn get8(w: &[u8; ROW_WINDOW], p: usize) -> u64 {
+    let at = p & ROW_MASK;
+    u64::from_le_bytes(w[at..at + 8].try_into().expect("8"))
 }
 
 /// `n` < 10^8 without leading zeros (one digit at least).
@@ -294,7 +458,7 @@ fn put_fixed<const D: usize>(w: &mut [u8; ROW_WINDOW], p: usize, v: f64) -> Opti
     let whole = unsafe { a.to_int_unchecked::<i64>() };
     let frac = a - whole as f64;
     // The product is within half an ulp of the exact one; stay well away.
-    if (frac - 0.5).abs() <= a * 4.0 * f64::EPSILON {
+    if (frac - 0.5).abs() <= a * (4.0 * f64::EPSILON) {
         return None;
     }
     let n = whole as u64 + (frac > 0.5) as u64;
@@ -401,6 +565,7 @@ pub fn write_recording(
     let mut sim = Simulator::new(sc, seed)?;
     let name = recording_name(format)?;
     let geometry = Geometry::new(sc.sensor.width as u16, sc.sensor.height as u16);
+    let particle_slots = sim.stats().particles;
     /// A writer thread's input: the next block, or (after the last) the
     /// order to commit.
     enum Msg<T> {
@@ -412,8 +577,9 @@ pub fn write_recording(
         // writer is the slower side.
         let (events_tx, events_rx) = std::sync::mpsc::sync_channel::<Msg<Chunk>>(2);
         let (truth_tx, truth_rx) = std::sync::mpsc::sync_channel::<Msg<Vec<TruthSample>>>(2);
-        // Written chunks go back to the simulator for reuse.
+        // Written chunks and truth lists go back to the simulator for reuse.
         let (back_tx, back_rx) = std::sync::mpsc::channel::<Chunk>();
+        let (truth_back_tx, truth_back_rx) = std::sync::mpsc::channel::<Vec<TruthSample>>();
         let events_thread = scope.spawn(move || -> Result<()> {
             let mut writer = crate::io::create(dir.join(name), Some(format), geometry)?;
             for msg in events_rx.iter() {
@@ -432,9 +598,13 @@ pub fn write_recording(
         });
         let truth_thread = scope.spawn(move || -> Result<()> {
             let mut truth = TruthWriter::create(dir.join("truth_particles.csv"))?;
+            truth.set_particle_slots(particle_slots);
             for msg in truth_rx.iter() {
                 match msg {
-                    Msg::Block(rows) => truth.write(&rows)?,
+                    Msg::Block(rows) => {
+                        truth.write(&rows)?;
+                        let _ = truth_back_tx.send(rows);
+                    }
                     Msg::End => return truth.finish(),
                 }
             }
@@ -444,6 +614,9 @@ pub fn write_recording(
         let mut sim_result = Ok(());
         loop {
             let mut chunk = back_rx.try_recv().unwrap_or_default();
+            while let Ok(rows) = truth_back_rx.try_recv() {
+                sim.recycle_truth(rows);
+            }
             let more = match sim.next_chunk(&mut chunk) {
                 Ok(m) => m,
                 Err(e) => {
@@ -641,6 +814,112 @@ mod tests {
         }
         w.finish().unwrap();
         assert_eq!(std::fs::read(&path).unwrap(), want);
+    }
+
+    #[test]
+    fn fastmod_equals_remainder() {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(21);
+        for d in [1u32, 2, 3, 7, 4096, 4801, 65_536, u32::MAX - 1, u32::MAX] {
+            let inv = fastmod_u32_inverse(d);
+            for a in [0u32, 1, d - 1, d, d.wrapping_add(1), u32::MAX, u32::MAX - 1]
+                .into_iter()
+                .chain((0..20_000).map(|_| rng.gen::<u32>()))
+            {
+                assert_eq!(fastmod_u32(a, inv, d), a % d, "{a} % {d}");
+            }
+        }
+    }
+
+    /// Rows as the simulator writes them in a steady parallel flow: per
+    /// pulse the lit particles in slot order, each keeping its y, u, v
+    /// (only x moves) until its slot gets a new particle (new id). Some
+    /// particles change only v or only the id, some tails are too long to
+    /// cache, some ids too long for the id cache or above 2^32, some
+    /// values sit at a rounding tie (the whole row through the reference,
+    /// again at the next pulse): the file equals the reference rows, with
+    /// the right slot count, a wrong one (entries shared) and the default.
+    #[test]
+    fn truth_writer_tail_cache_matches_reference() {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(17);
+        let slots = 300u64;
+        #[derive(Clone, Copy)]
+        struct P {
+            id: u64,
+            x: f64,
+            y: f64,
+            u: f64,
+            v: f64,
+        }
+        let fresh = |rng: &mut rand_pcg::Pcg64, id: u64| {
+            let kind = rng.gen_range(0..40);
+            P {
+                id: match kind {
+                    0 => id + (1 << 40),      // above 2^32
+                    1 => id + 12_345_678_900, // 11 digits
+                    _ => id,
+                },
+                x: rng.gen_range(-5.0..1285.0),
+                y: if kind == 2 {
+                    0.00005
+                } else {
+                    rng.gen_range(-5.0..725.0)
+                },
+                u: match kind {
+                    3 => -1.234_567_8e9, // tail longer than the cache holds
+                    _ => rng.gen_range(-3e4..3e4),
+                },
+                v: if kind < 20 {
+                    0.0
+                } else {
+                    rng.gen_range(-3e4..3e4)
+                },
+            }
+        };
+        let mut ps: Vec<(P, u64)> = (0..slots).map(|s| (fresh(&mut rng, s), 0)).collect();
+        let mut rows = Vec::new();
+        for pulse in 0..60i64 {
+            for (s, (p, generation)) in ps.iter_mut().enumerate() {
+                match rng.gen_range(0..100) {
+                    0..=3 => {
+                        *generation += 1;
+                        *p = fresh(&mut rng, s as u64 + slots * *generation);
+                    }
+                    4 => p.v = rng.gen_range(-3e4..3e4),
+                    5 => p.id += slots, // same tail, new id
+                    _ => {}
+                }
+                p.x += p.u * 2e-4;
+                if rng.gen_bool(0.3) {
+                    continue; // not lit or outside the ROI at this pulse
+                }
+                rows.push(TruthSample {
+                    pulse,
+                    t_us: 37.0 + 200.0 * pulse as f64,
+                    particle_id: p.id,
+                    x: p.x,
+                    y: p.y,
+                    u: p.u,
+                    v: p.v,
+                });
+            }
+        }
+        let mut want = format!("{}\n", TruthWriter::HEADER).into_bytes();
+        for r in &rows {
+            truth_line_reference(&mut want, r);
+        }
+        let dir = tempfile::tempdir().unwrap();
+        for given in [Some(slots), Some(7), Some(1), Some(1 << 40), None] {
+            let path = dir.path().join("truth.csv");
+            let mut w = TruthWriter::create(&path).unwrap();
+            if let Some(n) = given {
+                w.set_particle_slots(n);
+            }
+            for part in rows.chunks(997) {
+                w.write(part).unwrap();
+            }
+            w.finish().unwrap();
+            assert!(std::fs::read(&path).unwrap() == want, "slots {given:?}");
+        }
     }
 
     #[test]

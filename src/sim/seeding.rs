@@ -59,12 +59,25 @@ impl Particle {
     /// The field's velocity at the particle at time `t`, through the cache.
     #[inline]
     fn velocity(&mut self, flow: &Flow, t: f64) -> (f64, f64) {
-        let key = self.vel_key(flow.is_parallel_steady(), t);
+        self.velocity_in(flow, flow.is_parallel_steady(), t)
+    }
+
+    /// [`Particle::velocity`] with `flow.is_parallel_steady()` given.
+    #[inline(always)]
+    fn velocity_in(&mut self, flow: &Flow, parallel_steady: bool, t: f64) -> (f64, f64) {
+        let key = self.vel_key(parallel_steady, t);
         if self.vel_at != Some(key) {
-            self.vel = flow.velocity(self.x, self.y, t);
-            self.vel_at = Some(key);
+            self.evaluate_velocity(flow, t, key);
         }
         self.vel
+    }
+
+    /// Fill the cache (kept out of line: the advection loops of steady
+    /// parallel flows come here only when a particle is new).
+    #[inline(never)]
+    fn evaluate_velocity(&mut self, flow: &Flow, t: f64, key: (u64, u64, u64)) {
+        self.vel = flow.velocity(self.x, self.y, t);
+        self.vel_at = Some(key);
     }
 }
 
@@ -211,11 +224,28 @@ impl Particles {
         t0: f64,
         times: &[f64],
     ) -> Vec<Vec<Snapshot>> {
+        let mut merged = Vec::new();
+        self.advance_and_snapshot_into(flow, t0, times, &mut merged);
+        merged
+    }
+
+    /// [`Particles::advance_and_snapshot`] into `merged` (one list per
+    /// time, the lists of an earlier call reused: a block's snapshots are
+    /// ~1.5 MB at full frame, whose fresh pages cost more system time
+    /// than the copy into them).
+    pub fn advance_and_snapshot_into(
+        &mut self,
+        flow: &Flow,
+        t0: f64,
+        times: &[f64],
+        merged: &mut Vec<Vec<Snapshot>>,
+    ) {
         use rayon::prelude::*;
         // Small enough for several tasks per thread (load balance), large
         // enough to amortise the per-task vectors.
         const CHUNK: usize = 512;
         let n_slots = self.particles.len();
+        let parallel_steady = flow.is_parallel_steady() && !PLAIN_ADVECTION.with(|c| c.get());
         let mut particles = std::mem::take(&mut self.particles);
         let mut rngs = std::mem::take(&mut self.rngs);
         let this = &*self;
@@ -229,6 +259,10 @@ impl Particles {
                 let mut out: Vec<Vec<Snapshot>> = (0..times.len())
                     .map(|_| Vec::with_capacity(expect))
                     .collect();
+                if parallel_steady {
+                    this.advance_parallel(pc, rc, ci * CHUNK, n_slots, flow, t0, times, &mut out);
+                    return out;
+                }
                 for (k, (p, rng)) in pc.iter_mut().zip(rc.iter_mut()).enumerate() {
                     let slot = ci * CHUNK + k;
                     let mut t = t0;
@@ -253,15 +287,16 @@ impl Particles {
             .collect();
         self.particles = particles;
         self.rngs = rngs;
-        let mut merged: Vec<Vec<Snapshot>> = (0..times.len())
-            .map(|i| Vec::with_capacity(parts.iter().map(|p| p[i].len()).sum()))
-            .collect();
+        merged.resize_with(times.len(), Vec::new);
+        for (i, m) in merged.iter_mut().enumerate() {
+            m.clear();
+            m.reserve(parts.iter().map(|p| p[i].len()).sum());
+        }
         for part in parts {
             for (m, s) in merged.iter_mut().zip(part) {
                 m.extend(s);
             }
         }
-        merged
     }
 
     /// Advance one particle from `t0` to `t1`. Returns its velocity at
@@ -312,6 +347,25 @@ impl Particles {
             }
         }
         p.z += p.w * dt;
+        if self.recycle_if_left(p, rng, flow, t1, slot, n_slots) {
+            return None;
+        }
+        known
+    }
+
+    /// After a move: a particle that left the slab or the domain is
+    /// recycled (see the module docs) and true returned.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn recycle_if_left(
+        &self,
+        p: &mut Particle,
+        rng: &mut Pcg64,
+        flow: &Flow,
+        t1: f64,
+        slot: usize,
+        n_slots: usize,
+    ) -> bool {
         let d = &self.domain;
         if p.z.abs() > self.slab_half {
             // Left the slab: a new particle enters through the opposite face.
@@ -322,7 +376,7 @@ impl Particles {
                 p.w = -p.w;
             }
             Self::renew_id(p, slot, n_slots);
-            return None;
+            return true;
         }
         let (wx, wy) = (d.x1 - d.x0, d.y1 - d.y0);
         let mut wrapped = false;
@@ -342,16 +396,179 @@ impl Particles {
             }
             Self::renew_id(p, slot, n_slots);
             // Wrapped in y or re-seeded: the velocity changed.
-            return None;
+            return true;
         }
-        known
+        false
     }
+
+    /// [`Particles::recycle_if_left`] out of line (the fast loop's rare
+    /// case).
+    #[inline(never)]
+    #[allow(clippy::too_many_arguments)]
+    fn recycle_cold(
+        &self,
+        p: &mut Particle,
+        rng: &mut Pcg64,
+        flow: &Flow,
+        t1: f64,
+        slot: usize,
+        n_slots: usize,
+    ) -> bool {
+        self.recycle_if_left(p, rng, flow, t1, slot, n_slots)
+    }
+
+    /// The particle loop of [`Particles::advance_and_snapshot`] for a
+    /// steady parallel flow: the same operations as [`Particles::step`]
+    /// and the snapshot (so the same numbers, tested), with the flow's
+    /// kind, the domain and the sheet hoisted out of the loop and the
+    /// rare cases (a new particle's velocity, recycling) out of line, so
+    /// a particle-pulse is a few multiply-adds, comparisons and a push.
+    #[allow(clippy::too_many_arguments)]
+    fn advance_parallel(
+        &self,
+        pc: &mut [Particle],
+        rc: &mut [Pcg64],
+        slot0: usize,
+        n_slots: usize,
+        flow: &Flow,
+        t0: f64,
+        times: &[f64],
+        out: &mut [Vec<Snapshot>],
+    ) {
+        let d = self.domain;
+        let (slab_half, sheet_half) = (self.slab_half, self.sheet_half);
+        for (k, (p, rng)) in pc.iter_mut().zip(rc.iter_mut()).enumerate() {
+            let slot = slot0 + k;
+            let mut t = t0;
+            for (&t1, snaps) in times.iter().zip(out.iter_mut()) {
+                let dt = t1 - t;
+                let mut known = false;
+                // As `step`: only dt ≤ 0 skips the move (a NaN dt moves).
+                #[allow(clippy::neg_cmp_op_on_partial_ord)]
+                let moves = !(dt <= 0.0);
+                if moves {
+                    let (u, _) = p.velocity_in(flow, true, t);
+                    p.x += u * dt;
+                    known = true;
+                    p.z += p.w * dt;
+                    let left = p.z.abs() > slab_half
+                        || p.x < d.x0
+                        || p.x >= d.x1
+                        || p.y < d.y0
+                        || p.y >= d.y1;
+                    if left && self.recycle_cold(p, rng, flow, t1, slot, n_slots) {
+                        known = false;
+                    }
+                }
+                t = t1;
+                if p.z.abs() <= sheet_half {
+                    let (u, v) = if known {
+                        p.vel
+                    } else {
+                        p.velocity_in(flow, true, t1)
+                    };
+                    snaps.push(Snapshot {
+                        x: p.x,
+                        y: p.y,
+                        u,
+                        v,
+                        brightness: p.brightness,
+                        id: p.id,
+                    });
+                }
+            }
+        }
+    }
+}
+
+std::thread_local! {
+    /// Tests: force the generic particle loop (the reference of
+    /// [`Particles::advance_parallel`]).
+    static PLAIN_ADVECTION: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::sim::presets;
+
+    /// The steady-parallel-flow loop gives exactly what the generic loop
+    /// gives: snapshots, ids (recycling through both faces of the slab and
+    /// the periodic x wrap), particle states and random streams, for the
+    /// jet, a boundary layer (walls: re-seeding), a Poiseuille channel and
+    /// a uniform flow, over blocks with repeated times (dt = 0).
+    #[test]
+    fn parallel_flow_loop_matches_generic_loop() {
+        use crate::sim::scenario::FlowSpec;
+        let mut cases = Vec::new();
+        for name in ["water_jet_5khz", "laminar_bl"] {
+            cases.push(presets::preset(name).unwrap());
+        }
+        let mut sc = presets::preset("water_jet_5khz").unwrap();
+        sc.flow = FlowSpec::Poiseuille {
+            u_max: 30_000.0,
+            y0: 150.0,
+            width: 200.0,
+        };
+        cases.push(sc.clone());
+        sc.flow = FlowSpec::Uniform {
+            u: -25_000.0,
+            v: 0.0,
+        };
+        cases.push(sc);
+        for mut sc in cases {
+            sc.sensor.roi = Some(crate::sim::scenario::Roi {
+                x: 100,
+                y: 200,
+                width: 300,
+                height: 200,
+            });
+            // Fast out-of-plane motion: many particles leave the slab.
+            sc.seeding.out_of_plane_rms *= 20.0;
+            let flow = Flow::build(&sc.flow).unwrap();
+            assert!(flow.is_parallel_steady(), "{}", sc.name);
+            let mut fast = Particles::seed(&sc, &flow, 5);
+            let mut plain = Particles::seed(&sc, &flow, 5);
+            let mut t = 0.0;
+            let mut recycled = 0;
+            for block in 0..8 {
+                let mut times: Vec<f64> =
+                    (0..6).map(|k| (block * 6 + k + 1) as f64 * 2e-4).collect();
+                times[3] = times[2]; // dt = 0
+                let a = fast.advance_and_snapshot(&flow, t, &times);
+                PLAIN_ADVECTION.with(|c| c.set(true));
+                let b = plain.advance_and_snapshot(&flow, t, &times);
+                PLAIN_ADVECTION.with(|c| c.set(false));
+                t = *times.last().unwrap();
+                assert_eq!(a.len(), b.len());
+                for (x, y) in a.iter().zip(&b) {
+                    assert!(!x.is_empty());
+                    assert_eq!(x.len(), y.len(), "{}", sc.name);
+                    for (p, q) in x.iter().zip(y) {
+                        assert_eq!(
+                            (p.x, p.y, p.u, p.v, p.brightness, p.id),
+                            (q.x, q.y, q.u, q.v, q.brightness, q.id),
+                            "{}",
+                            sc.name
+                        );
+                    }
+                }
+                for (p, q) in fast.particles.iter().zip(&plain.particles) {
+                    assert_eq!(
+                        (p.x, p.y, p.z, p.w, p.id, p.vel, p.vel_at),
+                        (q.x, q.y, q.z, q.w, q.id, q.vel, q.vel_at),
+                        "{}",
+                        sc.name
+                    );
+                    recycled += (p.generation > 0) as usize;
+                }
+                for (r, s) in fast.rngs.iter_mut().zip(plain.rngs.iter_mut()) {
+                    assert_eq!(r.gen::<u64>(), s.gen::<u64>());
+                }
+            }
+            assert!(recycled > 100, "{}: {recycled}", sc.name);
+        }
+    }
 
     /// The velocity cache gives the numbers a fresh field evaluation
     /// gives: advancing with the caches emptied before every pulse (the
