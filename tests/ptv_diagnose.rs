@@ -44,6 +44,9 @@ fn breakdown_of_link_errors() {
             sigma_ceiling: env("PTV_SIGMA_CEILING").unwrap_or(d.sigma_ceiling),
             split_merged: env("PTV_SPLIT").map_or(d.split_merged, |v| v != 0.0),
             split_penalty: env("PTV_SPLIT_PENALTY").unwrap_or(d.split_penalty),
+            ghost_check_length: env("PTV_GHOST_LEN").map_or(d.ghost_check_length, |v| v as usize),
+            ghost_sigma: env("PTV_GHOST_SIGMA").unwrap_or(d.ghost_sigma),
+            ghost_check_init: env("PTV_GHOST_INIT").map_or(d.ghost_check_init, |v| v != 0.0),
             ..d
         };
         let run = ebptv::track::synth::run_scene(&scene, &ClusterParams::default(), &tp).unwrap();
