@@ -139,8 +139,9 @@ const BLOCK_US: f64 = 2000.0;
 
 /// How a request packs into one u64 sort key: time at 1 ns resolution
 /// relative to the block's `t_begin` (ample for 1 µs timestamps; 2^39 ns
-/// = 9 min of carry-over), then y, x (relative to the ROI, in as few bits
-/// as its size needs) and polarity. Requests are ordered by (time, y),
+/// = 9 min of carry-over, 2^38 for a 4096×4096 ROI), then y, x (relative
+/// to the ROI, in as few bits as its size needs), the group flag
+/// ([`GROUP_FLAG`]) and polarity. Requests are ordered by (time, y),
 /// equal ones in input order, as [`sort_requests_reference`] defines: a
 /// stable radix sort of the keys on the bits above x ([`Self::x_shift`]),
 /// 3 passes of 11 bits at full frame (x and p need not be sorted on:
@@ -153,42 +154,55 @@ struct KeyLayout {
     y0: u16,
     x_bits: u32,
     time_shift: u32,
+    /// The largest time field (ns).
+    ns_max: u64,
+    /// Mask of the y field (after shifting it down).
+    y_mask: u64,
 }
+
+/// Key bit (below x, so the sort carries it without comparing it) marking
+/// the head of a refractory group: the request has later requests of the
+/// same pixel and pulse kept aside in the block's tail list, each less
+/// than the refractory period after it (see [`Back::block`]).
+const GROUP_FLAG: u64 = 2;
 
 impl KeyLayout {
     fn new(roi: scenario::Roi) -> KeyLayout {
         let bits = |n: u32| 32 - n.saturating_sub(1).leading_zeros();
         let x_bits = bits(roi.width);
+        let time_shift = 2 + x_bits + bits(roi.height);
         KeyLayout {
             x0: roi.x as u16,
             y0: roi.y as u16,
             x_bits,
-            time_shift: 1 + x_bits + bits(roi.height),
+            time_shift,
+            ns_max: (1u64 << (64 - time_shift).min(39)) - 1,
+            y_mask: (1u64 << bits(roi.height)) - 1,
         }
     }
 
-    /// The key bits below y (x and p), which the sort does not compare.
+    /// The key bits below y (x, group flag and p), which the sort does not
+    /// compare.
     fn x_shift(&self) -> u32 {
-        1 + self.x_bits
+        2 + self.x_bits
     }
 
     #[inline]
     fn key(&self, a: &pixel::Arrival, t_begin: f64) -> u64 {
         debug_assert!(a.x >= self.x0 && a.y >= self.y0, "request outside the ROI");
-        let ns = (pixel::round_i64((a.t - t_begin) * 1000.0).max(0) as u64).min((1 << 39) - 1);
+        let ns = (pixel::round_i64((a.t - t_begin) * 1000.0).max(0) as u64).min(self.ns_max);
         (ns << self.time_shift)
-            | (((a.y - self.y0) as u64) << (1 + self.x_bits))
-            | (((a.x - self.x0) as u64) << 1)
+            | (((a.y - self.y0) as u64) << (2 + self.x_bits))
+            | (((a.x - self.x0) as u64) << 2)
             | a.p as u64
     }
 
     #[inline]
     fn arrival(&self, k: u64, t_begin: f64) -> pixel::Arrival {
-        let y_mask = (1u64 << (self.time_shift - 1 - self.x_bits)) - 1;
         pixel::Arrival {
             t: self.time(k, t_begin),
-            y: self.y0 + ((k >> (1 + self.x_bits)) & y_mask) as u16,
-            x: self.x0 + ((k >> 1) & ((1u64 << self.x_bits) - 1)) as u16,
+            y: self.y0 + ((k >> (2 + self.x_bits)) & self.y_mask) as u16,
+            x: self.x0 + ((k >> 2) & ((1u64 << self.x_bits) - 1)) as u16,
             p: (k & 1) as u8,
         }
     }
@@ -197,14 +211,14 @@ impl KeyLayout {
     #[inline]
     fn pixel_bits(&self, x: u16, y: u16) -> u64 {
         debug_assert!(x >= self.x0 && y >= self.y0, "request outside the ROI");
-        (((y - self.y0) as u64) << (1 + self.x_bits)) | (((x - self.x0) as u64) << 1)
+        (((y - self.y0) as u64) << (2 + self.x_bits)) | (((x - self.x0) as u64) << 2)
     }
 
     /// [`Self::key`] from the pixel's [`Self::pixel_bits`], the time and
     /// the polarity.
     #[inline]
     fn key_at(&self, pixel_bits: u64, t: f64, p: u8, t_begin: f64) -> u64 {
-        let ns = pixel::round_i64((t - t_begin) * 1000.0).clamp(0, (1 << 39) - 1) as u64;
+        let ns = pixel::round_i64((t - t_begin) * 1000.0).clamp(0, self.ns_max as i64) as u64;
         (ns << self.time_shift) | pixel_bits | p as u64
     }
 
@@ -222,6 +236,12 @@ struct KeySink {
     layout: KeyLayout,
     t_begin: f64,
     keys: Vec<u64>,
+    /// Refractory grouping: a pixel's later requests of this pulse less
+    /// than this many ns after its earliest go to `tails` instead of
+    /// `keys` (0: no grouping, the refractory filter is off).
+    group_ns: u64,
+    /// (head key with [`GROUP_FLAG`], member key) of every group.
+    tails: Vec<(u64, u64)>,
 }
 
 impl pixel::ArrivalSink for KeySink {
@@ -230,16 +250,48 @@ impl pixel::ArrivalSink for KeySink {
         self.keys.push(self.layout.key(&a, self.t_begin));
     }
 
-    #[inline]
+    #[inline(always)]
     fn arrive_pixel(&mut self, x: u16, y: u16, p: u8, times: &[f64]) {
         // The layout in locals: the pushes would make the compiler
         // reload it per event.
         let (layout, t_begin) = (self.layout, self.t_begin);
         let bits = layout.pixel_bits(x, y);
-        self.keys.reserve(times.len());
-        for &t in times {
-            self.keys.push(layout.key_at(bits, t, p, t_begin));
+        if times.len() < 2 || self.group_ns == 0 {
+            self.keys.reserve(times.len());
+            for &t in times {
+                self.keys.push(layout.key_at(bits, t, p, t_begin));
+            }
+            return;
         }
+        // The pixel's earliest request heads a group of those less than
+        // `group_ns` after it: the readout looks at them only if the head
+        // is dropped (see `Back::block`); the rest are plain requests.
+        // (Keys grow with the time: the earliest time has the least key.)
+        let n = times.len();
+        let mut h = 0;
+        for i in 1..n {
+            if times[i] < times[h] {
+                h = i;
+            }
+        }
+        let head = layout.key_at(bits, times[h], p, t_begin);
+        let limit = (head >> layout.time_shift) + self.group_ns;
+        let (keys, tails) = (&mut self.keys, &mut self.tails);
+        keys.reserve(n);
+        tails.reserve(n);
+        let mut flag = 0;
+        for (i, &t) in times.iter().enumerate() {
+            if i != h {
+                let k = layout.key_at(bits, t, p, t_begin);
+                if k >> layout.time_shift < limit {
+                    tails.push((head | GROUP_FLAG, k));
+                    flag = GROUP_FLAG;
+                } else {
+                    keys.push(k);
+                }
+            }
+        }
+        keys.push(head | flag);
     }
 }
 
@@ -304,10 +356,22 @@ pub fn radix_sort_above(keys: &mut Vec<u64>, scratch: &mut Vec<u64>, low_bits: u
     let radix = 1usize << digit;
     let mask = radix as u64 - 1;
     let mut counts = vec![0usize; radix * passes as usize];
-    for &k in keys.iter() {
-        let k = k >> low_bits;
-        for p in 0..passes as usize {
-            counts[p * radix + ((k >> (p as u32 * digit)) & mask) as usize] += 1;
+    if passes == 3 {
+        // (The usual case, request keys of a block: unrolled.)
+        let (c0, rest) = counts.split_at_mut(radix);
+        let (c1, c2) = rest.split_at_mut(radix);
+        for &k in keys.iter() {
+            let k = k >> low_bits;
+            c0[(k & mask) as usize] += 1;
+            c1[((k >> digit) & mask) as usize] += 1;
+            c2[((k >> (2 * digit)) & mask) as usize] += 1;
+        }
+    } else {
+        for &k in keys.iter() {
+            let k = k >> low_bits;
+            for p in 0..passes as usize {
+                counts[p * radix + ((k >> (p as u32 * digit)) & mask) as usize] += 1;
+            }
         }
     }
     scratch.clear();
@@ -354,8 +418,51 @@ struct BlockRequests {
     /// The block's own requests (not the carry-over) as keys relative to
     /// `t_begin` ([`KeyLayout`]), not yet sorted.
     keys: Vec<u64>,
+    /// Refractory groups: (head key, member key), see [`KeySink`]; one
+    /// list per pulse (concatenated only if a lookup needs them sorted).
+    tails: Vec<Vec<(u64, u64)>>,
     truth: Vec<TruthSample>,
 }
+
+/// Vectors the stages hand back for reuse. Freed and allocated anew every
+/// pulse and block, the request lists made the allocator return their
+/// pages to the OS and fault them in again (~0.1 s of system time in a
+/// 0.25 s full-frame run, measured with the allocator's trimming off).
+#[derive(Default)]
+struct Buffers {
+    pulse_keys: std::sync::Mutex<Vec<Vec<u64>>>,
+    block_keys: std::sync::Mutex<Vec<Vec<u64>>>,
+    tails: std::sync::Mutex<Vec<Vec<(u64, u64)>>>,
+}
+
+impl Buffers {
+    /// An empty vector with room for `n`, reused if one is waiting.
+    fn take<T>(pool: &std::sync::Mutex<Vec<Vec<T>>>, n: usize) -> Vec<T> {
+        let mut v = pool
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .pop()
+            .unwrap_or_default();
+        v.clear();
+        v.reserve(n);
+        v
+    }
+
+    /// Hand `v` back (dropped if `max` are already waiting).
+    fn give<T>(pool: &std::sync::Mutex<Vec<Vec<T>>>, v: Vec<T>, max: usize) {
+        if v.capacity() > 0 {
+            let mut p = pool.lock().unwrap_or_else(|e| e.into_inner());
+            if p.len() < max {
+                p.push(v);
+            }
+        }
+    }
+}
+
+/// Per-pulse vectors kept for reuse (two blocks of pulses are in flight).
+const POOLED_PULSE_MAX: usize = 48;
+/// Per-block vectors kept for reuse.
+const POOLED_BLOCK_MAX: usize = 3;
 
 /// Particles, flow and pixel: everything up to the sorted requests.
 struct Front {
@@ -370,6 +477,9 @@ struct Front {
     /// Particle time (s).
     t_particles: f64,
     layout: KeyLayout,
+    /// [`KeySink::group_ns`].
+    group_ns: u64,
+    buffers: std::sync::Arc<Buffers>,
 }
 
 /// Readout state carried from block to block.
@@ -379,12 +489,19 @@ struct Back {
     limiter: Option<readout::RateLimiter>,
     /// Requests at or after the current block's end.
     carry: Vec<pixel::Arrival>,
+    /// Refractory groups carried over: (index in `carry` of the head,
+    /// member), in head order.
+    carry_tails: Vec<(usize, pixel::Arrival)>,
+    /// Groups whose head the refractory filter dropped, so that their
+    /// members were looked at (counted for tests).
+    pub(crate) groups_expanded: u64,
     lost_in_readout: u64,
     layout: KeyLayout,
     /// The radix sort's reused buffer.
     scratch: Vec<u64>,
     /// Decoded requests that passed the refractory filter.
     reqs: Vec<pixel::Arrival>,
+    buffers: std::sync::Arc<Buffers>,
 }
 
 /// The streaming simulator.
@@ -431,6 +548,7 @@ impl Simulator {
             payload_offset: 0,
             file_size: None,
         };
+        let buffers = std::sync::Arc::new(Buffers::default());
         let stats = SimStats {
             particles: particles.len() as u64,
             duration_s: sc.duration_s,
@@ -451,10 +569,13 @@ impl Simulator {
                     .rate_limiter
                     .map(|r| readout::RateLimiter::new(r.max_rate_ev_s, r.window_us)),
                 carry: Vec::new(),
+                carry_tails: Vec::new(),
+                groups_expanded: 0,
                 lost_in_readout: 0,
                 layout: KeyLayout::new(roi),
                 scratch: Vec::new(),
                 reqs: Vec::new(),
+                buffers: buffers.clone(),
             },
             front: Front {
                 sc: sc.clone(),
@@ -467,6 +588,8 @@ impl Simulator {
                 n_blocks,
                 t_particles: 0.0,
                 layout: KeyLayout::new(roi),
+                group_ns: sc.pixel.refractory.map_or(0, |r| group_ns(r.period_us)),
+                buffers,
             },
             ahead: None,
             info,
@@ -479,6 +602,14 @@ impl Simulator {
 
     pub fn scenario(&self) -> &Scenario {
         &self.front.sc
+    }
+
+    /// Every request through the sort and the refractory filter, no
+    /// refractory groups (the plain definition the tests compare with).
+    #[cfg(test)]
+    fn without_refractory_groups(mut self) -> Simulator {
+        self.front.group_ns = 0;
+        self
     }
 
     pub fn flow(&self) -> &Flow {
@@ -622,26 +753,38 @@ impl Front {
         let pixel = &self.pixel;
         let seed = self.seed;
         let layout = self.layout;
-        let per_pulse: Vec<Vec<u64>> = snaps
+        let group_ns = self.group_ns;
+        let buffers = &*self.buffers;
+        let per_pulse: Vec<(Vec<u64>, Vec<(u64, u64)>)> = snaps
             .par_iter()
             .enumerate()
             .map(|(i, s)| {
                 let mut sink = KeySink {
                     layout,
                     t_begin,
-                    // ~2 events per lit particle: one allocation, no regrowth.
-                    keys: Vec::with_capacity(3 * s.len() + 64),
+                    // ~2 events per lit particle: no regrowth.
+                    keys: Buffers::take(&buffers.pulse_keys, 3 * s.len() + 64),
+                    group_ns,
+                    // ~1 group per lit particle.
+                    tails: if group_ns > 0 {
+                        Buffers::take(&buffers.tails, s.len() + 64)
+                    } else {
+                        Vec::new()
+                    },
                 };
                 pixel.render_pulse(s, starts[i], stream_seed(seed, 6, k0 + i as u64), &mut sink);
-                sink.keys
+                (sink.keys, sink.tails)
             })
             .collect();
         let mut noise = Vec::new();
         pixel.noise(t_begin, t_end, stream_seed(seed, 7, b), &mut noise);
-        let n = per_pulse.iter().map(|v| v.len()).sum::<usize>() + noise.len();
-        let mut keys = Vec::with_capacity(n);
-        for v in &per_pulse {
-            keys.extend_from_slice(v);
+        let n = per_pulse.iter().map(|v| v.0.len()).sum::<usize>() + noise.len();
+        let mut keys = Buffers::take(&buffers.block_keys, n);
+        let mut tails = Vec::with_capacity(per_pulse.len());
+        for (k, t) in per_pulse {
+            keys.extend_from_slice(&k);
+            Buffers::give(&buffers.pulse_keys, k, POOLED_PULSE_MAX);
+            tails.push(t);
         }
         keys.extend(noise.iter().map(|a| layout.key(a, t_begin)));
         BlockRequests {
@@ -651,6 +794,7 @@ impl Front {
             t_end,
             last,
             keys,
+            tails,
             truth,
         }
     }
@@ -658,38 +802,149 @@ impl Front {
 
 impl Back {
     /// Read out block `r`'s requests (with those carried over from the
-    /// block before) into `events`. Takes `r.keys`.
+    /// block before) into `events`. Takes `r.keys` and `r.tails`.
+    ///
+    /// **Refractory groups.** Most requests the refractory filter drops
+    /// are a pixel's 2nd…k-th threshold crossings of one pulse, less than
+    /// the period after its first. The front keys only a pixel's earliest
+    /// request of a pulse (flagged [`GROUP_FLAG`]) and keeps those later
+    /// ones aside in `tails`; they never enter the sort. When the head
+    /// passes the filter, every member is less than the period after it,
+    /// so the filter would drop them all: nothing more to do. When the
+    /// head is dropped (an earlier request of the pixel less than the
+    /// period before it), the first member that passes the filter *now*
+    /// is merged into the request stream at its own time (a small heap),
+    /// carrying the rest of the group; members before it would be
+    /// dropped whatever happens in between (the pixel's last kept time
+    /// only grows). So the result is the same as filtering every request
+    /// in order (`refractory_groups_match_plain_filtering`).
     fn block(&mut self, r: &mut BlockRequests, duration_us: f64, events: &mut EventChunk) {
-        // The block's keys with the carry-over keyed like them, then one
-        // sort of the union (here, in the sequential stage, which runs
-        // while the next block's front keeps the other core busy).
-        let mut keys = std::mem::take(&mut r.keys);
-        keys.extend(self.carry.iter().map(|a| self.layout.key(a, r.t_begin)));
-        radix_sort_above(&mut keys, &mut self.scratch, self.layout.x_shift());
+        use std::cmp::Reverse;
         let layout = self.layout;
         let t_begin = r.t_begin;
+        // The block's keys with the carry-over keyed like them (its groups
+        // too), then one sort of the union (here, in the sequential stage,
+        // which runs while the next block's front keeps the other core
+        // busy).
+        let mut keys = std::mem::take(&mut r.keys);
+        let mut tails = TailIndex {
+            parts: std::mem::take(&mut r.tails),
+            pairs: Vec::new(),
+            sorted: false,
+            lookups: 0,
+            last_head: None,
+        };
+        let mut ct = 0;
+        let mut carried = Vec::new();
+        for (i, a) in self.carry.iter().enumerate() {
+            let head = layout.key(a, t_begin);
+            let mut flag = 0;
+            while ct < self.carry_tails.len() && self.carry_tails[ct].0 == i {
+                let m = layout.key(&self.carry_tails[ct].1, t_begin);
+                carried.push((head | GROUP_FLAG, m));
+                flag = GROUP_FLAG;
+                ct += 1;
+            }
+            keys.push(head | flag);
+        }
+        tails.parts.push(carried);
+        radix_sort_above(&mut keys, &mut self.scratch, layout.x_shift());
         // Requests from the block's end on wait for the next block.
         let split = keys.partition_point(|&k| layout.time(k, t_begin) < r.t_end);
         self.carry.clear();
-        if !r.last {
-            self.carry
-                .extend(keys[split..].iter().map(|&k| layout.arrival(k, t_begin)));
-        }
+        self.carry_tails.clear();
         // Decoded and through the refractory filter in one pass.
         let reqs = &mut self.reqs;
         reqs.clear();
         reqs.reserve(split);
         match &mut self.refractory {
             Some(rf) => {
-                for &k in &keys[..split] {
+                let xs = layout.x_shift();
+                // Deferred group members: (sort bits, sequence, slot).
+                let mut heap: std::collections::BinaryHeap<Reverse<(u64, u64, usize)>> =
+                    Default::default();
+                let mut slots: Vec<(u64, Vec<u64>)> = Vec::new();
+                let mut i = 0;
+                loop {
+                    let from_heap = match heap.peek() {
+                        Some(&Reverse((sk, _, j)))
+                            if layout.time(slots[j].0, t_begin) < r.t_end =>
+                        {
+                            i == split || sk < keys[i] >> xs
+                        }
+                        _ => false,
+                    };
+                    let (k, slot) = if from_heap {
+                        let Reverse((_, _, j)) = heap.pop().expect("peeked");
+                        (slots[j].0, Some(j))
+                    } else if i < split {
+                        i += 1;
+                        (keys[i - 1], None)
+                    } else {
+                        break;
+                    };
                     let a = layout.arrival(k, t_begin);
                     if rf.keep(&a) {
                         reqs.push(a);
+                        continue;
+                    }
+                    let members = match slot {
+                        Some(j) => std::mem::take(&mut slots[j].1),
+                        None if k & GROUP_FLAG != 0 => tails.members(k),
+                        None => continue,
+                    };
+                    if members.is_empty() {
+                        continue;
+                    }
+                    self.groups_expanded += 1;
+                    if let Some(m) = members
+                        .iter()
+                        .position(|&m| rf.would_keep(&layout.arrival(m, t_begin)))
+                    {
+                        heap.push(Reverse((members[m] >> xs, slots.len() as u64, slots.len())));
+                        slots.push((members[m], members[m + 1..].to_vec()));
+                    }
+                }
+                if !r.last {
+                    for &k in &keys[split..] {
+                        let members = if k & GROUP_FLAG != 0 {
+                            tails.members(k)
+                        } else {
+                            Vec::new()
+                        };
+                        carry_push(
+                            &mut self.carry,
+                            &mut self.carry_tails,
+                            (layout, t_begin),
+                            k,
+                            &members,
+                        );
+                    }
+                    while let Some(Reverse((_, _, j))) = heap.pop() {
+                        let (k, members) = std::mem::take(&mut slots[j]);
+                        carry_push(
+                            &mut self.carry,
+                            &mut self.carry_tails,
+                            (layout, t_begin),
+                            k,
+                            &members,
+                        );
                     }
                 }
             }
-            None => reqs.extend(keys[..split].iter().map(|&k| layout.arrival(k, t_begin))),
+            None => {
+                reqs.extend(keys[..split].iter().map(|&k| layout.arrival(k, t_begin)));
+                if !r.last {
+                    self.carry
+                        .extend(keys[split..].iter().map(|&k| layout.arrival(k, t_begin)));
+                }
+            }
         }
+        Buffers::give(&self.buffers.block_keys, keys, POOLED_BLOCK_MAX);
+        for t in tails.parts {
+            Buffers::give(&self.buffers.tails, t, POOLED_PULSE_MAX);
+        }
+        let reqs = &mut self.reqs;
         // At most one event per request (plus a few pending ones): grow
         // the chunk once, not by doubling.
         let n = reqs.len() + 1024;
@@ -711,6 +966,76 @@ impl Back {
             l.apply(events);
         }
     }
+}
+
+/// Carry request `k` over to the next block, with its group's members
+/// (`Back::carry`, `Back::carry_tails`).
+fn carry_push(
+    carry: &mut Vec<pixel::Arrival>,
+    carry_tails: &mut Vec<(usize, pixel::Arrival)>,
+    (layout, t_begin): (KeyLayout, f64),
+    k: u64,
+    members: &[u64],
+) {
+    let i = carry.len();
+    carry.push(layout.arrival(k, t_begin));
+    carry_tails.extend(members.iter().map(|&m| (i, layout.arrival(m, t_begin))));
+}
+
+/// A block's refractory groups, looked up by head only when a head is
+/// dropped or carried over (at the pulse rates of the presets: a few per
+/// block): the first lookups scan the list, later ones sort it once (by
+/// head, then member) and search.
+struct TailIndex {
+    /// The block's lists of (head, member), as the pulses made them.
+    parts: Vec<Vec<(u64, u64)>>,
+    /// `parts` concatenated and sorted, once lookups are many.
+    pairs: Vec<(u64, u64)>,
+    sorted: bool,
+    /// Lookups so far (by scanning while few).
+    lookups: u32,
+    /// The head last looked up: identical heads (same pixel, polarity and
+    /// nanosecond, from two pulses) are adjacent in the sorted requests
+    /// and share one list of members, handed out once.
+    last_head: Option<u64>,
+}
+
+impl TailIndex {
+    /// The members of head `k` in time order (empty if already handed out).
+    fn members(&mut self, k: u64) -> Vec<u64> {
+        if self.last_head == Some(k) {
+            return Vec::new();
+        }
+        self.last_head = Some(k);
+        self.lookups += 1;
+        if !self.sorted && self.lookups <= 16 {
+            // A scan is ~n instructions, the sort ~n·log n.
+            let mut m: Vec<u64> = self
+                .parts
+                .iter()
+                .flatten()
+                .filter(|p| p.0 == k)
+                .map(|p| p.1)
+                .collect();
+            m.sort_unstable();
+            return m;
+        }
+        if !self.sorted {
+            self.pairs = self.parts.concat();
+            self.pairs.sort_unstable();
+            self.sorted = true;
+        }
+        let lo = self.pairs.partition_point(|p| p.0 < k);
+        let hi = self.pairs.partition_point(|p| p.0 <= k);
+        self.pairs[lo..hi].iter().map(|p| p.1).collect()
+    }
+}
+
+/// [`KeySink::group_ns`] for a refractory period: a few ns short of it,
+/// so a member stays less than the period after its head whatever the
+/// rounding to ns and the re-keying of carried requests (±1 ns each).
+fn group_ns(period_us: f64) -> u64 {
+    ((period_us * 1000.0).floor() as i64 - 3).max(0) as u64
 }
 
 impl EventSource for Simulator {
@@ -804,10 +1129,76 @@ mod tests {
     }
 
     #[test]
+    fn refractory_groups_match_plain_filtering() {
+        // Scenes where group heads are often dropped (a refractory period
+        // longer than the pulse period, dense noise), groups are carried
+        // over block ends (latency beyond the block) and OFF events join:
+        // the same events as sorting and filtering every request.
+        let mut cases = Vec::new();
+        for (period, latency, off, noise) in [
+            (30.0, 12.0, false, 0.0),
+            (150.0, 12.0, true, 2000.0),
+            (400.0, 2500.0, false, 500.0),
+            (60.0, 1900.0, true, 20_000.0),
+        ] {
+            let mut sc = presets::preset("water_jet_10khz").expect("preset");
+            sc.duration_s = 0.012;
+            sc.sensor.roi = Some(scenario::Roi {
+                x: 100,
+                y: 300,
+                width: 300,
+                height: 60,
+            });
+            sc.pixel.max_events_per_pulse = 8;
+            sc.pixel.latency_us = latency;
+            sc.pixel.refractory = Some(scenario::Refractory { period_us: period });
+            if off {
+                sc.pixel.off_events = Some(scenario::OffEvents {
+                    threshold: 0.2,
+                    tau_us: 20.0,
+                });
+            }
+            if noise > 0.0 {
+                sc.noise.background_noise = Some(scenario::BackgroundNoise { rate_hz: noise });
+            }
+            cases.push(sc);
+        }
+        for sc in &cases {
+            let run = |grouped: bool| {
+                let mut sim = Simulator::new(sc, 3).expect("valid scenario");
+                if !grouped {
+                    sim = sim.without_refractory_groups();
+                }
+                let mut ev = EventChunk::default();
+                let mut chunk = Chunk::default();
+                while sim.next_chunk(&mut chunk).expect("runs") {
+                    ev.extend_from(&chunk.events);
+                }
+                (ev, sim.back.groups_expanded, sim.stats.lost_in_readout)
+            };
+            let (grouped, expanded, lost) = run(true);
+            let (plain, none, plain_lost) = run(false);
+            assert_eq!(none, 0);
+            assert!(plain.len() > 10_000, "{}", plain.len());
+            assert_eq!(grouped, plain, "{:?}", sc.pixel);
+            assert_eq!(lost, plain_lost);
+            // The lazy path is exercised where heads get dropped.
+            if sc.pixel.refractory.expect("on").period_us > 100.0 {
+                assert!(expanded > 100, "{expanded}");
+            }
+        }
+    }
+
+    #[test]
     fn request_sort_matches_reference() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(12);
         let t_begin = 123_456.789;
-        for (x, y, width, height) in [(0, 0, 1280, 720), (17, 23, 333, 100), (5, 9, 1, 1)] {
+        for (x, y, width, height) in [
+            (0, 0, 1280, 720),
+            (17, 23, 333, 100),
+            (5, 9, 1, 1),
+            (0, 0, 4096, 4096),
+        ] {
             let roi = scenario::Roi {
                 x,
                 y,

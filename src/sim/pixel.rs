@@ -80,6 +80,8 @@ pub struct PixelModel {
     quad: Option<QuadTable>,
     /// The fast path's logarithm.
     ln: &'static LnTable,
+    /// [`normal_quantiles`].
+    quantiles: &'static [f64; 4097],
 }
 
 impl PixelModel {
@@ -150,6 +152,7 @@ impl PixelModel {
             quad: QuadTable::new(&table),
             table,
             ln: ln_table(),
+            quantiles: normal_quantiles(),
         }
     }
 
@@ -827,8 +830,14 @@ impl PixelModel {
     /// quantile), so a 1280×720 array lacks its ~225 most extreme pixels.
     #[inline]
     pub fn mismatch_factor(sigma: f64, key: u64, idx: u32) -> f64 {
+        Self::mismatch_factor_in(normal_quantiles(), sigma, key, idx)
+    }
+
+    /// [`Self::mismatch_factor`] with the quantile table at hand (no
+    /// once-lock check per pixel).
+    #[inline(always)]
+    fn mismatch_factor_in(q: &[f64; 4097], sigma: f64, key: u64, idx: u32) -> f64 {
         let h = super::splitmix(key ^ idx as u64);
-        let q = normal_quantiles();
         let bin = (h >> 52) as usize; // 12 bits
                                       // (Through i64: the same value, one instruction instead of the
                                       // u64 → f64 sequence.)
@@ -860,7 +869,9 @@ impl PixelModel {
             return;
         }
         let c = match self.mismatch {
-            Some((sigma, key)) => self.threshold * Self::mismatch_factor(sigma, key, idx),
+            Some((sigma, key)) => {
+                self.threshold * Self::mismatch_factor_in(self.quantiles, sigma, key, idx)
+            }
             None => self.threshold,
         };
         // The same bound with this pixel's threshold.
@@ -1002,13 +1013,8 @@ fn normal_quantiles() -> &'static [f64; 4097] {
 pub(crate) fn round_i64(v: f64) -> i64 {
     let t = v as i64;
     let r = v - t as f64;
-    if r >= 0.5 {
-        t + 1
-    } else if r <= -0.5 {
-        t - 1
-    } else {
-        t
-    }
+    // (Flags, not branches: the rounding direction is data-dependent.)
+    t + (r >= 0.5) as i64 - (r <= -0.5) as i64
 }
 
 /// Where a pixel's events go: a list of arrivals (tests, the reference)
@@ -1336,14 +1342,37 @@ impl QuadTable {
         if a < 0 || b > 4 {
             return None;
         }
-        for (j, x) in v.iter_mut().enumerate() {
-            if (j as i64) < a || (j as i64) >= b {
-                *x = 0.0;
-            }
+        // Lanes a..b kept bit for bit, the others +0.0: a bit mask (no
+        // branch per lane; the per-lane tests were ~10 % of rendering).
+        let keep = &QUAD_LANES[a as usize][b as usize];
+        for (x, &m) in v.iter_mut().zip(keep) {
+            *x = f32::from_bits(x.to_bits() & m);
         }
         Some((w, v))
     }
 }
+
+/// `QUAD_LANES[a][b]`: all-ones for the lanes a..b of a four-pixel
+/// window, zero for the others ([`QuadTable::eval_masked`]).
+const QUAD_LANES: [[[u32; 4]; 5]; 5] = {
+    let mut t = [[[0u32; 4]; 5]; 5];
+    let mut a = 0;
+    while a < 5 {
+        let mut b = 0;
+        while b < 5 {
+            let mut j = 0;
+            while j < 4 {
+                if j >= a && j < b {
+                    t[a][b][j] = u32::MAX;
+                }
+                j += 1;
+            }
+            b += 1;
+        }
+        a += 1;
+    }
+    t
+};
 
 /// erf(x) for any x to ~1e-15 ([`erf_series`] with the sign; ±1 beyond 6.5).
 fn erf_exact(x: f64) -> f64 {

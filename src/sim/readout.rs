@@ -46,11 +46,22 @@ impl Refractory {
         reqs.retain(|a| self.keep(a));
     }
 
+    #[inline]
+    fn index(&self, a: &Arrival) -> usize {
+        (a.y as usize - self.roi.y as usize) * self.roi.width as usize
+            + (a.x as usize - self.roi.x as usize)
+    }
+
+    /// Whether request `a` would pass now (no state change).
+    #[inline]
+    pub fn would_keep(&self, a: &Arrival) -> bool {
+        a.t - self.last[self.index(a)] >= self.period_us
+    }
+
     /// Whether request `a` passes (requests in time order).
     #[inline]
     pub fn keep(&mut self, a: &Arrival) -> bool {
-        let i = (a.y as usize - self.roi.y as usize) * self.roi.width as usize
-            + (a.x as usize - self.roi.x as usize);
+        let i = self.index(a);
         if a.t - self.last[i] >= self.period_us {
             self.last[i] = a.t;
             true
@@ -63,8 +74,11 @@ impl Refractory {
 pub struct Arbiter {
     params: ArbiterSaturation,
     roi_y: u16,
-    /// Pending (request time, x, polarity) per ROI row.
-    rows: Vec<Vec<(f64, u16, u8)>>,
+    /// Pending requests per ROI row as `x << 8 | polarity` (the grant
+    /// reads them in x order and stamps them all with its own time, so the
+    /// request time need not be kept; x is unique in a row's pending list,
+    /// so sorting these integers is sorting by x).
+    rows: Vec<Vec<u32>>,
     /// Rows with pending requests, by first pending request time (ties:
     /// lower row first). Requests are admitted in (time, row) order, so
     /// a row that becomes non-empty is always last in that order: a FIFO
@@ -121,7 +135,7 @@ impl Arbiter {
             assert!(self.last_admitted <= (a.t, a.y), "requests out of order");
             self.last_admitted = (a.t, a.y);
         }
-        row.push((a.t, a.x, a.p));
+        row.push((a.x as u32) << 8 | a.p as u32);
     }
 
     /// Serve the requests `reqs`, in (time, row) order (all requests
@@ -155,17 +169,24 @@ impl Arbiter {
             }
             let r = self.queue.pop_front().expect("non-empty");
             let row = &mut self.rows[r as usize];
-            row.sort_unstable_by_key(|e| e.1);
+            if row.len() > 1 {
+                row.sort_unstable();
+            }
             let ts = floor_i64(t_grant);
             let y = self.roi_y + r;
             let base = r as usize * self.row_bits;
-            for &(_, x, p) in row.iter() {
-                out.push(ts, x, y, p);
-                let bit = base + (x - self.roi_x) as usize;
+            let n = row.len();
+            // The row's events column by column (one capacity check per
+            // column, not four per event).
+            out.t.extend(std::iter::repeat_n(ts, n));
+            out.y.extend(std::iter::repeat_n(y, n));
+            out.x.extend(row.iter().map(|&e| (e >> 8) as u16));
+            out.p.extend(row.iter().map(|&e| e as u8));
+            for &e in row.iter() {
+                let bit = base + ((e >> 8) as u16 - self.roi_x) as usize;
                 self.blocked[bit / 64] &= !(1u64 << (bit % 64));
             }
-            self.t_free =
-                t_grant + self.params.row_time_us + row.len() as f64 * self.params.event_time_us;
+            self.t_free = t_grant + self.params.row_time_us + n as f64 * self.params.event_time_us;
             row.clear();
         }
     }
