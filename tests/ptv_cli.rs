@@ -43,7 +43,8 @@ fn links_a_particles_csv() {
     let tracks = ebptv::track::read_tracks_csv(&out.join("tracks.csv")).unwrap();
     assert!(tracks.len() > 50, "{} tracks", tracks.len());
     for t in &tracks {
-        assert!(t.points.len() >= 5);
+        // min_length 5, or 4 for tracks that agree with the local flow.
+        assert!(t.points.len() >= 4);
         assert!(t.points.windows(2).all(|w| w[1].pulse == w[0].pulse + 1));
     }
     let back = ebptv::track::read_particles_csv(&out.join("particles.csv")).unwrap();
@@ -202,7 +203,8 @@ fn sliced_and_sequential_linkers_agree() {
     );
     let mut seen = std::collections::HashSet::new();
     for t in &sli {
-        assert!(t.points.len() >= 5);
+        // min_length 5, or 4 for tracks that agree with the local flow.
+        assert!(t.points.len() >= 4);
         assert!(t.points.windows(2).all(|w| w[1].pulse == w[0].pulse + 1));
         for p in &t.points {
             assert!(seen.insert((p.pulse, p.x.to_bits(), t.id)));

@@ -44,6 +44,9 @@ fn breakdown_of_link_errors() {
             sigma_ceiling: env("PTV_SIGMA_CEILING").unwrap_or(d.sigma_ceiling),
             split_merged: env("PTV_SPLIT").map_or(d.split_merged, |v| v != 0.0),
             split_penalty: env("PTV_SPLIT_PENALTY").unwrap_or(d.split_penalty),
+            ghost_check_length: env("PTV_GHOST_LEN").map_or(d.ghost_check_length, |v| v as usize),
+            ghost_sigma: env("PTV_GHOST_SIGMA").unwrap_or(d.ghost_sigma),
+            ghost_check_init: env("PTV_GHOST_INIT").map_or(d.ghost_check_init, |v| v != 0.0),
             ..d
         };
         let run = ebptv::track::synth::run_scene(&scene, &ClusterParams::default(), &tp).unwrap();
@@ -172,7 +175,8 @@ fn breakdown_of_link_errors() {
 /// Linking cost (for callgrind: `valgrind --tool=callgrind
 /// --toggle-collect='*link_linked*' target/release/deps/ptv_diagnose-* --ignored linking_cost`).
 /// Back extension and the delayed repair switched by PTV_BACK_EXTEND /
-/// PTV_REPAIR_LAG.
+/// PTV_REPAIR_LAG, the ghost test by PTV_GHOST_LEN (0 = off, with
+/// PTV_INIT_GAP=0 the linking of session 6).
 #[test]
 #[ignore]
 fn linking_cost() {
@@ -192,6 +196,8 @@ fn linking_cost() {
         back_extend: env("PTV_BACK_EXTEND").unwrap_or(d.back_extend),
         repair_lag: env("PTV_REPAIR_LAG").unwrap_or(d.repair_lag),
         init_gap: env("PTV_INIT_GAP").map_or(d.init_gap, |v| v != 0),
+        ghost_check_length: env("PTV_GHOST_LEN").unwrap_or(d.ghost_check_length),
+        ghost_check_init: env("PTV_GHOST_LEN").map_or(d.ghost_check_init, |v| v != 0),
         ..d
     };
     let cpu = || {

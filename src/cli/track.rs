@@ -51,6 +51,17 @@ pub struct TrackArgs {
     /// `TrackParams::fit_accel_rms`.
     #[arg(long)]
     pub fit_accel_rms: Option<f64>,
+    /// Tracks with fewer detections are checked against the local flow of
+    /// the established tracks and dropped as ghosts when their velocity
+    /// disagrees; 4-detection tracks that agree are kept. 0 = no ghost
+    /// test (then new chains are not checked either and chains that skip
+    /// a pulse are not started). See `TrackParams::ghost_check_length`.
+    #[arg(long, default_value_t = 6)]
+    pub ghost_check_length: usize,
+    /// Tolerance of the ghost test (standard deviations of the velocity
+    /// difference). See `TrackParams::ghost_sigma`.
+    #[arg(long, default_value_t = 2.25)]
+    pub ghost_sigma: f64,
     /// Nominal pulse frequency (Hz) when pulse times are estimated from the
     /// events (no trigger channel).
     #[arg(long)]
@@ -426,6 +437,10 @@ fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
         max_gap: args.gap,
         split_merged: args.split_merged,
         fit_accel_rms: args.fit_accel_rms,
+        ghost_check_length: args.ghost_check_length,
+        ghost_sigma: args.ghost_sigma,
+        ghost_check_init: args.ghost_check_length > 0,
+        init_gap: args.ghost_check_length > 0,
         ..Default::default()
     };
     if let Some(p) = &args.prior {

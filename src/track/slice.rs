@@ -31,7 +31,8 @@
 //! trackers disagree about the seam the track breaks there (a missed link,
 //! never a wrong one).
 //!
-//! Joined tracks are validated again (fewer than `min_length` detections:
+//! Joined tracks are validated again (fewer than `min_length` detections,
+//! or `min_length_flow` with the ghost test, see `TrackParams::min_kept_length`:
 //! rejected; leading and trailing bridged points trimmed) and cut into
 //! segments of at most `max_track_length` points with fresh ids, as the
 //! sequential tracker does. Results depend only on the pulses and the
@@ -296,6 +297,7 @@ impl SliceTracker {
         let st = &output.stats;
         self.stats.tracks_stitched += st.tracks_stitched;
         self.stats.tracks_rejected_rough += st.tracks_rejected_rough;
+        self.stats.tracks_rejected_ghost += st.tracks_rejected_ghost;
         self.stats.tracks_rejected_short += st.tracks_rejected_short;
 
         let mut previous: Vec<Option<Joined>> = std::mem::take(&mut self.open)
@@ -384,7 +386,7 @@ impl SliceTracker {
             j.detections.drain(..first);
         }
         let n = j.detections.iter().flatten().count();
-        if !j.continuation && n < self.params.min_length {
+        if !j.continuation && n < self.params.min_kept_length() {
             self.stats.tracks_rejected_short += 1;
             return;
         }

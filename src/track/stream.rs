@@ -429,10 +429,7 @@ fn fit_stage(
                     )),
                 },
                 Output::Finished(mut stats) => {
-                    stats.tracks_kept += fit_stats.tracks_kept;
-                    stats.tracks_rejected_short += fit_stats.tracks_rejected_short;
-                    stats.tracks_rejected_rough += fit_stats.tracks_rejected_rough;
-                    stats.particles_on_tracks += fit_stats.particles_on_tracks;
+                    stats.add_fit_counters(&fit_stats);
                     Output::Finished(stats)
                 }
                 o => o,
