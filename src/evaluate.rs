@@ -119,9 +119,14 @@ impl Truth {
             .fold(0.0, f64::max)
     }
 
-    /// Truth samples as (x, y, u, v) rows.
+    /// Truth samples in pulse order. The order matters: the field score
+    /// sums floating-point errors in this order, and a `HashMap`'s order
+    /// changes from one process to the next (the report then differed in
+    /// its last digits between identical runs).
     fn all(&self) -> impl Iterator<Item = &(u64, f64, f64, f64, f64)> {
-        self.by_pulse.values().flatten()
+        let mut pulses: Vec<&i64> = self.by_pulse.keys().collect();
+        pulses.sort_unstable();
+        pulses.into_iter().flat_map(move |p| &self.by_pulse[p])
     }
 }
 
@@ -443,5 +448,33 @@ mod tests {
         assert_eq!(s.nodes_compared, 2);
         let want = ((100.0f64 * 100.0) / 2.0).sqrt() / 1000.0;
         assert!((s.rms_error_of_max_speed - want).abs() < 1e-12);
+    }
+
+    /// The field score must not depend on a hash map's per-process order:
+    /// truth samples whose float sum changes with the order (values over
+    /// many magnitudes, one per pulse), loaded afresh several times, must
+    /// give bit-identical scores.
+    #[test]
+    fn mean_field_error_is_bit_identical_across_truth_loads() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut text = String::from("pulse,t_us,particle_id,x,y,u,v\n");
+        for k in 0..64 {
+            let u = 1000.0 + 1e-3 * (k as f64 * 0.7).sin() * 10f64.powi(k % 9);
+            text += &format!("{k},{},1,10,10,{u},0.{k}\n", k * 200);
+        }
+        let truth_csv = write(dir.path(), "truth.csv", &text);
+        let grid = write(
+            dir.path(),
+            "grid.csv",
+            "x,y,count,u,v,uu,vv,uv\n10,10,3,1001,0,0,0,0\n",
+        );
+        let scores: Vec<(u64, u64)> = (0..8)
+            .map(|_| {
+                let truth = Truth::read(&truth_csv).unwrap();
+                let s = score_mean_field(&grid, &truth, 4.0, 4.0, 1).unwrap();
+                (s.mean_error_u.to_bits(), s.mean_error_v.to_bits())
+            })
+            .collect();
+        assert!(scores.iter().all(|s| *s == scores[0]), "{scores:?}");
     }
 }
