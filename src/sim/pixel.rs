@@ -545,12 +545,10 @@ impl PixelModel {
             } else {
                 (rx0, rx1, ry0, ry1, X_CAP, AXIS_MAX)
             };
-            let (slo, sn) = self.axis_range(c_shared, s0, s1, s_cap);
-            if sn == 0 {
-                return true;
-            }
-            let Some((sw, shared)) = q.eval_masked(c_shared, slo, sn) else {
-                return false;
+            let (sw, shared, slo, sn) = match q.eval_axis(self, c_shared, s0, s1, s_cap) {
+                QuadAxis::Window(w, v, lo, n) => (w, v, lo, n),
+                QuadAxis::Empty => return true,
+                QuadAxis::NoFit => return false,
             };
             // The moving axis: the weighted sum of the positions' windows
             // in an eight-pixel window starting at `mw`.
@@ -559,12 +557,10 @@ impl PixelModel {
             let mw;
             if nodes.len() == 1 {
                 let c = at(c_moving, v_moving, dt0);
-                let (r0, rn) = self.axis_range(c, m0, m1, m_cap);
-                if rn == 0 {
-                    return true;
-                }
-                let Some((w, v)) = q.eval_masked(c, r0, rn) else {
-                    return false;
+                let (w, v, r0, rn) = match q.eval_axis(self, c, m0, m1, m_cap) {
+                    QuadAxis::Window(w, v, lo, n) => (w, v, lo, n),
+                    QuadAxis::Empty => return true,
+                    QuadAxis::NoFit => return false,
                 };
                 moving[..4].copy_from_slice(&v);
                 (mw, lo, hi) = (w, r0, r0 + rn as i64 - 1);
@@ -573,12 +569,10 @@ impl PixelModel {
                 let mut n = 0;
                 for &(dt, pw) in nodes {
                     let c = at(c_moving, v_moving, dt);
-                    let (r0, rn) = self.axis_range(c, m0, m1, m_cap);
-                    if rn == 0 {
-                        continue;
-                    }
-                    let Some((w, v)) = q.eval_masked(c, r0, rn) else {
-                        return false;
+                    let (w, v, r0, rn) = match q.eval_axis(self, c, m0, m1, m_cap) {
+                        QuadAxis::Window(w, v, lo, n) => (w, v, lo, n),
+                        QuadAxis::Empty => continue,
+                        QuadAxis::NoFit => return false,
                     };
                     lo = lo.min(r0);
                     hi = hi.max(r0 + rn as i64 - 1);
@@ -1269,6 +1263,13 @@ struct QuadTable {
     /// Per interval: f and slope at its lower node, then at its upper
     /// node, for window pixels 0..4.
     cells: Vec<[[f32; 4]; 4]>,
+    /// Per interval: the lanes of its window that
+    /// [`PixelModel::axis_range`] covers for every centre in the interval
+    /// (away from the ROI's edges), as `a | b << 4` for lanes `a..b`, or
+    /// [`QuadTable::AMBIGUOUS`] when the range changes inside the
+    /// interval (a rounding boundary of `c ± 3σ` lies in it or within
+    /// 1e-9 px of it).
+    lanes: Vec<u8>,
 }
 
 impl QuadTable {
@@ -1292,11 +1293,46 @@ impl QuadTable {
                 cell
             })
             .collect();
+        let lanes = (0..t.steps)
+            .map(|i| Self::interval_lanes(t.steps, t.reach, i))
+            .collect();
         Some(QuadTable {
             steps: t.steps,
             steps_f: t.steps as f64,
             cells,
+            lanes,
         })
+    }
+
+    /// Marks an interval whose lanes are not fixed.
+    const AMBIGUOUS: u8 = 0xFF;
+
+    /// The window lanes `a..b` (as `a | b << 4`) that
+    /// [`PixelModel::axis_range`] gives for every centre `c = round(c) +
+    /// d` with d in table interval `i`, unclipped, or
+    /// [`Self::AMBIGUOUS`].
+    ///
+    /// Why this is exact: `axis_range` takes round(c ∓ 3σ). Away from a
+    /// tie, round(c − 3σ) = round(c) + round(d − 3σ), and d − 3σ stays
+    /// between the same two half-integers over the whole interval when
+    /// both its ends (widened by 1e-9 px, far more than the rounding of
+    /// `c − 3σ` or of the interval index for |c| < 2^20) round alike.
+    fn interval_lanes(steps: usize, reach: f64, i: usize) -> u8 {
+        const MARGIN: f64 = 1e-9;
+        let d0 = -0.5 + i as f64 / steps as f64 - MARGIN;
+        let d1 = -0.5 + (i + 1) as f64 / steps as f64 + MARGIN;
+        let cell = |e: f64| (e + 0.5).floor() as i64;
+        let (lo0, lo1) = (cell(d0 - reach), cell(d1 - reach));
+        let (hi0, hi1) = (cell(d0 + reach), cell(d1 + reach));
+        if lo0 != lo1 || hi0 != hi1 {
+            return Self::AMBIGUOUS;
+        }
+        let off = Self::window_offset(steps, i);
+        let (a, b) = (lo0 - off, hi0 - off + 1);
+        if a < 0 || b > 4 || a >= b {
+            return Self::AMBIGUOUS;
+        }
+        (a | b << 4) as u8
     }
 
     /// First window pixel relative to round(c) for table interval `i`.
@@ -1319,6 +1355,15 @@ impl QuadTable {
         let u = (d + 0.5) * self.steps_f;
         // (0 ≤ u ≤ steps; through i64, the short conversions.)
         let i = (u as i64).min(self.steps as i64 - 1) as usize;
+        (
+            base + Self::window_offset(self.steps, i),
+            self.eval_at(i, u),
+        )
+    }
+
+    /// The window's fractions at table position `u` in interval `i`.
+    #[inline(always)]
+    fn eval_at(&self, i: usize, u: f64) -> [f32; 4] {
         let t = (u - i as i64 as f64) as f32;
         let t2 = t * t;
         let t3 = t2 * t;
@@ -1329,7 +1374,7 @@ impl QuadTable {
         for j in 0..4 {
             out[j] = h00 * cell[0][j] + h10 * cell[1][j] + h01 * cell[2][j] + h11 * cell[3][j];
         }
-        (base + Self::window_offset(self.steps, i), out)
+        out
     }
 
     /// [`Self::eval`] with the lanes outside pixels `lo .. lo + n` set to
@@ -1350,6 +1395,66 @@ impl QuadTable {
         }
         Some((w, v))
     }
+}
+
+/// One axis of a small image ([`QuadTable::eval_axis`]).
+enum QuadAxis {
+    /// No pixel of the ROI is covered.
+    Empty,
+    /// The covered pixels do not fit the window: take the general path.
+    NoFit,
+    /// Window start, fractions (zero outside the covered pixels), first
+    /// covered pixel and their count.
+    Window(i64, [f32; 4], i64, usize),
+}
+
+impl QuadTable {
+    /// [`PixelModel::axis_range`] of a centre `c` clipped to `[r0, r1]`,
+    /// then [`Self::eval_masked`] of those pixels, in one: the same
+    /// result. When the window lies inside `[r0, r1]` and its table
+    /// interval has fixed lanes ([`Self::interval_lanes`]) the range comes
+    /// from the table instead of two more roundings; otherwise (ROI edges,
+    /// ~3 % of the intervals) through the two calls.
+    #[inline(always)]
+    fn eval_axis(&self, model: &PixelModel, c: f64, r0: i64, r1: i64, cap: usize) -> QuadAxis {
+        if c.abs() < (1u64 << 20) as f64 {
+            let base = round_small(c);
+            let d = c - base as f64;
+            let u = (d + 0.5) * self.steps_f;
+            // (0 ≤ u ≤ steps, finite.)
+            let i = (unsafe { u.to_int_unchecked::<i64>() }).min(self.steps as i64 - 1) as usize;
+            let lanes = self.lanes[i];
+            let w = base + Self::window_offset(self.steps, i);
+            if lanes != Self::AMBIGUOUS && w >= r0 && w + 3 <= r1 {
+                let (a, b) = ((lanes & 15) as usize, (lanes >> 4) as usize);
+                let mut v = self.eval_at(i, u);
+                let keep = &QUAD_LANES[a][b];
+                for (x, &m) in v.iter_mut().zip(keep) {
+                    *x = f32::from_bits(x.to_bits() & m);
+                }
+                return QuadAxis::Window(w, v, w + a as i64, b - a);
+            }
+        }
+        let (lo, n) = model.axis_range(c, r0, r1, cap);
+        if n == 0 {
+            return QuadAxis::Empty;
+        }
+        match self.eval_masked(c, lo, n) {
+            Some((w, v)) => QuadAxis::Window(w, v, lo, n),
+            None => QuadAxis::NoFit,
+        }
+    }
+}
+
+/// `v.round() as i64` (half away from zero) for |v| < 2^52, like
+/// [`round_i64`] but with the truncation unchecked.
+#[inline(always)]
+fn round_small(v: f64) -> i64 {
+    debug_assert!(v.abs() < (1u64 << 52) as f64);
+    // (Finite and in range: the caller checked |v|.)
+    let t = unsafe { v.to_int_unchecked::<i64>() };
+    let r = v - t as f64;
+    t + (r >= 0.5) as i64 - (r <= -0.5) as i64
 }
 
 /// `QUAD_LANES[a][b]`: all-ones for the lanes a..b of a four-pixel
@@ -1828,6 +1933,70 @@ mod tests {
             assert_eq!(a.len(), b.len(), "{streaks:?} {diameter}");
             for (x, y) in a.iter().zip(&b) {
                 assert_eq!((x.0, x.1.to_bits()), (y.0, y.1.to_bits()));
+            }
+        }
+    }
+
+    /// `QuadTable::eval_axis` (lanes from the interval table) against
+    /// `axis_range` + `eval_masked` (the two extra roundings): the same
+    /// window, fractions (bit for bit), first pixel and count, for centres
+    /// all over the sub-pixel range, at and next to every table node and
+    /// rounding boundary of c ± 3σ, and at the ROI's edges.
+    #[test]
+    fn quad_axis_lanes_match_axis_range() {
+        for diameter in [0.6, 1.0, 1.3, 1.5, 1.9] {
+            let mut sc = Scenario::default();
+            sc.sensor = small_sensor();
+            sc.optics.particle_diameter_px = diameter;
+            let model = PixelModel::new(&sc, 1);
+            let q = model.quad.as_ref().expect("small images");
+            let reach = 3.0 * model.sigma_img;
+            let amb = q
+                .lanes
+                .iter()
+                .filter(|&&l| l == QuadTable::AMBIGUOUS)
+                .count();
+            assert!(
+                amb * 10 <= q.lanes.len(),
+                "{amb} of {} ambiguous",
+                q.lanes.len()
+            );
+            let mut centres = Vec::new();
+            let mut rng = Pcg64::seed_from_u64(diameter.to_bits());
+            for _ in 0..20_000 {
+                centres.push(rng.gen_range(-3.0..70.0));
+            }
+            for base in [0.0f64, 1.0, 17.0, 30.0, 62.0, 63.0, 1000.0] {
+                for i in 0..=q.steps {
+                    let d = -0.5 + i as f64 / q.steps as f64;
+                    for e in [-1e-12, 0.0, 1e-12] {
+                        centres.push(base + d + e);
+                    }
+                }
+                for k in [-2.0f64, -1.0, 0.0, 1.0, 2.0] {
+                    for sign in [-1.0, 1.0] {
+                        let c = base + k + 0.5 + sign * reach;
+                        for e in [-1e-9, -1e-13, 0.0, 1e-13, 1e-9] {
+                            centres.push(c + e);
+                        }
+                    }
+                }
+            }
+            let (r0, r1) = (0i64, 63i64);
+            for &c in &centres {
+                let got = q.eval_axis(&model, c, r0, r1, X_CAP);
+                let (lo, n) = model.axis_range(c, r0, r1, X_CAP);
+                match (got, n) {
+                    (QuadAxis::Empty, 0) => {}
+                    (QuadAxis::Window(w, v, glo, gn), _) => {
+                        let (ew, ev) = q.eval_masked(c, lo, n).expect("fits");
+                        assert_eq!((w, glo, gn), (ew, lo, n), "c = {c}");
+                        let bits = |a: [f32; 4]| a.map(f32::to_bits);
+                        assert_eq!(bits(v), bits(ev), "c = {c}");
+                    }
+                    (QuadAxis::NoFit, _) => assert!(n > 0 && q.eval_masked(c, lo, n).is_none()),
+                    (QuadAxis::Empty, _) => panic!("c = {c}: empty, expected {n} pixels"),
+                }
             }
         }
     }
