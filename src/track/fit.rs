@@ -709,6 +709,22 @@ pub struct GridTables {
     /// [`GridTables::centred_unimodal`]): then the search runs down from
     /// the largest window and stops at the first rise.
     centred_unimodal: bool,
+    /// The centred pilot (window `2·max_window + 1`, offsets
+    /// `−max_window..=max_window`): rows 3 and 2 of its cubic fit's
+    /// inverse normal matrix (the cubic and quadratic coefficients are
+    /// these rows times the window's moments `Σ sᵃ·x`, a = 0..=3) and
+    /// their variance factors; `None` where the cubic fit has none.
+    /// [`GridRunFit`] takes the coefficients from running moments.
+    centred_pilot: Option<CentredPilot>,
+}
+
+/// See [`GridTables::centred_pilot`].
+#[derive(Debug, Clone, Copy)]
+struct CentredPilot {
+    cubic_row: [f64; 4],
+    quadratic_row: [f64; 4],
+    cubic_var: f64,
+    quadratic_var: f64,
 }
 
 #[inline]
@@ -786,8 +802,19 @@ impl GridTables {
             cubic_weights,
             quadratic_weights,
             centred_unimodal: false,
+            centred_pilot: None,
         };
         t.centred_unimodal = t.centred_unimodal();
+        let h = max_window as isize;
+        t.centred_pilot = match sums_of(pilot_max, -h).coefficients(3, 0.0) {
+            Some(c) if c.p == 4 && pilot_max >= 5 => Some(CentredPilot {
+                cubic_row: c.inv[3],
+                quadratic_row: c.inv[2],
+                cubic_var: c.inv[3][3],
+                quadratic_var: c.inv[2][2],
+            }),
+            _ => None,
+        };
         t
     }
 
@@ -875,6 +902,19 @@ pub fn fit_adaptive_grid(
     centre: usize,
     rule: &WindowRule,
 ) -> Option<(FitState, usize)> {
+    fit_adaptive_grid_with(tables, xy, centre, rule, true)
+}
+
+/// [`fit_adaptive_grid`]; without `residual` the state's `rms_residual`
+/// is not computed (NaN): the output fit does not use it, and with the
+/// curvature prior it costs a second pass over the window.
+pub(crate) fn fit_adaptive_grid_with(
+    tables: &GridTables,
+    xy: &[[f64; 2]],
+    centre: usize,
+    rule: &WindowRule,
+    residual: bool,
+) -> Option<(FitState, usize)> {
     let n = xy.len();
     if n == 0 {
         return None;
@@ -899,6 +939,7 @@ pub fn fit_adaptive_grid(
             wmax,
             centre,
             ridge,
+            residual,
         )
         .map(|f| (f, wmax));
     }
@@ -978,6 +1019,7 @@ pub fn fit_adaptive_grid(
             w,
             centre,
             0.0,
+            residual,
         )
         .map(|f| (f, w));
     }
@@ -1001,12 +1043,22 @@ pub fn fit_adaptive_grid(
         w = (w + 2).min(wmax);
     }
     let (_, w, start) = best?;
-    grid_solve(tables.window(w, start, centre), xy, start, w, centre, ridge).map(|f| (f, w))
+    grid_solve(
+        tables.window(w, start, centre),
+        xy,
+        start,
+        w,
+        centre,
+        ridge,
+        residual,
+    )
+    .map(|f| (f, w))
 }
 
 /// The fit over points `start..start + w` at τ = index, evaluated at
 /// `centre`, from the tabulated inverse: [`Sums::solve_with_prior`]'s
 /// arithmetic on moments taken about the centre point.
+/// Without `residual`, `rms_residual` is NaN (not computed).
 fn grid_solve(
     g: &GridWindow,
     xy: &[[f64; 2]],
@@ -1014,12 +1066,29 @@ fn grid_solve(
     w: usize,
     centre: usize,
     ridge: f64,
+    residual: bool,
 ) -> Option<FitState> {
     if !g.ok {
         return None;
     }
-    let p = g.p;
     let (inv, k) = g.inverse_with_prior(ridge);
+    grid_solve_inv(g.p, &inv, k, xy, start, w, centre, ridge, residual)
+}
+
+/// [`grid_solve`] with the (prior-updated) inverse and its `k` given.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn grid_solve_inv(
+    p: usize,
+    inv: &[[f64; 3]; 3],
+    k: f64,
+    xy: &[[f64; 2]],
+    start: usize,
+    w: usize,
+    centre: usize,
+    ridge: f64,
+    residual: bool,
+) -> Option<FitState> {
     let ridge = if k > 0.0 { ridge } else { 0.0 };
     let p0 = xy[centre];
     // Σ sᵃ·d for a = 0, 1, 2 and Σ d², d the offset from the centre point.
@@ -1044,7 +1113,9 @@ fn grid_solve(
             cy[a] += inv[a][b] * my[b];
         }
     }
-    let ssr: f64 = if ridge > 0.0 {
+    let ssr: f64 = if !residual {
+        f64::NAN
+    } else if ridge > 0.0 {
         // As the reference: from the residuals (see with_direct_residual).
         let mut ssr = 0.0;
         let mut s = start as f64 - centre as f64;
@@ -1066,7 +1137,9 @@ fn grid_solve(
         vy: cy[1],
         ax: 2.0 * cx[2],
         ay: 2.0 * cy[2],
-        rms_residual: if dof > 0 {
+        rms_residual: if !residual {
+            f64::NAN
+        } else if dof > 0 {
             (ssr.max(0.0) / (2 * dof) as f64).sqrt()
         } else {
             0.0
@@ -1074,6 +1147,319 @@ fn grid_solve(
         leverage: inv[0][0],
         velocity_variance: if p > 1 { inv[1][1] } else { 0.0 },
     })
+}
+
+/// Steps of [`GridRunFit`]'s running moments before they are summed
+/// afresh: bounds the rounding they pick up (each step's re-centring
+/// carries an error of the zeroth moment into the higher ones with
+/// powers of the distance travelled).
+const RUN_RESTART: usize = 32;
+
+/// One centred candidate window of [`GridRunFit`] under the track's
+/// population prior: its factors and prior-updated inverse, computed once
+/// per track with [`GridWindow`]'s own arithmetic (so bit for bit what
+/// [`fit_adaptive_grid`] computes per sample).
+#[derive(Debug, Clone, Copy)]
+struct CentredCandidate {
+    variance: f64,
+    bias: f64,
+    inv: [[f64; 3]; 3],
+    k: f64,
+}
+
+/// [`fit_adaptive_grid`] along a gap-free run of a track, for the samples
+/// whose pilot window is centred (at least `max_window` samples from both
+/// ends): called for consecutive samples, it keeps the pilot's moments
+/// `Σ sᵃ·x` (a = 0..=3, s the offset from the sample) and the largest
+/// candidate window's moments (a = 0..=2) as running sums, updated per
+/// sample in O(1) (one sample in, one out, re-centred by the binomial
+/// shift) instead of the pilot's two 43-point filters and the window's
+/// sums; every [`RUN_RESTART`] samples they are summed afresh. The
+/// centred candidates' factors under the track's prior are computed once
+/// ([`CentredCandidate`]); a sample whose pilot widens the prior computes
+/// its own. Positions in the running sums are taken from a reference
+/// point (the sample at the last restart), which changes nothing but
+/// rounding: the candidates' fits and the pilot's coefficients do not
+/// depend on a constant offset (the prior acts on the curvature only).
+/// The result equals [`fit_adaptive_grid`]'s to rounding (~1e-13 px;
+/// tested against [`fit_adaptive`]), the same window chosen unless two
+/// candidates' criteria agree to rounding; `rms_residual` is not computed
+/// (NaN).
+#[derive(Debug, Clone)]
+pub struct GridRunFit<'t> {
+    tables: &'t GridTables,
+    rule: WindowRule,
+    ridge: f64,
+    pilot: CentredPilot,
+    /// Indexed by window length (entries below `min_window` unused).
+    centred: Vec<CentredCandidate>,
+    /// The running state: the sample it is centred on, the steps since the
+    /// restart, the reference point, the pilot's and the largest
+    /// window's moments per axis.
+    at: Option<usize>,
+    /// The points the state belongs to (address and length).
+    of: (usize, usize),
+    steps: usize,
+    origin: [f64; 2],
+    pilot_moments: [[f64; 2]; 4],
+    fit_moments: [[f64; 2]; 3],
+}
+
+impl<'t> GridRunFit<'t> {
+    /// `None` where the running path does not apply (a fixed window, an
+    /// order below 2, tables for another rule, no cubic pilot): the
+    /// caller takes [`fit_adaptive_grid`].
+    pub fn new(tables: &'t GridTables, rule: &WindowRule) -> Option<Self> {
+        let wmax = rule.max_window;
+        if !tables.serves(rule)
+            || rule.order < 2
+            || tables.min_window >= wmax
+            || wmax != tables.max_window
+        {
+            return None;
+        }
+        let pilot = tables.centred_pilot?;
+        let ridge = rule.ridge();
+        let centre = wmax; // a sample with max_window samples either side
+        let centred = (0..=wmax)
+            .map(|w| {
+                if w < tables.min_window {
+                    return CentredCandidate {
+                        variance: 0.0,
+                        bias: 0.0,
+                        inv: [[0.0; 3]; 3],
+                        k: 0.0,
+                    };
+                }
+                let g = tables.window(w, centre - w / 2, centre);
+                let (variance, bias) = g.variance_and_bias(ridge);
+                let (inv, k) = g.inverse_with_prior(ridge);
+                CentredCandidate {
+                    variance,
+                    bias,
+                    inv,
+                    k,
+                }
+            })
+            .collect();
+        Some(GridRunFit {
+            tables,
+            rule: *rule,
+            ridge,
+            pilot,
+            centred,
+            at: None,
+            of: (0, 0),
+            steps: 0,
+            origin: [0.0; 2],
+            pilot_moments: [[0.0; 2]; 4],
+            fit_moments: [[0.0; 2]; 3],
+        })
+    }
+
+    /// Whether sample `centre` of `n` takes the running path (its pilot
+    /// window centred).
+    #[inline]
+    pub fn serves_sample(&self, n: usize, centre: usize) -> bool {
+        let h = self.rule.max_window;
+        centre >= h && centre + h < n
+    }
+
+    /// Sums the moments afresh about sample `c`.
+    fn restart(&mut self, xy: &[[f64; 2]], c: usize) {
+        let h = self.rule.max_window;
+        let o = xy[c];
+        let (lo, hi) = (-((h / 2) as isize), (h - 1 - h / 2) as isize);
+        let mut pm = [[0.0f64; 2]; 4];
+        let mut fm = [[0.0f64; 2]; 3];
+        let mut s = -(h as f64);
+        for (k, q) in xy[c - h..=c + h].iter().enumerate() {
+            let d = [q[0] - o[0], q[1] - o[1]];
+            let off = k as isize - h as isize;
+            let (s2, s3) = (s * s, s * s * s);
+            for a in 0..2 {
+                pm[0][a] += d[a];
+                pm[1][a] += s * d[a];
+                pm[2][a] += s2 * d[a];
+                pm[3][a] += s3 * d[a];
+                if (lo..=hi).contains(&off) {
+                    fm[0][a] += d[a];
+                    fm[1][a] += s * d[a];
+                    fm[2][a] += s2 * d[a];
+                }
+            }
+            s += 1.0;
+        }
+        (self.origin, self.pilot_moments, self.fit_moments) = (o, pm, fm);
+        (self.at, self.steps) = (Some(c), 0);
+        self.of = (xy.as_ptr() as usize, xy.len());
+    }
+
+    /// Moves the moments from sample `c` to `c + 1`.
+    #[inline]
+    fn step(&mut self, xy: &[[f64; 2]], c: usize) {
+        let h = self.rule.max_window;
+        let o = self.origin;
+        let d = |i: usize| [xy[i][0] - o[0], xy[i][1] - o[1]];
+        // Pilot: drop offset −h, add offset h + 1, then re-centre (s → s − 1).
+        let (out, inn) = (d(c - h), d(c + h + 1));
+        let (so, si) = (-(h as f64), (h + 1) as f64);
+        let pm = &mut self.pilot_moments;
+        for a in 0..2 {
+            let c0 = pm[0][a] - out[a] + inn[a];
+            let c1 = pm[1][a] - so * out[a] + si * inn[a];
+            let c2 = pm[2][a] - so * so * out[a] + si * si * inn[a];
+            let c3 = pm[3][a] - so * so * so * out[a] + si * si * si * inn[a];
+            pm[0][a] = c0;
+            pm[1][a] = c1 - c0;
+            pm[2][a] = c2 - 2.0 * c1 + c0;
+            pm[3][a] = c3 - 3.0 * c2 + 3.0 * c1 - c0;
+        }
+        // Largest window: offsets lo..=hi.
+        let (lo, hi) = (-((h / 2) as isize), (h - 1 - h / 2) as isize);
+        let (out, inn) = (
+            d((c as isize + lo) as usize),
+            d((c as isize + hi + 1) as usize),
+        );
+        let (so, si) = (lo as f64, (hi + 1) as f64);
+        let fm = &mut self.fit_moments;
+        for a in 0..2 {
+            let c0 = fm[0][a] - out[a] + inn[a];
+            let c1 = fm[1][a] - so * out[a] + si * inn[a];
+            let c2 = fm[2][a] - so * so * out[a] + si * si * inn[a];
+            fm[0][a] = c0;
+            fm[1][a] = c1 - c0;
+            fm[2][a] = c2 - 2.0 * c1 + c0;
+        }
+        self.at = Some(c + 1);
+        self.steps += 1;
+    }
+
+    /// The fit at sample `centre` of the track's points `xy` (τ = index),
+    /// which must [`GridRunFit::serves_sample`] and whose pilot window
+    /// must be gap-free with regular times (the caller's check, as for
+    /// [`fit_adaptive_grid`]). Consecutive samples of the same `xy` move
+    /// the running sums; anything else starts them afresh.
+    pub fn fit(&mut self, xy: &[[f64; 2]], centre: usize) -> Option<(FitState, usize)> {
+        debug_assert!(self.serves_sample(xy.len(), centre));
+        if self.of != (xy.as_ptr() as usize, xy.len()) {
+            self.at = None;
+        }
+        match self.at {
+            Some(c) if c + 1 == centre && self.steps < RUN_RESTART => self.step(xy, c),
+            Some(c) if c == centre => {}
+            _ => self.restart(xy, centre),
+        }
+        let rule = &self.rule;
+        let (wmin, wmax) = (self.tables.min_window, rule.max_window);
+        let s2 = rule.sigma * rule.sigma;
+        // The pilot's cubic and quadratic coefficients from its moments.
+        let pm = &self.pilot_moments;
+        let (mut c3, mut c2) = ([0.0f64; 2], [0.0f64; 2]);
+        for a in 0..2 {
+            for (b, m) in pm.iter().enumerate() {
+                c3[a] += self.pilot.cubic_row[b] * m[a];
+                c2[a] += self.pilot.quadratic_row[b] * m[a];
+            }
+        }
+        let c3sq = (c3[0] * c3[0] + c3[1] * c3[1] - 2.0 * s2 * self.pilot.cubic_var).max(0.0);
+        let ridge = if self.ridge > 0.0 {
+            let c2sq = (c2[0] * c2[0] + c2[1] * c2[1]
+                - WIDEN_NOISE * 2.0 * s2 * self.pilot.quadratic_var)
+                .max(0.0);
+            widened_ridge(self.ridge, rule.sigma, c2sq)
+        } else {
+            0.0
+        };
+        let own = ridge.to_bits() != self.ridge.to_bits();
+        let factors = |w: usize| -> (f64, f64) {
+            if own {
+                self.tables
+                    .window(w, centre - w / 2, centre)
+                    .variance_and_bias(ridge)
+            } else {
+                (self.centred[w].variance, self.centred[w].bias)
+            }
+        };
+        let criterion = |w: usize| {
+            let (variance, bias) = factors(w);
+            rule.bias_weight * c3sq * bias * bias + 2.0 * s2 * variance
+        };
+        // The window choice of fit_adaptive_grid (every candidate centred
+        // and valid: windows of ≥ 1 distinct integer τ).
+        let w = if ridge == 0.0
+            && self.tables.centred_unimodal
+            && (wmax - wmin + 1) / 2 < MAX_CANDIDATES
+        {
+            let mut w = wmax;
+            let mut best = (criterion(w), w);
+            while w > wmin {
+                let next = if (w - wmin) % 2 == 1 { w - 1 } else { w - 2 };
+                let crit = criterion(next);
+                if crit < best.0 {
+                    best = (crit, next);
+                    w = next;
+                } else {
+                    break;
+                }
+            }
+            best.1
+        } else {
+            let mut best: Option<(f64, usize)> = None;
+            let (mut w, mut nc) = (wmin, 0);
+            while nc < MAX_CANDIDATES {
+                if self.tables.window(w, centre - w / 2, centre).ok {
+                    nc += 1;
+                    let crit = criterion(w);
+                    if best.map_or(true, |b| crit.total_cmp(&b.0).is_le()) {
+                        best = Some((crit, w));
+                    }
+                }
+                if w >= wmax {
+                    break;
+                }
+                w = (w + 2).min(wmax);
+            }
+            best?.1
+        };
+        let g = self.tables.window(w, centre - w / 2, centre);
+        if !g.ok {
+            return None;
+        }
+        let (inv, k) = if own {
+            g.inverse_with_prior(ridge)
+        } else {
+            (self.centred[w].inv, self.centred[w].k)
+        };
+        if w != wmax {
+            return grid_solve_inv(g.p, &inv, k, xy, centre - w / 2, w, centre, ridge, false)
+                .map(|f| (f, w));
+        }
+        // The largest window from its running moments.
+        let p = g.p;
+        let fm = &self.fit_moments;
+        let (mut cx, mut cy) = ([0.0f64; 3], [0.0f64; 3]);
+        for a in 0..p {
+            for b in 0..p {
+                cx[a] += inv[a][b] * fm[b][0];
+                cy[a] += inv[a][b] * fm[b][1];
+            }
+        }
+        Some((
+            FitState {
+                x: cx[0] + self.origin[0],
+                y: cy[0] + self.origin[1],
+                vx: cx[1],
+                vy: cy[1],
+                ax: 2.0 * cx[2],
+                ay: 2.0 * cy[2],
+                rms_residual: f64::NAN,
+                leverage: inv[0][0],
+                velocity_variance: if p > 1 { inv[1][1] } else { 0.0 },
+            },
+            w,
+        ))
+    }
 }
 
 /// Detections per window of [`AccelPrior`]'s curvature samples.
@@ -1558,6 +1944,99 @@ mod tests {
             }
         }
         assert!(compared > 2800, "{compared}");
+    }
+
+    #[test]
+    fn running_grid_fit_matches_the_reference() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(12);
+        // (min, max window, bias weight, prior): with and without the
+        // prior, the default rule among them; an even largest window.
+        let rules = [
+            (5, 21, 4.0, 0.0),
+            (5, 21, 4.0, 0.1),
+            (5, 21, 4.0, 0.005),
+            (5, 21, 1.0, 0.5),
+            (2, 11, 1.0, 0.5),
+            (3, 10, 4.0, 0.1),
+            (4, 9, 1.0, 0.0),
+        ];
+        let (mut compared, mut widened, mut largest) = (0, 0, 0);
+        for (case, &(min_window, max_window, bias_weight, accel_rms)) in rules.iter().enumerate() {
+            for (path, &n) in [43usize, 44, 60, 300, 700].iter().enumerate() {
+                let sigma = [0.05, 0.2, 1.0][(case + path) % 3];
+                let rule = WindowRule {
+                    min_window,
+                    max_window,
+                    order: 2,
+                    sigma,
+                    bias_weight,
+                    accel_rms,
+                };
+                let tables = GridTables::new(&rule);
+                // Straight stretches and turns of varying sharpness, far
+                // from the origin (as in a full frame).
+                let turn = [0.0, 0.02, 0.3, 0.08, 0.5][(case + path) % 5];
+                let mut xy = Vec::with_capacity(n);
+                for i in 0..n {
+                    let s = i as f64;
+                    let bend = turn * (1.0 + (0.01 * s).sin());
+                    xy.push([
+                        900.0 + 7.0 * s + 40.0 * (bend * s).sin() + rng.gen_range(-sigma..=sigma),
+                        300.0 - 3.0 * s + 40.0 * (bend * s).cos() + rng.gen_range(-sigma..=sigma),
+                    ]);
+                }
+                let tau: Vec<f64> = (0..n).map(|i| i as f64).collect();
+                let (xs, ys): (Vec<f64>, Vec<f64>) = xy.iter().map(|p| (p[0], p[1])).unzip();
+                let mut run = GridRunFit::new(&tables, &rule).expect("running path");
+                // Consecutive samples, and now and then a jump (restart).
+                let mut c = 0;
+                while c < n {
+                    if run.serves_sample(n, c) {
+                        let what = format!("rule {case} n {n} centre {c}");
+                        let (f, fw) = run.fit(&xy, c).expect(&what);
+                        let (_, gw) = fit_adaptive_grid(&tables, &xy, c, &rule).expect(&what);
+                        let (r, rw) =
+                            fit_adaptive(&tau, &xs, &ys, c, c as f64, &rule).expect(&what);
+                        assert_eq!(fw, rw, "{what}: window");
+                        assert_eq!(gw, rw, "{what}: window");
+                        for (name, p, q) in [
+                            ("x", f.x, r.x),
+                            ("y", f.y, r.y),
+                            ("vx", f.vx, r.vx),
+                            ("vy", f.vy, r.vy),
+                            ("ax", f.ax, r.ax),
+                            ("ay", f.ay, r.ay),
+                            ("leverage", f.leverage, r.leverage),
+                            (
+                                "velocity_variance",
+                                f.velocity_variance,
+                                r.velocity_variance,
+                            ),
+                        ] {
+                            assert!((p - q).abs() <= 1e-9, "{what}: {name} {p} vs {q}");
+                        }
+                        assert!(f.rms_residual.is_nan());
+                        compared += 1;
+                        widened += (rule.ridge() > 0.0
+                            && f.velocity_variance
+                                > tables
+                                    .window(fw, c - fw / 2, c)
+                                    .variance_and_bias(rule.ridge())
+                                    .0) as usize;
+                        largest += (fw == max_window) as usize;
+                    }
+                    c += if rng.gen_range(0.0..1.0) < 0.03 { 3 } else { 1 };
+                }
+            }
+        }
+        // Both window kinds and the widened prior were exercised.
+        assert!(compared > 3000, "{compared}");
+        assert!(
+            largest > 300 && largest + 300 < compared,
+            "{largest} of {compared}"
+        );
+        assert!(widened > 100, "{widened}");
     }
 
     #[test]
