@@ -2594,7 +2594,7 @@ fn fit_track_with(
             Some(t) if here && run_start[span.end - 1] <= span.start => {
                 *grid_fits += 1;
                 match &mut run_fit {
-                    Some(r) if r.serves_sample(n, j) => r.fit(&xy, j),
+                    Some(r) if r.serves_track(n) => r.fit(&xy, j),
                     _ => fit::fit_adaptive_grid_with(t, &xy, j, &rule, false),
                 }
             }
