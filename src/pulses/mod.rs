@@ -1293,7 +1293,6 @@ mod tests {
             );
         }
         // A source that fails half-way: the error comes back, no thread hangs.
-        use crate::io::EventSource;
         struct Failing(Simulator, usize);
         impl crate::io::EventSource for Failing {
             fn info(&self) -> &crate::io::StreamInfo {
