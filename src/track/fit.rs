@@ -478,6 +478,21 @@ pub fn fit_adaptive(
     at: f64,
     rule: &WindowRule,
 ) -> Option<(FitState, usize)> {
+    fit_adaptive_with(tau, xs, ys, centre, at, rule, true)
+}
+
+/// [`fit_adaptive`]; without `residual` and with the curvature prior the
+/// residual pass is skipped and `rms_residual` is NaN (the output fit
+/// does not read it); every other field is the same, bit for bit.
+pub(crate) fn fit_adaptive_with(
+    tau: &[f64],
+    xs: &[f64],
+    ys: &[f64],
+    centre: usize,
+    at: f64,
+    rule: &WindowRule,
+    residual: bool,
+) -> Option<(FitState, usize)> {
     let n = tau.len();
     if n == 0 {
         return None;
@@ -568,6 +583,13 @@ pub fn fit_adaptive(
         .min_by(|a, b| a.0.total_cmp(&b.0).then(b.1 .1.cmp(&a.1 .1)))?
         .1;
     let fit = best.0.solve_with_prior(rule.order, ridge)?;
+    if ridge > 0.0 && !residual {
+        let fit = FitState {
+            rms_residual: f64::NAN,
+            ..fit
+        };
+        return Some((fit, best.1));
+    }
     if ridge > 0.0 {
         let start = centre.saturating_sub(best.1 / 2).min(n - best.1);
         let w = start..start + best.1;
@@ -2063,6 +2085,18 @@ mod tests {
                             fit_adaptive(&tau, &xs, &ys, c, c as f64, &rule).expect(&what);
                         assert_eq!(fw, rw, "{what}: window");
                         assert_eq!(gw, rw, "{what}: window");
+                        // Without the residual pass: the same fit otherwise.
+                        let (q, qw) = fit_adaptive_with(&tau, &xs, &ys, c, c as f64, &rule, false)
+                            .expect(&what);
+                        assert_eq!(qw, rw, "{what}");
+                        assert_eq!(
+                            FitState {
+                                rms_residual: r.rms_residual,
+                                ..q
+                            },
+                            r,
+                            "{what}"
+                        );
                         for (name, p, q) in [
                             ("x", f.x, r.x),
                             ("y", f.y, r.y),

@@ -2598,7 +2598,7 @@ fn fit_track_with(
                     _ => fit::fit_adaptive_grid_with(t, &xy, j, &rule, false),
                 }
             }
-            _ => fit::fit_adaptive(&tau, &xs, &ys, j, at, &rule),
+            _ => fit::fit_adaptive_with(&tau, &xs, &ys, j, at, &rule, !grid),
         };
         let f = fitted.map(|(f, _)| f).unwrap_or(fit::FitState {
             x: dets[j].x,
