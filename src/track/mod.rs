@@ -39,6 +39,9 @@
 //!    solver on the cost of extrapolating each across the gap, and a matched
 //!    pair becomes one track.
 //! 6. **Finish and validate**: a track whose stitch window has passed is
+//!    first cut where its positions jump to a close neighbour and stay
+//!    there ([`step`], `step_split`: its particle was missed and an
+//!    untracked neighbour in the gate took its place); each piece is
 //!    fitted (local polynomial of order `fit_order` over a sliding window of
 //!    `fit_min_window`..=`fit_window` detections around each pulse, chosen
 //!    per pulse from the position noise by [`fit::fit_adaptive`]: position,

@@ -39,6 +39,7 @@ pub const STEP_HALF_WINDOW: usize = 6;
 /// Fewest detections on each side of a step.
 pub const STEP_MIN_SIDE: usize = 3;
 
+#[cfg(test)]
 /// Residual sum of squares (both axes) of the least-squares fit of
 /// `xs`, `ys` on the columns 1, τ, τ² (as many as `order + 1`) and, when
 /// given, one extra column `extra`. `None` when the fit is singular.
@@ -103,7 +104,10 @@ fn rss(tau: &[f64], xs: &[f64], ys: &[f64], order: usize, extra: Option<&[f64]>)
 /// Gains at detection `s` of `dets` (`(pulse, x, y)`, increasing pulses),
 /// fitting the detections of `lo..hi` within `STEP_HALF_WINDOW` of it:
 /// (drop of the residual sum of squares by a step at `s`, the larger drop
-/// by a single outlier at `s − 1` or `s`), in units of σ².
+/// by a single outlier at `s − 1` or `s`), in units of σ². One quadratic
+/// fit per axis; the drops follow from its residuals r and hat matrix H
+/// (adding a column e lowers the RSS by (e·r)² / e·(I − H)e), which is
+/// what [`gains_reference`] gets by refitting.
 fn gains(
     dets: &[(i64, f64, f64)],
     s: usize,
@@ -114,33 +118,82 @@ fn gains(
     let a = s.saturating_sub(STEP_HALF_WINDOW).max(lo);
     let b = (s + STEP_HALF_WINDOW).min(hi);
     let w = &dets[a..b];
-    let t0 = dets[s].0;
-    let n = w.len();
-    let mut tau = [0.0; 2 * STEP_HALF_WINDOW];
-    let mut xs = [0.0; 2 * STEP_HALF_WINDOW];
-    let mut ys = [0.0; 2 * STEP_HALF_WINDOW];
-    let mut step = [0.0; 2 * STEP_HALF_WINDOW];
-    for (i, d) in w.iter().enumerate() {
-        tau[i] = (d.0 - t0) as f64;
-        xs[i] = d.1;
-        ys[i] = d.2;
-        step[i] = if a + i >= s { 1.0 } else { 0.0 };
+    if w.len() <= 4 {
+        return None;
     }
-    let (tau, xs, ys) = (&tau[..n], &xs[..n], &ys[..n]);
-    // A quadratic needs three detections per side to be told from a step.
-    let order = 2;
-    let base = rss(tau, xs, ys, order, None)?;
-    let with_step = rss(tau, xs, ys, order, Some(&step[..n]))?;
-    let mut outlier = 0.0f64;
-    for j in [s - 1, s] {
-        let mut e = [0.0; 2 * STEP_HALF_WINDOW];
-        e[j - a] = 1.0;
-        if let Some(r) = rss(tau, xs, ys, order, Some(&e[..n])) {
-            outlier = outlier.max(base - r);
+    let t0 = dets[s].0;
+    let row = |d: &(i64, f64, f64)| {
+        let t = (d.0 - t0) as f64;
+        [1.0, t, t * t]
+    };
+    // Normal matrix and right-hand sides; X'e of the step column.
+    let (mut g, mut gx, mut gy, mut ge) = ([[0.0f64; 3]; 3], [0.0; 3], [0.0; 3], [0.0; 3]);
+    let mut ne = 0.0;
+    for (i, d) in w.iter().enumerate() {
+        let c = row(d);
+        for j in 0..3 {
+            for k in 0..3 {
+                g[j][k] += c[j] * c[k];
+            }
+            gx[j] += c[j] * d.1;
+            gy[j] += c[j] * d.2;
+            if a + i >= s {
+                ge[j] += c[j];
+            }
+        }
+        if a + i >= s {
+            ne += 1.0;
         }
     }
+    let inv = invert3(&g)?;
+    let mul = |v: &[f64; 3]| -> [f64; 3] {
+        std::array::from_fn(|j| (0..3).map(|k| inv[j][k] * v[k]).sum())
+    };
+    let (cx, cy) = (mul(&gx), mul(&gy));
+    let dot = |u: &[f64; 3], v: &[f64; 3]| u[0] * v[0] + u[1] * v[1] + u[2] * v[2];
+    let (mut erx, mut ery) = (0.0, 0.0);
+    let mut outlier = 0.0f64;
+    for (i, d) in w.iter().enumerate() {
+        let c = row(d);
+        let (rx, ry) = (d.1 - dot(&c, &cx), d.2 - dot(&c, &cy));
+        if a + i >= s {
+            erx += rx;
+            ery += ry;
+        }
+        if a + i + 1 == s || a + i == s {
+            let q = 1.0 - dot(&c, &mul(&c));
+            if q > 1e-9 {
+                outlier = outlier.max((rx * rx + ry * ry) / q);
+            }
+        }
+    }
+    let qe = ne - dot(&ge, &mul(&ge));
+    if qe <= 1e-9 {
+        return None;
+    }
     let s2 = sigma * sigma;
-    Some(((base - with_step) / s2, outlier / s2))
+    Some(((erx * erx + ery * ery) / qe / s2, outlier / s2))
+}
+
+/// Inverse of a symmetric positive definite 3 × 3 matrix (cofactors);
+/// `None` when it is (nearly) singular.
+fn invert3(m: &[[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
+    let c =
+        |r0: usize, r1: usize, c0: usize, c1: usize| m[r0][c0] * m[r1][c1] - m[r0][c1] * m[r1][c0];
+    let cof = [
+        [c(1, 2, 1, 2), -c(1, 2, 0, 2), c(1, 2, 0, 1)],
+        [-c(0, 2, 1, 2), c(0, 2, 0, 2), -c(0, 2, 0, 1)],
+        [c(0, 1, 1, 2), -c(0, 1, 0, 2), c(0, 1, 0, 1)],
+    ];
+    let det = m[0][0] * cof[0][0] + m[0][1] * cof[0][1] + m[0][2] * cof[0][2];
+    let scale = m[0][0] * m[1][1] * m[2][2];
+    if !(det.abs() > 1e-12 * scale.abs().max(1e-300)) {
+        return None;
+    }
+    // The inverse is the transposed cofactor matrix over the determinant.
+    Some(std::array::from_fn(|j| {
+        std::array::from_fn(|k| cof[k][j] / det)
+    }))
 }
 
 /// Where to cut a track's detections `dets` (`(pulse, x, y)`, increasing
@@ -190,6 +243,51 @@ fn find_cuts(
 }
 
 #[cfg(test)]
+/// [`gains`] by refitting with each extra column (the reference).
+/// Gains at detection `s` of `dets` (`(pulse, x, y)`, increasing pulses),
+/// fitting the detections of `lo..hi` within `STEP_HALF_WINDOW` of it:
+/// (drop of the residual sum of squares by a step at `s`, the larger drop
+/// by a single outlier at `s − 1` or `s`), in units of σ².
+fn gains_reference(
+    dets: &[(i64, f64, f64)],
+    s: usize,
+    lo: usize,
+    hi: usize,
+    sigma: f64,
+) -> Option<(f64, f64)> {
+    let a = s.saturating_sub(STEP_HALF_WINDOW).max(lo);
+    let b = (s + STEP_HALF_WINDOW).min(hi);
+    let w = &dets[a..b];
+    let t0 = dets[s].0;
+    let n = w.len();
+    let mut tau = [0.0; 2 * STEP_HALF_WINDOW];
+    let mut xs = [0.0; 2 * STEP_HALF_WINDOW];
+    let mut ys = [0.0; 2 * STEP_HALF_WINDOW];
+    let mut step = [0.0; 2 * STEP_HALF_WINDOW];
+    for (i, d) in w.iter().enumerate() {
+        tau[i] = (d.0 - t0) as f64;
+        xs[i] = d.1;
+        ys[i] = d.2;
+        step[i] = if a + i >= s { 1.0 } else { 0.0 };
+    }
+    let (tau, xs, ys) = (&tau[..n], &xs[..n], &ys[..n]);
+    // A quadratic needs three detections per side to be told from a step.
+    let order = 2;
+    let base = rss(tau, xs, ys, order, None)?;
+    let with_step = rss(tau, xs, ys, order, Some(&step[..n]))?;
+    let mut outlier = 0.0f64;
+    for j in [s - 1, s] {
+        let mut e = [0.0; 2 * STEP_HALF_WINDOW];
+        e[j - a] = 1.0;
+        if let Some(r) = rss(tau, xs, ys, order, Some(&e[..n])) {
+            outlier = outlier.max(base - r);
+        }
+    }
+    let s2 = sigma * sigma;
+    Some(((base - with_step) / s2, outlier / s2))
+}
+
+#[cfg(test)]
 mod tests {
     use super::*;
 
@@ -228,6 +326,30 @@ mod tests {
         t[9].1 += 2.0;
         t[9].2 -= 1.0;
         assert!(step_cuts(&t, 0.4, 12.0, 0).is_empty());
+    }
+
+    /// The projection formulas against refitting with each extra column,
+    /// on tracks with and without steps, outliers and missed pulses.
+    #[test]
+    fn gains_match_the_refitting_reference() {
+        let mut t = track(30, 0.3, 12, 1.7, -0.9);
+        t[20].1 += 1.5;
+        t.remove(7);
+        t.remove(15);
+        for lo in [0, 3] {
+            for s in lo + STEP_MIN_SIDE..=t.len() - STEP_MIN_SIDE {
+                let (g, o) = gains(&t, s, lo, t.len(), 0.4).unwrap();
+                let (gr, or) = gains_reference(&t, s, lo, t.len(), 0.4).unwrap();
+                assert!(
+                    (g - gr).abs() <= 1e-6 * gr.abs().max(1.0),
+                    "{s}: {g} vs {gr}"
+                );
+                assert!(
+                    (o - or).abs() <= 1e-6 * or.abs().max(1.0),
+                    "{s}: {o} vs {or}"
+                );
+            }
+        }
     }
 
     #[test]
