@@ -1,7 +1,9 @@
 //! The table of BENCHMARKS.md: link scores as conditions get harder.
 //! Ignored by default (a few seconds per row):
 //! `cargo test --release --test ptv_conditions -- --ignored --nocapture`
-//! (`PTV_MIN_LENGTH`, `PTV_FIT_ACCEL` override those parameters).
+//! (`PTV_MIN_LENGTH`, `PTV_FIT_ACCEL`, `PTV_STEP`, `PTV_GAP_FIRST`
+//! override those parameters, `PTV_SEED` the scene's seed, `PTV_ROWS=1`
+//! runs the paper-like and the all-three rows only).
 
 use ebptv::cluster::ClusterParams;
 use ebptv::track::synth::{generate, run_and_score, SynthParams};
@@ -24,12 +26,16 @@ fn conditions_table() {
     println!("| conditions | ppp | px/pulse | noise | precision | precision (merged ok) | recall | recall (present) | vel rms (px/pulse) | interior vel rms |");
     println!("|---|---|---|---|---|---|---|---|---|---|");
     for (name, ppp, disp, noise) in rows {
+        if env("PTV_ROWS") == Some(1.0) && !matches!(name, "paper-like" | "all three") {
+            continue;
+        }
         let sp = SynthParams {
             ppp,
             max_disp: disp,
             noise_fraction: noise,
             width: 384,
             height: 384,
+            seed: env("PTV_SEED").map_or(SynthParams::default().seed, |v| v as u64),
             ..Default::default()
         };
         let scene = generate(&sp);
@@ -38,6 +44,8 @@ fn conditions_table() {
             max_disp: (disp * 1.25).max(10.0),
             min_length: env("PTV_MIN_LENGTH").map_or(d.min_length, |v| v as usize),
             fit_accel_rms: env("PTV_FIT_ACCEL").map_or(d.fit_accel_rms, Some),
+            step_split: env("PTV_STEP").unwrap_or(d.step_split),
+            gap_first_step: env("PTV_GAP_FIRST").map_or(d.gap_first_step, |v| v != 0.0),
             ..d
         };
         let (_, s) = run_and_score(&scene, &ClusterParams::default(), &tp, sp.period_us).unwrap();

@@ -21,6 +21,10 @@ fn breakdown_of_link_errors() {
             noise_fraction: noise,
             width: 384,
             height: 384,
+            seed: std::env::var("PTV_SEED")
+                .ok()
+                .and_then(|v| v.parse().ok())
+                .unwrap_or(SynthParams::default().seed),
             ..Default::default()
         };
         let scene = generate(&sp);
@@ -47,6 +51,8 @@ fn breakdown_of_link_errors() {
             ghost_check_length: env("PTV_GHOST_LEN").map_or(d.ghost_check_length, |v| v as usize),
             ghost_sigma: env("PTV_GHOST_SIGMA").unwrap_or(d.ghost_sigma),
             ghost_check_init: env("PTV_GHOST_INIT").map_or(d.ghost_check_init, |v| v != 0.0),
+            step_split: env("PTV_STEP").unwrap_or(d.step_split),
+            gap_first_step: env("PTV_GAP_FIRST").map_or(d.gap_first_step, |v| v != 0.0),
             ..d
         };
         let run = ebptv::track::synth::run_scene(&scene, &ClusterParams::default(), &tp).unwrap();
@@ -198,6 +204,8 @@ fn linking_cost() {
         init_gap: env("PTV_INIT_GAP").map_or(d.init_gap, |v| v != 0),
         ghost_check_length: env("PTV_GHOST_LEN").unwrap_or(d.ghost_check_length),
         ghost_check_init: env("PTV_GHOST_LEN").map_or(d.ghost_check_init, |v| v != 0),
+        step_split: env("PTV_STEP").map_or(d.step_split, |v| v as f64),
+        gap_first_step: env("PTV_GAP_FIRST").map_or(d.gap_first_step, |v| v != 0),
         ..d
     };
     let cpu = || {
