@@ -755,7 +755,7 @@ pub struct TrackerStats {
 impl TrackerStats {
     /// Add the counters that [`Finaliser::finalise`] keeps (the fits'
     /// verdicts: kept, short, ghost, rough, kept by flow, particles on
-    /// tracks) from `fits`; the linking counters stay this one's.
+    /// tracks, step cuts) from `fits`; the linking counters stay this one's.
     pub fn add_fit_counters(&mut self, fits: &TrackerStats) {
         self.tracks_kept += fits.tracks_kept;
         self.tracks_rejected_short += fits.tracks_rejected_short;
@@ -763,6 +763,7 @@ impl TrackerStats {
         self.tracks_rejected_rough += fits.tracks_rejected_rough;
         self.tracks_kept_by_flow += fits.tracks_kept_by_flow;
         self.particles_on_tracks += fits.particles_on_tracks;
+        self.tracks_cut_at_steps += fits.tracks_cut_at_steps;
     }
 }
 
@@ -2073,7 +2074,6 @@ impl Tracker {
             return Vec::new();
         }
         let sigma = self.position_sigma();
-        let ended = self.cut_steps(ended, sigma);
         let ended = EndedTracks {
             tracks: ended,
             sigma,
@@ -2092,40 +2092,33 @@ impl Tracker {
     }
 }
 
-impl Tracker {
-    /// Cut ended tracks at steps (`TrackParams::step_split`): each piece
-    /// goes on as a track of its own, in place of the whole.
-    fn cut_steps(&mut self, ended: Vec<ActiveTrack>, sigma: f64) -> Vec<ActiveTrack> {
-        let threshold = self.params.step_split;
-        if threshold <= 0.0 {
-            return ended;
-        }
-        let mut out = Vec::with_capacity(ended.len());
-        let mut xy = Vec::new();
-        for t in ended {
-            xy.clear();
-            xy.extend(t.dets.iter().map(|d| (d.pulse, d.x, d.y)));
-            // Context detections were handed out with an earlier segment:
-            // a cut among them could not change that segment.
-            let cuts = step::step_cuts(&xy, sigma, threshold, t.context.max(1));
-            if cuts.is_empty() {
-                out.push(t);
-                continue;
-            }
-            self.stats.tracks_cut_at_steps += cuts.len() as u64;
-            let ActiveTrack { uid, dets, context } = t;
-            let mut start = 0;
-            for (k, &c) in cuts.iter().chain(std::iter::once(&dets.len())).enumerate() {
-                out.push(ActiveTrack {
-                    uid: if k == 0 { uid } else { NO_OWNER },
-                    dets: dets[start..c].to_vec(),
-                    context: if k == 0 { context } else { 0 },
-                });
-                start = c;
-            }
-        }
-        out
+/// Cut an ended track at its steps (`TrackParams::step_split`, see
+/// [`step::step_cuts`]): the pieces, in order, each to be fitted as a track
+/// of its own, and the number of cuts. A pure function of the track, so
+/// it runs on the finaliser's parallel workers, not on the linking thread.
+fn cut_at_steps(t: ActiveTrack, sigma: f64, threshold: f64) -> (u64, Vec<ActiveTrack>) {
+    if threshold <= 0.0 {
+        return (0, vec![t]);
     }
+    let xy: Vec<(i64, f64, f64)> = t.dets.iter().map(|d| (d.pulse, d.x, d.y)).collect();
+    // Context detections were handed out with an earlier segment: a cut
+    // among them could not change that segment.
+    let cuts = step::step_cuts(&xy, sigma, threshold, t.context.max(1));
+    if cuts.is_empty() {
+        return (0, vec![t]);
+    }
+    let ActiveTrack { uid, dets, context } = t;
+    let mut pieces = Vec::with_capacity(cuts.len() + 1);
+    let mut start = 0;
+    for (k, &c) in cuts.iter().chain(std::iter::once(&dets.len())).enumerate() {
+        pieces.push(ActiveTrack {
+            uid: if k == 0 { uid } else { NO_OWNER },
+            dets: dets[start..c].to_vec(),
+            context: if k == 0 { context } else { 0 },
+        });
+        start = c;
+    }
+    (cuts.len() as u64, pieces)
 }
 
 /// Tracks that ended together (one call of the tracker's fits), not yet
@@ -2202,20 +2195,30 @@ impl Finaliser {
             .fit_accel_rms
             .unwrap_or_else(|| self.accel_prior.accel_rms(sigma));
         let flow = &self.flow;
-        let fitted: Vec<Finalised> = if ended.len() >= 2 {
+        // Step cuts first (each piece is fitted as a track of its own),
+        // on the same workers as the fits.
+        let cut_and_fit = |t: ActiveTrack| -> (u64, Vec<Finalised>) {
+            let (cuts, pieces) = cut_at_steps(t, sigma, params.step_split);
+            let fitted = pieces
+                .into_iter()
+                .map(|p| finalise_one(p, params, flow, gate, sigma, accel))
+                .collect();
+            (cuts, fitted)
+        };
+        let fitted: Vec<(u64, Vec<Finalised>)> = if ended.len() >= 2 {
             ended
                 .into_par_iter()
                 .with_max_len(1)
-                .map(|t| finalise_one(t, params, flow, gate, sigma, accel))
+                .map(cut_and_fit)
                 .collect()
         } else {
-            ended
-                .into_iter()
-                .map(|t| finalise_one(t, params, flow, gate, sigma, accel))
-                .collect()
+            ended.into_iter().map(cut_and_fit).collect()
         };
         let mut out = Vec::new();
-        for f in fitted {
+        for f in fitted.into_iter().flat_map(|(cuts, pieces)| {
+            stats.tracks_cut_at_steps += cuts;
+            pieces
+        }) {
             match f {
                 Finalised::NothingNew => {}
                 Finalised::Short => stats.tracks_rejected_short += 1,
