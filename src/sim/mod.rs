@@ -1055,10 +1055,27 @@ impl Back {
         let split = keys.partition_point(|&k| layout.time(k, t_begin) < r.t_end);
         self.carry.clear();
         self.carry_tails.clear();
-        // Decoded and through the refractory filter in one pass.
+        // Decoded, through the refractory filter and into the arbiter in
+        // one pass (no list of requests in between); without an arbiter
+        // into `reqs`, stamped below.
         let reqs = &mut self.reqs;
         reqs.clear();
-        reqs.reserve(split);
+        // At most one event per request (plus a few pending ones): grow
+        // the chunk once, not by doubling.
+        let n = split + 1024;
+        events.t.reserve(n);
+        events.x.reserve(n);
+        events.y.reserve(n);
+        events.p.reserve(n);
+        let t_end = r.t_end;
+        let mut arbiter = self.arbiter.as_mut();
+        if arbiter.is_none() {
+            reqs.reserve(split);
+        }
+        let mut take = |a: pixel::Arrival| match &mut arbiter {
+            Some(arb) => arb.offer(&a, t_end, events),
+            None => reqs.push(a),
+        };
         match &mut self.refractory {
             Some(rf) => {
                 let xs = layout.x_shift();
@@ -1087,7 +1104,7 @@ impl Back {
                     };
                     let a = layout.arrival(k, t_begin);
                     if rf.keep(&a) {
-                        reqs.push(a);
+                        take(a);
                         continue;
                     }
                     let members = match slot {
@@ -1135,7 +1152,9 @@ impl Back {
                 }
             }
             None => {
-                reqs.extend(keys[..split].iter().map(|&k| layout.arrival(k, t_begin)));
+                for &k in &keys[..split] {
+                    take(layout.arrival(k, t_begin));
+                }
                 if !r.last {
                     self.carry
                         .extend(keys[split..].iter().map(|&k| layout.arrival(k, t_begin)));
@@ -1146,20 +1165,12 @@ impl Back {
         for t in tails.parts {
             Buffers::give(&self.buffers.tails, t, POOLED_PULSE_MAX);
         }
-        let reqs = &mut self.reqs;
-        // At most one event per request (plus a few pending ones): grow
-        // the chunk once, not by doubling.
-        let n = reqs.len() + 1024;
-        events.t.reserve(n);
-        events.x.reserve(n);
-        events.y.reserve(n);
-        events.p.reserve(n);
         match &mut self.arbiter {
             Some(a) => {
-                a.run(reqs, r.t_end, events);
+                a.finish(t_end, events);
                 self.lost_in_readout = a.lost;
             }
-            None => readout::stamp_ideal(reqs, events),
+            None => readout::stamp_ideal(&self.reqs, events),
         }
         if r.last {
             events.retain(|t, _, _, _| (t as f64) < duration_us);
