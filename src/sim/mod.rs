@@ -467,19 +467,12 @@ pub fn radix_sort_above(keys: &mut Vec<u64>, scratch: &mut Vec<u64>, low_bits: u
     }
 }
 
-/// One block as the front stage (particles → pulses → requests) makes
-/// it: the requests for the back stage (readout) and what the caller
-/// gets besides the events.
+/// One block as the front stage (particles → pulses → requests) hands it
+/// to the back stage (readout).
 struct BlockRequests {
     block: u64,
     /// Camera-time start of each pulse of the block (µs).
     starts: Vec<f64>,
-    readout: BlockReadout,
-    truth: Vec<TruthSample>,
-}
-
-/// A block's requests as the back stage takes them.
-struct BlockReadout {
     t_begin: f64,
     t_end: f64,
     last: bool,
@@ -489,6 +482,7 @@ struct BlockReadout {
     /// Refractory groups: (head key, member key), see [`KeySink`]; one
     /// list per pulse (concatenated only if a lookup needs them sorted).
     tails: Vec<Vec<(u64, u64)>>,
+    truth: Vec<TruthSample>,
 }
 
 /// Vectors the stages hand back for reuse. Freed and allocated anew every
@@ -579,124 +573,22 @@ struct Back {
 /// The streaming simulator.
 ///
 /// Two stages per block: the front (advection, truth, rendering, noise;
-/// itself parallel, on the caller's rayon pool) and the back (request
-/// sort with the carry-over, refractory, arbiter, limiter: sequential, a
-/// queue) on a thread of its own ([`ReadoutThread`]), which reads out
-/// block k while the front computes blocks k + 1 … k + [`BLOCKS_AHEAD`].
-/// A thread of its own rather than one side of a `rayon::join` with the
-/// next front: the join ended every block with a barrier (the last pulse
-/// rendering on one core while the other waited); the readout thread,
-/// with its blocks queued, fills such gaps instead (as the recording's
-/// writer threads do). Neither stage depends on the other's output of
-/// those blocks and the back takes the blocks in order, so the result is
-/// the same as running them one after the other, for any thread count.
+/// itself parallel) and the back (request sort with the carry-over,
+/// refractory, arbiter, limiter: sequential, a queue). The back of block k runs
+/// concurrently with the front of block k + 1 (`rayon::join`), so the
+/// sequential part does not leave a core idle; neither stage depends on
+/// the other's output of those blocks, so the result is the same as
+/// running them one after the other, for any thread count.
 pub struct Simulator {
     front: Front,
-    readout: ReadoutThread,
-    /// Blocks handed to the readout thread so far.
-    sent: u64,
-    /// Pulse starts and truth of the blocks sent but not yet delivered.
-    in_flight: std::collections::VecDeque<(Vec<f64>, Vec<TruthSample>)>,
-    /// Event lists handed back for the readout to fill again.
-    spare_events: Vec<EventChunk>,
-    /// Refractory groups whose head was dropped (counted for tests).
-    pub(crate) groups_expanded: u64,
+    back: Back,
+    /// Block `block`'s front, computed while the previous block's back ran.
+    ahead: Option<BlockRequests>,
     info: StreamInfo,
     block: u64,
     truth: Vec<TruthSample>,
     pulse_starts_us: Vec<f64>,
     stats: SimStats,
-}
-
-/// How many blocks the front may run ahead of the block being delivered
-/// (each ~1 MB of request keys at full frame): enough that the readout
-/// thread always has a block waiting, so it can run whenever a core is
-/// free.
-const BLOCKS_AHEAD: u64 = 2;
-
-/// A block for the readout thread: its requests and an event list to fill.
-struct ReadoutJob {
-    readout: BlockReadout,
-    events: EventChunk,
-}
-
-/// A block read out.
-struct ReadoutDone {
-    events: EventChunk,
-    /// ON events among `events`.
-    on_events: u64,
-    /// The readout's counters after this block.
-    lost_in_readout: u64,
-    groups_expanded: u64,
-}
-
-/// The back stage ([`Back`]) on its own thread, fed through a channel in
-/// block order.
-struct ReadoutThread {
-    jobs: Option<std::sync::mpsc::Sender<ReadoutJob>>,
-    done: std::sync::mpsc::Receiver<ReadoutDone>,
-    handle: Option<std::thread::JoinHandle<()>>,
-}
-
-impl ReadoutThread {
-    fn spawn(mut back: Back, duration_us: f64) -> Result<ReadoutThread> {
-        let (jobs, jobs_rx) = std::sync::mpsc::channel::<ReadoutJob>();
-        let (done_tx, done) = std::sync::mpsc::channel();
-        let handle = std::thread::Builder::new()
-            .name("ebptv-readout".into())
-            .spawn(move || {
-                for mut job in jobs_rx {
-                    job.events.clear();
-                    back.block(&mut job.readout, duration_us, &mut job.events);
-                    let on_events = job
-                        .events
-                        .p
-                        .iter()
-                        .filter(|&&p| p == crate::events::ON)
-                        .count() as u64;
-                    let sent = done_tx.send(ReadoutDone {
-                        events: job.events,
-                        on_events,
-                        lost_in_readout: back.lost_in_readout,
-                        groups_expanded: back.groups_expanded,
-                    });
-                    if sent.is_err() {
-                        break; // the simulator was dropped
-                    }
-                }
-            })
-            .map_err(|e| Error::analysis(format!("cannot start the readout thread: {e}")))?;
-        Ok(ReadoutThread {
-            jobs: Some(jobs),
-            done,
-            handle: Some(handle),
-        })
-    }
-
-    fn stopped() -> Error {
-        Error::analysis("simulator readout thread stopped (panic; bug)")
-    }
-
-    fn send(&self, job: ReadoutJob) -> Result<()> {
-        match &self.jobs {
-            Some(jobs) => jobs.send(job).map_err(|_| Self::stopped()),
-            None => Err(Self::stopped()),
-        }
-    }
-
-    fn recv(&self) -> Result<ReadoutDone> {
-        self.done.recv().map_err(|_| Self::stopped())
-    }
-}
-
-impl Drop for ReadoutThread {
-    fn drop(&mut self) {
-        // Closing the job channel ends the thread's loop.
-        drop(self.jobs.take());
-        if let Some(h) = self.handle.take() {
-            let _ = h.join();
-        }
-    }
 }
 
 impl Simulator {
@@ -728,34 +620,29 @@ impl Simulator {
             duration_s: sc.duration_s,
             ..Default::default()
         };
-        let back = Back {
-            refractory: sc
-                .pixel
-                .refractory
-                .map(|r| readout::Refractory::new(r.period_us, roi)),
-            arbiter: sc
-                .readout
-                .arbiter_saturation
-                .map(|a| readout::Arbiter::new(a, roi)),
-            limiter: sc
-                .readout
-                .rate_limiter
-                .map(|r| readout::RateLimiter::new(r.max_rate_ev_s, r.window_us)),
-            carry: Vec::new(),
-            carry_tails: Vec::new(),
-            groups_expanded: 0,
-            lost_in_readout: 0,
-            layout: KeyLayout::new(roi),
-            scratch: Vec::new(),
-            reqs: Vec::new(),
-            buffers: buffers.clone(),
-        };
         Ok(Simulator {
-            readout: ReadoutThread::spawn(back, sc.duration_s * 1e6)?,
-            sent: 0,
-            in_flight: Default::default(),
-            spare_events: Vec::new(),
-            groups_expanded: 0,
+            back: Back {
+                refractory: sc
+                    .pixel
+                    .refractory
+                    .map(|r| readout::Refractory::new(r.period_us, roi)),
+                arbiter: sc
+                    .readout
+                    .arbiter_saturation
+                    .map(|a| readout::Arbiter::new(a, roi)),
+                limiter: sc
+                    .readout
+                    .rate_limiter
+                    .map(|r| readout::RateLimiter::new(r.max_rate_ev_s, r.window_us)),
+                carry: Vec::new(),
+                carry_tails: Vec::new(),
+                groups_expanded: 0,
+                lost_in_readout: 0,
+                layout: KeyLayout::new(roi),
+                scratch: Vec::new(),
+                reqs: Vec::new(),
+                buffers: buffers.clone(),
+            },
             front: Front {
                 sc: sc.clone(),
                 seed,
@@ -772,6 +659,7 @@ impl Simulator {
                 group_ns: sc.pixel.refractory.map_or(0, |r| group_ns(r.period_us)),
                 buffers,
             },
+            ahead: None,
             info,
             block: 0,
             truth: Vec::new(),
@@ -832,39 +720,31 @@ impl Simulator {
         self.front.pixel.hot_pixels()
     }
 
-    /// Deliver the next block into `chunk` (cleared first), keeping the
-    /// readout thread [`BLOCKS_AHEAD`] blocks ahead.
-    fn run_block(&mut self, chunk: &mut Chunk) -> Result<()> {
+    /// Simulate the next block into `chunk` (cleared first), running the
+    /// front of the block after it at the same time.
+    fn run_block(&mut self, chunk: &mut Chunk) {
         chunk.clear();
         let b = self.block;
-        while self.sent < self.front.n_blocks && self.sent <= b + BLOCKS_AHEAD {
-            let req = self.front.block(self.sent);
-            debug_assert_eq!(req.block, self.sent);
-            let events = self.spare_events.pop().unwrap_or_default();
-            self.readout.send(ReadoutJob {
-                readout: req.readout,
-                events,
-            })?;
-            self.in_flight.push_back((req.starts, req.truth));
-            self.sent += 1;
-        }
-        let done = self.readout.recv()?;
-        let (starts, truth) = self
-            .in_flight
-            .pop_front()
-            .expect("a block in flight per block read out");
-        // The filled list goes out; the chunk's own (already written) goes
-        // back to the readout.
-        let mut spare = std::mem::replace(&mut chunk.events, done.events);
-        spare.clear();
-        if self.spare_events.len() < 2 {
-            self.spare_events.push(spare);
-        }
+        let mut req = match self.ahead.take() {
+            Some(r) => r,
+            None => self.front.block(b),
+        };
+        debug_assert_eq!(req.block, b);
         let duration_us = self.front.sc.duration_s * 1e6;
+        if b + 1 < self.front.n_blocks {
+            let (front, back) = (&mut self.front, &mut self.back);
+            let ((), next) = rayon::join(
+                || back.block(&mut req, duration_us, &mut chunk.events),
+                || front.block(b + 1),
+            );
+            self.ahead = Some(next);
+        } else {
+            self.back.block(&mut req, duration_us, &mut chunk.events);
+        }
         let sc = &self.front.sc;
         if sc.triggers.enabled {
             let ch = sc.triggers.channel;
-            for &s in &starts {
+            for &s in &req.starts {
                 for (t, edge) in [
                     (s, Edge::Rising),
                     (s + sc.light.pulse_width_us, Edge::Falling),
@@ -879,22 +759,26 @@ impl Simulator {
                 }
             }
         }
-        self.stats.truth_samples += truth.len() as u64;
+        self.stats.truth_samples += req.truth.len() as u64;
         if self.truth.is_empty() {
-            self.truth = truth;
+            self.truth = req.truth;
         } else {
-            self.truth.extend_from_slice(&truth);
+            self.truth.extend_from_slice(&req.truth);
         }
-        self.pulse_starts_us.extend_from_slice(&starts);
-        self.stats.lost_in_readout = done.lost_in_readout;
-        self.groups_expanded = done.groups_expanded;
-        self.stats.pulses += starts.len() as u64;
+        self.pulse_starts_us.extend_from_slice(&req.starts);
+        self.stats.lost_in_readout = self.back.lost_in_readout;
+        self.stats.pulses += req.starts.len() as u64;
         self.stats.events += chunk.events.len() as u64;
-        self.stats.on_events += done.on_events;
-        self.stats.off_events += chunk.events.len() as u64 - done.on_events;
+        let on = chunk
+            .events
+            .p
+            .iter()
+            .filter(|&&p| p == crate::events::ON)
+            .count() as u64;
+        self.stats.on_events += on;
+        self.stats.off_events += chunk.events.len() as u64 - on;
         self.stats.triggers += chunk.triggers.len() as u64;
         self.block += 1;
-        Ok(())
     }
 }
 
@@ -990,13 +874,11 @@ impl Front {
         BlockRequests {
             block: b,
             starts,
-            readout: BlockReadout {
-                t_begin,
-                t_end,
-                last,
-                keys,
-                tails,
-            },
+            t_begin,
+            t_end,
+            last,
+            keys,
+            tails,
             truth,
         }
     }
@@ -1020,7 +902,7 @@ impl Back {
     /// dropped whatever happens in between (the pixel's last kept time
     /// only grows). So the result is the same as filtering every request
     /// in order (`refractory_groups_match_plain_filtering`).
-    fn block(&mut self, r: &mut BlockReadout, duration_us: f64, events: &mut EventChunk) {
+    fn block(&mut self, r: &mut BlockRequests, duration_us: f64, events: &mut EventChunk) {
         use std::cmp::Reverse;
         let layout = self.layout;
         let t_begin = r.t_begin;
@@ -1258,7 +1140,7 @@ impl EventSource for Simulator {
 
     fn next_chunk(&mut self, chunk: &mut Chunk) -> Result<bool> {
         while self.block < self.front.n_blocks {
-            self.run_block(chunk)?;
+            self.run_block(chunk);
             if !chunk.is_empty() {
                 return Ok(true);
             }
@@ -1387,7 +1269,7 @@ mod tests {
                 while sim.next_chunk(&mut chunk).expect("runs") {
                     ev.extend_from(&chunk.events);
                 }
-                (ev, sim.groups_expanded, sim.stats.lost_in_readout)
+                (ev, sim.back.groups_expanded, sim.stats.lost_in_readout)
             };
             let (grouped, expanded, lost) = run(true);
             let (plain, none, plain_lost) = run(false);
