@@ -117,7 +117,7 @@ impl Arbiter {
         }
     }
 
-    #[inline]
+    #[inline(always)]
     fn admit(&mut self, a: &Arrival) {
         let r = (a.y - self.roi_y) as usize;
         let bit = r * self.row_bits + (a.x - self.roi_x) as usize;
@@ -155,7 +155,8 @@ impl Arbiter {
     /// before `t_end` or after it too): first grant the rows the server
     /// reaches before `a` arrives (and before `t_end`), then admit `a`.
     /// The readout feeds its requests one by one as it decodes them.
-    #[inline]
+    // (Always inlined: the readout calls it once per request.)
+    #[inline(always)]
     pub fn offer(&mut self, a: &Arrival, t_end: f64, out: &mut EventChunk) {
         loop {
             if self.queue.is_empty() {
