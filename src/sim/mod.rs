@@ -143,11 +143,12 @@ const BLOCK_US: f64 = 2000.0;
 /// to the ROI, in as few bits as its size needs), the group flag
 /// ([`GROUP_FLAG`]) and polarity. Requests are ordered by (time, y),
 /// equal ones in input order, as [`sort_requests_reference`] defines: a
-/// stable radix sort of the keys on the bits above x ([`Self::x_shift`]),
-/// 3 passes of 11 bits at full frame (x and p need not be sorted on:
-/// same-row requests at the same nanosecond are rare, and a pulse's
-/// pixels come in x order anyway). Times come back rounded to the
-/// nanosecond.
+/// stable sort of the keys on the bits above x ([`Self::x_shift`]) — in
+/// practice a radix sort on the time field (2 passes of 11 bits for a
+/// 2 ms block) and an insertion pass for rows within a nanosecond, see
+/// [`sort_request_keys`] (x and p need not be sorted on: same-row
+/// requests at the same nanosecond are rare, and a pulse's pixels come
+/// in x order anyway). Times come back rounded to the nanosecond.
 #[derive(Debug, Clone, Copy)]
 struct KeyLayout {
     x0: u16,
