@@ -2570,6 +2570,10 @@ fn fit_track_with(
             run_start.push(if joined { run_start[i - 1] } else { i });
         }
     }
+    // Samples whose pilot window is centred take running moments.
+    let mut run_fit = tables
+        .as_deref()
+        .and_then(|t| fit::GridRunFit::new(t, &rule));
     let mut j = 0; // index of the first detection at or after the pulse
     for pulse in first..=last {
         while dets[j].pulse < pulse {
@@ -2589,9 +2593,12 @@ fn fit_track_with(
         let fitted = match &tables {
             Some(t) if here && run_start[span.end - 1] <= span.start => {
                 *grid_fits += 1;
-                fit::fit_adaptive_grid(t, &xy, j, &rule)
+                match &mut run_fit {
+                    Some(r) if r.serves_track(n) => r.fit(&xy, j),
+                    _ => fit::fit_adaptive_grid_with(t, &xy, j, &rule, false),
+                }
             }
-            _ => fit::fit_adaptive(&tau, &xs, &ys, j, at, &rule),
+            _ => fit::fit_adaptive_with(&tau, &xs, &ys, j, at, &rule, !grid),
         };
         let f = fitted.map(|(f, _)| f).unwrap_or(fit::FitState {
             x: dets[j].x,

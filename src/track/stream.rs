@@ -680,7 +680,7 @@ pub fn track_recording(
     on_pulse: &mut dyn FnMut(&PtvStream),
 ) -> Result<(PulseReport, TrackerStats, u64)> {
     let mut src = open()?;
-    let report = pulses::analyze(&mut *src, pulse_options).map_err(|e| {
+    let report = pulses::analyze_pipelined(&mut *src, pulse_options).map_err(|e| {
         crate::Error::analysis(format!(
             "finding the light pulses in {}: {e}",
             src.info().path.display()
