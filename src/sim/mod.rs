@@ -143,11 +143,12 @@ const BLOCK_US: f64 = 2000.0;
 /// to the ROI, in as few bits as its size needs), the group flag
 /// ([`GROUP_FLAG`]) and polarity. Requests are ordered by (time, y),
 /// equal ones in input order, as [`sort_requests_reference`] defines: a
-/// stable radix sort of the keys on the bits above x ([`Self::x_shift`]),
-/// 3 passes of 11 bits at full frame (x and p need not be sorted on:
-/// same-row requests at the same nanosecond are rare, and a pulse's
-/// pixels come in x order anyway). Times come back rounded to the
-/// nanosecond.
+/// stable sort of the keys on the bits above x ([`Self::x_shift`]) — in
+/// practice a radix sort on the time field (2 passes of 11 bits for a
+/// 2 ms block) and an insertion pass for rows within a nanosecond, see
+/// [`sort_request_keys`] (x and p need not be sorted on: same-row
+/// requests at the same nanosecond are rare, and a pulse's pixels come
+/// in x order anyway). Times come back rounded to the nanosecond.
 #[derive(Debug, Clone, Copy)]
 struct KeyLayout {
     x0: u16,
@@ -321,10 +322,60 @@ pub fn sort_requests_reference(reqs: &mut [pixel::Arrival], t_begin: f64) {
 pub fn sort_requests(reqs: &mut [pixel::Arrival], t_begin: f64, roi: scenario::Roi) {
     let layout = KeyLayout::new(roi);
     let mut keys: Vec<u64> = reqs.iter().map(|a| layout.key(a, t_begin)).collect();
-    radix_sort_above(&mut keys, &mut Vec::new(), layout.x_shift());
+    sort_request_keys(&mut keys, &mut Vec::new(), layout);
     for (a, k) in reqs.iter_mut().zip(keys) {
         *a = layout.arrival(k, t_begin);
     }
+}
+
+/// Sort request keys stably by (time, y) ([`KeyLayout`]): a radix sort on
+/// the time field only (2 passes of 11 bits for a 2 ms block, where
+/// sorting on y as well took 3), then an insertion pass that orders the
+/// rows among requests of the same nanosecond — after the time sort an
+/// out-of-order y can only follow a request of equal time, and those runs
+/// are short, so the pass is linear. Same order as
+/// `radix_sort_above(keys, scratch, layout.x_shift())`
+/// (`request_sort_matches_reference`).
+fn sort_request_keys(keys: &mut Vec<u64>, scratch: &mut Vec<u64>, layout: KeyLayout) {
+    radix_sort_above(keys, scratch, layout.time_shift);
+    if !order_rows_within_times(keys, layout.x_shift()) {
+        // Long runs of one nanosecond (not seen in simulations): the
+        // full radix sort instead of a quadratic insertion sort. Stable
+        // sorts both, so the partly ordered keys sort as the original.
+        radix_sort_above(keys, scratch, layout.x_shift());
+    }
+}
+
+/// Stable insertion sort of `keys` by `key >> x_shift`, linear for input
+/// already sorted by a prefix of those bits (the time field) with short
+/// runs of equal prefix; false (and the keys partly sorted) if it would
+/// move more than ~4 keys per key.
+fn order_rows_within_times(keys: &mut [u64], x_shift: u32) -> bool {
+    let mut budget = 4 * keys.len() + 1024;
+    let Some(&first) = keys.first() else {
+        return true;
+    };
+    // The sort bits of the largest key so far (after an insertion still
+    // the key before the next one).
+    let mut prev = first >> x_shift;
+    for i in 1..keys.len() {
+        let k = keys[i];
+        if prev <= k >> x_shift {
+            prev = k >> x_shift;
+            continue;
+        }
+        let mut j = i;
+        while j > 0 && keys[j - 1] >> x_shift > k >> x_shift {
+            keys[j] = keys[j - 1];
+            j -= 1;
+        }
+        keys[j] = k;
+        budget = match budget.checked_sub(i - j) {
+            Some(b) => b,
+            None => return false,
+        };
+    }
+    true
 }
 
 /// Sort `keys` ascending: LSD radix sort over the bits any key uses, in
@@ -356,8 +407,16 @@ pub fn radix_sort_above(keys: &mut Vec<u64>, scratch: &mut Vec<u64>, low_bits: u
     let radix = 1usize << digit;
     let mask = radix as u64 - 1;
     let mut counts = vec![0usize; radix * passes as usize];
-    if passes == 3 {
-        // (The usual case, request keys of a block: unrolled.)
+    if passes == 2 {
+        // (The usual case, the time field of a block's request keys:
+        // unrolled.)
+        let (c0, c1) = counts.split_at_mut(radix);
+        for &k in keys.iter() {
+            let k = k >> low_bits;
+            c0[(k & mask) as usize] += 1;
+            c1[((k >> digit) & mask) as usize] += 1;
+        }
+    } else if passes == 3 {
         let (c0, rest) = counts.split_at_mut(radix);
         let (c1, c2) = rest.split_at_mut(radix);
         for &k in keys.iter() {
@@ -374,8 +433,11 @@ pub fn radix_sort_above(keys: &mut Vec<u64>, scratch: &mut Vec<u64>, low_bits: u
             }
         }
     }
-    scratch.clear();
-    scratch.resize(n, 0);
+    // (Its old contents are overwritten: no clearing.)
+    if scratch.len() < n {
+        scratch.resize(n, 0);
+    }
+    scratch.truncate(n);
     let mut src_is_keys = true;
     for p in 0..passes as usize {
         let c = &mut counts[p * radix..(p + 1) * radix];
@@ -871,15 +933,32 @@ impl Back {
             keys.push(head | flag);
         }
         tails.parts.push(carried);
-        radix_sort_above(&mut keys, &mut self.scratch, layout.x_shift());
+        sort_request_keys(&mut keys, &mut self.scratch, layout);
         // Requests from the block's end on wait for the next block.
         let split = keys.partition_point(|&k| layout.time(k, t_begin) < r.t_end);
         self.carry.clear();
         self.carry_tails.clear();
-        // Decoded and through the refractory filter in one pass.
+        // Decoded, through the refractory filter and into the arbiter in
+        // one pass (no list of requests in between); without an arbiter
+        // into `reqs`, stamped below.
         let reqs = &mut self.reqs;
         reqs.clear();
-        reqs.reserve(split);
+        // At most one event per request (plus a few pending ones): grow
+        // the chunk once, not by doubling.
+        let n = split + 1024;
+        events.t.reserve(n);
+        events.x.reserve(n);
+        events.y.reserve(n);
+        events.p.reserve(n);
+        let t_end = r.t_end;
+        let mut arbiter = self.arbiter.as_mut();
+        if arbiter.is_none() {
+            reqs.reserve(split);
+        }
+        let mut take = |a: pixel::Arrival| match &mut arbiter {
+            Some(arb) => arb.offer(&a, t_end, events),
+            None => reqs.push(a),
+        };
         match &mut self.refractory {
             Some(rf) => {
                 let xs = layout.x_shift();
@@ -908,7 +987,7 @@ impl Back {
                     };
                     let a = layout.arrival(k, t_begin);
                     if rf.keep(&a) {
-                        reqs.push(a);
+                        take(a);
                         continue;
                     }
                     let members = match slot {
@@ -956,7 +1035,9 @@ impl Back {
                 }
             }
             None => {
-                reqs.extend(keys[..split].iter().map(|&k| layout.arrival(k, t_begin)));
+                for &k in &keys[..split] {
+                    take(layout.arrival(k, t_begin));
+                }
                 if !r.last {
                     self.carry
                         .extend(keys[split..].iter().map(|&k| layout.arrival(k, t_begin)));
@@ -967,20 +1048,12 @@ impl Back {
         for t in tails.parts {
             Buffers::give(&self.buffers.tails, t, POOLED_PULSE_MAX);
         }
-        let reqs = &mut self.reqs;
-        // At most one event per request (plus a few pending ones): grow
-        // the chunk once, not by doubling.
-        let n = reqs.len() + 1024;
-        events.t.reserve(n);
-        events.x.reserve(n);
-        events.y.reserve(n);
-        events.p.reserve(n);
         match &mut self.arbiter {
             Some(a) => {
-                a.run(reqs, r.t_end, events);
+                a.finish(t_end, events);
                 self.lost_in_readout = a.lost;
             }
-            None => readout::stamp_ideal(reqs, events),
+            None => readout::stamp_ideal(&self.reqs, events),
         }
         if r.last {
             events.retain(|t, _, _, _| (t as f64) < duration_us);
@@ -1209,6 +1282,49 @@ mod tests {
             if sc.pixel.refractory.expect("on").period_us > 100.0 {
                 assert!(expanded > 100, "{expanded}");
             }
+        }
+    }
+
+    #[test]
+    fn time_sort_with_row_ties_matches_full_radix_sort() {
+        // Keys as a block makes them (2 and 3 radix passes on the time),
+        // with runs of equal nanoseconds of every length up to one run
+        // of all keys (the insertion pass gives up and sorts fully).
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(13);
+        let roi = scenario::Roi {
+            x: 0,
+            y: 0,
+            width: 1280,
+            height: 720,
+        };
+        let layout = KeyLayout::new(roi);
+        let mut scratch = Vec::new();
+        for (n, span_ns, same) in [
+            (100, 1000u64, 0.0),
+            (5000, 2_300_000, 0.0),
+            (50_000, 2_300_000, 0.05),
+            (50_000, 50_000, 0.0),
+            (50_000, 9_000_000, 0.01),
+            (20_000, 1, 0.0),
+            (20_000, 3_000_000, 0.5),
+        ] {
+            let keys: Vec<u64> = (0..n)
+                .map(|_| {
+                    let ns = if rng.gen_bool(same) {
+                        777
+                    } else {
+                        rng.gen_range(0..span_ns)
+                    };
+                    (ns << layout.time_shift)
+                        | layout.pixel_bits(rng.gen_range(0..1280), rng.gen_range(0..720))
+                        | rng.gen_range(0..4)
+                })
+                .collect();
+            let mut expect = keys.clone();
+            radix_sort_above(&mut expect, &mut scratch, layout.x_shift());
+            let mut got = keys;
+            sort_request_keys(&mut got, &mut scratch, layout);
+            assert_eq!(got, expect, "n {n}, span {span_ns}, same {same}");
         }
     }
 

@@ -117,6 +117,7 @@ impl Arbiter {
         }
     }
 
+    #[inline(always)]
     fn admit(&mut self, a: &Arrival) {
         let r = (a.y - self.roi_y) as usize;
         let bit = r * self.row_bits + (a.x - self.roi_x) as usize;
@@ -141,8 +142,77 @@ impl Arbiter {
     /// Serve the requests `reqs`, in (time, row) order (all requests
     /// before `t_end` are known; none later is in `reqs`), emitting events
     /// granted before `t_end`. Requests not yet granted stay pending
-    /// inside.
+    /// inside. The same as [`Self::offer`] for each request, then
+    /// [`Self::finish`].
     pub fn run(&mut self, reqs: &[Arrival], t_end: f64, out: &mut EventChunk) {
+        for a in reqs {
+            self.offer(a, t_end, out);
+        }
+        self.finish(t_end, out);
+    }
+
+    /// Take the next request `a` (requests in (time, row) order, all
+    /// before `t_end` or after it too): first grant the rows the server
+    /// reaches before `a` arrives (and before `t_end`), then admit `a`.
+    /// The readout feeds its requests one by one as it decodes them.
+    // (Always inlined: the readout calls it once per request.)
+    #[inline(always)]
+    pub fn offer(&mut self, a: &Arrival, t_end: f64, out: &mut EventChunk) {
+        loop {
+            if self.queue.is_empty() {
+                // Idle: the server waits for this request.
+                self.t_free = self.t_free.max(a.t);
+                break;
+            }
+            if a.t <= self.t_free || self.t_free >= t_end {
+                // Arrives while the server is busy, or the next grant is
+                // at or after `t_end`, where later requests (not known
+                // yet) could join it.
+                break;
+            }
+            self.grant(out);
+        }
+        self.admit(a);
+    }
+
+    /// After the last request before `t_end`: emit the grants before
+    /// `t_end`.
+    pub fn finish(&mut self, t_end: f64, out: &mut EventChunk) {
+        while !self.queue.is_empty() && self.t_free < t_end {
+            self.grant(out);
+        }
+    }
+
+    /// Grant the first queued row at `t_free`.
+    fn grant(&mut self, out: &mut EventChunk) {
+        let t_grant = self.t_free;
+        let r = self.queue.pop_front().expect("non-empty");
+        let row = &mut self.rows[r as usize];
+        if row.len() > 1 {
+            row.sort_unstable();
+        }
+        let ts = floor_i64(t_grant);
+        let y = self.roi_y + r;
+        let base = r as usize * self.row_bits;
+        let n = row.len();
+        // The row's events column by column (one capacity check per
+        // column, not four per event).
+        out.t.extend(std::iter::repeat_n(ts, n));
+        out.y.extend(std::iter::repeat_n(y, n));
+        out.x.extend(row.iter().map(|&e| (e >> 8) as u16));
+        out.p.extend(row.iter().map(|&e| e as u8));
+        for &e in row.iter() {
+            let bit = base + ((e >> 8) as u16 - self.roi_x) as usize;
+            self.blocked[bit / 64] &= !(1u64 << (bit % 64));
+        }
+        self.t_free = t_grant + self.params.row_time_us + n as f64 * self.params.event_time_us;
+        row.clear();
+    }
+
+    /// The batch loop `run` was before requests could be offered one by
+    /// one (the reference `offer_matches_batch_run` compares with).
+    #[cfg(test)]
+    fn run_batch(&mut self, reqs: &[Arrival], t_end: f64, out: &mut EventChunk) {
         let mut i = 0;
         loop {
             if self.queue.is_empty() {
@@ -158,36 +228,14 @@ impl Arbiter {
             if self.queue.is_empty() {
                 continue;
             }
-            let t_grant = self.t_free;
-            if t_grant >= t_end {
-                // Later requests (not known yet) could join this grant.
+            if self.t_free >= t_end {
                 while i < reqs.len() {
                     self.admit(&reqs[i]);
                     i += 1;
                 }
                 break;
             }
-            let r = self.queue.pop_front().expect("non-empty");
-            let row = &mut self.rows[r as usize];
-            if row.len() > 1 {
-                row.sort_unstable();
-            }
-            let ts = floor_i64(t_grant);
-            let y = self.roi_y + r;
-            let base = r as usize * self.row_bits;
-            let n = row.len();
-            // The row's events column by column (one capacity check per
-            // column, not four per event).
-            out.t.extend(std::iter::repeat_n(ts, n));
-            out.y.extend(std::iter::repeat_n(y, n));
-            out.x.extend(row.iter().map(|&e| (e >> 8) as u16));
-            out.p.extend(row.iter().map(|&e| e as u8));
-            for &e in row.iter() {
-                let bit = base + ((e >> 8) as u16 - self.roi_x) as usize;
-                self.blocked[bit / 64] &= !(1u64 << (bit % 64));
-            }
-            self.t_free = t_grant + self.params.row_time_us + n as f64 * self.params.event_time_us;
-            row.clear();
+            self.grant(out);
         }
     }
 
@@ -331,6 +379,65 @@ mod tests {
         }
         assert!(shared > 50, "{shared}");
         assert!(got.windows(2).all(|w| w[0].0 <= w[1].0), "time-ordered");
+    }
+
+    #[test]
+    fn offer_matches_batch_run() {
+        // Requests offered one by one against the batch loop: light and
+        // saturated loads, repeats of blocked pixels (lost), idle gaps,
+        // grants reaching past a block end; fed in blocks.
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(9);
+        let mut lost = 0;
+        for (width, height, n, span_us, row_time, event_time) in [
+            (1280u32, 720u32, 60_000usize, 2000.0, 0.02, 0.01),
+            (1280, 720, 60_000, 2000.0, 0.5, 0.05),
+            (200, 30, 20_000, 500.0, 0.3, 0.2),
+            (64, 8, 5000, 1000.0, 0.5, 0.25),
+            (65, 3, 5000, 100.0, 0.1, 0.02),
+            (300, 50, 2000, 20_000.0, 0.5, 0.1),
+        ] {
+            let roi = Roi {
+                x: 7,
+                y: 11,
+                width,
+                height,
+            };
+            let mut reqs: Vec<Arrival> = (0..n)
+                .map(|_| Arrival {
+                    // ns-quantised times, many shared.
+                    t: rng.gen_range(0..(span_us * 1000.0) as u64) as f64 * 1e-3,
+                    x: 7 + rng.gen_range(0..width) as u16,
+                    y: 11 + rng.gen_range(0..height) as u16,
+                    p: rng.gen_range(0..2),
+                })
+                .collect();
+            reqs.sort_by(|a, b| a.t.total_cmp(&b.t).then(a.y.cmp(&b.y)));
+            let p = ArbiterSaturation {
+                row_time_us: row_time,
+                event_time_us: event_time,
+            };
+            let (mut one, mut batch) = (Arbiter::new(p, roi), Arbiter::new(p, roi));
+            let (mut a, mut b) = (EventChunk::default(), EventChunk::default());
+            let mut from = 0;
+            for k in 1..=8 {
+                let t_end = if k == 8 {
+                    f64::INFINITY
+                } else {
+                    span_us * k as f64 / 8.0
+                };
+                let to = reqs.partition_point(|r| r.t < t_end);
+                one.run(&reqs[from..to], t_end, &mut a);
+                batch.run_batch(&reqs[from..to], t_end, &mut b);
+                assert_eq!(one.pending(), batch.pending());
+                assert_eq!(a, b, "{width}x{height}, block {k}");
+                from = to;
+            }
+            assert_eq!(one.lost, batch.lost);
+            assert_eq!(a.len() as u64 + one.lost, n as u64);
+            lost += one.lost;
+        }
+        assert!(lost > 1000, "{lost}");
     }
 
     #[test]
