@@ -163,17 +163,7 @@ fn ghost_test_keeps_short_tracks_at_paper_like_conditions() {
     // new chains checked against the local flow of the established tracks
     // (`TrackParams::ghost_check_length`, `ghost_check_init`) and chains
     // with one missed pulse (`init_gap`): 0.9632 / 0.9529 / 0.1313.
-    let sp = SynthParams {
-        width: 384,
-        height: 384,
-        ..Default::default()
-    };
-    let scene = generate(&sp);
-    let run = |tp: &TrackParams| {
-        let (_, s) = run_and_score(&scene, &ClusterParams::default(), tp, sp.period_us).unwrap();
-        println!("{s:?}");
-        s
-    };
+    let run = paper_like_384_runner();
     let s = run(&TrackParams::default());
     assert!(s.truth_links > 60_000, "{s:?}");
     assert!(s.recall >= 0.95, "recall {}", s.recall);
@@ -206,17 +196,7 @@ fn cutting_tracks_at_steps_removes_swaps() {
     // (`tests/ptv_swaps.rs`); ended tracks are cut where their positions
     // jump (`TrackParams::step_split`). Paper-like 384² scene, before:
     // precision 0.9632, recall 0.9529, interior velocity rms 0.064.
-    let sp = SynthParams {
-        width: 384,
-        height: 384,
-        ..Default::default()
-    };
-    let scene = generate(&sp);
-    let run = |tp: &TrackParams| {
-        let (_, s) = run_and_score(&scene, &ClusterParams::default(), tp, sp.period_us).unwrap();
-        println!("{s:?}");
-        s
-    };
+    let run = paper_like_384_runner();
     let on = run(&TrackParams::default());
     let off = run(&TrackParams {
         step_split: 0.0,
@@ -281,4 +261,21 @@ fn gapped_chains_search_only_along_the_flow() {
         diff <= 0.002 * full_links as f64,
         "links {fast_links} vs {full_links}"
     );
+}
+
+/// The 384² paper-like scene of BENCHMARKS.md ("Accuracy vs conditions"),
+/// generated once, and a function that tracks it with the given
+/// parameters and scores the links against its truth (printed).
+fn paper_like_384_runner() -> impl Fn(&TrackParams) -> ebptv::track::synth::LinkScore {
+    let sp = SynthParams {
+        width: 384,
+        height: 384,
+        ..Default::default()
+    };
+    let scene = generate(&sp);
+    move |tp: &TrackParams| {
+        let (_, s) = run_and_score(&scene, &ClusterParams::default(), tp, sp.period_us).unwrap();
+        println!("{s:?}");
+        s
+    }
 }
