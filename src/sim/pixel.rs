@@ -24,7 +24,7 @@
 //! Refractory period, noise and readout live in `readout`.
 
 use rand::{Rng, SeedableRng};
-use rand_distr::{Distribution, Poisson, StandardNormal};
+use rand_distr::{Distribution, Poisson};
 use rand_pcg::Pcg64;
 
 use super::light::{envelope, PulseShape};
@@ -661,12 +661,11 @@ impl PixelModel {
         pulse_seed: u64,
         out: &mut impl ArrivalSink,
     ) {
-        let mut rng = Pcg64::seed_from_u64(pulse_seed);
         self.render_signals(snaps, |idx, x, y, v| {
             // Most touched pixels (image rims) are below every threshold:
             // `respond`'s first test, without the call.
             if v as f64 >= self.c_floor {
-                self.respond::<false>(idx, x, y, v as f64, t_pulse_us, &mut rng, out);
+                self.respond::<false>(idx, x, y, v as f64, t_pulse_us, pulse_seed, out);
             }
         });
     }
@@ -807,11 +806,10 @@ impl PixelModel {
         pulse_seed: u64,
         out: &mut impl ArrivalSink,
     ) {
-        let mut rng = Pcg64::seed_from_u64(pulse_seed);
         for (idx, sig) in self.pixel_signals_reference(snaps) {
             let x = (self.roi.x + idx % self.roi.width) as u16;
             let y = (self.roi.y + idx / self.roi.width) as u16;
-            self.respond::<true>(idx, x, y, sig, t_pulse_us, &mut rng, out);
+            self.respond::<true>(idx, x, y, sig, t_pulse_us, pulse_seed, out);
         }
     }
 
@@ -831,12 +829,7 @@ impl PixelModel {
     /// once-lock check per pixel).
     #[inline(always)]
     fn mismatch_factor_in(q: &[f64; 4097], sigma: f64, key: u64, idx: u32) -> f64 {
-        let h = super::splitmix(key ^ idx as u64);
-        let bin = (h >> 52) as usize; // 12 bits
-                                      // (Through i64: the same value, one instruction instead of the
-                                      // u64 → f64 sequence.)
-        let frac = (h & 0xF_FFFF_FFFF_FFFF) as i64 as f64 * (1.0 / (1u64 << 52) as f64);
-        let g = q[bin] + (q[bin + 1] - q[bin]) * frac;
+        let g = table_normal(q, super::splitmix(key ^ idx as u64));
         (1.0 + sigma * g.clamp(-MISMATCH_CLAMP, MISMATCH_CLAMP)).max(MIN_MISMATCH_FACTOR)
     }
 
@@ -853,7 +846,7 @@ impl PixelModel {
         y: u16,
         sig: f64,
         t0: f64,
-        rng: &mut Pcg64,
+        pulse_key: u64,
         out: &mut impl ArrivalSink,
     ) {
         let ln = |v: f64| if EXACT { v.ln() } else { self.ln.ln(v) };
@@ -890,9 +883,13 @@ impl PixelModel {
         // Times go to the sink in batches of a pixel's events.
         let mut times = [0.0f64; 16];
         let mut n = 0;
-        let jitter = |t: f64, rng: &mut Pcg64| match self.jitter_us {
+        // The jitter of crossing k of polarity p: a keyed draw
+        // ([`crossing_draw_key`]), so it does not depend on which other
+        // pixels or crossings were computed before.
+        let pixel_key = pulse_key ^ ((idx as u64) << 8);
+        let jitter = |t: f64, k: u32, p: u8| match self.jitter_us {
             Some(j) => {
-                let g: f64 = StandardNormal.sample(rng);
+                let g = table_normal(self.quantiles, crossing_draw_key(pixel_key, k, p));
                 // (`max` without its NaN handling: t is finite.)
                 let t = t + j * g;
                 if t < t0 {
@@ -903,9 +900,11 @@ impl PixelModel {
             }
             None => t,
         };
+        // (One division per pixel, not per crossing.)
+        let step_on = c / dl;
         for k in 1..=n_on {
-            let frac = 0.95 * (k as f64 * c / dl).min(1.0);
-            times[n] = jitter(t0 + self.latency_us + tau * -ln(1.0 - frac), rng);
+            let frac = 0.95 * (k as f64 * step_on).min(1.0);
+            times[n] = jitter(t0 + self.latency_us + tau * -ln(1.0 - frac), k, ON);
             n += 1;
             if n == times.len() {
                 out.arrive_pixel(x, y, ON, &times);
@@ -918,11 +917,13 @@ impl PixelModel {
         }
         if let Some((c_off, tau_off)) = self.off {
             let n_off = ((dl / c_off) as u32).min(self.max_events);
+            let step_off = c_off / dl;
             for k in 1..=n_off {
-                let frac = 0.95 * (k as f64 * c_off / dl).min(1.0);
+                let frac = 0.95 * (k as f64 * step_off).min(1.0);
                 times[n] = jitter(
                     t0 + self.shape.end_us + self.latency_us + tau_off * -ln(1.0 - frac),
-                    rng,
+                    k,
+                    OFF,
                 );
                 n += 1;
                 if n == times.len() {
@@ -970,6 +971,35 @@ impl PixelModel {
             }
         }
     }
+}
+
+/// The hash whose bits give the jitter of threshold crossing `k` (1…64)
+/// of polarity `p` of a pixel, `pixel_key` = pulse key ^ (ROI index << 8):
+/// every (pixel, crossing, polarity) of a pulse has its own input, so the
+/// draws are independent of each other and of the order they are taken
+/// in (a keyed, counter-based stream instead of one sequential generator
+/// per pulse).
+#[inline(always)]
+pub(crate) fn crossing_draw_key(pixel_key: u64, k: u32, p: u8) -> u64 {
+    super::splitmix(pixel_key ^ ((k as u64) << 1 | p as u64))
+}
+
+/// A standard normal deviate from 64 random bits `h`: the top 12 bits
+/// pick one of 4096 equiprobable bins of [`normal_quantiles`], the low 52
+/// interpolate linearly within it (a table lookup and a multiply-add:
+/// no `ln`, no rejection). So the distribution function is the normal one
+/// at every inner bin edge and linear in between (|ΔF| < 2e-5, largest in
+/// the outer bins; see `table_normal_moments_and_quantiles`); the tails
+/// stop at ±3.67: the outermost bins (mass 1/4096 each) are squeezed to
+/// [3.49, 3.67], where a true normal has 2.4e-4 of its mass beyond 3.67σ.
+/// Mean 0, variance 0.99946, kurtosis 2.987 (a normal's: 1, 3).
+#[inline(always)]
+pub(crate) fn table_normal(q: &[f64; 4097], h: u64) -> f64 {
+    let bin = (h >> 52) as usize; // 12 bits
+                                  // (Through i64: the same value, one instruction instead of the
+                                  // u64 → f64 sequence.)
+    let frac = (h & 0xF_FFFF_FFFF_FFFF) as i64 as f64 * (1.0 / (1u64 << 52) as f64);
+    q[bin] + (q[bin + 1] - q[bin]) * frac
 }
 
 /// Standard normal quantiles at the 4097 probabilities 0.5/4096,
@@ -1834,10 +1864,12 @@ mod tests {
 
     #[test]
     fn fast_events_match_exact_model() {
-        // Same pixels in the same order: without jitter, every pixel's
-        // events agree (count, and times within 1e-5 of the delay) except where a
-        // signal sits within f32 rounding of a threshold crossing; with
-        // all effects, the event counts agree to 0.1 %.
+        // Same pixels in the same order: every pixel's events agree
+        // (count, and times within 1e-5 of the delay) except where a
+        // signal sits within f32 rounding of a threshold crossing. The
+        // jitter draws are keyed by (pulse, pixel, crossing, polarity),
+        // so this holds with jitter on as well (with a sequential stream
+        // a mismatched pixel shifted every later pixel's draws).
         let mut sc = Scenario::default();
         sc.sensor = Sensor {
             width: 400,
@@ -1859,55 +1891,64 @@ mod tests {
             tau_us: 15.0,
         });
         sc.light.pulse_streaks = Some(PulseStreaks { scale: 1.0 });
-        let snaps = scene(6000, 400.0, 300.0, 1);
-        let model = PixelModel::new(&sc, 4);
-        let (mut fast, mut exact) = (Vec::new(), Vec::new());
-        model.render_pulse(&snaps, 100.0, 9, &mut fast);
-        model.render_pulse_reference(&snaps, 100.0, 9, &mut exact);
-        assert!(exact.len() > 5000, "{}", exact.len());
-        let key = |a: &Arrival| (a.y, a.x, a.p);
-        let mut mismatched = 0;
-        let (mut i, mut j) = (0, 0);
-        while i < fast.len() && j < exact.len() {
-            // Events of one pixel and polarity are consecutive in both.
-            let k = key(&fast[i]).min(key(&exact[j]));
-            let fi = fast[i..].iter().take_while(|a| key(a) == k).count();
-            let ej = exact[j..].iter().take_while(|a| key(a) == k).count();
-            if fi == ej {
-                for (a, b) in fast[i..i + fi].iter().zip(&exact[j..j + ej]) {
-                    // (f32 signals: ~1e-7, amplified up to ~20× near the last
-                    // crossing of a pixel, where ln(1 − 0.95·kC/ΔL) is steep.)
-                    assert!(
-                        (a.t - b.t).abs() < 1e-5 * (b.t - 100.0) + 1e-6,
-                        "{a:?} vs {b:?}"
-                    );
-                }
-            } else {
-                mismatched += 1;
+        let compare = |sc: &Scenario, pulses: u64| {
+            let model = PixelModel::new(sc, 4);
+            let (mut fast, mut exact) = (Vec::new(), Vec::new());
+            for pulse in 0..pulses {
+                let snaps = scene(6000, 400.0, 300.0, 1 + 9 * pulse);
+                let seed = stream_seed(9, 6, pulse);
+                model.render_pulse(&snaps, 100.0, seed, &mut fast);
+                model.render_pulse_reference(&snaps, 100.0, seed, &mut exact);
             }
-            i += fi;
-            j += ej;
-        }
-        assert!(i == fast.len() && j == exact.len());
-        assert!(
-            mismatched * 2000 <= exact.len(),
-            "{mismatched} of {}",
-            exact.len()
-        );
-        // All effects (jitter draws shift after a mismatch): counts.
+            assert!(exact.len() > 5000 * pulses as usize, "{}", exact.len());
+            let key = |a: &Arrival| (a.y, a.x, a.p);
+            let mut mismatched = 0;
+            let (mut i, mut j) = (0, 0);
+            while i < fast.len() && j < exact.len() {
+                // Events of one pixel and polarity are consecutive in both.
+                let k = key(&fast[i]).min(key(&exact[j]));
+                let fi = fast[i..].iter().take_while(|a| key(a) == k).count();
+                let ej = exact[j..].iter().take_while(|a| key(a) == k).count();
+                if fi == ej {
+                    for (a, b) in fast[i..i + fi].iter().zip(&exact[j..j + ej]) {
+                        // (f32 signals: ~1e-7, amplified up to ~20× near the
+                        // last crossing of a pixel, where ln(1 − 0.95·kC/ΔL)
+                        // is steep.)
+                        assert!(
+                            (a.t - b.t).abs() < 1e-5 * (b.t - 100.0) + 1e-6,
+                            "{a:?} vs {b:?}"
+                        );
+                    }
+                } else {
+                    mismatched += 1;
+                }
+                i += fi;
+                j += ej;
+            }
+            assert!(i == fast.len() && j == exact.len());
+            assert!(
+                mismatched * 2000 <= exact.len(),
+                "{mismatched} of {}",
+                exact.len()
+            );
+            let d = fast.len().abs_diff(exact.len());
+            assert!(d * 1000 <= exact.len(), "{} vs {}", fast.len(), exact.len());
+            assert!(fast
+                .iter()
+                .all(|a| (3..393).contains(&a.x) && (5..295).contains(&a.y)));
+            fast
+        };
+        let plain = compare(&sc, 1);
+        // All effects: the jitter moves times, not which pixels fire.
         sc.pixel.latency_jitter = Some(LatencyJitter { spread_us: 2.0 });
-        let model = PixelModel::new(&sc, 4);
-        let (mut fast, mut exact) = (Vec::new(), Vec::new());
-        for pulse in 0..3 {
-            let snaps = scene(6000, 400.0, 300.0, 10 + pulse);
-            model.render_pulse(&snaps, 100.0, pulse, &mut fast);
-            model.render_pulse_reference(&snaps, 100.0, pulse, &mut exact);
-        }
-        let d = fast.len().abs_diff(exact.len());
-        assert!(d * 1000 <= exact.len(), "{} vs {}", fast.len(), exact.len());
-        assert!(fast
+        let jittered = compare(&sc, 3);
+        assert!(jittered.len() > 2 * plain.len());
+        let moved = jittered[..plain.len()]
             .iter()
-            .all(|a| (3..393).contains(&a.x) && (5..295).contains(&a.y)));
+            .zip(&plain)
+            .filter(|(a, b)| a.t != b.t)
+            .count();
+        assert!(moved * 10 > plain.len() * 9, "jitter moved {moved}");
     }
 
     #[test]
@@ -2123,6 +2164,71 @@ mod tests {
             assert_eq!(round_i64(v), v.round() as i64, "{v}");
         }
         assert_eq!(round_i64(f64::NAN), 0);
+    }
+
+    #[test]
+    fn table_normal_moments_and_quantiles() {
+        // Exact moments of the table distribution: bin i is uniform on
+        // [q_i, q_{i+1}] with mass 1/4096.
+        let q = normal_quantiles();
+        let (mut m1, mut m2, mut m4) = (0.0, 0.0, 0.0);
+        for i in 0..4096 {
+            let (a, b) = (q[i], q[i + 1]);
+            let pow = |k: i32| (b.powi(k + 1) - a.powi(k + 1)) / ((k + 1) as f64 * (b - a));
+            m1 += pow(1) / 4096.0;
+            m2 += pow(2) / 4096.0;
+            m4 += pow(4) / 4096.0;
+        }
+        let kurt = m4 / (m2 * m2);
+        eprintln!("table normal: mean {m1:e} variance {m2:.5} kurtosis {kurt:.4}");
+        assert!(m1.abs() < 1e-12, "{m1}");
+        assert!((m2 - 0.99946).abs() < 1e-5, "{m2}");
+        assert!((kurt - 2.9867).abs() < 1e-3, "{kurt}");
+        // Distribution function: exact at the inner bin edges, and inside a
+        // bin off the normal's by at most the curvature over one bin (the
+        // largest in the outer bins, where the density changes fastest).
+        let cdf = |g: f64| 0.5 * (1.0 + erf_series(g.abs() / std::f64::consts::SQRT_2).copysign(g));
+        let mut worst: f64 = 0.0;
+        for i in 1..4095 {
+            assert!((cdf(q[i]) - i as f64 / 4096.0).abs() < 1e-12, "node {i}");
+            let mid = 0.5 * (q[i] + q[i + 1]);
+            worst = worst.max((cdf(mid) - (i as f64 + 0.5) / 4096.0).abs());
+        }
+        eprintln!("table normal: largest |ΔF| inside a bin {worst:e}");
+        assert!(worst < 2e-5, "{worst}");
+        // The bound the tails stop at.
+        assert!((q[0] + 3.66833).abs() < 1e-5 && (q[4096] - 3.66833).abs() < 1e-5);
+        // Keyed draws (crossings k of consecutive pixels, both
+        // polarities, as the jitter takes them): sample moments and
+        // quantiles. 2^20 draws: standard errors 1e-3 (mean), 1.4e-3
+        // (variance), 2e-4 (P(|g| > 2)), 5e-5 (P(|g| > 3)).
+        let key = stream_seed(11, 6, 3);
+        let mut g = Vec::with_capacity(1 << 20);
+        for idx in 0..(1u64 << 17) {
+            for k in 1..=4 {
+                for p in [ON, OFF] {
+                    g.push(table_normal(q, crossing_draw_key(key ^ (idx << 8), k, p)));
+                }
+            }
+        }
+        let n = g.len() as f64;
+        let mean = g.iter().sum::<f64>() / n;
+        let var = g.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
+        let beyond = |k: f64| g.iter().filter(|v| v.abs() > k).count() as f64 / n;
+        eprintln!(
+            "keyed draws: mean {mean:.5} var {var:.5} P(|g|>1) {:.5} P(|g|>2) {:.5} P(|g|>3) {:.6}",
+            beyond(1.0),
+            beyond(2.0),
+            beyond(3.0)
+        );
+        assert!(mean.abs() < 5e-3, "{mean}");
+        assert!((var - 0.99946).abs() < 7e-3, "{var}");
+        assert!((beyond(1.0) - 0.31731).abs() < 2.5e-3, "{}", beyond(1.0));
+        assert!((beyond(2.0) - 0.04550).abs() < 1e-3, "{}", beyond(2.0));
+        assert!((beyond(3.0) - 0.00270).abs() < 2.5e-4, "{}", beyond(3.0));
+        // Neighbouring crossings are uncorrelated.
+        let lag: f64 = g.windows(2).map(|w| w[0] * w[1]).sum::<f64>() / n;
+        assert!(lag.abs() < 5e-3, "lag-1 correlation {lag}");
     }
 
     #[test]
