@@ -65,6 +65,9 @@ pub struct PixelModel {
     /// The smallest threshold any pixel can have (ON or OFF): signals
     /// below it cannot fire.
     c_floor: f64,
+    /// [`f32_at_least`]`(c_floor)`: the same test on the f32 sums
+    /// without converting each touched pixel's sum to f64.
+    c_floor_f32: f32,
     intensity_latency: Option<(f64, f64)>,
     jitter_us: Option<f64>,
     off: Option<(f64, f64)>,
@@ -149,6 +152,7 @@ impl PixelModel {
             background_rate: sc.noise.background_noise.map(|b| b.rate_hz),
             hot,
             c_floor,
+            c_floor_f32: f32_at_least(c_floor),
             quad: QuadTable::new(&table),
             table,
             ln: ln_table(),
@@ -664,7 +668,8 @@ impl PixelModel {
         self.render_signals(snaps, |idx, x, y, v| {
             // Most touched pixels (image rims) are below every threshold:
             // `respond`'s first test, without the call.
-            if v as f64 >= self.c_floor {
+            // (`v >= c_floor_f32` ⇔ `v as f64 >= c_floor`.)
+            if v >= self.c_floor_f32 {
                 self.respond::<false>(idx, x, y, v as f64, t_pulse_us, pulse_seed, out);
             }
         });
@@ -1056,6 +1061,18 @@ fn normal_quantile_bisection(i: usize, screened: bool) -> f64 {
         }
     }
     0.5 * (lo + hi)
+}
+
+/// The least f32 `f` with `f as f64 >= x` (x finite, positive), so that
+/// `v >= f32_at_least(x)` ⇔ `v as f64 >= x` for every f32 `v` that is not
+/// NaN.
+pub(crate) fn f32_at_least(x: f64) -> f32 {
+    let f = x as f32; // nearest
+    if (f as f64) < x {
+        f.next_up()
+    } else {
+        f
+    }
 }
 
 /// `v.round() as i64` (half away from zero) without a libm call, for
@@ -2164,6 +2181,29 @@ mod tests {
             assert_eq!(round_i64(v), v.round() as i64, "{v}");
         }
         assert_eq!(round_i64(f64::NAN), 0);
+    }
+
+    #[test]
+    fn f32_floor_test_equals_f64_test() {
+        let mut rng = Pcg64::seed_from_u64(17);
+        let mut xs: Vec<f64> = (0..2000).map(|_| rng.gen_range(1e-3..5.0)).collect();
+        // Values exactly representable in f32, and the presets' floors.
+        xs.extend([0.25, 0.125, 1.0, 0.25 * 0.05, 0.25 * (1.0 - 3.668 * 0.1)]);
+        for x in xs {
+            let f = f32_at_least(x);
+            let near = x as f32;
+            for v in [
+                near.next_down().next_down(),
+                near.next_down(),
+                near,
+                near.next_up(),
+                near.next_up().next_up(),
+                0.0,
+                f32::INFINITY,
+            ] {
+                assert_eq!(v >= f, v as f64 >= x, "x {x:e} v {v:e}");
+            }
+        }
     }
 
     #[test]
