@@ -32,29 +32,11 @@ const WRITE_BLOCK: usize = 1 << 20;
 /// Row buffers hold a block plus the rows of one more track or pulse.
 const BLOCK_CAPACITY: usize = WRITE_BLOCK + (1 << 16);
 
-/// Bytes between two [`AtomicFile::start_writeback`] calls of a writer:
-/// the commit's sync then finds at most this much (and what the disk has
-/// not caught up with) still to write, instead of stalling the end of a
-/// run on the whole file (~300 MB of CSV for a quarter second of a full
-/// frame).
-const WRITEBACK_BYTES: u64 = 32 << 20;
-
 /// Hands `buf` to the file once it holds at least `min` bytes (0: always),
-/// then empties it; `written` counts the bytes handed over, and every
-/// [`WRITEBACK_BYTES`] the OS is asked to start writing them to disk.
-fn write_block(
-    file: &mut AtomicFile,
-    buf: &mut Vec<u8>,
-    min: usize,
-    written: &mut u64,
-) -> Result<()> {
+/// then empties it.
+fn write_block(file: &mut AtomicFile, buf: &mut Vec<u8>, min: usize) -> Result<()> {
     if buf.len() >= min {
         file.write_all(buf).map_err(|e| werr(file.target(), e))?;
-        let before = *written;
-        *written += buf.len() as u64;
-        if before / WRITEBACK_BYTES != *written / WRITEBACK_BYTES {
-            file.start_writeback();
-        }
         buf.clear();
     }
     Ok(())
@@ -70,8 +52,6 @@ pub struct ParticlesCsvWriter {
     /// `pulse,t_us,` of the last pulse, and its pulse and `t_us` bits.
     prefix: Vec<u8>,
     prefix_of: Option<(i64, u64)>,
-    /// Bytes handed to the file (see [`write_block`]).
-    written: u64,
 }
 
 impl ParticlesCsvWriter {
@@ -83,7 +63,6 @@ impl ParticlesCsvWriter {
             line: Vec::with_capacity(BLOCK_CAPACITY),
             prefix: Vec::with_capacity(64),
             prefix_of: None,
-            written: 0,
         })
     }
     pub fn write(&mut self, particles: &[Particle]) -> Result<()> {
@@ -109,12 +88,7 @@ impl ParticlesCsvWriter {
             push_int(&mut self.line, p.n_events as i64);
             self.line.push(b'\n');
         }
-        write_block(
-            &mut self.file,
-            &mut self.line,
-            WRITE_BLOCK,
-            &mut self.written,
-        )?;
+        write_block(&mut self.file, &mut self.line, WRITE_BLOCK)?;
         Ok(())
     }
 
@@ -141,7 +115,7 @@ impl ParticlesCsvWriter {
     }
 
     pub fn finish(mut self) -> Result<()> {
-        write_block(&mut self.file, &mut self.line, 0, &mut self.written)?;
+        write_block(&mut self.file, &mut self.line, 0)?;
         self.file.commit()
     }
 }
@@ -152,8 +126,6 @@ pub struct TracksCsvWriter {
     file: AtomicFile,
     line: Vec<u8>,
     t_text: TimeTextCache,
-    /// Bytes handed to the file (see [`write_block`]).
-    written: u64,
 }
 
 /// `t_us` as text (`{}`, the shortest round-trip form), cached per pulse:
@@ -224,7 +196,6 @@ impl TracksCsvWriter {
             file,
             line: Vec::with_capacity(BLOCK_CAPACITY),
             t_text: TimeTextCache::new(),
-            written: 0,
         })
     }
     pub fn write(&mut self, tracks: &[Track]) -> Result<()> {
@@ -248,12 +219,7 @@ impl TracksCsvWriter {
                 push_fixed(&mut self.line, p.v, 3);
                 self.line.push(b'\n');
             }
-            write_block(
-                &mut self.file,
-                &mut self.line,
-                WRITE_BLOCK,
-                &mut self.written,
-            )?;
+            write_block(&mut self.file, &mut self.line, WRITE_BLOCK)?;
         }
         Ok(())
     }
@@ -300,7 +266,7 @@ impl TracksCsvWriter {
     }
 
     pub fn finish(mut self) -> Result<()> {
-        write_block(&mut self.file, &mut self.line, 0, &mut self.written)?;
+        write_block(&mut self.file, &mut self.line, 0)?;
         self.file.commit()
     }
 }
@@ -320,8 +286,6 @@ pub struct TracksNpyWriter {
     header_len: usize,
     rows: usize,
     buf: Vec<u8>,
-    /// Bytes handed to the file after the header (see [`write_block`]).
-    written: u64,
 }
 
 impl TracksNpyWriter {
@@ -334,7 +298,6 @@ impl TracksNpyWriter {
             header_len: header.len(),
             rows: 0,
             buf: Vec::with_capacity(BLOCK_CAPACITY),
-            written: 0,
         })
     }
 
@@ -350,18 +313,13 @@ impl TracksNpyWriter {
                 self.buf.extend_from_slice(&rec);
             }
             self.rows += t.points.len();
-            write_block(
-                &mut self.file,
-                &mut self.buf,
-                WRITE_BLOCK,
-                &mut self.written,
-            )?;
+            write_block(&mut self.file, &mut self.buf, WRITE_BLOCK)?;
         }
         Ok(())
     }
 
     pub fn finish(mut self) -> Result<()> {
-        write_block(&mut self.file, &mut self.buf, 0, &mut self.written)?;
+        write_block(&mut self.file, &mut self.buf, 0)?;
         crate::io::npy::commit_streamed_table(
             self.file,
             TRACKS_NPY_DESCR,
