@@ -26,8 +26,11 @@
 //! single-outlier models by `threshold / 2` (an excursion through one
 //! wrong image, which the output fit's outlier gate removes, is no
 //! step). The best step of a track is cut, and both pieces are searched
-//! again. Cost: a few 4 × 4 normal-equation solves per detection of an
-//! ended track.
+//! again. Cost (session 9): per detection of an ended track, a screen of
+//! one quadratic fit with tabulated window terms ([`surely_below`]); the
+//! exact gains ([`gains`]: tabulated terms, the data's residuals) only
+//! where the screen cannot rule a step out — ~470 instructions per
+//! candidate in all (1 210 before), the direct fits kept as references.
 
 /// Most detections on each side of a candidate step that its fits use
 /// (paper-like scene, threshold 12: 4 / 5 / 6 / 8 / 10 give precision
@@ -104,11 +107,239 @@ fn rss(tau: &[f64], xs: &[f64], ys: &[f64], order: usize, extra: Option<&[f64]>)
 /// Gains at detection `s` of `dets` (`(pulse, x, y)`, increasing pulses),
 /// fitting the detections of `lo..hi` within `STEP_HALF_WINDOW` of it:
 /// (drop of the residual sum of squares by a step at `s`, the larger drop
-/// by a single outlier at `s − 1` or `s`), in units of σ². One quadratic
+/// by a single outlier at `s − 1` or `s`), in units of σ² — bit for bit
+/// [`gains_direct`]. Everything in it but the data's own sums depends
+/// only on the window's τ values: when the window has no missed pulse,
+/// those parts (the inverse normal matrix, the step column's and the two
+/// outlier rows' leverages) come from [`WindowTerms::table`], computed
+/// once by the same code on the same τ values; windows with missed
+/// pulses (about half of them: a 12-pulse window misses one of a
+/// particle's images often) from a small per-thread cache keyed by their
+/// pattern of pulses ([`WindowTerms::with_gaps`]). The step scan was the
+/// output fits' largest per-detection cost, and these parts most of it.
+/// Windows spanning 64 pulses or more take [`gains_direct`].
+fn gains(
+    dets: &[(i64, f64, f64)],
+    s: usize,
+    lo: usize,
+    hi: usize,
+    sigma: f64,
+) -> Option<(f64, f64)> {
+    let a = s.saturating_sub(STEP_HALF_WINDOW).max(lo);
+    let b = (s + STEP_HALF_WINDOW).min(hi);
+    let w = &dets[a..b];
+    if w.len() <= 4 {
+        return None;
+    }
+    let terms = if dets[b - 1].0 - dets[a].0 == (b - 1 - a) as i64 {
+        WindowTerms::table()[s - a][b - s]
+    } else {
+        match WindowTerms::with_gaps(w, s - a) {
+            Some(terms) => terms,
+            None => return gains_direct(dets, s, lo, hi, sigma),
+        }
+    };
+    let terms = terms.as_ref()?;
+    let inv = &terms.inv;
+    // From here on the operations of `gains_direct` on the data, in its
+    // order.
+    let t0 = dets[s].0;
+    let row = |d: &(i64, f64, f64)| {
+        let t = (d.0 - t0) as f64;
+        [1.0, t, t * t]
+    };
+    let (mut gx, mut gy) = ([0.0f64; 3], [0.0f64; 3]);
+    for d in w {
+        let c = row(d);
+        for j in 0..3 {
+            gx[j] += c[j] * d.1;
+            gy[j] += c[j] * d.2;
+        }
+    }
+    let mul = |v: &[f64; 3]| -> [f64; 3] {
+        std::array::from_fn(|j| (0..3).map(|k| inv[j][k] * v[k]).sum())
+    };
+    let (cx, cy) = (mul(&gx), mul(&gy));
+    let dot = |u: &[f64; 3], v: &[f64; 3]| u[0] * v[0] + u[1] * v[1] + u[2] * v[2];
+    let (mut erx, mut ery) = (0.0, 0.0);
+    let mut outlier = 0.0f64;
+    for (i, d) in w.iter().enumerate() {
+        let c = row(d);
+        let (rx, ry) = (d.1 - dot(&c, &cx), d.2 - dot(&c, &cy));
+        if a + i >= s {
+            erx += rx;
+            ery += ry;
+        }
+        if a + i + 1 == s || a + i == s {
+            let q = terms.q[a + i + 1 - s];
+            if q > 1e-9 {
+                outlier = outlier.max((rx * rx + ry * ry) / q);
+            }
+        }
+    }
+    let s2 = sigma * sigma;
+    Some(((erx * erx + ery * ery) / terms.qe / s2, outlier / s2))
+}
+
+/// The parts of [`gains_direct`] that depend only on the τ values of a
+/// window without missed pulses: `before` = s − a detections before the
+/// candidate and `from` = b − s from it on.
+#[derive(Debug, Clone, Copy)]
+struct WindowTerms {
+    /// Inverse of the quadratic's normal matrix.
+    inv: [[f64; 3]; 3],
+    /// 1 − leverage of the detections at s − 1 and at s.
+    q: [f64; 2],
+    /// The step column's residual norm e·(I − H)e (> 1e-9).
+    qe: f64,
+    /// X'e: the sums of 1, τ, τ² over the detections from the candidate on.
+    ge: [f64; 3],
+}
+
+impl WindowTerms {
+    /// For every `before` and `from` ≤ `STEP_HALF_WINDOW`: the terms, or
+    /// `None` where [`gains_direct`] returns `None` whatever the data
+    /// (singular normal matrix, step column in the quadratic's span).
+    fn table() -> &'static [[Option<WindowTerms>; STEP_HALF_WINDOW + 1]; STEP_HALF_WINDOW + 1] {
+        static TABLE: std::sync::OnceLock<
+            [[Option<WindowTerms>; STEP_HALF_WINDOW + 1]; STEP_HALF_WINDOW + 1],
+        > = std::sync::OnceLock::new();
+        TABLE.get_or_init(|| {
+            std::array::from_fn(|before| {
+                std::array::from_fn(|from| WindowTerms::consecutive(before, from))
+            })
+        })
+    }
+
+    /// [`WindowTerms::new`] for a window of consecutive pulses, τ =
+    /// −before … from − 1.
+    fn consecutive(before: usize, from: usize) -> Option<WindowTerms> {
+        let tau: Vec<i64> = (0..before + from)
+            .map(|i| i as i64 - before as i64)
+            .collect();
+        WindowTerms::new(&tau, before)
+    }
+
+    /// The terms of window `w` (no longer than `2 · STEP_HALF_WINDOW`),
+    /// the candidate at `w[before]`, from the calling thread's cache of
+    /// pulse patterns: `None` when the window spans 64 pulses or more (no
+    /// pattern key), else what [`WindowTerms::new`] gives (cached: the
+    /// same τ values give the same bits).
+    fn with_gaps(w: &[(i64, f64, f64)], before: usize) -> Option<Option<WindowTerms>> {
+        let p0 = w[0].0;
+        if w[w.len() - 1].0 - p0 >= 64 {
+            return None;
+        }
+        // The pattern: which pulses of the span hold a detection (bit 0,
+        // the first, always does); with `before` it fixes every τ.
+        let mut mask = 0u64;
+        for d in w {
+            mask |= 1u64 << (d.0 - p0);
+        }
+        let slot = ((mask ^ ((before as u64) << 58)).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+            >> (64 - GAP_SLOTS_LOG2)) as usize;
+        GAP_TERMS.with(|cache| {
+            let mut cache = cache.borrow_mut();
+            let entry = &mut cache[slot];
+            if entry.mask != mask || entry.before != before {
+                let t0 = w[before].0;
+                let mut tau = [0i64; 2 * STEP_HALF_WINDOW];
+                for (t, d) in tau.iter_mut().zip(w) {
+                    *t = d.0 - t0;
+                }
+                *entry = GapEntry {
+                    mask,
+                    before,
+                    terms: WindowTerms::new(&tau[..w.len()], before),
+                };
+            }
+            Some(entry.terms)
+        })
+    }
+
+    /// The terms as [`gains_direct`] computes them for a window whose
+    /// detections lie at `tau` (pulses after the candidate, increasing;
+    /// the candidate is `tau[before]`): the same operations on the same
+    /// values, so the same bits.
+    fn new(tau: &[i64], before: usize) -> Option<WindowTerms> {
+        let n = tau.len();
+        if n <= 4 {
+            return None;
+        }
+        let row = |i: usize| {
+            let t = tau[i] as f64;
+            [1.0, t, t * t]
+        };
+        let (mut g, mut ge) = ([[0.0f64; 3]; 3], [0.0; 3]);
+        let mut ne = 0.0;
+        for i in 0..n {
+            let c = row(i);
+            for j in 0..3 {
+                for k in 0..3 {
+                    g[j][k] += c[j] * c[k];
+                }
+                if i >= before {
+                    ge[j] += c[j];
+                }
+            }
+            if i >= before {
+                ne += 1.0;
+            }
+        }
+        let inv = invert3(&g)?;
+        let mul = |v: &[f64; 3]| -> [f64; 3] {
+            std::array::from_fn(|j| (0..3).map(|k| inv[j][k] * v[k]).sum())
+        };
+        let dot = |u: &[f64; 3], v: &[f64; 3]| u[0] * v[0] + u[1] * v[1] + u[2] * v[2];
+        let leverage_gap = |i: Option<usize>| match i {
+            Some(i) if i < n => {
+                let c = row(i);
+                1.0 - dot(&c, &mul(&c))
+            }
+            _ => 0.0, // no such detection: never read
+        };
+        let q = [
+            leverage_gap(before.checked_sub(1)),
+            leverage_gap(Some(before)),
+        ];
+        let qe = ne - dot(&ge, &mul(&ge));
+        if qe <= 1e-9 {
+            return None;
+        }
+        Some(WindowTerms { inv, q, qe, ge })
+    }
+}
+
+/// log₂ of the slots of the per-thread cache of windows with missed pulses
+/// (direct-mapped; a few hundred patterns are common).
+const GAP_SLOTS_LOG2: u32 = 10;
+
+/// A slot of that cache (`mask` 0: empty — a pattern always has bit 0).
+#[derive(Clone, Copy)]
+struct GapEntry {
+    mask: u64,
+    before: usize,
+    terms: Option<WindowTerms>,
+}
+
+thread_local! {
+    static GAP_TERMS: std::cell::RefCell<Vec<GapEntry>> = std::cell::RefCell::new(vec![
+        GapEntry {
+            mask: 0,
+            before: 0,
+            terms: None,
+        };
+        1 << GAP_SLOTS_LOG2
+    ]);
+}
+
+/// [`gains`] computed directly: the normal equations of the window, their
+/// inverse, the residuals and the drops (the reference of [`gains`], and
+/// its path for windows with missed pulses). One quadratic
 /// fit per axis; the drops follow from its residuals r and hat matrix H
 /// (adding a column e lowers the RSS by (e·r)² / e·(I − H)e), which is
 /// what [`gains_reference`] gets by refitting.
-fn gains(
+fn gains_direct(
     dets: &[(i64, f64, f64)],
     s: usize,
     lo: usize,
@@ -206,14 +437,122 @@ pub fn step_cuts(
     threshold: f64,
     first_cut: usize,
 ) -> Vec<usize> {
+    step_cuts_with(dets, sigma, threshold, first_cut, true)
+}
+
+/// [`step_cuts`] with or without the screening of candidates
+/// ([`surely_below`]); without, every candidate's gains are computed (the
+/// reference the tests compare the screened search with).
+fn step_cuts_with(
+    dets: &[(i64, f64, f64)],
+    sigma: f64,
+    threshold: f64,
+    first_cut: usize,
+    screen: bool,
+) -> Vec<usize> {
     let mut cuts = Vec::new();
     if threshold > 0.0 && sigma > 0.0 {
-        find_cuts(dets, 0, dets.len(), sigma, threshold, first_cut, &mut cuts);
+        find_cuts(
+            dets,
+            0,
+            dets.len(),
+            sigma,
+            threshold,
+            first_cut,
+            screen,
+            &mut cuts,
+        );
     }
     cuts.sort_unstable();
     cuts
 }
 
+/// Whether the step gain of [`gains`] at `s` is surely at most
+/// `threshold`, so that `s` cannot be cut and its exact gains need not be
+/// computed (nearly every detection of a track: a χ² of 2 degrees of
+/// freedom rarely reaches a threshold of 12).
+///
+/// The step's residual sum e·r (r the quadratic's residuals, e the step
+/// column) is Σ_{i≥s} x_i − (X'e)·ĉ: one dot product with the
+/// coefficients ĉ instead of [`gains`]' residual of every detection, and
+/// mathematically the same number; [`gains`] computes ĉ by the same
+/// operations, so the two sums differ by their rounding only, a few ulps
+/// of the magnitudes summed. The bound allows 10⁻⁹ of those magnitudes
+/// (≥ 10⁵ times the rounding), so a screened-out candidate's exact gain
+/// is below the threshold; anything in doubt (and windows without
+/// tabulated terms) is left to [`gains`].
+fn surely_below(
+    dets: &[(i64, f64, f64)],
+    s: usize,
+    lo: usize,
+    hi: usize,
+    sigma: f64,
+    threshold: f64,
+) -> bool {
+    let a = s.saturating_sub(STEP_HALF_WINDOW).max(lo);
+    let b = (s + STEP_HALF_WINDOW).min(hi);
+    let w = &dets[a..b];
+    if w.len() <= 4 {
+        return false;
+    }
+    let terms = if dets[b - 1].0 - dets[a].0 == (b - 1 - a) as i64 {
+        WindowTerms::table()[s - a][b - s]
+    } else {
+        match WindowTerms::with_gaps(w, s - a) {
+            Some(terms) => terms,
+            None => return false,
+        }
+    };
+    let Some(terms) = terms else {
+        return false;
+    };
+    let inv = &terms.inv;
+    let t0 = dets[s].0;
+    let row = |d: &(i64, f64, f64)| {
+        let t = (d.0 - t0) as f64;
+        [1.0, t, t * t]
+    };
+    let (mut gx, mut gy) = ([0.0f64; 3], [0.0f64; 3]);
+    // Σ x and Σ |x| over the detections from s on.
+    let (mut sx, mut sy, mut ax, mut ay) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+    for (i, d) in w.iter().enumerate() {
+        let c = row(d);
+        for j in 0..3 {
+            gx[j] += c[j] * d.1;
+            gy[j] += c[j] * d.2;
+        }
+        if a + i >= s {
+            sx += d.1;
+            sy += d.2;
+            ax += d.1.abs();
+            ay += d.2.abs();
+        }
+    }
+    let mul = |v: &[f64; 3]| -> [f64; 3] {
+        std::array::from_fn(|j| (0..3).map(|k| inv[j][k] * v[k]).sum())
+    };
+    let (cx, cy) = (mul(&gx), mul(&gy));
+    let ge = &terms.ge;
+    let dot = |u: &[f64; 3], v: &[f64; 3]| u[0] * v[0] + u[1] * v[1] + u[2] * v[2];
+    let (erx, ery) = (sx - dot(ge, &cx), sy - dot(ge, &cy));
+    // Magnitudes summed on either path: the detections, and the fitted
+    // values c_i·ĉ (|τ| ≤ the window's largest).
+    let n_after = (b - s) as f64;
+    let t_max = ((dets[a].0 - t0).abs().max(dets[b - 1].0 - t0)) as f64;
+    let fitted =
+        |c: &[f64; 3]| n_after * (c[0].abs() + t_max * c[1].abs() + t_max * t_max * c[2].abs());
+    let bound_x = 1e-9 * (ax + fitted(&cx) + 1.0);
+    let bound_y = 1e-9 * (ay + fitted(&cy) + 1.0);
+    let (ex, ey) = (erx.abs() + bound_x, ery.abs() + bound_y);
+    let upper = (ex * ex + ey * ey) / terms.qe / (sigma * sigma);
+    // `!(… >= …)` would also screen out NaN; this form leaves it to `gains`.
+    upper * (1.0 + 1e-9) < threshold
+}
+
+/// The recursive search of [`step_cuts`]; with `screen`, candidates that
+/// [`surely_below`] rules out are skipped (the same cuts: those could not
+/// pass the `gain > threshold` test).
+#[allow(clippy::too_many_arguments)]
 fn find_cuts(
     dets: &[(i64, f64, f64)],
     lo: usize,
@@ -221,6 +560,7 @@ fn find_cuts(
     sigma: f64,
     threshold: f64,
     first_cut: usize,
+    screen: bool,
     cuts: &mut Vec<usize>,
 ) {
     if hi - lo < 2 * STEP_MIN_SIDE {
@@ -228,6 +568,9 @@ fn find_cuts(
     }
     let mut best: Option<(f64, usize)> = None;
     for s in (lo + STEP_MIN_SIDE).max(first_cut)..=hi - STEP_MIN_SIDE {
+        if screen && surely_below(dets, s, lo, hi, sigma, threshold) {
+            continue;
+        }
         let Some((gain, outlier)) = gains(dets, s, lo, hi, sigma) else {
             continue;
         };
@@ -237,8 +580,8 @@ fn find_cuts(
     }
     if let Some((_, s)) = best {
         cuts.push(s);
-        find_cuts(dets, lo, s, sigma, threshold, first_cut, cuts);
-        find_cuts(dets, s, hi, sigma, threshold, first_cut, cuts);
+        find_cuts(dets, lo, s, sigma, threshold, first_cut, screen, cuts);
+        find_cuts(dets, s, hi, sigma, threshold, first_cut, screen, cuts);
     }
 }
 
@@ -350,6 +693,148 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// The tabulated and cached paths against the direct one, bit for
+    /// bit, at every candidate of random tracks (curved, noisy, with
+    /// steps, missed pulses of 1–3 and now and then 60–89) and every
+    /// piece bound `lo..hi` the recursive search can make; gap-free and
+    /// gapped windows (and `None`s) must occur.
+    #[test]
+    fn tabulated_gains_are_the_direct_ones_bit_for_bit() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(9);
+        let (mut tabulated, mut direct, mut nones, mut compared) = (0, 0, 0, 0);
+        let mut wide = 0;
+        for k in 0..300 {
+            let n = rng.gen_range(5..40);
+            let mut pulse = rng.gen_range(-50i64..5000);
+            let (ax, ay) = (rng.gen_range(-0.1..0.1), rng.gen_range(-0.1..0.1));
+            let (ux, uy) = (rng.gen_range(-12.0..12.0), rng.gen_range(-12.0..12.0));
+            let (x0, y0) = (rng.gen_range(0.0..1280.0), rng.gen_range(0.0..720.0));
+            let mut t: Vec<(i64, f64, f64)> = Vec::with_capacity(n);
+            for i in 0..n {
+                // Every other track has missed pulses now and then.
+                if k % 2 == 1 && rng.gen_bool(0.1) {
+                    // Now and then a gap too long for a pattern key.
+                    pulse += if rng.gen_bool(0.05) {
+                        rng.gen_range(60..90)
+                    } else {
+                        rng.gen_range(1..4)
+                    };
+                }
+                let tau = (pulse % 1000) as f64;
+                let jump = if i > n / 2 { 1.5 } else { 0.0 };
+                t.push((
+                    pulse,
+                    x0 + ux * tau + ax * tau * tau + rng.gen_range(-0.4..0.4) + jump,
+                    y0 + uy * tau + ay * tau * tau + rng.gen_range(-0.4..0.4),
+                ));
+                pulse += 1;
+            }
+            for lo in 0..n.min(4) {
+                for hi in (n.saturating_sub(3)..=n).filter(|&h| h > lo) {
+                    for s in lo..hi {
+                        let a = s.saturating_sub(STEP_HALF_WINDOW).max(lo);
+                        let b = (s + STEP_HALF_WINDOW).min(hi);
+                        if b - a > 4 && t[b - 1].0 - t[a].0 == (b - 1 - a) as i64 {
+                            tabulated += 1;
+                        } else {
+                            direct += 1;
+                            wide += (b - a > 4 && t[b - 1].0 - t[a].0 >= 64) as usize;
+                        }
+                        let fast = gains(&t, s, lo, hi, 0.4);
+                        let reference = gains_direct(&t, s, lo, hi, 0.4);
+                        let bits =
+                            |g: Option<(f64, f64)>| g.map(|(x, y)| (x.to_bits(), y.to_bits()));
+                        assert_eq!(bits(fast), bits(reference), "track {k}, {lo}..{hi}, s {s}");
+                        nones += fast.is_none() as usize;
+                        compared += 1;
+                    }
+                }
+            }
+        }
+        assert!(
+            tabulated > 10_000 && direct > 1_000 && wide > 10 && nones > 100,
+            "{compared}: {tabulated} tabulated, {direct} gapped or short ({wide} \
+             spanning ≥ 64 pulses), {nones} none"
+        );
+    }
+
+    /// The screen never rules out a candidate whose exact gain exceeds
+    /// the threshold: at every candidate of random tracks (with steps,
+    /// gaps), thresholds just below, at and above the exact gain; and
+    /// the screened search cuts exactly where the unscreened one does,
+    /// also at thresholds that make many cuts.
+    #[test]
+    fn screening_keeps_every_cut() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(13);
+        let (mut screened, mut kept, mut cut_tracks) = (0, 0, 0);
+        for k in 0..400 {
+            let n = rng.gen_range(6..60);
+            let mut pulse = rng.gen_range(0i64..5000);
+            let (ux, uy) = (rng.gen_range(-12.0..12.0), rng.gen_range(-12.0..12.0));
+            let (x0, y0) = (rng.gen_range(0.0..1280.0), rng.gen_range(0.0..720.0));
+            let noise = [0.05, 0.3, 1.0][k % 3];
+            let mut t: Vec<(i64, f64, f64)> = Vec::with_capacity(n);
+            let (mut jx, mut jy) = (0.0, 0.0);
+            for i in 0..n {
+                if k % 2 == 1 && rng.gen_bool(0.1) {
+                    pulse += rng.gen_range(1..4);
+                }
+                if rng.gen_bool(0.08) {
+                    jx += rng.gen_range(-3.0..3.0);
+                    jy += rng.gen_range(-3.0..3.0);
+                }
+                let tau = i as f64;
+                t.push((
+                    pulse,
+                    x0 + ux * tau + 0.02 * tau * tau + rng.gen_range(-noise..noise) + jx,
+                    y0 + uy * tau + rng.gen_range(-noise..noise) + jy,
+                ));
+                pulse += 1;
+            }
+            let sigma = 0.4;
+            for s in STEP_MIN_SIDE..=n - STEP_MIN_SIDE {
+                let Some((gain, _)) = gains(&t, s, 0, n, sigma) else {
+                    continue;
+                };
+                let below = if gain > 0.0 {
+                    f64::from_bits(gain.to_bits() - 1)
+                } else {
+                    0.0
+                };
+                for threshold in [below, gain * (1.0 - 1e-12), gain, gain * 1.01, 12.0] {
+                    if !(threshold > 0.0) {
+                        continue;
+                    }
+                    let out = surely_below(&t, s, 0, n, sigma, threshold);
+                    assert!(
+                        !(out && gain > threshold),
+                        "track {k}, s {s}: gain {gain} > {threshold} screened out"
+                    );
+                    if out {
+                        screened += 1;
+                    } else {
+                        kept += 1;
+                    }
+                }
+            }
+            for threshold in [2.0, 6.0, 12.0, 30.0] {
+                let fast = step_cuts_with(&t, sigma, threshold, 1, true);
+                assert_eq!(
+                    fast,
+                    step_cuts_with(&t, sigma, threshold, 1, false),
+                    "track {k}"
+                );
+                cut_tracks += !fast.is_empty() as usize;
+            }
+        }
+        assert!(
+            screened > 5_000 && kept > 5_000 && cut_tracks > 200,
+            "{screened} screened, {kept} kept, {cut_tracks} tracks cut"
+        );
     }
 
     #[test]
