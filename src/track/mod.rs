@@ -374,6 +374,22 @@ pub struct TrackParams {
     /// would be enumerated into whole chains only to fail that test.
     #[serde(default = "default_gap_first_step")]
     pub gap_first_step: bool,
+    /// Strength of the output fit's velocity prior from the local flow
+    /// of the established tracks ([`local_flow::LinearFlow::prior`]); 0 =
+    /// off, 1 = the prior's variance as estimated from the data (larger
+    /// values trust it more). Each point's fitted velocity, of noise
+    /// variance σ²·[`fit::FitState::velocity_variance`], is combined with
+    /// the local linear flow around it at its pulse, weighted by the
+    /// inverse variances ([`local_flow::combine`]): the one-sided fits at
+    /// track ends and the few-point fits of short tracks move towards
+    /// the flow their neighbours show, long windows hardly at all. The
+    /// prior's variance is the spread of the links about the local plane
+    /// less their noise (turbulence, unsteadiness, the field's curvature)
+    /// plus the plane's own uncertainty, so in turbulent or sheared flow
+    /// it weakens by itself. Needs the local flow (`ghost_check_length` >
+    /// 0). See `docs/readme/ptv.md` for the measured effect.
+    #[serde(default = "default_velocity_prior")]
+    pub velocity_prior: f64,
     /// Search radius (px) around the prior's prediction for the first step.
     pub prior_radius: f64,
     /// Mean-flow prior for initialisation.
@@ -417,6 +433,7 @@ impl Default for TrackParams {
             split_penalty: default_split_penalty(),
             step_split: default_step_split(),
             gap_first_step: default_gap_first_step(),
+            velocity_prior: default_velocity_prior(),
             prior_radius: 3.0,
             prior: None,
         }
@@ -430,6 +447,10 @@ const CLIP_K: f64 = 2.5;
 fn clipped_second_moment(k: f64) -> f64 {
     let e = (-0.5 * k * k).exp();
     (1.0 - (1.0 + 0.5 * k * k) * e) / (1.0 - e)
+}
+
+fn default_velocity_prior() -> f64 {
+    1.0
 }
 
 fn default_max_track_length() -> usize {
@@ -502,6 +523,15 @@ const FLOW_CELL: f64 = 16.0;
 
 /// Time constant (pulses) of the local flow's memory.
 const FLOW_MEMORY: f64 = 8.0;
+
+/// The velocity prior's flow keeps a copy of its grid every this many
+/// pulses ([`local_flow::FlowHistory`]) ...
+const PRIOR_BLOCK: i64 = 4;
+
+/// ... the last this many: the starts of tracks up to ~128 pulses long
+/// see the flow of their moment; before that the prior fades (the
+/// grid's forgetting, symmetric in time).
+const PRIOR_KEEP: usize = 32;
 
 /// Detections a track must hold before its links feed the local flow
 /// (longer than any track the ghost test judges).
@@ -2154,6 +2184,11 @@ pub struct Finaliser {
     /// A copy of the tracker's local flow, brought up to date from each
     /// batch's `flow_samples` (the ghost test of short tracks).
     flow: local_flow::LocalFlow,
+    /// The same samples with their positions: the local linear flow of
+    /// the output fit's velocity prior (`TrackParams::velocity_prior`).
+    linear_flow: local_flow::FlowHistory,
+    /// The prior's variance as measured on the tracks kept so far.
+    prior_calibration: local_flow::PriorCalibration,
     next_id: u64,
 }
 
@@ -2163,6 +2198,13 @@ impl Finaliser {
             params,
             accel_prior: fit::AccelPrior::default(),
             flow: local_flow::LocalFlow::new(FLOW_CELL, FLOW_MEMORY),
+            linear_flow: local_flow::FlowHistory::new(
+                FLOW_CELL,
+                FLOW_MEMORY,
+                PRIOR_BLOCK,
+                PRIOR_KEEP,
+            ),
+            prior_calibration: local_flow::PriorCalibration::default(),
             next_id: 0,
         }
     }
@@ -2185,8 +2227,12 @@ impl Finaliser {
         } = ended;
         let params = &self.params;
         // The flow as the tracker saw it when these tracks ended.
+        let with_prior = params.velocity_prior > 0.0;
         for sample in flow_samples {
             self.flow.add_sample(sample);
+            if with_prior {
+                self.linear_flow.add_sample(sample);
+            }
         }
         // The prior as of the tracks kept before this batch: the same for
         // every track of the batch, whatever the thread count (and so is
@@ -2195,13 +2241,23 @@ impl Finaliser {
             .fit_accel_rms
             .unwrap_or_else(|| self.accel_prior.accel_rms(sigma));
         let flow = &self.flow;
+        // The prior applies once its variance is calibrated (as of the
+        // batches before this one); before, only the calibration runs.
+        let prior = with_prior.then(|| VelocityPriorUse {
+            flow: &self.linear_flow,
+            scale: self
+                .prior_calibration
+                .scale()
+                .zip(self.prior_calibration.typical_fit_variance()),
+            strength: params.velocity_prior,
+        });
         // Step cuts first (each piece is fitted as a track of its own),
         // on the same workers as the fits.
         let cut_and_fit = |t: ActiveTrack| -> (u64, Vec<Finalised>) {
             let (cuts, pieces) = cut_at_steps(t, sigma, params.step_split);
             let fitted = pieces
                 .into_iter()
-                .map(|p| finalise_one(p, params, flow, gate, sigma, accel))
+                .map(|p| finalise_one(p, params, flow, prior.as_ref(), gate, sigma, accel))
                 .collect();
             (cuts, fitted)
         };
@@ -2229,8 +2285,10 @@ impl Finaliser {
                     detections,
                     fresh,
                     curvature,
+                    calibration,
                     by_flow,
                 } => {
+                    self.prior_calibration.merge(&calibration);
                     stats.tracks_kept_by_flow += by_flow as u64;
                     self.accel_prior.merge(&curvature);
                     stats.tracks_kept += 1;
@@ -2435,6 +2493,8 @@ enum Finalised {
         detections: Vec<Option<u64>>,
         fresh: usize,
         curvature: fit::AccelPrior,
+        /// Its points' check of the velocity prior's variance.
+        calibration: local_flow::PriorCalibration,
         /// Below `min_length`, kept by the local-flow test.
         by_flow: bool,
     },
@@ -2447,6 +2507,7 @@ fn finalise_one(
     mut t: ActiveTrack,
     params: &TrackParams,
     flow: &local_flow::LocalFlow,
+    prior: Option<&VelocityPriorUse>,
     gate: f64,
     sigma: f64,
     accel_rms: f64,
@@ -2472,7 +2533,9 @@ fn finalise_one(
             Verdict::Keep { by_flow: f } => by_flow = f,
         }
     }
-    let (mut points, mut detections, rms) = fit_track(&t.dets, params, sigma, accel_rms);
+    let mut calibration = local_flow::PriorCalibration::default();
+    let (mut points, mut detections, rms) =
+        fit_track(&t.dets, params, sigma, accel_rms, prior, &mut calibration);
     if rms > params.max_fit_residual {
         return Finalised::Rough;
     }
@@ -2496,6 +2559,7 @@ fn finalise_one(
         detections,
         fresh,
         curvature,
+        calibration,
         by_flow,
     }
 }
@@ -2643,8 +2707,20 @@ fn fit_track(
     p: &TrackParams,
     sigma: f64,
     accel_rms: f64,
+    prior: Option<&VelocityPriorUse>,
+    calibration: &mut local_flow::PriorCalibration,
 ) -> (Vec<TrackPoint>, Vec<Option<u64>>, f64) {
-    fit_track_with(dets, p, sigma, accel_rms, true, &mut 0)
+    fit_track_with(dets, p, sigma, accel_rms, prior, calibration, true, &mut 0)
+}
+
+/// The output fit's velocity prior as one batch of the finaliser uses it:
+/// the flow, the calibration's variance factor (`None`: not calibrated
+/// yet, the prior is only checked) with the fits' typical noise variance,
+/// and `TrackParams::velocity_prior`.
+struct VelocityPriorUse<'a> {
+    flow: &'a local_flow::FlowHistory,
+    scale: Option<(f64, f64)>,
+    strength: f64,
 }
 
 /// [`fit_track`]; `grid` takes [`fit::fit_adaptive_grid`] (tabulated
@@ -2656,6 +2732,8 @@ fn fit_track_with(
     p: &TrackParams,
     sigma: f64,
     accel_rms: f64,
+    prior: Option<&VelocityPriorUse>,
+    calibration: &mut local_flow::PriorCalibration,
     grid: bool,
     grid_fits: &mut usize,
 ) -> (Vec<TrackPoint>, Vec<Option<u64>>, f64) {
@@ -2744,13 +2822,27 @@ fn fit_track_with(
         if here {
             ssr += (dets[j].x - f.x).powi(2) + (dets[j].y - f.y).powi(2);
         }
+        // The velocity prior from the local flow (px per pulse = px/τ on
+        // the grid; τ is in mean periods), after the residual: the
+        // validation sees the track's own fit.
+        let (mut vx, mut vy) = (f.vx, f.vy);
+        if let Some(use_) = prior {
+            if let Some(mut pr) = use_.flow.prior(pulse, f.x, f.y, sigma) {
+                let fit_var = sigma * sigma * f.velocity_variance;
+                calibration.add(vx, vy, fit_var, &pr);
+                if let Some((scale, typical)) = use_.scale {
+                    pr.variance *= scale;
+                    (vx, vy) = local_flow::combine(vx, vy, fit_var, &pr, use_.strength, typical);
+                }
+            }
+        }
         points.push(TrackPoint {
             pulse,
             t_us,
             x: f.x,
             y: f.y,
-            u: f.vx / period_s,
-            v: f.vy / period_s,
+            u: vx / period_s,
+            v: vy / period_s,
             ax: f.ax / (period_s * period_s),
             ay: f.ay / (period_s * period_s),
             interpolated: !here,
@@ -3201,8 +3293,26 @@ mod tests {
             let mut grid_fits = 0;
             // Half the cases with the curvature prior.
             let accel = [0.0, 0.0, 0.08, 0.3][(case / 2) % 4];
-            let (fp, fs, frms) = fit_track_with(&dets, &params, sigma, accel, true, &mut grid_fits);
-            let (rp, rs, rrms) = fit_track_with(&dets, &params, sigma, accel, false, &mut 0);
+            let (fp, fs, frms) = fit_track_with(
+                &dets,
+                &params,
+                sigma,
+                accel,
+                None,
+                &mut Default::default(),
+                true,
+                &mut grid_fits,
+            );
+            let (rp, rs, rrms) = fit_track_with(
+                &dets,
+                &params,
+                sigma,
+                accel,
+                None,
+                &mut Default::default(),
+                false,
+                &mut 0,
+            );
             // On the grid the tabulated path takes every detection whose
             // pilot window has no gap; jittered times never.
             if jitter > 0.0 {
