@@ -583,6 +583,25 @@ impl PriorCalibration {
     }
 }
 
+/// The posterior mean of a fitted velocity `(vx, vy)` (px per pulse) of
+/// noise variance `fit_var` per axis under a [`VelocityPrior`] (its
+/// variance divided by `strength`): the precision-weighted mean, least
+/// error per point — but it shrinks every point's fluctuation about the
+/// local flow (see [`combine`]); `TrackParams::velocity_prior_mean`.
+pub fn posterior_mean(
+    vx: f64,
+    vy: f64,
+    fit_var: f64,
+    prior: &VelocityPrior,
+    strength: f64,
+) -> (f64, f64) {
+    if !(fit_var > 0.0 && strength > 0.0) {
+        return (vx, vy);
+    }
+    let g = fit_var / (fit_var + prior.variance / strength);
+    (vx + g * (prior.u - vx), vy + g * (prior.v - vy))
+}
+
 /// A fitted velocity `(vx, vy)` (px per pulse) of noise variance
 /// `fit_var` per axis, moved towards a [`VelocityPrior`] (its variance
 /// divided by `strength`, 1 = as estimated) only as far as to bring its
@@ -614,6 +633,9 @@ pub fn combine(
         return (vx, vy);
     }
     let p = prior.variance / strength;
+    if !(p > 0.0) {
+        return (vx, vy);
+    }
     let c = ((p + typical_var) / (p + fit_var)).sqrt();
     (prior.u + c * (vx - prior.u), prior.v + c * (vy - prior.v))
 }
@@ -766,5 +788,137 @@ mod tests {
         assert!((m[0] - 15.0).abs() < 1e-12 && (m[1] + 0.5).abs() < 1e-12);
         assert!((stt - 10.0).abs() < 1e-12);
         assert!(line_fit(&d[..1]).is_none());
+    }
+
+    /// Links of the linear field u = 2 + 0.01x − 0.02y, v = −1 + 0.03x
+    /// at pulses `pulses`, with a ±`noise` deterministic pattern.
+    fn linear_links(pulses: std::ops::Range<i64>, noise: f64) -> Vec<FlowSample> {
+        let mut out = Vec::new();
+        for pulse in pulses {
+            for i in 0..60 {
+                let (x, y) = (
+                    20.0 + ((i * 7 + pulse as usize * 3) % 40) as f64 * 1.5,
+                    30.0 + ((i * 11) % 37) as f64 * 1.3,
+                );
+                let e = noise
+                    * if (i + pulse as usize) % 2 == 0 {
+                        1.0
+                    } else {
+                        -1.0
+                    };
+                out.push(FlowSample {
+                    pulse,
+                    x,
+                    y,
+                    u: 2.0 + 0.01 * x - 0.02 * y + e,
+                    v: -1.0 + 0.03 * x - e,
+                });
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn linear_flow_recovers_a_plane_and_its_noise() {
+        let mut f = LinearFlow::new(16.0, 8.0);
+        for s in linear_links(0..20, 0.0) {
+            f.add_sample(s);
+        }
+        let (x, y) = (50.0, 55.0);
+        let p = f.prior(19, x, y, 0.0).unwrap();
+        assert!((p.u - (2.0 + 0.01 * x - 0.02 * y)).abs() < 1e-9, "{p:?}");
+        assert!((p.v - (-1.0 + 0.03 * x)).abs() < 1e-9, "{p:?}");
+        assert!(p.variance < 1e-12, "{p:?}");
+        // The mean of LocalFlow carries the gradient across the cells as
+        // spread; the plane does not.
+        let mut m = LocalFlow::new(16.0, 8.0);
+        for s in linear_links(0..20, 0.0) {
+            m.add_sample(s);
+        }
+        assert!(m.at(19, x, y).unwrap().spread2 > 0.01);
+        // Noise ±0.3 per axis: spread ≈ 0.09 per axis; with σ² = 0.045
+        // (displacement noise 2σ² = 0.09) no variation is left, only the
+        // plane's own uncertainty, ~0.09/weight.
+        let mut f = LinearFlow::new(16.0, 8.0);
+        for s in linear_links(0..20, 0.3) {
+            f.add_sample(s);
+        }
+        let p = f.prior(19, x, y, 0.045f64.sqrt()).unwrap();
+        assert!(p.variance > 0.0 && p.variance < 0.01, "{p:?}");
+        // Assuming no noise, all of the spread is variation.
+        let q = f.prior(19, x, y, 0.0).unwrap();
+        assert!((q.variance - 0.09).abs() < 0.015, "{q:?}");
+        // Far from any link, or long before: nothing.
+        assert!(f.prior(19, 400.0, 400.0, 0.0).is_none());
+        assert!(f.prior(19 - 80, x, y, 0.0).is_none());
+        assert!(f.prior(19 + 80, x, y, 0.0).is_none());
+    }
+
+    #[test]
+    fn flow_history_answers_with_the_flow_of_the_moment() {
+        // Flow +3 px/pulse in x until pulse 40, then −3.
+        let mut h = FlowHistory::new(16.0, 8.0, 4, 32);
+        let mut now = LinearFlow::new(16.0, 8.0);
+        for s in linear_links(0..80, 0.0) {
+            let s = FlowSample {
+                u: if s.pulse < 40 { 3.0 } else { -3.0 },
+                v: 0.0,
+                ..s
+            };
+            h.add_sample(s);
+            now.add_sample(s);
+        }
+        let early = h.prior(20, 50.0, 55.0, 0.0).unwrap();
+        assert!((early.u - 3.0).abs() < 1e-9, "{early:?}");
+        // Late: the old flow faded to a trace (e^{−39/8} of its weight).
+        let late = h.prior(79, 50.0, 55.0, 0.0).unwrap();
+        assert!((late.u + 3.0).abs() < 0.05, "{late:?}");
+        // The grid of the end alone has forgotten the early flow.
+        assert!(now.prior(20, 50.0, 55.0, 0.0).is_none());
+        // Beyond the copies kept: the oldest one, faded.
+        let mut h = FlowHistory::new(16.0, 8.0, 4, 2);
+        for s in linear_links(0..80, 0.0) {
+            h.add_sample(s);
+        }
+        assert!(h.prior(10, 50.0, 55.0, 0.0).is_none());
+    }
+
+    #[test]
+    fn combination_matches_the_spread_and_calibration_measures() {
+        let prior = VelocityPrior {
+            u: 1.0,
+            v: 2.0,
+            variance: 0.01,
+        };
+        // Fits as quiet as typical: untouched.
+        assert_eq!(combine(1.5, 2.5, 0.001, &prior, 1.0, 0.001), (1.5, 2.5));
+        // Off.
+        assert_eq!(combine(1.5, 2.5, 0.04, &prior, 0.0, 0.001), (1.5, 2.5));
+        // A noisy end: the spread about the prior, P + fit variance, is
+        // brought to P + typical.
+        let (u, v) = combine(1.5, 2.5, 0.04, &prior, 1.0, 0.001);
+        let c = ((0.01f64 + 0.001) / (0.01 + 0.04)).sqrt();
+        assert!((u - (1.0 + 0.5 * c)).abs() < 1e-12 && (v - (2.0 + 0.5 * c)).abs() < 1e-12);
+        // Calibration: fits off the prior by 0.2 px/pulse per axis with
+        // noise 0.002, the prior claiming 0.01: measured 0.038, ratio 3.8.
+        let mut cal = PriorCalibration::default();
+        for _ in 0..MIN_CALIBRATION_POINTS - 1 {
+            cal.add(1.2, 2.2, 0.002, &prior);
+        }
+        assert!(cal.scale().is_none());
+        let mut more = PriorCalibration::default();
+        more.add(0.8, 1.8, 0.002, &prior);
+        // Less precise than the prior: counted for the noise level only.
+        more.add(9.0, 9.0, 0.5, &prior);
+        cal.merge(&more);
+        assert!((cal.scale().unwrap() - 3.8).abs() < 1e-9, "{cal:?}");
+        let typical = cal.typical_fit_variance().unwrap();
+        assert!(typical > 0.002 / 1.5 && typical < 0.002 * 1.5, "{typical}");
+        // A prior better than claimed strengthens, to a floor.
+        let mut exact = PriorCalibration::default();
+        for _ in 0..MIN_CALIBRATION_POINTS {
+            exact.add(1.0, 2.0, 0.002, &prior);
+        }
+        assert_eq!(exact.scale(), Some(MIN_SCALE));
     }
 }
