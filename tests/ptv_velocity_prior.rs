@@ -40,7 +40,7 @@ fn with_prior() -> TrackParams {
 
 /// Paper-like 384² scene (seed 1, the scene the design was tried on, and
 /// seed 2, held out): the prior takes the velocity rms from 0.130 /
-/// 0.133 px/pulse to 0.099 / 0.102 (session 9); the links are the same
+/// 0.133 px/pulse to 0.100 / 0.103 (session 9); the links are the same
 /// (the prior only changes the output velocities).
 #[test]
 fn flow_prior_cuts_the_velocity_error_at_paper_like_conditions() {

@@ -400,7 +400,7 @@ pub struct TrackParams {
     /// ([`local_flow::posterior_mean`], least error per point: 0.130 →
     /// 0.074 px/pulse on the paper-like scene) instead of the
     /// variance-matching combination ([`local_flow::combine`], 0.130 →
-    /// 0.099). The posterior mean shrinks every sample's fluctuation
+    /// 0.100). The posterior mean shrinks every sample's fluctuation
     /// about the local flow: Reynolds stresses of a turbulent scene came
     /// out 3.5–5.5 % low. For Lagrangian per-particle velocities of a
     /// smooth flow, not for statistics.
@@ -2846,10 +2846,22 @@ fn fit_track_with(
         // validation sees the track's own fit.
         let (mut vx, mut vy) = (f.vx, f.vy);
         if let Some(use_) = prior {
-            if let Some(mut pr) = use_.flow.prior(pulse, f.x, f.y, sigma) {
-                let fit_var = sigma * sigma * f.velocity_variance;
-                calibration.add(vx, vy, fit_var, &pr);
-                if let Some((scale, typical)) = use_.scale {
+            let fit_var = sigma * sigma * f.velocity_variance;
+            calibration.note_fit_variance(fit_var);
+            let check = pulse.rem_euclid(local_flow::CALIBRATION_STRIDE) == 0;
+            let apply = use_.scale.is_some_and(|(_, typical)| {
+                fit_var > typical || (p.velocity_prior_mean && fit_var > 0.0)
+            });
+            let pr = if check || apply {
+                use_.flow.prior(pulse, f.x, f.y, sigma)
+            } else {
+                None
+            };
+            if let Some(mut pr) = pr {
+                if check {
+                    calibration.add(vx, vy, fit_var, &pr);
+                }
+                if let (true, Some((scale, typical))) = (apply, use_.scale) {
                     pr.variance *= scale;
                     (vx, vy) = if p.velocity_prior_mean {
                         local_flow::posterior_mean(vx, vy, fit_var, &pr, use_.strength)
