@@ -85,6 +85,9 @@ fn velocity_error_by_track_position() {
     let mut clean = (0.0, 0usize);
     let mut by_end_clean: BTreeMap<usize, (f64, usize)> = BTreeMap::new();
     let mut all = (0.0, 0usize);
+    // Squared error by (short track?, start or end side, distance).
+    let mut by_side: BTreeMap<(bool, bool, char, usize), (f64, usize)> = BTreeMap::new();
+    let mut wrong = (0.0, 0usize);
     for t in &tracks {
         let n = t.track.points.len();
         let ids: Vec<Option<u64>> = t
@@ -94,6 +97,8 @@ fn velocity_error_by_track_position() {
             .collect();
         let first = ids.iter().flatten().next().copied();
         let pure = ids.iter().all(|i| i.is_none() || *i == first);
+        // Tracks from the recording's first pulses: no flow known yet.
+        let early = t.track.points[0].pulse < 8;
         for (i, (pt, id)) in t.track.points.iter().zip(&ids).enumerate() {
             let Some(id) = id else { continue };
             let Some(&(u, v)) = truth.get(&(pt.pulse, *id)) else {
@@ -108,6 +113,25 @@ fn velocity_error_by_track_position() {
             l.1 += 1;
             all.0 += e2;
             all.1 += 1;
+            let side = if i <= n - 1 - i { 's' } else { 'e' };
+            let b = by_side
+                .entry((
+                    pure,
+                    n < 10,
+                    if early {
+                        side.to_ascii_uppercase()
+                    } else {
+                        side
+                    },
+                    i.min(n - 1 - i).min(4),
+                ))
+                .or_default();
+            b.0 += e2;
+            b.1 += 1;
+            if !pure {
+                wrong.0 += e2;
+                wrong.1 += 1;
+            }
             if pure {
                 clean.0 += e2;
                 clean.1 += 1;
@@ -125,6 +149,20 @@ fn velocity_error_by_track_position() {
         rms(clean),
         clean.1
     );
+    println!(
+        "share of the squared error: tracks with a wrong link {:.1} %",
+        100.0 * wrong.0 / all.0
+    );
+    for ((pure, short, side, d), v) in &by_side {
+        println!(
+            "{} {} side {side} from end {d}: rms {:.4} ({}), share {:.1} %",
+            if *pure { "clean" } else { "wrong" },
+            if *short { "len<10" } else { "len>=10" },
+            rms(*v),
+            v.1,
+            100.0 * v.0 / all.0
+        );
+    }
     for (d, v) in by_end {
         println!("from end {d}: {:.4} ({})", rms(v), v.1);
     }
@@ -132,6 +170,11 @@ fn velocity_error_by_track_position() {
         println!("clean, from end {d}: {:.4} ({})", rms(v), v.1);
     }
     for (l, v) in by_len {
-        println!("length {l}..: {:.4} ({})", rms(v), v.1);
+        println!(
+            "length {l}..: {:.4} ({}), share {:.1} %",
+            rms(v),
+            v.1,
+            100.0 * v.0 / all.0
+        );
     }
 }

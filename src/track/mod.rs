@@ -374,6 +374,38 @@ pub struct TrackParams {
     /// would be enumerated into whole chains only to fail that test.
     #[serde(default = "default_gap_first_step")]
     pub gap_first_step: bool,
+    /// Strength of the output fit's velocity prior from the local flow
+    /// of the established tracks; 0 = off (default), 1 = the prior's
+    /// variance as estimated and calibrated from the data (larger values
+    /// trust it more). At each point the local linear flow around it at
+    /// its pulse ([`local_flow::FlowHistory::prior`]: the plane of the
+    /// recent links of long tracks in the 48 px around it, its variance
+    /// the links' spread about the plane less their noise — turbulence,
+    /// unsteadiness, the field's curvature — plus the plane's own
+    /// uncertainty, scaled by how far the prior was actually off at
+    /// well-fitted points, [`local_flow::PriorCalibration`]) is combined
+    /// with the fitted velocity (noise σ²·
+    /// [`fit::FitState::velocity_variance`]): fits noisier than the
+    /// typical one — one-sided fits at track ends, few-point fits of
+    /// short tracks — are drawn towards the flow so that their noise
+    /// falls to the typical level ([`local_flow::combine`]), the rest is
+    /// unchanged. Off by default: in a steady curved flow the plane's
+    /// error is the same at every visit of a place, and a Lamb–Oseen
+    /// vortex bin's mean moved by 3–4 % of v_max (limit 1 %,
+    /// `tests/grid_sim.rs`). Needs the local flow (`ghost_check_length`
+    /// > 0). Measured effects in `docs/readme/ptv.md`.
+    #[serde(default)]
+    pub velocity_prior: f64,
+    /// With `velocity_prior`: take the posterior mean of fit and prior
+    /// ([`local_flow::posterior_mean`], least error per point: 0.130 →
+    /// 0.074 px/pulse on the paper-like scene) instead of the
+    /// variance-matching combination ([`local_flow::combine`], 0.130 →
+    /// 0.100). The posterior mean shrinks every sample's fluctuation
+    /// about the local flow: Reynolds stresses of a turbulent scene came
+    /// out 3.5–5.5 % low. For Lagrangian per-particle velocities of a
+    /// smooth flow, not for statistics.
+    #[serde(default)]
+    pub velocity_prior_mean: bool,
     /// Search radius (px) around the prior's prediction for the first step.
     pub prior_radius: f64,
     /// Mean-flow prior for initialisation.
@@ -417,6 +449,8 @@ impl Default for TrackParams {
             split_penalty: default_split_penalty(),
             step_split: default_step_split(),
             gap_first_step: default_gap_first_step(),
+            velocity_prior: 0.0,
+            velocity_prior_mean: false,
             prior_radius: 3.0,
             prior: None,
         }
@@ -503,6 +537,15 @@ const FLOW_CELL: f64 = 16.0;
 /// Time constant (pulses) of the local flow's memory.
 const FLOW_MEMORY: f64 = 8.0;
 
+/// The velocity prior's flow keeps a copy of its grid every this many
+/// pulses ([`local_flow::FlowHistory`]) ...
+const PRIOR_BLOCK: i64 = 4;
+
+/// ... the last this many: the starts of tracks up to ~128 pulses long
+/// see the flow of their moment; before that the prior fades (the
+/// grid's forgetting, symmetric in time).
+const PRIOR_KEEP: usize = 32;
+
 /// Detections a track must hold before its links feed the local flow
 /// (longer than any track the ghost test judges).
 const FLOW_MIN_DETECTIONS: usize = 6;
@@ -538,6 +581,12 @@ impl TrackParams {
             ("prior_radius", self.prior_radius),
             ("ghost_sigma", self.ghost_sigma),
         ];
+        if !(self.velocity_prior.is_finite() && self.velocity_prior >= 0.0) {
+            return Err(Error::param(
+                "velocity_prior",
+                format!("must be a finite number >= 0, got {}", self.velocity_prior),
+            ));
+        }
         if !(self.step_split.is_finite() && self.step_split >= 0.0) {
             return Err(Error::param(
                 "step_split",
@@ -2163,6 +2212,11 @@ pub struct Finaliser {
     /// A copy of the tracker's local flow, brought up to date from each
     /// batch's `flow_samples` (the ghost test of short tracks).
     flow: local_flow::LocalFlow,
+    /// The same samples with their positions: the local linear flow of
+    /// the output fit's velocity prior (`TrackParams::velocity_prior`).
+    linear_flow: local_flow::FlowHistory,
+    /// The prior's variance as measured on the tracks kept so far.
+    prior_calibration: local_flow::PriorCalibration,
     next_id: u64,
 }
 
@@ -2172,6 +2226,13 @@ impl Finaliser {
             params,
             accel_prior: fit::AccelPrior::default(),
             flow: local_flow::LocalFlow::new(FLOW_CELL, FLOW_MEMORY),
+            linear_flow: local_flow::FlowHistory::new(
+                FLOW_CELL,
+                FLOW_MEMORY,
+                PRIOR_BLOCK,
+                PRIOR_KEEP,
+            ),
+            prior_calibration: local_flow::PriorCalibration::default(),
             next_id: 0,
         }
     }
@@ -2194,8 +2255,12 @@ impl Finaliser {
         } = ended;
         let params = &self.params;
         // The flow as the tracker saw it when these tracks ended.
+        let with_prior = params.velocity_prior > 0.0;
         for sample in flow_samples {
             self.flow.add_sample(sample);
+            if with_prior {
+                self.linear_flow.add_sample(sample);
+            }
         }
         // The prior as of the tracks kept before this batch: the same for
         // every track of the batch, whatever the thread count (and so is
@@ -2204,13 +2269,23 @@ impl Finaliser {
             .fit_accel_rms
             .unwrap_or_else(|| self.accel_prior.accel_rms(sigma));
         let flow = &self.flow;
+        // The prior applies once its variance is calibrated (as of the
+        // batches before this one); before, only the calibration runs.
+        let prior = with_prior.then(|| VelocityPriorUse {
+            flow: &self.linear_flow,
+            scale: self
+                .prior_calibration
+                .scale()
+                .zip(self.prior_calibration.typical_fit_variance()),
+            strength: params.velocity_prior,
+        });
         // Step cuts first (each piece is fitted as a track of its own),
         // on the same workers as the fits.
         let cut_and_fit = |t: ActiveTrack| -> (u64, Vec<Finalised>) {
             let (cuts, pieces) = cut_at_steps(t, sigma, params.step_split);
             let fitted = pieces
                 .into_iter()
-                .map(|p| finalise_one(p, params, flow, gate, sigma, accel))
+                .map(|p| finalise_one(p, params, flow, prior.as_ref(), gate, sigma, accel))
                 .collect();
             (cuts, fitted)
         };
@@ -2238,8 +2313,10 @@ impl Finaliser {
                     detections,
                     fresh,
                     curvature,
+                    calibration,
                     by_flow,
                 } => {
+                    self.prior_calibration.merge(&calibration);
                     stats.tracks_kept_by_flow += by_flow as u64;
                     self.accel_prior.merge(&curvature);
                     stats.tracks_kept += 1;
@@ -2444,6 +2521,8 @@ enum Finalised {
         detections: Vec<Option<u64>>,
         fresh: usize,
         curvature: fit::AccelPrior,
+        /// Its points' check of the velocity prior's variance.
+        calibration: local_flow::PriorCalibration,
         /// Below `min_length`, kept by the local-flow test.
         by_flow: bool,
     },
@@ -2456,6 +2535,7 @@ fn finalise_one(
     mut t: ActiveTrack,
     params: &TrackParams,
     flow: &local_flow::LocalFlow,
+    prior: Option<&VelocityPriorUse>,
     gate: f64,
     sigma: f64,
     accel_rms: f64,
@@ -2481,7 +2561,9 @@ fn finalise_one(
             Verdict::Keep { by_flow: f } => by_flow = f,
         }
     }
-    let (mut points, mut detections, rms) = fit_track(&t.dets, params, sigma, accel_rms);
+    let mut calibration = local_flow::PriorCalibration::default();
+    let (mut points, mut detections, rms) =
+        fit_track(&t.dets, params, sigma, accel_rms, prior, &mut calibration);
     if rms > params.max_fit_residual {
         return Finalised::Rough;
     }
@@ -2505,6 +2587,7 @@ fn finalise_one(
         detections,
         fresh,
         curvature,
+        calibration,
         by_flow,
     }
 }
@@ -2652,8 +2735,20 @@ fn fit_track(
     p: &TrackParams,
     sigma: f64,
     accel_rms: f64,
+    prior: Option<&VelocityPriorUse>,
+    calibration: &mut local_flow::PriorCalibration,
 ) -> (Vec<TrackPoint>, Vec<Option<u64>>, f64) {
-    fit_track_with(dets, p, sigma, accel_rms, true, &mut 0)
+    fit_track_with(dets, p, sigma, accel_rms, prior, calibration, true, &mut 0)
+}
+
+/// The output fit's velocity prior as one batch of the finaliser uses it:
+/// the flow, the calibration's variance factor (`None`: not calibrated
+/// yet, the prior is only checked) with the fits' typical noise variance,
+/// and `TrackParams::velocity_prior`.
+struct VelocityPriorUse<'a> {
+    flow: &'a local_flow::FlowHistory,
+    scale: Option<(f64, f64)>,
+    strength: f64,
 }
 
 /// [`fit_track`]; `grid` takes [`fit::fit_adaptive_grid`] (tabulated
@@ -2665,6 +2760,8 @@ fn fit_track_with(
     p: &TrackParams,
     sigma: f64,
     accel_rms: f64,
+    prior: Option<&VelocityPriorUse>,
+    calibration: &mut local_flow::PriorCalibration,
     grid: bool,
     grid_fits: &mut usize,
 ) -> (Vec<TrackPoint>, Vec<Option<u64>>, f64) {
@@ -2753,13 +2850,43 @@ fn fit_track_with(
         if here {
             ssr += (dets[j].x - f.x).powi(2) + (dets[j].y - f.y).powi(2);
         }
+        // The velocity prior from the local flow (px per pulse = px/τ on
+        // the grid; τ is in mean periods), after the residual: the
+        // validation sees the track's own fit.
+        let (mut vx, mut vy) = (f.vx, f.vy);
+        if let Some(use_) = prior {
+            let fit_var = sigma * sigma * f.velocity_variance;
+            calibration.note_fit_variance(fit_var);
+            let check = pulse.rem_euclid(local_flow::CALIBRATION_STRIDE) == 0;
+            let apply = use_.scale.is_some_and(|(_, typical)| {
+                fit_var > typical || (p.velocity_prior_mean && fit_var > 0.0)
+            });
+            let pr = if check || apply {
+                use_.flow.prior(pulse, f.x, f.y, sigma)
+            } else {
+                None
+            };
+            if let Some(mut pr) = pr {
+                if check {
+                    calibration.add(vx, vy, fit_var, &pr);
+                }
+                if let (true, Some((scale, typical))) = (apply, use_.scale) {
+                    pr.variance *= scale;
+                    (vx, vy) = if p.velocity_prior_mean {
+                        local_flow::posterior_mean(vx, vy, fit_var, &pr, use_.strength)
+                    } else {
+                        local_flow::combine(vx, vy, fit_var, &pr, use_.strength, typical)
+                    };
+                }
+            }
+        }
         points.push(TrackPoint {
             pulse,
             t_us,
             x: f.x,
             y: f.y,
-            u: f.vx / period_s,
-            v: f.vy / period_s,
+            u: vx / period_s,
+            v: vy / period_s,
             ax: f.ax / (period_s * period_s),
             ay: f.ay / (period_s * period_s),
             interpolated: !here,
@@ -3179,6 +3306,7 @@ mod tests {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
         let params = TrackParams::default();
         let mut compared = 0;
+        let mut prior_moved = 0;
         for case in 0..12 {
             // Pulse times as the pulses stage gives them (first + k·period,
             // far into a recording), or jittered (off the grid: the
@@ -3210,8 +3338,48 @@ mod tests {
             let mut grid_fits = 0;
             // Half the cases with the curvature prior.
             let accel = [0.0, 0.0, 0.08, 0.3][(case / 2) % 4];
-            let (fp, fs, frms) = fit_track_with(&dets, &params, sigma, accel, true, &mut grid_fits);
-            let (rp, rs, rrms) = fit_track_with(&dets, &params, sigma, accel, false, &mut 0);
+            // Every third case with the velocity prior: links of a flow
+            // close to the track's own motion all along it.
+            let mut flow = local_flow::FlowHistory::new(FLOW_CELL, FLOW_MEMORY, 4, 8);
+            for d in &dets {
+                for k in 0..12 {
+                    let (dx, dy) = ((k % 4) as f64 * 9.0 - 13.0, (k / 4) as f64 * 11.0 - 11.0);
+                    flow.add_sample(local_flow::FlowSample {
+                        pulse: d.pulse,
+                        x: d.x + dx,
+                        y: d.y + dy,
+                        u: 5.2 + 0.01 * dx + rng.gen_range(-0.3..0.3),
+                        v: -3.1 + rng.gen_range(-0.3..0.3),
+                    });
+                }
+            }
+            let with_prior = VelocityPriorUse {
+                flow: &flow,
+                scale: Some((1.0, 0.0005)),
+                strength: 1.0,
+            };
+            let prior = (case % 3 == 2).then_some(&with_prior);
+            let (mut cal_fast, mut cal_reference) = Default::default();
+            let (fp, fs, frms) = fit_track_with(
+                &dets,
+                &params,
+                sigma,
+                accel,
+                prior,
+                &mut cal_fast,
+                true,
+                &mut grid_fits,
+            );
+            let (rp, rs, rrms) = fit_track_with(
+                &dets,
+                &params,
+                sigma,
+                accel,
+                prior,
+                &mut cal_reference,
+                false,
+                &mut 0,
+            );
             // On the grid the tabulated path takes every detection whose
             // pilot window has no gap; jittered times never.
             if jitter > 0.0 {
@@ -3223,6 +3391,28 @@ mod tests {
             }
             assert_eq!(fs, rs);
             assert_eq!(fp.len(), rp.len());
+            if prior.is_some() {
+                // The prior moved the noisy points (the ends), and both
+                // paths checked it at the same points.
+                let (plain, _, _) = fit_track_with(
+                    &dets,
+                    &params,
+                    sigma,
+                    accel,
+                    None,
+                    &mut Default::default(),
+                    true,
+                    &mut 0,
+                );
+                let moved = plain.iter().zip(&fp).filter(|(a, b)| a.u != b.u).count();
+                assert!(moved > 0, "case {case}");
+                prior_moved += moved;
+                assert_eq!(
+                    cal_fast.typical_fit_variance(),
+                    cal_reference.typical_fit_variance(),
+                    "case {case}"
+                );
+            }
             assert!((frms - rrms).abs() <= 1e-9 * rrms.max(1.0));
             for (f, r) in fp.iter().zip(&rp) {
                 assert_eq!(
@@ -3250,5 +3440,6 @@ mod tests {
             }
         }
         assert!(compared > 500);
+        assert!(prior_moved > 20, "{prior_moved}");
     }
 }
