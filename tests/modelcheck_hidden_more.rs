@@ -211,3 +211,50 @@ fn real_sim_two_hidden_effects_background_and_latency_jitter() {
     ];
     assert_both_found(&truth, 62, 72);
 }
+
+/// Several hidden effects at once (session 9): every effect named must be
+/// one of the hidden ones (no impostor that mimics two of them), the gap
+/// must shrink with every effect added, and most of the hidden effects
+/// must be found, each within 30 %.
+fn assert_several_found(truth: &[EffectSetting], seed: u64, order_seed: u64, at_least: usize) {
+    let res = check_hidden(truth, seed, order_seed, None, truth.len());
+    for e in &res.effects {
+        let t = truth
+            .iter()
+            .find(|t| t.name == e.name)
+            .unwrap_or_else(|| panic!("named `{}`, not hidden: {:#?}", e.name, res.rounds));
+        assert_parameters(&e.parameters, t);
+        assert!(e.gap_after < e.gap_before, "gap grew: {e:?}");
+    }
+    assert!(
+        res.effects.len() >= at_least,
+        "{} of {} hidden effects named: {:?}",
+        res.effects.len(),
+        truth.len(),
+        res.effects
+    );
+    let first_gap = res.effects[0].gap_before;
+    let last_gap = res.effects.last().unwrap().gap_after;
+    assert!(last_gap <= 0.5 * first_gap, "{:?}", res.effects);
+}
+
+/// Three effects seen partly by the same signatures: background noise and
+/// latency jitter both put events outside the burst (the jitter's tail),
+/// and OFF events are a catalogue candidate that mimics both (their decay
+/// spreads OFF events over the period and widens the burst); hot pixels
+/// add a fixed pattern of off-burst activity.
+#[test]
+fn real_sim_three_hidden_effects() {
+    let truth = [
+        setting("background_noise", &[("rate_hz", strength(81, 3.0, 15.0))]),
+        setting("latency_jitter", &[("spread_us", strength(82, 6.0, 15.0))]),
+        setting(
+            "hot_pixels",
+            &[
+                ("count", strength(83, 20.0, 60.0).round()),
+                ("rate_hz", strength(84, 300.0, 3000.0)),
+            ],
+        ),
+    ];
+    assert_several_found(&truth, 81, 91, 3);
+}
