@@ -45,10 +45,10 @@ fn with(rows: &[(&'static str, f64)]) -> DiscrepancyTable {
 }
 
 /// Many effects at once: the best candidate removes two components, its
-/// rival one of the same two and less of it. The lead (1100) is large
-/// against what the two contest (800) but small against the whole gap
-/// (8000): the rule of sessions 4–8 asked for 0.25 × (8000 − 800) = 1800
-/// and named nothing; the contested part makes it clear.
+/// rival one of the same two and less of it. On the disputed rows (a, b)
+/// the best leaves 200, the rival 1300: clear. The rule of sessions 4–8
+/// asked for a lead of 0.25 × (8000 − 700) = 1825 (a quarter of all the
+/// rival leaves, other effects' rows included) and named nothing.
 #[test]
 fn a_clear_winner_among_many_effects_is_named() {
     let before = table(&far_off());
@@ -62,6 +62,7 @@ fn a_clear_winner_among_many_effects_is_named() {
     assert_eq!(j.rival.map(|r| names[r]), Some("rival"));
     assert!((j.improvement[2] - 1800.0).abs() < 1e-9);
     assert!((j.contested - 700.0).abs() < 1e-9, "{j:?}");
+    assert_eq!((j.left_best, j.left_rival), (200.0, 1300.0));
     assert!(j.clear(), "{j:?}");
     // The old margin on the whole gap would not have been met.
     assert!(j.lead < 0.25 * (8.0 * Z_CAP - 700.0));
@@ -78,6 +79,13 @@ fn a_near_tie_on_one_component_is_not_clear() {
     assert!(j.beats_chance);
     assert_eq!(j.rival, Some(1 - j.best()));
     assert!(!j.clear(), "{j:?}");
+    // One effect explains nearly all: leaving 9 where the rival leaves 41
+    // is clear (the CLI test's hidden jitter vs intensity latency).
+    let small = table(&[("a", 1000.0), ("b", 1000.0)]);
+    let jitter = table(&[("a", 5.0), ("b", 4.0)]);
+    let intensity = table(&[("a", 21.0), ("b", 20.0)]);
+    let j = judge_candidates(&small, &["j", "i"], &[&jitter, &intensity], 2.0, 3.0);
+    assert!(j.clear(), "{j:?}");
     // Candidates that remove different components are not rivals: each is
     // a real effect of its own, named one per round.
     let z = with(&[("c", 40.0)]);
