@@ -40,6 +40,17 @@ fn check_hidden(
     catalogue: Option<Vec<EffectSpec>>,
     max_effects: usize,
 ) -> ModelCheckResult {
+    check_hidden_opts(truth, seed, order_seed, catalogue, &opts(max_effects))
+}
+
+/// [`check_hidden`] with given options.
+fn check_hidden_opts(
+    truth: &[EffectSetting],
+    seed: u64,
+    order_seed: u64,
+    catalogue: Option<Vec<EffectSpec>>,
+    options: &WorkflowOptions,
+) -> ModelCheckResult {
     let mut catalogue = catalogue.unwrap_or_else(|| default_catalogue(&base()));
     catalogue.shuffle(&mut Pcg64::seed_from_u64(order_seed));
     let sim = SceneSimulator::new(base())
@@ -53,7 +64,7 @@ fn check_hidden(
     let lat = signatures_of(&cfg, &clean).unwrap();
     cfg.burst_window_us = Some(burst_window(lat.histogram("latency").unwrap(), 0.99).unwrap());
     let t = Instant::now();
-    let res = run(&sim, &cfg, &fit, &hold, &[], &opts(max_effects)).unwrap();
+    let res = run(&sim, &cfg, &fit, &hold, &[], options).unwrap();
     println!(
         "truth {:?}\n -> {:?} {:?} in {:?}",
         truth,
@@ -210,4 +221,93 @@ fn real_sim_two_hidden_effects_background_and_latency_jitter() {
         setting("latency_jitter", &[("spread_us", strength(63, 6.0, 15.0))]),
     ];
     assert_both_found(&truth, 62, 72);
+}
+
+/// Several hidden effects at once (session 9, with the paired judgement,
+/// `WorkflowOptions::paired_judgement`): every effect named must be
+/// one of the hidden ones (no impostor that mimics two of them), the gap
+/// must shrink with every effect added, and most of the hidden effects
+/// must be found, each within 30 %.
+fn assert_several_found(truth: &[EffectSetting], seed: u64, order_seed: u64, at_least: usize) {
+    let options = WorkflowOptions {
+        paired_judgement: true,
+        ..opts(truth.len())
+    };
+    let res = check_hidden_opts(truth, seed, order_seed, None, &options);
+    for e in &res.effects {
+        let t = truth
+            .iter()
+            .find(|t| t.name == e.name)
+            .unwrap_or_else(|| panic!("named `{}`, not hidden: {:#?}", e.name, res.rounds));
+        assert_parameters(&e.parameters, t);
+        assert!(e.gap_after < e.gap_before, "gap grew: {e:?}");
+    }
+    assert!(
+        res.effects.len() >= at_least,
+        "{} of {} hidden effects named: {:?}",
+        res.effects.len(),
+        truth.len(),
+        res.effects
+    );
+    let first_gap = res.effects[0].gap_before;
+    let last_gap = res.effects.last().unwrap().gap_after;
+    assert!(last_gap <= 0.5 * first_gap, "{:?}", res.effects);
+}
+
+/// Three effects, each with a component of the gap of its own (busy
+/// timestamp ticks; a fixed pattern of off-burst activity; the latency's
+/// slope over the recording), so that each round's best holds only part of
+/// the gap: the rule of sessions 4–8 asked for a lead of a quarter of the
+/// *whole* remaining gap over the best rival, which the other effects'
+/// parts alone can make unreachable.
+// Not met (session 9): `arbiter_saturation` is named first but with the
+// wrong split (row 0.0047 µs, event 0.258 µs) and leaves only 68.6 of a
+// gap of 2799, so the hot pixels and the drift are then within chance
+// (clock drift removes 26.5, chance 63.5).
+#[test]
+#[ignore]
+fn real_sim_three_hidden_effects_arbiter_hot_pixels_clock_drift() {
+    let truth = [
+        setting(
+            "arbiter_saturation",
+            &[
+                ("row_time_us", strength(85, 0.02, 0.1)),
+                ("event_time_us", strength(86, 0.05, 0.3)),
+            ],
+        ),
+        setting(
+            "hot_pixels",
+            &[
+                ("count", strength(83, 20.0, 60.0).round()),
+                ("rate_hz", strength(84, 300.0, 3000.0)),
+            ],
+        ),
+        setting("clock_drift", &[("ppm", strength(87, 150.0, 400.0))]),
+    ];
+    assert_several_found(&truth, 85, 95, 3);
+}
+
+/// Not met (session 9): background noise + latency jitter + hot pixels.
+/// `off_events` with a long decay (τ ≈ 280 µs: OFF events spread over the
+/// whole period like the background's) is named first and explains
+/// background noise away (background on top of it adds nothing: 166.8 →
+/// 168.6, while OFF events on top of background still remove 71), and it
+/// leaves only 167 of a gap of 3134, so the jitter and the hot pixels are
+/// then within chance. No signature separates the background's ON/OFF
+/// pairs from a slowly decaying OFF response on this scene.
+#[test]
+#[ignore]
+fn real_sim_three_hidden_effects_background_jitter_hot_pixels() {
+    let truth = [
+        setting("background_noise", &[("rate_hz", strength(81, 3.0, 15.0))]),
+        setting("latency_jitter", &[("spread_us", strength(82, 6.0, 15.0))]),
+        setting(
+            "hot_pixels",
+            &[
+                ("count", strength(83, 20.0, 60.0).round()),
+                ("rate_hz", strength(84, 300.0, 3000.0)),
+            ],
+        ),
+    ];
+    assert_several_found(&truth, 81, 91, 3);
 }

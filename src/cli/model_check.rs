@@ -56,6 +56,9 @@ pub struct ModelCheckArgs {
     /// (then nothing is named). Off by default; `--profile-fit true`.
     #[arg(long, default_value_t = false, action = clap::ArgAction::Set)]
     pub profile_fit: bool,
+    /// Session-9 judgement: paired held-out gaps, rival margin on the disputed rows, explaining away (see docs/readme/modelcheck.md).
+    #[arg(long, default_value_t = false, action = clap::ArgAction::Set)]
+    pub paired_judgement: bool,
 }
 
 pub fn run(a: ModelCheckArgs) -> anyhow::Result<()> {
@@ -165,6 +168,7 @@ pub fn run(a: ModelCheckArgs) -> anyhow::Result<()> {
         max_effects: a.max_effects,
         seed: a.seed,
         profile_fit: a.profile_fit,
+        paired_judgement: a.paired_judgement,
         ..WorkflowOptions::default()
     };
     let bar = ProgressBar::new_spinner();
