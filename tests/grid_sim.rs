@@ -10,57 +10,17 @@
 //! for stresses and noise, and its shedding frequency. Numbers printed by
 //! each test are quoted in ARCHITECTURE.md / BENCHMARKS.md.
 
-use ebptv::cluster::{ClusterParams, Particle};
+mod chain_common;
+
 use ebptv::events::Chunk;
 use ebptv::grid::{
     bin_samples, estimate, EstimateOptions, Fit, GridStats, Lattice, Sample, Weighting,
 };
-use ebptv::io::{EventSource, StreamInfo};
-use ebptv::pulses::PulseOptions;
+use ebptv::io::EventSource;
 use ebptv::sim::scenario::{FlowSpec, Roi, Scenario};
 use ebptv::sim::{Flow, Simulator};
 use ebptv::spectra::{point_spectra, SpectraOptions, WelchOptions};
-use ebptv::track::{track_recording, PtvSink, PtvStream, Track, TrackParams};
-
-/// A simulated recording replayed from memory (the chain reads it twice:
-/// pulse analysis, then tracking; simulating once halves the test time).
-struct Replay {
-    info: StreamInfo,
-    chunks: Vec<Chunk>,
-    next: usize,
-}
-
-impl EventSource for Replay {
-    fn info(&self) -> &StreamInfo {
-        &self.info
-    }
-    fn next_chunk(&mut self, chunk: &mut Chunk) -> ebptv::Result<bool> {
-        match self.chunks.get(self.next) {
-            Some(c) => {
-                *chunk = c.clone();
-                self.next += 1;
-                Ok(true)
-            }
-            None => {
-                chunk.clear();
-                Ok(false)
-            }
-        }
-    }
-}
-
-#[derive(Default)]
-struct Collect(Vec<Track>);
-
-impl PtvSink for Collect {
-    fn particles(&mut self, _: i64, _: f64, _: &[Particle]) -> ebptv::Result<()> {
-        Ok(())
-    }
-    fn tracks(&mut self, t: &[Track]) -> ebptv::Result<()> {
-        self.0.extend_from_slice(t);
-        Ok(())
-    }
-}
+use ebptv::track::TrackParams;
 
 /// Simulate `sc`, find the pulses, cluster and track: the track samples
 /// (grouped by track, as tracks.csv) and the flow that made them.
@@ -83,32 +43,7 @@ fn chain_with_truth(
         chunks.push(std::mem::take(&mut c));
     }
     let truth = sim.take_truth();
-    let open = || -> ebptv::Result<Box<dyn EventSource>> {
-        Ok(Box::new(Replay {
-            info: info.clone(),
-            chunks: chunks.clone(),
-            next: 0,
-        }))
-    };
-    let stream = PtvStream::new(ClusterParams::default(), track, 64).unwrap();
-    let mut sink = Collect::default();
-    track_recording(
-        &open,
-        &PulseOptions::default(),
-        stream,
-        &mut sink,
-        &mut |_| {},
-    )
-    .unwrap();
-    let samples = sink
-        .0
-        .iter()
-        .flat_map(|t| {
-            t.points
-                .iter()
-                .map(move |p| Sample::from_track_point(t.id, p))
-        })
-        .collect();
+    let samples = chain_common::track_samples(&info, &chunks, track);
     (samples, flow, truth)
 }
 

@@ -4,15 +4,16 @@
 //! a turbulent simulated scene, that it does not shrink the fluctuations
 //! the grid stage turns into Reynolds stresses.
 
-use ebptv::cluster::{ClusterParams, Particle};
+mod chain_common;
+
+use ebptv::cluster::ClusterParams;
 use ebptv::events::Chunk;
 use ebptv::grid::{estimate, EstimateOptions, Fit, GridStats, Lattice, Sample, Weighting};
 use ebptv::io::{EventSource, StreamInfo};
-use ebptv::pulses::PulseOptions;
 use ebptv::sim::scenario::Roi;
 use ebptv::sim::Simulator;
 use ebptv::track::synth::{generate, run_and_score, LinkScore, SynthParams};
-use ebptv::track::{track_recording, PtvSink, PtvStream, Track, TrackParams};
+use ebptv::track::TrackParams;
 
 fn paper_like(seed: u64, tp: &TrackParams) -> LinkScore {
     let sp = SynthParams {
@@ -81,45 +82,6 @@ fn flow_prior_cuts_the_velocity_error_at_paper_like_conditions() {
     }
 }
 
-/// A simulated recording replayed from memory.
-struct Replay {
-    info: StreamInfo,
-    chunks: Vec<Chunk>,
-    next: usize,
-}
-
-impl EventSource for Replay {
-    fn info(&self) -> &StreamInfo {
-        &self.info
-    }
-    fn next_chunk(&mut self, chunk: &mut Chunk) -> ebptv::Result<bool> {
-        match self.chunks.get(self.next) {
-            Some(c) => {
-                *chunk = c.clone();
-                self.next += 1;
-                Ok(true)
-            }
-            None => {
-                chunk.clear();
-                Ok(false)
-            }
-        }
-    }
-}
-
-#[derive(Default)]
-struct Collect(Vec<Track>);
-
-impl PtvSink for Collect {
-    fn particles(&mut self, _: i64, _: f64, _: &[Particle]) -> ebptv::Result<()> {
-        Ok(())
-    }
-    fn tracks(&mut self, t: &[Track]) -> ebptv::Result<()> {
-        self.0.extend_from_slice(t);
-        Ok(())
-    }
-}
-
 fn percentile(mut v: Vec<f64>, q: f64) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
     v[((v.len() - 1) as f64 * q).round() as usize]
@@ -151,32 +113,7 @@ fn turbulent(
     pulse_hz: f64,
     tp: TrackParams,
 ) -> Turbulence {
-    let open = || -> ebptv::Result<Box<dyn EventSource>> {
-        Ok(Box::new(Replay {
-            info: info.clone(),
-            chunks: chunks.to_vec(),
-            next: 0,
-        }))
-    };
-    let stream = PtvStream::new(ClusterParams::default(), tp, 64).unwrap();
-    let mut sink = Collect::default();
-    track_recording(
-        &open,
-        &PulseOptions::default(),
-        stream,
-        &mut sink,
-        &mut |_| {},
-    )
-    .unwrap();
-    let samples: Vec<Sample> = sink
-        .0
-        .iter()
-        .flat_map(|t| {
-            t.points
-                .iter()
-                .map(move |p| Sample::from_track_point(t.id, p))
-        })
-        .collect();
+    let samples = chain_common::track_samples(info, chunks, tp);
     let period_s = 1.0 / pulse_hz;
     let at_samples: Vec<Sample> = samples
         .iter()
