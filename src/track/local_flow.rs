@@ -38,6 +38,70 @@ pub const MIN_FLOW_WEIGHT: f64 = 3.0;
 /// and see no flow (a short track there is judged by `min_length` alone).
 const MAX_CELLS: usize = 4096;
 
+/// A growing `nx × ny` grid of square `cell` px cells from the origin (up
+/// to [`MAX_CELLS`] per axis), shared by [`LocalFlow`] and [`LinearFlow`],
+/// which differ only in what a cell sums.
+#[derive(Debug, Clone)]
+struct CellGrid<C> {
+    cell: f64,
+    nx: usize,
+    ny: usize,
+    cells: Vec<C>,
+}
+
+impl<C: Copy + Default> CellGrid<C> {
+    fn new(cell: f64) -> Self {
+        CellGrid {
+            cell,
+            nx: 0,
+            ny: 0,
+            cells: Vec::new(),
+        }
+    }
+
+    /// The cell holding `(x, y)`; `None` left of or above the origin and
+    /// beyond the largest grid.
+    fn index(&self, x: f64, y: f64) -> Option<(usize, usize)> {
+        let (fx, fy) = (x / self.cell, y / self.cell);
+        if !(fx >= 0.0 && fy >= 0.0 && fx < MAX_CELLS as f64 && fy < MAX_CELLS as f64) {
+            return None;
+        }
+        Some((fx as usize, fy as usize))
+    }
+
+    /// Cell `(ix, iy)`, growing the grid to hold it.
+    fn cell_mut(&mut self, ix: usize, iy: usize) -> &mut C {
+        if ix >= self.nx || iy >= self.ny {
+            let (nx, ny) = ((ix + 1).max(self.nx), (iy + 1).max(self.ny));
+            let mut cells = vec![C::default(); nx * ny];
+            for y in 0..self.ny {
+                for x in 0..self.nx {
+                    cells[y * nx + x] = self.cells[y * self.nx + x];
+                }
+            }
+            self.cells = cells;
+            self.nx = nx;
+            self.ny = ny;
+        }
+        &mut self.cells[iy * self.nx + ix]
+    }
+
+    /// The existing cells of the 3 × 3 block around `(ix, iy)`, with their
+    /// indices.
+    fn neighbours(&self, ix: usize, iy: usize) -> impl Iterator<Item = (usize, usize, &C)> + '_ {
+        let xs = ix.saturating_sub(1)..(ix + 2).min(self.nx);
+        (iy.saturating_sub(1)..(iy + 2).min(self.ny)).flat_map(move |cy| {
+            xs.clone()
+                .map(move |cx| (cx, cy, &self.cells[cy * self.nx + cx]))
+        })
+    }
+
+    /// Centre of cell `(ix, iy)`.
+    fn centre(&self, ix: usize, iy: usize) -> (f64, f64) {
+        ((ix as f64 + 0.5) * self.cell, (iy as f64 + 0.5) * self.cell)
+    }
+}
+
 #[derive(Debug, Clone, Copy, Default)]
 struct FlowCell {
     /// Pulse the sums are decayed to.
@@ -76,11 +140,8 @@ pub struct FlowSample {
 /// Exponentially forgetting grid of link displacements (see module docs).
 #[derive(Debug, Clone)]
 pub struct LocalFlow {
-    cell: f64,
+    grid: CellGrid<FlowCell>,
     decay: f64,
-    nx: usize,
-    ny: usize,
-    cells: Vec<FlowCell>,
 }
 
 impl LocalFlow {
@@ -88,36 +149,9 @@ impl LocalFlow {
     /// `memory` pulses.
     pub fn new(cell: f64, memory: f64) -> Self {
         LocalFlow {
-            cell,
+            grid: CellGrid::new(cell),
             decay: (-1.0 / memory).exp(),
-            nx: 0,
-            ny: 0,
-            cells: Vec::new(),
         }
-    }
-
-    fn index(&self, x: f64, y: f64) -> Option<(usize, usize)> {
-        let (fx, fy) = (x / self.cell, y / self.cell);
-        if !(fx >= 0.0 && fy >= 0.0 && fx < MAX_CELLS as f64 && fy < MAX_CELLS as f64) {
-            return None;
-        }
-        Some((fx as usize, fy as usize))
-    }
-
-    fn grow(&mut self, ix: usize, iy: usize) {
-        if ix < self.nx && iy < self.ny {
-            return;
-        }
-        let (nx, ny) = ((ix + 1).max(self.nx), (iy + 1).max(self.ny));
-        let mut cells = vec![FlowCell::default(); nx * ny];
-        for y in 0..self.ny {
-            for x in 0..self.nx {
-                cells[y * nx + x] = self.cells[y * self.nx + x];
-            }
-        }
-        self.cells = cells;
-        self.nx = nx;
-        self.ny = ny;
     }
 
     /// [`LocalFlow::add`] of one [`FlowSample`].
@@ -127,12 +161,11 @@ impl LocalFlow {
 
     /// Add a displacement `(u, v)` px per pulse seen at `(x, y)` at `pulse`.
     pub fn add(&mut self, pulse: i64, x: f64, y: f64, u: f64, v: f64) {
-        let Some((ix, iy)) = self.index(x, y) else {
+        let Some((ix, iy)) = self.grid.index(x, y) else {
             return;
         };
-        self.grow(ix, iy);
         let decay = self.decay;
-        let c = &mut self.cells[iy * self.nx + ix];
+        let c = self.grid.cell_mut(ix, iy);
         if c.pulse != pulse {
             let f = decay.powi((pulse - c.pulse).clamp(0, 10_000) as i32);
             c.w *= f;
@@ -150,20 +183,17 @@ impl LocalFlow {
     /// The flow around `(x, y)` as of `pulse`: the 3 × 3 cells around the
     /// point's, their sums decayed to `pulse`; `None` without any support.
     pub fn at(&self, pulse: i64, x: f64, y: f64) -> Option<FlowEstimate> {
-        let (ix, iy) = self.index(x, y)?;
+        let (ix, iy) = self.grid.index(x, y)?;
         let (mut w, mut su, mut sv, mut sq) = (0.0, 0.0, 0.0, 0.0);
-        for cy in iy.saturating_sub(1)..(iy + 2).min(self.ny) {
-            for cx in ix.saturating_sub(1)..(ix + 2).min(self.nx) {
-                let c = &self.cells[cy * self.nx + cx];
-                if c.w == 0.0 {
-                    continue;
-                }
-                let f = self.decay.powi((pulse - c.pulse).clamp(0, 10_000) as i32);
-                w += f * c.w;
-                su += f * c.su;
-                sv += f * c.sv;
-                sq += f * c.sq;
+        for (_, _, c) in self.grid.neighbours(ix, iy) {
+            if c.w == 0.0 {
+                continue;
             }
+            let f = self.decay.powi((pulse - c.pulse).clamp(0, 10_000) as i32);
+            w += f * c.w;
+            su += f * c.su;
+            sv += f * c.sv;
+            sq += f * c.sq;
         }
         if w <= 0.0 {
             return None;
@@ -176,6 +206,11 @@ impl LocalFlow {
             weight: w,
         })
     }
+}
+
+/// `decay^|dt|`: [`LinearFlow`] forgets symmetrically in time.
+fn factor(decay: f64, dt: i64) -> f64 {
+    decay.powi(dt.unsigned_abs().min(10_000) as i32)
 }
 
 /// Moments of one cell of a [`LinearFlow`]: positions relative to the
@@ -217,11 +252,8 @@ pub struct VelocityPrior {
 /// and weakens by itself.
 #[derive(Debug, Clone)]
 pub struct LinearFlow {
-    cell: f64,
+    grid: CellGrid<GradientCell>,
     decay: f64,
-    nx: usize,
-    ny: usize,
-    cells: Vec<GradientCell>,
 }
 
 impl LinearFlow {
@@ -229,60 +261,29 @@ impl LinearFlow {
     /// `memory` pulses.
     pub fn new(cell: f64, memory: f64) -> Self {
         LinearFlow {
-            cell,
+            grid: CellGrid::new(cell),
             decay: (-1.0 / memory).exp(),
-            nx: 0,
-            ny: 0,
-            cells: Vec::new(),
         }
-    }
-
-    fn index(&self, x: f64, y: f64) -> Option<(usize, usize)> {
-        let (fx, fy) = (x / self.cell, y / self.cell);
-        if !(fx >= 0.0 && fy >= 0.0 && fx < MAX_CELLS as f64 && fy < MAX_CELLS as f64) {
-            return None;
-        }
-        Some((fx as usize, fy as usize))
-    }
-
-    fn grow(&mut self, ix: usize, iy: usize) {
-        if ix < self.nx && iy < self.ny {
-            return;
-        }
-        let (nx, ny) = ((ix + 1).max(self.nx), (iy + 1).max(self.ny));
-        let mut cells = vec![GradientCell::default(); nx * ny];
-        for y in 0..self.ny {
-            for x in 0..self.nx {
-                cells[y * nx + x] = self.cells[y * self.nx + x];
-            }
-        }
-        self.cells = cells;
-        self.nx = nx;
-        self.ny = ny;
     }
 
     fn factor(&self, dt: i64) -> f64 {
-        self.decay.powi(dt.unsigned_abs().min(10_000) as i32)
+        factor(self.decay, dt)
     }
 
     /// Add one link's displacement (as [`LocalFlow::add_sample`]).
     pub fn add_sample(&mut self, s: FlowSample) {
-        let Some((ix, iy)) = self.index(s.x, s.y) else {
+        let Some((ix, iy)) = self.grid.index(s.x, s.y) else {
             return;
         };
-        self.grow(ix, iy);
-        let (x, y) = (
-            s.x - (ix as f64 + 0.5) * self.cell,
-            s.y - (iy as f64 + 0.5) * self.cell,
-        );
-        let f = if self.cells[iy * self.nx + ix].pulse != s.pulse {
-            self.factor(s.pulse - self.cells[iy * self.nx + ix].pulse)
-        } else {
-            1.0
-        };
-        let c = &mut self.cells[iy * self.nx + ix];
-        if f != 1.0 {
-            c.m.iter_mut().for_each(|m| *m *= f);
+        let (cx, cy) = self.grid.centre(ix, iy);
+        let (x, y) = (s.x - cx, s.y - cy);
+        let decay = self.decay;
+        let c = self.grid.cell_mut(ix, iy);
+        if c.pulse != s.pulse {
+            let f = factor(decay, s.pulse - c.pulse);
+            if f != 1.0 {
+                c.m.iter_mut().for_each(|m| *m *= f);
+            }
         }
         c.pulse = s.pulse;
         let (u, v) = (s.u, s.v);
@@ -309,18 +310,17 @@ impl LinearFlow {
     /// The weighted moments of the 3 × 3 cells around `(x, y)` decayed to
     /// `pulse`, positions relative to `(x, y)`.
     fn moments(&self, pulse: i64, x: f64, y: f64) -> Option<[f64; 13]> {
-        let (ix, iy) = self.index(x, y)?;
+        let (ix, iy) = self.grid.index(x, y)?;
         let mut t = [0.0f64; 13];
-        for cy in iy.saturating_sub(1)..(iy + 2).min(self.ny) {
-            for cx in ix.saturating_sub(1)..(ix + 2).min(self.nx) {
-                let c = &self.cells[cy * self.nx + cx];
+        for (cx, cy, c) in self.grid.neighbours(ix, iy) {
+            {
                 if c.m[0] == 0.0 {
                     continue;
                 }
                 let f = self.factor(pulse - c.pulse);
                 // Shift the cell's moments from its centre to the point.
-                let a = (cx as f64 + 0.5) * self.cell - x;
-                let b = (cy as f64 + 0.5) * self.cell - y;
+                let (a, b) = self.grid.centre(cx, cy);
+                let (a, b) = (a - x, b - y);
                 let m = &c.m;
                 let shifted = [
                     m[0],
