@@ -918,6 +918,24 @@ fn gap_reductions(rows: &RowSet, before: &DiscrepancyTable, after: &DiscrepancyT
         .collect()
 }
 
+/// The candidates from most to least of the gap removed (ties by name),
+/// and the best one's closest rival: the next best that removes part of
+/// the same rows.
+fn ranking(improvement: &[f64], red: &[Vec<f64>], names: &[&str]) -> (Vec<usize>, Option<usize>) {
+    let mut order: Vec<usize> = (0..improvement.len()).collect();
+    order.sort_by(|&a, &b| {
+        improvement[b]
+            .total_cmp(&improvement[a])
+            .then_with(|| names[a].cmp(names[b]))
+    });
+    let best = order[0];
+    let rival = order[1..]
+        .iter()
+        .copied()
+        .find(|&o| rivals(&red[best], &red[o]));
+    (order, rival)
+}
+
 /// Is `ro` (a candidate's per-row reductions) a rival of `rb` (the best
 /// one's): does at least [`RIVAL_OVERLAP`] of what it removes from the
 /// gap (summed over the rows it improves) lie in rows the best improves
@@ -1004,17 +1022,8 @@ pub fn judge_candidates(
         .map(|a| gap_reductions(&rows, before, a))
         .collect();
     let improvement: Vec<f64> = red.iter().map(|r| r.iter().sum()).collect();
-    let mut order: Vec<usize> = (0..after.len()).collect();
-    order.sort_by(|&a, &b| {
-        improvement[b]
-            .total_cmp(&improvement[a])
-            .then_with(|| names[a].cmp(names[b]))
-    });
+    let (order, rival) = ranking(&improvement, &red, names);
     let best = order[0];
-    let rival = order[1..]
-        .iter()
-        .copied()
-        .find(|&o| rivals(&red[best], &red[o]));
     let chance = chance_factor * null_sd;
     let beats_chance = improvement[best] > chance && improvement[best] > 0.0;
     let runner_up = rival.map_or(0.0, |r| improvement[r]);
@@ -1087,17 +1096,8 @@ pub fn judge_candidates_whole_gap(
         })
         .collect();
     let improvement: Vec<f64> = after.iter().map(|a| gap_before - a.gap()).collect();
-    let mut order: Vec<usize> = (0..after.len()).collect();
-    order.sort_by(|&a, &b| {
-        improvement[b]
-            .total_cmp(&improvement[a])
-            .then_with(|| names[a].cmp(names[b]))
-    });
+    let (order, rival) = ranking(&improvement, &red, names);
     let best = order[0];
-    let rival = order[1..]
-        .iter()
-        .copied()
-        .find(|&o| rivals(&red[best], &red[o]));
     let chance = chance_factor * null_sd;
     let beats_chance = improvement[best] > chance && improvement[best] > 0.0;
     let runner_up = rival.map_or(0.0, |r| improvement[r]);
