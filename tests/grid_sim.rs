@@ -326,41 +326,9 @@ fn turbulent_stresses_through_the_chain() {
     sc.duration_s = 0.1;
     let (samples, flow) = chain(&sc, 6, fixed_window_fit());
     let (uu, vv, uv) = flow.known_stresses().unwrap();
-    let spec = ebptv::grid::GridSpec::covering(
-        Lattice::new(16.0, 16.0, 0.0).unwrap(),
-        Weighting::TopHat,
-        0.0,
-        255.0,
-        296.0,
-        423.0,
-    )
-    .unwrap();
-    let est = |s: &[Sample], noise_rms: f64| {
-        let mut a = ebptv::grid::GridAccumulator::new(spec);
-        a.add_all(s);
-        estimate(
-            &a,
-            &EstimateOptions {
-                fit: Fit::Linear,
-                min_count: 50,
-                noise_rms,
-            },
-        )
-        .unwrap()
-    };
-    let noise =
-        ebptv::grid::noise::velocity_noise(&samples, &est(&samples, 0.0), &Default::default())
-            .unwrap();
+    let grids = chain_common::turbulent_roi_grids(&samples, &flow);
+    let (spec, gm, gt) = (grids.spec, grids.measured, grids.truth);
     let (noise_rms, noise_robust) = true_noise(&samples, &flow);
-    let at_samples: Vec<Sample> = samples
-        .iter()
-        .map(|s| {
-            let (u, v) = flow.velocity(s.x, s.y, s.t_us * 1e-6);
-            Sample { u, v, ..*s }
-        })
-        .collect();
-    let gm = est(&samples, noise.noise_rms);
-    let gt = est(&at_samples, 0.0);
     let (mut a, mut b, mut c) = (vec![], vec![], vec![]);
     let (mut ka, mut kb, mut kc) = (vec![], vec![], vec![]);
     for (m, t) in gm.bins.iter().zip(&gt.bins) {
@@ -381,7 +349,7 @@ fn turbulent_stresses_through_the_chain() {
         100.0 * ea,
         100.0 * eb,
         100.0 * ec,
-        noise.noise_rms,
+        grids.noise_rms,
         noise_robust,
         noise_rms,
         100.0 * percentile(ka, 0.5),
@@ -402,7 +370,7 @@ fn turbulent_stresses_through_the_chain() {
     let opt = EstimateOptions {
         fit: Fit::Linear,
         min_count: 50,
-        noise_rms: noise.noise_rms,
+        noise_rms: grids.noise_rms,
     };
     let merged = estimate(&a, &opt).unwrap();
     let mut worst: f64 = 0.0;
@@ -424,9 +392,9 @@ fn turbulent_stresses_through_the_chain() {
     assert!(worst < 1e-9);
     assert!(ea < 0.10 && eb < 0.10 && ec < 0.10);
     assert!(
-        (noise.noise_rms / noise_robust - 1.0).abs() < 0.15,
+        (grids.noise_rms / noise_robust - 1.0).abs() < 0.15,
         "noise {} vs {noise_robust}",
-        noise.noise_rms
+        grids.noise_rms
     );
 }
 

@@ -8,7 +8,6 @@ mod chain_common;
 
 use ebptv::cluster::ClusterParams;
 use ebptv::events::Chunk;
-use ebptv::grid::{estimate, EstimateOptions, Fit, GridStats, Lattice, Sample, Weighting};
 use ebptv::io::{EventSource, StreamInfo};
 use ebptv::sim::scenario::Roi;
 use ebptv::sim::Simulator;
@@ -115,46 +114,14 @@ fn turbulent(
 ) -> Turbulence {
     let samples = chain_common::track_samples(info, chunks, tp);
     let period_s = 1.0 / pulse_hz;
-    let at_samples: Vec<Sample> = samples
-        .iter()
-        .map(|s| {
-            let (u, v) = flow.velocity(s.x, s.y, s.t_us * 1e-6);
-            Sample { u, v, ..*s }
-        })
-        .collect();
+    let grids = chain_common::turbulent_roi_grids(&samples, flow);
     let sq: f64 = samples
         .iter()
-        .zip(&at_samples)
+        .zip(&grids.at_samples)
         .map(|(m, t)| (m.u - t.u).powi(2) + (m.v - t.v).powi(2))
         .sum();
     let velocity_rms = (sq / (2 * samples.len()) as f64).sqrt() * period_s;
-    let spec = ebptv::grid::GridSpec::covering(
-        Lattice::new(16.0, 16.0, 0.0).unwrap(),
-        Weighting::TopHat,
-        0.0,
-        255.0,
-        296.0,
-        423.0,
-    )
-    .unwrap();
-    let est = |s: &[Sample], noise_rms: f64| -> GridStats {
-        let mut a = ebptv::grid::GridAccumulator::new(spec);
-        a.add_all(s);
-        estimate(
-            &a,
-            &EstimateOptions {
-                fit: Fit::Linear,
-                min_count: 50,
-                noise_rms,
-            },
-        )
-        .unwrap()
-    };
-    let noise =
-        ebptv::grid::noise::velocity_noise(&samples, &est(&samples, 0.0), &Default::default())
-            .unwrap();
-    let gm = est(&samples, noise.noise_rms);
-    let gt = est(&at_samples, 0.0);
+    let (gm, gt) = (grids.measured, grids.truth);
     let (_, _, uv) = flow.known_stresses().unwrap();
     let mut abs: [Vec<f64>; 3] = Default::default();
     let mut signed: [Vec<f64>; 3] = Default::default();

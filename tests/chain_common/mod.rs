@@ -6,9 +6,14 @@
 
 use ebptv::cluster::{ClusterParams, Particle};
 use ebptv::events::Chunk;
-use ebptv::grid::Sample;
+use ebptv::grid::noise::velocity_noise;
+use ebptv::grid::{
+    estimate, EstimateOptions, Fit, GridAccumulator, GridSpec, GridStats, Lattice, Sample,
+    Weighting,
+};
 use ebptv::io::{EventSource, StreamInfo};
 use ebptv::pulses::PulseOptions;
+use ebptv::sim::Flow;
 use ebptv::track::{track_recording, PtvSink, PtvStream, Track, TrackParams};
 
 /// The chunks of one simulated recording, served again on every open.
@@ -78,4 +83,58 @@ pub fn track_samples(info: &StreamInfo, chunks: &[Chunk], track: TrackParams) ->
                 .map(move |p| Sample::from_track_point(t.id, p))
         })
         .collect()
+}
+
+/// The 16 px grids of the `turbulent_bl` scene's 256 × 128 ROI (x 0–255,
+/// y 296–423; linear fit, bins of ≥ 50 samples): the measured samples with
+/// the pair estimator's noise correction, and the analytic velocity at the
+/// same samples (the truth binned exactly like the measurement).
+pub struct TurbulentGrids {
+    pub spec: GridSpec,
+    /// The samples with their velocity replaced by the flow's.
+    pub at_samples: Vec<Sample>,
+    /// The pair estimator's velocity noise (px/s).
+    pub noise_rms: f64,
+    pub measured: GridStats,
+    pub truth: GridStats,
+}
+
+pub fn turbulent_roi_grids(samples: &[Sample], flow: &Flow) -> TurbulentGrids {
+    let spec = GridSpec::covering(
+        Lattice::new(16.0, 16.0, 0.0).unwrap(),
+        Weighting::TopHat,
+        0.0,
+        255.0,
+        296.0,
+        423.0,
+    )
+    .unwrap();
+    let est = |s: &[Sample], noise_rms: f64| -> GridStats {
+        let mut a = GridAccumulator::new(spec);
+        a.add_all(s);
+        estimate(
+            &a,
+            &EstimateOptions {
+                fit: Fit::Linear,
+                min_count: 50,
+                noise_rms,
+            },
+        )
+        .unwrap()
+    };
+    let noise = velocity_noise(samples, &est(samples, 0.0), &Default::default()).unwrap();
+    let at_samples: Vec<Sample> = samples
+        .iter()
+        .map(|s| {
+            let (u, v) = flow.velocity(s.x, s.y, s.t_us * 1e-6);
+            Sample { u, v, ..*s }
+        })
+        .collect();
+    TurbulentGrids {
+        spec,
+        measured: est(samples, noise.noise_rms),
+        truth: est(&at_samples, 0.0),
+        at_samples,
+        noise_rms: noise.noise_rms,
+    }
 }
