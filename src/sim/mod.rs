@@ -208,6 +208,15 @@ impl KeyLayout {
         }
     }
 
+    /// The pixel of key `k` relative to the ROI's corner (x, y).
+    #[inline(always)]
+    fn pixel_offsets(&self, k: u64) -> (usize, usize) {
+        (
+            ((k >> 2) & ((1u64 << self.x_bits) - 1)) as usize,
+            ((k >> (2 + self.x_bits)) & self.y_mask) as usize,
+        )
+    }
+
     /// The key bits of pixel (x, y) (for [`Self::key_at`]).
     #[inline]
     fn pixel_bits(&self, x: u16, y: u16) -> u64 {
@@ -520,6 +529,10 @@ impl Buffers {
         }
     }
 }
+
+/// Requests between a prefetch of a pixel's refractory state and its use:
+/// enough work (~20 ns each) to cover a load from memory.
+const PREFETCH_AHEAD: usize = 16;
 
 /// Per-pulse vectors kept for reuse (two blocks of pulses are in flight).
 const POOLED_PULSE_MAX: usize = 48;
@@ -955,10 +968,18 @@ impl Back {
         if arbiter.is_none() {
             reqs.reserve(split);
         }
-        let mut take = |a: pixel::Arrival| match &mut arbiter {
-            Some(arb) => arb.offer(&a, t_end, events),
-            None => reqs.push(a),
-        };
+        // Request `k` (decoded: time `t`, pixel (`dx`, `dy`) from the ROI's
+        // corner) into the arbiter, or into `reqs` without one. (A macro,
+        // not a closure: the prefetches below read the arbiter between
+        // calls.)
+        macro_rules! take {
+            ($k:expr, $t:expr, $dx:expr, $dy:expr) => {
+                match &mut arbiter {
+                    Some(arb) => arb.offer_at($t, $dx, $dy, ($k & 1) as u8, t_end, events),
+                    None => reqs.push(layout.arrival($k, t_begin)),
+                }
+            };
+        }
         match &mut self.refractory {
             Some(rf) => {
                 let xs = layout.x_shift();
@@ -966,45 +987,82 @@ impl Back {
                 let mut heap: std::collections::BinaryHeap<Reverse<(u64, u64, usize)>> =
                     Default::default();
                 let mut slots: Vec<(u64, Vec<u64>)> = Vec::new();
+                // A group whose head was dropped: its first member that
+                // passes the filter now goes into the heap with the rest.
+                macro_rules! expand {
+                    ($members:expr) => {{
+                        let members: Vec<u64> = $members;
+                        if !members.is_empty() {
+                            self.groups_expanded += 1;
+                            if let Some(m) = members
+                                .iter()
+                                .position(|&m| rf.would_keep(&layout.arrival(m, t_begin)))
+                            {
+                                heap.push(Reverse((
+                                    members[m] >> xs,
+                                    slots.len() as u64,
+                                    slots.len(),
+                                )));
+                                slots.push((members[m], members[m + 1..].to_vec()));
+                            }
+                        }
+                    }};
+                }
                 let mut i = 0;
                 loop {
-                    let from_heap = match heap.peek() {
+                    // The sort bits of the first deferred member due in
+                    // this block: keys up to them go first.
+                    let due = match heap.peek() {
                         Some(&Reverse((sk, _, j)))
                             if layout.time(slots[j].0, t_begin) < r.t_end =>
                         {
-                            i == split || sk < keys[i] >> xs
+                            Some(sk)
                         }
-                        _ => false,
+                        _ => None,
                     };
-                    let (k, slot) = if from_heap {
-                        let Reverse((_, _, j)) = heap.pop().expect("peeked");
-                        (slots[j].0, Some(j))
-                    } else if i < split {
+                    let bound = due.unwrap_or(u64::MAX);
+                    // The requests in key order up to the bound (nearly all
+                    // of them), each decoded once; stops early when a group
+                    // is expanded (the heap changed).
+                    let mut heap_changed = false;
+                    while i < split && keys[i] >> xs <= bound {
+                        if let Some(&ahead) = keys.get(i + PREFETCH_AHEAD) {
+                            let (dx, dy) = layout.pixel_offsets(ahead);
+                            rf.prefetch(dx, dy);
+                            if let Some(arb) = &arbiter {
+                                arb.prefetch(dx, dy);
+                            }
+                        }
+                        let k = keys[i];
                         i += 1;
-                        (keys[i - 1], None)
+                        let t = layout.time(k, t_begin);
+                        let (dx, dy) = layout.pixel_offsets(k);
+                        if rf.keep_at(dx, dy, t) {
+                            take!(k, t, dx, dy);
+                        } else if k & GROUP_FLAG != 0 {
+                            let before = heap.len();
+                            expand!(tails.members(k));
+                            if heap.len() != before {
+                                heap_changed = true;
+                                break;
+                            }
+                        }
+                    }
+                    if heap_changed {
+                        continue; // a new bound
+                    }
+                    if due.is_none() {
+                        break; // keys done, nothing due in the heap
+                    }
+                    // The deferred member is next.
+                    let Reverse((_, _, j)) = heap.pop().expect("peeked");
+                    let k = slots[j].0;
+                    let t = layout.time(k, t_begin);
+                    let (dx, dy) = layout.pixel_offsets(k);
+                    if rf.keep_at(dx, dy, t) {
+                        take!(k, t, dx, dy);
                     } else {
-                        break;
-                    };
-                    let a = layout.arrival(k, t_begin);
-                    if rf.keep(&a) {
-                        take(a);
-                        continue;
-                    }
-                    let members = match slot {
-                        Some(j) => std::mem::take(&mut slots[j].1),
-                        None if k & GROUP_FLAG != 0 => tails.members(k),
-                        None => continue,
-                    };
-                    if members.is_empty() {
-                        continue;
-                    }
-                    self.groups_expanded += 1;
-                    if let Some(m) = members
-                        .iter()
-                        .position(|&m| rf.would_keep(&layout.arrival(m, t_begin)))
-                    {
-                        heap.push(Reverse((members[m] >> xs, slots.len() as u64, slots.len())));
-                        slots.push((members[m], members[m + 1..].to_vec()));
+                        expand!(std::mem::take(&mut slots[j].1));
                     }
                 }
                 if !r.last {
@@ -1035,8 +1093,13 @@ impl Back {
                 }
             }
             None => {
-                for &k in &keys[..split] {
-                    take(layout.arrival(k, t_begin));
+                for (i, &k) in keys[..split].iter().enumerate() {
+                    if let (Some(&ahead), Some(arb)) = (keys.get(i + PREFETCH_AHEAD), &arbiter) {
+                        let (dx, dy) = layout.pixel_offsets(ahead);
+                        arb.prefetch(dx, dy);
+                    }
+                    let (dx, dy) = layout.pixel_offsets(k);
+                    take!(k, layout.time(k, t_begin), dx, dy);
                 }
                 if !r.last {
                     self.carry
