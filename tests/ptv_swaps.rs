@@ -25,6 +25,7 @@ fn swap_anatomy() {
     let tp = TrackParams {
         max_disp: 10.0,
         step_split: env("PTV_STEP").unwrap_or(d.step_split),
+        step_split_hinted: env("PTV_STEP_HINT").unwrap_or(d.step_split_hinted),
         gap_first_step: env("PTV_GAP_FIRST").map_or(d.gap_first_step, |v| v != 0.0),
         ..d
     };

@@ -76,6 +76,70 @@ def score(tracks, detections, truth, max_dist):
     }
 
 
+def found_links(tracks, truth, max_dist):
+    """Truth-particle links (pulse k, id) that a track holds between k and k+1,
+    and the attributed points."""
+    t = tracks.sort_values(["track", "pulse"]).reset_index(drop=True)
+    t["tid"] = attribute(t, truth, max_dist)
+    tr, pu, ti = t.track.to_numpy(), t.pulse.to_numpy(), t.tid.to_numpy()
+    same = (tr[1:] == tr[:-1]) & (pu[1:] == pu[:-1] + 1) & (ti[1:] == ti[:-1]) & (ti[:-1] >= 0)
+    return set(zip(pu[:-1][same], ti[:-1][same])), t
+
+
+def missed_breakdown(eb, tp, detections, truth, max_dist):
+    """Why ebptv misses the truth links that trackpy finds: where the
+    particle's points are on ebptv's tracks at pulses k and k+1."""
+    det = detections.reset_index(drop=True)
+    det["tid"] = attribute(det, truth, max_dist)
+    detected = set(zip(det.pulse[det.tid >= 0], det.tid[det.tid >= 0]))
+    truth_links = {(k, i) for (k, i) in detected if (k + 1, i) in detected}
+    eb_found, ebt = found_links(eb, truth, max_dist)
+    tp_found, _ = found_links(tp, truth, max_dist)
+    eb_found &= truth_links
+    tp_found &= truth_links
+    # (pulse, tid) -> rows of ebptv's points attributed there.
+    at = {}
+    for r, (k, i) in enumerate(zip(ebt.pulse.to_numpy(), ebt.tid.to_numpy())):
+        if i >= 0:
+            at.setdefault((k, i), []).append(r)
+    row_of = {(tr, k): r for r, (tr, k) in enumerate(zip(ebt.track.to_numpy(), ebt.pulse.to_numpy()))}
+    length = ebt.groupby("track").pulse.count().to_dict()
+    # Detected run of each truth particle around a pulse (life in detections).
+    life = det[det.tid >= 0].groupby("tid").pulse.nunique().to_dict()
+
+    def other(r, k2):
+        tr = ebt.track[r]
+        r2 = row_of.get((tr, k2))
+        if r2 is None:
+            return "track ends" if k2 > ebt.pulse[r] else "track starts"
+        return "off truth" if ebt.tid[r2] < 0 else "other particle"
+
+    def why(k, i):
+        a, b = at.get((k, i), []), at.get((k + 1, i), [])
+        if not a and not b:
+            n = life.get(i, 0)
+            return f"particle on no track at k, k+1 (life {'<5' if n < 5 else '5-9' if n < 10 else '>=10'} detections)"
+        if a and not b:
+            return f"on a track at k only: at k+1 its track's point is {other(a[0], k + 1)}"
+        if b and not a:
+            return f"on a track at k+1 only: at k its track's point is {other(b[0], k)}"
+        ta, tb = {ebt.track[r] for r in a}, {ebt.track[r] for r in b}
+        if ta & tb:
+            return "same track (points not consecutive)"
+        short = min(length[ebt.track[a[0]]], length[ebt.track[b[0]]])
+        return f"on two tracks (shorter {'<10' if short < 10 else '>=10'} points)"
+
+    for name, miss in [("trackpy finds, ebptv misses", tp_found - eb_found), ("ebptv finds, trackpy misses", eb_found - tp_found)]:
+        print(f"{name}: {len(miss)} of {len(truth_links)} truth links")
+        if name.startswith("trackpy"):
+            counts = {}
+            for k, i in miss:
+                w = why(k, i)
+                counts[w] = counts.get(w, 0) + 1
+            for w, c in sorted(counts.items(), key=lambda x: -x[1]):
+                print(f"  {c:6d}  {w}")
+
+
 def run_trackpy(particles, search_range, memory):
     import trackpy as tp
 
@@ -119,6 +183,16 @@ def main():
     ap.add_argument("--memory", type=int, default=2)
     ap.add_argument("--match", type=float, default=1.5, help="px: point-to-truth attribution distance")
     ap.add_argument("--skip-trackpy", action="store_true")
+    ap.add_argument(
+        "--trackpy-cache",
+        help="CSV of trackpy's linked output (with its timing in CSV.json): read it when it "
+        "exists instead of linking again, write it otherwise (trackpy takes minutes)",
+    )
+    ap.add_argument(
+        "--missed",
+        action="store_true",
+        help="break down the truth links trackpy finds and ebptv misses (and the reverse)",
+    )
     a = ap.parse_args()
 
     pcsv = os.path.join(a.dir, "particles.csv")
@@ -138,8 +212,18 @@ def main():
     rows.append(("ebptv", s, dt, cpu, vel))
 
     if not a.skip_trackpy:
-        tp_tracks, tp_dt, tp_cpu = run_trackpy(particles, a.search_range, a.memory)
+        if a.trackpy_cache and os.path.exists(a.trackpy_cache):
+            tp_tracks = pd.read_csv(a.trackpy_cache)
+            timing = json.load(open(a.trackpy_cache + ".json"))
+            tp_dt, tp_cpu = timing["wall_s"], timing["cpu_s"]
+        else:
+            tp_tracks, tp_dt, tp_cpu = run_trackpy(particles, a.search_range, a.memory)
+            if a.trackpy_cache:
+                tp_tracks.to_csv(a.trackpy_cache, index=False)
+                json.dump({"wall_s": tp_dt, "cpu_s": tp_cpu}, open(a.trackpy_cache + ".json", "w"))
         rows.append(("trackpy", score(tp_tracks, particles, truth, a.match), tp_dt, tp_cpu, float("nan")))
+        if a.missed:
+            missed_breakdown(tracks, tp_tracks, particles, truth, a.match)
 
     print(f"{n} particles, {particles.pulse.nunique()} pulses, search range {a.search_range} px, memory/gap {a.memory}")
     print(f"{'tracker':8} {'precision':>9} {'recall':>7} {'links':>8} {'wall s':>8} {'cpu s':>7} {'points/cpu-s':>13} {'vel rms px/pulse':>16}")

@@ -68,6 +68,10 @@ pub struct TrackArgs {
     /// (about 10 % less CPU). See `TrackParams::step_split`.
     #[arg(long, default_value_t = 12.0)]
     pub step_split: f64,
+    /// Lower step threshold where the step lines up with a neighbour of
+    /// the track (0 = off). See `TrackParams::step_split_hinted`.
+    #[arg(long, default_value_t = 0.0)]
+    pub step_split_hinted: f64,
     /// Draw noisy track-end velocities towards the local flow of the
     /// established tracks (strength; 1 = as calibrated from the data, 0 =
     /// off). See `TrackParams::velocity_prior` and docs/readme/ptv.md.
@@ -481,6 +485,7 @@ fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
         ghost_check_length: args.ghost_check_length,
         ghost_sigma: args.ghost_sigma,
         step_split: args.step_split,
+        step_split_hinted: args.step_split_hinted,
         velocity_prior: args.velocity_prior,
         ghost_check_init: args.ghost_check_length > 0,
         init_gap: args.ghost_check_length > 0,
