@@ -245,3 +245,51 @@ fn velocity_prior_numbers() {
         }
     }
 }
+
+/// Quick look at the two-pass prior (seed from `EBPTV_SEEDS`, default 1).
+#[test]
+#[ignore]
+fn two_pass_quick() {
+    let seeds: Vec<u64> = std::env::var("EBPTV_SEEDS")
+        .ok()
+        .map(|s| s.split(',').map(|x| x.parse().unwrap()).collect())
+        .unwrap_or(vec![1]);
+    for seed in seeds {
+        let sp = SynthParams {
+            width: 384,
+            height: 384,
+            seed,
+            ..Default::default()
+        };
+        let scene = generate(&sp);
+        for (label, tp) in [
+            (
+                "two-pass variance-matching",
+                TrackParams {
+                    velocity_prior_two_pass: true,
+                    ..with_prior()
+                },
+            ),
+            (
+                "two-pass posterior mean",
+                TrackParams {
+                    velocity_prior_two_pass: true,
+                    velocity_prior_mean: true,
+                    ..with_prior()
+                },
+            ),
+        ] {
+            let t = std::time::Instant::now();
+            let (_, s) =
+                run_and_score(&scene, &ClusterParams::default(), &tp, sp.period_us).unwrap();
+            println!(
+                "seed {seed} {label}: velocity rms {:.4} (interior {:.4}), precision {:.4}, recall {:.4}, {:.1} s",
+                s.velocity_rms_px_per_pulse,
+                s.velocity_rms_interior_px_per_pulse,
+                s.precision,
+                s.recall,
+                t.elapsed().as_secs_f64()
+            );
+        }
+    }
+}

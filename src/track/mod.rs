@@ -406,6 +406,21 @@ pub struct TrackParams {
     /// smooth flow, not for statistics.
     #[serde(default)]
     pub velocity_prior_mean: bool,
+    /// With `velocity_prior`: take the prior from a first pass over the
+    /// whole run instead of the links made so far (session 10). Every
+    /// kept track is fitted without a prior first; the fitted velocities
+    /// of all tracks then give the local flow
+    /// ([`local_flow::WholeRunFlow`]: a quadratic in space, linear in
+    /// time, from the samples of *other* tracks within 24 px and ±3
+    /// pulses), calibrated on all points, and every track is fitted again
+    /// with it. Track starts in the recording's first pulses get a prior
+    /// too, and the quadratic follows a curved flow's mean where the
+    /// one-pass plane did not. Tracks are held until [`Tracker::finish`]
+    /// (memory grows with the run: for whole sets of particles, as
+    /// [`link_linked`] and the synthetic scenes); the streaming pipeline
+    /// ([`Tracker::defer_fits`]) fits in one pass without any prior.
+    #[serde(default)]
+    pub velocity_prior_two_pass: bool,
     /// Search radius (px) around the prior's prediction for the first step.
     pub prior_radius: f64,
     /// Mean-flow prior for initialisation.
@@ -451,6 +466,7 @@ impl Default for TrackParams {
             gap_first_step: default_gap_first_step(),
             velocity_prior: 0.0,
             velocity_prior_mean: false,
+            velocity_prior_two_pass: false,
             prior_radius: 3.0,
             prior: None,
         }
@@ -585,6 +601,12 @@ impl TrackParams {
             return Err(Error::param(
                 "velocity_prior",
                 format!("must be a finite number >= 0, got {}", self.velocity_prior),
+            ));
+        }
+        if self.velocity_prior_two_pass && self.velocity_prior <= 0.0 {
+            return Err(Error::param(
+                "velocity_prior_two_pass",
+                "needs velocity_prior > 0 (its strength)".to_string(),
             ));
         }
         if !(self.step_split.is_finite() && self.step_split >= 0.0) {
@@ -1195,7 +1217,10 @@ impl Tracker {
         let mut all = std::mem::take(&mut self.pool);
         all.append(&mut self.active);
         all.sort_unstable_by_key(|t| t.dets[0].serial);
-        let out = self.finalise(all);
+        let mut out = self.finalise(all);
+        // The second pass of `velocity_prior_two_pass` (no tracks held
+        // otherwise): every track so far, in id order.
+        out.extend(self.finaliser.refit_held());
         (out, self.stats)
     }
 
@@ -1236,7 +1261,10 @@ impl Tracker {
     /// the finaliser's, not [`Tracker::stats`]'s.
     pub fn defer_fits(&mut self) -> Finaliser {
         self.deferred.get_or_insert_with(Vec::new);
-        std::mem::replace(&mut self.finaliser, Finaliser::new(self.params.clone()))
+        let mut f = std::mem::replace(&mut self.finaliser, Finaliser::new(self.params.clone()));
+        // Nobody would collect held tracks: one pass, no prior.
+        f.hold = false;
+        f
     }
 
     /// The ended tracks waiting since the last call (after
@@ -2218,6 +2246,11 @@ pub struct Finaliser {
     /// The prior's variance as measured on the tracks kept so far.
     prior_calibration: local_flow::PriorCalibration,
     next_id: u64,
+    /// Hold kept tracks for a second pass (`velocity_prior_two_pass`;
+    /// false for the streaming pipeline's finaliser).
+    hold: bool,
+    /// Numbered tracks waiting for [`Finaliser::refit_held`].
+    held: Vec<(LinkedTrack, Box<Refit>)>,
 }
 
 impl Finaliser {
@@ -2234,6 +2267,8 @@ impl Finaliser {
             ),
             prior_calibration: local_flow::PriorCalibration::default(),
             next_id: 0,
+            hold: true,
+            held: Vec::new(),
         }
     }
 
@@ -2254,8 +2289,10 @@ impl Finaliser {
             flow_samples,
         } = ended;
         let params = &self.params;
-        // The flow as the tracker saw it when these tracks ended.
-        let with_prior = params.velocity_prior > 0.0;
+        // The flow as the tracker saw it when these tracks ended (the
+        // two-pass prior comes later, from all tracks).
+        let hold = self.hold;
+        let with_prior = params.velocity_prior > 0.0 && !params.velocity_prior_two_pass;
         for sample in flow_samples {
             self.flow.add_sample(sample);
             if with_prior {
@@ -2272,7 +2309,7 @@ impl Finaliser {
         // The prior applies once its variance is calibrated (as of the
         // batches before this one); before, only the calibration runs.
         let prior = with_prior.then(|| VelocityPriorUse {
-            flow: &self.linear_flow,
+            flow: PriorSource::Online(&self.linear_flow),
             scale: self
                 .prior_calibration
                 .scale()
@@ -2285,7 +2322,7 @@ impl Finaliser {
             let (cuts, pieces) = cut_at_steps(t, sigma, params.step_split);
             let fitted = pieces
                 .into_iter()
-                .map(|p| finalise_one(p, params, flow, prior.as_ref(), gate, sigma, accel))
+                .map(|p| finalise_one(p, params, flow, prior.as_ref(), gate, sigma, accel, hold))
                 .collect();
             (cuts, fitted)
         };
@@ -2315,26 +2352,145 @@ impl Finaliser {
                     curvature,
                     calibration,
                     by_flow,
+                    refit,
                 } => {
                     self.prior_calibration.merge(&calibration);
                     stats.tracks_kept_by_flow += by_flow as u64;
                     self.accel_prior.merge(&curvature);
                     stats.tracks_kept += 1;
                     stats.particles_on_tracks += fresh as u64;
-                    out.push(LinkedTrack {
+                    let linked = LinkedTrack {
                         track: Track {
                             id: self.next_id,
                             points,
                         },
                         detections,
-                    });
+                    };
+                    match refit {
+                        Some(r) => self.held.push((linked, r)),
+                        None => out.push(linked),
+                    }
                     self.next_id += 1;
                 }
             }
         }
         out
     }
+
+    /// The second pass of `TrackParams::velocity_prior_two_pass`: the
+    /// held tracks' first-pass points become the whole run's flow
+    /// ([`local_flow::WholeRunFlow`]), the prior's variance is calibrated
+    /// on all of them (their first-pass fits, every point), and every
+    /// held track is fitted again with the prior (links, positions and
+    /// residuals are those of the first pass; only the velocities move).
+    /// Returns the tracks in id order; none when nothing is held. Each
+    /// refit depends only on its track and the (fixed) flow: parallel,
+    /// independent of the thread count.
+    pub fn refit_held(&mut self) -> Vec<LinkedTrack> {
+        use rayon::prelude::*;
+        let held = std::mem::take(&mut self.held);
+        if held.is_empty() {
+            return Vec::new();
+        }
+        let params = &self.params;
+        let period_s = |dets: &[Det]| {
+            let n = dets.len();
+            ((dets[n - 1].t_us - dets[0].t_us) / (dets[n - 1].pulse - dets[0].pulse).max(1) as f64)
+                .max(1e-9)
+                * 1e-6
+        };
+        let mut samples = Vec::new();
+        for (lt, r) in &held {
+            let period = period_s(&r.dets);
+            for ((p, d), &fit_var) in lt.track.points.iter().zip(&lt.detections).zip(&r.fit_vars) {
+                if let (Some(serial), false) = (d, p.interpolated) {
+                    samples.push(local_flow::RunSample {
+                        pulse: p.pulse,
+                        x: p.x,
+                        y: p.y,
+                        u: p.u * period,
+                        v: p.v * period,
+                        fit_var,
+                        serial: *serial,
+                    });
+                }
+            }
+        }
+        let env = |k: &str, d: f64| {
+            std::env::var(k)
+                .ok()
+                .and_then(|v| v.parse().ok())
+                .unwrap_or(d)
+        };
+        let flow = local_flow::WholeRunFlow::new(
+            &samples,
+            env("EBPTV_RUN_R", RUN_PRIOR_RADIUS),
+            env("EBPTV_RUN_T", RUN_PRIOR_HALF_WINDOW as f64) as i64,
+        );
+        // Calibration on the first-pass fits (what the refit computes
+        // before its prior), every point.
+        let calibration = held
+            .par_iter()
+            .with_max_len(1)
+            .map(|(lt, r)| {
+                let mut own: Vec<u64> = r.dets.iter().map(|d| d.serial).collect();
+                own.sort_unstable();
+                let period = period_s(&r.dets);
+                let mut cal = local_flow::PriorCalibration::default();
+                for (p, &fit_var) in lt.track.points.iter().zip(&r.fit_vars) {
+                    cal.note_fit_variance(fit_var);
+                    if let Some(pr) = flow.prior(p.pulse, p.x, p.y, &own) {
+                        cal.add(p.u * period, p.v * period, fit_var, &pr);
+                    }
+                }
+                cal
+            })
+            .collect::<Vec<_>>()
+            .into_iter()
+            .fold(local_flow::PriorCalibration::default(), |mut a, c| {
+                a.merge(&c);
+                a
+            });
+        let prior = VelocityPriorUse {
+            flow: PriorSource::WholeRun(&flow),
+            scale: calibration.scale().zip(calibration.typical_fit_variance()),
+            strength: params.velocity_prior,
+        };
+        held.into_par_iter()
+            .with_max_len(1)
+            .map(|(mut lt, r)| {
+                let (mut points, _, _) = fit_track_with(
+                    &r.dets,
+                    params,
+                    r.sigma,
+                    r.accel_rms,
+                    Some(&prior),
+                    &mut Default::default(),
+                    true,
+                    &mut 0,
+                    None,
+                );
+                if let Some(h) = r.handed_out {
+                    let first = points
+                        .iter()
+                        .position(|p| p.pulse > h)
+                        .unwrap_or(points.len());
+                    points.drain(..first);
+                }
+                debug_assert_eq!(points.len(), lt.track.points.len());
+                lt.track.points = points;
+                lt
+            })
+            .collect()
+    }
 }
+
+/// Radius (px) of [`local_flow::WholeRunFlow`]'s neighbourhood: a few
+/// particle spacings at ppp 0.01 (half the one-pass prior's 48 px).
+const RUN_PRIOR_RADIUS: f64 = 24.0;
+
+/// Its half window (pulses).
+const RUN_PRIOR_HALF_WINDOW: i64 = 3;
 
 /// The two parts of a split image: event-weighted centroid (px) and
 /// events of the part given to the first and to the second prediction.
@@ -2525,7 +2681,20 @@ enum Finalised {
         calibration: local_flow::PriorCalibration,
         /// Below `min_length`, kept by the local-flow test.
         by_flow: bool,
+        /// What the second pass of `velocity_prior_two_pass` refits.
+        refit: Option<Box<Refit>>,
     },
+}
+
+/// A kept track's cleaned detections and fit inputs, held for the second
+/// pass of `TrackParams::velocity_prior_two_pass`, with its first-pass
+/// points' fit noise variance per axis (px²/pulse²).
+struct Refit {
+    dets: Vec<Det>,
+    handed_out: Option<i64>,
+    sigma: f64,
+    accel_rms: f64,
+    fit_vars: Vec<f64>,
 }
 
 /// Clean (outliers, unconfirmed tail), validate and fit one ended track;
@@ -2539,6 +2708,7 @@ fn finalise_one(
     gate: f64,
     sigma: f64,
     accel_rms: f64,
+    hold: bool,
 ) -> Finalised {
     // Points up to this pulse went out with an earlier segment.
     let handed_out = (t.context > 0).then(|| t.dets[t.context - 1].pulse);
@@ -2562,8 +2732,19 @@ fn finalise_one(
         }
     }
     let mut calibration = local_flow::PriorCalibration::default();
-    let (mut points, mut detections, rms) =
-        fit_track(&t.dets, params, sigma, accel_rms, prior, &mut calibration);
+    let hold = hold && params.velocity_prior > 0.0 && params.velocity_prior_two_pass;
+    let mut fit_vars = Vec::new();
+    let (mut points, mut detections, rms) = fit_track_with(
+        &t.dets,
+        params,
+        sigma,
+        accel_rms,
+        prior,
+        &mut calibration,
+        true,
+        &mut 0,
+        hold.then_some(&mut fit_vars),
+    );
     if rms > params.max_fit_residual {
         return Finalised::Rough;
     }
@@ -2581,7 +2762,19 @@ fn finalise_one(
             .unwrap_or(points.len());
         points.drain(..first);
         detections.drain(..first);
+        if hold {
+            fit_vars.drain(..first);
+        }
     }
+    let refit = hold.then(|| {
+        Box::new(Refit {
+            dets: t.dets,
+            handed_out,
+            sigma,
+            accel_rms,
+            fit_vars,
+        })
+    });
     Finalised::Kept {
         points,
         detections,
@@ -2589,6 +2782,7 @@ fn finalise_one(
         curvature,
         calibration,
         by_flow,
+        refit,
     }
 }
 
@@ -2725,36 +2919,34 @@ fn extrapolate(dets: &[Det], window: usize, pulse: i64) -> Option<(f64, f64)> {
     fit::fit_eval(&tau, &xs, &ys, 1, 0.0).map(|f| (f.x, f.y))
 }
 
-/// Sliding-window polynomial fit of a track at every pulse from its first
-/// to its last detection, the window chosen per pulse by
-/// [`fit::fit_adaptive`] for position noise `sigma` (px per axis). Returns
-/// the points, the detection serials and the rms residual (px per axis) of
-/// the detections about the fitted positions.
-fn fit_track(
-    dets: &[Det],
-    p: &TrackParams,
-    sigma: f64,
-    accel_rms: f64,
-    prior: Option<&VelocityPriorUse>,
-    calibration: &mut local_flow::PriorCalibration,
-) -> (Vec<TrackPoint>, Vec<Option<u64>>, f64) {
-    fit_track_with(dets, p, sigma, accel_rms, prior, calibration, true, &mut 0)
-}
-
 /// The output fit's velocity prior as one batch of the finaliser uses it:
 /// the flow, the calibration's variance factor (`None`: not calibrated
 /// yet, the prior is only checked) with the fits' typical noise variance,
 /// and `TrackParams::velocity_prior`.
 struct VelocityPriorUse<'a> {
-    flow: &'a local_flow::FlowHistory,
+    flow: PriorSource<'a>,
     scale: Option<(f64, f64)>,
     strength: f64,
 }
 
-/// [`fit_track`]; `grid` takes [`fit::fit_adaptive_grid`] (tabulated
+/// Where the velocity prior comes from: the links so far (one pass) or
+/// the first pass's tracks over the whole run.
+enum PriorSource<'a> {
+    Online(&'a local_flow::FlowHistory),
+    WholeRun(&'a local_flow::WholeRunFlow),
+}
+
+/// Sliding-window polynomial fit of a track at every pulse from its first
+/// to its last detection, the window chosen per pulse by
+/// [`fit::fit_adaptive`] for position noise `sigma` (px per axis). Returns
+/// the points, the detection serials and the rms residual (px per axis) of
+/// the detections about the fitted positions.
+///
+/// `grid` takes [`fit::fit_adaptive_grid`] (tabulated
 /// windows) at the detections whose fit windows are gap-free with regular
 /// times, `false` runs [`fit::fit_adaptive`] everywhere (the reference the
-/// tests compare with); `grid_fits` counts the tabulated fits.
+/// tests compare with); `grid_fits` counts the tabulated fits; `fit_vars`
+/// receives each point's fit noise variance per axis (px²/pulse²).
 fn fit_track_with(
     dets: &[Det],
     p: &TrackParams,
@@ -2764,6 +2956,7 @@ fn fit_track_with(
     calibration: &mut local_flow::PriorCalibration,
     grid: bool,
     grid_fits: &mut usize,
+    mut fit_vars: Option<&mut Vec<f64>>,
 ) -> (Vec<TrackPoint>, Vec<Option<u64>>, f64) {
     let n = dets.len();
     let first = dets[0].pulse;
@@ -2810,6 +3003,15 @@ fn fit_track_with(
     let mut run_fit = tables
         .as_deref()
         .and_then(|t| fit::GridRunFit::new(t, &rule));
+    // The whole-run prior leaves the track's own points out.
+    let own: Vec<u64> = match prior.map(|u| &u.flow) {
+        Some(PriorSource::WholeRun(_)) => {
+            let mut v: Vec<u64> = dets.iter().map(|d| d.serial).collect();
+            v.sort_unstable();
+            v
+        }
+        _ => Vec::new(),
+    };
     let mut j = 0; // index of the first detection at or after the pulse
     for pulse in first..=last {
         while dets[j].pulse < pulse {
@@ -2854,6 +3056,9 @@ fn fit_track_with(
         // the grid; τ is in mean periods), after the residual: the
         // validation sees the track's own fit.
         let (mut vx, mut vy) = (f.vx, f.vy);
+        if let Some(v) = fit_vars.as_deref_mut() {
+            v.push(sigma * sigma * f.velocity_variance);
+        }
         if let Some(use_) = prior {
             let fit_var = sigma * sigma * f.velocity_variance;
             calibration.note_fit_variance(fit_var);
@@ -2862,7 +3067,10 @@ fn fit_track_with(
                 fit_var > typical || (p.velocity_prior_mean && fit_var > 0.0)
             });
             let pr = if check || apply {
-                use_.flow.prior(pulse, f.x, f.y, sigma)
+                match use_.flow {
+                    PriorSource::Online(h) => h.prior(pulse, f.x, f.y, sigma),
+                    PriorSource::WholeRun(w) => w.prior(pulse, f.x, f.y, &own),
+                }
             } else {
                 None
             };
@@ -3354,7 +3562,7 @@ mod tests {
                 }
             }
             let with_prior = VelocityPriorUse {
-                flow: &flow,
+                flow: PriorSource::Online(&flow),
                 scale: Some((1.0, 0.0005)),
                 strength: 1.0,
             };
@@ -3369,6 +3577,7 @@ mod tests {
                 &mut cal_fast,
                 true,
                 &mut grid_fits,
+                None,
             );
             let (rp, rs, rrms) = fit_track_with(
                 &dets,
@@ -3379,6 +3588,7 @@ mod tests {
                 &mut cal_reference,
                 false,
                 &mut 0,
+                None,
             );
             // On the grid the tabulated path takes every detection whose
             // pilot window has no gap; jittered times never.
@@ -3403,6 +3613,7 @@ mod tests {
                     &mut Default::default(),
                     true,
                     &mut 0,
+                    None,
                 );
                 let moved = plain.iter().zip(&fp).filter(|(a, b)| a.u != b.u).count();
                 assert!(moved > 0, "case {case}");
