@@ -1135,4 +1135,79 @@ mod tests {
         }
         assert_eq!(exact.scale(), Some(MIN_SCALE));
     }
+
+    /// Samples of the field u = 1 + 0.02x − 0.01y + 0.001x² + 0.05τ,
+    /// v = −2 + 0.0005xy at pulses 0..10 on a jittered lattice, serials
+    /// in order.
+    fn quadratic_samples(noise: f64) -> Vec<RunSample> {
+        let mut out = Vec::new();
+        let mut serial = 0;
+        for pulse in 0..10i64 {
+            for i in 0..12 {
+                for j in 0..12 {
+                    let x = 40.0 + 4.0 * i as f64 + ((pulse + j) % 3) as f64 * 0.7;
+                    let y = 40.0 + 4.0 * j as f64 + ((pulse + i) % 4) as f64 * 0.5;
+                    let e = noise * if (i + j + pulse) % 2 == 0 { 1.0 } else { -1.0 };
+                    out.push(RunSample {
+                        pulse,
+                        x,
+                        y,
+                        u: 1.0 + 0.02 * x - 0.01 * y + 0.001 * x * x + 0.05 * pulse as f64 + e,
+                        v: -2.0 + 0.0005 * x * y - e,
+                        fit_var: 0.001,
+                        serial,
+                    });
+                    serial += 1;
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn whole_run_flow_follows_a_quadratic_field() {
+        let samples = quadratic_samples(0.0);
+        let f = WholeRunFlow::new(&samples, 24.0, 3);
+        let (x, y, pulse) = (62.0, 61.0, 5);
+        let p = f.prior(pulse, x, y, &[]).unwrap();
+        let u = 1.0 + 0.02 * x - 0.01 * y + 0.001 * x * x + 0.05 * pulse as f64;
+        let v = -2.0 + 0.0005 * x * y;
+        assert!((p.u - u).abs() < 1e-9 && (p.v - v).abs() < 1e-9, "{p:?}");
+        assert!(p.variance < 1e-12, "{p:?}");
+        // At the first pulse the window is one-sided: still exact.
+        let p0 = f.prior(0, x, y, &[]).unwrap();
+        assert!((p0.u - (u - 0.25)).abs() < 1e-9, "{p0:?}");
+        // Far from the samples, or beyond the window: nothing.
+        assert!(f.prior(pulse, 300.0, 300.0, &[]).is_none());
+        assert!(f.prior(20, x, y, &[]).is_none());
+        // Noise ±0.1: the prior claims about the spread (0.01) and is
+        // close to the field.
+        let f = WholeRunFlow::new(&quadratic_samples(0.1), 24.0, 3);
+        let q = f.prior(pulse, x, y, &[]).unwrap();
+        assert!((q.u - u).abs() < 0.03 && (q.v - v).abs() < 0.03, "{q:?}");
+        assert!(q.variance > 0.005 && q.variance < 0.02, "{q:?}");
+        assert!((f.typical_fit_variance() - 0.001).abs() < 1e-12);
+    }
+
+    #[test]
+    fn whole_run_flow_leaves_the_own_track_out() {
+        let mut samples = quadratic_samples(0.0);
+        // One "track": the samples nearest (62, 61), moved 1 px/pulse off.
+        let mut own: Vec<u64> = Vec::new();
+        for s in samples.iter_mut() {
+            if (s.x - 62.0).abs() < 2.5 && (s.y - 61.0).abs() < 2.5 {
+                s.u += 1.0;
+                own.push(s.serial);
+            }
+        }
+        assert!(own.len() >= 5);
+        own.sort_unstable();
+        let f = WholeRunFlow::new(&samples, 24.0, 3);
+        let (x, y, pulse) = (62.0, 61.0, 5);
+        let u = 1.0 + 0.02 * x - 0.01 * y + 0.001 * x * x + 0.05 * pulse as f64;
+        let without = f.prior(pulse, x, y, &own).unwrap();
+        assert!((without.u - u).abs() < 1e-9, "{without:?}");
+        let with = f.prior(pulse, x, y, &[]).unwrap();
+        assert!(with.u - u > 0.05, "{with:?}");
+    }
 }

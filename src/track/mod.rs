@@ -415,10 +415,9 @@ pub struct TrackParams {
     /// pulses), calibrated on all points, and every track is fitted again
     /// with it. Track starts in the recording's first pulses get a prior
     /// too, and the quadratic follows a curved flow's mean where the
-    /// one-pass plane did not. Tracks are held until [`Tracker::finish`]
-    /// (memory grows with the run: for whole sets of particles, as
-    /// [`link_linked`] and the synthetic scenes); the streaming pipeline
-    /// ([`Tracker::defer_fits`]) fits in one pass without any prior.
+    /// one-pass plane did not. Tracks are held until the end of the run
+    /// ([`Tracker::finish`], [`Finaliser::refit_held`]; the streaming
+    /// pipeline hands them on before its end): memory grows with the run.
     #[serde(default)]
     pub velocity_prior_two_pass: bool,
     /// Search radius (px) around the prior's prediction for the first step.
@@ -1261,10 +1260,7 @@ impl Tracker {
     /// the finaliser's, not [`Tracker::stats`]'s.
     pub fn defer_fits(&mut self) -> Finaliser {
         self.deferred.get_or_insert_with(Vec::new);
-        let mut f = std::mem::replace(&mut self.finaliser, Finaliser::new(self.params.clone()));
-        // Nobody would collect held tracks: one pass, no prior.
-        f.hold = false;
-        f
+        std::mem::replace(&mut self.finaliser, Finaliser::new(self.params.clone()))
     }
 
     /// The ended tracks waiting since the last call (after
@@ -2246,9 +2242,6 @@ pub struct Finaliser {
     /// The prior's variance as measured on the tracks kept so far.
     prior_calibration: local_flow::PriorCalibration,
     next_id: u64,
-    /// Hold kept tracks for a second pass (`velocity_prior_two_pass`;
-    /// false for the streaming pipeline's finaliser).
-    hold: bool,
     /// Numbered tracks waiting for [`Finaliser::refit_held`].
     held: Vec<(LinkedTrack, Box<Refit>)>,
 }
@@ -2267,7 +2260,6 @@ impl Finaliser {
             ),
             prior_calibration: local_flow::PriorCalibration::default(),
             next_id: 0,
-            hold: true,
             held: Vec::new(),
         }
     }
@@ -2291,7 +2283,6 @@ impl Finaliser {
         let params = &self.params;
         // The flow as the tracker saw it when these tracks ended (the
         // two-pass prior comes later, from all tracks).
-        let hold = self.hold;
         let with_prior = params.velocity_prior > 0.0 && !params.velocity_prior_two_pass;
         for sample in flow_samples {
             self.flow.add_sample(sample);
@@ -2322,7 +2313,7 @@ impl Finaliser {
             let (cuts, pieces) = cut_at_steps(t, sigma, params.step_split);
             let fitted = pieces
                 .into_iter()
-                .map(|p| finalise_one(p, params, flow, prior.as_ref(), gate, sigma, accel, hold))
+                .map(|p| finalise_one(p, params, flow, prior.as_ref(), gate, sigma, accel))
                 .collect();
             (cuts, fitted)
         };
@@ -2416,17 +2407,7 @@ impl Finaliser {
                 }
             }
         }
-        let env = |k: &str, d: f64| {
-            std::env::var(k)
-                .ok()
-                .and_then(|v| v.parse().ok())
-                .unwrap_or(d)
-        };
-        let flow = local_flow::WholeRunFlow::new(
-            &samples,
-            env("EBPTV_RUN_R", RUN_PRIOR_RADIUS),
-            env("EBPTV_RUN_T", RUN_PRIOR_HALF_WINDOW as f64) as i64,
-        );
+        let flow = local_flow::WholeRunFlow::new(&samples, RUN_PRIOR_RADIUS, RUN_PRIOR_HALF_WINDOW);
         // Calibration on the first-pass fits (what the refit computes
         // before its prior), every point.
         let calibration = held
@@ -2487,9 +2468,12 @@ impl Finaliser {
 
 /// Radius (px) of [`local_flow::WholeRunFlow`]'s neighbourhood: a few
 /// particle spacings at ppp 0.01 (half the one-pass prior's 48 px).
+/// Paper-like seed 1, posterior mean: 16 px 0.067 px/pulse (too few
+/// samples for the quadratic), 24 px 0.049, 32 px 0.052.
 const RUN_PRIOR_RADIUS: f64 = 24.0;
 
-/// Its half window (pulses).
+/// Its half window (pulses): 2 gave 0.055, 3 0.049, 5 0.047 px/pulse at
+/// twice the cost of the queries.
 const RUN_PRIOR_HALF_WINDOW: i64 = 3;
 
 /// The two parts of a split image: event-weighted centroid (px) and
@@ -2708,7 +2692,6 @@ fn finalise_one(
     gate: f64,
     sigma: f64,
     accel_rms: f64,
-    hold: bool,
 ) -> Finalised {
     // Points up to this pulse went out with an earlier segment.
     let handed_out = (t.context > 0).then(|| t.dets[t.context - 1].pulse);
@@ -2732,7 +2715,7 @@ fn finalise_one(
         }
     }
     let mut calibration = local_flow::PriorCalibration::default();
-    let hold = hold && params.velocity_prior > 0.0 && params.velocity_prior_two_pass;
+    let hold = params.velocity_prior > 0.0 && params.velocity_prior_two_pass;
     let mut fit_vars = Vec::new();
     let (mut points, mut detections, rms) = fit_track_with(
         &t.dets,
