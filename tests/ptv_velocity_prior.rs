@@ -311,3 +311,31 @@ fn velocity_prior_numbers() {
         }
     }
 }
+
+/// Score a `tracks.csv` against a simulated recording's truth as `ebptv
+/// demo` does (for the demo row of BENCHMARKS.md with `ebptv track
+/// --velocity-prior 1 --velocity-prior-two-pass`): `PV_SIM` the simulator's
+/// output directory, `PV_TRACKS` the tracks. Ignored.
+#[test]
+#[ignore]
+fn score_tracks_csv() {
+    let (Ok(sim), Ok(tracks)) = (std::env::var("PV_SIM"), std::env::var("PV_TRACKS")) else {
+        println!("PV_SIM / PV_TRACKS not set: skipped");
+        return;
+    };
+    let sim = std::path::Path::new(&sim);
+    let scenario =
+        ebptv::sim::scenario::Scenario::from_toml_file(sim.join("scenario.toml")).unwrap();
+    let truth = ebptv::evaluate::Truth::read(&sim.join("truth_particles.csv")).unwrap();
+    let s = ebptv::evaluate::score_tracks(
+        std::path::Path::new(&tracks),
+        &truth,
+        scenario.period_us(),
+        1.0,
+    )
+    .unwrap();
+    println!(
+        "link precision {:.4}, recall {:.4}, velocity rms {:.4} px/pulse",
+        s.link_precision, s.link_recall, s.velocity_rms_px_per_pulse
+    );
+}

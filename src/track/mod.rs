@@ -2300,7 +2300,7 @@ impl Finaliser {
         // The prior applies once its variance is calibrated (as of the
         // batches before this one); before, only the calibration runs.
         let prior = with_prior.then(|| VelocityPriorUse {
-            flow: PriorSource::Online(&self.linear_flow),
+            flow: &self.linear_flow,
             scale: self
                 .prior_calibration
                 .scale()
@@ -2384,15 +2384,9 @@ impl Finaliser {
             return Vec::new();
         }
         let params = &self.params;
-        let period_s = |dets: &[Det]| {
-            let n = dets.len();
-            ((dets[n - 1].t_us - dets[0].t_us) / (dets[n - 1].pulse - dets[0].pulse).max(1) as f64)
-                .max(1e-9)
-                * 1e-6
-        };
         let mut samples = Vec::new();
         for (lt, r) in &held {
-            let period = period_s(&r.dets);
+            let period = r.period_s;
             for ((p, d), &fit_var) in lt.track.points.iter().zip(&lt.detections).zip(&r.fit_vars) {
                 if let (Some(serial), false) = (d, p.interpolated) {
                     samples.push(local_flow::RunSample {
@@ -2408,58 +2402,62 @@ impl Finaliser {
             }
         }
         let flow = local_flow::WholeRunFlow::new(&samples, RUN_PRIOR_RADIUS, RUN_PRIOR_HALF_WINDOW);
-        // Calibration on the first-pass fits (what the refit computes
-        // before its prior), every point.
-        let calibration = held
+        // Each point's prior, once, and the calibration on the first-pass
+        // fits (every point).
+        let priors: Vec<(
+            Vec<Option<local_flow::VelocityPrior>>,
+            local_flow::PriorCalibration,
+        )> = held
             .par_iter()
             .with_max_len(1)
             .map(|(lt, r)| {
-                let mut own: Vec<u64> = r.dets.iter().map(|d| d.serial).collect();
-                own.sort_unstable();
-                let period = period_s(&r.dets);
                 let mut cal = local_flow::PriorCalibration::default();
-                for (p, &fit_var) in lt.track.points.iter().zip(&r.fit_vars) {
-                    cal.note_fit_variance(fit_var);
-                    if let Some(pr) = flow.prior(p.pulse, p.x, p.y, &own) {
-                        cal.add(p.u * period, p.v * period, fit_var, &pr);
-                    }
-                }
-                cal
+                let priors = lt
+                    .track
+                    .points
+                    .iter()
+                    .zip(&r.fit_vars)
+                    .map(|(p, &fit_var)| {
+                        cal.note_fit_variance(fit_var);
+                        let pr = flow.prior(p.pulse, p.x, p.y, &r.own);
+                        if let Some(pr) = &pr {
+                            cal.add(p.u * r.period_s, p.v * r.period_s, fit_var, pr);
+                        }
+                        pr
+                    })
+                    .collect();
+                (priors, cal)
             })
-            .collect::<Vec<_>>()
-            .into_iter()
-            .fold(local_flow::PriorCalibration::default(), |mut a, c| {
-                a.merge(&c);
-                a
-            });
-        let prior = VelocityPriorUse {
-            flow: PriorSource::WholeRun(&flow),
-            scale: calibration.scale().zip(calibration.typical_fit_variance()),
-            strength: params.velocity_prior,
+            .collect();
+        let mut calibration = local_flow::PriorCalibration::default();
+        for (_, c) in &priors {
+            calibration.merge(c);
+        }
+        let Some((scale, typical)) = calibration.scale().zip(calibration.typical_fit_variance())
+        else {
+            return held.into_iter().map(|(lt, _)| lt).collect();
         };
-        held.into_par_iter()
-            .with_max_len(1)
-            .map(|(mut lt, r)| {
-                let (mut points, _, _) = fit_track_with(
-                    &r.dets,
-                    params,
-                    r.sigma,
-                    r.accel_rms,
-                    Some(&prior),
-                    &mut Default::default(),
-                    true,
-                    &mut 0,
-                    None,
-                );
-                if let Some(h) = r.handed_out {
-                    let first = points
-                        .iter()
-                        .position(|p| p.pulse > h)
-                        .unwrap_or(points.len());
-                    points.drain(..first);
+        // The output fit with this prior (`fit_track_with`'s combination;
+        // the fit itself is the first pass's).
+        let strength = params.velocity_prior;
+        held.into_iter()
+            .zip(priors)
+            .map(|((mut lt, r), (priors, _))| {
+                for ((p, &fit_var), pr) in lt.track.points.iter_mut().zip(&r.fit_vars).zip(priors) {
+                    let apply = fit_var > typical || (params.velocity_prior_mean && fit_var > 0.0);
+                    let Some(mut pr) = pr.filter(|_| apply) else {
+                        continue;
+                    };
+                    pr.variance *= scale;
+                    let (vx, vy) = (p.u * r.period_s, p.v * r.period_s);
+                    let (vx, vy) = if params.velocity_prior_mean {
+                        local_flow::posterior_mean(vx, vy, fit_var, &pr, strength)
+                    } else {
+                        local_flow::combine(vx, vy, fit_var, &pr, strength, typical)
+                    };
+                    p.u = vx / r.period_s;
+                    p.v = vy / r.period_s;
                 }
-                debug_assert_eq!(points.len(), lt.track.points.len());
-                lt.track.points = points;
                 lt
             })
             .collect()
@@ -2670,14 +2668,14 @@ enum Finalised {
     },
 }
 
-/// A kept track's cleaned detections and fit inputs, held for the second
-/// pass of `TrackParams::velocity_prior_two_pass`, with its first-pass
-/// points' fit noise variance per axis (px²/pulse²).
+/// What the second pass of `TrackParams::velocity_prior_two_pass` needs
+/// of a kept track besides its points: the serials of its cleaned
+/// detections (sorted; left out of its own prior), its mean pulse period
+/// (s; the fit's velocity unit is px per mean period) and each point's
+/// fit noise variance per axis (px²/pulse²).
 struct Refit {
-    dets: Vec<Det>,
-    handed_out: Option<i64>,
-    sigma: f64,
-    accel_rms: f64,
+    own: Vec<u64>,
+    period_s: f64,
     fit_vars: Vec<f64>,
 }
 
@@ -2750,11 +2748,11 @@ fn finalise_one(
         }
     }
     let refit = hold.then(|| {
+        let mut own: Vec<u64> = t.dets.iter().map(|d| d.serial).collect();
+        own.sort_unstable();
         Box::new(Refit {
-            dets: t.dets,
-            handed_out,
-            sigma,
-            accel_rms,
+            own,
+            period_s: fit_period_s(&t.dets),
             fit_vars,
         })
     });
@@ -2902,21 +2900,23 @@ fn extrapolate(dets: &[Det], window: usize, pulse: i64) -> Option<(f64, f64)> {
     fit::fit_eval(&tau, &xs, &ys, 1, 0.0).map(|f| (f.x, f.y))
 }
 
+/// The mean pulse period (s) over a track's detections: the output fit's
+/// time unit.
+fn fit_period_s(dets: &[Det]) -> f64 {
+    let n = dets.len();
+    ((dets[n - 1].t_us - dets[0].t_us) / (dets[n - 1].pulse - dets[0].pulse).max(1) as f64)
+        .max(1e-9)
+        * 1e-6
+}
+
 /// The output fit's velocity prior as one batch of the finaliser uses it:
 /// the flow, the calibration's variance factor (`None`: not calibrated
 /// yet, the prior is only checked) with the fits' typical noise variance,
 /// and `TrackParams::velocity_prior`.
 struct VelocityPriorUse<'a> {
-    flow: PriorSource<'a>,
+    flow: &'a local_flow::FlowHistory,
     scale: Option<(f64, f64)>,
     strength: f64,
-}
-
-/// Where the velocity prior comes from: the links so far (one pass) or
-/// the first pass's tracks over the whole run.
-enum PriorSource<'a> {
-    Online(&'a local_flow::FlowHistory),
-    WholeRun(&'a local_flow::WholeRunFlow),
 }
 
 /// Sliding-window polynomial fit of a track at every pulse from its first
@@ -2948,8 +2948,7 @@ fn fit_track_with(
     let mut serials = Vec::with_capacity(points.capacity());
     let mut ssr = 0.0;
     // τ in units of the mean period from the first detection.
-    let period_s =
-        ((dets[n - 1].t_us - dets[0].t_us) / (last - first).max(1) as f64).max(1e-9) * 1e-6;
+    let period_s = fit_period_s(dets);
     let tau: Vec<f64> = dets
         .iter()
         .map(|d| (d.t_us - dets[0].t_us) * 1e-6 / period_s)
@@ -2986,15 +2985,6 @@ fn fit_track_with(
     let mut run_fit = tables
         .as_deref()
         .and_then(|t| fit::GridRunFit::new(t, &rule));
-    // The whole-run prior leaves the track's own points out.
-    let own: Vec<u64> = match prior.map(|u| &u.flow) {
-        Some(PriorSource::WholeRun(_)) => {
-            let mut v: Vec<u64> = dets.iter().map(|d| d.serial).collect();
-            v.sort_unstable();
-            v
-        }
-        _ => Vec::new(),
-    };
     let mut j = 0; // index of the first detection at or after the pulse
     for pulse in first..=last {
         while dets[j].pulse < pulse {
@@ -3050,10 +3040,7 @@ fn fit_track_with(
                 fit_var > typical || (p.velocity_prior_mean && fit_var > 0.0)
             });
             let pr = if check || apply {
-                match use_.flow {
-                    PriorSource::Online(h) => h.prior(pulse, f.x, f.y, sigma),
-                    PriorSource::WholeRun(w) => w.prior(pulse, f.x, f.y, &own),
-                }
+                use_.flow.prior(pulse, f.x, f.y, sigma)
             } else {
                 None
             };
@@ -3545,7 +3532,7 @@ mod tests {
                 }
             }
             let with_prior = VelocityPriorUse {
-                flow: PriorSource::Online(&flow),
+                flow: &flow,
                 scale: Some((1.0, 0.0005)),
                 strength: 1.0,
             };
