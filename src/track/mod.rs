@@ -412,10 +412,15 @@ pub struct TrackParams {
     /// of all tracks then give the local flow
     /// ([`local_flow::WholeRunFlow`]: a quadratic in space, linear in
     /// time, from the samples of *other* tracks within 24 px and ±3
-    /// pulses), calibrated on all points, and every track is fitted again
-    /// with it. Track starts in the recording's first pulses get a prior
-    /// too, and the quadratic follows a curved flow's mean where the
-    /// one-pass plane did not. Tracks are held until the end of the run
+    /// pulses), calibrated on all points, and each point's first-pass fit
+    /// is combined with it (as the one-pass prior: `velocity_prior_mean`
+    /// chooses the form). Track starts in the recording's first pulses
+    /// get a prior too, and the quadratic follows a curved flow's mean
+    /// where the one-pass plane did not (vortex bins within 0.9 % of
+    /// v_max). Paper-like scene with the posterior mean 0.130 → 0.049
+    /// px/pulse (seed 1), demo 0.0233 → 0.0124; ~10× the CPU of the
+    /// tracker, and neighbours share their prior, so the grid stage's
+    /// pair noise estimate comes out low (BENCHMARKS.md, session 10). Tracks are held until the end of the run
     /// ([`Tracker::finish`], [`Finaliser::refit_held`]; the streaming
     /// pipeline hands them on before its end): memory grows with the run.
     #[serde(default)]
@@ -2371,12 +2376,13 @@ impl Finaliser {
     /// The second pass of `TrackParams::velocity_prior_two_pass`: the
     /// held tracks' first-pass points become the whole run's flow
     /// ([`local_flow::WholeRunFlow`]), the prior's variance is calibrated
-    /// on all of them (their first-pass fits, every point), and every
-    /// held track is fitted again with the prior (links, positions and
-    /// residuals are those of the first pass; only the velocities move).
-    /// Returns the tracks in id order; none when nothing is held. Each
-    /// refit depends only on its track and the (fixed) flow: parallel,
-    /// independent of the thread count.
+    /// on all of them (their first-pass fits, every point), and each
+    /// point's fit is combined with its prior as the output fit would
+    /// (the fit is the first pass's: links, positions and residuals
+    /// stay; only the velocities move). Returns the tracks in id order;
+    /// none when nothing is held. Each point's prior depends only on its
+    /// track and the (fixed) flow: parallel, independent of the thread
+    /// count.
     pub fn refit_held(&mut self) -> Vec<LinkedTrack> {
         use rayon::prelude::*;
         let held = std::mem::take(&mut self.held);
