@@ -77,6 +77,9 @@ pub struct TrackArgs {
     /// off). See `TrackParams::velocity_prior` and docs/readme/ptv.md.
     #[arg(long, default_value_t = 0.0)]
     pub velocity_prior: f64,
+    /// With --velocity-prior: the prior from a first pass over the whole run, and the posterior mean (`TrackParams::velocity_prior_two_pass`, `velocity_prior_mean`; holds all tracks until the end).
+    #[arg(long, default_value_t = false)]
+    pub velocity_prior_two_pass: bool,
     /// Nominal pulse frequency (Hz) when pulse times are estimated from the
     /// events (no trigger channel).
     #[arg(long)]
@@ -487,6 +490,8 @@ fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
         step_split: args.step_split,
         step_split_hinted: args.step_split_hinted,
         velocity_prior: args.velocity_prior,
+        velocity_prior_two_pass: args.velocity_prior_two_pass,
+        velocity_prior_mean: args.velocity_prior_two_pass,
         ghost_check_init: args.ghost_check_length > 0,
         init_gap: args.ghost_check_length > 0,
         ..Default::default()

@@ -449,6 +449,205 @@ impl FlowHistory {
     }
 }
 
+/// One point of a first-pass track as a sample of the whole run's flow
+/// ([`WholeRunFlow`]): its fitted velocity (px per pulse) and noise
+/// variance per axis, and the serial of its detection (so that a track's
+/// own points can be left out of its prior).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RunSample {
+    pub pulse: i64,
+    pub x: f64,
+    pub y: f64,
+    pub u: f64,
+    pub v: f64,
+    pub fit_var: f64,
+    pub serial: u64,
+}
+
+/// Unknowns of [`WholeRunFlow`]'s local model per component: 1, Δx, Δy,
+/// Δτ, Δx², ΔxΔy, Δy².
+const RUN_TERMS: usize = 7;
+
+/// Fewest samples for [`WholeRunFlow::prior`]: the quadratic takes seven
+/// per component, and a residual spread needs a few more.
+pub const MIN_RUN_SAMPLES: usize = 16;
+
+/// The flow of a whole run from the fitted velocities of its first-pass
+/// tracks, for the second pass's velocity prior
+/// (`TrackParams::velocity_prior_two_pass`). The one-pass prior
+/// ([`FlowHistory`]) only knows the links made so far — nothing in the
+/// recording's first pulses — and fits a plane to noisy link
+/// displacements over 48 px, whose curvature error repeats at every
+/// visit of a place in a steady flow (the Lamb–Oseen vortex). Here every
+/// point has samples on both sides in time, and the samples are fitted
+/// velocities (interior noise ~0.05 px/pulse against ~0.3 for a link),
+/// so a local *quadratic* in space, linear in time, fits in a smaller
+/// neighbourhood: `radius` px and `±half_window` pulses, weights
+/// (1 − r²/R²)² (1 − (Δτ/(T+1))²) times the sample's precision relative
+/// to the typical fit (`typical / (typical + fit_var)`: noisy track ends
+/// count little). Samples are bucketed by pulse and `radius`-sized cells;
+/// a query visits 3 × 3 cells of 2T + 1 pulses in a fixed order:
+/// deterministic.
+#[derive(Debug, Clone)]
+pub struct WholeRunFlow {
+    radius: f64,
+    half_window: i64,
+    typical_var: f64,
+    cells: std::collections::HashMap<(i64, i32, i32), Vec<RunSample>>,
+}
+
+impl WholeRunFlow {
+    /// Index `samples` (any order; kept in that order within a bucket).
+    pub fn new(samples: &[RunSample], radius: f64, half_window: i64) -> Self {
+        let mut vars: Vec<f64> = samples
+            .iter()
+            .map(|s| s.fit_var)
+            .filter(|v| *v > 0.0)
+            .collect();
+        vars.sort_by(|a, b| a.total_cmp(b));
+        let typical_var = vars.get(vars.len() / 2).copied().unwrap_or(1e-4);
+        let mut cells: std::collections::HashMap<(i64, i32, i32), Vec<RunSample>> =
+            Default::default();
+        for s in samples {
+            if let Some(k) = Self::key(radius, s.pulse, s.x, s.y) {
+                cells.entry(k).or_default().push(*s);
+            }
+        }
+        WholeRunFlow {
+            radius,
+            half_window: half_window.max(0),
+            typical_var,
+            cells,
+        }
+    }
+
+    fn key(radius: f64, pulse: i64, x: f64, y: f64) -> Option<(i64, i32, i32)> {
+        let (fx, fy) = ((x / radius).floor(), (y / radius).floor());
+        (fx.abs() < 1e9 && fy.abs() < 1e9).then_some((pulse, fx as i32, fy as i32))
+    }
+
+    /// The median noise variance of the samples' fits (px²/pulse² per
+    /// axis).
+    pub fn typical_fit_variance(&self) -> f64 {
+        self.typical_var
+    }
+
+    /// The local flow at `(x, y)` at `pulse` from the samples around it
+    /// except those whose serial `own` holds (sorted: the track's own
+    /// detections, whose fit errors the prior must not share): the
+    /// weighted least-squares quadratic (see the type's docs) evaluated
+    /// there. Its claimed variance is the weighted residual spread of the
+    /// samples about the model times (1 + the model's variance factor at
+    /// the point): the flow's variation the model does not follow plus
+    /// the model's own noise, conservative by the samples' noise (the
+    /// calibration, [`PriorCalibration`], scales it to what is measured).
+    /// A quadratic needs [`MIN_RUN_SAMPLES`] samples; with fewer, or a
+    /// degenerate spread, `None`.
+    pub fn prior(&self, pulse: i64, x: f64, y: f64, own: &[u64]) -> Option<VelocityPrior> {
+        let r = self.radius;
+        let (_, kx, ky) = Self::key(r, pulse, x, y)?;
+        let mut a = [[0.0f64; RUN_TERMS]; RUN_TERMS];
+        let mut bu = [0.0f64; RUN_TERMS];
+        let mut bv = [0.0f64; RUN_TERMS];
+        let (mut sw, mut suu, mut n) = (0.0f64, 0.0f64, 0usize);
+        let tw = (self.half_window + 1) as f64;
+        for p in pulse - self.half_window..=pulse + self.half_window {
+            let dt = (p - pulse) as f64;
+            let wt = 1.0 - (dt / tw).powi(2);
+            for cy in ky - 1..=ky + 1 {
+                for cx in kx - 1..=kx + 1 {
+                    let Some(bucket) = self.cells.get(&(p, cx, cy)) else {
+                        continue;
+                    };
+                    for s in bucket {
+                        let (dx, dy) = ((s.x - x) / r, (s.y - y) / r);
+                        let q = dx * dx + dy * dy;
+                        if q >= 1.0 || own.binary_search(&s.serial).is_ok() {
+                            continue;
+                        }
+                        let w = wt
+                            * (1.0 - q).powi(2)
+                            * (self.typical_var / (self.typical_var + s.fit_var.max(0.0)));
+                        let t = dt / tw;
+                        let basis = [1.0, dx, dy, t, dx * dx, dx * dy, dy * dy];
+                        for i in 0..RUN_TERMS {
+                            let wb = w * basis[i];
+                            for j in i..RUN_TERMS {
+                                a[i][j] += wb * basis[j];
+                            }
+                            bu[i] += wb * s.u;
+                            bv[i] += wb * s.v;
+                        }
+                        sw += w;
+                        suu += w * (s.u * s.u + s.v * s.v);
+                        n += 1;
+                    }
+                }
+            }
+        }
+        if n < MIN_RUN_SAMPLES || !(sw > 0.0) {
+            return None;
+        }
+        for i in 0..RUN_TERMS {
+            for j in 0..i {
+                a[i][j] = a[j][i];
+            }
+        }
+        let inv = invert_spd(a)?;
+        let dot = |r: &[f64; RUN_TERMS], b: &[f64; RUN_TERMS]| -> f64 {
+            r.iter().zip(b).map(|(p, q)| p * q).sum()
+        };
+        let cu: [f64; RUN_TERMS] = std::array::from_fn(|i| dot(&inv[i], &bu));
+        let cv: [f64; RUN_TERMS] = std::array::from_fn(|i| dot(&inv[i], &bv));
+        // Weighted residual sum of squares of both components.
+        let ssr = (suu - dot(&cu, &bu) - dot(&cv, &bv)).max(0.0);
+        let dof = (n as f64 - RUN_TERMS as f64).max(1.0) / n as f64;
+        let spread2 = ssr / (2.0 * sw * dof);
+        // Variance factor of c₀ in units of a weight-1 sample's variance.
+        let variance = spread2 * (1.0 + inv[0][0]);
+        (variance.is_finite() && cu[0].is_finite() && cv[0].is_finite()).then_some(VelocityPrior {
+            u: cu[0],
+            v: cv[0],
+            variance,
+        })
+    }
+}
+
+/// Inverse of a symmetric positive definite matrix by Gauss–Jordan with
+/// the diagonal as pivots (positive for an SPD matrix); `None` when a
+/// pivot falls below 1e-10 of its original diagonal (nearly singular:
+/// the samples do not span the model).
+fn invert_spd<const N: usize>(mut a: [[f64; N]; N]) -> Option<[[f64; N]; N]> {
+    let mut inv = [[0.0f64; N]; N];
+    for (i, row) in inv.iter_mut().enumerate() {
+        row[i] = 1.0;
+    }
+    let diag: [f64; N] = std::array::from_fn(|i| a[i][i]);
+    for k in 0..N {
+        let p = a[k][k];
+        if !(p > 1e-10 * diag[k]) {
+            return None;
+        }
+        let r = 1.0 / p;
+        for j in 0..N {
+            a[k][j] *= r;
+            inv[k][j] *= r;
+        }
+        for i in 0..N {
+            if i != k {
+                let f = a[i][k];
+                if f != 0.0 {
+                    for j in 0..N {
+                        a[i][j] -= f * a[k][j];
+                        inv[i][j] -= f * inv[k][j];
+                    }
+                }
+            }
+        }
+    }
+    Some(inv)
+}
+
 /// Inverse of a symmetric positive definite 3 × 3 matrix; `None` when it
 /// is (nearly) singular.
 fn invert3(a: &[[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
@@ -935,5 +1134,80 @@ mod tests {
             exact.add(1.0, 2.0, 0.002, &prior);
         }
         assert_eq!(exact.scale(), Some(MIN_SCALE));
+    }
+
+    /// Samples of the field u = 1 + 0.02x − 0.01y + 0.001x² + 0.05τ,
+    /// v = −2 + 0.0005xy at pulses 0..10 on a jittered lattice, serials
+    /// in order.
+    fn quadratic_samples(noise: f64) -> Vec<RunSample> {
+        let mut out = Vec::new();
+        let mut serial = 0;
+        for pulse in 0..10i64 {
+            for i in 0..12 {
+                for j in 0..12 {
+                    let x = 40.0 + 4.0 * i as f64 + ((pulse + j) % 3) as f64 * 0.7;
+                    let y = 40.0 + 4.0 * j as f64 + ((pulse + i) % 4) as f64 * 0.5;
+                    let e = noise * if (i + j + pulse) % 2 == 0 { 1.0 } else { -1.0 };
+                    out.push(RunSample {
+                        pulse,
+                        x,
+                        y,
+                        u: 1.0 + 0.02 * x - 0.01 * y + 0.001 * x * x + 0.05 * pulse as f64 + e,
+                        v: -2.0 + 0.0005 * x * y - e,
+                        fit_var: 0.001,
+                        serial,
+                    });
+                    serial += 1;
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn whole_run_flow_follows_a_quadratic_field() {
+        let samples = quadratic_samples(0.0);
+        let f = WholeRunFlow::new(&samples, 24.0, 3);
+        let (x, y, pulse) = (62.0, 61.0, 5);
+        let p = f.prior(pulse, x, y, &[]).unwrap();
+        let u = 1.0 + 0.02 * x - 0.01 * y + 0.001 * x * x + 0.05 * pulse as f64;
+        let v = -2.0 + 0.0005 * x * y;
+        assert!((p.u - u).abs() < 1e-9 && (p.v - v).abs() < 1e-9, "{p:?}");
+        assert!(p.variance < 1e-12, "{p:?}");
+        // At the first pulse the window is one-sided: still exact.
+        let p0 = f.prior(0, x, y, &[]).unwrap();
+        assert!((p0.u - (u - 0.25)).abs() < 1e-9, "{p0:?}");
+        // Far from the samples, or beyond the window: nothing.
+        assert!(f.prior(pulse, 300.0, 300.0, &[]).is_none());
+        assert!(f.prior(20, x, y, &[]).is_none());
+        // Noise ±0.1: the prior claims about the spread (0.01) and is
+        // close to the field.
+        let f = WholeRunFlow::new(&quadratic_samples(0.1), 24.0, 3);
+        let q = f.prior(pulse, x, y, &[]).unwrap();
+        assert!((q.u - u).abs() < 0.03 && (q.v - v).abs() < 0.03, "{q:?}");
+        assert!(q.variance > 0.005 && q.variance < 0.02, "{q:?}");
+        assert!((f.typical_fit_variance() - 0.001).abs() < 1e-12);
+    }
+
+    #[test]
+    fn whole_run_flow_leaves_the_own_track_out() {
+        let mut samples = quadratic_samples(0.0);
+        // One "track": the samples nearest (62, 61), moved 1 px/pulse off.
+        let mut own: Vec<u64> = Vec::new();
+        for s in samples.iter_mut() {
+            if (s.x - 62.0).abs() < 2.5 && (s.y - 61.0).abs() < 2.5 {
+                s.u += 1.0;
+                own.push(s.serial);
+            }
+        }
+        assert!(own.len() >= 5);
+        own.sort_unstable();
+        let f = WholeRunFlow::new(&samples, 24.0, 3);
+        let (x, y, pulse) = (62.0, 61.0, 5);
+        let u = 1.0 + 0.02 * x - 0.01 * y + 0.001 * x * x + 0.05 * pulse as f64;
+        let without = f.prior(pulse, x, y, &own).unwrap();
+        assert!((without.u - u).abs() < 1e-9, "{without:?}");
+        let with = f.prior(pulse, x, y, &[]).unwrap();
+        assert!(with.u - u > 0.05, "{with:?}");
     }
 }

@@ -429,6 +429,25 @@ pub struct TrackParams {
     /// smooth flow, not for statistics.
     #[serde(default)]
     pub velocity_prior_mean: bool,
+    /// With `velocity_prior`: take the prior from a first pass over the
+    /// whole run instead of the links made so far (session 10). Every
+    /// kept track is fitted without a prior first; the fitted velocities
+    /// of all tracks then give the local flow
+    /// ([`local_flow::WholeRunFlow`]: a quadratic in space, linear in
+    /// time, from the samples of *other* tracks within 24 px and ±3
+    /// pulses), calibrated on all points, and each point's first-pass fit
+    /// is combined with it (as the one-pass prior: `velocity_prior_mean`
+    /// chooses the form). Track starts in the recording's first pulses
+    /// get a prior too, and the quadratic follows a curved flow's mean
+    /// where the one-pass plane did not (vortex bins within 0.9 % of
+    /// v_max). Paper-like scene with the posterior mean 0.130 → 0.049
+    /// px/pulse (seed 1), demo 0.0233 → 0.0124; ~10× the CPU of the
+    /// tracker, and neighbours share their prior, so the grid stage's
+    /// pair noise estimate comes out low (BENCHMARKS.md, session 10). Tracks are held until the end of the run
+    /// ([`Tracker::finish`], [`Finaliser::refit_held`]; the streaming
+    /// pipeline hands them on before its end): memory grows with the run.
+    #[serde(default)]
+    pub velocity_prior_two_pass: bool,
     /// Search radius (px) around the prior's prediction for the first step.
     pub prior_radius: f64,
     /// Mean-flow prior for initialisation.
@@ -475,6 +494,7 @@ impl Default for TrackParams {
             gap_first_step: default_gap_first_step(),
             velocity_prior: 0.0,
             velocity_prior_mean: false,
+            velocity_prior_two_pass: false,
             prior_radius: 3.0,
             prior: None,
         }
@@ -622,6 +642,12 @@ impl TrackParams {
                     "must be a finite number >= 0, got {}",
                     self.step_split_hinted
                 ),
+            ));
+        }
+        if self.velocity_prior_two_pass && self.velocity_prior <= 0.0 {
+            return Err(Error::param(
+                "velocity_prior_two_pass",
+                "needs velocity_prior > 0 (its strength)".to_string(),
             ));
         }
         if !(self.step_split.is_finite() && self.step_split >= 0.0) {
@@ -1248,7 +1274,10 @@ impl Tracker {
         let mut all = std::mem::take(&mut self.pool);
         all.append(&mut self.active);
         all.sort_unstable_by_key(|t| t.dets[0].serial);
-        let out = self.finalise(all);
+        let mut out = self.finalise(all);
+        // The second pass of `velocity_prior_two_pass` (no tracks held
+        // otherwise): every track so far, in id order.
+        out.extend(self.finaliser.refit_held());
         (out, self.stats)
     }
 
@@ -2318,6 +2347,8 @@ pub struct Finaliser {
     /// The prior's variance as measured on the tracks kept so far.
     prior_calibration: local_flow::PriorCalibration,
     next_id: u64,
+    /// Numbered tracks waiting for [`Finaliser::refit_held`].
+    held: Vec<(LinkedTrack, Box<Refit>)>,
 }
 
 impl Finaliser {
@@ -2334,6 +2365,7 @@ impl Finaliser {
             ),
             prior_calibration: local_flow::PriorCalibration::default(),
             next_id: 0,
+            held: Vec::new(),
         }
     }
 
@@ -2354,8 +2386,9 @@ impl Finaliser {
             flow_samples,
         } = ended;
         let params = &self.params;
-        // The flow as the tracker saw it when these tracks ended.
-        let with_prior = params.velocity_prior > 0.0;
+        // The flow as the tracker saw it when these tracks ended (the
+        // two-pass prior comes later, from all tracks).
+        let with_prior = params.velocity_prior > 0.0 && !params.velocity_prior_two_pass;
         for sample in flow_samples {
             self.flow.add_sample(sample);
             if with_prior {
@@ -2416,26 +2449,137 @@ impl Finaliser {
                     curvature,
                     calibration,
                     by_flow,
+                    refit,
                 } => {
                     self.prior_calibration.merge(&calibration);
                     stats.tracks_kept_by_flow += by_flow as u64;
                     self.accel_prior.merge(&curvature);
                     stats.tracks_kept += 1;
                     stats.particles_on_tracks += fresh as u64;
-                    out.push(LinkedTrack {
+                    let linked = LinkedTrack {
                         track: Track {
                             id: self.next_id,
                             points,
                         },
                         detections,
-                    });
+                    };
+                    match refit {
+                        Some(r) => self.held.push((linked, r)),
+                        None => out.push(linked),
+                    }
                     self.next_id += 1;
                 }
             }
         }
         out
     }
+
+    /// The second pass of `TrackParams::velocity_prior_two_pass`: the
+    /// held tracks' first-pass points become the whole run's flow
+    /// ([`local_flow::WholeRunFlow`]), the prior's variance is calibrated
+    /// on all of them (their first-pass fits, every point), and each
+    /// point's fit is combined with its prior as the output fit would
+    /// (the fit is the first pass's: links, positions and residuals
+    /// stay; only the velocities move). Returns the tracks in id order;
+    /// none when nothing is held. Each point's prior depends only on its
+    /// track and the (fixed) flow: parallel, independent of the thread
+    /// count.
+    pub fn refit_held(&mut self) -> Vec<LinkedTrack> {
+        use rayon::prelude::*;
+        let held = std::mem::take(&mut self.held);
+        if held.is_empty() {
+            return Vec::new();
+        }
+        let params = &self.params;
+        let mut samples = Vec::new();
+        for (lt, r) in &held {
+            let period = r.period_s;
+            for ((p, d), &fit_var) in lt.track.points.iter().zip(&lt.detections).zip(&r.fit_vars) {
+                if let (Some(serial), false) = (d, p.interpolated) {
+                    samples.push(local_flow::RunSample {
+                        pulse: p.pulse,
+                        x: p.x,
+                        y: p.y,
+                        u: p.u * period,
+                        v: p.v * period,
+                        fit_var,
+                        serial: *serial,
+                    });
+                }
+            }
+        }
+        let flow = local_flow::WholeRunFlow::new(&samples, RUN_PRIOR_RADIUS, RUN_PRIOR_HALF_WINDOW);
+        // Each point's prior, once, and the calibration on the first-pass
+        // fits (every point).
+        let priors: Vec<(
+            Vec<Option<local_flow::VelocityPrior>>,
+            local_flow::PriorCalibration,
+        )> = held
+            .par_iter()
+            .with_max_len(1)
+            .map(|(lt, r)| {
+                let mut cal = local_flow::PriorCalibration::default();
+                let priors = lt
+                    .track
+                    .points
+                    .iter()
+                    .zip(&r.fit_vars)
+                    .map(|(p, &fit_var)| {
+                        cal.note_fit_variance(fit_var);
+                        let pr = flow.prior(p.pulse, p.x, p.y, &r.own);
+                        if let Some(pr) = &pr {
+                            cal.add(p.u * r.period_s, p.v * r.period_s, fit_var, pr);
+                        }
+                        pr
+                    })
+                    .collect();
+                (priors, cal)
+            })
+            .collect();
+        let mut calibration = local_flow::PriorCalibration::default();
+        for (_, c) in &priors {
+            calibration.merge(c);
+        }
+        let Some((scale, typical)) = calibration.scale().zip(calibration.typical_fit_variance())
+        else {
+            return held.into_iter().map(|(lt, _)| lt).collect();
+        };
+        // The output fit with this prior (`fit_track_with`'s combination;
+        // the fit itself is the first pass's).
+        let strength = params.velocity_prior;
+        held.into_iter()
+            .zip(priors)
+            .map(|((mut lt, r), (priors, _))| {
+                for ((p, &fit_var), pr) in lt.track.points.iter_mut().zip(&r.fit_vars).zip(priors) {
+                    let apply = fit_var > typical || (params.velocity_prior_mean && fit_var > 0.0);
+                    let Some(mut pr) = pr.filter(|_| apply) else {
+                        continue;
+                    };
+                    pr.variance *= scale;
+                    let (vx, vy) = (p.u * r.period_s, p.v * r.period_s);
+                    let (vx, vy) = if params.velocity_prior_mean {
+                        local_flow::posterior_mean(vx, vy, fit_var, &pr, strength)
+                    } else {
+                        local_flow::combine(vx, vy, fit_var, &pr, strength, typical)
+                    };
+                    p.u = vx / r.period_s;
+                    p.v = vy / r.period_s;
+                }
+                lt
+            })
+            .collect()
+    }
 }
+
+/// Radius (px) of [`local_flow::WholeRunFlow`]'s neighbourhood: a few
+/// particle spacings at ppp 0.01 (half the one-pass prior's 48 px).
+/// Paper-like seed 1, posterior mean: 16 px 0.067 px/pulse (too few
+/// samples for the quadratic), 24 px 0.049, 32 px 0.052.
+const RUN_PRIOR_RADIUS: f64 = 24.0;
+
+/// Its half window (pulses): 2 gave 0.055, 3 0.049, 5 0.047 px/pulse at
+/// twice the cost of the queries.
+const RUN_PRIOR_HALF_WINDOW: i64 = 3;
 
 /// The two parts of a split image: event-weighted centroid (px) and
 /// events of the part given to the first and to the second prediction.
@@ -2626,7 +2770,20 @@ enum Finalised {
         calibration: local_flow::PriorCalibration,
         /// Below `min_length`, kept by the local-flow test.
         by_flow: bool,
+        /// What the second pass of `velocity_prior_two_pass` refits.
+        refit: Option<Box<Refit>>,
     },
+}
+
+/// What the second pass of `TrackParams::velocity_prior_two_pass` needs
+/// of a kept track besides its points: the serials of its cleaned
+/// detections (sorted; left out of its own prior), its mean pulse period
+/// (s; the fit's velocity unit is px per mean period) and each point's
+/// fit noise variance per axis (px²/pulse²).
+struct Refit {
+    own: Vec<u64>,
+    period_s: f64,
+    fit_vars: Vec<f64>,
 }
 
 /// Clean (outliers, unconfirmed tail), validate and fit one ended track;
@@ -2663,8 +2820,19 @@ fn finalise_one(
         }
     }
     let mut calibration = local_flow::PriorCalibration::default();
-    let (mut points, mut detections, rms) =
-        fit_track(&t.dets, params, sigma, accel_rms, prior, &mut calibration);
+    let hold = params.velocity_prior > 0.0 && params.velocity_prior_two_pass;
+    let mut fit_vars = Vec::new();
+    let (mut points, mut detections, rms) = fit_track_with(
+        &t.dets,
+        params,
+        sigma,
+        accel_rms,
+        prior,
+        &mut calibration,
+        true,
+        &mut 0,
+        hold.then_some(&mut fit_vars),
+    );
     if rms > params.max_fit_residual {
         return Finalised::Rough;
     }
@@ -2682,7 +2850,19 @@ fn finalise_one(
             .unwrap_or(points.len());
         points.drain(..first);
         detections.drain(..first);
+        if hold {
+            fit_vars.drain(..first);
+        }
     }
+    let refit = hold.then(|| {
+        let mut own: Vec<u64> = t.dets.iter().map(|d| d.serial).collect();
+        own.sort_unstable();
+        Box::new(Refit {
+            own,
+            period_s: fit_period_s(&t.dets),
+            fit_vars,
+        })
+    });
     Finalised::Kept {
         points,
         detections,
@@ -2690,6 +2870,7 @@ fn finalise_one(
         curvature,
         calibration,
         by_flow,
+        refit,
     }
 }
 
@@ -2826,20 +3007,13 @@ fn extrapolate(dets: &[Det], window: usize, pulse: i64) -> Option<(f64, f64)> {
     fit::fit_eval(&tau, &xs, &ys, 1, 0.0).map(|f| (f.x, f.y))
 }
 
-/// Sliding-window polynomial fit of a track at every pulse from its first
-/// to its last detection, the window chosen per pulse by
-/// [`fit::fit_adaptive`] for position noise `sigma` (px per axis). Returns
-/// the points, the detection serials and the rms residual (px per axis) of
-/// the detections about the fitted positions.
-fn fit_track(
-    dets: &[Det],
-    p: &TrackParams,
-    sigma: f64,
-    accel_rms: f64,
-    prior: Option<&VelocityPriorUse>,
-    calibration: &mut local_flow::PriorCalibration,
-) -> (Vec<TrackPoint>, Vec<Option<u64>>, f64) {
-    fit_track_with(dets, p, sigma, accel_rms, prior, calibration, true, &mut 0)
+/// The mean pulse period (s) over a track's detections: the output fit's
+/// time unit.
+fn fit_period_s(dets: &[Det]) -> f64 {
+    let n = dets.len();
+    ((dets[n - 1].t_us - dets[0].t_us) / (dets[n - 1].pulse - dets[0].pulse).max(1) as f64)
+        .max(1e-9)
+        * 1e-6
 }
 
 /// The output fit's velocity prior as one batch of the finaliser uses it:
@@ -2852,10 +3026,17 @@ struct VelocityPriorUse<'a> {
     strength: f64,
 }
 
-/// [`fit_track`]; `grid` takes [`fit::fit_adaptive_grid`] (tabulated
+/// Sliding-window polynomial fit of a track at every pulse from its first
+/// to its last detection, the window chosen per pulse by
+/// [`fit::fit_adaptive`] for position noise `sigma` (px per axis). Returns
+/// the points, the detection serials and the rms residual (px per axis) of
+/// the detections about the fitted positions.
+///
+/// `grid` takes [`fit::fit_adaptive_grid`] (tabulated
 /// windows) at the detections whose fit windows are gap-free with regular
 /// times, `false` runs [`fit::fit_adaptive`] everywhere (the reference the
-/// tests compare with); `grid_fits` counts the tabulated fits.
+/// tests compare with); `grid_fits` counts the tabulated fits; `fit_vars`
+/// receives each point's fit noise variance per axis (px²/pulse²).
 fn fit_track_with(
     dets: &[Det],
     p: &TrackParams,
@@ -2865,6 +3046,7 @@ fn fit_track_with(
     calibration: &mut local_flow::PriorCalibration,
     grid: bool,
     grid_fits: &mut usize,
+    mut fit_vars: Option<&mut Vec<f64>>,
 ) -> (Vec<TrackPoint>, Vec<Option<u64>>, f64) {
     let n = dets.len();
     let first = dets[0].pulse;
@@ -2873,8 +3055,7 @@ fn fit_track_with(
     let mut serials = Vec::with_capacity(points.capacity());
     let mut ssr = 0.0;
     // τ in units of the mean period from the first detection.
-    let period_s =
-        ((dets[n - 1].t_us - dets[0].t_us) / (last - first).max(1) as f64).max(1e-9) * 1e-6;
+    let period_s = fit_period_s(dets);
     let tau: Vec<f64> = dets
         .iter()
         .map(|d| (d.t_us - dets[0].t_us) * 1e-6 / period_s)
@@ -2955,6 +3136,9 @@ fn fit_track_with(
         // the grid; τ is in mean periods), after the residual: the
         // validation sees the track's own fit.
         let (mut vx, mut vy) = (f.vx, f.vy);
+        if let Some(v) = fit_vars.as_deref_mut() {
+            v.push(sigma * sigma * f.velocity_variance);
+        }
         if let Some(use_) = prior {
             let fit_var = sigma * sigma * f.velocity_variance;
             calibration.note_fit_variance(fit_var);
@@ -3472,6 +3656,7 @@ mod tests {
                 &mut cal_fast,
                 true,
                 &mut grid_fits,
+                None,
             );
             let (rp, rs, rrms) = fit_track_with(
                 &dets,
@@ -3482,6 +3667,7 @@ mod tests {
                 &mut cal_reference,
                 false,
                 &mut 0,
+                None,
             );
             // On the grid the tabulated path takes every detection whose
             // pilot window has no gap; jittered times never.
@@ -3506,6 +3692,7 @@ mod tests {
                     &mut Default::default(),
                     true,
                     &mut 0,
+                    None,
                 );
                 let moved = plain.iter().zip(&fp).filter(|(a, b)| a.u != b.u).count();
                 assert!(moved > 0, "case {case}");

@@ -429,6 +429,14 @@ fn fit_stage(
                     )),
                 },
                 Output::Finished(mut stats) => {
+                    // Tracks held for a second pass (velocity_prior_two_pass).
+                    let held = finaliser
+                        .as_mut()
+                        .map(|f| f.refit_held())
+                        .unwrap_or_default();
+                    if !held.is_empty() && to_caller.send(Output::Tracks(unlinked(held))).is_err() {
+                        return;
+                    }
                     stats.add_fit_counters(&fit_stats);
                     Output::Finished(stats)
                 }
