@@ -2426,8 +2426,9 @@ mod tests {
                 }
             }
             // (Half of the scene's particles move with v ≠ 0 and u ≠ 0,
-            // or sit at the ROI's edge: not lean.)
-            assert!(taken * 5 > snaps.len(), "{streaks:?} {diameter}: {taken}");
+            // some sit at the ROI's edge or streak over more than
+            // LEAN_NODES positions: not lean. Enough to exercise it.)
+            assert!(taken * 8 > snaps.len(), "{streaks:?} {diameter}: {taken}");
         }
     }
 
