@@ -675,34 +675,6 @@ mod tests {
                 row.clear();
             }
 
-            #[allow(dead_code)]
-            fn run_batch(&mut self, reqs: &[Arrival], t_end: f64, out: &mut EventChunk) {
-                let mut i = 0;
-                loop {
-                    if self.queue.is_empty() {
-                        if i == reqs.len() {
-                            break;
-                        }
-                        self.t_free = self.t_free.max(reqs[i].t);
-                    }
-                    while i < reqs.len() && reqs[i].t <= self.t_free {
-                        self.admit(&reqs[i]);
-                        i += 1;
-                    }
-                    if self.queue.is_empty() {
-                        continue;
-                    }
-                    if self.t_free >= t_end {
-                        while i < reqs.len() {
-                            self.admit(&reqs[i]);
-                            i += 1;
-                        }
-                        break;
-                    }
-                    self.grant(out);
-                }
-            }
-
             /// Requests still waiting.
             pub fn pending(&self) -> usize {
                 self.rows.iter().map(|r| r.len()).sum()
