@@ -12,13 +12,11 @@
 
 mod chain_common;
 
-use ebptv::events::Chunk;
 use ebptv::grid::{
     bin_samples, estimate, EstimateOptions, Fit, GridStats, Lattice, Sample, Weighting,
 };
-use ebptv::io::EventSource;
 use ebptv::sim::scenario::{FlowSpec, Roi, Scenario};
-use ebptv::sim::{Flow, Simulator};
+use ebptv::sim::Flow;
 use ebptv::spectra::{point_spectra, SpectraOptions, WelchOptions};
 use ebptv::track::TrackParams;
 
@@ -34,17 +32,9 @@ fn chain_with_truth(
     seed: u64,
     track: TrackParams,
 ) -> (Vec<Sample>, Flow, Vec<ebptv::sim::TruthSample>) {
-    let mut sim = Simulator::new(sc, seed).unwrap();
-    let info = sim.info().clone();
-    let flow = sim.flow().clone();
-    let mut chunks = Vec::new();
-    let mut c = Chunk::default();
-    while sim.next_chunk(&mut c).unwrap() {
-        chunks.push(std::mem::take(&mut c));
-    }
-    let truth = sim.take_truth();
-    let samples = chain_common::track_samples(&info, &chunks, track);
-    (samples, flow, truth)
+    let rec = chain_common::record(sc, seed);
+    let samples = chain_common::track_samples(&rec.info, &rec.chunks, track);
+    (samples, rec.flow, rec.truth)
 }
 
 fn grid(samples: &[Sample], bin: f64, fit: Fit, min_count: u64) -> GridStats {
@@ -316,14 +306,7 @@ fn true_noise(samples: &[Sample], flow: &Flow) -> (f64, f64) {
 /// printed), so they cannot be the reference of a short test.
 #[test]
 fn turbulent_stresses_through_the_chain() {
-    let mut sc = ebptv::sim::presets::preset("turbulent_bl").unwrap();
-    sc.sensor.roi = Some(Roi {
-        x: 0,
-        y: 296,
-        width: 256,
-        height: 128,
-    });
-    sc.duration_s = 0.1;
+    let sc = chain_common::turbulent_roi_scenario();
     let (samples, flow) = chain(&sc, 6, fixed_window_fit());
     let (uu, vv, uv) = flow.known_stresses().unwrap();
     let grids = chain_common::turbulent_roi_grids(&samples, &flow);

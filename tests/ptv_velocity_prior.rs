@@ -8,9 +8,7 @@ mod chain_common;
 
 use ebptv::cluster::ClusterParams;
 use ebptv::events::Chunk;
-use ebptv::io::{EventSource, StreamInfo};
-use ebptv::sim::scenario::Roi;
-use ebptv::sim::Simulator;
+use ebptv::io::StreamInfo;
 use ebptv::track::synth::{generate, run_and_score, LinkScore, SynthParams};
 use ebptv::track::TrackParams;
 
@@ -76,22 +74,10 @@ fn two_pass_prior_at_paper_like_conditions() {
 #[test]
 #[ignore]
 fn turbulent_two_pass_numbers() {
-    let mut sc = ebptv::sim::presets::preset("turbulent_bl").unwrap();
-    sc.sensor.roi = Some(Roi {
-        x: 0,
-        y: 296,
-        width: 256,
-        height: 128,
-    });
-    sc.duration_s = 0.1;
-    let mut sim = Simulator::new(&sc, 6).unwrap();
-    let info = sim.info().clone();
-    let flow = sim.flow().clone();
-    let mut chunks = Vec::new();
-    let mut c = Chunk::default();
-    while sim.next_chunk(&mut c).unwrap() {
-        chunks.push(std::mem::take(&mut c));
-    }
+    let sc = chain_common::turbulent_roi_scenario();
+    let chain_common::Recorded {
+        chunks, info, flow, ..
+    } = chain_common::record(&sc, 6);
     for (label, tp) in [
         ("off", without_prior()),
         ("two-pass variance-matching", two_pass(false)),
@@ -220,22 +206,10 @@ fn turbulent(
 /// error (session 9: see BENCHMARKS.md for the numbers).
 #[test]
 fn flow_prior_does_not_shrink_turbulent_stresses() {
-    let mut sc = ebptv::sim::presets::preset("turbulent_bl").unwrap();
-    sc.sensor.roi = Some(Roi {
-        x: 0,
-        y: 296,
-        width: 256,
-        height: 128,
-    });
-    sc.duration_s = 0.1;
-    let mut sim = Simulator::new(&sc, 6).unwrap();
-    let info = sim.info().clone();
-    let flow = sim.flow().clone();
-    let mut chunks = Vec::new();
-    let mut c = Chunk::default();
-    while sim.next_chunk(&mut c).unwrap() {
-        chunks.push(std::mem::take(&mut c));
-    }
+    let sc = chain_common::turbulent_roi_scenario();
+    let chain_common::Recorded {
+        chunks, info, flow, ..
+    } = chain_common::record(&sc, 6);
     let on = turbulent(&chunks, &info, &flow, sc.light.pulse_hz, with_prior());
     let off = turbulent(&chunks, &info, &flow, sc.light.pulse_hz, without_prior());
     println!("with the prior {on:?}\nwithout {off:?}");

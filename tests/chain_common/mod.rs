@@ -13,7 +13,8 @@ use ebptv::grid::{
 };
 use ebptv::io::{EventSource, StreamInfo};
 use ebptv::pulses::PulseOptions;
-use ebptv::sim::Flow;
+use ebptv::sim::scenario::{Roi, Scenario};
+use ebptv::sim::{Flow, Simulator, TruthSample};
 use ebptv::track::{track_recording, PtvSink, PtvStream, Track, TrackParams};
 
 /// The chunks of one simulated recording, served again on every open.
@@ -40,6 +41,48 @@ impl EventSource for Replay {
             }
         }
     }
+}
+
+/// A scene simulated into memory: its event chunks, stream description,
+/// flow and truth.
+pub struct Recorded {
+    pub chunks: Vec<Chunk>,
+    pub info: StreamInfo,
+    pub flow: Flow,
+    pub truth: Vec<TruthSample>,
+}
+
+/// Simulate `sc` with `seed` into memory.
+pub fn record(sc: &Scenario, seed: u64) -> Recorded {
+    let mut sim = Simulator::new(sc, seed).unwrap();
+    let info = sim.info().clone();
+    let flow = sim.flow().clone();
+    let mut chunks = Vec::new();
+    let mut c = Chunk::default();
+    while sim.next_chunk(&mut c).unwrap() {
+        chunks.push(std::mem::take(&mut c));
+    }
+    let truth = sim.take_truth();
+    Recorded {
+        chunks,
+        info,
+        flow,
+        truth,
+    }
+}
+
+/// The turbulent boundary-layer preset on the 256×128 ROI near the wall,
+/// 0.1 s: the turbulent scene of the chain tests.
+pub fn turbulent_roi_scenario() -> Scenario {
+    let mut sc = ebptv::sim::presets::preset("turbulent_bl").unwrap();
+    sc.sensor.roi = Some(Roi {
+        x: 0,
+        y: 296,
+        width: 256,
+        height: 128,
+    });
+    sc.duration_s = 0.1;
+    sc
 }
 
 #[derive(Default)]
