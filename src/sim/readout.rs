@@ -468,6 +468,36 @@ mod tests {
         reqs
     }
 
+    /// Feed `reqs` (spanning `span_us`) to two arbiters in eight time
+    /// blocks, the last one open-ended, requiring the same events and the
+    /// same pending count after every block; returns the events. Each
+    /// `run` closure runs its arbiter on a block and returns its pending
+    /// count.
+    fn same_in_blocks(
+        reqs: &[Arrival],
+        span_us: f64,
+        label: &str,
+        mut run_a: impl FnMut(&[Arrival], f64, &mut EventChunk) -> usize,
+        mut run_b: impl FnMut(&[Arrival], f64, &mut EventChunk) -> usize,
+    ) -> EventChunk {
+        let (mut a, mut b) = (EventChunk::default(), EventChunk::default());
+        let mut from = 0;
+        for k in 1..=8 {
+            let t_end = if k == 8 {
+                f64::INFINITY
+            } else {
+                span_us * k as f64 / 8.0
+            };
+            let to = reqs.partition_point(|r| r.t < t_end);
+            let pending_a = run_a(&reqs[from..to], t_end, &mut a);
+            let pending_b = run_b(&reqs[from..to], t_end, &mut b);
+            assert_eq!(pending_a, pending_b, "{label}, block {k}");
+            assert_eq!(a, b, "{label}, block {k}");
+            from = to;
+        }
+        a
+    }
+
     #[test]
     fn bit_cells_match_row_lists() {
         // The bit-cell arbiter against the list arbiter it replaced:
@@ -501,21 +531,19 @@ mod tests {
             };
             let mut bits = Arbiter::new(p, roi);
             let mut lists = list_reference::ListArbiter::new(p, roi);
-            let (mut a, mut b) = (EventChunk::default(), EventChunk::default());
-            let mut from = 0;
-            for k in 1..=8 {
-                let t_end = if k == 8 {
-                    f64::INFINITY
-                } else {
-                    span_us * k as f64 / 8.0
-                };
-                let to = reqs.partition_point(|r| r.t < t_end);
-                bits.run(&reqs[from..to], t_end, &mut a);
-                lists.run(&reqs[from..to], t_end, &mut b);
-                assert_eq!(bits.pending(), lists.pending());
-                assert_eq!(a, b, "{width}x{height}, block {k}");
-                from = to;
-            }
+            let a = same_in_blocks(
+                &reqs,
+                span_us,
+                &format!("{width}x{height}"),
+                |r, t_end, out| {
+                    bits.run(r, t_end, out);
+                    bits.pending()
+                },
+                |r, t_end, out| {
+                    lists.run(r, t_end, out);
+                    lists.pending()
+                },
+            );
             assert_eq!(bits.lost, lists.lost);
             assert_eq!(a.len() as u64 + bits.lost, n as u64);
             lost += bits.lost;
@@ -760,7 +788,7 @@ mod tests {
         // Requests offered one by one against the batch loop: light and
         // saturated loads, repeats of blocked pixels (lost), idle gaps,
         // grants reaching past a block end; fed in blocks.
-        use rand::{Rng, SeedableRng};
+        use rand::SeedableRng;
         let mut rng = rand_pcg::Pcg64::seed_from_u64(9);
         let mut lost = 0;
         for (width, height, n, span_us, row_time, event_time) in [
@@ -777,36 +805,25 @@ mod tests {
                 width,
                 height,
             };
-            let mut reqs: Vec<Arrival> = (0..n)
-                .map(|_| Arrival {
-                    // ns-quantised times, many shared.
-                    t: rng.gen_range(0..(span_us * 1000.0) as u64) as f64 * 1e-3,
-                    x: 7 + rng.gen_range(0..width) as u16,
-                    y: 11 + rng.gen_range(0..height) as u16,
-                    p: rng.gen_range(0..2),
-                })
-                .collect();
-            reqs.sort_by(|a, b| a.t.total_cmp(&b.t).then(a.y.cmp(&b.y)));
+            let reqs = random_requests(&mut rng, roi, n, span_us);
             let p = ArbiterSaturation {
                 row_time_us: row_time,
                 event_time_us: event_time,
             };
             let (mut one, mut batch) = (Arbiter::new(p, roi), Arbiter::new(p, roi));
-            let (mut a, mut b) = (EventChunk::default(), EventChunk::default());
-            let mut from = 0;
-            for k in 1..=8 {
-                let t_end = if k == 8 {
-                    f64::INFINITY
-                } else {
-                    span_us * k as f64 / 8.0
-                };
-                let to = reqs.partition_point(|r| r.t < t_end);
-                one.run(&reqs[from..to], t_end, &mut a);
-                batch.run_batch(&reqs[from..to], t_end, &mut b);
-                assert_eq!(one.pending(), batch.pending());
-                assert_eq!(a, b, "{width}x{height}, block {k}");
-                from = to;
-            }
+            let a = same_in_blocks(
+                &reqs,
+                span_us,
+                &format!("{width}x{height}"),
+                |r, t_end, out| {
+                    one.run(r, t_end, out);
+                    one.pending()
+                },
+                |r, t_end, out| {
+                    batch.run_batch(r, t_end, out);
+                    batch.pending()
+                },
+            );
             assert_eq!(one.lost, batch.lost);
             assert_eq!(a.len() as u64 + one.lost, n as u64);
             lost += one.lost;
