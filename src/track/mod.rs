@@ -3433,6 +3433,34 @@ mod tests {
     }
 
     #[test]
+    fn session_10_options_refuse_bad_values_by_name() {
+        for bad in [-1.0, f64::NAN, f64::INFINITY] {
+            let e = Tracker::new(TrackParams {
+                step_split_hinted: bad,
+                ..Default::default()
+            })
+            .err()
+            .expect("a bad hinted step threshold is refused");
+            assert!(e.to_string().contains("step_split_hinted"), "{e}");
+        }
+        let e = Tracker::new(TrackParams {
+            velocity_prior_two_pass: true,
+            velocity_prior: 0.0,
+            ..Default::default()
+        })
+        .err()
+        .expect("two passes without a prior are refused");
+        assert!(e.to_string().contains("velocity_prior_two_pass"), "{e}");
+        assert!(Tracker::new(TrackParams {
+            velocity_prior_two_pass: true,
+            velocity_prior: 1.0,
+            step_split_hinted: 8.0,
+            ..Default::default()
+        })
+        .is_ok());
+    }
+
+    #[test]
     fn init_gap_starts_a_particle_never_seen_four_times_in_a_row() {
         // Seen at pulses 0, 1, 3, 4, 5 (runs of 2 and 3): no four-frame
         // chain, but four detections in the five pulses 0..=4. A second
