@@ -1078,23 +1078,63 @@ pub struct OracleReport {
     /// nearest the point (the output fit's longest window).
     pub floor_window: f64,
     pub floor_window_interior: f64,
+    /// The window floor with the acceleration prior of the output fit
+    /// (`fit_accel_rms` per axis, so c₂ ~ N(0, (fit_accel_rms/2)²)): the
+    /// Bayesian bound for any estimator, biased or not, of that model.
+    pub floor_window_prior: f64,
+    pub floor_window_prior_interior: f64,
+    /// Strict, merged-ok and identity scores of the oracle tracks of at
+    /// least `min_length` detections only.
+    pub score_long: LinkScore,
+    /// The *exclusive* oracle: as the oracle, but each detection on one
+    /// track only (a tracker's constraint), that of the particle among
+    /// its sources whose true position is nearest its centroid (what a
+    /// tracker with perfect predictions could choose); the other
+    /// particle's track misses that pulse (bridged or cut as above).
+    pub score_exclusive: LinkScore,
+    /// The exclusive oracle choosing by *noisy* positions: each source's
+    /// true position plus a Gaussian error of the given σ per axis (px; a
+    /// tracker's prediction error), fixed seed: (σ, its scores).
+    pub score_exclusive_noisy: Vec<(f64, LinkScore)>,
+    /// Position noise per axis (px) of the long tracks' detections by
+    /// their event count (1, 2, 3, ≥ 4; the count is observable, so an
+    /// estimator may weight by it), and the window floor with the
+    /// acceleration prior for that known per-detection noise (weights
+    /// 1/σ²(events)): the lowest of the floors.
+    pub sigma_by_events: [f64; 4],
+    pub floor_window_prior_weighted: f64,
+    pub floor_window_prior_weighted_interior: f64,
 }
 
-/// Per-axis variance factor `(XᵀX)⁻¹₁₁` of the slope at `at` of a
-/// least-squares quadratic in τ through samples at `taus` (the variance
-/// of the unbiased velocity estimate is σ² times it); `None` when the
-/// quadratic is not determined (fewer than three distinct times).
-pub fn quadratic_velocity_variance_factor(taus: &[f64], at: f64) -> Option<f64> {
+/// Per-axis variance factor `(XᵀWX + R)⁻¹₁₁` of the slope at `at` of a
+/// weighted least-squares quadratic in τ through samples at `taus` with
+/// weights `weights` (empty: all 1), `R` = `ridge` on the quadratic
+/// coefficient only. Unit weights, `ridge` 0: σ² times it is the
+/// variance of the unbiased velocity estimate, the Cramér–Rao bound of
+/// the quadratic model with i.i.d. Gaussian noise σ; `ridge` σ²/var(c₂):
+/// the posterior variance when the quadratic coefficient c₂ = a/2 has a
+/// zero-mean Gaussian prior (flat priors on position and velocity), the
+/// Bayesian (van Trees) bound of that model, which holds for biased
+/// estimators too. Weights 1/σᵢ² and `ridge` 1/var(c₂): the same bounds
+/// (the variance itself, not a factor) for known per-sample noise σᵢ.
+/// `None` when not determined.
+pub fn quadratic_velocity_variance_factor(
+    taus: &[f64],
+    weights: &[f64],
+    at: f64,
+    ridge: f64,
+) -> Option<f64> {
     let mut m = [0.0f64; 5];
-    for &t in taus {
+    for (i, &t) in taus.iter().enumerate() {
         let d = t - at;
-        let mut p = 1.0;
+        let mut p = weights.get(i).copied().unwrap_or(1.0);
         for mk in &mut m {
             *mk += p;
             p *= d;
         }
     }
-    let [s0, s1, s2, s3, s4] = m;
+    let [s0, s1, s2, s3, mut s4] = m;
+    s4 += ridge;
     let det = s0 * (s2 * s4 - s3 * s3) - s1 * (s1 * s4 - s2 * s3) + s2 * (s1 * s3 - s2 * s2);
     // Relative to the scale of the products: a singular system (≤ 2
     // distinct times) leaves rounding noise only.
@@ -1108,16 +1148,20 @@ pub fn quadratic_velocity_variance_factor(taus: &[f64], at: f64) -> Option<f64> 
 /// to `tparams.stitch_gap` missed pulses bridged — the longest the
 /// tracker bridges, by stitching — longer ones cut), fit each with the
 /// tracker's output fit ([`super::fit_detections`]) and score them: links
-/// (strict, merged-ok, identity), the velocity error with perfect links,
-/// and the floors (module docs).
+/// (strict, merged-ok, identity; all, long, exclusive), the velocity
+/// error with perfect links, and the floors (module docs).
 pub fn oracle_report(
     run: &SceneRun,
     tparams: &super::TrackParams,
     period_us: f64,
     interior_margin: usize,
 ) -> OracleReport {
-    use rayon::prelude::*;
     let mut r = OracleReport::default();
+    let truth: HashMap<(i64, u64), &TruthSample> = run
+        .truth
+        .iter()
+        .map(|t| ((t.pulse, t.particle_id), t))
+        .collect();
     let oracle = oracle_tracks(
         &run.det_truth,
         &run.det_sources,
@@ -1131,6 +1175,9 @@ pub fn oracle_report(
         .filter(|w| run.det_pulse[w[1]] != run.det_pulse[w[0]] + 1)
         .count() as u64;
     let long = |t: &OracleTrack| t.detections.len() >= tparams.min_length;
+    // The fit's inputs as the tracker would have them at the end of the
+    // run: its noise estimate, and the curvature prior from the kept
+    // (here: long oracle) tracks.
     let mut prior = super::fit::AccelPrior::default();
     for t in oracle.iter().filter(|t| long(t)) {
         let pulses: Vec<i64> = t.detections.iter().map(|&d| run.det_pulse[d]).collect();
@@ -1141,7 +1188,219 @@ pub fn oracle_report(
     r.fit_accel_rms = tparams
         .fit_accel_rms
         .unwrap_or_else(|| prior.accel_rms(r.fit_sigma));
-    let fitted: Vec<LinkedTrack> = oracle
+    let fitted = fit_oracle(run, &oracle, tparams, r.fit_sigma, r.fit_accel_rms);
+    let score = |tracks: &[LinkedTrack]| {
+        score_with_sources(
+            tracks,
+            &run.det_truth,
+            &run.det_sources,
+            &run.det_pulse,
+            &run.truth,
+            period_us,
+            interior_margin,
+        )
+    };
+    r.score = score(&fitted);
+    let long_fitted: Vec<LinkedTrack> = oracle
+        .iter()
+        .zip(&fitted)
+        .filter(|(t, _)| long(t))
+        .map(|(_, lt)| lt.clone())
+        .collect();
+    r.score_long = score(&long_fitted);
+    // Exclusive: each detection kept only in the track of its source
+    // nearest to it in truth.
+    let nearest: Vec<Vec<u64>> = run
+        .det_sources
+        .iter()
+        .enumerate()
+        .map(|(d, src)| {
+            let dist = |p: u64| {
+                let t = truth[&(run.det_pulse[d], p)];
+                (t.x - run.det_xy[d][0]).hypot(t.y - run.det_xy[d][1])
+            };
+            src.iter()
+                .copied()
+                .min_by(|&a, &b| dist(a).total_cmp(&dist(b)).then(a.cmp(&b)))
+                .into_iter()
+                .collect()
+        })
+        .collect();
+    let exclusive = oracle_tracks(&run.det_truth, &nearest, &run.det_pulse, tparams.stitch_gap);
+    r.score_exclusive = score(&fit_oracle(
+        run,
+        &exclusive,
+        tparams,
+        r.fit_sigma,
+        r.fit_accel_rms,
+    ));
+    for (i, sigma_p) in [0.1, 0.2, 0.3].into_iter().enumerate() {
+        let mut rng = Pcg64::seed_from_u64(0x5eed_0000 + i as u64);
+        let err = Normal::new(0.0, sigma_p).expect("finite sigma");
+        let chosen: Vec<Vec<u64>> = run
+            .det_sources
+            .iter()
+            .enumerate()
+            .map(|(d, src)| {
+                if src.len() < 2 {
+                    return src.clone();
+                }
+                let mut best = (f64::MAX, 0);
+                for &p in src {
+                    let t = truth[&(run.det_pulse[d], p)];
+                    let dx = t.x + err.sample(&mut rng) - run.det_xy[d][0];
+                    let dy = t.y + err.sample(&mut rng) - run.det_xy[d][1];
+                    let dist = dx.hypot(dy);
+                    if dist < best.0 {
+                        best = (dist, p);
+                    }
+                }
+                vec![best.1]
+            })
+            .collect();
+        let tracks = oracle_tracks(&run.det_truth, &chosen, &run.det_pulse, tparams.stitch_gap);
+        r.score_exclusive_noisy.push((
+            sigma_p,
+            score(&fit_oracle(
+                run,
+                &tracks,
+                tparams,
+                r.fit_sigma,
+                r.fit_accel_rms,
+            )),
+        ));
+    }
+    // Position noise of the detections of the long tracks against their
+    // particle (first: the floors need it).
+    let (mut pos_sq, mut pos_n, mut clean_sq, mut clean_n) = (0.0, 0u64, 0.0, 0u64);
+    let event_class = |d: usize| (run.det_events[d].clamp(1, 4) - 1) as usize;
+    let mut by_events = [(0.0f64, 0u64); 4];
+    for t in oracle.iter().filter(|t| long(t)) {
+        for &d in &t.detections {
+            let ts = truth[&(run.det_pulse[d], t.particle)];
+            let e2 = (run.det_xy[d][0] - ts.x).powi(2) + (run.det_xy[d][1] - ts.y).powi(2);
+            pos_sq += e2;
+            pos_n += 1;
+            let c = &mut by_events[event_class(d)];
+            c.0 += e2;
+            c.1 += 1;
+            if run.det_sources[d].len() == 1 {
+                clean_sq += e2;
+                clean_n += 1;
+            }
+        }
+    }
+    let per_axis = |sq: f64, n: u64| {
+        if n > 0 {
+            (sq / (2 * n) as f64).sqrt()
+        } else {
+            0.0
+        }
+    };
+    r.sigma_all = per_axis(pos_sq, pos_n);
+    r.sigma_clean = per_axis(clean_sq, clean_n);
+    for (s, &(sq, n)) in r.sigma_by_events.iter_mut().zip(&by_events) {
+        *s = per_axis(sq, n);
+    }
+    // Prior precision 1/var(c₂) of the weighted floor.
+    let prior_precision = if r.fit_accel_rms > 0.0 {
+        (2.0 / r.fit_accel_rms).powi(2)
+    } else {
+        0.0
+    };
+    // The fit's ridge σ²/var(c₂), c₂ = a/2, at the measured noise.
+    let ridge = if r.fit_accel_rms > 0.0 {
+        (2.0 * r.sigma_all / r.fit_accel_rms).powi(2)
+    } else {
+        0.0
+    };
+    let k = period_us * 1e-6;
+    // Sums, all points and interior: fit error² (both components), floor
+    // factors (track, window, window with the prior; per axis).
+    let mut all = [0.0f64; 5];
+    let mut inner = [0.0f64; 5];
+    for (t, lt) in oracle.iter().zip(&fitted).filter(|(t, _)| long(t)) {
+        r.velocity_tracks += 1;
+        let taus: Vec<f64> = t
+            .detections
+            .iter()
+            .map(|&d| run.det_pulse[d] as f64)
+            .collect();
+        let n = taus.len();
+        let n_points = lt.track.points.len();
+        let first = lt.track.points[0].pulse;
+        let w = tparams.fit_window.min(n);
+        let weights: Vec<f64> = t
+            .detections
+            .iter()
+            .map(|&d| r.sigma_by_events[event_class(d)].powi(-2))
+            .collect();
+        for (j, &d) in t.detections.iter().enumerate() {
+            let pulse = run.det_pulse[d];
+            let ts = truth[&(pulse, t.particle)];
+            let i = (pulse - first) as usize;
+            let pt = &lt.track.points[i];
+            debug_assert_eq!(pt.pulse, pulse);
+            let at = pulse as f64;
+            let lo = j.saturating_sub(w / 2).min(n - w);
+            let win = &taus[lo..lo + w];
+            let factor = |taus: &[f64], weights: &[f64], ridge: f64| {
+                quadratic_velocity_variance_factor(taus, weights, at, ridge).unwrap_or(f64::NAN)
+            };
+            // The weighted floor is a variance: divided by σ² here so
+            // that all four scale with σ below.
+            let v = [
+                ((pt.u - ts.u) * k).powi(2) + ((pt.v - ts.v) * k).powi(2),
+                factor(&taus, &[], 0.0),
+                factor(win, &[], 0.0),
+                factor(win, &[], ridge),
+                factor(win, &weights[lo..lo + w], prior_precision) / r.sigma_all.powi(2),
+            ];
+            for (a, b) in all.iter_mut().zip(v) {
+                *a += b;
+            }
+            r.velocity_samples += 1;
+            if i >= interior_margin && n_points - 1 - i >= interior_margin {
+                for (a, b) in inner.iter_mut().zip(v) {
+                    *a += b;
+                }
+                r.velocity_samples_interior += 1;
+            }
+        }
+    }
+    let (n, n_in) = (r.velocity_samples, r.velocity_samples_interior);
+    r.velocity_rms_fit = per_axis(all[0], n);
+    r.velocity_rms_fit_interior = per_axis(inner[0], n_in);
+    // Per component: σ times the root of the mean factor (per axis).
+    let floor = |f: f64, n: u64| {
+        if n > 0 {
+            r.sigma_all * (f / n as f64).sqrt()
+        } else {
+            0.0
+        }
+    };
+    r.floor_track = floor(all[1], n);
+    r.floor_track_interior = floor(inner[1], n_in);
+    r.floor_window = floor(all[2], n);
+    r.floor_window_interior = floor(inner[2], n_in);
+    r.floor_window_prior = floor(all[3], n);
+    r.floor_window_prior_interior = floor(inner[3], n_in);
+    r.floor_window_prior_weighted = floor(all[4], n);
+    r.floor_window_prior_weighted_interior = floor(inner[4], n_in);
+    r
+}
+
+/// Fit oracle tracks with the tracker's output fit (in parallel; the
+/// result is in input order and independent of the thread count).
+fn fit_oracle(
+    run: &SceneRun,
+    oracle: &[OracleTrack],
+    tparams: &super::TrackParams,
+    sigma: f64,
+    accel_rms: f64,
+) -> Vec<LinkedTrack> {
+    use rayon::prelude::*;
+    oracle
         .par_iter()
         .map(|t| {
             let input: Vec<super::FitInput> = t
@@ -1155,96 +1414,9 @@ pub fn oracle_report(
                     y: run.det_xy[d][1],
                 })
                 .collect();
-            super::fit_detections(&input, tparams, r.fit_sigma, r.fit_accel_rms)
+            super::fit_detections(&input, tparams, sigma, accel_rms)
         })
-        .collect();
-    r.score = score_with_sources(
-        &fitted,
-        &run.det_truth,
-        &run.det_sources,
-        &run.det_pulse,
-        &run.truth,
-        period_us,
-        interior_margin,
-    );
-    let truth: HashMap<(i64, u64), &TruthSample> = run
-        .truth
-        .iter()
-        .map(|t| ((t.pulse, t.particle_id), t))
-        .collect();
-    let k = period_us * 1e-6;
-    // Sums: fit error², floor factors (track, window), positions².
-    let (mut fit_sq, mut fit_sq_in) = (0.0, 0.0);
-    let (mut ft, mut ft_in, mut fw, mut fw_in) = (0.0, 0.0, 0.0, 0.0);
-    let (mut pos_sq, mut pos_n, mut clean_sq, mut clean_n) = (0.0, 0u64, 0.0, 0u64);
-    for (t, lt) in oracle.iter().zip(&fitted).filter(|(t, _)| long(t)) {
-        r.velocity_tracks += 1;
-        let taus: Vec<f64> = t
-            .detections
-            .iter()
-            .map(|&d| run.det_pulse[d] as f64)
-            .collect();
-        let n = taus.len();
-        let n_points = lt.track.points.len();
-        let first = lt.track.points[0].pulse;
-        let w = tparams.fit_window.min(n);
-        for (j, &d) in t.detections.iter().enumerate() {
-            let pulse = run.det_pulse[d];
-            let ts = truth[&(pulse, t.particle)];
-            let dx = run.det_xy[d][0] - ts.x;
-            let dy = run.det_xy[d][1] - ts.y;
-            pos_sq += dx * dx + dy * dy;
-            pos_n += 1;
-            if run.det_sources[d].len() == 1 {
-                clean_sq += dx * dx + dy * dy;
-                clean_n += 1;
-            }
-            let i = (pulse - first) as usize;
-            let pt = &lt.track.points[i];
-            debug_assert_eq!(pt.pulse, pulse);
-            let e2 = ((pt.u - ts.u) * k).powi(2) + ((pt.v - ts.v) * k).powi(2);
-            let interior = i >= interior_margin && n_points - 1 - i >= interior_margin;
-            let at = pulse as f64;
-            let f_track = quadratic_velocity_variance_factor(&taus, at).unwrap_or(f64::NAN);
-            let lo = j.saturating_sub(w / 2).min(n - w);
-            let f_window =
-                quadratic_velocity_variance_factor(&taus[lo..lo + w], at).unwrap_or(f64::NAN);
-            fit_sq += e2;
-            ft += f_track;
-            fw += f_window;
-            r.velocity_samples += 1;
-            if interior {
-                fit_sq_in += e2;
-                ft_in += f_track;
-                fw_in += f_window;
-                r.velocity_samples_interior += 1;
-            }
-        }
-    }
-    let per_axis = |sq: f64, n: u64| {
-        if n > 0 {
-            (sq / (2 * n) as f64).sqrt()
-        } else {
-            0.0
-        }
-    };
-    r.sigma_all = per_axis(pos_sq, pos_n);
-    r.sigma_clean = per_axis(clean_sq, clean_n);
-    r.velocity_rms_fit = per_axis(fit_sq, r.velocity_samples);
-    r.velocity_rms_fit_interior = per_axis(fit_sq_in, r.velocity_samples_interior);
-    // Per component: σ² times the mean factor (the factor is per axis).
-    let floor = |f: f64, n: u64| {
-        if n > 0 {
-            r.sigma_all * (f / n as f64).sqrt()
-        } else {
-            0.0
-        }
-    };
-    r.floor_track = floor(ft, r.velocity_samples);
-    r.floor_track_interior = floor(ft_in, r.velocity_samples_interior);
-    r.floor_window = floor(fw, r.velocity_samples);
-    r.floor_window_interior = floor(fw_in, r.velocity_samples_interior);
-    r
+        .collect()
 }
 
 /// Where wrong links and missed truth links come from (see [`diagnose`]).
@@ -1807,13 +1979,29 @@ mod tests {
         // Symmetric window: the slope is orthogonal to the other terms,
         // factor 1 / Σ τ².
         let taus: Vec<f64> = (-5..=5).map(f64::from).collect();
-        let f = quadratic_velocity_variance_factor(&taus, 0.0).unwrap();
+        let f = quadratic_velocity_variance_factor(&taus, &[], 0.0, 0.0).unwrap();
         assert!((f - 1.0 / 110.0).abs() < 1e-12, "{f}");
         // Three points 0, 1, 2 at the end τ = 2: v = (3x₂ − 4x₁ + x₀)/2,
         // factor (9 + 16 + 1)/4.
-        let f = quadratic_velocity_variance_factor(&[0.0, 1.0, 2.0], 2.0).unwrap();
+        let f = quadratic_velocity_variance_factor(&[0.0, 1.0, 2.0], &[], 2.0, 0.0).unwrap();
         assert!((f - 6.5).abs() < 1e-9, "{f}");
-        assert!(quadratic_velocity_variance_factor(&[0.0, 1.0, 1.0], 0.0).is_none());
+        assert!(quadratic_velocity_variance_factor(&[0.0, 1.0, 1.0], &[], 0.0, 0.0).is_none());
+        // A prior that pins the curvature leaves the straight line's
+        // slope variance, 1 / Σ (τ − τ̄)².
+        let f = quadratic_velocity_variance_factor(&[0.0, 1.0, 2.0], &[], 2.0, 1e12).unwrap();
+        assert!((f - 0.5).abs() < 1e-6, "{f}");
+        // ... which two times determine as well.
+        let f = quadratic_velocity_variance_factor(&[0.0, 1.0], &[], 2.0, 1e12).unwrap();
+        assert!((f - 2.0).abs() < 1e-6, "{f}");
+        // Weights: a sample of weight 2 counts as two of weight 1.
+        let a = quadratic_velocity_variance_factor(
+            &[0.0, 1.0, 2.0, 3.0],
+            &[1.0, 2.0, 1.0, 1.0],
+            3.0,
+            0.5,
+        );
+        let b = quadratic_velocity_variance_factor(&[0.0, 1.0, 1.0, 2.0, 3.0], &[], 3.0, 0.5);
+        assert!((a.unwrap() - b.unwrap()).abs() < 1e-12, "{a:?} {b:?}");
     }
 
     #[test]
@@ -1881,6 +2069,13 @@ mod tests {
         assert!(r.score.correct_links < r.score.links, "merged images");
         // The floors are below the fit, the window's above the track's.
         assert!(r.floor_track <= r.floor_window && r.floor_window < r.velocity_rms_fit);
+        // This run fits without the prior (`fit_accel_rms` 0): no ridge.
+        assert_eq!(r.floor_window_prior, r.floor_window);
+        // Exclusive: each image on one track; strict can only gain, recall
+        // only lose (the image's other particle misses a pulse).
+        assert!(r.score_exclusive.precision > r.score.precision, "{r:?}");
+        assert!(r.score_exclusive.links < r.score.links);
+        assert_eq!(r.score_exclusive.identity_wrong_links, 0);
         assert!(r.sigma_clean > 0.2 && r.sigma_clean < r.sigma_all, "{r:?}");
     }
 }
