@@ -5,7 +5,9 @@
 //! quadratic floors (definitions in `ebptv::track::synth`'s module docs).
 //! Ignored by default (~1 min for the four scenes):
 //! `cargo test --release --test ptv_bounds -- --ignored --nocapture`
-//! (`PTV_SCENES=paper` runs the three paper-like seeds only).
+//! (`PTV_SCENES=paper` runs the three paper-like seeds only;
+//! `PTV_FIT_MIN_WINDOW`, `PTV_FIT_BIAS_WEIGHT`, `PTV_FIT_ACCEL` override
+//! the output fit's parameters, for the tracker and the oracle alike).
 
 use ebptv::cluster::ClusterParams;
 use ebptv::track::synth::{
@@ -53,9 +55,16 @@ fn bounds_table() {
         };
         // As `tests/ptv_conditions.rs`: the search reaches 1.25× the
         // largest displacement (the default 10 px below 8 px/pulse).
+        // Output-fit overrides for comparisons (PTV_FIT_MIN_WINDOW,
+        // PTV_FIT_BIAS_WEIGHT, PTV_FIT_ACCEL: px/pulse², 0 = no prior).
+        let env = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<f64>().ok());
+        let d = TrackParams::default();
         let tp = TrackParams {
             max_disp: (disp * 1.25).max(10.0),
-            ..Default::default()
+            fit_min_window: env("PTV_FIT_MIN_WINDOW").map_or(d.fit_min_window, |v| v as usize),
+            fit_bias_weight: env("PTV_FIT_BIAS_WEIGHT").unwrap_or(d.fit_bias_weight),
+            fit_accel_rms: env("PTV_FIT_ACCEL").map_or(d.fit_accel_rms, Some),
+            ..d
         };
         let run = run_scene(&generate(&sp), &ClusterParams::default(), &tp).unwrap();
         let s = score_with_sources(

@@ -44,6 +44,75 @@
 //! fitted track velocity minus the true velocity at every detection of a
 //! correctly identified track point, in px per pulse interval.
 //!
+//! # Identity scoring
+//! Strict scoring asks of a merged image which particle made *most* of
+//! its 2–3 events, which no detector can tell; merged-ok forgives any
+//! link whose two ends share a particle, also one where a track changes
+//! particle inside a merge (A → AB → B: strict one wrong link, merged-ok
+//! none). Identity scoring asks whether the track keeps following one
+//! particle. Each detection has the set S of truth particles that made at
+//! least one of its events (noise excluded; a split image's parts by the
+//! events on their pixels, as above). For each output track one label per
+//! detection is chosen from its S so that the labels change between
+//! consecutive detections as rarely as possible (dynamic programming over
+//! the track, [`identity_labels`]); a detection with empty S (noise only)
+//! has no label and both links touching it are wrong. A link is correct
+//! iff its two ends carry the same label. The count of wrong links is the
+//! minimum, the same for every optimal labelling; the labelling itself is
+//! made unique by taking, among the optimal ones, the one that agrees
+//! with the strict attribution at the most detections, then the smaller
+//! particle id. So A → AB → B is one wrong link, a track that follows A
+//! through a stream of AB images none, and without merged images identity
+//! equals strict. *Identity precision* (`precision_identity`) = correct /
+//! links; strict ≤ identity ≤ merged-ok always. The velocity error is the
+//! fitted velocity minus the true velocity of the *labelled* particle.
+//! Recall: besides the strict one, a *set-valued* recall (`recall_set`):
+//! a truth link of p is (k, p) with a detection at k and one at k + 1
+//! both holding events of p; it is found when one output track holds two
+//! such detections consecutively, both labelled p. A tracker that puts
+//! each detection on one track cannot find both particles' links through
+//! a merged image, so set-valued recall is below strict recall; and two
+//! tracks through the same merged images get the same labels there.
+//!
+//! # Oracle tracks
+//! [`oracle_tracks`]: what a tracker that knew every particle would
+//! output — per truth particle the detections holding its events, one per
+//! pulse (a merged image is on both particles' tracks); gaps of up to
+//! `TrackParams::stitch_gap` (3) missed pulses are bridged, as the tracker
+//! bridges them (a gap of `max_gap` while running, longer by stitching),
+//! longer gaps cut the track; one-detection pieces are dropped.
+//! [`oracle_report`] scores them strictly, merged-ok and by identity
+//! (strict is then the ceiling of strict precision for a tracker that
+//! follows every particle through its merged images), also with each
+//! detection on one track only (*exclusive*: the particle whose true,
+//! or truth-plus-Gaussian-noise, position is nearest the centroid gets
+//! it: a tracker with perfect, or σ-accurate, predictions), and fits the
+//! tracks of at least `min_length` detections with the tracker's own
+//! output fit ([`super::fit_detections`]: same code, the tracker's final
+//! noise estimate, the curvature prior estimated from those tracks; no
+//! outlier removal, step cuts or flow prior): the velocity error with
+//! perfect links, at every detection and at interior points.
+//!
+//! # Velocity floor
+//! For those tracks, at each detection, the variance of the best velocity
+//! estimate when the path is a quadratic in time (per axis, τ = pulse
+//! index) and the centroids carry i.i.d. Gaussian noise σ = `sigma_all`
+//! (centroid minus the particle's true position, rms per axis over those
+//! detections, merged images included): σ² (XᵀX)⁻¹ for the slope at the
+//! point ([`quadratic_velocity_variance_factor`]), with X over (a) the
+//! whole track (`floor_track`; the Cramér–Rao bound of unbiased
+//! estimators if the whole track were one quadratic), (b) the
+//! `fit_window` (21) detections nearest the point (`floor_window`: the
+//! fitter's longest window), (c) as (b) with a Gaussian prior of rms
+//! `fit_accel_rms` on the acceleration (`floor_window_prior`: the
+//! Bayesian bound, which also holds for biased estimators such as the
+//! fit's own ridge), (d) as (c) with each detection's noise known from
+//! its event count (`floor_window_prior_weighted`). The floors are rms
+//! over the same points as the fit's error. They count noise only: the
+//! bias of a quadratic on a path that is not one comes on top, and they
+//! bound single-track estimators — a prior from other tracks (the flow)
+//! is outside the model.
+//!
 //! # Split images
 //! With `TrackParams::split_merged` the tracker may replace a merged image
 //! by two parts (new detections, serials with `SPLIT_SERIAL_BIT`).
@@ -1138,7 +1207,7 @@ pub fn quadratic_velocity_variance_factor(
     let det = s0 * (s2 * s4 - s3 * s3) - s1 * (s1 * s4 - s2 * s3) + s2 * (s1 * s3 - s2 * s2);
     // Relative to the scale of the products: a singular system (≤ 2
     // distinct times) leaves rounding noise only.
-    if !(det > 1e-9 * s0 * s2 * s4) {
+    if det.is_nan() || det <= 1e-9 * s0 * s2 * s4 {
         return None;
     }
     Some((s0 * s4 - s2 * s2) / det)
