@@ -37,8 +37,9 @@ fn bounds_table() {
     let mut vel = String::from(
         "| scene | tracker strict | tracker identity | oracle, our fit | floor, window quadratic | \
          floor, track quadratic | floor, window with accel prior | \
-         floor, same, noise by event count | σ all / clean (fit σ, accel) |\n\
-         |---|---|---|---|---|---|---|---|---|\n",
+         floor, same, noise by event count | best window (noise + bias) | same with accel prior | \
+         σ all / clean (fit σ, accel) |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for (name, ppp, disp, noise, seed) in scenes {
         if paper_only && ppp > 0.01 {
@@ -136,7 +137,7 @@ fn bounds_table() {
                 .join(" / "),
         ));
         vel.push_str(&format!(
-            "| {name} | {:.3} ({:.3}) | {:.3} ({:.3}) | {:.3} ({:.3}) | {:.3} ({:.3}) | {:.3} ({:.3}) | {:.3} ({:.3}) | {:.3} ({:.3}) | {:.3} / {:.3} ({:.3}, {:.4}) |\n",
+            "| {name} | {:.3} ({:.3}) | {:.3} ({:.3}) | {:.3} ({:.3}) | {:.3} ({:.3}) | {:.3} ({:.3}) | {:.3} ({:.3}) | {:.3} ({:.3}) | {:.3} ({:.3}) | {:.3} ({:.3}) | {:.3} / {:.3} ({:.3}, {:.4}) |\n",
             s.velocity_rms_px_per_pulse,
             s.velocity_rms_interior_px_per_pulse,
             s.velocity_rms_identity_px_per_pulse,
@@ -151,6 +152,10 @@ fn bounds_table() {
             o.floor_window_prior_interior,
             o.floor_window_prior_weighted,
             o.floor_window_prior_weighted_interior,
+            o.best_window,
+            o.best_window_interior,
+            o.best_window_prior,
+            o.best_window_prior_interior,
             o.sigma_all,
             o.sigma_clean,
             o.fit_sigma,

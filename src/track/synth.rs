@@ -1173,6 +1173,81 @@ pub struct OracleReport {
     pub sigma_by_events: [f64; 4],
     pub floor_window_prior_weighted: f64,
     pub floor_window_prior_weighted_interior: f64,
+    /// Not a noise-only floor: the least mean square velocity error of a
+    /// sliding least-squares quadratic (as centred on the point as the
+    /// track allows, as the output fit's windows are) when its window —
+    /// any size from 3 detections to the whole track — is chosen per
+    /// point knowing the truth: min over windows of bias² (the fit of the
+    /// *true* positions minus the true velocity: the path is not a
+    /// quadratic) + σ²·Σ wᵢ² (noise, σ = `sigma_all`), rms per component.
+    /// Without and with the acceleration prior (ridge). What the output
+    /// fit's window rule could gain at best.
+    pub best_window: f64,
+    pub best_window_interior: f64,
+    pub best_window_prior: f64,
+    pub best_window_prior_interior: f64,
+}
+
+/// The least mean square velocity error (per component, px²/pulse²) of a
+/// least-squares quadratic (ridge `ridge` on the quadratic coefficient)
+/// at detection `j` of a track with detections at `taus`, true positions
+/// `xy` and true velocity `v` at `j` (px per pulse), noise σ per axis:
+/// over the windows of 3 to all detections, each as centred on `j` as the
+/// track allows ([`OracleReport::best_window`]).
+pub fn best_window_mse(
+    taus: &[f64],
+    xy: &[[f64; 2]],
+    j: usize,
+    v: [f64; 2],
+    sigma: f64,
+    ridge: f64,
+) -> f64 {
+    let n = taus.len();
+    let at = taus[j];
+    let mut best = f64::INFINITY;
+    for m in 3..=n {
+        let lo = j.saturating_sub(m / 2).min(n - m);
+        let mut mm = [[0.0f64; 3]; 3];
+        for &t in &taus[lo..lo + m] {
+            let b = [1.0, t - at, (t - at) * (t - at)];
+            for (r, &br) in mm.iter_mut().zip(&b) {
+                for (c, &bc) in r.iter_mut().zip(&b) {
+                    *c += br * bc;
+                }
+            }
+        }
+        mm[2][2] += ridge;
+        let Some(row) = inverse_row_1(&mm) else {
+            continue;
+        };
+        let (mut fx, mut fy, mut w2) = (0.0, 0.0, 0.0);
+        for (t, p) in taus[lo..lo + m].iter().zip(&xy[lo..lo + m]) {
+            let d = t - at;
+            let w = row[0] + row[1] * d + row[2] * d * d;
+            fx += w * p[0];
+            fy += w * p[1];
+            w2 += w * w;
+        }
+        let mse = 0.5 * ((fx - v[0]).powi(2) + (fy - v[1]).powi(2)) + sigma * sigma * w2;
+        best = best.min(mse);
+    }
+    best
+}
+
+/// Row 1 of the inverse of a symmetric 3×3 matrix (`None`: singular).
+fn inverse_row_1(m: &[[f64; 3]; 3]) -> Option<[f64; 3]> {
+    // Cofactors of the column 1 entries (the matrix is symmetric, so the
+    // inverse's row 1 is its column 1).
+    let c0 = -(m[0][1] * m[2][2] - m[0][2] * m[2][1]);
+    let c1 = m[0][0] * m[2][2] - m[0][2] * m[2][0];
+    let c2 = -(m[0][0] * m[2][1] - m[0][1] * m[2][0]);
+    let det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+        - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+        + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+    if det.is_nan() || det <= 1e-9 * m[0][0] * m[1][1] * m[2][2] {
+        return None;
+    }
+    Some([c0 / det, c1 / det, c2 / det])
 }
 
 /// Per-axis variance factor `(XᵀWX + R)⁻¹₁₁` of the slope at `at` of a
@@ -1386,8 +1461,8 @@ pub fn oracle_report(
     let k = period_us * 1e-6;
     // Sums, all points and interior: fit error² (both components), floor
     // factors (track, window, window with the prior; per axis).
-    let mut all = [0.0f64; 5];
-    let mut inner = [0.0f64; 5];
+    let mut all = [0.0f64; 7];
+    let mut inner = [0.0f64; 7];
     for (t, lt) in oracle.iter().zip(&fitted).filter(|(t, _)| long(t)) {
         r.velocity_tracks += 1;
         let taus: Vec<f64> = t
@@ -1404,6 +1479,14 @@ pub fn oracle_report(
             .iter()
             .map(|&d| r.sigma_by_events[event_class(d)].powi(-2))
             .collect();
+        let true_xy: Vec<[f64; 2]> = t
+            .detections
+            .iter()
+            .map(|&d| {
+                let ts = truth[&(run.det_pulse[d], t.particle)];
+                [ts.x, ts.y]
+            })
+            .collect();
         for (j, &d) in t.detections.iter().enumerate() {
             let pulse = run.det_pulse[d];
             let ts = truth[&(pulse, t.particle)];
@@ -1416,14 +1499,19 @@ pub fn oracle_report(
             let factor = |taus: &[f64], weights: &[f64], ridge: f64| {
                 quadratic_velocity_variance_factor(taus, weights, at, ridge).unwrap_or(f64::NAN)
             };
-            // The weighted floor is a variance: divided by σ² here so
-            // that all four scale with σ below.
+            let best = |ridge: f64| {
+                best_window_mse(&taus, &true_xy, j, [ts.u * k, ts.v * k], r.sigma_all, ridge)
+            };
+            // The weighted floor and the best windows are variances:
+            // divided by σ² here so that all scale with σ below.
             let v = [
                 ((pt.u - ts.u) * k).powi(2) + ((pt.v - ts.v) * k).powi(2),
                 factor(&taus, &[], 0.0),
                 factor(win, &[], 0.0),
                 factor(win, &[], ridge),
                 factor(win, &weights[lo..lo + w], prior_precision) / r.sigma_all.powi(2),
+                best(0.0) / r.sigma_all.powi(2),
+                best(ridge) / r.sigma_all.powi(2),
             ];
             for (a, b) in all.iter_mut().zip(v) {
                 *a += b;
@@ -1456,6 +1544,10 @@ pub fn oracle_report(
     r.floor_window_prior_interior = floor(inner[3], n_in);
     r.floor_window_prior_weighted = floor(all[4], n);
     r.floor_window_prior_weighted_interior = floor(inner[4], n_in);
+    r.best_window = floor(all[5], n);
+    r.best_window_interior = floor(inner[5], n_in);
+    r.best_window_prior = floor(all[6], n);
+    r.best_window_prior_interior = floor(inner[6], n_in);
     r
 }
 
@@ -2071,6 +2163,27 @@ mod tests {
         );
         let b = quadratic_velocity_variance_factor(&[0.0, 1.0, 1.0, 2.0, 3.0], &[], 3.0, 0.5);
         assert!((a.unwrap() - b.unwrap()).abs() < 1e-12, "{a:?} {b:?}");
+    }
+
+    #[test]
+    fn the_best_window_trades_curvature_bias_against_noise() {
+        // A true quadratic path: no bias, so the longest window (all 31
+        // samples) wins, and its error is the noise floor.
+        let taus: Vec<f64> = (0..31).map(f64::from).collect();
+        let quad: Vec<[f64; 2]> = taus.iter().map(|t| [0.1 * t * t, 2.0 * t]).collect();
+        let mse = best_window_mse(&taus, &quad, 15, [3.0, 2.0], 0.4, 0.0);
+        let floor = 0.16 * quadratic_velocity_variance_factor(&taus, &[], 15.0, 0.0).unwrap();
+        assert!((mse - floor).abs() < 1e-12, "{mse} {floor}");
+        // A sine: the long windows are biased, the best one is shorter
+        // and its error above the noise floor of the whole track.
+        let sine: Vec<[f64; 2]> = taus.iter().map(|t| [10.0 * (t / 3.0).sin(), 0.0]).collect();
+        let v = [10.0 / 3.0 * (5.0f64).cos(), 0.0];
+        let mse = best_window_mse(&taus, &sine, 15, v, 0.4, 0.0);
+        assert!(mse > floor && mse < 0.16, "{mse}");
+        // Without noise the shortest exact window is free of error only
+        // if the path is a quadratic there: 3 points of the sine are not.
+        let mse = best_window_mse(&taus, &sine, 15, v, 0.0, 0.0);
+        assert!(mse > 0.0 && mse < 1e-2, "{mse}");
     }
 
     #[test]
