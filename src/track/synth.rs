@@ -111,7 +111,12 @@
 //! over the same points as the fit's error. They count noise only: the
 //! bias of a quadratic on a path that is not one comes on top, and they
 //! bound single-track estimators — a prior from other tracks (the flow)
-//! is outside the model.
+//! is outside the model. Bias included, but for the fitter's family only:
+//! `best_window` ([`best_window_mse`]) is the least mean square error of
+//! a sliding quadratic (centred as the output fit centres its windows)
+//! whose window, 3 detections to the whole track, is chosen per point
+//! knowing the true path — the error of fitting the true positions plus
+//! the noise of the window — without and with the acceleration prior.
 //!
 //! # Split images
 //! With `TrackParams::split_merged` the tracker may replace a merged image
