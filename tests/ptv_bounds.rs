@@ -3,7 +3,7 @@
 //! (a tracker that knew every particle), and the velocity error of the
 //! tracker, of the tracker's own output fit on the oracle tracks, and the
 //! quadratic floors (definitions in `ebptv::track::synth`'s module docs).
-//! Ignored by default (~1 min for the four scenes):
+//! Ignored by default (~6 s for the four scenes after the build):
 //! `cargo test --release --test ptv_bounds -- --ignored --nocapture`
 //! (`PTV_SCENES=paper` runs the three paper-like seeds only;
 //! `PTV_FIT_MIN_WINDOW`, `PTV_FIT_BIAS_WEIGHT`, `PTV_FIT_ACCEL` override
@@ -31,8 +31,9 @@ fn bounds_table() {
         "| scene | tracker strict | merged-ok | identity | recall strict | recall set | \
          oracle strict | merged-ok | identity | oracle recall strict | set | \
          long oracle strict | exclusive oracle strict | its recall strict / set | \
-         exclusive, prediction σ 0.1 / 0.2 / 0.3 px: strict |\n\
-         |---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+         exclusive, prediction σ 0.1 / 0.2 / 0.3 px: strict | \
+         oracle skipping merged images: strict / its recall strict |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     let mut vel = String::from(
         "| scene | tracker strict | tracker identity | oracle, our fit | floor, window quadratic | \
@@ -115,7 +116,7 @@ fn bounds_table() {
             );
         }
         links.push_str(&format!(
-            "| {name} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} / {:.4} | {} |\n",
+            "| {name} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} / {:.4} | {} | {:.4} / {:.4} |\n",
             s.precision,
             s.precision_merged_ok,
             s.precision_identity,
@@ -135,6 +136,8 @@ fn bounds_table() {
                 .map(|(_, e)| format!("{:.4}", e.precision))
                 .collect::<Vec<_>>()
                 .join(" / "),
+            o.score_skip_merged.precision,
+            o.score_skip_merged.recall,
         ));
         vel.push_str(&format!(
             "| {name} | {:.3} ({:.3}) | {:.3} ({:.3}) | {:.3} ({:.3}) | {:.3} ({:.3}) | {:.3} ({:.3}) | {:.3} ({:.3}) | {:.3} ({:.3}) | {:.3} ({:.3}) | {:.3} ({:.3}) | {:.3} / {:.3} ({:.3}, {:.4}) |\n",

@@ -86,7 +86,9 @@
 //! follows every particle through its merged images), also with each
 //! detection on one track only (*exclusive*: the particle whose true,
 //! or truth-plus-Gaussian-noise, position is nearest the centroid gets
-//! it: a tracker with perfect, or σ-accurate, predictions), and fits the
+//! it: a tracker with perfect, or σ-accurate, predictions), without the
+//! merged images (their particles' tracks bridge them: a tracker that
+//! knew which images are merged and refused them), and fits the
 //! tracks of at least `min_length` detections with the tracker's own
 //! output fit ([`super::fit_detections`]: same code, the tracker's final
 //! noise estimate, the curvature prior estimated from those tracks; no
@@ -1170,6 +1172,11 @@ pub struct OracleReport {
     /// true position plus a Gaussian error of the given σ per axis (px; a
     /// tracker's prediction error), fixed seed: (σ, its scores).
     pub score_exclusive_noisy: Vec<(f64, LinkScore)>,
+    /// The oracle without any merged image (events of two or more
+    /// particles): their particles' tracks bridge or cut there — what a
+    /// tracker that knew which images are merged could do to keep strict
+    /// precision, and what it costs in recall.
+    pub score_skip_merged: LinkScore,
     /// Position noise per axis (px) of the long tracks' detections by
     /// their event count (1, 2, 3, ≥ 4; the count is observable, so an
     /// estimator may weight by it), and the window floor with the
@@ -1379,6 +1386,25 @@ pub fn oracle_report(
     r.score_exclusive = score(&fit_oracle(
         run,
         &exclusive,
+        tparams,
+        r.fit_sigma,
+        r.fit_accel_rms,
+    ));
+    let single: Vec<Vec<u64>> = run
+        .det_sources
+        .iter()
+        .map(|src| {
+            if src.len() == 1 {
+                src.clone()
+            } else {
+                Vec::new()
+            }
+        })
+        .collect();
+    let skipping = oracle_tracks(&run.det_truth, &single, &run.det_pulse, tparams.stitch_gap);
+    r.score_skip_merged = score(&fit_oracle(
+        run,
+        &skipping,
         tparams,
         r.fit_sigma,
         r.fit_accel_rms,
@@ -2263,6 +2289,11 @@ mod tests {
         assert!(r.score_exclusive.precision > r.score.precision, "{r:?}");
         assert!(r.score_exclusive.links < r.score.links);
         assert_eq!(r.score_exclusive.identity_wrong_links, 0);
+        // Without merged images every link left is strictly correct,
+        // unless noise outvoted the particle in one of its images.
+        let s = &r.score_skip_merged;
+        assert!(s.precision > r.score_exclusive.precision, "{s:?}");
+        assert!(s.recall < r.score_exclusive.recall, "{s:?}");
         assert!(r.sigma_clean > 0.2 && r.sigma_clean < r.sigma_all, "{r:?}");
     }
 }
