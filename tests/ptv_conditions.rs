@@ -23,8 +23,8 @@ fn conditions_table() {
         ("5 % noise", 0.01, 8.0, 0.05),
         ("all three", 0.02, 12.0, 0.05),
     ];
-    println!("| conditions | ppp | px/pulse | noise | precision | precision (merged ok) | recall | recall (present) | vel rms (px/pulse) | interior vel rms |");
-    println!("|---|---|---|---|---|---|---|---|---|---|");
+    println!("| conditions | ppp | px/pulse | noise | precision | precision (merged ok) | precision (identity) | recall | recall (present) | recall (set) | vel rms (px/pulse) | interior vel rms |");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
     for (name, ppp, disp, noise) in rows {
         if env("PTV_ROWS") == Some(1.0) && !matches!(name, "paper-like" | "all three") {
             continue;
@@ -50,11 +50,13 @@ fn conditions_table() {
         };
         let (_, s) = run_and_score(&scene, &ClusterParams::default(), &tp, sp.period_us).unwrap();
         println!(
-            "| {name} | {ppp} | {disp} | {noise} | {:.4} | {:.4} | {:.4} | {:.4} | {:.3} | {:.3} |",
+            "| {name} | {ppp} | {disp} | {noise} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.4} | {:.3} | {:.3} |",
             s.precision,
             s.precision_merged_ok,
+            s.precision_identity,
             s.recall,
             s.recall_present,
+            s.recall_set,
             s.velocity_rms_px_per_pulse,
             s.velocity_rms_interior_px_per_pulse
         );

@@ -66,14 +66,16 @@ fn breakdown_of_link_errors() {
             ebptv::track::synth::INTERIOR_MARGIN,
         );
         println!(
-            "precision {:.4} (merged ok {:.4}) recall {:.4} ({} of {} truth links; present {:.4}) \
-             vel {:.3} interior {:.3}; {} links, {} images split",
+            "precision {:.4} (merged ok {:.4}, identity {:.4}) recall {:.4} ({} of {} truth links; \
+             present {:.4}; set {:.4}) vel {:.3} interior {:.3}; {} links, {} images split",
             s.precision,
             s.precision_merged_ok,
+            s.precision_identity,
             s.recall,
             s.found_truth_links,
             s.truth_links,
             s.recall_present,
+            s.recall_set,
             s.velocity_rms_px_per_pulse,
             s.velocity_rms_interior_px_per_pulse,
             s.links,

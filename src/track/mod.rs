@@ -3217,6 +3217,61 @@ pub fn link(particles: &[Particle], params: &TrackParams) -> Result<Vec<Track>> 
         .collect())
 }
 
+/// One detection handed to [`fit_detections`]: its serial, pulse, pulse
+/// time (µs) and centroid (px).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FitInput {
+    pub serial: u64,
+    pub pulse: i64,
+    pub t_us: f64,
+    pub x: f64,
+    pub y: f64,
+}
+
+/// The output fit the tracker gives a finished track (the sliding,
+/// adaptive-window polynomial of `fit_order` with the curvature prior
+/// `accel_rms`, px/pulse², 0 = none; position noise `sigma`, px per axis;
+/// tabulated where the windows are gap-free), applied to detections given
+/// from outside: for analysis, e.g. fitting the ideal tracks of a
+/// synthetic scene ([`synth::oracle_tracks`]) with exactly the code that
+/// fits the tracker's own, so that the two velocity errors differ only in
+/// the links. Only the fit: no outlier removal, length rule, step cut or
+/// velocity prior (those are link decisions or use other tracks).
+/// `dets` must be in increasing pulse order, at least one.
+pub fn fit_detections(
+    dets: &[FitInput],
+    params: &TrackParams,
+    sigma: f64,
+    accel_rms: f64,
+) -> LinkedTrack {
+    let dets: Vec<Det> = dets
+        .iter()
+        .map(|d| Det {
+            serial: d.serial,
+            pulse: d.pulse,
+            t_us: d.t_us,
+            x: d.x,
+            y: d.y,
+            nb: NO_NEIGHBOUR,
+        })
+        .collect();
+    let (points, detections, _) = fit_track_with(
+        &dets,
+        params,
+        sigma,
+        accel_rms,
+        None,
+        &mut local_flow::PriorCalibration::default(),
+        true,
+        &mut 0,
+        None,
+    );
+    LinkedTrack {
+        track: Track { id: 0, points },
+        detections,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -44,6 +44,82 @@
 //! fitted track velocity minus the true velocity at every detection of a
 //! correctly identified track point, in px per pulse interval.
 //!
+//! # Identity scoring
+//! Strict scoring asks of a merged image which particle made *most* of
+//! its 2–3 events, which no detector can tell; merged-ok forgives any
+//! link whose two ends share a particle, also one where a track changes
+//! particle inside a merge (A → AB → B: strict one wrong link, merged-ok
+//! none). Identity scoring asks whether the track keeps following one
+//! particle. Each detection has the set S of truth particles that made at
+//! least one of its events (noise excluded; a split image's parts by the
+//! events on their pixels, as above). For each output track one label per
+//! detection is chosen from its S so that the labels change between
+//! consecutive detections as rarely as possible (dynamic programming over
+//! the track, [`identity_labels`]); a detection with empty S (noise only)
+//! has no label and both links touching it are wrong. A link is correct
+//! iff its two ends carry the same label. The count of wrong links is the
+//! minimum, the same for every optimal labelling; the labelling itself is
+//! made unique by taking, among the optimal ones, the one that agrees
+//! with the strict attribution at the most detections, then the smaller
+//! particle id. So A → AB → B is one wrong link, a track that follows A
+//! through a stream of AB images none, and without merged images identity
+//! equals strict. *Identity precision* (`precision_identity`) = correct /
+//! links; strict ≤ identity ≤ merged-ok always. The velocity error is the
+//! fitted velocity minus the true velocity of the *labelled* particle.
+//! Recall: besides the strict one, a *set-valued* recall (`recall_set`):
+//! a truth link of p is (k, p) with a detection at k and one at k + 1
+//! both holding events of p; it is found when one output track holds two
+//! such detections consecutively, both labelled p. A tracker that puts
+//! each detection on one track cannot find both particles' links through
+//! a merged image, so set-valued recall is below strict recall; and two
+//! tracks through the same merged images get the same labels there.
+//!
+//! # Oracle tracks
+//! [`oracle_tracks`]: what a tracker that knew every particle would
+//! output — per truth particle the detections holding its events, one per
+//! pulse (a merged image is on both particles' tracks); gaps of up to
+//! `TrackParams::stitch_gap` (3) missed pulses are bridged, as the tracker
+//! bridges them (a gap of `max_gap` while running, longer by stitching),
+//! longer gaps cut the track; one-detection pieces are dropped.
+//! [`oracle_report`] scores them strictly, merged-ok and by identity
+//! (strict is then the ceiling of strict precision for a tracker that
+//! follows every particle through its merged images), also with each
+//! detection on one track only (*exclusive*: the particle whose true,
+//! or truth-plus-Gaussian-noise, position is nearest the centroid gets
+//! it: a tracker with perfect, or σ-accurate, predictions), without the
+//! merged images (their particles' tracks bridge them: a tracker that
+//! knew which images are merged and refused them), and fits the
+//! tracks of at least `min_length` detections with the tracker's own
+//! output fit ([`super::fit_detections`]: same code, the tracker's final
+//! noise estimate, the curvature prior estimated from those tracks; no
+//! outlier removal, step cuts or flow prior): the velocity error with
+//! perfect links, at every detection and at interior points.
+//!
+//! # Velocity floor
+//! For those tracks, at each detection, the variance of the best velocity
+//! estimate when the path is a quadratic in time (per axis, τ = pulse
+//! index) and the centroids carry i.i.d. Gaussian noise σ = `sigma_all`
+//! (centroid minus the particle's true position, rms per axis over those
+//! detections, merged images included): σ² (XᵀX)⁻¹ for the slope at the
+//! point ([`quadratic_velocity_variance_factor`]), with X over (a) the
+//! whole track (`floor_track`; the Cramér–Rao bound of unbiased
+//! estimators if the whole track were one quadratic), (b) the
+//! `fit_window` (21) detections nearest the point (`floor_window`: the
+//! fitter's longest window), (c) as (b) with a Gaussian prior of rms
+//! `fit_accel_rms` on the acceleration (`floor_window_prior`: the
+//! Bayesian bound, which also holds for biased estimators such as the
+//! fit's own ridge), (d) as (c) with each detection's noise known from
+//! its event count (`floor_window_prior_weighted`). The floors are rms
+//! over the same points as the fit's error. They count noise only: the
+//! bias of a quadratic on a path that is not one comes on top, and they
+//! bound single-track estimators — a prior from other tracks (the flow)
+//! is outside the model. Bias included, but for the fitter's family only:
+//! `best_window` ([`best_window_mse`]) is the least mean square error of
+//! a sliding quadratic (centred as the output fit centres its windows)
+//! whose window, 3 detections to the whole track, is chosen per point
+//! knowing the true path — the error of fitting the true positions plus
+//! the noise of the window — without and with the acceleration prior.
+//!
 //! # Split images
 //! With `TrackParams::split_merged` the tracker may replace a merged image
 //! by two parts (new detections, serials with `SPLIT_SERIAL_BIT`).
@@ -452,6 +528,36 @@ pub struct LinkScore {
     /// both ends of their track, where the sliding fit window is centred.
     pub velocity_rms_interior_px_per_pulse: f64,
     pub velocity_samples_interior: u64,
+    /// Identity scoring (module docs, "Identity scoring"; needs the event
+    /// sources, 0 without them): links whose two ends carry different
+    /// labels in the track's optimal labelling, or touch a detection
+    /// without particle events.
+    #[serde(default)]
+    pub identity_wrong_links: u64,
+    /// (links − identity-wrong links) / links.
+    #[serde(default)]
+    pub precision_identity: f64,
+    /// Set-valued truth links: (k, p) with a detection at k and one at
+    /// k + 1 both holding events of particle p.
+    #[serde(default)]
+    pub truth_links_set: u64,
+    /// ... found: one output track holds two such detections
+    /// consecutively, both labelled p.
+    #[serde(default)]
+    pub found_truth_links_set: u64,
+    #[serde(default)]
+    pub recall_set: f64,
+    /// Rms velocity error per component (px per pulse interval) against
+    /// the labelled particle's true velocity, every labelled detection.
+    #[serde(default)]
+    pub velocity_rms_identity_px_per_pulse: f64,
+    #[serde(default)]
+    pub velocity_samples_identity: u64,
+    /// ... interior points only (`interior_margin`, as above).
+    #[serde(default)]
+    pub velocity_rms_identity_interior_px_per_pulse: f64,
+    #[serde(default)]
+    pub velocity_samples_identity_interior: u64,
 }
 
 /// Score linked tracks. `det_truth[serial]` is the truth id of each
@@ -552,6 +658,18 @@ pub fn score_with_sources(
         }
     }
     s.found_truth_links = found.len() as u64;
+    if !det_sources.is_empty() {
+        score_identity(
+            &mut s,
+            tracks,
+            det_truth,
+            det_sources,
+            det_pulse,
+            &truth_vel,
+            period_us,
+            interior_margin,
+        );
+    }
     s.precision = if s.links > 0 {
         s.correct_links as f64 / s.links as f64
     } else {
@@ -585,6 +703,169 @@ pub fn score_with_sources(
     s
 }
 
+/// The identity part of [`score_with_sources`] (module docs, "Identity
+/// scoring"): fills the `identity`/`set` fields of `s` (`s.links` must be
+/// counted already).
+#[allow(clippy::too_many_arguments)]
+fn score_identity(
+    s: &mut LinkScore,
+    tracks: &[LinkedTrack],
+    det_truth: &[Option<u64>],
+    det_sources: &[Vec<u64>],
+    det_pulse: &[i64],
+    truth_vel: &HashMap<(i64, u64), (f64, f64)>,
+    period_us: f64,
+    interior_margin: usize,
+) {
+    let holds: HashSet<(i64, u64)> = det_sources
+        .iter()
+        .zip(det_pulse)
+        .flat_map(|(src, &k)| src.iter().map(move |&id| (k, id)))
+        .collect();
+    s.truth_links_set = holds
+        .iter()
+        .filter(|&&(k, id)| holds.contains(&(k + 1, id)))
+        .count() as u64;
+    let mut found: HashSet<(i64, u64)> = HashSet::new();
+    let (mut sq, mut sq_in) = (0.0, 0.0);
+    let k = period_us * 1e-6;
+    for t in tracks {
+        let serials: Vec<usize> = t.detections.iter().flatten().map(|&d| d as usize).collect();
+        let labels = identity_labels(&serials, det_truth, det_sources);
+        for (i, w) in serials.windows(2).enumerate() {
+            match (labels[i], labels[i + 1]) {
+                (Some(a), Some(b)) if a == b => {
+                    if det_pulse[w[1]] == det_pulse[w[0]] + 1 {
+                        found.insert((det_pulse[w[0]], a));
+                    }
+                }
+                _ => s.identity_wrong_links += 1,
+            }
+        }
+        let n = t.track.points.len();
+        let mut j = 0; // index into serials/labels
+        for (i, (pt, d)) in t.track.points.iter().zip(&t.detections).enumerate() {
+            if d.is_none() {
+                continue;
+            }
+            let label = labels[j];
+            j += 1;
+            let Some(&(u, v)) = label.and_then(|id| truth_vel.get(&(pt.pulse, id))) else {
+                continue;
+            };
+            let e2 = ((pt.u - u) * k).powi(2) + ((pt.v - v) * k).powi(2);
+            sq += e2;
+            s.velocity_samples_identity += 1;
+            if i >= interior_margin && n - 1 - i >= interior_margin {
+                sq_in += e2;
+                s.velocity_samples_identity_interior += 1;
+            }
+        }
+    }
+    s.found_truth_links_set = found.len() as u64;
+    let ratio = |a: u64, b: u64| if b > 0 { a as f64 / b as f64 } else { 0.0 };
+    s.precision_identity = ratio(s.links - s.identity_wrong_links, s.links);
+    s.recall_set = ratio(s.found_truth_links_set, s.truth_links_set);
+    let rms = |sq: f64, n: u64| {
+        if n > 0 {
+            (sq / (2 * n) as f64).sqrt()
+        } else {
+            0.0
+        }
+    };
+    s.velocity_rms_identity_px_per_pulse = rms(sq, s.velocity_samples_identity);
+    s.velocity_rms_identity_interior_px_per_pulse =
+        rms(sq_in, s.velocity_samples_identity_interior);
+}
+
+/// The optimal labelling of one track (module docs, "Identity scoring"):
+/// for the detections `serials` (in track order) one truth particle each
+/// from its event sources `det_sources[serial]` (sorted), `None` where
+/// the sources are empty (noise only), such that the labels change
+/// between consecutive detections as rarely as possible. Among the
+/// labellings with fewest changes the one that agrees most often with
+/// the strict attribution `det_truth` is taken (so a track through a
+/// merged image keeps the particle it follows, and without merged
+/// images the labels are `det_truth`), then the smaller particle id
+/// (earliest in the track first): one labelling, deterministic.
+pub fn identity_labels(
+    serials: &[usize],
+    det_truth: &[Option<u64>],
+    det_sources: &[Vec<u64>],
+) -> Vec<Option<u64>> {
+    let mut out = vec![None; serials.len()];
+    let mut i = 0;
+    while i < serials.len() {
+        if det_sources[serials[i]].is_empty() {
+            i += 1;
+            continue;
+        }
+        // A detection without sources ends the segment: both its links
+        // are wrong whatever the labels, so the segments are labelled
+        // independently.
+        let mut j = i;
+        while j < serials.len() && !det_sources[serials[j]].is_empty() {
+            j += 1;
+        }
+        label_segment(&serials[i..j], det_truth, det_sources, &mut out[i..j]);
+        i = j;
+    }
+    out
+}
+
+/// [`identity_labels`] of a run of detections that all have sources:
+/// dynamic programming over the track, cost (label changes, disagreements
+/// with `det_truth`) compared lexicographically.
+fn label_segment(
+    seg: &[usize],
+    det_truth: &[Option<u64>],
+    det_sources: &[Vec<u64>],
+    out: &mut [Option<u64>],
+) {
+    // cost[i][c]: least cost of labelling seg[..=i] with label
+    // det_sources[seg[i]][c] at i; back[i][c]: the label index at i − 1.
+    let mut cost: Vec<Vec<(u32, u32)>> = Vec::with_capacity(seg.len());
+    let mut back: Vec<Vec<usize>> = Vec::with_capacity(seg.len());
+    for (i, &d) in seg.iter().enumerate() {
+        let src = &det_sources[d];
+        let mut row = Vec::with_capacity(src.len());
+        let mut brow = Vec::with_capacity(src.len());
+        for &l in src {
+            let disagrees = u32::from(det_truth[d] != Some(l));
+            if i == 0 {
+                row.push((0, disagrees));
+                brow.push(0);
+                continue;
+            }
+            let prev = &det_sources[seg[i - 1]];
+            // Least cost; among equals staying on l, else the smallest
+            // label (sources are sorted, the first minimum wins).
+            let mut best = (u32::MAX, u32::MAX);
+            let mut arg = 0;
+            for (c, &pl) in prev.iter().enumerate() {
+                let pc = cost[i - 1][c];
+                let cand = (pc.0 + u32::from(pl != l), pc.1);
+                if cand < best || (cand == best && pl == l) {
+                    best = cand;
+                    arg = c;
+                }
+            }
+            row.push((best.0, best.1 + disagrees));
+            brow.push(arg);
+        }
+        cost.push(row);
+        back.push(brow);
+    }
+    let last = seg.len() - 1;
+    let mut c = (0..cost[last].len())
+        .min_by_key(|&c| cost[last][c])
+        .expect("a segment's detections have sources");
+    for i in (0..seg.len()).rev() {
+        out[i] = Some(det_sources[seg[i]][c]);
+        c = back[i][c];
+    }
+}
+
 /// Track points at least this many detections from both ends of their
 /// track count as interior in [`run_and_score`] (the half-width of the
 /// 11-point output window of sessions 1–2, kept so numbers compare).
@@ -600,6 +881,10 @@ pub struct SceneRun {
     pub det_sources: Vec<Vec<u64>>,
     pub det_mixed: Vec<bool>,
     pub det_pulse: Vec<i64>,
+    /// Centroid (px) of each detection.
+    pub det_xy: Vec<[f64; 2]>,
+    /// Pulse start (µs) of each detection: the time the tracker gave it.
+    pub det_t_us: Vec<f64>,
     /// Events of each detection.
     pub det_events: Vec<u32>,
     pub truth: Vec<TruthSample>,
@@ -630,6 +915,8 @@ pub fn run_scene(
         det_sources: Vec::new(),
         det_mixed: Vec::new(),
         det_pulse: Vec::new(),
+        det_xy: Vec::new(),
+        det_t_us: Vec::new(),
         det_events: Vec::new(),
         truth: Vec::new(),
         position_sigma: 0.0,
@@ -637,8 +924,8 @@ pub fn run_scene(
         split_parts: Vec::new(),
     };
     // Split parts: (serial, truth, sources, mixed, pulse, parent serial,
-    // events).
-    type Part = (u64, Option<u64>, Vec<u64>, bool, i64, u64, u32);
+    // events, centroid).
+    type Part = (u64, Option<u64>, Vec<u64>, bool, i64, u64, u32, [f64; 2]);
     let mut parts_of_splits: Vec<Part> = Vec::new();
     for sp in scene {
         let ((parts, ids, mixed, sources), table) = cluster_with_truth_pixels(sp, cparams);
@@ -646,6 +933,9 @@ pub fn run_scene(
             .extend(std::iter::repeat(sp.pulse.index).take(parts.len()));
         run.det_truth.extend(ids);
         run.det_events.extend(parts.iter().map(|p| p.n_events));
+        run.det_xy.extend(parts.iter().map(|p| [p.x, p.y]));
+        run.det_t_us
+            .extend(std::iter::repeat(sp.pulse.start_us).take(parts.len()));
         run.det_mixed.extend(mixed);
         run.det_sources.extend(sources);
         run.tracks.extend(tracker.push_linked_with_pixels(
@@ -685,7 +975,16 @@ pub fn run_scene(
             src.sort_unstable();
             let id = attribute_votes(&votes, (d.x, d.y), &truth_xy);
             let n: u32 = d.pixels.iter().map(|p| p.count).sum();
-            parts_of_splits.push((d.serial, id, src, votes.len() > 1, d.pulse, d.parent, n));
+            parts_of_splits.push((
+                d.serial,
+                id,
+                src,
+                votes.len() > 1,
+                d.pulse,
+                d.parent,
+                n,
+                [d.x, d.y],
+            ));
         }
     }
     run.position_sigma = tracker.position_sigma();
@@ -699,9 +998,11 @@ pub fn run_scene(
             .enumerate()
             .map(|(k, p)| (p.0, base + k as u64))
             .collect();
-        for (_, id, src, mixed, pulse, parent, n) in parts_of_splits {
+        for (_, id, src, mixed, pulse, parent, n, xy) in parts_of_splits {
             run.det_events.push(n);
             let parent = parent as usize;
+            run.det_xy.push(xy);
+            run.det_t_us.push(run.det_t_us[parent]);
             let was_mixed = run.det_mixed[parent] || run.det_sources[parent].len() > 1;
             run.split_parts
                 .push((run.det_truth.len(), parent, was_mixed));
@@ -743,6 +1044,571 @@ pub fn run_and_score(
         INTERIOR_MARGIN,
     );
     Ok((run.tracks, s))
+}
+
+/// An ideal track (module docs, "Oracle tracks"): one truth particle and
+/// the detections holding its events, in pulse order (indices as in
+/// [`SceneRun`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct OracleTrack {
+    pub particle: u64,
+    pub detections: Vec<usize>,
+}
+
+/// The tracks a tracker that knew every particle would output (module
+/// docs, "Oracle tracks"): per truth particle the detections holding at
+/// least one of its events (`det_sources`), one per pulse — where two
+/// detections of one pulse hold its events, the one attributed to it
+/// (`det_truth`), else the one with fewer sources, else the lower index —
+/// cut where more than `max_missed` pulses in a row have none. Tracks of
+/// one detection (no link) are left out. Ordered by particle, then time.
+pub fn oracle_tracks(
+    det_truth: &[Option<u64>],
+    det_sources: &[Vec<u64>],
+    det_pulse: &[i64],
+    max_missed: u32,
+) -> Vec<OracleTrack> {
+    let mut of: std::collections::BTreeMap<u64, std::collections::BTreeMap<i64, usize>> =
+        Default::default();
+    let rank = |d: usize, p: u64| (det_truth[d] != Some(p), det_sources[d].len(), d);
+    for (d, src) in det_sources.iter().enumerate() {
+        for &p in src {
+            of.entry(p)
+                .or_default()
+                .entry(det_pulse[d])
+                .and_modify(|e| {
+                    if rank(d, p) < rank(*e, p) {
+                        *e = d;
+                    }
+                })
+                .or_insert(d);
+        }
+    }
+    let mut out = Vec::new();
+    for (particle, by_pulse) in of {
+        let mut cur: Vec<usize> = Vec::new();
+        let mut last = i64::MIN;
+        for (k, d) in by_pulse {
+            if !cur.is_empty() && k - last > max_missed as i64 + 1 {
+                if cur.len() >= 2 {
+                    out.push(OracleTrack {
+                        particle,
+                        detections: std::mem::take(&mut cur),
+                    });
+                }
+                cur.clear();
+            }
+            cur.push(d);
+            last = k;
+        }
+        if cur.len() >= 2 {
+            out.push(OracleTrack {
+                particle,
+                detections: cur,
+            });
+        }
+    }
+    out
+}
+
+/// What perfect links give on a scene (module docs, "Oracle tracks" and
+/// "Velocity floor"); see [`oracle_report`].
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct OracleReport {
+    /// Oracle tracks (≥ 2 detections).
+    pub tracks: u64,
+    /// Links that bridge missed pulses.
+    pub bridged_links: u64,
+    /// Strict, merged-ok and identity scores of all oracle tracks, fitted
+    /// by the tracker's output fit. Its velocity fields are against the
+    /// majority owner of each detection and cover short tracks too: the
+    /// velocity numbers of the oracle are the fields below.
+    pub score: LinkScore,
+    /// Oracle tracks of at least `min_length` detections (the tracker's
+    /// plain length rule): the velocity fields below are over them.
+    pub velocity_tracks: u64,
+    /// Centroid minus true position of the track's particle, rms per
+    /// axis (px), over the detections of those tracks (a merged image
+    /// once per particle it holds)...
+    pub sigma_all: f64,
+    /// ... and over those holding events of that particle alone.
+    pub sigma_clean: f64,
+    /// The output fit's position noise (the tracker's final estimate on
+    /// this scene) and curvature prior (`fit_accel_rms`, else estimated
+    /// from those oracle tracks as the finaliser estimates it from kept
+    /// tracks), px per axis and px/pulse².
+    pub fit_sigma: f64,
+    pub fit_accel_rms: f64,
+    /// The output fit's velocity minus the particle's true velocity, rms
+    /// per component (px per pulse interval), at every detection...
+    pub velocity_rms_fit: f64,
+    pub velocity_samples: u64,
+    /// ... and at interior points (`interior_margin` from both ends).
+    pub velocity_rms_fit_interior: f64,
+    pub velocity_samples_interior: u64,
+    /// Velocity floor with the whole track as one quadratic in time
+    /// (module docs), σ = `sigma_all`, same points.
+    pub floor_track: f64,
+    pub floor_track_interior: f64,
+    /// Velocity floor with a quadratic over the `fit_window` detections
+    /// nearest the point (the output fit's longest window).
+    pub floor_window: f64,
+    pub floor_window_interior: f64,
+    /// The window floor with the acceleration prior of the output fit
+    /// (`fit_accel_rms` per axis, so c₂ ~ N(0, (fit_accel_rms/2)²)): the
+    /// Bayesian bound for any estimator, biased or not, of that model.
+    pub floor_window_prior: f64,
+    pub floor_window_prior_interior: f64,
+    /// Strict, merged-ok and identity scores of the oracle tracks of at
+    /// least `min_length` detections only.
+    pub score_long: LinkScore,
+    /// The *exclusive* oracle: as the oracle, but each detection on one
+    /// track only (a tracker's constraint), that of the particle among
+    /// its sources whose true position is nearest its centroid (what a
+    /// tracker with perfect predictions could choose); the other
+    /// particle's track misses that pulse (bridged or cut as above).
+    pub score_exclusive: LinkScore,
+    /// The exclusive oracle choosing by *noisy* positions: each source's
+    /// true position plus a Gaussian error of the given σ per axis (px; a
+    /// tracker's prediction error), fixed seed: (σ, its scores).
+    pub score_exclusive_noisy: Vec<(f64, LinkScore)>,
+    /// The oracle without any merged image (events of two or more
+    /// particles): their particles' tracks bridge or cut there — what a
+    /// tracker that knew which images are merged could do to keep strict
+    /// precision, and what it costs in recall.
+    pub score_skip_merged: LinkScore,
+    /// Position noise per axis (px) of the long tracks' detections by
+    /// their event count (1, 2, 3, ≥ 4; the count is observable, so an
+    /// estimator may weight by it), and the window floor with the
+    /// acceleration prior for that known per-detection noise (weights
+    /// 1/σ²(events)): the lowest of the floors.
+    pub sigma_by_events: [f64; 4],
+    pub floor_window_prior_weighted: f64,
+    pub floor_window_prior_weighted_interior: f64,
+    /// Not a noise-only floor: the least mean square velocity error of a
+    /// sliding least-squares quadratic (as centred on the point as the
+    /// track allows, as the output fit's windows are) when its window —
+    /// any size from 3 detections to the whole track — is chosen per
+    /// point knowing the truth: min over windows of bias² (the fit of the
+    /// *true* positions minus the true velocity: the path is not a
+    /// quadratic) + σ²·Σ wᵢ² (noise, σ = `sigma_all`), rms per component.
+    /// Without and with the acceleration prior (ridge). What the output
+    /// fit's window rule could gain at best.
+    pub best_window: f64,
+    pub best_window_interior: f64,
+    pub best_window_prior: f64,
+    pub best_window_prior_interior: f64,
+}
+
+/// The least mean square velocity error (per component, px²/pulse²) of a
+/// least-squares quadratic (ridge `ridge` on the quadratic coefficient)
+/// at detection `j` of a track with detections at `taus`, true positions
+/// `xy` and true velocity `v` at `j` (px per pulse), noise σ per axis:
+/// over the windows of 3 to all detections, each as centred on `j` as the
+/// track allows ([`OracleReport::best_window`]).
+pub fn best_window_mse(
+    taus: &[f64],
+    xy: &[[f64; 2]],
+    j: usize,
+    v: [f64; 2],
+    sigma: f64,
+    ridge: f64,
+) -> f64 {
+    let n = taus.len();
+    let at = taus[j];
+    let mut best = f64::INFINITY;
+    for m in 3..=n {
+        let lo = j.saturating_sub(m / 2).min(n - m);
+        let mut mm = [[0.0f64; 3]; 3];
+        for &t in &taus[lo..lo + m] {
+            let b = [1.0, t - at, (t - at) * (t - at)];
+            for (r, &br) in mm.iter_mut().zip(&b) {
+                for (c, &bc) in r.iter_mut().zip(&b) {
+                    *c += br * bc;
+                }
+            }
+        }
+        mm[2][2] += ridge;
+        let Some(row) = inverse_row_1(&mm) else {
+            continue;
+        };
+        let (mut fx, mut fy, mut w2) = (0.0, 0.0, 0.0);
+        for (t, p) in taus[lo..lo + m].iter().zip(&xy[lo..lo + m]) {
+            let d = t - at;
+            let w = row[0] + row[1] * d + row[2] * d * d;
+            fx += w * p[0];
+            fy += w * p[1];
+            w2 += w * w;
+        }
+        let mse = 0.5 * ((fx - v[0]).powi(2) + (fy - v[1]).powi(2)) + sigma * sigma * w2;
+        best = best.min(mse);
+    }
+    best
+}
+
+/// Row 1 of the inverse of a symmetric 3×3 matrix (`None`: singular).
+fn inverse_row_1(m: &[[f64; 3]; 3]) -> Option<[f64; 3]> {
+    // Cofactors of the column 1 entries (the matrix is symmetric, so the
+    // inverse's row 1 is its column 1).
+    let c0 = -(m[0][1] * m[2][2] - m[0][2] * m[2][1]);
+    let c1 = m[0][0] * m[2][2] - m[0][2] * m[2][0];
+    let c2 = -(m[0][0] * m[2][1] - m[0][1] * m[2][0]);
+    let det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+        - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+        + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+    if det.is_nan() || det <= 1e-9 * m[0][0] * m[1][1] * m[2][2] {
+        return None;
+    }
+    Some([c0 / det, c1 / det, c2 / det])
+}
+
+/// Per-axis variance factor `(XᵀWX + R)⁻¹₁₁` of the slope at `at` of a
+/// weighted least-squares quadratic in τ through samples at `taus` with
+/// weights `weights` (empty: all 1), `R` = `ridge` on the quadratic
+/// coefficient only. Unit weights, `ridge` 0: σ² times it is the
+/// variance of the unbiased velocity estimate, the Cramér–Rao bound of
+/// the quadratic model with i.i.d. Gaussian noise σ; `ridge` σ²/var(c₂):
+/// the posterior variance when the quadratic coefficient c₂ = a/2 has a
+/// zero-mean Gaussian prior (flat priors on position and velocity), the
+/// Bayesian (van Trees) bound of that model, which holds for biased
+/// estimators too. Weights 1/σᵢ² and `ridge` 1/var(c₂): the same bounds
+/// (the variance itself, not a factor) for known per-sample noise σᵢ.
+/// `None` when not determined.
+pub fn quadratic_velocity_variance_factor(
+    taus: &[f64],
+    weights: &[f64],
+    at: f64,
+    ridge: f64,
+) -> Option<f64> {
+    let mut m = [0.0f64; 5];
+    for (i, &t) in taus.iter().enumerate() {
+        let d = t - at;
+        let mut p = weights.get(i).copied().unwrap_or(1.0);
+        for mk in &mut m {
+            *mk += p;
+            p *= d;
+        }
+    }
+    let [s0, s1, s2, s3, mut s4] = m;
+    s4 += ridge;
+    let det = s0 * (s2 * s4 - s3 * s3) - s1 * (s1 * s4 - s2 * s3) + s2 * (s1 * s3 - s2 * s2);
+    // Relative to the scale of the products: a singular system (≤ 2
+    // distinct times) leaves rounding noise only.
+    if det.is_nan() || det <= 1e-9 * s0 * s2 * s4 {
+        return None;
+    }
+    Some((s0 * s4 - s2 * s2) / det)
+}
+
+/// Build the oracle tracks of a scene run ([`oracle_tracks`], gaps of up
+/// to `tparams.stitch_gap` missed pulses bridged — the longest the
+/// tracker bridges, by stitching — longer ones cut), fit each with the
+/// tracker's output fit ([`super::fit_detections`]) and score them: links
+/// (strict, merged-ok, identity; all, long, exclusive), the velocity
+/// error with perfect links, and the floors (module docs).
+pub fn oracle_report(
+    run: &SceneRun,
+    tparams: &super::TrackParams,
+    period_us: f64,
+    interior_margin: usize,
+) -> OracleReport {
+    let mut r = OracleReport::default();
+    let truth: HashMap<(i64, u64), &TruthSample> = run
+        .truth
+        .iter()
+        .map(|t| ((t.pulse, t.particle_id), t))
+        .collect();
+    let oracle = oracle_tracks(
+        &run.det_truth,
+        &run.det_sources,
+        &run.det_pulse,
+        tparams.stitch_gap,
+    );
+    r.tracks = oracle.len() as u64;
+    r.bridged_links = oracle
+        .iter()
+        .flat_map(|t| t.detections.windows(2))
+        .filter(|w| run.det_pulse[w[1]] != run.det_pulse[w[0]] + 1)
+        .count() as u64;
+    let long = |t: &OracleTrack| t.detections.len() >= tparams.min_length;
+    // The fit's inputs as the tracker would have them at the end of the
+    // run: its noise estimate, and the curvature prior from the kept
+    // (here: long oracle) tracks.
+    let mut prior = super::fit::AccelPrior::default();
+    for t in oracle.iter().filter(|t| long(t)) {
+        let pulses: Vec<i64> = t.detections.iter().map(|&d| run.det_pulse[d]).collect();
+        let xy: Vec<[f64; 2]> = t.detections.iter().map(|&d| run.det_xy[d]).collect();
+        prior.add_track(&pulses, &xy);
+    }
+    r.fit_sigma = run.position_sigma;
+    r.fit_accel_rms = tparams
+        .fit_accel_rms
+        .unwrap_or_else(|| prior.accel_rms(r.fit_sigma));
+    let fitted = fit_oracle(run, &oracle, tparams, r.fit_sigma, r.fit_accel_rms);
+    let score = |tracks: &[LinkedTrack]| {
+        score_with_sources(
+            tracks,
+            &run.det_truth,
+            &run.det_sources,
+            &run.det_pulse,
+            &run.truth,
+            period_us,
+            interior_margin,
+        )
+    };
+    r.score = score(&fitted);
+    let long_fitted: Vec<LinkedTrack> = oracle
+        .iter()
+        .zip(&fitted)
+        .filter(|(t, _)| long(t))
+        .map(|(_, lt)| lt.clone())
+        .collect();
+    r.score_long = score(&long_fitted);
+    // Exclusive: each detection kept only in the track of its source
+    // nearest to it in truth.
+    let nearest: Vec<Vec<u64>> = run
+        .det_sources
+        .iter()
+        .enumerate()
+        .map(|(d, src)| {
+            let dist = |p: u64| {
+                let t = truth[&(run.det_pulse[d], p)];
+                (t.x - run.det_xy[d][0]).hypot(t.y - run.det_xy[d][1])
+            };
+            src.iter()
+                .copied()
+                .min_by(|&a, &b| dist(a).total_cmp(&dist(b)).then(a.cmp(&b)))
+                .into_iter()
+                .collect()
+        })
+        .collect();
+    let exclusive = oracle_tracks(&run.det_truth, &nearest, &run.det_pulse, tparams.stitch_gap);
+    r.score_exclusive = score(&fit_oracle(
+        run,
+        &exclusive,
+        tparams,
+        r.fit_sigma,
+        r.fit_accel_rms,
+    ));
+    let single: Vec<Vec<u64>> = run
+        .det_sources
+        .iter()
+        .map(|src| {
+            if src.len() == 1 {
+                src.clone()
+            } else {
+                Vec::new()
+            }
+        })
+        .collect();
+    let skipping = oracle_tracks(&run.det_truth, &single, &run.det_pulse, tparams.stitch_gap);
+    r.score_skip_merged = score(&fit_oracle(
+        run,
+        &skipping,
+        tparams,
+        r.fit_sigma,
+        r.fit_accel_rms,
+    ));
+    for (i, sigma_p) in [0.1, 0.2, 0.3].into_iter().enumerate() {
+        let mut rng = Pcg64::seed_from_u64(0x5eed_0000 + i as u64);
+        let err = Normal::new(0.0, sigma_p).expect("finite sigma");
+        let chosen: Vec<Vec<u64>> = run
+            .det_sources
+            .iter()
+            .enumerate()
+            .map(|(d, src)| {
+                if src.len() < 2 {
+                    return src.clone();
+                }
+                let mut best = (f64::MAX, 0);
+                for &p in src {
+                    let t = truth[&(run.det_pulse[d], p)];
+                    let dx = t.x + err.sample(&mut rng) - run.det_xy[d][0];
+                    let dy = t.y + err.sample(&mut rng) - run.det_xy[d][1];
+                    let dist = dx.hypot(dy);
+                    if dist < best.0 {
+                        best = (dist, p);
+                    }
+                }
+                vec![best.1]
+            })
+            .collect();
+        let tracks = oracle_tracks(&run.det_truth, &chosen, &run.det_pulse, tparams.stitch_gap);
+        r.score_exclusive_noisy.push((
+            sigma_p,
+            score(&fit_oracle(
+                run,
+                &tracks,
+                tparams,
+                r.fit_sigma,
+                r.fit_accel_rms,
+            )),
+        ));
+    }
+    // Position noise of the detections of the long tracks against their
+    // particle (first: the floors need it).
+    let (mut pos_sq, mut pos_n, mut clean_sq, mut clean_n) = (0.0, 0u64, 0.0, 0u64);
+    let event_class = |d: usize| (run.det_events[d].clamp(1, 4) - 1) as usize;
+    let mut by_events = [(0.0f64, 0u64); 4];
+    for t in oracle.iter().filter(|t| long(t)) {
+        for &d in &t.detections {
+            let ts = truth[&(run.det_pulse[d], t.particle)];
+            let e2 = (run.det_xy[d][0] - ts.x).powi(2) + (run.det_xy[d][1] - ts.y).powi(2);
+            pos_sq += e2;
+            pos_n += 1;
+            let c = &mut by_events[event_class(d)];
+            c.0 += e2;
+            c.1 += 1;
+            if run.det_sources[d].len() == 1 {
+                clean_sq += e2;
+                clean_n += 1;
+            }
+        }
+    }
+    let per_axis = |sq: f64, n: u64| {
+        if n > 0 {
+            (sq / (2 * n) as f64).sqrt()
+        } else {
+            0.0
+        }
+    };
+    r.sigma_all = per_axis(pos_sq, pos_n);
+    r.sigma_clean = per_axis(clean_sq, clean_n);
+    for (s, &(sq, n)) in r.sigma_by_events.iter_mut().zip(&by_events) {
+        *s = per_axis(sq, n);
+    }
+    // Prior precision 1/var(c₂) of the weighted floor.
+    let prior_precision = if r.fit_accel_rms > 0.0 {
+        (2.0 / r.fit_accel_rms).powi(2)
+    } else {
+        0.0
+    };
+    // The fit's ridge σ²/var(c₂), c₂ = a/2, at the measured noise.
+    let ridge = if r.fit_accel_rms > 0.0 {
+        (2.0 * r.sigma_all / r.fit_accel_rms).powi(2)
+    } else {
+        0.0
+    };
+    let k = period_us * 1e-6;
+    // Sums, all points and interior: fit error² (both components), floor
+    // factors (track, window, window with the prior; per axis).
+    let mut all = [0.0f64; 7];
+    let mut inner = [0.0f64; 7];
+    for (t, lt) in oracle.iter().zip(&fitted).filter(|(t, _)| long(t)) {
+        r.velocity_tracks += 1;
+        let taus: Vec<f64> = t
+            .detections
+            .iter()
+            .map(|&d| run.det_pulse[d] as f64)
+            .collect();
+        let n = taus.len();
+        let n_points = lt.track.points.len();
+        let first = lt.track.points[0].pulse;
+        let w = tparams.fit_window.min(n);
+        let weights: Vec<f64> = t
+            .detections
+            .iter()
+            .map(|&d| r.sigma_by_events[event_class(d)].powi(-2))
+            .collect();
+        let true_xy: Vec<[f64; 2]> = t
+            .detections
+            .iter()
+            .map(|&d| {
+                let ts = truth[&(run.det_pulse[d], t.particle)];
+                [ts.x, ts.y]
+            })
+            .collect();
+        for (j, &d) in t.detections.iter().enumerate() {
+            let pulse = run.det_pulse[d];
+            let ts = truth[&(pulse, t.particle)];
+            let i = (pulse - first) as usize;
+            let pt = &lt.track.points[i];
+            debug_assert_eq!(pt.pulse, pulse);
+            let at = pulse as f64;
+            let lo = j.saturating_sub(w / 2).min(n - w);
+            let win = &taus[lo..lo + w];
+            let factor = |taus: &[f64], weights: &[f64], ridge: f64| {
+                quadratic_velocity_variance_factor(taus, weights, at, ridge).unwrap_or(f64::NAN)
+            };
+            let best = |ridge: f64| {
+                best_window_mse(&taus, &true_xy, j, [ts.u * k, ts.v * k], r.sigma_all, ridge)
+            };
+            // The weighted floor and the best windows are variances:
+            // divided by σ² here so that all scale with σ below.
+            let v = [
+                ((pt.u - ts.u) * k).powi(2) + ((pt.v - ts.v) * k).powi(2),
+                factor(&taus, &[], 0.0),
+                factor(win, &[], 0.0),
+                factor(win, &[], ridge),
+                factor(win, &weights[lo..lo + w], prior_precision) / r.sigma_all.powi(2),
+                best(0.0) / r.sigma_all.powi(2),
+                best(ridge) / r.sigma_all.powi(2),
+            ];
+            for (a, b) in all.iter_mut().zip(v) {
+                *a += b;
+            }
+            r.velocity_samples += 1;
+            if i >= interior_margin && n_points - 1 - i >= interior_margin {
+                for (a, b) in inner.iter_mut().zip(v) {
+                    *a += b;
+                }
+                r.velocity_samples_interior += 1;
+            }
+        }
+    }
+    let (n, n_in) = (r.velocity_samples, r.velocity_samples_interior);
+    r.velocity_rms_fit = per_axis(all[0], n);
+    r.velocity_rms_fit_interior = per_axis(inner[0], n_in);
+    // Per component: σ times the root of the mean factor (per axis).
+    let floor = |f: f64, n: u64| {
+        if n > 0 {
+            r.sigma_all * (f / n as f64).sqrt()
+        } else {
+            0.0
+        }
+    };
+    r.floor_track = floor(all[1], n);
+    r.floor_track_interior = floor(inner[1], n_in);
+    r.floor_window = floor(all[2], n);
+    r.floor_window_interior = floor(inner[2], n_in);
+    r.floor_window_prior = floor(all[3], n);
+    r.floor_window_prior_interior = floor(inner[3], n_in);
+    r.floor_window_prior_weighted = floor(all[4], n);
+    r.floor_window_prior_weighted_interior = floor(inner[4], n_in);
+    r.best_window = floor(all[5], n);
+    r.best_window_interior = floor(inner[5], n_in);
+    r.best_window_prior = floor(all[6], n);
+    r.best_window_prior_interior = floor(inner[6], n_in);
+    r
+}
+
+/// Fit oracle tracks with the tracker's output fit (in parallel; the
+/// result is in input order and independent of the thread count).
+fn fit_oracle(
+    run: &SceneRun,
+    oracle: &[OracleTrack],
+    tparams: &super::TrackParams,
+    sigma: f64,
+    accel_rms: f64,
+) -> Vec<LinkedTrack> {
+    use rayon::prelude::*;
+    oracle
+        .par_iter()
+        .map(|t| {
+            let input: Vec<super::FitInput> = t
+                .detections
+                .iter()
+                .map(|&d| super::FitInput {
+                    serial: d as u64,
+                    pulse: run.det_pulse[d],
+                    t_us: run.det_t_us[d],
+                    x: run.det_xy[d][0],
+                    y: run.det_xy[d][1],
+                })
+                .collect();
+            super::fit_detections(&input, tparams, sigma, accel_rms)
+        })
+        .collect()
 }
 
 /// Where wrong links and missed truth links come from (see [`diagnose`]).
@@ -1039,4 +1905,395 @@ pub fn run_and_diagnose_detail(
         &run.det_sources,
         &run.det_pulse,
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::track::{Track, TrackPoint};
+
+    /// A track through detections `serials` at consecutive pulses from 0,
+    /// velocity `vel` (px/s) at every point.
+    fn track(serials: &[u64], vel: (f64, f64)) -> LinkedTrack {
+        LinkedTrack {
+            track: Track {
+                id: 0,
+                points: (0..serials.len())
+                    .map(|k| TrackPoint {
+                        pulse: k as i64,
+                        t_us: k as f64 * 200.0,
+                        x: 0.0,
+                        y: 0.0,
+                        u: vel.0,
+                        v: vel.1,
+                        ax: 0.0,
+                        ay: 0.0,
+                        interpolated: false,
+                    })
+                    .collect(),
+            },
+            detections: serials.iter().map(|&s| Some(s)).collect(),
+        }
+    }
+
+    /// Truth of particles `ids` at pulses 0..n, particle `id` moving at
+    /// `id` px/s along x (so labels are told apart by the velocity).
+    fn truth(ids: &[u64], n: i64) -> Vec<TruthSample> {
+        ids.iter()
+            .flat_map(|&id| {
+                (0..n).map(move |k| TruthSample {
+                    pulse: k,
+                    t_us: k as f64 * 200.0,
+                    particle_id: id,
+                    x: 0.0,
+                    y: 0.0,
+                    u: id as f64,
+                    v: 0.0,
+                })
+            })
+            .collect()
+    }
+
+    /// Score one track whose detection i is at pulse i with sources
+    /// `sources[i]` and strict owner `owners[i]`.
+    fn score_one(sources: &[&[u64]], owners: &[Option<u64>], vel: (f64, f64)) -> LinkScore {
+        let n = sources.len();
+        let serials: Vec<u64> = (0..n as u64).collect();
+        let src: Vec<Vec<u64>> = sources.iter().map(|s| s.to_vec()).collect();
+        let pulses: Vec<i64> = (0..n as i64).collect();
+        score_with_sources(
+            &[track(&serials, vel)],
+            owners,
+            &src,
+            &pulses,
+            &truth(&[1, 2], n as i64),
+            200.0,
+            0,
+        )
+    }
+
+    const A: u64 = 1;
+    const B: u64 = 2;
+
+    #[test]
+    fn a_track_from_one_particle_through_their_merge_to_another_has_one_wrong_link() {
+        for owner in [A, B] {
+            let s = score_one(
+                &[&[A], &[A, B], &[B]],
+                &[Some(A), Some(owner), Some(B)],
+                (0.0, 0.0),
+            );
+            assert_eq!(s.links, 2);
+            assert_eq!(s.identity_wrong_links, 1, "{s:?}");
+            // Merged-ok forgives both links, strict counts one.
+            assert_eq!(s.links - s.correct_links - s.merged_consistent_links, 0);
+            assert_eq!(s.correct_links, 1);
+            // Set-valued truth links: A 0→1, B 1→2; the labelling keeps
+            // one of them.
+            assert_eq!(s.truth_links_set, 2);
+            assert_eq!(s.found_truth_links_set, 1);
+        }
+    }
+
+    #[test]
+    fn a_track_following_its_particle_through_merged_images_has_no_wrong_link() {
+        // A co-moving pair: one track holds A's images and the merged
+        // ones, whose event majority flips between A and B.
+        let sources: [&[u64]; 5] = [&[A], &[A, B], &[A, B], &[A, B], &[A]];
+        let owners = [Some(A), Some(B), Some(A), Some(B), Some(A)];
+        let s = score_one(&sources, &owners, (A as f64, 0.0));
+        assert_eq!(s.links, 4);
+        assert_eq!(s.correct_links, 0, "strict: every link touches a B image");
+        assert_eq!(s.identity_wrong_links, 0, "{s:?}");
+        assert_eq!(s.precision_identity, 1.0);
+        // Every point labelled A, whose true velocity the track has.
+        assert_eq!(s.velocity_samples_identity, 5);
+        assert_eq!(s.velocity_rms_identity_px_per_pulse, 0.0);
+        assert!(s.velocity_rms_px_per_pulse > 0.0, "strict scores vs B");
+        assert_eq!(s.found_truth_links_set, 4);
+        // B's truth links (1→2, 2→3) are not this track's.
+        assert_eq!(s.truth_links_set, 6);
+    }
+
+    #[test]
+    fn the_labelling_follows_the_majority_among_equal_labellings() {
+        // A pair merged throughout: all-A and all-B change nothing; the
+        // labelling agreeing with more owners (B: 2 of 3) is taken.
+        let sources = vec![vec![A, B]; 3];
+        let owners = [Some(B), Some(A), Some(B)];
+        assert_eq!(identity_labels(&[0, 1, 2], &owners, &sources), [Some(B); 3]);
+        // A → AB → B: one change wherever it is put; the merged image
+        // keeps its owner.
+        let sources = vec![vec![A], vec![A, B], vec![B]];
+        for owner in [A, B] {
+            let owners = [Some(A), Some(owner), Some(B)];
+            let l = identity_labels(&[0, 1, 2], &owners, &sources);
+            assert_eq!(l, [Some(A), Some(owner), Some(B)]);
+        }
+    }
+
+    #[test]
+    fn a_noise_detection_makes_both_its_links_wrong() {
+        let s = score_one(
+            &[&[A], &[A], &[], &[A], &[A]],
+            &[Some(A), Some(A), None, Some(A), Some(A)],
+            (0.0, 0.0),
+        );
+        assert_eq!(s.links, 4);
+        assert_eq!(s.identity_wrong_links, 2);
+        assert_eq!(s.correct_links, 2);
+        // A noise detection at the end: its one link.
+        let s = score_one(&[&[A], &[A], &[]], &[Some(A), Some(A), None], (0.0, 0.0));
+        assert_eq!(s.identity_wrong_links, 1);
+        // Events of A and noise (noise the majority): labelled A.
+        let s = score_one(&[&[A], &[A], &[A]], &[Some(A), None, Some(A)], (0.0, 0.0));
+        assert_eq!(s.identity_wrong_links, 0);
+        assert_eq!(s.correct_links, 0);
+    }
+
+    /// A small paper-like scene, clustered and tracked.
+    fn small_run(tp: &super::super::TrackParams) -> (SynthParams, SceneRun) {
+        let sp = SynthParams {
+            width: 128,
+            height: 128,
+            pulses: 30,
+            ..Default::default()
+        };
+        let run = run_scene(&generate(&sp), &ClusterParams::default(), tp).unwrap();
+        (sp, run)
+    }
+
+    #[test]
+    fn without_merged_images_identity_scoring_is_strict_scoring() {
+        let (sp, run) = small_run(&Default::default());
+        assert!(
+            run.det_sources.iter().any(|s| s.len() > 1),
+            "the scene has merged images, else the check below is idle"
+        );
+        // Every detection reduced to its strict owner: no merged image.
+        let single: Vec<Vec<u64>> = run
+            .det_truth
+            .iter()
+            .map(|t| t.iter().copied().collect())
+            .collect();
+        let s = score_with_sources(
+            &run.tracks,
+            &run.det_truth,
+            &single,
+            &run.det_pulse,
+            &run.truth,
+            sp.period_us,
+            INTERIOR_MARGIN,
+        );
+        assert!(s.links > 1000 && s.correct_links < s.links, "{s:?}");
+        assert_eq!(s.identity_wrong_links, s.links - s.correct_links);
+        assert_eq!(s.precision_identity, s.precision);
+        assert_eq!(s.truth_links_set, s.truth_links);
+        assert_eq!(s.found_truth_links_set, s.found_truth_links);
+        assert_eq!(s.velocity_samples_identity, s.velocity_samples);
+        assert_eq!(
+            s.velocity_rms_identity_px_per_pulse,
+            s.velocity_rms_px_per_pulse
+        );
+        // With the real sources identity sits between strict and
+        // merged-ok.
+        let s = score_with_sources(
+            &run.tracks,
+            &run.det_truth,
+            &run.det_sources,
+            &run.det_pulse,
+            &run.truth,
+            sp.period_us,
+            INTERIOR_MARGIN,
+        );
+        assert!(s.identity_wrong_links <= s.links - s.correct_links);
+        assert!(
+            s.identity_wrong_links >= s.links - s.correct_links - s.merged_consistent_links,
+            "{s:?}"
+        );
+    }
+
+    #[test]
+    fn oracle_tracks_share_merged_images_and_bridge_short_gaps_only() {
+        // Particle 1 at pulses 0, 1, (merged with 2 at) 2, 4, 9, 10;
+        // particle 2 at 2 (merged), 3; noise at 1.
+        let det_pulse = [0, 1, 2, 4, 9, 10, 3, 1];
+        let det_sources = vec![
+            vec![1],
+            vec![1],
+            vec![1, 2],
+            vec![1],
+            vec![1],
+            vec![1],
+            vec![2],
+            vec![],
+        ];
+        let det_truth = [
+            Some(1),
+            Some(1),
+            Some(2),
+            Some(1),
+            Some(1),
+            Some(1),
+            Some(2),
+            None,
+        ];
+        let o = oracle_tracks(&det_truth, &det_sources, &det_pulse, 3);
+        assert_eq!(
+            o,
+            [
+                OracleTrack {
+                    particle: 1,
+                    detections: vec![0, 1, 2, 3]
+                },
+                OracleTrack {
+                    particle: 1,
+                    detections: vec![4, 5]
+                },
+                OracleTrack {
+                    particle: 2,
+                    detections: vec![2, 6]
+                },
+            ]
+        );
+        // Two detections of one pulse with its events: the one it owns.
+        let o = oracle_tracks(
+            &[Some(1), Some(2), Some(1)],
+            &[vec![1], vec![1, 2], vec![1]],
+            &[0, 1, 1],
+            0,
+        );
+        assert_eq!(o[0].detections, [0, 2]);
+    }
+
+    #[test]
+    fn the_quadratic_velocity_variance_factor() {
+        // Symmetric window: the slope is orthogonal to the other terms,
+        // factor 1 / Σ τ².
+        let taus: Vec<f64> = (-5..=5).map(f64::from).collect();
+        let f = quadratic_velocity_variance_factor(&taus, &[], 0.0, 0.0).unwrap();
+        assert!((f - 1.0 / 110.0).abs() < 1e-12, "{f}");
+        // Three points 0, 1, 2 at the end τ = 2: v = (3x₂ − 4x₁ + x₀)/2,
+        // factor (9 + 16 + 1)/4.
+        let f = quadratic_velocity_variance_factor(&[0.0, 1.0, 2.0], &[], 2.0, 0.0).unwrap();
+        assert!((f - 6.5).abs() < 1e-9, "{f}");
+        assert!(quadratic_velocity_variance_factor(&[0.0, 1.0, 1.0], &[], 0.0, 0.0).is_none());
+        // A prior that pins the curvature leaves the straight line's
+        // slope variance, 1 / Σ (τ − τ̄)².
+        let f = quadratic_velocity_variance_factor(&[0.0, 1.0, 2.0], &[], 2.0, 1e12).unwrap();
+        assert!((f - 0.5).abs() < 1e-6, "{f}");
+        // ... which two times determine as well.
+        let f = quadratic_velocity_variance_factor(&[0.0, 1.0], &[], 2.0, 1e12).unwrap();
+        assert!((f - 2.0).abs() < 1e-6, "{f}");
+        // Weights: a sample of weight 2 counts as two of weight 1.
+        let a = quadratic_velocity_variance_factor(
+            &[0.0, 1.0, 2.0, 3.0],
+            &[1.0, 2.0, 1.0, 1.0],
+            3.0,
+            0.5,
+        );
+        let b = quadratic_velocity_variance_factor(&[0.0, 1.0, 1.0, 2.0, 3.0], &[], 3.0, 0.5);
+        assert!((a.unwrap() - b.unwrap()).abs() < 1e-12, "{a:?} {b:?}");
+    }
+
+    #[test]
+    fn the_best_window_trades_curvature_bias_against_noise() {
+        // A true quadratic path: no bias, so the longest window (all 31
+        // samples) wins, and its error is the noise floor.
+        let taus: Vec<f64> = (0..31).map(f64::from).collect();
+        let quad: Vec<[f64; 2]> = taus.iter().map(|t| [0.1 * t * t, 2.0 * t]).collect();
+        let mse = best_window_mse(&taus, &quad, 15, [3.0, 2.0], 0.4, 0.0);
+        let floor = 0.16 * quadratic_velocity_variance_factor(&taus, &[], 15.0, 0.0).unwrap();
+        assert!((mse - floor).abs() < 1e-12, "{mse} {floor}");
+        // A sine: the long windows are biased, the best one is shorter
+        // and its error above the noise floor of the whole track.
+        let sine: Vec<[f64; 2]> = taus.iter().map(|t| [10.0 * (t / 3.0).sin(), 0.0]).collect();
+        let v = [10.0 / 3.0 * (5.0f64).cos(), 0.0];
+        let mse = best_window_mse(&taus, &sine, 15, v, 0.4, 0.0);
+        assert!(mse > floor && mse < 0.16, "{mse}");
+        // Without noise the shortest exact window is free of error only
+        // if the path is a quadratic there: 3 points of the sine are not.
+        let mse = best_window_mse(&taus, &sine, 15, v, 0.0, 0.0);
+        assert!(mse > 0.0 && mse < 1e-2, "{mse}");
+    }
+
+    #[test]
+    fn the_oracle_scores_its_own_links_perfectly_and_fits_as_the_tracker() {
+        // Fixed noise and no curvature prior: the tracker's fit of a track
+        // depends on its detections only, so refitting them with
+        // `fit_detections` must give its points exactly.
+        let tp = super::super::TrackParams {
+            sigma_floor: 0.4,
+            sigma_ceiling: 0.4,
+            fit_accel_rms: Some(0.0),
+            ..Default::default()
+        };
+        let (sp, run) = small_run(&tp);
+        let mut compared = 0;
+        for t in &run.tracks {
+            let input: Vec<super::super::FitInput> = t
+                .detections
+                .iter()
+                .flatten()
+                .map(|&d| super::super::FitInput {
+                    serial: d,
+                    pulse: run.det_pulse[d as usize],
+                    t_us: run.det_t_us[d as usize],
+                    x: run.det_xy[d as usize][0],
+                    y: run.det_xy[d as usize][1],
+                })
+                .collect();
+            let refit = super::super::fit_detections(&input, &tp, 0.4, 0.0);
+            assert_eq!(refit.detections, t.detections);
+            assert_eq!(refit.track.points, t.track.points);
+            compared += 1;
+        }
+        assert!(compared > 50, "{compared} tracks");
+        let r = oracle_report(&run, &tp, sp.period_us, INTERIOR_MARGIN);
+        // Every truth link (strict or set-valued) is a link of the
+        // particle's oracle track, and every oracle link joins two images
+        // of its particle.
+        assert_eq!(r.score.recall, 1.0, "{r:?}");
+        assert_eq!(r.score.identity_wrong_links, 0, "{r:?}");
+        // Set-valued: a particle whose every oracle image also holds
+        // another particle's events may have its track labelled with the
+        // other one (equal cost, majority tie-break); those of its links
+        // may be missed, nothing else.
+        let oracle = oracle_tracks(
+            &run.det_truth,
+            &run.det_sources,
+            &run.det_pulse,
+            tp.stitch_gap,
+        );
+        let mut relabelled = HashSet::new();
+        for t in &oracle {
+            let labels = identity_labels(&t.detections, &run.det_truth, &run.det_sources);
+            for (w, l) in t.detections.windows(2).zip(labels.windows(2)) {
+                if run.det_pulse[w[1]] == run.det_pulse[w[0]] + 1 && l[0] != Some(t.particle) {
+                    relabelled.insert((run.det_pulse[w[0]], t.particle));
+                }
+            }
+        }
+        let missed = r.score.truth_links_set - r.score.found_truth_links_set;
+        assert!(
+            missed as usize <= relabelled.len(),
+            "{missed} {relabelled:?}"
+        );
+        assert!(r.score.correct_links < r.score.links, "merged images");
+        // The floors are below the fit, the window's above the track's.
+        assert!(r.floor_track <= r.floor_window && r.floor_window < r.velocity_rms_fit);
+        // This run fits without the prior (`fit_accel_rms` 0): no ridge.
+        assert_eq!(r.floor_window_prior, r.floor_window);
+        // Exclusive: each image on one track; strict can only gain, recall
+        // only lose (the image's other particle misses a pulse).
+        assert!(r.score_exclusive.precision > r.score.precision, "{r:?}");
+        assert!(r.score_exclusive.links < r.score.links);
+        assert_eq!(r.score_exclusive.identity_wrong_links, 0);
+        // Without merged images every link left is strictly correct,
+        // unless noise outvoted the particle in one of its images.
+        let s = &r.score_skip_merged;
+        assert!(s.precision > r.score_exclusive.precision, "{s:?}");
+        assert!(s.recall < r.score_exclusive.recall, "{s:?}");
+        assert!(r.sigma_clean > 0.2 && r.sigma_clean < r.sigma_all, "{r:?}");
+    }
 }
