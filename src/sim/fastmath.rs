@@ -28,7 +28,7 @@
 /// 1.5 · 2^52: adding it rounds an f64 of magnitude < 2^51 to the nearest
 /// integer (ties to even), which then sits in the low mantissa bits.
 const ROUND: f64 = 6_755_399_441_055_744.0;
-const INV_PI: f64 = 0.318_309_886_183_790_7;
+const INV_PI: f64 = std::f64::consts::FRAC_1_PI;
 /// π/2 in two parts: the first has 33 significant bits, so j·Q1 is exact
 /// for |j| < 2^20; Q1 + Q2 is π/2 to 3.5e-27.
 const Q1: f64 = 1.570_796_326_734_125_6;
@@ -52,9 +52,26 @@ const S21: f64 = 1.957_294_106_339_126_3e-20;
 /// exactly the scalar's numbers lane by lane (IEEE add/sub/mul are
 /// correctly rounded whatever the register width).
 pub trait Lanes:
-    Copy + std::ops::Add<Output = Self> + std::ops::Sub<Output = Self> + std::ops::Mul<Output = Self>
+    Copy
+    + std::ops::Add<Output = Self>
+    + std::ops::Sub<Output = Self>
+    + std::ops::Mul<Output = Self>
+    + std::ops::Div<Output = Self>
+    + std::ops::Neg<Output = Self>
 {
+    /// Lanes per value.
+    const N: usize;
     fn splat(v: f64) -> Self;
+    /// Lane `i` (< N).
+    fn lane(self, i: usize) -> f64;
+    /// The value with lane i = `f(i)`.
+    fn from_fn(f: impl FnMut(usize) -> f64) -> Self;
+    /// `if self < b { yes } else { no }` per lane.
+    fn select_lt(self, b: Self, yes: Self, no: Self) -> Self;
+    /// |self| per lane (the sign bit cleared).
+    fn abs(self) -> Self;
+    /// ±1 with the sign bit of each lane (`f64::signum` but for NaN).
+    fn sign_one(self) -> Self;
     /// `if self < lo { lo } else { self }` per lane (NaN stays NaN).
     fn raise_to(self, lo: f64) -> Self;
     /// `if self > hi { hi } else { self }` per lane (NaN stays NaN).
@@ -68,9 +85,34 @@ pub trait Lanes:
 }
 
 impl Lanes for f64 {
+    const N: usize = 1;
     #[inline(always)]
     fn splat(v: f64) -> f64 {
         v
+    }
+    #[inline(always)]
+    fn lane(self, _i: usize) -> f64 {
+        self
+    }
+    #[inline(always)]
+    fn from_fn(mut f: impl FnMut(usize) -> f64) -> f64 {
+        f(0)
+    }
+    #[inline(always)]
+    fn select_lt(self, b: f64, yes: f64, no: f64) -> f64 {
+        if self < b {
+            yes
+        } else {
+            no
+        }
+    }
+    #[inline(always)]
+    fn abs(self) -> f64 {
+        f64::abs(self)
+    }
+    #[inline(always)]
+    fn sign_one(self) -> f64 {
+        1f64.copysign(self)
     }
     #[inline(always)]
     fn raise_to(self, lo: f64) -> f64 {
@@ -152,10 +194,52 @@ mod x2 {
             F64x2(unsafe { _mm_mul_pd(self.0, o.0) })
         }
     }
+    impl std::ops::Div for F64x2 {
+        type Output = F64x2;
+        #[inline(always)]
+        fn div(self, o: F64x2) -> F64x2 {
+            F64x2(unsafe { _mm_div_pd(self.0, o.0) })
+        }
+    }
+    impl std::ops::Neg for F64x2 {
+        type Output = F64x2;
+        #[inline(always)]
+        fn neg(self) -> F64x2 {
+            F64x2(unsafe { _mm_xor_pd(self.0, _mm_set1_pd(-0.0)) })
+        }
+    }
     impl super::Lanes for F64x2 {
+        const N: usize = 2;
         #[inline(always)]
         fn splat(v: f64) -> F64x2 {
             F64x2(unsafe { _mm_set1_pd(v) })
+        }
+        #[inline(always)]
+        fn lane(self, i: usize) -> f64 {
+            self.to_array()[i]
+        }
+        #[inline(always)]
+        fn from_fn(mut f: impl FnMut(usize) -> f64) -> F64x2 {
+            let a = f(0);
+            F64x2::new([a, f(1)])
+        }
+        #[inline(always)]
+        fn select_lt(self, b: F64x2, yes: F64x2, no: F64x2) -> F64x2 {
+            unsafe {
+                let m = _mm_cmplt_pd(self.0, b.0);
+                F64x2(_mm_or_pd(_mm_and_pd(m, yes.0), _mm_andnot_pd(m, no.0)))
+            }
+        }
+        #[inline(always)]
+        fn abs(self) -> F64x2 {
+            F64x2(unsafe { _mm_andnot_pd(_mm_set1_pd(-0.0), self.0) })
+        }
+        #[inline(always)]
+        fn sign_one(self) -> F64x2 {
+            unsafe {
+                let sign = _mm_and_pd(_mm_set1_pd(-0.0), self.0);
+                F64x2(_mm_or_pd(sign, _mm_set1_pd(1.0)))
+            }
         }
         #[inline(always)]
         fn raise_to(self, lo: f64) -> F64x2 {
@@ -238,10 +322,46 @@ mod x2 {
             self.map(o, |a, b| a * b)
         }
     }
+    impl std::ops::Div for F64x2 {
+        type Output = F64x2;
+        #[inline(always)]
+        fn div(self, o: F64x2) -> F64x2 {
+            self.map(o, |a, b| a / b)
+        }
+    }
+    impl std::ops::Neg for F64x2 {
+        type Output = F64x2;
+        #[inline(always)]
+        fn neg(self) -> F64x2 {
+            F64x2(self.0.map(|a| -a))
+        }
+    }
     impl Lanes for F64x2 {
+        const N: usize = 2;
         #[inline(always)]
         fn splat(v: f64) -> F64x2 {
             F64x2([v, v])
+        }
+        #[inline(always)]
+        fn lane(self, i: usize) -> f64 {
+            self.0[i]
+        }
+        #[inline(always)]
+        fn from_fn(mut f: impl FnMut(usize) -> f64) -> F64x2 {
+            let a = f(0);
+            F64x2([a, f(1)])
+        }
+        #[inline(always)]
+        fn select_lt(self, b: F64x2, yes: F64x2, no: F64x2) -> F64x2 {
+            F64x2([0, 1].map(|i| self.0[i].select_lt(b.0[i], yes.0[i], no.0[i])))
+        }
+        #[inline(always)]
+        fn abs(self) -> F64x2 {
+            F64x2(self.0.map(f64::abs))
+        }
+        #[inline(always)]
+        fn sign_one(self) -> F64x2 {
+            F64x2(self.0.map(|a| a.sign_one()))
         }
         #[inline(always)]
         fn raise_to(self, lo: f64) -> F64x2 {
@@ -263,6 +383,91 @@ mod x2 {
         fn pow2_of_rounded(self) -> F64x2 {
             F64x2(self.0.map(|a| a.pow2_of_rounded()))
         }
+    }
+}
+
+/// Four f64 lanes as two [`F64x2`]: two independent dependency chains
+/// for the out-of-order core to overlap (SSE2 has no wider register).
+#[derive(Clone, Copy, Debug)]
+pub struct F64x4(pub F64x2, pub F64x2);
+
+macro_rules! x4_op {
+    ($tr:ident, $f:ident, $op:tt) => {
+        impl std::ops::$tr for F64x4 {
+            type Output = F64x4;
+            #[inline(always)]
+            fn $f(self, o: F64x4) -> F64x4 {
+                F64x4(self.0 $op o.0, self.1 $op o.1)
+            }
+        }
+    };
+}
+x4_op!(Add, add, +);
+x4_op!(Sub, sub, -);
+x4_op!(Mul, mul, *);
+x4_op!(Div, div, /);
+
+impl std::ops::Neg for F64x4 {
+    type Output = F64x4;
+    #[inline(always)]
+    fn neg(self) -> F64x4 {
+        F64x4(-self.0, -self.1)
+    }
+}
+
+impl Lanes for F64x4 {
+    const N: usize = 4;
+    #[inline(always)]
+    fn splat(v: f64) -> F64x4 {
+        F64x4(F64x2::splat(v), F64x2::splat(v))
+    }
+    #[inline(always)]
+    fn lane(self, i: usize) -> f64 {
+        if i < 2 {
+            self.0.lane(i)
+        } else {
+            self.1.lane(i - 2)
+        }
+    }
+    #[inline(always)]
+    fn from_fn(mut f: impl FnMut(usize) -> f64) -> F64x4 {
+        let lo = F64x2::from_fn(&mut f);
+        F64x4(lo, F64x2::from_fn(|i| f(i + 2)))
+    }
+    #[inline(always)]
+    fn select_lt(self, b: F64x4, yes: F64x4, no: F64x4) -> F64x4 {
+        F64x4(
+            self.0.select_lt(b.0, yes.0, no.0),
+            self.1.select_lt(b.1, yes.1, no.1),
+        )
+    }
+    #[inline(always)]
+    fn abs(self) -> F64x4 {
+        F64x4(self.0.abs(), self.1.abs())
+    }
+    #[inline(always)]
+    fn sign_one(self) -> F64x4 {
+        F64x4(self.0.sign_one(), self.1.sign_one())
+    }
+    #[inline(always)]
+    fn raise_to(self, lo: f64) -> F64x4 {
+        F64x4(self.0.raise_to(lo), self.1.raise_to(lo))
+    }
+    #[inline(always)]
+    fn lower_to(self, hi: f64) -> F64x4 {
+        F64x4(self.0.lower_to(hi), self.1.lower_to(hi))
+    }
+    #[inline(always)]
+    fn low_bit_as_sign(self) -> F64x4 {
+        F64x4(self.0.low_bit_as_sign(), self.1.low_bit_as_sign())
+    }
+    #[inline(always)]
+    fn xor(self, o: F64x4) -> F64x4 {
+        F64x4(self.0.xor(o.0), self.1.xor(o.1))
+    }
+    #[inline(always)]
+    fn pow2_of_rounded(self) -> F64x4 {
+        F64x4(self.0.pow2_of_rounded(), self.1.pow2_of_rounded())
     }
 }
 
@@ -319,18 +524,20 @@ pub fn sin_lanes<T: Lanes>(x: T) -> T {
 }
 
 /// cos(x) (see the module docs for the accuracy).
+#[cfg(test)]
 #[inline(always)]
 pub fn cos(x: f64) -> f64 {
     cos_lanes(x)
 }
 
 /// sin(x) (see the module docs for the accuracy).
+#[cfg(test)]
 #[inline(always)]
 pub fn sin(x: f64) -> f64 {
     sin_lanes(x)
 }
 
-const LOG2E: f64 = 1.442_695_040_888_963_4;
+const LOG2E: f64 = std::f64::consts::LOG2_E;
 /// ln 2 in two parts: the first has 32 significant bits, so n·LN2_HI is
 /// exact for the |n| ≤ 1023 used here.
 const LN2_HI: f64 = 0.693_147_180_369_123_8;
@@ -360,21 +567,24 @@ pub fn exp_lanes<T: Lanes>(x: T) -> T {
     let big = x * c(LOG2E) + c(ROUND);
     let n = big - c(ROUND);
     let r = (x - n * c(LN2_HI)) - n * c(LN2_LO);
-    let p = c(E12) + r * c(E13);
-    let p = c(E11) + r * p;
-    let p = c(E10) + r * p;
-    let p = c(E9) + r * p;
-    let p = c(E8) + r * p;
-    let p = c(E7) + r * p;
-    let p = c(E6) + r * p;
-    let p = c(E5) + r * p;
-    let p = c(E4) + r * p;
-    let p = c(E3) + r * p;
-    let p = c(E2) + r * p;
-    (c(1.0) + (r + (r * r) * p)) * big.pow2_of_rounded()
+    // Estrin's scheme: the fields call exp once per evaluation, inside
+    // RK4 stages that wait on each other, so the polynomial's latency (5
+    // dependent steps instead of Horner's 22) is what counts.
+    let r2 = r * r;
+    let r4 = r2 * r2;
+    let r8 = r4 * r4;
+    let q0 = c(E2) + r * c(E3);
+    let q1 = c(E4) + r * c(E5);
+    let q2 = c(E6) + r * c(E7);
+    let q3 = c(E8) + r * c(E9);
+    let q4 = c(E10) + r * c(E11);
+    let q5 = c(E12) + r * c(E13);
+    let p = (q0 + r2 * q1) + r4 * (q2 + r2 * q3) + r8 * (q4 + r2 * q5);
+    (c(1.0) + (r + r2 * p)) * big.pow2_of_rounded()
 }
 
 /// exp(x) (see the module docs for the accuracy and the clamp).
+#[cfg(test)]
 #[inline(always)]
 pub fn exp(x: f64) -> f64 {
     exp_lanes(x)
@@ -473,6 +683,27 @@ mod tests {
                 );
             }
         }
+        // The remaining pair operations against the scalar ones.
+        for k in 0..xs.len() - 1 {
+            let (a, b) = (xs[k], xs[k + 1] - 3.0);
+            let (v, w) = (F64x2::new([a, b]), F64x2::new([b, a]));
+            let pairs = [
+                (v / w, [a / b, b / a]),
+                (-v, [-a, -b]),
+                (v.abs(), [a.abs(), b.abs()]),
+                (v.sign_one(), [a.signum(), b.signum()]),
+                (
+                    v.select_lt(w, v * w, v + w),
+                    [a.select_lt(b, a * b, a + b), b.select_lt(a, b * a, b + a)],
+                ),
+                (F64x2::from_fn(|i| [a, b][i]), [v.lane(0), v.lane(1)]),
+            ];
+            for (got, want) in pairs {
+                let got = got.to_array();
+                assert_eq!(got.map(f64::to_bits), want.map(f64::to_bits), "{a} {b}");
+            }
+        }
+        assert_eq!((-0.0f64).sign_one(), -1.0);
         let n = exp_lanes(F64x2::new([f64::NAN, 1.0])).to_array();
         assert!(n[0].is_nan() && n[1] == exp(1.0));
     }

@@ -12,7 +12,7 @@ use std::path::Path;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 
-use super::fastmath;
+use super::fastmath::{self, Lanes};
 use super::scenario::FlowSpec;
 use crate::error::{Error, Result};
 
@@ -51,6 +51,10 @@ pub enum Flow {
     },
     Shedding(Shedding),
     Gridded(Box<Gridded>),
+    /// Tests: the field evaluated by its plain formulas (libm), never in
+    /// lanes: the reference the fast fields are advected against.
+    #[cfg(test)]
+    Plain(Box<Flow>),
 }
 
 /// Random Fourier modes of a stream function ψ = Σ a_n sin(k_n·x − ω_n t + φ_n)
@@ -63,25 +67,6 @@ pub struct Turbulent {
     pub y_ref: f64,
     /// (a k_x, a k_y, k_x, k_y, ω, φ) per mode.
     modes: Vec<[f64; 6]>,
-    /// The same modes by component in blocks of [`MODE_LANES`], the last
-    /// padded with zero modes (amplitude 0: they add exactly 0): the
-    /// layout [`Turbulent::velocity`]'s loop vectorises over.
-    blocks: Vec<ModeBlock>,
-}
-
-/// Modes per block of [`Turbulent::blocks`]: the partial sums are kept per
-/// lane and added in a fixed order, so the result does not depend on the
-/// vector width the compiler picks.
-const MODE_LANES: usize = 4;
-
-#[derive(Debug, Clone, Default)]
-struct ModeBlock {
-    akx: [f64; MODE_LANES],
-    aky: [f64; MODE_LANES],
-    kx: [f64; MODE_LANES],
-    ky: [f64; MODE_LANES],
-    omega: [f64; MODE_LANES],
-    phi: [f64; MODE_LANES],
 }
 
 #[derive(Debug, Clone)]
@@ -175,9 +160,13 @@ impl Flow {
                         [a * kx, a * ky, kx, ky, omega, phi]
                     })
                     .collect();
-                Flow::Turbulent(Box::new(Turbulent::new(
-                    *u_mean, *v_mean, *shear, *y_ref, modes,
-                )))
+                Flow::Turbulent(Box::new(Turbulent {
+                    u_mean: *u_mean,
+                    v_mean: *v_mean,
+                    shear: *shear,
+                    y_ref: *y_ref,
+                    modes,
+                }))
             }
             FlowSpec::Jet {
                 u_center,
@@ -226,6 +215,69 @@ impl Flow {
     /// Velocity (px/s) at (x, y) px and time t (s).
     #[inline]
     pub fn velocity(&self, x: f64, y: f64, t: f64) -> (f64, f64) {
+        if self.has_lanes() {
+            self.velocity_lanes(x, y, t)
+        } else {
+            self.velocity_plain(x, y, t)
+        }
+    }
+
+    /// Whether [`Flow::velocity_lanes`] evaluates all lanes at once (the
+    /// analytic unsteady fields); for the others it evaluates lane by lane
+    /// (steady parallel flows evaluate once per particle anyway).
+    pub fn has_lanes(&self) -> bool {
+        matches!(
+            self,
+            Flow::Uniform { .. } | Flow::LambOseen { .. } | Flow::Turbulent(_) | Flow::Shedding(_)
+        )
+    }
+
+    /// [`Flow::velocity`] at several points at once ([`Lanes`]: one f64,
+    /// or two in an SSE2 register). One formula for both widths, with the
+    /// branch-free [`fastmath`] functions, so every lane is exactly the
+    /// scalar result (test `lanes_are_the_scalar_field`).
+    #[inline]
+    pub fn velocity_lanes<T: Lanes>(&self, x: T, y: T, t: T) -> (T, T) {
+        let c = T::splat;
+        match self {
+            Flow::Uniform { u, v } => (c(*u), c(*v)),
+            Flow::LambOseen {
+                x0,
+                y0,
+                gamma,
+                rc2,
+                u,
+                v,
+            } => {
+                let (dx, dy) = (x - c(*x0), y - c(*y0));
+                let r2 = dx * dx + dy * dy;
+                // u_θ/r = Γ/(2π r²)(1 − e^{−r²/rc²}); finite limit Γ/(2π rc²)
+                // at r → 0 (a select: the other side's inf/NaN is dropped).
+                let far = c(*gamma) / (c(std::f64::consts::TAU) * r2)
+                    * (c(1.0) - fastmath::exp_lanes(-r2 / c(*rc2)));
+                let near = c(gamma / (std::f64::consts::TAU * rc2));
+                let f = r2.select_lt(c(1e-12 * rc2), near, far);
+                (c(*u) - f * dy, c(*v) + f * dx)
+            }
+            Flow::Turbulent(tb) => tb.velocity(x, y, t),
+            Flow::Shedding(s) => s.velocity(x, y, t),
+            _ => {
+                // Lane by lane (at most 8 lanes).
+                let mut vs = [0.0; 8];
+                let u = T::from_fn(|i| {
+                    let (a, b) = self.velocity_plain(x.lane(i), y.lane(i), t.lane(i));
+                    vs[i] = b;
+                    a
+                });
+                (u, T::from_fn(|i| vs[i]))
+            }
+        }
+    }
+
+    /// The fields without lanes (steady; evaluated once per particle, or
+    /// gridded), and the plain formulas of the others (libm, the
+    /// reference of the tests).
+    fn velocity_plain(&self, x: f64, y: f64, t: f64) -> (f64, f64) {
         match self {
             Flow::Uniform { u, v } => (*u, *v),
             Flow::LambOseen {
@@ -238,7 +290,6 @@ impl Flow {
             } => {
                 let (dx, dy) = (x - x0, y - y0);
                 let r2 = dx * dx + dy * dy;
-                // u_θ/r = Γ/(2π r²)(1 − e^{−r²/rc²}); finite limit Γ/(2π rc²) at r → 0.
                 let f = if r2 < 1e-12 * rc2 {
                     gamma / (std::f64::consts::TAU * rc2)
                 } else {
@@ -268,7 +319,7 @@ impl Flow {
                     (u_inf * (2.0 * eta - 2.0 * eta.powi(3) + eta.powi(4)), 0.0)
                 }
             }
-            Flow::Turbulent(tb) => tb.velocity(x, y, t),
+            Flow::Turbulent(tb) => tb.velocity_plain(x, y, t),
             Flow::Jet {
                 u_center,
                 u_coflow,
@@ -279,8 +330,10 @@ impl Flow {
                 let g = 0.5 * (1.0 + ((half_width - (y - y_center).abs()) / thickness).tanh());
                 (u_coflow + (u_center - u_coflow) * g, 0.0)
             }
-            Flow::Shedding(s) => s.velocity(x, y, t),
+            Flow::Shedding(s) => s.velocity_plain(x, y, t),
             Flow::Gridded(g) => g.velocity(x, y),
+            #[cfg(test)]
+            Flow::Plain(f) => f.velocity_plain(x, y, t),
         }
     }
 
@@ -330,64 +383,24 @@ impl Flow {
 }
 
 impl Turbulent {
-    fn new(u_mean: f64, v_mean: f64, shear: f64, y_ref: f64, modes: Vec<[f64; 6]>) -> Turbulent {
-        let mut blocks = vec![ModeBlock::default(); modes.len().div_ceil(MODE_LANES)];
-        for (i, m) in modes.iter().enumerate() {
-            let (b, l) = (&mut blocks[i / MODE_LANES], i % MODE_LANES);
-            b.akx[l] = m[0];
-            b.aky[l] = m[1];
-            b.kx[l] = m[2];
-            b.ky[l] = m[3];
-            b.omega[l] = m[4];
-            b.phi[l] = m[5];
-        }
-        Turbulent {
-            u_mean,
-            v_mean,
-            shear,
-            y_ref,
-            modes,
-            blocks,
-        }
-    }
-
-    /// The mode sum with the branch-free [`fastmath::cos_lanes`], two
-    /// modes at a time; the phase is the plain formula's, the sums run per
-    /// lane of a block and are added in a fixed order. Agrees with [`Turbulent::velocity_reference`]
-    /// to rounding (test `turbulent_fast_sum_matches_reference`).
+    /// The mode sum with the branch-free [`fastmath::cos_lanes`], the
+    /// modes in order: the plain formula but for the cos.
     #[inline]
-    fn velocity(&self, x: f64, y: f64, t: f64) -> (f64, f64) {
-        use fastmath::{F64x2, Lanes};
-        let (x2, y2, t2) = (F64x2::splat(x), F64x2::splat(y), F64x2::splat(t));
-        let zero = F64x2::splat(0.0);
-        // Per-lane partial sums: lanes (0, 1) and (2, 3) of the blocks.
-        let mut su = [zero; 2];
-        let mut sv = [zero; 2];
-        for b in &self.blocks {
-            for h in 0..2 {
-                let lane = |a: &[f64; MODE_LANES]| F64x2::new([a[2 * h], a[2 * h + 1]]);
-                let phase =
-                    lane(&b.kx) * x2 + lane(&b.ky) * y2 - lane(&b.omega) * t2 + lane(&b.phi);
-                let c = fastmath::cos_lanes(phase);
-                // u = ∂ψ/∂y, v = −∂ψ/∂x.
-                su[h] = su[h] + lane(&b.aky) * c;
-                sv[h] = sv[h] + lane(&b.akx) * c;
-            }
+    fn velocity<T: Lanes>(&self, x: T, y: T, t: T) -> (T, T) {
+        let c = T::splat;
+        let mut u = c(self.u_mean) + c(self.shear) * (y - c(self.y_ref));
+        let mut v = c(self.v_mean);
+        for m in &self.modes {
+            let cs = fastmath::cos_lanes(c(m[2]) * x + c(m[3]) * y - c(m[4]) * t + c(m[5]));
+            // u = ∂ψ/∂y, v = −∂ψ/∂x.
+            u = u + c(m[1]) * cs;
+            v = v - c(m[0]) * cs;
         }
-        let [u0, u1] = su[0].to_array();
-        let [u2, u3] = su[1].to_array();
-        let [v0, v1] = sv[0].to_array();
-        let [v2, v3] = sv[1].to_array();
-        let u = self.u_mean + self.shear * (y - self.y_ref);
-        (
-            u + ((u0 + u1) + (u2 + u3)),
-            self.v_mean - ((v0 + v1) + (v2 + v3)),
-        )
+        (u, v)
     }
 
-    /// The plain formula: libm `cos`, modes summed in order.
-    #[cfg(test)]
-    fn velocity_reference(&self, x: f64, y: f64, t: f64) -> (f64, f64) {
+    /// The plain formula (libm cos).
+    fn velocity_plain(&self, x: f64, y: f64, t: f64) -> (f64, f64) {
         let mut u = self.u_mean + self.shear * (y - self.y_ref);
         let mut v = self.v_mean;
         for m in &self.modes {
@@ -412,26 +425,49 @@ impl Turbulent {
 }
 
 impl Shedding {
+    /// The field with the branch-free [`fastmath`] functions (the plain
+    /// formula's operations otherwise).
     #[inline]
-    fn velocity(&self, x: f64, y: f64, t: f64) -> (f64, f64) {
+    fn velocity<T: Lanes>(&self, x: T, y: T, t: T) -> (T, T) {
+        let c = T::splat;
+        let eta = (y - c(self.yc)) / c(self.width);
+        let g = fastmath::exp_lanes(-eta * eta);
+        let dg = c(-2.0) * eta / c(self.width) * g;
+        // Smooth onset of the wave behind the obstacle (logistic in x).
+        let s = c(1.0) / (c(1.0) + fastmath::exp_lanes(-(x - c(self.x0)) / c(self.size)));
+        let ds = s * (c(1.0) - s) / c(self.size);
+        let theta = c(std::f64::consts::TAU * self.frequency_hz) * t - c(self.k) * x;
+        let (sn, cs) = (fastmath::sin_lanes(theta), fastmath::cos_lanes(theta));
+        let u = c(self.u_inf) * (c(1.0) - c(self.deficit) * s * g) + c(self.a) * s * dg * sn;
+        // The deficit's stream function ∫U(1 − d s g)dy depends on x through
+        // s; its −∂/∂x part keeps the field divergence-free.
+        let erf_part = c(self.u_inf * self.deficit)
+            * ds
+            * c(self.width)
+            * c(0.5)
+            * c(std::f64::consts::PI.sqrt())
+            * erf_given_exp(eta, g);
+        let v = erf_part - c(self.a) * g * (ds * sn - c(self.k) * s * cs);
+        (u, v)
+    }
+
+    /// The plain formula (libm exp and sin_cos).
+    fn velocity_plain(&self, x: f64, y: f64, t: f64) -> (f64, f64) {
         let eta = (y - self.yc) / self.width;
         let g = (-eta * eta).exp();
         let dg = -2.0 * eta / self.width * g;
-        // Smooth onset of the wave behind the obstacle (logistic in x).
         let s = 1.0 / (1.0 + (-(x - self.x0) / self.size).exp());
         let ds = s * (1.0 - s) / self.size;
         let theta = std::f64::consts::TAU * self.frequency_hz * t - self.k * x;
         let (sn, cs) = theta.sin_cos();
         let u = self.u_inf * (1.0 - self.deficit * s * g) + self.a * s * dg * sn;
-        // The deficit's stream function ∫U(1 − d s g)dy depends on x through
-        // s; its −∂/∂x part keeps the field divergence-free.
         let erf_part = self.u_inf
             * self.deficit
             * ds
             * self.width
             * 0.5
             * std::f64::consts::PI.sqrt()
-            * erf(eta);
+            * erf_plain(eta);
         let v = erf_part - self.a * g * (ds * sn - self.k * s * cs);
         (u, v)
     }
@@ -440,6 +476,35 @@ impl Shedding {
 /// Error function (Abramowitz–Stegun 7.1.26, |error| < 1.5e-7).
 #[inline]
 pub fn erf(x: f64) -> f64 {
+    erf_lanes(x)
+}
+
+/// [`erf`] per lane, with [`fastmath::exp_lanes`].
+#[inline(always)]
+fn erf_lanes<T: Lanes>(x: T) -> T {
+    erf_given_exp(x, fastmath::exp_lanes(-x * x))
+}
+
+/// [`erf_lanes`] with its exp(−x²) given: the shedding field has it
+/// already (its Gaussian g; the same bits, as (−|x|)|x| = (−x)x).
+#[inline(always)]
+fn erf_given_exp<T: Lanes>(x: T, exp_minus_x2: T) -> T {
+    let c = T::splat;
+    let s = x.sign_one();
+    let x = x.abs();
+    let t = c(1.0) / (c(1.0) + c(0.327_591_1) * x);
+    let y = c(1.0)
+        - (((((c(1.061_405_429) * t - c(1.453_152_027)) * t) + c(1.421_413_741)) * t
+            - c(0.284_496_736))
+            * t
+            + c(0.254_829_592))
+            * t
+            * exp_minus_x2;
+    s * y
+}
+
+/// [`erf`] with libm exp (the reference).
+fn erf_plain(x: f64) -> f64 {
     let s = x.signum();
     let x = x.abs();
     let t = 1.0 / (1.0 + 0.327_591_1 * x);
@@ -724,13 +789,17 @@ mod tests {
         assert!(v > 0.0, "counter-clockwise circulation turns +x into +y");
     }
 
-    /// The vectorised mode sum with the fast cos is the plain formula to
-    /// rounding: over the preset `turbulent_bl`'s field (16 modes) and a
-    /// 64-mode field with a mode count not a multiple of the block (the
-    /// padding), on and around the preset's ROI, for 100 s of phases.
+    /// The fields with lanes and the fast functions against their plain
+    /// formulas (libm): the turbulent mode sum (the preset's 16 modes and
+    /// 61 others), the rib wake and the demo vortex (with its core), on
+    /// and around the presets' ROIs, for 100 s of phases: the difference
+    /// stays below 1e-15 of the size of the terms summed (rounding).
     #[test]
-    fn turbulent_fast_sum_matches_reference() {
-        let mut specs = vec![crate::sim::presets::preset("turbulent_bl").unwrap().flow];
+    fn fast_fields_match_plain_formulas() {
+        let mut specs = vec![];
+        for name in ["turbulent_bl", "rib_wake", "demo"] {
+            specs.push(crate::sim::presets::preset(name).unwrap().flow);
+        }
         specs.push(FlowSpec::Turbulent {
             u_mean: -3000.0,
             v_mean: 500.0,
@@ -743,26 +812,94 @@ mod tests {
             seed: 2,
         });
         for spec in &specs {
-            let Flow::Turbulent(tb) = Flow::build(spec).unwrap() else {
-                panic!("not turbulent")
-            };
-            assert_eq!(tb.blocks.len(), tb.modes.len().div_ceil(MODE_LANES));
-            // The size of the terms summed: the error scale.
-            let amp: f64 = tb.modes.iter().map(|m| m[0].abs() + m[1].abs()).sum();
+            let f = Flow::build(spec).unwrap();
+            assert!(f.has_lanes());
             let mut worst = 0.0f64;
             for k in 0..200_000u64 {
                 let h = |s: u64| ((k.wrapping_mul(s) % 100_003) as f64) / 100_003.0;
                 let (x, y, t) = (
                     -50.0 + 1400.0 * h(7919),
-                    150.0 + 420.0 * h(104_729),
+                    -50.0 + 820.0 * h(104_729),
                     100.0 * h(31),
                 );
-                let (u, v) = tb.velocity(x, y, t);
-                let (ur, vr) = tb.velocity_reference(x, y, t);
-                let scale = amp + tb.u_mean.abs() + (tb.shear * (y - tb.y_ref)).abs();
+                let (u, v) = f.velocity(x, y, t);
+                let (ur, vr) = f.velocity_plain(x, y, t);
+                // The size of the terms summed: the error scale.
+                let scale = match &f {
+                    Flow::Turbulent(tb) => {
+                        let amp: f64 = tb.modes.iter().map(|m| m[0].abs() + m[1].abs()).sum();
+                        amp + tb.u_mean.abs() + (tb.shear * (y - tb.y_ref)).abs()
+                    }
+                    // 1 − e^{−r²/rc²} cancels near the core: an error of
+                    // ε in exp is ε Γ/(2π r) in the velocity, for libm too.
+                    Flow::LambOseen { x0, y0, gamma, .. } => {
+                        let r = (x - x0).hypot(y - y0);
+                        ur.abs() + vr.abs() + gamma.abs() / (std::f64::consts::TAU * r)
+                    }
+                    _ => ur.abs() + vr.abs() + 1.0,
+                };
                 worst = worst.max((u - ur).abs().max((v - vr).abs()) / scale);
             }
             assert!(worst < 1e-15, "{spec:?}: {worst:e}");
+        }
+        // The vortex core: the finite limit.
+        let f = Flow::build(&specs[2]).unwrap();
+        let Flow::LambOseen { x0, y0, .. } = f else {
+            panic!()
+        };
+        for d in [0.0, 1e-9, 1e-6, 1e-3] {
+            let (a, b) = (
+                f.velocity(x0 + d, y0 - d, 0.0),
+                f.velocity_plain(x0 + d, y0 - d, 0.0),
+            );
+            assert!(
+                (a.0 - b.0).abs() + (a.1 - b.1).abs() <= 1e-12 * (b.0.abs() + b.1.abs() + 1.0),
+                "{d}"
+            );
+        }
+    }
+
+    /// Two points at once give each point's scalar velocity bit for bit,
+    /// for every field (the lane-by-lane fallback included).
+    #[test]
+    fn lanes_are_the_scalar_field() {
+        use crate::sim::fastmath::F64x2;
+        let mut specs = vec![];
+        for name in crate::sim::presets::names() {
+            specs.push(crate::sim::presets::preset(name).unwrap().flow);
+        }
+        specs.push(FlowSpec::Uniform { u: 3.0, v: -2.0 });
+        specs.push(FlowSpec::Poiseuille {
+            u_max: 100.0,
+            y0: 10.0,
+            width: 300.0,
+        });
+        for spec in &specs {
+            let f = Flow::build(spec).unwrap();
+            for k in 0..20_000u64 {
+                let h = |s: u64| ((k.wrapping_mul(s) % 10_007) as f64) / 10_007.0;
+                let p = [
+                    (
+                        -50.0 + 1400.0 * h(7919),
+                        -50.0 + 820.0 * h(104_729),
+                        2.0 * h(31),
+                    ),
+                    (-50.0 + 1400.0 * h(13), -50.0 + 820.0 * h(101), 2.0 * h(7)),
+                ];
+                let (u, v) = f.velocity_lanes(
+                    F64x2::new([p[0].0, p[1].0]),
+                    F64x2::new([p[0].1, p[1].1]),
+                    F64x2::new([p[0].2, p[1].2]),
+                );
+                for (i, q) in p.iter().enumerate() {
+                    let (su, sv) = f.velocity(q.0, q.1, q.2);
+                    assert_eq!(
+                        (u.to_array()[i].to_bits(), v.to_array()[i].to_bits()),
+                        (su.to_bits(), sv.to_bits()),
+                        "{spec:?} at {q:?}"
+                    );
+                }
+            }
         }
     }
 
