@@ -28,6 +28,8 @@ pub enum Flow {
         y0: f64,
         gamma: f64,
         rc2: f64,
+        /// 1/rc2 (the lane formula multiplies).
+        inv_rc2: f64,
         u: f64,
         v: f64,
     },
@@ -82,6 +84,10 @@ pub struct Shedding {
     /// Stream-function amplitude and wavenumber of the travelling wave.
     a: f64,
     k: f64,
+    /// 1/width and 1/size: the lane formula multiplies (a division by a
+    /// constant costs ~5 multiplications of throughput).
+    inv_width: f64,
+    inv_size: f64,
 }
 
 #[derive(Debug, Clone)]
@@ -113,6 +119,7 @@ impl Flow {
                 y0: *y0,
                 gamma: *circulation,
                 rc2: core_radius * core_radius,
+                inv_rc2: 1.0 / (core_radius * core_radius),
                 u: *u,
                 v: *v,
             },
@@ -204,6 +211,8 @@ impl Flow {
                     frequency_hz: f,
                     a: amplitude * u_inf / k,
                     k,
+                    inv_width: 1.0 / wake_width,
+                    inv_size: 1.0 / size,
                 })
             }
             FlowSpec::Gridded { path, scale } => {
@@ -246,6 +255,7 @@ impl Flow {
                 y0,
                 gamma,
                 rc2,
+                inv_rc2,
                 u,
                 v,
             } => {
@@ -254,7 +264,7 @@ impl Flow {
                 // u_θ/r = Γ/(2π r²)(1 − e^{−r²/rc²}); finite limit Γ/(2π rc²)
                 // at r → 0 (a select: the other side's inf/NaN is dropped).
                 let far = c(*gamma) / (c(std::f64::consts::TAU) * r2)
-                    * (c(1.0) - fastmath::exp_lanes(-r2 / c(*rc2)));
+                    * (c(1.0) - fastmath::exp_lanes(-r2 * c(*inv_rc2)));
                 let near = c(gamma / (std::f64::consts::TAU * rc2));
                 let f = r2.select_lt(c(1e-12 * rc2), near, far);
                 (c(*u) - f * dy, c(*v) + f * dx)
@@ -287,6 +297,7 @@ impl Flow {
                 rc2,
                 u,
                 v,
+                ..
             } => {
                 let (dx, dy) = (x - x0, y - y0);
                 let r2 = dx * dx + dy * dy;
@@ -425,17 +436,19 @@ impl Turbulent {
 }
 
 impl Shedding {
-    /// The field with the branch-free [`fastmath`] functions (the plain
+    /// The field with the branch-free [`fastmath`] functions and
+    /// multiplications by the reciprocals of width and size (the plain
     /// formula's operations otherwise).
     #[inline]
     fn velocity<T: Lanes>(&self, x: T, y: T, t: T) -> (T, T) {
         let c = T::splat;
-        let eta = (y - c(self.yc)) / c(self.width);
+        let (inv_w, inv_s) = (c(self.inv_width), c(self.inv_size));
+        let eta = (y - c(self.yc)) * inv_w;
         let g = fastmath::exp_lanes(-eta * eta);
-        let dg = c(-2.0) * eta / c(self.width) * g;
+        let dg = c(-2.0) * eta * inv_w * g;
         // Smooth onset of the wave behind the obstacle (logistic in x).
-        let s = c(1.0) / (c(1.0) + fastmath::exp_lanes(-(x - c(self.x0)) / c(self.size)));
-        let ds = s * (c(1.0) - s) / c(self.size);
+        let s = c(1.0) / (c(1.0) + fastmath::exp_lanes(-(x - c(self.x0)) * inv_s));
+        let ds = s * (c(1.0) - s) * inv_s;
         let theta = c(std::f64::consts::TAU * self.frequency_hz) * t - c(self.k) * x;
         let (sn, cs) = (fastmath::sin_lanes(theta), fastmath::cos_lanes(theta));
         let u = c(self.u_inf) * (c(1.0) - c(self.deficit) * s * g) + c(self.a) * s * dg * sn;

@@ -371,7 +371,7 @@ impl PixelModel {
     /// Streak positions of `s` as `(dt, weight)` offsets along its
     /// velocity (from [`Self::streak_table`]; one position at rest or
     /// without `pulse_streaks`).
-    #[inline]
+    #[inline(always)]
     fn streak_nodes_of(&self, s: &Snapshot) -> &[(f64, f64)] {
         const SINGLE: &[(f64, f64)] = &[(0.0, 1.0)];
         match self.streak_scale {
@@ -390,16 +390,24 @@ impl PixelModel {
                     // integer: there (and for tiny, huge or non-finite q)
                     // hypot decides, so the count is hypot's exactly.
                     let q = count((s.u * s.u + s.v * s.v).sqrt());
-                    #[allow(clippy::neg_cmp_op_on_partial_ord)]
-                    if !((q - q.round()).abs() > 1e-12 * q.max(1.0)) || !(q < 1e12) {
-                        count(s.u.hypot(s.v))
-                    } else {
+                    let frac = q - (q as i64) as f64;
+                    let clear = q > 1e-3 && q < 1e12 && frac > 1e-12 * q && frac < 1.0 - 1e-12 * q;
+                    if clear {
                         q
+                    } else {
+                        Self::streak_count_hypot(s, count)
                     }
                 };
                 &self.streak_nodes[ceil_count(q, 32) - 1]
             }
         }
+    }
+
+    /// [`Self::streak_nodes_of`]'s rare exact case, out of line.
+    #[cold]
+    #[inline(never)]
+    fn streak_count_hypot(s: &Snapshot, count: impl Fn(f64) -> f64) -> f64 {
+        count(s.u.hypot(s.v))
     }
 
     /// The pixels [`Self::footprint`] covers along one axis for a centre
