@@ -10,7 +10,7 @@
 //! The unsteady fields are evaluated with the branch-free `exp`, `sin` and
 //! `cos` of `sim::fastmath` (within 4e-16 of libm; the plain libm
 //! formulas stay as the tests' reference) and on several points at once
-//! ([`Flow::velocity_lanes`]): RK4 advection evaluates them four times per
+//! (`Flow::velocity_lanes`): RK4 advection evaluates them four times per
 //! particle and pulse, and libm's `cos` alone was two thirds of the CPU of
 //! the turbulent preset.
 

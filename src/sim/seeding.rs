@@ -14,7 +14,7 @@
 //!
 //! Through the unsteady analytic fields (vortex, shedding, turbulent
 //! modes) particles move four at a time: the RK4 stages of a group are
-//! evaluated together ([`Flow::velocity_lanes`] on two SSE2 pairs), each
+//! evaluated together (`Flow::velocity_lanes` on two SSE2 pairs), each
 //! lane with its own sub-step count, doing exactly the scalar operations on
 //! its own numbers — the same bits as one particle at a time (tested), so
 //! the grouping (fixed by the slot order) never shows in the output.
