@@ -471,6 +471,140 @@ impl Lanes for F64x4 {
     }
 }
 
+/// Four f64 lanes in one AVX register, for the advection loop compiled
+/// a second time with AVX2 enabled when the CPU has it (`seeding`). Only
+/// IEEE add/sub/mul/div, ordered compares, blends and integer shifts,
+/// which round and compare exactly as the SSE2 pair ([`F64x4`]) does: the
+/// same bits on every machine (test `avx_lanes_are_the_sse2_lanes`). No
+/// FMA is enabled, so nothing can be fused. The methods are
+/// `#[inline(always)]` so that they are compiled inside the AVX2 function
+/// that uses them; called anywhere else they would be wrong (the
+/// instructions need the CPU feature), hence the type is only built there.
+#[cfg(target_arch = "x86_64")]
+#[derive(Clone, Copy, Debug)]
+pub struct F64x4Avx(std::arch::x86_64::__m256d);
+
+#[cfg(target_arch = "x86_64")]
+mod x4avx {
+    // SAFETY (every `unsafe` below): these run only inside functions with
+    // `#[target_feature(enable = "avx2")]` called after
+    // `is_x86_feature_detected!("avx2")` (see `F64x4Avx`); loads and
+    // stores go through arrays we own.
+    use super::{F64x4Avx, Lanes, ROUND};
+    use std::arch::x86_64::*;
+
+    impl std::ops::Add for F64x4Avx {
+        type Output = F64x4Avx;
+        #[inline(always)]
+        fn add(self, o: F64x4Avx) -> F64x4Avx {
+            F64x4Avx(unsafe { _mm256_add_pd(self.0, o.0) })
+        }
+    }
+    impl std::ops::Sub for F64x4Avx {
+        type Output = F64x4Avx;
+        #[inline(always)]
+        fn sub(self, o: F64x4Avx) -> F64x4Avx {
+            F64x4Avx(unsafe { _mm256_sub_pd(self.0, o.0) })
+        }
+    }
+    impl std::ops::Mul for F64x4Avx {
+        type Output = F64x4Avx;
+        #[inline(always)]
+        fn mul(self, o: F64x4Avx) -> F64x4Avx {
+            F64x4Avx(unsafe { _mm256_mul_pd(self.0, o.0) })
+        }
+    }
+    impl std::ops::Div for F64x4Avx {
+        type Output = F64x4Avx;
+        #[inline(always)]
+        fn div(self, o: F64x4Avx) -> F64x4Avx {
+            F64x4Avx(unsafe { _mm256_div_pd(self.0, o.0) })
+        }
+    }
+    impl std::ops::Neg for F64x4Avx {
+        type Output = F64x4Avx;
+        #[inline(always)]
+        fn neg(self) -> F64x4Avx {
+            F64x4Avx(unsafe { _mm256_xor_pd(self.0, _mm256_set1_pd(-0.0)) })
+        }
+    }
+    impl Lanes for F64x4Avx {
+        const N: usize = 4;
+        #[inline(always)]
+        fn splat(v: f64) -> F64x4Avx {
+            F64x4Avx(unsafe { _mm256_set1_pd(v) })
+        }
+        #[inline(always)]
+        fn lane(self, i: usize) -> f64 {
+            let mut a = [0.0; 4];
+            unsafe { _mm256_storeu_pd(a.as_mut_ptr(), self.0) };
+            a[i]
+        }
+        #[inline(always)]
+        fn from_fn(mut f: impl FnMut(usize) -> f64) -> F64x4Avx {
+            let a = [f(0), f(1), f(2), f(3)];
+            F64x4Avx(unsafe { _mm256_loadu_pd(a.as_ptr()) })
+        }
+        #[inline(always)]
+        fn select_lt(self, b: F64x4Avx, yes: F64x4Avx, no: F64x4Avx) -> F64x4Avx {
+            unsafe {
+                let m = _mm256_cmp_pd::<_CMP_LT_OQ>(self.0, b.0);
+                F64x4Avx(_mm256_blendv_pd(no.0, yes.0, m))
+            }
+        }
+        #[inline(always)]
+        fn abs(self) -> F64x4Avx {
+            F64x4Avx(unsafe { _mm256_andnot_pd(_mm256_set1_pd(-0.0), self.0) })
+        }
+        #[inline(always)]
+        fn sign_one(self) -> F64x4Avx {
+            unsafe {
+                let sign = _mm256_and_pd(_mm256_set1_pd(-0.0), self.0);
+                F64x4Avx(_mm256_or_pd(sign, _mm256_set1_pd(1.0)))
+            }
+        }
+        #[inline(always)]
+        fn raise_to(self, lo: f64) -> F64x4Avx {
+            unsafe {
+                let lo = _mm256_set1_pd(lo);
+                let m = _mm256_cmp_pd::<_CMP_LT_OQ>(self.0, lo);
+                F64x4Avx(_mm256_blendv_pd(self.0, lo, m))
+            }
+        }
+        #[inline(always)]
+        fn lower_to(self, hi: f64) -> F64x4Avx {
+            unsafe {
+                let hi = _mm256_set1_pd(hi);
+                let m = _mm256_cmp_pd::<_CMP_GT_OQ>(self.0, hi);
+                F64x4Avx(_mm256_blendv_pd(self.0, hi, m))
+            }
+        }
+        #[inline(always)]
+        fn low_bit_as_sign(self) -> F64x4Avx {
+            unsafe {
+                F64x4Avx(_mm256_castsi256_pd(_mm256_slli_epi64::<63>(
+                    _mm256_castpd_si256(self.0),
+                )))
+            }
+        }
+        #[inline(always)]
+        fn xor(self, o: F64x4Avx) -> F64x4Avx {
+            F64x4Avx(unsafe { _mm256_xor_pd(self.0, o.0) })
+        }
+        #[inline(always)]
+        fn pow2_of_rounded(self) -> F64x4Avx {
+            unsafe {
+                let n = _mm256_sub_epi64(
+                    _mm256_castpd_si256(self.0),
+                    _mm256_set1_epi64x(ROUND.to_bits() as i64),
+                );
+                let e = _mm256_add_epi64(n, _mm256_set1_epi64x(1023));
+                F64x4Avx(_mm256_castsi256_pd(_mm256_slli_epi64::<52>(e)))
+            }
+        }
+    }
+}
+
 /// sin(r) for |r| ≲ π/2.
 #[inline(always)]
 fn sin_kernel<T: Lanes>(r: T) -> T {
@@ -704,6 +838,64 @@ mod tests {
         assert_eq!((-0.0f64).sign_one(), -1.0);
         let n = exp_lanes(F64x2::new([f64::NAN, 1.0])).to_array();
         assert!(n[0].is_nan() && n[1] == exp(1.0));
+    }
+
+    /// The AVX lanes give the scalar's bits for every operation and kernel
+    /// (on a CPU with AVX2; without, there is nothing to compare).
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx_lanes_are_the_scalar_bit_for_bit() {
+        if !std::is_x86_feature_detected!("avx2") {
+            eprintln!("no AVX2 on this CPU: one path only");
+            return;
+        }
+        let xs = args(-2e4, 2e4, 100_000);
+        let es = args(-800.0, 800.0, 100_000);
+        let mut es = es;
+        es.extend([f64::NAN, f64::INFINITY, f64::NEG_INFINITY, 1e-310]);
+        // SAFETY: AVX2 detected above.
+        unsafe { check_avx(&xs, &es) };
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn check_avx(xs: &[f64], es: &[f64]) {
+        let same = |got: F64x4Avx, want: [f64; 4], what: &str| {
+            for (l, w) in want.iter().enumerate() {
+                assert_eq!(
+                    got.lane(l).to_bits(),
+                    w.to_bits(),
+                    "{what} lane {l}: {want:?}"
+                );
+            }
+        };
+        for k in 0..xs.len().min(es.len()) - 4 {
+            let x = [xs[k], xs[k + 1], xs[k + 2], xs[k + 3]];
+            let e = [es[k], es[k + 1], es[k + 2], es[k + 3]];
+            let b = [x[1] - 3.0, x[0], x[3], x[2] + 1.0];
+            let (v, w, ve) = (
+                F64x4Avx::from_fn(|i| x[i]),
+                F64x4Avx::from_fn(|i| b[i]),
+                F64x4Avx::from_fn(|i| e[i]),
+            );
+            same(cos_lanes(v), x.map(cos), "cos");
+            same(sin_lanes(v), x.map(sin), "sin");
+            same(exp_lanes(ve), e.map(exp), "exp");
+            same(v / w, [0, 1, 2, 3].map(|i| x[i] / b[i]), "div");
+            same(
+                v + w - v * w,
+                [0, 1, 2, 3].map(|i| x[i] + b[i] - x[i] * b[i]),
+                "arith",
+            );
+            same(-v, x.map(|a| -a), "neg");
+            same(v.abs(), x.map(f64::abs), "abs");
+            same(v.sign_one(), x.map(|a| a.sign_one()), "sign");
+            same(
+                v.select_lt(w, v, w),
+                [0, 1, 2, 3].map(|i| x[i].select_lt(b[i], x[i], b[i])),
+                "select",
+            );
+        }
     }
 
     #[test]

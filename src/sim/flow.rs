@@ -252,7 +252,7 @@ impl Flow {
     /// or two in an SSE2 register). One formula for both widths, with the
     /// branch-free [`fastmath`] functions, so every lane is exactly the
     /// scalar result (test `lanes_are_the_scalar_field`).
-    #[inline]
+    #[inline(always)]
     pub(crate) fn velocity_lanes<T: Lanes>(&self, x: T, y: T, t: T) -> (T, T) {
         let c = T::splat;
         match self {
@@ -403,7 +403,7 @@ impl Flow {
 impl Turbulent {
     /// The mode sum with the branch-free [`fastmath::cos_lanes`], the
     /// modes in order: the plain formula but for the cos.
-    #[inline]
+    #[inline(always)]
     fn velocity<T: Lanes>(&self, x: T, y: T, t: T) -> (T, T) {
         let c = T::splat;
         let mut u = c(self.u_mean) + c(self.shear) * (y - c(self.y_ref));
@@ -446,7 +446,7 @@ impl Shedding {
     /// The field with the branch-free [`fastmath`] functions and
     /// multiplications by the reciprocals of width and size (the plain
     /// formula's operations otherwise).
-    #[inline]
+    #[inline(always)]
     fn velocity<T: Lanes>(&self, x: T, y: T, t: T) -> (T, T) {
         let c = T::splat;
         let (inv_w, inv_s) = (c(self.inv_width), c(self.inv_size));

@@ -23,6 +23,8 @@ use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, StandardNormal};
 use rand_pcg::Pcg64;
 
+#[cfg(target_arch = "x86_64")]
+use super::fastmath::F64x4Avx;
 use super::fastmath::{F64x4, Lanes};
 use super::flow::Flow;
 use super::scenario::Scenario;
@@ -261,6 +263,11 @@ impl Particles {
         let parallel_steady = flow.is_parallel_steady() && !PLAIN_ADVECTION.with(|c| c.get());
         let pairs =
             !flow.is_parallel_steady() && flow.has_lanes() && !SCALAR_ADVECTION.with(|c| c.get());
+        // The same loop compiled for AVX2 (one register per group of four
+        // instead of two SSE2 pairs) where the CPU has it: the same
+        // arithmetic, so the same bits (`avx_lanes_are_the_sse2_lanes`).
+        #[cfg(target_arch = "x86_64")]
+        let avx2 = pairs && std::is_x86_feature_detected!("avx2") && !FORCE_SSE2.with(|c| c.get());
         let mut particles = std::mem::take(&mut self.particles);
         let mut rngs = std::mem::take(&mut self.rngs);
         let this = &*self;
@@ -279,6 +286,23 @@ impl Particles {
                     return out;
                 }
                 if pairs {
+                    #[cfg(target_arch = "x86_64")]
+                    if avx2 {
+                        // SAFETY: the CPU has AVX2 (detected above).
+                        unsafe {
+                            this.advance_lanes_avx2(
+                                pc,
+                                rc,
+                                ci * CHUNK,
+                                n_slots,
+                                flow,
+                                t0,
+                                times,
+                                &mut out,
+                            )
+                        };
+                        return out;
+                    }
                     this.advance_lanes::<Group>(
                         pc,
                         rc,
@@ -417,6 +441,7 @@ impl Particles {
     /// velocity at the pulse is evaluated right after its move, lit or not
     /// (the next move starts from it: the same value, only sooner).
     #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
     fn advance_lanes<T: Lanes>(
         &self,
         pc: &mut [Particle],
@@ -457,6 +482,26 @@ impl Particles {
                 }
             }
         }
+    }
+
+    /// [`Particles::advance_lanes`] with [`F64x4Avx`], compiled with AVX2
+    /// (everything it calls on lanes is `#[inline(always)]`, so compiled
+    /// here too). Safety: the CPU must have AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn advance_lanes_avx2(
+        &self,
+        pc: &mut [Particle],
+        rc: &mut [Pcg64],
+        slot0: usize,
+        n_slots: usize,
+        flow: &Flow,
+        t0: f64,
+        times: &[f64],
+        out: &mut [Vec<Snapshot>],
+    ) {
+        self.advance_lanes::<F64x4Avx>(pc, rc, slot0, n_slots, flow, t0, times, out);
     }
 
     /// [`Particles::step`] for `T::N` particles (slots from `slot`) of a
@@ -667,6 +712,9 @@ std::thread_local! {
     /// Tests: advance the unsteady fields one particle at a time (the
     /// reference of [`Particles::advance_lanes`]).
     static SCALAR_ADVECTION: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+    /// Tests: keep the SSE2 groups on an AVX2 machine (the reference of
+    /// [`Particles::advance_lanes_avx2`]).
+    static FORCE_SSE2: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
 }
 
 #[cfg(test)]
@@ -831,6 +879,74 @@ mod tests {
             assert!(recycled > 100, "{name}: {recycled}");
             if dt_scale > 1.0 {
                 assert!(mixed > 50, "{name}: {mixed} groups with mixed sub-steps");
+            }
+        }
+    }
+
+    /// On an AVX2 machine the AVX2-compiled groups give exactly what the
+    /// SSE2 pairs give (snapshots, particle states, random streams) on the
+    /// three unsteady presets, recycling included. (Without AVX2 there is
+    /// no second path to compare; the test then says so and passes.)
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx_lanes_are_the_sse2_lanes() {
+        if !std::is_x86_feature_detected!("avx2") {
+            eprintln!("no AVX2 on this CPU: one path only");
+            return;
+        }
+        for name in ["demo", "rib_wake", "turbulent_bl"] {
+            let mut sc = presets::preset(name).unwrap();
+            sc.sensor.roi = Some(crate::sim::scenario::Roi {
+                x: 100,
+                y: 200,
+                width: 301,
+                height: 203,
+            });
+            sc.seeding.out_of_plane_rms *= 20.0;
+            let flow = Flow::build(&sc.flow).unwrap();
+            let mut avx = Particles::seed(&sc, &flow, 7);
+            let mut sse = Particles::seed(&sc, &flow, 7);
+            let mut t = 0.0;
+            for block in 0..6 {
+                let times: Vec<f64> = (0..5).map(|k| (block * 5 + k + 1) as f64 * 2e-4).collect();
+                let a = avx.advance_and_snapshot(&flow, t, &times);
+                FORCE_SSE2.with(|c| c.set(true));
+                let b = sse.advance_and_snapshot(&flow, t, &times);
+                FORCE_SSE2.with(|c| c.set(false));
+                t = *times.last().unwrap();
+                for (x, y) in a.iter().zip(&b) {
+                    assert!(!x.is_empty());
+                    assert_eq!(x.len(), y.len(), "{name}");
+                    for (p, q) in x.iter().zip(y) {
+                        assert_eq!(
+                            (
+                                p.x.to_bits(),
+                                p.y.to_bits(),
+                                p.u.to_bits(),
+                                p.v.to_bits(),
+                                p.id
+                            ),
+                            (
+                                q.x.to_bits(),
+                                q.y.to_bits(),
+                                q.u.to_bits(),
+                                q.v.to_bits(),
+                                q.id
+                            ),
+                            "{name}"
+                        );
+                    }
+                }
+                for (p, q) in avx.particles.iter().zip(&sse.particles) {
+                    assert_eq!(
+                        (p.x, p.y, p.z, p.id, p.vel),
+                        (q.x, q.y, q.z, q.id, q.vel),
+                        "{name}"
+                    );
+                }
+                for (r, s) in avx.rngs.iter_mut().zip(sse.rngs.iter_mut()) {
+                    assert_eq!(r.gen::<u64>(), s.gen::<u64>());
+                }
             }
         }
     }
