@@ -386,93 +386,98 @@ mod x2 {
     }
 }
 
-/// Four f64 lanes as two [`F64x2`]: two independent dependency chains
-/// for the out-of-order core to overlap (SSE2 has no wider register).
+/// Two values of a lane type side by side (`Two<F64x2>`: four lanes in two
+/// SSE2 registers): two independent dependency chains for the
+/// out-of-order core to overlap. Lane i < `T::N` is the first's.
 #[derive(Clone, Copy, Debug)]
-pub struct F64x4(pub F64x2, pub F64x2);
+pub struct Two<T>(pub T, pub T);
 
-macro_rules! x4_op {
+/// Four lanes as two SSE2 pairs.
+pub type F64x4 = Two<F64x2>;
+
+macro_rules! two_op {
     ($tr:ident, $f:ident, $op:tt) => {
-        impl std::ops::$tr for F64x4 {
-            type Output = F64x4;
+        impl<T: Lanes> std::ops::$tr for Two<T> {
+            type Output = Two<T>;
             #[inline(always)]
-            fn $f(self, o: F64x4) -> F64x4 {
-                F64x4(self.0 $op o.0, self.1 $op o.1)
+            fn $f(self, o: Two<T>) -> Two<T> {
+                Two(self.0 $op o.0, self.1 $op o.1)
             }
         }
     };
 }
-x4_op!(Add, add, +);
-x4_op!(Sub, sub, -);
-x4_op!(Mul, mul, *);
-x4_op!(Div, div, /);
+two_op!(Add, add, +);
+two_op!(Sub, sub, -);
+two_op!(Mul, mul, *);
+two_op!(Div, div, /);
 
-impl std::ops::Neg for F64x4 {
-    type Output = F64x4;
+impl<T: Lanes> std::ops::Neg for Two<T> {
+    type Output = Two<T>;
     #[inline(always)]
-    fn neg(self) -> F64x4 {
-        F64x4(-self.0, -self.1)
+    fn neg(self) -> Two<T> {
+        Two(-self.0, -self.1)
     }
 }
 
-impl Lanes for F64x4 {
-    const N: usize = 4;
+impl<T: Lanes> Lanes for Two<T> {
+    const N: usize = 2 * T::N;
     #[inline(always)]
-    fn splat(v: f64) -> F64x4 {
-        F64x4(F64x2::splat(v), F64x2::splat(v))
+    fn splat(v: f64) -> Two<T> {
+        Two(T::splat(v), T::splat(v))
     }
     #[inline(always)]
     fn lane(self, i: usize) -> f64 {
-        if i < 2 {
+        if i < T::N {
             self.0.lane(i)
         } else {
-            self.1.lane(i - 2)
+            self.1.lane(i - T::N)
         }
     }
     #[inline(always)]
-    fn from_fn(mut f: impl FnMut(usize) -> f64) -> F64x4 {
-        let lo = F64x2::from_fn(&mut f);
-        F64x4(lo, F64x2::from_fn(|i| f(i + 2)))
+    fn from_fn(mut f: impl FnMut(usize) -> f64) -> Two<T> {
+        let lo = T::from_fn(&mut f);
+        Two(lo, T::from_fn(|i| f(i + T::N)))
     }
     #[inline(always)]
-    fn select_lt(self, b: F64x4, yes: F64x4, no: F64x4) -> F64x4 {
-        F64x4(
+    fn select_lt(self, b: Two<T>, yes: Two<T>, no: Two<T>) -> Two<T> {
+        Two(
             self.0.select_lt(b.0, yes.0, no.0),
             self.1.select_lt(b.1, yes.1, no.1),
         )
     }
     #[inline(always)]
-    fn abs(self) -> F64x4 {
-        F64x4(self.0.abs(), self.1.abs())
+    fn abs(self) -> Two<T> {
+        Two(self.0.abs(), self.1.abs())
     }
     #[inline(always)]
-    fn sign_one(self) -> F64x4 {
-        F64x4(self.0.sign_one(), self.1.sign_one())
+    fn sign_one(self) -> Two<T> {
+        Two(self.0.sign_one(), self.1.sign_one())
     }
     #[inline(always)]
-    fn raise_to(self, lo: f64) -> F64x4 {
-        F64x4(self.0.raise_to(lo), self.1.raise_to(lo))
+    fn raise_to(self, lo: f64) -> Two<T> {
+        Two(self.0.raise_to(lo), self.1.raise_to(lo))
     }
     #[inline(always)]
-    fn lower_to(self, hi: f64) -> F64x4 {
-        F64x4(self.0.lower_to(hi), self.1.lower_to(hi))
+    fn lower_to(self, hi: f64) -> Two<T> {
+        Two(self.0.lower_to(hi), self.1.lower_to(hi))
     }
     #[inline(always)]
-    fn low_bit_as_sign(self) -> F64x4 {
-        F64x4(self.0.low_bit_as_sign(), self.1.low_bit_as_sign())
+    fn low_bit_as_sign(self) -> Two<T> {
+        Two(self.0.low_bit_as_sign(), self.1.low_bit_as_sign())
     }
     #[inline(always)]
-    fn xor(self, o: F64x4) -> F64x4 {
-        F64x4(self.0.xor(o.0), self.1.xor(o.1))
+    fn xor(self, o: Two<T>) -> Two<T> {
+        Two(self.0.xor(o.0), self.1.xor(o.1))
     }
     #[inline(always)]
-    fn pow2_of_rounded(self) -> F64x4 {
-        F64x4(self.0.pow2_of_rounded(), self.1.pow2_of_rounded())
+    fn pow2_of_rounded(self) -> Two<T> {
+        Two(self.0.pow2_of_rounded(), self.1.pow2_of_rounded())
     }
 }
 
 /// Four f64 lanes in one AVX register, for the advection loop compiled
-/// a second time with AVX2 enabled when the CPU has it (`seeding`). Only
+/// a second time with AVX2 enabled when the CPU has it (`seeding`, as
+/// `Two<F64x4Avx>`). Only
 /// IEEE add/sub/mul/div, ordered compares, blends and integer shifts,
 /// which round and compare exactly as the SSE2 pair ([`F64x4`]) does: the
 /// same bits on every machine (test `avx_lanes_are_the_sse2_lanes`). No
