@@ -3,9 +3,9 @@
 //!
 //! `cargo bench --bench sim` (add `-- quick` for one repetition). Scenes:
 //! `water_jet_5khz` (full frame, ~31 Mev/s: the paper's recording regime;
-//! steady jet, exact advection), `rib_wake` (full frame, the most expensive
-//! velocity field: RK4 through the shedding field) and `demo` (640×360
-//! vortex). "in memory" drains the `Simulator` (events + truth in memory,
+//! steady jet, exact advection), `rib_wake` (full frame, RK4 through the
+//! shedding field), `demo` (640×360 vortex) and `turbulent_bl` (the most
+//! expensive field: 16 Fourier modes, one cos each, per evaluation). "in memory" drains the `Simulator` (events + truth in memory,
 //! as the pipeline consumes it); "to files" is `write_recording` (EVT 3.0 +
 //! 80 MB/s of truth CSV per 0.1 s, into a temporary directory).
 //!
@@ -55,7 +55,12 @@ fn main() {
     let reps = if quick { 1 } else { 3 };
     println!("| scene | path | threads | events | CPU s | Mev per CPU-s | wall s | Mev/s wall |");
     println!("|---|---|---|---|---|---|---|---|");
-    for (name, secs) in [("water_jet_5khz", 0.1), ("rib_wake", 0.05), ("demo", 0.05)] {
+    for (name, secs) in [
+        ("water_jet_5khz", 0.1),
+        ("rib_wake", 0.05),
+        ("demo", 0.05),
+        ("turbulent_bl", 0.05),
+    ] {
         let mut sc = presets::preset(name).unwrap();
         sc.duration_s = secs;
         let paths: &[(&str, fn(&Scenario) -> u64)] = if name == "water_jet_5khz" {

@@ -38,6 +38,7 @@
 
 use serde::{Deserialize, Serialize};
 
+pub(crate) mod fastmath;
 pub mod flow;
 pub mod light;
 pub mod pixel;

@@ -11,17 +11,33 @@
 //!
 //! Every particle slot has its own random stream, so advancing slots in
 //! parallel gives the same result as advancing them one by one.
+//!
+//! Through the unsteady analytic fields (vortex, shedding, turbulent
+//! modes) particles move in groups: the RK4 stages of a group are
+//! evaluated together (`Flow::velocity_lanes`; four particles in two SSE2
+//! pairs, or eight in two AVX registers where the CPU has AVX2), each lane
+//! with its own sub-step count, doing exactly the scalar operations on its
+//! own numbers — the same bits as one particle at a time (tested), so
+//! neither the grouping nor the CPU shows in the output.
 
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, StandardNormal};
 use rand_pcg::Pcg64;
 
+#[cfg(target_arch = "x86_64")]
+use super::fastmath::F64x4Avx;
+use super::fastmath::{F64x4, Lanes, Two};
 use super::flow::Flow;
 use super::scenario::Scenario;
 use super::stream_seed;
 
 /// Half-depth of the slab relative to the sheet thickness.
 const SLAB_HALF: f64 = 0.75;
+
+/// Particles advanced together through the unsteady analytic fields:
+/// four, as two SSE2 pairs, so the two pairs' dependency chains (each RK4
+/// stage needs the previous one) overlap.
+type Group = F64x4;
 
 /// Longest RK4 sub-step (px of displacement).
 pub const SUBSTEP_PX: f64 = 4.0;
@@ -246,6 +262,14 @@ impl Particles {
         const CHUNK: usize = 512;
         let n_slots = self.particles.len();
         let parallel_steady = flow.is_parallel_steady() && !PLAIN_ADVECTION.with(|c| c.get());
+        let pairs =
+            !flow.is_parallel_steady() && flow.has_lanes() && !SCALAR_ADVECTION.with(|c| c.get());
+        // The same loop compiled for AVX2 (groups of eight in two AVX
+        // registers instead of four in two SSE2 pairs) where the CPU has
+        // it: the same arithmetic per lane, so the same bits
+        // (`avx_lanes_are_the_sse2_lanes`).
+        #[cfg(target_arch = "x86_64")]
+        let avx2 = pairs && std::is_x86_feature_detected!("avx2") && !FORCE_SSE2.with(|c| c.get());
         let mut particles = std::mem::take(&mut self.particles);
         let mut rngs = std::mem::take(&mut self.rngs);
         let this = &*self;
@@ -261,6 +285,36 @@ impl Particles {
                     .collect();
                 if parallel_steady {
                     this.advance_parallel(pc, rc, ci * CHUNK, n_slots, flow, t0, times, &mut out);
+                    return out;
+                }
+                if pairs {
+                    #[cfg(target_arch = "x86_64")]
+                    if avx2 {
+                        // SAFETY: the CPU has AVX2 (detected above).
+                        unsafe {
+                            this.advance_lanes_avx2(
+                                pc,
+                                rc,
+                                ci * CHUNK,
+                                n_slots,
+                                flow,
+                                t0,
+                                times,
+                                &mut out,
+                            )
+                        };
+                        return out;
+                    }
+                    this.advance_lanes::<Group>(
+                        pc,
+                        rc,
+                        ci * CHUNK,
+                        n_slots,
+                        flow,
+                        t0,
+                        times,
+                        &mut out,
+                    );
                     return out;
                 }
                 for (k, (p, rng)) in pc.iter_mut().zip(rc.iter_mut()).enumerate() {
@@ -323,28 +377,8 @@ impl Particles {
             p.x += u * dt;
             known = Some((u, v));
         } else {
-            // RK4 sub-steps of at most 4 px: the fields vary over tens of px,
-            // so the pathline error stays far below 1e-3 px.
-            let disp = (u * u + v * v).sqrt() * dt;
-            let n = ((disp / SUBSTEP_PX).ceil() as usize).clamp(1, 256);
-            let h = dt / n as f64;
-            let mut t = t0;
-            for i in 0..n {
-                // The first k1 is the velocity at (x, y, t0) already known.
-                let (k1x, k1y) = if i == 0 {
-                    (u, v)
-                } else {
-                    flow.velocity(p.x, p.y, t)
-                };
-                let (k2x, k2y) =
-                    flow.velocity(p.x + 0.5 * h * k1x, p.y + 0.5 * h * k1y, t + 0.5 * h);
-                let (k3x, k3y) =
-                    flow.velocity(p.x + 0.5 * h * k2x, p.y + 0.5 * h * k2y, t + 0.5 * h);
-                let (k4x, k4y) = flow.velocity(p.x + h * k3x, p.y + h * k3y, t + h);
-                p.x += h / 6.0 * (k1x + 2.0 * k2x + 2.0 * k3x + k4x);
-                p.y += h / 6.0 * (k1y + 2.0 * k2y + 2.0 * k3y + k4y);
-                t += h;
-            }
+            let n = substeps(u, v, dt);
+            (p.x, p.y) = rk4(flow, (p.x, p.y), (u, v), t0, dt, n as f64, n);
         }
         p.z += p.w * dt;
         if self.recycle_if_left(p, rng, flow, t1, slot, n_slots) {
@@ -399,6 +433,121 @@ impl Particles {
             return true;
         }
         false
+    }
+
+    /// The particle loop of [`Particles::advance_and_snapshot`] for the
+    /// unsteady analytic fields ([`Flow::has_lanes`]): `T::N` particles at
+    /// a time ([`Group`]), their RK4 stages and velocities evaluated
+    /// together, lane for lane the scalar operations of
+    /// [`Particles::step`] (so the same numbers, tested). Every particle's
+    /// velocity at the pulse is evaluated right after its move, lit or not
+    /// (the next move starts from it: the same value, only sooner).
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn advance_lanes<T: Lanes>(
+        &self,
+        pc: &mut [Particle],
+        rc: &mut [Pcg64],
+        slot0: usize,
+        n_slots: usize,
+        flow: &Flow,
+        t0: f64,
+        times: &[f64],
+        out: &mut [Vec<Snapshot>],
+    ) {
+        for (k, (pp, rr)) in pc.chunks_mut(T::N).zip(rc.chunks_mut(T::N)).enumerate() {
+            let slot = slot0 + k * T::N;
+            let mut t = t0;
+            for (&t1, snaps) in times.iter().zip(out.iter_mut()) {
+                if pp.len() == T::N {
+                    self.step_lanes::<T>(pp, rr, flow, t, t1, slot, n_slots);
+                    velocity_lanes::<T>(pp, flow, t1);
+                } else {
+                    // The last particles of a chunk, one by one.
+                    for (i, (p, rng)) in pp.iter_mut().zip(rr.iter_mut()).enumerate() {
+                        self.step(p, rng, flow, t, t1, slot + i, n_slots);
+                        p.velocity(flow, t1);
+                    }
+                }
+                t = t1;
+                for p in pp.iter() {
+                    if self.in_sheet(p) {
+                        snaps.push(Snapshot {
+                            x: p.x,
+                            y: p.y,
+                            u: p.vel.0,
+                            v: p.vel.1,
+                            brightness: p.brightness,
+                            id: p.id,
+                        });
+                    }
+                }
+            }
+        }
+    }
+
+    /// [`Particles::advance_lanes`] compiled with AVX2, eight particles at
+    /// a time in two AVX registers (two dependency chains, as the two SSE2
+    /// pairs of the baseline loop; measured 4–7 % less CPU than one
+    /// register of four). Everything it calls on lanes is
+    /// `#[inline(always)]`, so compiled here too. Safety: the CPU must
+    /// have AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn advance_lanes_avx2(
+        &self,
+        pc: &mut [Particle],
+        rc: &mut [Pcg64],
+        slot0: usize,
+        n_slots: usize,
+        flow: &Flow,
+        t0: f64,
+        times: &[f64],
+        out: &mut [Vec<Snapshot>],
+    ) {
+        self.advance_lanes::<Two<F64x4Avx>>(pc, rc, slot0, n_slots, flow, t0, times, out);
+    }
+
+    /// [`Particles::step`] for `T::N` particles (slots from `slot`) of a
+    /// field that is not steady parallel.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn step_lanes<T: Lanes>(
+        &self,
+        ps: &mut [Particle],
+        rngs: &mut [Pcg64],
+        flow: &Flow,
+        t0: f64,
+        t1: f64,
+        slot: usize,
+        n_slots: usize,
+    ) {
+        let dt = t1 - t0;
+        if dt <= 0.0 {
+            return;
+        }
+        velocity_lanes::<T>(ps, flow, t0);
+        let mut n_max = 0;
+        let n = T::from_fn(|i| {
+            let n = substeps(ps[i].vel.0, ps[i].vel.1, dt);
+            n_max = n_max.max(n);
+            n as f64
+        });
+        let (x, y) = rk4(
+            flow,
+            (T::from_fn(|i| ps[i].x), T::from_fn(|i| ps[i].y)),
+            (T::from_fn(|i| ps[i].vel.0), T::from_fn(|i| ps[i].vel.1)),
+            t0,
+            dt,
+            n,
+            n_max,
+        );
+        for (i, (p, rng)) in ps.iter_mut().zip(rngs.iter_mut()).enumerate() {
+            (p.x, p.y) = (x.lane(i), y.lane(i));
+            p.z += p.w * dt;
+            self.recycle_if_left(p, rng, flow, t1, slot + i, n_slots);
+        }
     }
 
     /// [`Particles::recycle_if_left`] out of line (the fast loop's rare
@@ -481,10 +630,96 @@ impl Particles {
     }
 }
 
+/// RK4 sub-steps for a move of velocity (u, v) over dt: at most
+/// [`SUBSTEP_PX`] each. The fields vary over tens of px, so the pathline
+/// error stays far below 1e-3 px.
+#[inline(always)]
+fn substeps(u: f64, v: f64, dt: f64) -> usize {
+    let disp = (u * u + v * v).sqrt() * dt;
+    ((disp / SUBSTEP_PX).ceil() as usize).clamp(1, 256)
+}
+
+/// Classical RK4 from (x, y) at `t0` over `dt` in `n` equal sub-steps
+/// (`n` also as a float), k1 of the first sub-step given (the velocity at
+/// (x, y, t0), already known), per lane: with [`F64x2`] two particles at
+/// once, each with its own sub-step count (`n_max` the largest; a lane
+/// whose steps are done keeps its position). Every lane does exactly the
+/// scalar operations on its own numbers, so a pair gives the bits of two
+/// scalar calls (test `lane_advection_matches_scalar`).
+#[inline(always)]
+fn rk4<T: Lanes>(
+    flow: &Flow,
+    xy: (T, T),
+    k1: (T, T),
+    t0: f64,
+    dt: f64,
+    n: T,
+    n_max: usize,
+) -> (T, T) {
+    let c = T::splat;
+    let (mut x, mut y) = xy;
+    let h = c(dt) / n;
+    let mut t = c(t0);
+    for i in 0..n_max {
+        // The first k1 is the velocity at (x, y, t0) already known.
+        let (k1x, k1y) = if i == 0 {
+            k1
+        } else {
+            flow.velocity_lanes(x, y, t)
+        };
+        let hh = c(0.5) * h;
+        let (k2x, k2y) = flow.velocity_lanes(x + hh * k1x, y + hh * k1y, t + hh);
+        let (k3x, k3y) = flow.velocity_lanes(x + hh * k2x, y + hh * k2y, t + hh);
+        let (k4x, k4y) = flow.velocity_lanes(x + h * k3x, y + h * k3y, t + h);
+        let h6 = h / c(6.0);
+        let nx = x + h6 * (k1x + c(2.0) * k2x + c(2.0) * k3x + k4x);
+        let ny = y + h6 * (k1y + c(2.0) * k2y + c(2.0) * k3y + k4y);
+        if T::N == 1 {
+            (x, y) = (nx, ny);
+        } else {
+            // Lanes with i < n move on.
+            let i = c(i as f64);
+            x = i.select_lt(n, nx, x);
+            y = i.select_lt(n, ny, y);
+        }
+        t = t + h;
+    }
+    (x, y)
+}
+
+/// [`Particle::velocity`] at `t` for `T::N` particles of a field that is
+/// not steady parallel: one evaluation of all lanes when every cache
+/// misses (the common case), else one by one.
+#[inline(always)]
+fn velocity_lanes<T: Lanes>(ps: &mut [Particle], flow: &Flow, t: f64) {
+    let all_miss = ps.iter().all(|p| p.vel_at != Some(p.vel_key(false, t)));
+    if all_miss {
+        let (u, v) = flow.velocity_lanes(
+            T::from_fn(|i| ps[i].x),
+            T::from_fn(|i| ps[i].y),
+            T::splat(t),
+        );
+        for (i, p) in ps.iter_mut().enumerate() {
+            p.vel = (u.lane(i), v.lane(i));
+            p.vel_at = Some(p.vel_key(false, t));
+        }
+    } else {
+        for p in ps.iter_mut() {
+            p.velocity_in(flow, false, t);
+        }
+    }
+}
+
 std::thread_local! {
     /// Tests: force the generic particle loop (the reference of
     /// [`Particles::advance_parallel`]).
     static PLAIN_ADVECTION: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+    /// Tests: advance the unsteady fields one particle at a time (the
+    /// reference of [`Particles::advance_lanes`]).
+    static SCALAR_ADVECTION: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+    /// Tests: keep the SSE2 groups on an AVX2 machine (the reference of
+    /// [`Particles::advance_lanes_avx2`]).
+    static FORCE_SSE2: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
 }
 
 #[cfg(test)]
@@ -567,6 +802,206 @@ mod tests {
                 }
             }
             assert!(recycled > 100, "{}: {recycled}", sc.name);
+        }
+    }
+
+    /// Advancing four particles at a time through the unsteady fields
+    /// gives exactly what one at a time gives: snapshots (positions,
+    /// velocities, ids), particle states and random streams, with
+    /// recycling through the slab faces and the domain edges, mixed
+    /// sub-step counts within a group (the rib wake at a doubled time
+    /// step), repeated times (dt = 0) and a particle count that leaves a
+    /// partial group at the end.
+    #[test]
+    fn lane_advection_matches_scalar() {
+        for (name, dt_scale) in [
+            ("demo", 1.0),
+            ("rib_wake", 1.0),
+            ("rib_wake", 2.0),
+            ("turbulent_bl", 1.0),
+        ] {
+            let mut sc = presets::preset(name).unwrap();
+            sc.sensor.roi = Some(crate::sim::scenario::Roi {
+                x: 100,
+                y: 200,
+                width: 301,
+                height: 203,
+            });
+            sc.seeding.out_of_plane_rms *= 20.0;
+            let flow = Flow::build(&sc.flow).unwrap();
+            assert!(flow.has_lanes() && !flow.is_parallel_steady());
+            let mut lanes = Particles::seed(&sc, &flow, 9);
+            let mut scalar = Particles::seed(&sc, &flow, 9);
+            assert_ne!(lanes.len() % 4, 0, "{name}: a partial group");
+            let (mut t, mut recycled, mut mixed) = (0.0, 0, 0);
+            for block in 0..6 {
+                let mut times: Vec<f64> = (0..5)
+                    .map(|k| (block * 5 + k + 1) as f64 * 2e-4 * dt_scale)
+                    .collect();
+                // dt = 0 once.
+                times[2] = times[1];
+                // Groups whose sub-step counts differ (the masked lanes).
+                for g in lanes.particles.chunks(4) {
+                    let dt = times[0] - t;
+                    let n: Vec<usize> = g
+                        .iter()
+                        .map(|p| {
+                            let (u, v) = flow.velocity(p.x, p.y, t);
+                            substeps(u, v, dt)
+                        })
+                        .collect();
+                    mixed += n.iter().any(|&k| k != n[0]) as usize;
+                }
+                let a = lanes.advance_and_snapshot(&flow, t, &times);
+                SCALAR_ADVECTION.with(|c| c.set(true));
+                let b = scalar.advance_and_snapshot(&flow, t, &times);
+                SCALAR_ADVECTION.with(|c| c.set(false));
+                t = *times.last().unwrap();
+                assert_eq!(a.len(), b.len());
+                for (x, y) in a.iter().zip(&b) {
+                    assert!(!x.is_empty());
+                    assert_eq!(x.len(), y.len(), "{name}");
+                    for (p, q) in x.iter().zip(y) {
+                        assert_eq!(
+                            (p.x, p.y, p.u, p.v, p.brightness, p.id),
+                            (q.x, q.y, q.u, q.v, q.brightness, q.id),
+                            "{name}"
+                        );
+                    }
+                }
+                for (p, q) in lanes.particles.iter().zip(&scalar.particles) {
+                    assert_eq!(
+                        (p.x, p.y, p.z, p.w, p.id),
+                        (q.x, q.y, q.z, q.w, q.id),
+                        "{name}"
+                    );
+                    recycled += (p.generation > 0) as usize;
+                }
+                for (r, s) in lanes.rngs.iter_mut().zip(scalar.rngs.iter_mut()) {
+                    assert_eq!(r.gen::<u64>(), s.gen::<u64>());
+                }
+            }
+            assert!(recycled > 100, "{name}: {recycled}");
+            if dt_scale > 1.0 {
+                assert!(mixed > 50, "{name}: {mixed} groups with mixed sub-steps");
+            }
+        }
+    }
+
+    /// On an AVX2 machine the AVX2-compiled groups give exactly what the
+    /// SSE2 pairs give (snapshots, particle states, random streams) on the
+    /// three unsteady presets, recycling included. (Without AVX2 there is
+    /// no second path to compare; the test then says so and passes.)
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx_lanes_are_the_sse2_lanes() {
+        if !std::is_x86_feature_detected!("avx2") {
+            eprintln!("no AVX2 on this CPU: one path only");
+            return;
+        }
+        for name in ["demo", "rib_wake", "turbulent_bl"] {
+            let mut sc = presets::preset(name).unwrap();
+            sc.sensor.roi = Some(crate::sim::scenario::Roi {
+                x: 100,
+                y: 200,
+                width: 301,
+                height: 203,
+            });
+            sc.seeding.out_of_plane_rms *= 20.0;
+            let flow = Flow::build(&sc.flow).unwrap();
+            let mut avx = Particles::seed(&sc, &flow, 7);
+            let mut sse = Particles::seed(&sc, &flow, 7);
+            let mut t = 0.0;
+            for block in 0..6 {
+                let times: Vec<f64> = (0..5).map(|k| (block * 5 + k + 1) as f64 * 2e-4).collect();
+                let a = avx.advance_and_snapshot(&flow, t, &times);
+                FORCE_SSE2.with(|c| c.set(true));
+                let b = sse.advance_and_snapshot(&flow, t, &times);
+                FORCE_SSE2.with(|c| c.set(false));
+                t = *times.last().unwrap();
+                for (x, y) in a.iter().zip(&b) {
+                    assert!(!x.is_empty());
+                    assert_eq!(x.len(), y.len(), "{name}");
+                    for (p, q) in x.iter().zip(y) {
+                        assert_eq!(
+                            (
+                                p.x.to_bits(),
+                                p.y.to_bits(),
+                                p.u.to_bits(),
+                                p.v.to_bits(),
+                                p.id
+                            ),
+                            (
+                                q.x.to_bits(),
+                                q.y.to_bits(),
+                                q.u.to_bits(),
+                                q.v.to_bits(),
+                                q.id
+                            ),
+                            "{name}"
+                        );
+                    }
+                }
+                for (p, q) in avx.particles.iter().zip(&sse.particles) {
+                    assert_eq!(
+                        (p.x, p.y, p.z, p.id, p.vel),
+                        (q.x, q.y, q.z, q.id, q.vel),
+                        "{name}"
+                    );
+                }
+                for (r, s) in avx.rngs.iter_mut().zip(sse.rngs.iter_mut()) {
+                    assert_eq!(r.gen::<u64>(), s.gen::<u64>());
+                }
+            }
+        }
+    }
+
+    /// The fast fields (branch-free cos/exp, four particles at a time)
+    /// move particles along the same pathlines as the plain formulas
+    /// (libm, one at a time): over 1 000 pulses of the demo vortex, the
+    /// rib wake and the turbulent field, the same particles are lit and
+    /// positions agree to 1e-9 px, velocities to 1e-9 relative (rounding
+    /// differences carried along the pathlines).
+    #[test]
+    fn fast_fields_advect_like_plain_formulas() {
+        for name in ["demo", "rib_wake", "turbulent_bl"] {
+            let mut sc = presets::preset(name).unwrap();
+            sc.sensor.roi = Some(crate::sim::scenario::Roi {
+                x: 300,
+                y: 250,
+                width: 200,
+                height: 150,
+            });
+            let fast = Flow::build(&sc.flow).unwrap();
+            let plain = Flow::Plain(Box::new(fast.clone()));
+            assert!(!plain.has_lanes());
+            let mut a = Particles::seed(&sc, &fast, 4);
+            let mut b = Particles::seed(&sc, &plain, 4);
+            let (mut t, mut dx, mut du, mut rows) = (0.0, 0.0f64, 0.0f64, 0);
+            let period = 1.0 / sc.light.pulse_hz;
+            for block in 0..100 {
+                let times: Vec<f64> = (0..10)
+                    .map(|k| (block * 10 + k + 1) as f64 * period)
+                    .collect();
+                let sa = a.advance_and_snapshot(&fast, t, &times);
+                let sb = b.advance_and_snapshot(&plain, t, &times);
+                t = *times.last().unwrap();
+                for (x, y) in sa.iter().zip(&sb) {
+                    assert_eq!(x.len(), y.len(), "{name}");
+                    for (p, q) in x.iter().zip(y) {
+                        assert_eq!(p.id, q.id, "{name}");
+                        dx = dx.max((p.x - q.x).abs()).max((p.y - q.y).abs());
+                        let speed = q.u.hypot(q.v).max(1.0);
+                        du = du.max((p.u - q.u).abs().max((p.v - q.v).abs()) / speed);
+                        rows += 1;
+                    }
+                }
+            }
+            assert!(rows > 50_000, "{name}: {rows}");
+            assert!(
+                dx <= 1e-9 && du <= 1e-9,
+                "{name}: |dx| {dx:e} px, |du|/|u| {du:e}"
+            );
         }
     }
 
