@@ -48,3 +48,62 @@ fn demo_runs_every_stage_and_scores_against_truth() {
         assert!(out.join(step).exists(), "{step} missing");
     }
 }
+
+/// `--config` runs the same chain on a scenario file, and the report says
+/// which file it was.
+#[test]
+fn demo_runs_on_a_scenario_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("demo");
+    let scene = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/data/scenarios/vortex_small.toml"
+    );
+    let run = Command::new(env!("CARGO_BIN_EXE_ebptv"))
+        .args(["demo", "--config", scene, "--seconds", "0.01", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "demo failed: {}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("demo_report.json")).unwrap())
+            .unwrap();
+    assert_eq!(report["config"].as_str(), Some(scene), "{report}");
+    assert!(report["preset"].is_null(), "{report}");
+    let used = std::fs::read_to_string(out.join("sim/scenario.toml")).unwrap();
+    assert!(used.contains("vortex_small"), "{used}");
+    let precision = report["tracks"]["link_precision"].as_f64().unwrap();
+    assert!(precision > 0.9, "{report}");
+}
+
+/// A scenario file that cannot be read fails before anything runs: the
+/// error names the file, and no step leaves output behind.
+#[test]
+fn demo_refuses_a_bad_scenario_file_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let bad = dir.path().join("bad_scene.toml");
+    std::fs::write(&bad, "name = \"x\"\n[light]\npulse_hz = -5.0\n").unwrap();
+    let out = dir.path().join("demo");
+    let run = Command::new(env!("CARGO_BIN_EXE_ebptv"))
+        .args(["demo", "--config"])
+        .arg(&bad)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(!run.status.success());
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert!(err.contains("bad_scene.toml"), "{err}");
+    assert!(!out.exists(), "output was written: {err}");
+    // --preset and --config together are refused by the parser.
+    let both = Command::new(env!("CARGO_BIN_EXE_ebptv"))
+        .args(["demo", "--preset", "demo", "--config"])
+        .arg(&bad)
+        .output()
+        .unwrap();
+    assert!(!both.status.success());
+}

@@ -21,8 +21,12 @@ pub struct DemoArgs {
     #[arg(long, default_value = "demo_out")]
     pub out: PathBuf,
     /// Simulator preset (see `ebptv simulate --list-presets`).
-    #[arg(long, default_value = "demo")]
+    #[arg(long, default_value = "demo", conflicts_with = "config")]
     pub preset: String,
+    /// A scenario TOML file instead of a preset (as `ebptv simulate
+    /// --config`): the whole chain scored on a scene of your own.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
     /// Random seed of the simulated recording.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -49,6 +53,21 @@ fn p(path: &Path) -> String {
 }
 
 pub fn run(args: DemoArgs) -> anyhow::Result<()> {
+    // The scene is read (and validated) before any step runs, so a bad
+    // scenario file fails at once with its name, not after a simulation.
+    let (scene_name, scene_source) = match &args.config {
+        Some(file) => {
+            Scenario::from_toml_file(file)?;
+            (p(file), vec!["--config".to_string(), p(file)])
+        }
+        None => {
+            ebptv::sim::presets::preset(&args.preset)?;
+            (
+                format!("preset `{}`", args.preset),
+                vec!["--preset".to_string(), args.preset.clone()],
+            )
+        }
+    };
     let out = &args.out;
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let (sim, ptv, grid, piv, cmp) = (
@@ -61,7 +80,9 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
     let rec = sim.join("recording.raw");
     let s = |v: &[&str]| v.iter().map(|x| x.to_string()).collect::<Vec<_>>();
 
-    let mut sim_cmd = s(&["ebptv", "simulate", "--preset", &args.preset, "--seed"]);
+    let mut sim_cmd = s(&["ebptv", "simulate"]);
+    sim_cmd.extend(scene_source);
+    sim_cmd.push("--seed".into());
     sim_cmd.push(args.seed.to_string());
     if let Some(sec) = args.seconds {
         sim_cmd.push("--seconds".into());
@@ -88,8 +109,9 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
     )?;
     let n_pulses = tracked["pulses"].as_u64().unwrap_or(0);
     let nperseg = welch_segment_for(n_pulses);
-    let sc = ebptv::sim::presets::preset(&args.preset)?;
-    let roi = sc.roi();
+    // The scenario the simulator wrote is the one it used (preset or file).
+    let scenario = Scenario::from_toml_file(sim.join("scenario.toml"))?;
+    let roi = scenario.roi();
     let point = format!("{},{}", roi.x + roi.width * 3 / 5, roi.y + roi.height / 2);
     step(&s(&[
         "ebptv",
@@ -128,7 +150,6 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         "\nscoring against the simulator's truth ({})",
         p(&sim.join("truth_particles.csv"))
     );
-    let scenario = Scenario::from_toml_file(sim.join("scenario.toml"))?;
     let truth = Truth::read(&sim.join("truth_particles.csv"))?;
     let period = scenario.period_us();
 
@@ -154,7 +175,8 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
             .context("reading spectrum.json")?,
     )?;
     let report = json!({
-        "preset": args.preset,
+        "preset": args.config.is_none().then_some(&args.preset),
+        "config": args.config.as_ref().map(|f| p(f)),
         "seed": args.seed,
         "pulses": {
             "source": pulses["source"],
@@ -182,8 +204,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
     )?;
 
     println!(
-        "\nebptv demo: preset `{}`, seed {} → {}",
-        args.preset,
+        "\nebptv demo: {scene_name}, seed {} → {}",
         args.seed,
         out.display()
     );
