@@ -560,6 +560,58 @@ pub struct LinkScore {
     pub velocity_samples_identity_interior: u64,
 }
 
+/// Squared velocity errors over a track's points, all and interior (≥
+/// `margin` points from both ends), for an rms per component.
+struct VelocityErrors {
+    margin: usize,
+    sq: f64,
+    n: u64,
+    sq_interior: f64,
+    n_interior: u64,
+}
+
+impl VelocityErrors {
+    fn new(margin: usize) -> Self {
+        VelocityErrors {
+            margin,
+            sq: 0.0,
+            n: 0,
+            sq_interior: 0.0,
+            n_interior: 0,
+        }
+    }
+
+    /// The fitted velocity `(u, v)` of point `i` of a track of `len`
+    /// points against the truth `(tu, tv)`, px/s; `k` = period in s.
+    #[allow(clippy::too_many_arguments)]
+    fn add(&mut self, i: usize, len: usize, u: f64, v: f64, tu: f64, tv: f64, k: f64) {
+        let e2 = ((u - tu) * k).powi(2) + ((v - tv) * k).powi(2);
+        self.sq += e2;
+        self.n += 1;
+        if i >= self.margin && len - 1 - i >= self.margin {
+            self.sq_interior += e2;
+            self.n_interior += 1;
+        }
+    }
+
+    /// (rms all, samples, rms interior, samples), px per pulse per component.
+    fn rms(&self) -> (f64, u64, f64, u64) {
+        let rms = |sq: f64, n: u64| {
+            if n > 0 {
+                (sq / (2 * n) as f64).sqrt()
+            } else {
+                0.0
+            }
+        };
+        (
+            rms(self.sq, self.n),
+            self.n,
+            rms(self.sq_interior, self.n_interior),
+            self.n_interior,
+        )
+    }
+}
+
 /// Score linked tracks. `det_truth[serial]` is the truth id of each
 /// detection (serials as the tracker numbered them), `det_pulse[serial]`
 /// its pulse; `truth` the truth samples of all pulses.
@@ -615,8 +667,7 @@ pub fn score_with_sources(
         .map(|t| ((t.pulse, t.particle_id), (t.u, t.v)))
         .collect();
     let mut found: HashSet<(i64, u64)> = HashSet::new();
-    let mut sq = 0.0;
-    let mut sq_in = 0.0;
+    let mut vel = VelocityErrors::new(interior_margin);
     for t in tracks {
         let serials: Vec<u64> = t.detections.iter().flatten().copied().collect();
         for w in serials.windows(2) {
@@ -646,14 +697,7 @@ pub fn score_with_sources(
                 continue;
             };
             if let Some(&(u, v)) = truth_vel.get(&(pt.pulse, id)) {
-                let k = period_us * 1e-6;
-                let e2 = ((pt.u - u) * k).powi(2) + ((pt.v - v) * k).powi(2);
-                sq += e2;
-                s.velocity_samples += 1;
-                if i >= interior_margin && n - 1 - i >= interior_margin {
-                    sq_in += e2;
-                    s.velocity_samples_interior += 1;
-                }
+                vel.add(i, n, pt.u, pt.v, u, v, period_us * 1e-6);
             }
         }
     }
@@ -690,16 +734,12 @@ pub fn score_with_sources(
     } else {
         0.0
     };
-    s.velocity_rms_px_per_pulse = if s.velocity_samples > 0 {
-        (sq / (2 * s.velocity_samples) as f64).sqrt()
-    } else {
-        0.0
-    };
-    s.velocity_rms_interior_px_per_pulse = if s.velocity_samples_interior > 0 {
-        (sq_in / (2 * s.velocity_samples_interior) as f64).sqrt()
-    } else {
-        0.0
-    };
+    (
+        s.velocity_rms_px_per_pulse,
+        s.velocity_samples,
+        s.velocity_rms_interior_px_per_pulse,
+        s.velocity_samples_interior,
+    ) = vel.rms();
     s
 }
 
@@ -727,7 +767,7 @@ fn score_identity(
         .filter(|&&(k, id)| holds.contains(&(k + 1, id)))
         .count() as u64;
     let mut found: HashSet<(i64, u64)> = HashSet::new();
-    let (mut sq, mut sq_in) = (0.0, 0.0);
+    let mut vel = VelocityErrors::new(interior_margin);
     let k = period_us * 1e-6;
     for t in tracks {
         let serials: Vec<usize> = t.detections.iter().flatten().map(|&d| d as usize).collect();
@@ -753,29 +793,19 @@ fn score_identity(
             let Some(&(u, v)) = label.and_then(|id| truth_vel.get(&(pt.pulse, id))) else {
                 continue;
             };
-            let e2 = ((pt.u - u) * k).powi(2) + ((pt.v - v) * k).powi(2);
-            sq += e2;
-            s.velocity_samples_identity += 1;
-            if i >= interior_margin && n - 1 - i >= interior_margin {
-                sq_in += e2;
-                s.velocity_samples_identity_interior += 1;
-            }
+            vel.add(i, n, pt.u, pt.v, u, v, k);
         }
     }
     s.found_truth_links_set = found.len() as u64;
     let ratio = |a: u64, b: u64| if b > 0 { a as f64 / b as f64 } else { 0.0 };
     s.precision_identity = ratio(s.links - s.identity_wrong_links, s.links);
     s.recall_set = ratio(s.found_truth_links_set, s.truth_links_set);
-    let rms = |sq: f64, n: u64| {
-        if n > 0 {
-            (sq / (2 * n) as f64).sqrt()
-        } else {
-            0.0
-        }
-    };
-    s.velocity_rms_identity_px_per_pulse = rms(sq, s.velocity_samples_identity);
-    s.velocity_rms_identity_interior_px_per_pulse =
-        rms(sq_in, s.velocity_samples_identity_interior);
+    (
+        s.velocity_rms_identity_px_per_pulse,
+        s.velocity_samples_identity,
+        s.velocity_rms_identity_interior_px_per_pulse,
+        s.velocity_samples_identity_interior,
+    ) = vel.rms();
 }
 
 /// The optimal labelling of one track (module docs, "Identity scoring"):
