@@ -61,8 +61,10 @@ pub struct TrackArgs {
     /// Young tracks (predicted by a line) fall back to the quadratic
     /// prediction where the line's misses it by more than this many
     /// standard deviations (their acceleration shows); 0 = the line
-    /// alone (before session 11). See `TrackParams::young_order_sigma`.
-    #[arg(long, default_value_t = 2.0)]
+    /// alone (default). 2 recovers fast vortex cores (~1 px/pulse²) but
+    /// costs precision in dense noisy scenes. See
+    /// `TrackParams::young_order_sigma`.
+    #[arg(long, default_value_t = 0.0)]
     pub young_order_sigma: f64,
     /// Tolerance of the ghost test (standard deviations of the velocity
     /// difference). See `TrackParams::ghost_sigma`.

@@ -459,7 +459,13 @@ pub struct TrackParams {
     /// (3.5 a) px: at the ~1 px/pulse² of the 8 px/pulse Lamb–Oseen core
     /// that is beyond the ~2.3 px gate, and nearly every core track died
     /// at its fifth detection (session 11, "Diagnosis (ptv-vortex)" in
-    /// BENCHMARKS.md: core coverage 0.12 → 0.94). 0 = the line alone.
+    /// BENCHMARKS.md: at 2, core coverage 0.12 → 0.94). 0 = the line
+    /// alone (default): the fallback's wider gate also keeps chains
+    /// through noise and neighbours alive, and on the synthetic scenes of
+    /// `tests/ptv_accuracy.rs` it cost precision (dense, fast, noisy
+    /// 0.867 → 0.834) and velocity (paper-like 0.130 → 0.168 px/pulse),
+    /// while the demo preset was unchanged. For flows turning at more
+    /// than ~0.5 px/pulse² where the linear start breaks tracks.
     #[serde(default = "default_young_order_sigma")]
     pub young_order_sigma: f64,
     /// Search radius (px) around the prior's prediction for the first step.
@@ -526,7 +532,7 @@ fn clipped_second_moment(k: f64) -> f64 {
 }
 
 fn default_young_order_sigma() -> f64 {
-    2.0
+    0.0
 }
 
 /// Polynomial orders the predictor compares for a track of `w` detections
