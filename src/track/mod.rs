@@ -453,19 +453,19 @@ pub struct TrackParams {
     /// predicted with the full order over the same detections; where the
     /// line's prediction ± `young_order_sigma` of its noise (σ·√leverage
     /// per axis) does not overlap the full order's ± the same, the path's
-    /// acceleration shows and the full order's prediction (and its wider
-    /// gate) is taken. A line through 4 (5) detections of a path
+    /// acceleration shows and the full order's prediction is taken (with
+    /// the line's gate). A line through 4 (5) detections of a path
     /// accelerating at `a` px/pulse² misses the next position by 2.5 a
     /// (3.5 a) px: at the ~1 px/pulse² of the 8 px/pulse Lamb–Oseen core
     /// that is beyond the ~2.3 px gate, and nearly every core track died
     /// at its fifth detection (session 11, "Diagnosis (ptv-vortex)" in
     /// BENCHMARKS.md: at 2, core coverage 0.12 → 0.94). 0 = the line
-    /// alone (default): the fallback's wider gate also keeps chains
-    /// through noise and neighbours alive, and on the synthetic scenes of
-    /// `tests/ptv_accuracy.rs` it cost precision (dense, fast, noisy
-    /// 0.867 → 0.834) and velocity (paper-like 0.130 → 0.168 px/pulse),
-    /// while the demo preset was unchanged. For flows turning at more
-    /// than ~0.5 px/pulse² where the linear start breaks tracks.
+    /// alone (default): as a default, 2 cost the synthetic paper-like
+    /// scene of `tests/ptv_accuracy.rs` velocity (0.130 → 0.135 px/pulse,
+    /// over that test's limit) and 3 the dense, fast, noisy one
+    /// precision (0.867 → 0.864), while 3 kept only part of the vortex
+    /// gain. For flows turning at more than ~0.5 px/pulse² where the
+    /// linear start breaks tracks.
     #[serde(default = "default_young_order_sigma")]
     pub young_order_sigma: f64,
     /// Search radius (px) around the prior's prediction for the first step.
@@ -1437,7 +1437,12 @@ impl Tracker {
             preds[m] = (x, y, c.leverage);
             m += 1;
         }
-        let (x, y, leverage) = preds[ici_choice(&preds[..m], self.position_sigma(), k_young)];
+        let (x, y, _) = preds[ici_choice(&preds[..m], self.position_sigma(), k_young)];
+        // The gate stays the track's own order's: the fallback moves the
+        // centre onto the curved path; the quadratic's wider gate (4
+        // detections: leverage 7.75 against the line's 1.5) also kept
+        // chains through noise and neighbours alive.
+        let leverage = preds[m - 1].2;
         let (r, lev) = self.search_radius(leverage, ahead);
         (x, y, r, lev)
     }
@@ -1508,8 +1513,9 @@ impl Tracker {
         if preds.is_empty() {
             return (last.x, last.y, p.max_disp, 1.0);
         }
-        let (x, y, leverage) =
-            preds[ici_choice(&preds, self.position_sigma(), p.young_order_sigma)];
+        let (x, y, _) = preds[ici_choice(&preds, self.position_sigma(), p.young_order_sigma)];
+        // The own order's gate, as in `predict`.
+        let leverage = preds[preds.len() - 1].2;
         let (r, lev) = self.search_radius(leverage, pulse - last.pulse);
         (x, y, r, lev)
     }
