@@ -58,6 +58,14 @@ pub struct TrackArgs {
     /// a pulse are not started). See `TrackParams::ghost_check_length`.
     #[arg(long, default_value_t = 6)]
     pub ghost_check_length: usize,
+    /// Young tracks (predicted by a line) fall back to the quadratic
+    /// prediction where the line's misses it by more than this many
+    /// standard deviations (their acceleration shows); 0 = the line
+    /// alone (default). 2 recovers fast vortex cores (~1 px/pulse²) but
+    /// costs precision in dense noisy scenes. See
+    /// `TrackParams::young_order_sigma`.
+    #[arg(long, default_value_t = 0.0)]
+    pub young_order_sigma: f64,
     /// Tolerance of the ghost test (standard deviations of the velocity
     /// difference). See `TrackParams::ghost_sigma`.
     #[arg(long, default_value_t = 2.25)]
@@ -487,6 +495,7 @@ fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
         fit_accel_rms: args.fit_accel_rms,
         ghost_check_length: args.ghost_check_length,
         ghost_sigma: args.ghost_sigma,
+        young_order_sigma: args.young_order_sigma,
         step_split: args.step_split,
         step_split_hinted: args.step_split_hinted,
         velocity_prior: args.velocity_prior,

@@ -448,6 +448,26 @@ pub struct TrackParams {
     /// pipeline hands them on before its end): memory grows with the run.
     #[serde(default)]
     pub velocity_prior_two_pass: bool,
+    /// Young tracks (fewer than 3 detections per coefficient of
+    /// `predict_order`, so predicted by a straight line) are also
+    /// predicted with the full order over the same detections; where the
+    /// line's prediction ± `young_order_sigma` of its noise (σ·√leverage
+    /// per axis) does not overlap the full order's ± the same, the path's
+    /// acceleration shows and the full order's prediction is taken (with
+    /// the line's gate). A line through 4 (5) detections of a path
+    /// accelerating at `a` px/pulse² misses the next position by 2.5 a
+    /// (3.5 a) px: at the ~1 px/pulse² of the 8 px/pulse Lamb–Oseen core
+    /// that is beyond the ~2.3 px gate, and nearly every core track died
+    /// at its fifth detection (session 11, "Diagnosis (ptv-vortex)" in
+    /// BENCHMARKS.md: at 2, core coverage 0.12 → 0.94). 0 = the line
+    /// alone (default): as a default, 2 cost the synthetic paper-like
+    /// scene of `tests/ptv_accuracy.rs` velocity (0.130 → 0.135 px/pulse,
+    /// over that test's limit) and 3 the dense, fast, noisy one
+    /// precision (0.867 → 0.864), while 3 kept only part of the vortex
+    /// gain. For flows turning at more than ~0.5 px/pulse² where the
+    /// linear start breaks tracks.
+    #[serde(default = "default_young_order_sigma")]
+    pub young_order_sigma: f64,
     /// Search radius (px) around the prior's prediction for the first step.
     pub prior_radius: f64,
     /// Mean-flow prior for initialisation.
@@ -495,6 +515,7 @@ impl Default for TrackParams {
             velocity_prior: 0.0,
             velocity_prior_mean: false,
             velocity_prior_two_pass: false,
+            young_order_sigma: default_young_order_sigma(),
             prior_radius: 3.0,
             prior: None,
         }
@@ -508,6 +529,47 @@ const CLIP_K: f64 = 2.5;
 fn clipped_second_moment(k: f64) -> f64 {
     let e = (-0.5 * k * k).exp();
     (1.0 - (1.0 + 0.5 * k * k) * e) / (1.0 - e)
+}
+
+fn default_young_order_sigma() -> f64 {
+    0.0
+}
+
+/// Polynomial orders the predictor compares for a track of `w` detections
+/// in its window whose order by its length is `order`: a young track's
+/// full order first (unbiased, noisier), then its own.
+fn predict_orders(
+    w: usize,
+    order: usize,
+    full_order: usize,
+    k: f64,
+) -> impl Iterator<Item = usize> {
+    let young = k > 0.0 && order < full_order && w >= full_order + 2;
+    young
+        .then_some(full_order)
+        .into_iter()
+        .chain(std::iter::once(order))
+}
+
+/// Index of the prediction kept among `(x, y, leverage)` ordered from
+/// the least biased to the least noisy: the last one whose
+/// ±`k`·σ·√leverage box overlaps every earlier one's (intersection of
+/// confidence intervals).
+fn ici_choice(preds: &[(f64, f64, f64)], sigma: f64, k: f64) -> usize {
+    let (mut lo, mut hi) = ([f64::NEG_INFINITY; 2], [f64::INFINITY; 2]);
+    let mut chosen = 0;
+    for (i, &(x, y, lev)) in preds.iter().enumerate() {
+        let h = k * sigma * lev.sqrt();
+        for (a, v) in [x, y].into_iter().enumerate() {
+            lo[a] = lo[a].max(v - h);
+            hi[a] = hi[a].min(v + h);
+        }
+        if lo[0] > hi[0] || lo[1] > hi[1] {
+            break;
+        }
+        chosen = i;
+    }
+    chosen
 }
 
 fn default_max_track_length() -> usize {
@@ -1358,6 +1420,35 @@ impl Tracker {
         }
         let order = self.predict_order(n);
         let ahead = pulse - last.pulse;
+        let k_young = p.young_order_sigma;
+        let mut preds = [(0.0, 0.0, 0.0); 2];
+        let mut m = 0;
+        for oo in predict_orders(w, order, p.predict_order, k_young) {
+            let Some(k) = self.weights_index(w, oo, ahead) else {
+                return self.predict_reference(&self.active[ti], pulse);
+            };
+            let c = &self.weights[k];
+            let win = &self.active[ti].dets[n - w..];
+            let (mut x, mut y) = (0.0, 0.0);
+            for (ci, d) in c.c.iter().zip(win) {
+                x += ci * d.x;
+                y += ci * d.y;
+            }
+            preds[m] = (x, y, c.leverage);
+            m += 1;
+        }
+        let (x, y, _) = preds[ici_choice(&preds[..m], self.position_sigma(), k_young)];
+        // The gate stays the track's own order's: the fallback moves the
+        // centre onto the curved path; the quadratic's wider gate (4
+        // detections: leverage 7.75 against the line's 1.5) also kept
+        // chains through noise and neighbours alive.
+        let leverage = preds[m - 1].2;
+        let (r, lev) = self.search_radius(leverage, ahead);
+        (x, y, r, lev)
+    }
+
+    /// Cached predictor weights of a gap-free window.
+    fn weights_index(&mut self, w: usize, order: usize, ahead: i64) -> Option<usize> {
         // Most tracks use the same weights as the previous one: try those
         // first (the list holds a dozen or more combinations).
         let hint = self.weights_hint;
@@ -1368,23 +1459,13 @@ impl Tracker {
         };
         let k = match found {
             Some(k) => k,
-            None => match PredictWeights::new(w, order, ahead) {
-                Some(c) => {
-                    self.weights.push(c);
-                    self.weights.len() - 1
-                }
-                None => return self.predict_reference(&self.active[ti], pulse),
-            },
+            None => {
+                self.weights.push(PredictWeights::new(w, order, ahead)?);
+                self.weights.len() - 1
+            }
         };
         self.weights_hint = k;
-        let c = &self.weights[k];
-        let (mut x, mut y) = (0.0, 0.0);
-        for (ci, d) in c.c.iter().zip(win) {
-            x += ci * d.x;
-            y += ci * d.y;
-        }
-        let (r, lev) = self.search_radius(c.leverage, ahead);
-        (x, y, r, lev)
+        Some(k)
     }
 
     fn predict_order(&self, n: usize) -> usize {
@@ -1421,13 +1502,22 @@ impl Tracker {
         let ys: Vec<f64> = win.iter().map(|d| d.y).collect();
         let at = (pulse - last.pulse) as f64;
         let order = self.predict_order(n);
-        match fit::fit_eval(&tau, &xs, &ys, order, at) {
-            Some(f) => {
-                let (r, lev) = self.search_radius(f.leverage, pulse - last.pulse);
-                (f.x, f.y, r, lev)
+        let mut preds = Vec::with_capacity(2);
+        for oo in predict_orders(w, order, p.predict_order, p.young_order_sigma) {
+            // A full order the detections (with gaps) cannot carry yields
+            // nothing and the track's own order is taken.
+            if let Some(f) = fit::fit_eval(&tau, &xs, &ys, oo, at) {
+                preds.push((f.x, f.y, f.leverage));
             }
-            None => (last.x, last.y, p.max_disp, 1.0),
         }
+        if preds.is_empty() {
+            return (last.x, last.y, p.max_disp, 1.0);
+        }
+        let (x, y, _) = preds[ici_choice(&preds, self.position_sigma(), p.young_order_sigma)];
+        // The own order's gate, as in `predict`.
+        let leverage = preds[preds.len() - 1].2;
+        let (r, lev) = self.search_radius(leverage, pulse - last.pulse);
+        (x, y, r, lev)
     }
 
     /// Extend active tracks with this pulse's detections (global
