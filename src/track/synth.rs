@@ -1387,6 +1387,13 @@ pub fn oracle_report(
         )
     };
     r.score = score(&fitted);
+    // The other oracles: tracks built from another choice of each
+    // detection's particles, fitted like the first, scored.
+    let (fit_sigma, fit_accel_rms) = (r.fit_sigma, r.fit_accel_rms);
+    let score_oracle = |sources: &[Vec<u64>]| {
+        let tracks = oracle_tracks(&run.det_truth, sources, &run.det_pulse, tparams.stitch_gap);
+        score(&fit_oracle(run, &tracks, tparams, fit_sigma, fit_accel_rms))
+    };
     let long_fitted: Vec<LinkedTrack> = oracle
         .iter()
         .zip(&fitted)
@@ -1412,14 +1419,7 @@ pub fn oracle_report(
                 .collect()
         })
         .collect();
-    let exclusive = oracle_tracks(&run.det_truth, &nearest, &run.det_pulse, tparams.stitch_gap);
-    r.score_exclusive = score(&fit_oracle(
-        run,
-        &exclusive,
-        tparams,
-        r.fit_sigma,
-        r.fit_accel_rms,
-    ));
+    r.score_exclusive = score_oracle(&nearest);
     let single: Vec<Vec<u64>> = run
         .det_sources
         .iter()
@@ -1431,14 +1431,7 @@ pub fn oracle_report(
             }
         })
         .collect();
-    let skipping = oracle_tracks(&run.det_truth, &single, &run.det_pulse, tparams.stitch_gap);
-    r.score_skip_merged = score(&fit_oracle(
-        run,
-        &skipping,
-        tparams,
-        r.fit_sigma,
-        r.fit_accel_rms,
-    ));
+    r.score_skip_merged = score_oracle(&single);
     for (i, sigma_p) in [0.1, 0.2, 0.3].into_iter().enumerate() {
         let mut rng = Pcg64::seed_from_u64(0x5eed_0000 + i as u64);
         let err = Normal::new(0.0, sigma_p).expect("finite sigma");
@@ -1463,17 +1456,8 @@ pub fn oracle_report(
                 vec![best.1]
             })
             .collect();
-        let tracks = oracle_tracks(&run.det_truth, &chosen, &run.det_pulse, tparams.stitch_gap);
-        r.score_exclusive_noisy.push((
-            sigma_p,
-            score(&fit_oracle(
-                run,
-                &tracks,
-                tparams,
-                r.fit_sigma,
-                r.fit_accel_rms,
-            )),
-        ));
+        r.score_exclusive_noisy
+            .push((sigma_p, score_oracle(&chosen)));
     }
     // Position noise of the detections of the long tracks against their
     // particle (first: the floors need it).
