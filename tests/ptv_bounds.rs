@@ -46,15 +46,7 @@ fn bounds_table() {
         if paper_only && ppp > 0.01 {
             continue;
         }
-        let sp = SynthParams {
-            ppp,
-            max_disp: disp,
-            noise_fraction: noise,
-            width: 384,
-            height: 384,
-            seed,
-            ..Default::default()
-        };
+        let sp = SynthParams::conditions(ppp, disp, noise, seed);
         // As `tests/ptv_conditions.rs`: the search reaches 1.25× the
         // largest displacement (the default 10 px below 8 px/pulse).
         // Output-fit overrides for comparisons (PTV_FIT_MIN_WINDOW,
@@ -62,7 +54,7 @@ fn bounds_table() {
         let env = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<f64>().ok());
         let d = TrackParams::default();
         let tp = TrackParams {
-            max_disp: (disp * 1.25).max(10.0),
+            max_disp: sp.search_reach(),
             fit_min_window: env("PTV_FIT_MIN_WINDOW").map_or(d.fit_min_window, |v| v as usize),
             fit_bias_weight: env("PTV_FIT_BIAS_WEIGHT").unwrap_or(d.fit_bias_weight),
             fit_accel_rms: env("PTV_FIT_ACCEL").map_or(d.fit_accel_rms, Some),

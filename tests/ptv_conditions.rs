@@ -29,19 +29,12 @@ fn conditions_table() {
         if env("PTV_ROWS") == Some(1.0) && !matches!(name, "paper-like" | "all three") {
             continue;
         }
-        let sp = SynthParams {
-            ppp,
-            max_disp: disp,
-            noise_fraction: noise,
-            width: 384,
-            height: 384,
-            seed: env("PTV_SEED").map_or(SynthParams::default().seed, |v| v as u64),
-            ..Default::default()
-        };
+        let seed = env("PTV_SEED").map_or(SynthParams::default().seed, |v| v as u64);
+        let sp = SynthParams::conditions(ppp, disp, noise, seed);
         let scene = generate(&sp);
         let d = TrackParams::default();
         let tp = TrackParams {
-            max_disp: (disp * 1.25).max(10.0),
+            max_disp: sp.search_reach(),
             min_length: env("PTV_MIN_LENGTH").map_or(d.min_length, |v| v as usize),
             fit_accel_rms: env("PTV_FIT_ACCEL").map_or(d.fit_accel_rms, Some),
             step_split: env("PTV_STEP").unwrap_or(d.step_split),

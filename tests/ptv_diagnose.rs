@@ -15,24 +15,17 @@ fn breakdown_of_link_errors() {
         if std::env::var("PTV_ONLY_PAPER").is_ok() && ppp > 0.01 {
             continue;
         }
-        let sp = SynthParams {
-            ppp,
-            max_disp: disp,
-            noise_fraction: noise,
-            width: 384,
-            height: 384,
-            seed: std::env::var("PTV_SEED")
-                .ok()
-                .and_then(|v| v.parse().ok())
-                .unwrap_or(SynthParams::default().seed),
-            ..Default::default()
-        };
+        let seed = std::env::var("PTV_SEED")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(SynthParams::default().seed);
+        let sp = SynthParams::conditions(ppp, disp, noise, seed);
         let scene = generate(&sp);
         // Knobs for experiments without rebuilding: PTV_<PARAM>=value.
         let env = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<f64>().ok());
         let d = TrackParams::default();
         let tp = TrackParams {
-            max_disp: (disp * 1.25).max(10.0),
+            max_disp: sp.search_reach(),
             predict_window: env("PTV_PREDICT_WINDOW").map_or(d.predict_window, |v| v as usize),
             fit_window: env("PTV_FIT_WINDOW").map_or(d.fit_window, |v| v as usize),
             max_gap: env("PTV_MAX_GAP").map_or(d.max_gap, |v| v as u32),

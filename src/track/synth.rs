@@ -228,6 +228,27 @@ pub struct SynthPulse {
 }
 
 impl SynthParams {
+    /// The 384² scene of the conditions tables (`tests/ptv_conditions.rs`,
+    /// `ptv_diagnose`, `ptv_bounds`): the defaults with these four changed.
+    pub fn conditions(ppp: f64, max_disp: f64, noise_fraction: f64, seed: u64) -> Self {
+        SynthParams {
+            ppp,
+            max_disp,
+            noise_fraction,
+            width: 384,
+            height: 384,
+            seed,
+            ..Default::default()
+        }
+    }
+
+    /// The tracker's search reach for this scene, as the conditions tables
+    /// track it: 1.25× the largest displacement, never below the default
+    /// 10 px.
+    pub fn search_reach(&self) -> f64 {
+        (self.max_disp * 1.25).max(10.0)
+    }
+
     fn speed_scale(&self) -> f64 {
         let mag = (0.9f64.powi(2) + 0.35f64.powi(2)).sqrt();
         self.max_disp / mag
