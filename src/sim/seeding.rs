@@ -27,7 +27,7 @@ use rand_pcg::Pcg64;
 #[cfg(target_arch = "x86_64")]
 use super::fastmath::F64x4Avx;
 use super::fastmath::{F64x4, Lanes, Two};
-use super::flow::Flow;
+use super::flow::{Flow, Phases, Turbulent};
 use super::scenario::Scenario;
 use super::stream_seed;
 
@@ -317,11 +317,15 @@ impl Particles {
                     );
                     return out;
                 }
+                let mut turb = TurbState::<f64>::new(flow);
                 for (k, (p, rng)) in pc.iter_mut().zip(rc.iter_mut()).enumerate() {
                     let slot = ci * CHUNK + k;
                     let mut t = t0;
+                    if let Some(ts) = &mut turb {
+                        ts.keys = [None; 8];
+                    }
                     for (ti, &t1) in times.iter().enumerate() {
-                        let known = this.step(p, rng, flow, t, t1, slot, n_slots);
+                        let known = this.step(p, rng, flow, t, t1, slot, n_slots, turb.as_mut());
                         t = t1;
                         if this.in_sheet(p) {
                             let (u, v) = known.unwrap_or_else(|| p.velocity(flow, t1));
@@ -366,6 +370,7 @@ impl Particles {
         t1: f64,
         slot: usize,
         n_slots: usize,
+        turb: Option<&mut TurbState<f64>>,
     ) -> Option<(f64, f64)> {
         let dt = t1 - t0;
         if dt <= 0.0 {
@@ -376,6 +381,13 @@ impl Particles {
         if flow.is_parallel_steady() {
             p.x += u * dt;
             known = Some((u, v));
+        } else if let (Flow::Turbulent(tb), Some(ts)) = (flow, turb) {
+            let n = substeps(u, v, dt);
+            ts.refresh(tb, std::slice::from_ref(p), t0);
+            let (x, y, u1, v1) =
+                rk4_turbulent(tb, (p.x, p.y), (u, v), t0, dt, n as f64, n, &mut ts.ph);
+            (p.x, p.y) = (x, y);
+            ts.moved(std::slice::from_mut(p), (u1, v1), t1);
         } else {
             let n = substeps(u, v, dt);
             (p.x, p.y) = rk4(flow, (p.x, p.y), (u, v), t0, dt, n as f64, n);
@@ -455,17 +467,32 @@ impl Particles {
         times: &[f64],
         out: &mut [Vec<Snapshot>],
     ) {
+        // The turbulent field's phases: one state per group (lanes), one
+        // per particle of a partial group.
+        let mut turb = TurbState::<T>::new(flow);
+        let mut turb1: Vec<Option<TurbState<f64>>> = Vec::new();
         for (k, (pp, rr)) in pc.chunks_mut(T::N).zip(rc.chunks_mut(T::N)).enumerate() {
             let slot = slot0 + k * T::N;
             let mut t = t0;
+            if let Some(ts) = &mut turb {
+                ts.keys = [None; 8];
+            }
+            if pp.len() != T::N {
+                turb1 = pp.iter().map(|_| TurbState::<f64>::new(flow)).collect();
+            }
             for (&t1, snaps) in times.iter().zip(out.iter_mut()) {
                 if pp.len() == T::N {
-                    self.step_lanes::<T>(pp, rr, flow, t, t1, slot, n_slots);
+                    self.step_lanes::<T>(pp, rr, flow, t, t1, slot, n_slots, turb.as_mut());
                     velocity_lanes::<T>(pp, flow, t1);
                 } else {
                     // The last particles of a chunk, one by one.
-                    for (i, (p, rng)) in pp.iter_mut().zip(rr.iter_mut()).enumerate() {
-                        self.step(p, rng, flow, t, t1, slot + i, n_slots);
+                    for (i, ((p, rng), ts)) in pp
+                        .iter_mut()
+                        .zip(rr.iter_mut())
+                        .zip(turb1.iter_mut())
+                        .enumerate()
+                    {
+                        self.step(p, rng, flow, t, t1, slot + i, n_slots, ts.as_mut());
                         p.velocity(flow, t1);
                     }
                 }
@@ -522,6 +549,7 @@ impl Particles {
         t1: f64,
         slot: usize,
         n_slots: usize,
+        turb: Option<&mut TurbState<T>>,
     ) {
         let dt = t1 - t0;
         if dt <= 0.0 {
@@ -534,6 +562,28 @@ impl Particles {
             n_max = n_max.max(n);
             n as f64
         });
+        if let (Flow::Turbulent(tb), Some(ts)) = (flow, turb) {
+            ts.refresh(tb, ps, t0);
+            let (x, y, u, v) = rk4_turbulent(
+                tb,
+                (T::from_fn(|i| ps[i].x), T::from_fn(|i| ps[i].y)),
+                (T::from_fn(|i| ps[i].vel.0), T::from_fn(|i| ps[i].vel.1)),
+                t0,
+                dt,
+                n,
+                n_max,
+                &mut ts.ph,
+            );
+            for (i, p) in ps.iter_mut().enumerate() {
+                (p.x, p.y) = (x.lane(i), y.lane(i));
+            }
+            ts.moved(ps, (u, v), t1);
+            for (i, (p, rng)) in ps.iter_mut().zip(rngs.iter_mut()).enumerate() {
+                p.z += p.w * dt;
+                self.recycle_if_left(p, rng, flow, t1, slot + i, n_slots);
+            }
+            return;
+        }
         let (x, y) = rk4(
             flow,
             (T::from_fn(|i| ps[i].x), T::from_fn(|i| ps[i].y)),
@@ -685,6 +735,110 @@ fn rk4<T: Lanes>(
         t = t + h;
     }
     (x, y)
+}
+
+/// The turbulent field's mode phases (e^{iθ}) at `T::N` particles'
+/// positions, carried from one pulse's RK4 step to the next (each step
+/// starts from the phases the previous one ended with), and per lane the
+/// (x, y, t) they are at: a lane whose particle is elsewhere (new block,
+/// recycled) gets fresh ones ([`Turbulent::anchor`]). The phases then
+/// depend on the particle's own steps since then only, lane for lane the
+/// same in a group as for one particle alone.
+pub(crate) struct TurbState<T> {
+    ph: Phases<T>,
+    keys: [Option<(u64, u64, u64)>; 8],
+}
+
+impl<T: Lanes> TurbState<T> {
+    /// A state for the turbulent field, none for the others.
+    fn new(flow: &Flow) -> Option<TurbState<T>> {
+        match flow {
+            Flow::Turbulent(tb) => Some(TurbState {
+                ph: Phases::new(tb.n_modes()),
+                keys: [None; 8],
+            }),
+            _ => None,
+        }
+    }
+
+    /// Fresh phases for the lanes whose particle is not where they are.
+    #[inline(always)]
+    fn refresh(&mut self, tb: &Turbulent, ps: &[Particle], t0: f64) {
+        let c = T::splat;
+        let stale = T::from_fn(|i| (self.keys[i] != Some(ps[i].vel_key(false, t0))) as u8 as f64);
+        if (0..T::N).all(|i| stale.lane(i) == 0.0) {
+            return;
+        }
+        tb.anchor(
+            T::from_fn(|i| ps[i].x),
+            T::from_fn(|i| ps[i].y),
+            c(t0),
+            &mut self.ph.fresh,
+        );
+        for (e, f) in self.ph.cs.iter_mut().zip(&self.ph.fresh) {
+            *e = (
+                stale.select_lt(c(0.5), e.0, f.0),
+                stale.select_lt(c(0.5), e.1, f.1),
+            );
+        }
+    }
+
+    /// After a move to the particles' positions at `t1`: the velocity
+    /// there (u, v) into their caches, the phases' keys.
+    #[inline(always)]
+    fn moved(&mut self, ps: &mut [Particle], (u, v): (T, T), t1: f64) {
+        for (i, p) in ps.iter_mut().enumerate() {
+            p.vel = (u.lane(i), v.lane(i));
+            let key = p.vel_key(false, t1);
+            p.vel_at = Some(key);
+            self.keys[i] = Some(key);
+        }
+    }
+}
+
+/// [`rk4`] for the turbulent field ([`Turbulent::rk4_substep`]: the
+/// stages' phases by small rotations from `ph.cs`, the phases at the
+/// start), per lane `n` sub-steps (`n_max` the largest; a lane whose steps
+/// are done keeps its position, velocity and phases). Returns the new
+/// position and the velocity there at the end of its last sub-step.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn rk4_turbulent<T: Lanes>(
+    tb: &Turbulent,
+    xy: (T, T),
+    k1: (T, T),
+    t0: f64,
+    dt: f64,
+    n: T,
+    n_max: usize,
+    ph: &mut Phases<T>,
+) -> (T, T, T, T) {
+    let c = T::splat;
+    let ((mut x, mut y), (mut u, mut v)) = (xy, k1);
+    let h = c(dt) / n;
+    let mut t = c(t0);
+    let mut keep: Vec<(T, T)> = Vec::new();
+    for i in 0..n_max {
+        let i = c(i as f64);
+        let all = (0..T::N).all(|l| i.lane(l) < n.lane(l));
+        if !all {
+            keep.clear();
+            keep.extend_from_slice(&ph.cs);
+        }
+        let (nx, ny, nu, nv) = tb.rk4_substep(x, y, (u, v), t, h, ph);
+        if all {
+            (x, y, u, v) = (nx, ny, nu, nv);
+        } else {
+            // Lanes with i < n move on.
+            let sel = |a: T, b: T| i.select_lt(n, a, b);
+            (x, y, u, v) = (sel(nx, x), sel(ny, y), sel(nu, u), sel(nv, v));
+            for (e, k) in ph.cs.iter_mut().zip(&keep) {
+                *e = (sel(e.0, k.0), sel(e.1, k.1));
+            }
+        }
+        t = t + h;
+    }
+    (x, y, u, v)
 }
 
 /// [`Particle::velocity`] at `t` for `T::N` particles of a field that is
