@@ -1127,6 +1127,60 @@ mod tests {
         }
     }
 
+    /// One sub-step of [`Turbulent::rk4_substep`] (phases by small
+    /// rotations) against the full-field sub-step, and its phases carried
+    /// over 200 sub-steps against fresh ones, on the preset's field with
+    /// 2.5 px moves. One step: positions within 2e-13 px, velocities
+    /// within 4e-15 of the mode amplitudes' sum, phases within 3e-14 of
+    /// fresh ones (whose own phase k·x − ω t + φ, up to ~50 rad, is
+    /// rounded to 7e-15). 200 steps: phases within 4e-13 of fresh ones
+    /// (~130 rad, rounded to 3e-14) and |e^{iθ}|² within 2e-14 of 1
+    /// (the carried rotations' drift).
+    #[test]
+    fn turbulent_rotation_step_matches_full_step() {
+        let f = Flow::build(&crate::sim::presets::preset("turbulent_bl").unwrap().flow).unwrap();
+        let Flow::Turbulent(tb) = &f else { panic!() };
+        let amp: f64 = tb.modes.iter().map(|m| m[0].abs() + m[1].abs()).sum();
+        let h = 1e-4;
+        let mut ph = Phases::<f64>::new(tb.n_modes());
+        let mut fresh = vec![(0.0, 0.0); tb.n_modes()];
+        let (mut wx, mut wu, mut wp1, mut wp, mut wm) = (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0.0f64);
+        for k in 0..2000u64 {
+            let q = |s: u64| ((k.wrapping_mul(s) % 10_007) as f64) / 10_007.0;
+            // Near the origin of x and t: the full field's phase
+            // k·x − ω t + φ is then rounded to ~1e-14 (at t = 1 s it
+            // is ~2500 rad, rounded to 4.5e-13), below what is checked.
+            let (mut x, mut y, mut t) = (60.0 * q(7919), 200.0 + 320.0 * q(104_729), 0.01 * q(31));
+            let mut k1 = tb.anchor(x, y, t, &mut ph.cs);
+            for step in 0..if k < 20 { 200 } else { 1 } {
+                let full = tb.rk4_substep_full(x, y, k1, t, h, &mut fresh);
+                let fast = tb.rk4_substep(x, y, k1, t, h, &mut ph);
+                if step == 0 {
+                    wx = wx.max((fast.0 - full.0).abs()).max((fast.1 - full.1).abs());
+                    wu = wu.max((fast.2 - full.2).abs().max((fast.3 - full.3).abs()) / amp);
+                    for (a, b) in ph.cs.iter().zip(&fresh) {
+                        wp1 = wp1.max((a.0 - b.0).abs()).max((a.1 - b.1).abs());
+                    }
+                }
+                (x, y, k1, t) = (fast.0, fast.1, (fast.2, fast.3), t + h);
+            }
+            tb.anchor(x, y, t, &mut fresh);
+            for (a, b) in ph.cs.iter().zip(&fresh) {
+                wp = wp.max((a.0 - b.0).abs()).max((a.1 - b.1).abs());
+                wm = wm.max((a.0 * a.0 + a.1 * a.1 - 1.0).abs());
+            }
+        }
+        eprintln!(
+            "step: |dx| {wx:e} px, |du| {wu:e} of the amplitudes, phases {wp1:e}; \
+             200 steps: phases {wp:e}, ||e^iθ|² − 1| {wm:e}"
+        );
+        assert!(
+            wx <= 2e-13 && wu <= 4e-15 && wp1 <= 3e-14,
+            "{wx:e} {wu:e} {wp1:e}"
+        );
+        assert!(wp <= 4e-13 && wm <= 2e-14, "{wp:e} {wm:e}");
+    }
+
     #[test]
     fn turbulent_stresses_match_time_average() {
         let f = Flow::build(&FlowSpec::Turbulent {
