@@ -19,6 +19,12 @@
 //! with its own sub-step count, doing exactly the scalar operations on its
 //! own numbers — the same bits as one particle at a time (tested), so
 //! neither the grouping nor the CPU shows in the output.
+//!
+//! The turbulent field moves particles with its own RK4 sub-step
+//! (`Turbulent::rk4_substep`, `rk4_turbulent`): each particle's mode
+//! phases are carried from one pulse's step to the next (`TurbState`,
+//! fresh at the start of every `advance_and_snapshot` call and after a
+//! recycling), the same way in a group as one at a time.
 
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, StandardNormal};
@@ -56,7 +62,9 @@ pub struct Particle {
     /// for a steady parallel flow, whose u depends on y only): the same
     /// number a new evaluation there would give, so the next step starts
     /// from it (saves one field evaluation per particle per pulse, e.g.
-    /// the jet's `tanh`, or the RK4 field's value at the snapshot).
+    /// the jet's `tanh`, or the RK4 field's value at the snapshot). For
+    /// the turbulent field, the velocity its RK4 step ended with (the
+    /// carried phases': a fresh evaluation's up to rounding).
     vel: (f64, f64),
     vel_at: Option<(u64, u64, u64)>,
 }
