@@ -554,8 +554,15 @@ impl PixelModel {
     ) -> Option<ImageBox> {
         let nodes = self.streak_nodes_of(s);
         let m = nodes.len();
-        if !(m == 1 || s.v == 0.0) || m > LEAN_NODES {
+        if m > LEAN_NODES {
             return None;
+        }
+        if !(m == 1 || s.v == 0.0) {
+            // (u = 0 is `particle_rows`' separable case: not lean.)
+            if s.u == 0.0 {
+                return None;
+            }
+            return self.particle_lean_diagonal(q, s, nodes, sig, mask, stride);
         }
         let (rx0, ry0) = (self.roi.x as i64, self.roi.y as i64);
         let (rx1, ry1) = (
@@ -612,6 +619,94 @@ impl PixelModel {
             col1: (hi - rx0 + 1) as u32,
             row0,
             row1: row0 + (yb - ya) as u32 - 1,
+        })
+    }
+
+    /// [`Self::particle_lean`] for a general (diagonal) streak: u ≠ 0,
+    /// v ≠ 0, 2 ..= [`LEAN_NODES`] positions, each position's windows from
+    /// the table's fixed lanes and inside the ROI, all of them within an
+    /// 8 × 8 pixel window. `particle_rows` adds such a streak position by
+    /// position (`particle_rows_quad`'s general streak): per position, per
+    /// covered row, `(scale · fy) · fx` to the four pixels of its x
+    /// window. This adds the same products in the same order to every
+    /// pixel (positions in order within each row; rows and pixels are
+    /// independent), with each position's x window placed in an
+    /// eight-pixel window and its y window in an eight-row one: the other
+    /// lanes and rows are 0 and add exact zeros (the ring never holds
+    /// −0.0, so `x + ±0.0 = x`). Row by row, the ring's eight pixels are
+    /// loaded once, get every position's products, and are stored once —
+    /// instead of a sink call per position and row. The box is the union
+    /// of the positions' covered pixels, as `RingRows` grows it.
+    /// (`lean_images_match_particle_rows`, `diagonal_streaks_match_particle_rows`.)
+    #[inline(always)]
+    fn particle_lean_diagonal(
+        &self,
+        q: &QuadTable,
+        s: &Snapshot,
+        nodes: &[(f64, f64)],
+        sig: &mut [f32],
+        mask: usize,
+        stride: usize,
+    ) -> Option<ImageBox> {
+        debug_assert!(nodes.len() >= 2 && nodes.len() <= LEAN_NODES);
+        let (rx0, ry0) = (self.roi.x as i64, self.roi.y as i64);
+        let (rx1, ry1) = (
+            rx0 + self.roi.width as i64 - 1,
+            ry0 + self.roi.height as i64 - 1,
+        );
+        let amp = self.gain * s.brightness;
+        let m = nodes.len();
+        // Per position: x window start and fractions, y window start and
+        // fractions, scale (as `particle_rows_quad`).
+        let mut win = [(0i64, [0.0f32; 4], 0i64, [0.0f32; 4], 0.0f32); LEAN_NODES];
+        // Window starts (first, last) and covered pixels (inclusive).
+        let (mut wx0, mut wx1, mut wy0, mut wy1) = (i64::MAX, i64::MIN, i64::MAX, i64::MIN);
+        let (mut xlo, mut xhi, mut ylo, mut yhi) = (i64::MAX, i64::MIN, i64::MAX, i64::MIN);
+        for (slot, &(dt, pw)) in win.iter_mut().zip(nodes) {
+            let (wx, vx, xa, xb) = q.eval_axis_table(s.x + s.u * dt, rx0, rx1)?;
+            let (wy, vy, ya, yb) = q.eval_axis_table(s.y + s.v * dt, ry0, ry1)?;
+            *slot = (wx, vx, wy, vy, (amp * pw) as f32);
+            wx0 = wx0.min(wx);
+            wx1 = wx1.max(wx);
+            wy0 = wy0.min(wy);
+            wy1 = wy1.max(wy);
+            xlo = xlo.min(wx + xa as i64);
+            xhi = xhi.max(wx + xb as i64 - 1);
+            ylo = ylo.min(wy + ya as i64);
+            yhi = yhi.max(wy + yb as i64 - 1);
+        }
+        if wx1 + 4 - wx0 > 8 || wy1 + 4 - wy0 > 8 {
+            return None;
+        }
+        // Each position's windows placed in the common 8 × 8 window.
+        let mut fx = [[0.0f32; 8]; LEAN_NODES];
+        let mut fy = [[0.0f32; 8]; LEAN_NODES];
+        let mut scale = [0.0f32; LEAN_NODES];
+        for (k, &(wx, vx, wy, vy, sc)) in win[..m].iter().enumerate() {
+            let (a, b) = ((wx - wx0) as usize, (wy - wy0) as usize);
+            fx[k][a..a + 4].copy_from_slice(&vx);
+            fy[k][b..b + 4].copy_from_slice(&vy);
+            scale[k] = sc;
+        }
+        let col = (wx0 - rx0) as usize + RING_PAD;
+        for y in ylo..=yhi {
+            let i = (y - wy0) as usize;
+            let at = ((y - ry0) as usize & mask) * stride + col;
+            let dst: &mut [f32; 8] = (&mut sig[at..at + 8]).try_into().expect("window");
+            let mut acc = *dst;
+            for k in 0..m {
+                let sc = scale[k] * fy[k][i & 7];
+                for (d, &f) in acc.iter_mut().zip(&fx[k]) {
+                    *d += sc * f;
+                }
+            }
+            *dst = acc;
+        }
+        Some(ImageBox {
+            col0: (xlo - rx0) as u32,
+            col1: (xhi - rx0 + 1) as u32,
+            row0: (ylo - ry0) as u32,
+            row1: (yhi - ry0) as u32,
         })
     }
 
@@ -2502,6 +2597,118 @@ mod tests {
             // some sit at the ROI's edge or streak over more than
             // LEAN_NODES positions: not lean. Enough to exercise it.)
             assert!(taken * 8 > snaps.len(), "{streaks:?} {diameter}: {taken}");
+        }
+    }
+
+    /// The lean diagonal-streak kernel (`particle_lean_diagonal`)
+    /// against `particle_rows` through its sink: diagonal streaks of
+    /// every direction, 2 ..= LEAN_NODES positions (and longer ones,
+    /// which it must decline), centres all over the sub-pixel range and
+    /// along the ROI's edges, added onto a ring that already holds sums
+    /// (so the order of the additions counts): the same ring bit for bit
+    /// and the same box.
+    #[test]
+    fn diagonal_streaks_match_particle_rows() {
+        for (scale, diameter) in [(1.0, 1.5), (1.0, 1.3), (2.5, 1.0), (1.0, 0.3), (4.0, 1.99)] {
+            let mut sc = Scenario::default();
+            sc.sensor = small_sensor();
+            sc.optics.particle_diameter_px = diameter;
+            sc.light.sawtooth_depth = 0.15;
+            sc.light.pulse_streaks = Some(PulseStreaks { scale });
+            let model = PixelModel::new(&sc, 4);
+            let q = model.quad.as_ref().expect("small images");
+            let rw = model.roi.width as usize;
+            let stride = rw + 2 * RING_PAD;
+            let rows = (model.roi.height as usize).next_power_of_two();
+            // Speed of a streak of `k` positions (node count ⌈q⌉ = k).
+            let per_speed = model.shape.end_us * 1e-6 * scale / 0.2;
+            let (rx0, ry0) = (model.roi.x as f64, model.roi.y as f64);
+            let (rx1, ry1) = (
+                rx0 + model.roi.width as f64 - 1.0,
+                ry0 + model.roi.height as f64 - 1.0,
+            );
+            let mut rng = Pcg64::seed_from_u64(diameter.to_bits() ^ scale.to_bits());
+            let mut base = vec![0.0f32; rows * stride];
+            for (i, v) in base.iter_mut().enumerate() {
+                let col = i % stride;
+                if (RING_PAD..RING_PAD + rw).contains(&col) {
+                    *v = rng.gen_range(0.0..2.0);
+                }
+            }
+            let (mut taken, mut interior, mut interior_taken, mut long_taken) = (0, 0, 0, 0);
+            for n in 0..6000 {
+                let k = 2 + n % (LEAN_NODES + 2);
+                let q_count = k as f64 - rng.gen_range(0.0..1.0);
+                let speed = q_count / per_speed;
+                let th = rng.gen_range(0.0..std::f64::consts::TAU);
+                let (u, v) = (speed * th.cos(), speed * th.sin());
+                // Interior, or hugging one of the ROI's edges.
+                let (x, y) = match n % 5 {
+                    0 => (rx0 + rng.gen_range(-1.5..2.5), rng.gen_range(ry0..ry1)),
+                    1 => (rx1 + rng.gen_range(-2.5..1.5), rng.gen_range(ry0..ry1)),
+                    2 => (rng.gen_range(rx0..rx1), ry0 + rng.gen_range(-1.5..2.5)),
+                    3 => (rng.gen_range(rx0..rx1), ry1 + rng.gen_range(-2.5..1.5)),
+                    _ => (
+                        rng.gen_range(rx0 + 3.0..rx1 - 3.0),
+                        rng.gen_range(ry0 + 3.0..ry1 - 3.0),
+                    ),
+                };
+                let s = Snapshot {
+                    x,
+                    y,
+                    u,
+                    v,
+                    brightness: rng.gen_range(0.2..3.0),
+                    id: n as u64,
+                };
+                if u == 0.0 || v == 0.0 {
+                    continue;
+                }
+                let inside = n % 5 == 4 && k <= LEAN_NODES;
+                interior += inside as usize;
+                let mut lean = base.clone();
+                let Some(bx) = model.particle_lean(q, &s, &mut lean, rows - 1, stride) else {
+                    continue;
+                };
+                taken += 1;
+                interior_taken += inside as usize;
+                let m = model.streak_nodes_of(&s).len();
+                assert!((2..=LEAN_NODES).contains(&m), "{s:?}: {m} positions");
+                long_taken += (m == LEAN_NODES) as usize;
+                let mut plain = base.clone();
+                let mut sink = RingRows {
+                    sig: &mut plain,
+                    mask: rows - 1,
+                    stride,
+                    roi_x: model.roi.x,
+                    roi_y: model.roi.y,
+                    sig_at: 0,
+                    row: 0,
+                    bx: ImageBox::EMPTY,
+                };
+                model.particle_rows(&s, &mut Profiles::new(), &mut sink);
+                let want = sink.bx;
+                assert_eq!(
+                    (bx.col0, bx.col1, bx.row0, bx.row1),
+                    (want.col0, want.col1, want.row0, want.row1),
+                    "{s:?}"
+                );
+                for (i, (a, b)) in lean.iter().zip(&plain).enumerate() {
+                    assert_eq!(a.to_bits(), b.to_bits(), "{s:?} at {i}");
+                }
+                assert!(lean != base, "{s:?}: nothing written");
+            }
+            // Most interior streaks with up to LEAN_NODES positions are
+            // taken (not those in an ambiguous interval); some at the
+            // edges too.
+            assert!(
+                interior_taken * 10 > interior * 8,
+                "{scale} {diameter}: {interior_taken} of {interior}"
+            );
+            assert!(
+                taken > interior_taken && long_taken > 0,
+                "{scale} {diameter}"
+            );
         }
     }
 
