@@ -73,12 +73,31 @@ const TAIL_WORDS: usize = 4;
 /// particle gets a new id), so `id mod slots` gives every slot its own
 /// entry. With another id scheme (or too many slots for the table) entries
 /// are shared and simply miss more often: a hit needs the same key.
+///
+/// In an unsteady flow (a wake, a vortex, turbulence) the tail changes at
+/// every pulse and the cache never hits; a miss costs the lookup and the
+/// entry's store on top of formatting. So the cache measures its hit rate
+/// over [`TAIL_PROBE_ROWS`] rows and, below 1 in [`TAIL_MIN_HIT_RATIO`],
+/// formats the next [`TAIL_BYPASS_ROWS`] rows plainly ([`truth_row_rest`])
+/// before measuring again. Only speed depends on it: a hit is exact.
 struct TailCache {
     entries: Vec<TailText>,
     /// `entries.len()` and its [`fastmod_u32`] multiplier.
     n: u64,
     n_inv: u64,
+    /// Rows looked up and tail hits in the current probe.
+    probed: u32,
+    hits: u32,
+    /// Rows still to format without the cache.
+    bypass: u32,
 }
+
+/// Rows per measurement of the tail cache's hit rate.
+const TAIL_PROBE_ROWS: u32 = 1 << 12;
+/// A probe with fewer hits than 1 in this many rows turns the cache off …
+const TAIL_MIN_HIT_RATIO: u32 = 8;
+/// … for this many rows (a probe then costs ~1.5 % of them a lookup).
+const TAIL_BYPASS_ROWS: u32 = 1 << 18;
 
 /// Largest tail table (entries of 80 bytes: 5 MiB).
 const TAIL_TABLE_MAX: u64 = 1 << 16;
@@ -100,19 +119,40 @@ impl TailCache {
             ],
             n,
             n_inv: fastmod_u32_inverse(n as u32),
+            probed: 0,
+            hits: 0,
+            bypass: 0,
         }
     }
 
-    /// The entry for particle `id`.
+    /// The index of particle `id`'s entry.
     #[inline(always)]
-    fn entry(&mut self, id: u64) -> &mut TailText {
-        let i = if id <= u32::MAX as u64 {
+    fn index(&self, id: u64) -> usize {
+        if id <= u32::MAX as u64 {
             fastmod_u32(id as u32, self.n_inv, self.n as u32) as usize
         } else {
             (id % self.n) as usize
-        };
-        // (i < n by construction; the index check stays cheap.)
-        &mut self.entries[i]
+        }
+    }
+
+    /// [`truth_row_rest`] of `r` from position `p` of `w`, through the
+    /// cache ([`truth_row_cached`]) or, while it is bypassed, plainly.
+    #[inline(always)]
+    fn row(&mut self, w: &mut [u8; ROW_WINDOW], p: usize, r: &TruthSample) -> Option<usize> {
+        if self.bypass > 0 {
+            self.bypass -= 1;
+            return truth_row_rest(w, p, r);
+        }
+        let row = truth_row_cached(w, p, r, self);
+        self.probed += 1;
+        if self.probed == TAIL_PROBE_ROWS {
+            if self.hits * TAIL_MIN_HIT_RATIO < self.probed {
+                self.bypass = TAIL_BYPASS_ROWS;
+            }
+            self.probed = 0;
+            self.hits = 0;
+        }
+        row
     }
 }
 
@@ -251,7 +291,7 @@ impl TruthWriter {
                             u64::from_le_bytes(word.try_into().expect("8")),
                         );
                     }
-                    truth_row_cached(window, prefix.len, r, &mut self.tails)
+                    self.tails.row(window, prefix.len, r)
                 }
                 None => None,
             };
@@ -335,7 +375,9 @@ fn truth_row_cached(
     r: &TruthSample,
     tails: &mut TailCache,
 ) -> Option<usize> {
-    let entry = tails.entry(r.particle_id);
+    let i = tails.index(r.particle_id);
+    // (i < n by construction; the index check stays cheap.)
+    let entry = &mut tails.entries[i];
     let mut p = if entry.id_len != 0 && entry.id == r.particle_id {
         put8(w, p, entry.id_text);
         p + entry.id_len as usize
@@ -356,7 +398,9 @@ fn truth_row_cached(
         for (k, &word) in entry.text.iter().enumerate() {
             put8(w, p + 8 * k, word);
         }
-        return Some(p + entry.len as usize);
+        let end = p + entry.len as usize;
+        tails.hits += 1;
+        return Some(end);
     }
     let end = put_tail(w, p, r)?;
     if end - p <= 8 * TAIL_WORDS {
@@ -920,6 +964,87 @@ mod tests {
             w.finish().unwrap();
             assert!(std::fs::read(&path).unwrap() == want, "slots {given:?}");
         }
+    }
+
+    /// The tail cache's bypass: unsteady rows (every tail new) turn the
+    /// cache off after a probe, steady rows (tails repeat) turn it back
+    /// on at the next probe, and rows through the reference (ties) and
+    /// long ids or tails come in every phase: the file equals the
+    /// reference rows throughout.
+    #[test]
+    fn truth_writer_tail_cache_bypass_matches_reference() {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(23);
+        let slots = 1000u64;
+        let steady: Vec<(f64, f64, f64)> = (0..slots)
+            .map(|_| {
+                (
+                    rng.gen_range(-5.0..725.0),
+                    rng.gen_range(-3e4..3e4),
+                    rng.gen_range(-3e4..3e4),
+                )
+            })
+            .collect();
+        let mut pulse = 0i64;
+        let mut phase = |rng: &mut rand_pcg::Pcg64, pulses: usize, unsteady: bool| {
+            let mut rows = Vec::new();
+            for _ in 0..pulses {
+                for s in 0..slots {
+                    let (mut y, mut u, mut v) = steady[s as usize];
+                    if unsteady {
+                        (y, u, v) = (
+                            rng.gen_range(-5.0..725.0),
+                            rng.gen_range(-3e4..3e4),
+                            rng.gen_range(-3e4..3e4),
+                        );
+                    }
+                    match rng.gen_range(0..500) {
+                        0 => y = 0.00005,        // a tie: the reference
+                        1 => u = -1.234_567_8e9, // too long to cache
+                        _ => {}
+                    }
+                    let id = match rng.gen_range(0..200) {
+                        0 => s + (1 << 40),
+                        1 => s + 12_345_678_900,
+                        _ => s,
+                    };
+                    rows.push(TruthSample {
+                        pulse,
+                        t_us: 37.0 + 200.0 * pulse as f64,
+                        particle_id: id,
+                        x: rng.gen_range(-5.0..1285.0),
+                        y,
+                        u,
+                        v,
+                    });
+                }
+                pulse += 1;
+            }
+            rows
+        };
+        let unsteady = phase(
+            &mut rng,
+            2 + (TAIL_PROBE_ROWS as usize) / slots as usize,
+            true,
+        );
+        let steady_rows = (TAIL_BYPASS_ROWS + 2 * TAIL_PROBE_ROWS) as usize / slots as usize;
+        let steady = phase(&mut rng, steady_rows, false);
+        let unsteady_again = phase(&mut rng, 7, true);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("truth.csv");
+        let mut w = TruthWriter::create(&path).unwrap();
+        w.set_particle_slots(slots);
+        let mut want = format!("{}\n", TruthWriter::HEADER).into_bytes();
+        for (rows, bypassed) in [(&unsteady, true), (&steady, false), (&unsteady_again, true)] {
+            for part in rows.chunks(1999) {
+                w.write(part).unwrap();
+            }
+            for r in rows.iter() {
+                truth_line_reference(&mut want, r);
+            }
+            assert_eq!(w.tails.bypass > 0, bypassed);
+        }
+        w.finish().unwrap();
+        assert!(std::fs::read(&path).unwrap() == want);
     }
 
     #[test]
