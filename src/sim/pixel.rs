@@ -72,6 +72,9 @@ pub struct PixelModel {
     jitter_us: Option<f64>,
     off: Option<(f64, f64)>,
     streak_scale: Option<f64>,
+    /// Streak positions per px/s of speed before rounding up:
+    /// `end_us · 1e-6 · scale / 0.2` (0 without `pulse_streaks`).
+    streak_per_speed: f64,
     /// [`Self::streak_table`] (empty without `pulse_streaks`).
     streak_nodes: Vec<Vec<(f64, f64)>>,
     background_rate: Option<f64>,
@@ -130,6 +133,10 @@ impl PixelModel {
             .off_events
             .map_or(c_floor, |o| c_floor.min(o.threshold));
         let table = FractionTable::new(sc.optics.particle_diameter_px / 4.0);
+        let streak_per_speed = sc
+            .light
+            .pulse_streaks
+            .map_or(0.0, |p| shape.end_us * 1e-6 * p.scale / 0.2);
         PixelModel {
             roi,
             light: sc.light,
@@ -148,6 +155,7 @@ impl PixelModel {
             jitter_us: sc.pixel.latency_jitter.map(|j| j.spread_us),
             off: sc.pixel.off_events.map(|o| (o.threshold, o.tau_us)),
             streak_scale: sc.light.pulse_streaks.map(|p| p.scale),
+            streak_per_speed,
             streak_nodes,
             background_rate: sc.noise.background_noise.map(|b| b.rate_hz),
             hot,
@@ -384,19 +392,25 @@ impl PixelModel {
                     count(s.v.abs())
                 } else {
                     // libm's hypot was 2–5 % of the CPU of the unsteady
-                    // presets. √(u² + v²) is within 2 ulp of it and the
-                    // steps after are monotonic, so the two node counts
-                    // ⌈q⌉ can differ only when q is within ~1e-15 of an
-                    // integer: there (and for tiny, huge or non-finite q)
-                    // hypot decides, so the count is hypot's exactly.
-                    let q = count((s.u * s.u + s.v * s.v).sqrt());
-                    let frac = q - (q as i64) as f64;
-                    let clear = q > 1e-3 && q < 1e12 && frac > 1e-12 * q && frac < 1.0 - 1e-12 * q;
-                    if clear {
-                        q
-                    } else {
-                        Self::streak_count_hypot(s, count)
+                    // presets. √(u² + v²) is within 2 ulp of it, and
+                    // times the precomputed `streak_per_speed` (one
+                    // multiplication for `count`'s three and a division,
+                    // each step within ½ ulp) within ~1e-15 relative of
+                    // `count(hypot)`: the two node counts ⌈q⌉ can differ
+                    // only when q is within ~1e-15·q of an integer. There
+                    // (within 1e-12·q, and for tiny, huge or non-finite
+                    // q) hypot decides, so the count is hypot's exactly.
+                    let q = (s.u * s.u + s.v * s.v).sqrt() * self.streak_per_speed;
+                    if q > 1e-3 && q < 1e12 {
+                        // SAFETY: 0 < q < 1e12: in i64's range.
+                        let t = unsafe { q.to_int_unchecked::<i64>() };
+                        let frac = q - t as f64;
+                        if frac > 1e-12 * q && frac < 1.0 - 1e-12 * q {
+                            // (q is not an integer: ⌈q⌉ = t + 1, ≥ 1.)
+                            return &self.streak_nodes[(t as usize).min(31)];
+                        }
                     }
+                    Self::streak_count_hypot(s, count)
                 };
                 &self.streak_nodes[ceil_count(q, 32) - 1]
             }
@@ -2311,9 +2325,16 @@ mod tests {
     /// many directions) and for tiny, axis-aligned and huge velocities.
     #[test]
     fn streak_count_is_hypots() {
+        for (scale, width) in [(1.0, 10.0), (0.37, 10.0), (3.0, 5.0), (30.0, 7.3)] {
+            streak_count_is_hypots_for(scale, width);
+        }
+    }
+
+    fn streak_count_is_hypots_for(scale: f64, width: f64) {
         let mut sc = Scenario::default();
         sc.sensor = small_sensor();
-        sc.light.pulse_streaks = Some(PulseStreaks { scale: 1.0 });
+        sc.light.pulse_width_us = width;
+        sc.light.pulse_streaks = Some(PulseStreaks { scale });
         let model = PixelModel::new(&sc, 4);
         let scale = model.streak_scale.unwrap();
         let per_speed = model.shape.end_us * 1e-6 * scale / 0.2;
