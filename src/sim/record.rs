@@ -78,8 +78,9 @@ const TAIL_WORDS: usize = 4;
 /// every pulse and the cache never hits; a miss costs the lookup and the
 /// entry's store on top of formatting. So the cache measures its hit rate
 /// over [`TAIL_PROBE_ROWS`] rows and, below 1 in [`TAIL_MIN_HIT_RATIO`],
-/// formats the next [`TAIL_BYPASS_ROWS`] rows plainly ([`truth_row_rest`])
-/// before measuring again. Only speed depends on it: a hit is exact.
+/// formats the next [`TAIL_BYPASS_ROWS`] rows' tails without it (the ids
+/// still through it: they repeat whatever the flow) before measuring
+/// again. Only speed depends on it: a hit is exact.
 struct TailCache {
     entries: Vec<TailText>,
     /// `entries.len()` and its [`fastmod_u32`] multiplier.
@@ -136,14 +137,14 @@ impl TailCache {
     }
 
     /// [`truth_row_rest`] of `r` from position `p` of `w`, through the
-    /// cache ([`truth_row_cached`]) or, while it is bypassed, plainly.
+    /// cache ([`truth_row_cached`]; while bypassed, the id only).
     #[inline(always)]
     fn row(&mut self, w: &mut [u8; ROW_WINDOW], p: usize, r: &TruthSample) -> Option<usize> {
         if self.bypass > 0 {
             self.bypass -= 1;
-            return truth_row_rest(w, p, r);
+            return truth_row_cached::<false>(w, p, r, self);
         }
-        let row = truth_row_cached(w, p, r, self);
+        let row = truth_row_cached::<true>(w, p, r, self);
         self.probed += 1;
         if self.probed == TAIL_PROBE_ROWS {
             if self.hits * TAIL_MIN_HIT_RATIO < self.probed {
@@ -367,9 +368,10 @@ fn put_tail(w: &mut [u8; ROW_WINDOW], p: usize, r: &TruthSample) -> Option<usize
     Some(put_byte(w, p, b'\n'))
 }
 
-/// [`truth_row_rest`] with the id and the tail from (or into) `tails`.
+/// [`truth_row_rest`] with the id and (`TAIL`) the tail from (or into)
+/// `tails`.
 #[inline(always)]
-fn truth_row_cached(
+fn truth_row_cached<const TAIL: bool>(
     w: &mut [u8; ROW_WINDOW],
     p: usize,
     r: &TruthSample,
@@ -393,6 +395,9 @@ fn truth_row_cached(
     p = put_byte(w, p, b',');
     p = put_fixed::<4>(w, p, r.x)?;
     p = put_byte(w, p, b',');
+    if !TAIL {
+        return put_tail(w, p, r);
+    }
     let key = [r.y.to_bits(), r.u.to_bits(), r.v.to_bits()];
     if entry.len != 0 && entry.key == key {
         for (k, &word) in entry.text.iter().enumerate() {
@@ -506,10 +511,10 @@ fn put_fixed<const D: usize>(w: &mut [u8; ROW_WINDOW], p: usize, v: f64) -> Opti
         return None;
     }
     let n = whole as u64 + (frac > 0.5) as u64;
-    let mut p = p;
-    if v.is_sign_negative() {
-        p = put_byte(w, p, b'-');
-    }
+    // The sign without a branch (velocities take either at random): a
+    // '-' always written, kept or overwritten.
+    put_byte(w, p, b'-');
+    let mut p = p + v.is_sign_negative() as usize;
     // The last 8 digits hold the D decimals and 8 − D integer digits;
     // higher digits (n ≥ 10^8, rare: |v| ≥ 10^4 or 10^5) go first,
     // without leading zeros; the division only on that branch.
