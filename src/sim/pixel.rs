@@ -638,19 +638,14 @@ impl PixelModel {
 
     /// [`Self::particle_lean`] for a general (diagonal) streak: u ≠ 0,
     /// v ≠ 0, 2 ..= [`LEAN_NODES`] positions, each position's windows from
-    /// the table's fixed lanes and inside the ROI, all of them within an
-    /// 8 × 8 pixel window. `particle_rows` adds such a streak position by
-    /// position (`particle_rows_quad`'s general streak): per position, per
-    /// covered row, `(scale · fy) · fx` to the four pixels of its x
-    /// window. This adds the same products in the same order to every
-    /// pixel (positions in order within each row; rows and pixels are
-    /// independent), with each position's x window placed in an
-    /// eight-pixel window and its y window in an eight-row one: the other
-    /// lanes and rows are 0 and add exact zeros (the ring never holds
-    /// −0.0, so `x + ±0.0 = x`). Row by row, the ring's eight pixels are
-    /// loaded once, get every position's products, and are stored once —
-    /// instead of a sink call per position and row. The box is the union
-    /// of the positions' covered pixels, as `RingRows` grows it.
+    /// the table's fixed lanes and inside the ROI. `particle_rows` adds
+    /// such a streak position by position (`particle_rows_quad`'s general
+    /// streak): per position, per covered row, `(scale · fy) · fx` to the
+    /// four pixels of its x window, through a sink call per row that also
+    /// finds the ring slot and grows the box. This does the same
+    /// additions in the same order straight into the ring, the box once
+    /// per particle (the union of the positions' covered pixels, as
+    /// `RingRows` grows it).
     /// (`lean_images_match_particle_rows`, `diagonal_streaks_match_particle_rows`.)
     #[inline(always)]
     fn particle_lean_diagonal(
@@ -671,50 +666,31 @@ impl PixelModel {
         let amp = self.gain * s.brightness;
         let m = nodes.len();
         // Per position: x window start and fractions, y window start and
-        // fractions, scale (as `particle_rows_quad`).
-        let mut win = [(0i64, [0.0f32; 4], 0i64, [0.0f32; 4], 0.0f32); LEAN_NODES];
-        // Window starts (first, last) and covered pixels (inclusive).
-        let (mut wx0, mut wx1, mut wy0, mut wy1) = (i64::MAX, i64::MIN, i64::MAX, i64::MIN);
+        // fractions, covered window rows, scale (as `particle_rows_quad`);
+        // all of them before writing, so a declined streak writes nothing.
+        let mut win = [(0i64, [0.0f32; 4], 0i64, [0.0f32; 4], 0usize, 0usize, 0.0f32); LEAN_NODES];
+        // Covered pixels (inclusive).
         let (mut xlo, mut xhi, mut ylo, mut yhi) = (i64::MAX, i64::MIN, i64::MAX, i64::MIN);
         for (slot, &(dt, pw)) in win.iter_mut().zip(nodes) {
             let (wx, vx, xa, xb) = q.eval_axis_table(s.x + s.u * dt, rx0, rx1)?;
             let (wy, vy, ya, yb) = q.eval_axis_table(s.y + s.v * dt, ry0, ry1)?;
-            *slot = (wx, vx, wy, vy, (amp * pw) as f32);
-            wx0 = wx0.min(wx);
-            wx1 = wx1.max(wx);
-            wy0 = wy0.min(wy);
-            wy1 = wy1.max(wy);
+            *slot = (wx, vx, wy, vy, ya, yb, (amp * pw) as f32);
             xlo = xlo.min(wx + xa as i64);
             xhi = xhi.max(wx + xb as i64 - 1);
             ylo = ylo.min(wy + ya as i64);
             yhi = yhi.max(wy + yb as i64 - 1);
         }
-        if wx1 + 4 - wx0 > 8 || wy1 + 4 - wy0 > 8 {
-            return None;
-        }
-        // Each position's windows placed in the common 8 × 8 window.
-        let mut fx = [[0.0f32; 8]; LEAN_NODES];
-        let mut fy = [[0.0f32; 8]; LEAN_NODES];
-        let mut scale = [0.0f32; LEAN_NODES];
-        for (k, &(wx, vx, wy, vy, sc)) in win[..m].iter().enumerate() {
-            let (a, b) = ((wx - wx0) as usize, (wy - wy0) as usize);
-            fx[k][a..a + 4].copy_from_slice(&vx);
-            fy[k][b..b + 4].copy_from_slice(&vy);
-            scale[k] = sc;
-        }
-        let col = (wx0 - rx0) as usize + RING_PAD;
-        for y in ylo..=yhi {
-            let i = (y - wy0) as usize;
-            let at = ((y - ry0) as usize & mask) * stride + col;
-            let dst: &mut [f32; 8] = (&mut sig[at..at + 8]).try_into().expect("window");
-            let mut acc = *dst;
-            for k in 0..m {
-                let sc = scale[k] * fy[k][i & 7];
-                for (d, &f) in acc.iter_mut().zip(&fx[k]) {
-                    *d += sc * f;
+        for &(wx, vx, wy, vy, ya, yb, sc) in &win[..m] {
+            let col = (wx - rx0) as usize + RING_PAD;
+            let row0 = (wy - ry0) as usize;
+            for j in ya..yb {
+                let at = ((row0 + j) & mask) * stride + col;
+                let dst: &mut [f32; 4] = (&mut sig[at..at + 4]).try_into().expect("window");
+                let f = sc * vy[j & 3];
+                for (d, &x) in dst.iter_mut().zip(&vx) {
+                    *d += f * x;
                 }
             }
-            *dst = acc;
         }
         Some(ImageBox {
             col0: (xlo - rx0) as u32,
