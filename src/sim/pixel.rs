@@ -555,6 +555,8 @@ impl PixelModel {
     /// v = 0), at most [`LEAN_NODES`] positions, every window from the
     /// table's fixed lanes and inside the ROI. The same numbers, added
     /// in the same order, as `particle_rows` (`lean_images_match_particle_rows`).
+    /// General (diagonal) streaks of at most [`LEAN_NODES`] positions go
+    /// to [`Self::particle_lean_diagonal`].
     /// Returns the box written, or None, having written nothing, when
     /// the particle is not such a case.
     #[inline(always)]

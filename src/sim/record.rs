@@ -30,8 +30,9 @@ use crate::io::{EventSource, Format};
 /// particle ([`TailCache`]): in a steady parallel flow (jet, channel,
 /// boundary layer, uniform) a particle keeps its y and velocity from pulse
 /// to pulse while only x moves, so the tail's text is reused for as long
-/// as the same three numbers come back; in other flows the cache misses
-/// and costs a comparison and a 64-byte store per row.
+/// as the same three numbers come back; in other flows the cache misses,
+/// and once a probe of its hit rate has found that out it is bypassed
+/// for the tails ([`TailCache`]).
 pub struct TruthWriter {
     file: AtomicFile,
     /// Rows formatted in place (`BATCH` bytes plus one row window), so a
