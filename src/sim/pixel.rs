@@ -72,6 +72,9 @@ pub struct PixelModel {
     jitter_us: Option<f64>,
     off: Option<(f64, f64)>,
     streak_scale: Option<f64>,
+    /// Streak positions per px/s of speed before rounding up:
+    /// `end_us · 1e-6 · scale / 0.2` (0 without `pulse_streaks`).
+    streak_per_speed: f64,
     /// [`Self::streak_table`] (empty without `pulse_streaks`).
     streak_nodes: Vec<Vec<(f64, f64)>>,
     background_rate: Option<f64>,
@@ -130,6 +133,10 @@ impl PixelModel {
             .off_events
             .map_or(c_floor, |o| c_floor.min(o.threshold));
         let table = FractionTable::new(sc.optics.particle_diameter_px / 4.0);
+        let streak_per_speed = sc
+            .light
+            .pulse_streaks
+            .map_or(0.0, |p| shape.end_us * 1e-6 * p.scale / 0.2);
         PixelModel {
             roi,
             light: sc.light,
@@ -148,6 +155,7 @@ impl PixelModel {
             jitter_us: sc.pixel.latency_jitter.map(|j| j.spread_us),
             off: sc.pixel.off_events.map(|o| (o.threshold, o.tau_us)),
             streak_scale: sc.light.pulse_streaks.map(|p| p.scale),
+            streak_per_speed,
             streak_nodes,
             background_rate: sc.noise.background_noise.map(|b| b.rate_hz),
             hot,
@@ -384,19 +392,25 @@ impl PixelModel {
                     count(s.v.abs())
                 } else {
                     // libm's hypot was 2–5 % of the CPU of the unsteady
-                    // presets. √(u² + v²) is within 2 ulp of it and the
-                    // steps after are monotonic, so the two node counts
-                    // ⌈q⌉ can differ only when q is within ~1e-15 of an
-                    // integer: there (and for tiny, huge or non-finite q)
-                    // hypot decides, so the count is hypot's exactly.
-                    let q = count((s.u * s.u + s.v * s.v).sqrt());
-                    let frac = q - (q as i64) as f64;
-                    let clear = q > 1e-3 && q < 1e12 && frac > 1e-12 * q && frac < 1.0 - 1e-12 * q;
-                    if clear {
-                        q
-                    } else {
-                        Self::streak_count_hypot(s, count)
+                    // presets. √(u² + v²) is within 2 ulp of it, and
+                    // times the precomputed `streak_per_speed` (one
+                    // multiplication for `count`'s three and a division,
+                    // each step within ½ ulp) within ~1e-15 relative of
+                    // `count(hypot)`: the two node counts ⌈q⌉ can differ
+                    // only when q is within ~1e-15·q of an integer. There
+                    // (within 1e-12·q, and for tiny, huge or non-finite
+                    // q) hypot decides, so the count is hypot's exactly.
+                    let q = (s.u * s.u + s.v * s.v).sqrt() * self.streak_per_speed;
+                    if q > 1e-3 && q < 1e12 {
+                        // SAFETY: 0 < q < 1e12: in i64's range.
+                        let t = unsafe { q.to_int_unchecked::<i64>() };
+                        let frac = q - t as f64;
+                        if frac > 1e-12 * q && frac < 1.0 - 1e-12 * q {
+                            // (q is not an integer: ⌈q⌉ = t + 1, ≥ 1.)
+                            return &self.streak_nodes[(t as usize).min(31)];
+                        }
                     }
+                    Self::streak_count_hypot(s, count)
                 };
                 &self.streak_nodes[ceil_count(q, 32) - 1]
             }
@@ -541,6 +555,8 @@ impl PixelModel {
     /// v = 0), at most [`LEAN_NODES`] positions, every window from the
     /// table's fixed lanes and inside the ROI. The same numbers, added
     /// in the same order, as `particle_rows` (`lean_images_match_particle_rows`).
+    /// General (diagonal) streaks of at most [`LEAN_NODES`] positions go
+    /// to [`Self::particle_lean_diagonal`].
     /// Returns the box written, or None, having written nothing, when
     /// the particle is not such a case.
     #[inline(always)]
@@ -554,8 +570,15 @@ impl PixelModel {
     ) -> Option<ImageBox> {
         let nodes = self.streak_nodes_of(s);
         let m = nodes.len();
-        if !(m == 1 || s.v == 0.0) || m > LEAN_NODES {
+        if m > LEAN_NODES {
             return None;
+        }
+        if !(m == 1 || s.v == 0.0) {
+            // (u = 0 is `particle_rows`' separable case: not lean.)
+            if s.u == 0.0 {
+                return None;
+            }
+            return self.particle_lean_diagonal(q, s, nodes, sig, mask, stride);
         }
         let (rx0, ry0) = (self.roi.x as i64, self.roi.y as i64);
         let (rx1, ry1) = (
@@ -612,6 +635,70 @@ impl PixelModel {
             col1: (hi - rx0 + 1) as u32,
             row0,
             row1: row0 + (yb - ya) as u32 - 1,
+        })
+    }
+
+    /// [`Self::particle_lean`] for a general (diagonal) streak: u ≠ 0,
+    /// v ≠ 0, 2 ..= [`LEAN_NODES`] positions, each position's windows from
+    /// the table's fixed lanes and inside the ROI. `particle_rows` adds
+    /// such a streak position by position (`particle_rows_quad`'s general
+    /// streak): per position, per covered row, `(scale · fy) · fx` to the
+    /// four pixels of its x window, through a sink call per row that also
+    /// finds the ring slot and grows the box. This does the same
+    /// additions in the same order straight into the ring, the box once
+    /// per particle (the union of the positions' covered pixels, as
+    /// `RingRows` grows it).
+    /// (`lean_images_match_particle_rows`, `diagonal_streaks_match_particle_rows`.)
+    #[inline(always)]
+    fn particle_lean_diagonal(
+        &self,
+        q: &QuadTable,
+        s: &Snapshot,
+        nodes: &[(f64, f64)],
+        sig: &mut [f32],
+        mask: usize,
+        stride: usize,
+    ) -> Option<ImageBox> {
+        debug_assert!(nodes.len() >= 2 && nodes.len() <= LEAN_NODES);
+        let (rx0, ry0) = (self.roi.x as i64, self.roi.y as i64);
+        let (rx1, ry1) = (
+            rx0 + self.roi.width as i64 - 1,
+            ry0 + self.roi.height as i64 - 1,
+        );
+        let amp = self.gain * s.brightness;
+        let m = nodes.len();
+        // Per position: x window start and fractions, y window start and
+        // fractions, covered window rows, scale (as `particle_rows_quad`);
+        // all of them before writing, so a declined streak writes nothing.
+        let mut win = [(0i64, [0.0f32; 4], 0i64, [0.0f32; 4], 0usize, 0usize, 0.0f32); LEAN_NODES];
+        // Covered pixels (inclusive).
+        let (mut xlo, mut xhi, mut ylo, mut yhi) = (i64::MAX, i64::MIN, i64::MAX, i64::MIN);
+        for (slot, &(dt, pw)) in win.iter_mut().zip(nodes) {
+            let (wx, vx, xa, xb) = q.eval_axis_table(s.x + s.u * dt, rx0, rx1)?;
+            let (wy, vy, ya, yb) = q.eval_axis_table(s.y + s.v * dt, ry0, ry1)?;
+            *slot = (wx, vx, wy, vy, ya, yb, (amp * pw) as f32);
+            xlo = xlo.min(wx + xa as i64);
+            xhi = xhi.max(wx + xb as i64 - 1);
+            ylo = ylo.min(wy + ya as i64);
+            yhi = yhi.max(wy + yb as i64 - 1);
+        }
+        for &(wx, vx, wy, vy, ya, yb, sc) in &win[..m] {
+            let col = (wx - rx0) as usize + RING_PAD;
+            let row0 = (wy - ry0) as usize;
+            for j in ya..yb {
+                let at = ((row0 + j) & mask) * stride + col;
+                let dst: &mut [f32; 4] = (&mut sig[at..at + 4]).try_into().expect("window");
+                let f = sc * vy[j & 3];
+                for (d, &x) in dst.iter_mut().zip(&vx) {
+                    *d += f * x;
+                }
+            }
+        }
+        Some(ImageBox {
+            col0: (xlo - rx0) as u32,
+            col1: (xhi - rx0 + 1) as u32,
+            row0: (ylo - ry0) as u32,
+            row1: (yhi - ry0) as u32,
         })
     }
 
@@ -2216,9 +2303,16 @@ mod tests {
     /// many directions) and for tiny, axis-aligned and huge velocities.
     #[test]
     fn streak_count_is_hypots() {
+        for (scale, width) in [(1.0, 10.0), (0.37, 10.0), (3.0, 5.0), (30.0, 7.3)] {
+            streak_count_is_hypots_for(scale, width);
+        }
+    }
+
+    fn streak_count_is_hypots_for(scale: f64, width: f64) {
         let mut sc = Scenario::default();
         sc.sensor = small_sensor();
-        sc.light.pulse_streaks = Some(PulseStreaks { scale: 1.0 });
+        sc.light.pulse_width_us = width;
+        sc.light.pulse_streaks = Some(PulseStreaks { scale });
         let model = PixelModel::new(&sc, 4);
         let scale = model.streak_scale.unwrap();
         let per_speed = model.shape.end_us * 1e-6 * scale / 0.2;
@@ -2502,6 +2596,118 @@ mod tests {
             // some sit at the ROI's edge or streak over more than
             // LEAN_NODES positions: not lean. Enough to exercise it.)
             assert!(taken * 8 > snaps.len(), "{streaks:?} {diameter}: {taken}");
+        }
+    }
+
+    /// The lean diagonal-streak kernel (`particle_lean_diagonal`)
+    /// against `particle_rows` through its sink: diagonal streaks of
+    /// every direction, 2 ..= LEAN_NODES positions (and longer ones,
+    /// which it must decline), centres all over the sub-pixel range and
+    /// along the ROI's edges, added onto a ring that already holds sums
+    /// (so the order of the additions counts): the same ring bit for bit
+    /// and the same box.
+    #[test]
+    fn diagonal_streaks_match_particle_rows() {
+        for (scale, diameter) in [(1.0, 1.5), (1.0, 1.3), (2.5, 1.0), (1.0, 0.3), (4.0, 1.99)] {
+            let mut sc = Scenario::default();
+            sc.sensor = small_sensor();
+            sc.optics.particle_diameter_px = diameter;
+            sc.light.sawtooth_depth = 0.15;
+            sc.light.pulse_streaks = Some(PulseStreaks { scale });
+            let model = PixelModel::new(&sc, 4);
+            let q = model.quad.as_ref().expect("small images");
+            let rw = model.roi.width as usize;
+            let stride = rw + 2 * RING_PAD;
+            let rows = (model.roi.height as usize).next_power_of_two();
+            // Speed of a streak of `k` positions (node count ⌈q⌉ = k).
+            let per_speed = model.shape.end_us * 1e-6 * scale / 0.2;
+            let (rx0, ry0) = (model.roi.x as f64, model.roi.y as f64);
+            let (rx1, ry1) = (
+                rx0 + model.roi.width as f64 - 1.0,
+                ry0 + model.roi.height as f64 - 1.0,
+            );
+            let mut rng = Pcg64::seed_from_u64(diameter.to_bits() ^ scale.to_bits());
+            let mut base = vec![0.0f32; rows * stride];
+            for (i, v) in base.iter_mut().enumerate() {
+                let col = i % stride;
+                if (RING_PAD..RING_PAD + rw).contains(&col) {
+                    *v = rng.gen_range(0.0..2.0);
+                }
+            }
+            let (mut taken, mut interior, mut interior_taken, mut long_taken) = (0, 0, 0, 0);
+            for n in 0..6000 {
+                let k = 2 + n % (LEAN_NODES + 2);
+                let q_count = k as f64 - rng.gen_range(0.0..1.0);
+                let speed = q_count / per_speed;
+                let th = rng.gen_range(0.0..std::f64::consts::TAU);
+                let (u, v) = (speed * th.cos(), speed * th.sin());
+                // Interior, or hugging one of the ROI's edges.
+                let (x, y) = match n % 5 {
+                    0 => (rx0 + rng.gen_range(-1.5..2.5), rng.gen_range(ry0..ry1)),
+                    1 => (rx1 + rng.gen_range(-2.5..1.5), rng.gen_range(ry0..ry1)),
+                    2 => (rng.gen_range(rx0..rx1), ry0 + rng.gen_range(-1.5..2.5)),
+                    3 => (rng.gen_range(rx0..rx1), ry1 + rng.gen_range(-2.5..1.5)),
+                    _ => (
+                        rng.gen_range(rx0 + 3.0..rx1 - 3.0),
+                        rng.gen_range(ry0 + 3.0..ry1 - 3.0),
+                    ),
+                };
+                let s = Snapshot {
+                    x,
+                    y,
+                    u,
+                    v,
+                    brightness: rng.gen_range(0.2..3.0),
+                    id: n as u64,
+                };
+                if u == 0.0 || v == 0.0 {
+                    continue;
+                }
+                let inside = n % 5 == 4 && k <= LEAN_NODES;
+                interior += inside as usize;
+                let mut lean = base.clone();
+                let Some(bx) = model.particle_lean(q, &s, &mut lean, rows - 1, stride) else {
+                    continue;
+                };
+                taken += 1;
+                interior_taken += inside as usize;
+                let m = model.streak_nodes_of(&s).len();
+                assert!((2..=LEAN_NODES).contains(&m), "{s:?}: {m} positions");
+                long_taken += (m == LEAN_NODES) as usize;
+                let mut plain = base.clone();
+                let mut sink = RingRows {
+                    sig: &mut plain,
+                    mask: rows - 1,
+                    stride,
+                    roi_x: model.roi.x,
+                    roi_y: model.roi.y,
+                    sig_at: 0,
+                    row: 0,
+                    bx: ImageBox::EMPTY,
+                };
+                model.particle_rows(&s, &mut Profiles::new(), &mut sink);
+                let want = sink.bx;
+                assert_eq!(
+                    (bx.col0, bx.col1, bx.row0, bx.row1),
+                    (want.col0, want.col1, want.row0, want.row1),
+                    "{s:?}"
+                );
+                for (i, (a, b)) in lean.iter().zip(&plain).enumerate() {
+                    assert_eq!(a.to_bits(), b.to_bits(), "{s:?} at {i}");
+                }
+                assert!(lean != base, "{s:?}: nothing written");
+            }
+            // Most interior streaks with up to LEAN_NODES positions are
+            // taken (not those in an ambiguous interval); some at the
+            // edges too.
+            assert!(
+                interior_taken * 10 > interior * 8,
+                "{scale} {diameter}: {interior_taken} of {interior}"
+            );
+            assert!(
+                taken > interior_taken && long_taken > 0,
+                "{scale} {diameter}"
+            );
         }
     }
 

@@ -30,8 +30,9 @@ use crate::io::{EventSource, Format};
 /// particle ([`TailCache`]): in a steady parallel flow (jet, channel,
 /// boundary layer, uniform) a particle keeps its y and velocity from pulse
 /// to pulse while only x moves, so the tail's text is reused for as long
-/// as the same three numbers come back; in other flows the cache misses
-/// and costs a comparison and a 64-byte store per row.
+/// as the same three numbers come back; in other flows the cache misses,
+/// and once a probe of its hit rate has found that out it is bypassed
+/// for the tails ([`TailCache`]).
 pub struct TruthWriter {
     file: AtomicFile,
     /// Rows formatted in place (`BATCH` bytes plus one row window), so a
@@ -73,12 +74,32 @@ const TAIL_WORDS: usize = 4;
 /// particle gets a new id), so `id mod slots` gives every slot its own
 /// entry. With another id scheme (or too many slots for the table) entries
 /// are shared and simply miss more often: a hit needs the same key.
+///
+/// In an unsteady flow (a wake, a vortex, turbulence) the tail changes at
+/// every pulse and the cache never hits; a miss costs the lookup and the
+/// entry's store on top of formatting. So the cache measures its hit rate
+/// over [`TAIL_PROBE_ROWS`] rows and, below 1 in [`TAIL_MIN_HIT_RATIO`],
+/// formats the next [`TAIL_BYPASS_ROWS`] rows' tails without it (the ids
+/// still through it: they repeat whatever the flow) before measuring
+/// again. Only speed depends on it: a hit is exact.
 struct TailCache {
     entries: Vec<TailText>,
     /// `entries.len()` and its [`fastmod_u32`] multiplier.
     n: u64,
     n_inv: u64,
+    /// Rows looked up and tail hits in the current probe.
+    probed: u32,
+    hits: u32,
+    /// Rows still to format without the cache.
+    bypass: u32,
 }
+
+/// Rows per measurement of the tail cache's hit rate.
+const TAIL_PROBE_ROWS: u32 = 1 << 12;
+/// A probe with fewer hits than 1 in this many rows turns the cache off …
+const TAIL_MIN_HIT_RATIO: u32 = 8;
+/// … for this many rows (a probe then costs ~1.5 % of them a lookup).
+const TAIL_BYPASS_ROWS: u32 = 1 << 18;
 
 /// Largest tail table (entries of 80 bytes: 5 MiB).
 const TAIL_TABLE_MAX: u64 = 1 << 16;
@@ -100,19 +121,40 @@ impl TailCache {
             ],
             n,
             n_inv: fastmod_u32_inverse(n as u32),
+            probed: 0,
+            hits: 0,
+            bypass: 0,
         }
     }
 
-    /// The entry for particle `id`.
+    /// The index of particle `id`'s entry.
     #[inline(always)]
-    fn entry(&mut self, id: u64) -> &mut TailText {
-        let i = if id <= u32::MAX as u64 {
+    fn index(&self, id: u64) -> usize {
+        if id <= u32::MAX as u64 {
             fastmod_u32(id as u32, self.n_inv, self.n as u32) as usize
         } else {
             (id % self.n) as usize
-        };
-        // (i < n by construction; the index check stays cheap.)
-        &mut self.entries[i]
+        }
+    }
+
+    /// [`truth_row_rest`] of `r` from position `p` of `w`, through the
+    /// cache ([`truth_row_cached`]; while bypassed, the id only).
+    #[inline(always)]
+    fn row(&mut self, w: &mut [u8; ROW_WINDOW], p: usize, r: &TruthSample) -> Option<usize> {
+        if self.bypass > 0 {
+            self.bypass -= 1;
+            return truth_row_cached::<false>(w, p, r, self);
+        }
+        let row = truth_row_cached::<true>(w, p, r, self);
+        self.probed += 1;
+        if self.probed == TAIL_PROBE_ROWS {
+            if self.hits * TAIL_MIN_HIT_RATIO < self.probed {
+                self.bypass = TAIL_BYPASS_ROWS;
+            }
+            self.probed = 0;
+            self.hits = 0;
+        }
+        row
     }
 }
 
@@ -251,7 +293,7 @@ impl TruthWriter {
                             u64::from_le_bytes(word.try_into().expect("8")),
                         );
                     }
-                    truth_row_cached(window, prefix.len, r, &mut self.tails)
+                    self.tails.row(window, prefix.len, r)
                 }
                 None => None,
             };
@@ -327,15 +369,18 @@ fn put_tail(w: &mut [u8; ROW_WINDOW], p: usize, r: &TruthSample) -> Option<usize
     Some(put_byte(w, p, b'\n'))
 }
 
-/// [`truth_row_rest`] with the id and the tail from (or into) `tails`.
+/// [`truth_row_rest`] with the id and (`TAIL`) the tail from (or into)
+/// `tails`.
 #[inline(always)]
-fn truth_row_cached(
+fn truth_row_cached<const TAIL: bool>(
     w: &mut [u8; ROW_WINDOW],
     p: usize,
     r: &TruthSample,
     tails: &mut TailCache,
 ) -> Option<usize> {
-    let entry = tails.entry(r.particle_id);
+    let i = tails.index(r.particle_id);
+    // (i < n by construction; the index check stays cheap.)
+    let entry = &mut tails.entries[i];
     let mut p = if entry.id_len != 0 && entry.id == r.particle_id {
         put8(w, p, entry.id_text);
         p + entry.id_len as usize
@@ -351,12 +396,17 @@ fn truth_row_cached(
     p = put_byte(w, p, b',');
     p = put_fixed::<4>(w, p, r.x)?;
     p = put_byte(w, p, b',');
+    if !TAIL {
+        return put_tail(w, p, r);
+    }
     let key = [r.y.to_bits(), r.u.to_bits(), r.v.to_bits()];
     if entry.len != 0 && entry.key == key {
         for (k, &word) in entry.text.iter().enumerate() {
             put8(w, p + 8 * k, word);
         }
-        return Some(p + entry.len as usize);
+        let end = p + entry.len as usize;
+        tails.hits += 1;
+        return Some(end);
     }
     let end = put_tail(w, p, r)?;
     if end - p <= 8 * TAIL_WORDS {
@@ -462,10 +512,10 @@ fn put_fixed<const D: usize>(w: &mut [u8; ROW_WINDOW], p: usize, v: f64) -> Opti
         return None;
     }
     let n = whole as u64 + (frac > 0.5) as u64;
-    let mut p = p;
-    if v.is_sign_negative() {
-        p = put_byte(w, p, b'-');
-    }
+    // The sign without a branch (velocities take either at random): a
+    // '-' always written, kept or overwritten.
+    put_byte(w, p, b'-');
+    let mut p = p + v.is_sign_negative() as usize;
     // The last 8 digits hold the D decimals and 8 − D integer digits;
     // higher digits (n ≥ 10^8, rare: |v| ≥ 10^4 or 10^5) go first,
     // without leading zeros; the division only on that branch.
@@ -920,6 +970,87 @@ mod tests {
             w.finish().unwrap();
             assert!(std::fs::read(&path).unwrap() == want, "slots {given:?}");
         }
+    }
+
+    /// The tail cache's bypass: unsteady rows (every tail new) turn the
+    /// cache off after a probe, steady rows (tails repeat) turn it back
+    /// on at the next probe, and rows through the reference (ties) and
+    /// long ids or tails come in every phase: the file equals the
+    /// reference rows throughout.
+    #[test]
+    fn truth_writer_tail_cache_bypass_matches_reference() {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(23);
+        let slots = 1000u64;
+        let steady: Vec<(f64, f64, f64)> = (0..slots)
+            .map(|_| {
+                (
+                    rng.gen_range(-5.0..725.0),
+                    rng.gen_range(-3e4..3e4),
+                    rng.gen_range(-3e4..3e4),
+                )
+            })
+            .collect();
+        let mut pulse = 0i64;
+        let mut phase = |rng: &mut rand_pcg::Pcg64, pulses: usize, unsteady: bool| {
+            let mut rows = Vec::new();
+            for _ in 0..pulses {
+                for s in 0..slots {
+                    let (mut y, mut u, mut v) = steady[s as usize];
+                    if unsteady {
+                        (y, u, v) = (
+                            rng.gen_range(-5.0..725.0),
+                            rng.gen_range(-3e4..3e4),
+                            rng.gen_range(-3e4..3e4),
+                        );
+                    }
+                    match rng.gen_range(0..500) {
+                        0 => y = 0.00005,        // a tie: the reference
+                        1 => u = -1.234_567_8e9, // too long to cache
+                        _ => {}
+                    }
+                    let id = match rng.gen_range(0..200) {
+                        0 => s + (1 << 40),
+                        1 => s + 12_345_678_900,
+                        _ => s,
+                    };
+                    rows.push(TruthSample {
+                        pulse,
+                        t_us: 37.0 + 200.0 * pulse as f64,
+                        particle_id: id,
+                        x: rng.gen_range(-5.0..1285.0),
+                        y,
+                        u,
+                        v,
+                    });
+                }
+                pulse += 1;
+            }
+            rows
+        };
+        let unsteady = phase(
+            &mut rng,
+            2 + (TAIL_PROBE_ROWS as usize) / slots as usize,
+            true,
+        );
+        let steady_rows = (TAIL_BYPASS_ROWS + 2 * TAIL_PROBE_ROWS) as usize / slots as usize;
+        let steady = phase(&mut rng, steady_rows, false);
+        let unsteady_again = phase(&mut rng, 7, true);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("truth.csv");
+        let mut w = TruthWriter::create(&path).unwrap();
+        w.set_particle_slots(slots);
+        let mut want = format!("{}\n", TruthWriter::HEADER).into_bytes();
+        for (rows, bypassed) in [(&unsteady, true), (&steady, false), (&unsteady_again, true)] {
+            for part in rows.chunks(1999) {
+                w.write(part).unwrap();
+            }
+            for r in rows.iter() {
+                truth_line_reference(&mut want, r);
+            }
+            assert_eq!(w.tails.bypass > 0, bypassed);
+        }
+        w.finish().unwrap();
+        assert!(std::fs::read(&path).unwrap() == want);
     }
 
     #[test]
