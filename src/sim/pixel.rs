@@ -912,35 +912,40 @@ impl PixelModel {
         let c_off = self.off.map_or(0.0, |o| o.0);
         let (threshold, max_events, q, ln) =
             (self.threshold, self.max_events, self.quantiles, self.ln);
+        let (w, x0, y0) = (self.roi.width, self.roi.x, self.roi.y);
         for h in hits {
             let sig = h.v as f64;
+            let (r, col) = h.row_col();
+            let idx = r * w + col;
             let c = if MISMATCH {
-                threshold * Self::mismatch_factor_in(q, sigma, key, h.idx)
+                threshold * Self::mismatch_factor_in(q, sigma, key, idx)
             } else {
                 threshold
             };
-            if sig < c && (!OFF_EVENTS || sig < c_off) {
-                continue;
-            }
+            // Whether the pixel can fire, as `respond`'s two early
+            // returns, but without a branch: the entry is written either
+            // way and kept by advancing `n` (the tests mispredicted often:
+            // a hit is at or above the lowest threshold, not its own).
+            // ΔL and the count are computed for every hit (finite for
+            // the positive f32 sums; unused when not kept).
+            let fires = !(sig < c && (!OFF_EVENTS || sig < c_off));
             let dl = ln.ln(1.0 + sig);
             // dl/c > 0: truncation is floor (without a libm call).
             let n_on = ((dl / c) as u32).min(max_events);
-            if n_on == 0 && !OFF_EVENTS {
-                continue;
-            }
+            let keep = fires & (OFF_EVENTS | (n_on != 0));
             // SAFETY: at most one entry per hit: n < hits.len().
             unsafe {
                 (*out.add(n)).write(Lit {
-                    idx: h.idx,
-                    x: h.x,
-                    y: h.y,
+                    idx,
+                    x: (x0 + col) as u16,
+                    y: (y0 + r) as u16,
                     n_on,
                     sig,
                     c,
                     dl,
                 })
             };
-            n += 1;
+            n += keep as usize;
         }
         // SAFETY: the first n entries were written.
         unsafe { lit.set_len(n) };
@@ -1030,7 +1035,14 @@ impl PixelModel {
         let mut v = Vec::new();
         // (The least positive f32: every pixel with a non-zero sum.)
         self.render_signals(snaps, f32::from_bits(1), &mut v);
-        let mut v: Vec<(u32, f32)> = v.iter().map(|h| (h.idx, h.v)).collect();
+        let w = self.roi.width;
+        let mut v: Vec<(u32, f32)> = v
+            .iter()
+            .map(|h| {
+                let (r, c) = h.row_col();
+                (r * w + c, h.v)
+            })
+            .collect();
         v.sort_unstable_by_key(|p| p.0);
         v
     }
@@ -1073,9 +1085,6 @@ impl PixelModel {
     /// touched pixel, ~10 touched per image, most below every threshold).
     #[inline(never)]
     fn render_signals(&self, snaps: &[Snapshot], floor: f32, hits: &mut Vec<Hit>) {
-        thread_local! {
-            static RING: std::cell::RefCell<RowRing> = const { std::cell::RefCell::new(RowRing::new()) };
-        }
         debug_assert!(floor > 0.0);
         let order = self.render_order(snaps, false);
         let (rw, rh) = (self.roi.width as usize, self.roi.height as i64);
@@ -1086,7 +1095,7 @@ impl PixelModel {
             .map(|o| (o.2 - o.1 + 1).clamp(1, rh))
             .max()
             .unwrap_or(1) as usize;
-        RING.with(|cell| {
+        RENDER_RING.with(|cell| {
             let mut ring = cell.borrow_mut();
             // Rows alive at once: a pending box's rows reach up to
             // span − 1 below the first incomplete row (its last row is
@@ -1182,7 +1191,9 @@ impl PixelModel {
         hits.reserve(most);
         let out = hits.spare_capacity_mut()[..most].as_mut_ptr();
         let mut n = 0;
-        let (w, x0, y0) = (self.roi.width, self.roi.x, self.roi.y);
+        let w = self.roi.width;
+        // (Columns + 8 and rows fit the 16 bits of `Hit::rc`.)
+        assert!(w <= 4096 && self.roi.height <= 1 << 16);
         assert!(sig.len() >= (mask + 1) * stride && stride >= w as usize + 2 * RING_PAD);
         let ring = sig.as_mut_ptr();
         for b in list {
@@ -1199,23 +1210,25 @@ impl PixelModel {
                 loop {
                     // SAFETY: see `row`.
                     let lanes = unsafe { &mut *(row.add(c) as *mut [f32; 8]) };
-                    let mut m = at_least_mask8(lanes, floor);
-                    while m != 0 {
-                        let j = m.trailing_zeros();
-                        m &= m - 1;
-                        let x = c as u32 + j;
-                        // SAFETY: at most eight hits per group: n < most.
-                        unsafe {
-                            (*out.add(n)).write(Hit {
-                                idx: r * w + x,
-                                x: (x0 + x) as u16,
-                                y: (y0 + r) as u16,
-                                v: lanes[j as usize],
-                            })
-                        };
-                        n += 1;
+                    // Only the box's own lanes (c..c1): the others belong
+                    // to no box or to another one, which hands them out
+                    // and clears them when it is drained.
+                    let own = (c1 - c).min(8);
+                    let m = at_least_mask8(lanes, floor) & ((1u32 << own) - 1);
+                    // Every lane written, the count advanced by its bit:
+                    // no branch on how many pixels of the group fire
+                    // (the loop over the mask's bits mispredicted ~once
+                    // per group).
+                    let rc = r << 16 | c as u32;
+                    for (j, &v) in lanes.iter().enumerate() {
+                        let hit = (v.to_bits() as u64) << 32 | (rc + j as u32) as u64;
+                        // SAFETY: n counts hits among the lanes before
+                        // this one of at most `most` lanes: n < most.
+                        // `Hit` is `repr(C)` {rc: u32, v: f32}: this u64.
+                        unsafe { (out.add(n) as *mut u64).write_unaligned(hit) };
+                        n += (m >> j) as usize & 1;
                     }
-                    *lanes = [0.0; 8];
+                    clear_lanes8(lanes, own);
                     c += 8;
                     if c >= c1 {
                         break;
@@ -1605,14 +1618,23 @@ struct Lit {
     dl: f64,
 }
 
-/// A pixel handed out by [`PixelModel::render_signals`]: ROI index,
-/// sensor coordinates, summed signal.
+/// A pixel handed out by [`PixelModel::render_signals`]: its ROI row and
+/// column packed as `row << 16 | column` (ROIs are at most 4096 px
+/// wide), and its summed signal. Eight bytes, `repr(C)`: the drain
+/// writes one as a single u64 (`column key | signal bits << 32`).
 #[derive(Debug, Clone, Copy)]
+#[repr(C)]
 struct Hit {
-    idx: u32,
-    x: u16,
-    y: u16,
+    rc: u32,
     v: f32,
+}
+
+impl Hit {
+    /// ROI-relative (row, column).
+    #[inline(always)]
+    fn row_col(self) -> (u32, u32) {
+        (self.rc >> 16, self.rc & 0xFFFF)
+    }
 }
 
 /// The ring pixels one image wrote: ROI-relative columns `col0..col1`
@@ -1697,6 +1719,29 @@ impl RingRows<'_> {
         b.col1 = b.col1.max(x0 + n);
         b.row0 = b.row0.min(self.row);
         b.row1 = b.row1.max(self.row);
+    }
+}
+
+/// Set lanes `0..n` (n ≤ 8) of `v` to +0.0, keep the others bit for bit.
+#[inline(always)]
+fn clear_lanes8(v: &mut [f32; 8], n: usize) {
+    // KEEP[n]: all-ones for lanes n.., zero below.
+    const KEEP: [[u32; 8]; 9] = {
+        let mut t = [[0u32; 8]; 9];
+        let mut n = 0;
+        while n < 9 {
+            let mut j = n;
+            while j < 8 {
+                t[n][j] = u32::MAX;
+                j += 1;
+            }
+            n += 1;
+        }
+        t
+    };
+    let keep = &KEEP[n];
+    for (x, &k) in v.iter_mut().zip(keep) {
+        *x = f32::from_bits(x.to_bits() & k);
     }
 }
 
@@ -2196,6 +2241,13 @@ pub fn erf_series(x: f64) -> f64 {
     (std::f64::consts::FRAC_2_SQRT_PI * (-x * x).exp() * sum).min(1.0)
 }
 
+thread_local! {
+    /// [`PixelModel::render_signals`]' ring (module level, so that tests
+    /// can check that a pulse leaves it all-zero).
+    static RENDER_RING: std::cell::RefCell<RowRing> =
+        const { std::cell::RefCell::new(RowRing::new()) };
+}
+
 /// Per-thread accumulation buffer of [`PixelModel::render_pulse`]: `rows`
 /// (a power of two) ROI rows, row r in slot r mod rows, and per slot the
 /// boxes of the images whose last row it is (drained when the row is
@@ -2441,6 +2493,171 @@ mod tests {
         for i in 0..20_000 {
             let x = i as f64 * 0.0017;
             assert_eq!(ceil_count(x, 32), (x.ceil() as usize).clamp(1, 32), "{x}");
+        }
+    }
+
+    /// A plain [`ContributionSink`]: a dense ROI-sized buffer, only the
+    /// covered pixels of each run or window added to.
+    struct DenseSink<'a> {
+        sig: &'a mut [f32],
+        roi: Roi,
+        row: usize,
+    }
+
+    impl ContributionSink for DenseSink<'_> {
+        fn row(&mut self, iy: u32) {
+            self.row = (iy - self.roi.y) as usize;
+        }
+        fn add_run(&mut self, ix0: u32, fractions: &[f32], scale: f32) {
+            for (a, &f) in fractions.iter().enumerate() {
+                let x = (ix0 - self.roi.x) as usize + a;
+                self.sig[self.row * self.roi.width as usize + x] += scale * f;
+            }
+        }
+        fn add_window<const W: usize>(
+            &mut self,
+            wx: i64,
+            window: &[f32; W],
+            scale: f32,
+            x0: i64,
+            n: usize,
+        ) {
+            for x in x0..x0 + n as i64 {
+                let at = self.row * self.roi.width as usize + (x - self.roi.x as i64) as usize;
+                self.sig[at] += scale * window[(x - wx) as usize];
+            }
+        }
+    }
+
+    #[test]
+    fn drained_hits_match_dense_sums() {
+        // The drain (boxes, eight-pixel groups, branch-free hit writes,
+        // each box clearing only its own columns) against a dense ROI
+        // buffer given the same additions in the same order (particles in
+        // render order through `particle_rows`, which the lean paths
+        // match bit for bit): every pixel at or above the floor exactly
+        // once, with the same f32 sum; and the ring all-zero after each
+        // pulse (pulses in a row on one thread: a leftover would also
+        // show in a later pulse's sums).
+        for (streaks, diameter) in [
+            (None, 1.3),
+            (Some(1.0), 1.5),
+            (Some(3.0), 1.0),
+            (Some(30.0), 2.5),
+            (Some(1.0), 12.0),
+            (Some(1.0), 0.3),
+        ] {
+            let mut sc = Scenario::default();
+            sc.sensor = small_sensor();
+            sc.optics.particle_diameter_px = diameter;
+            sc.light.pulse_streaks = streaks.map(|scale| PulseStreaks { scale });
+            let model = PixelModel::new(&sc, 4);
+            let roi = model.roi;
+            let w = roi.width;
+            for seed in 0..4 {
+                // Dense scenes (overlapping images, shared groups) and
+                // sparse ones.
+                let n = if seed % 2 == 0 { 900 } else { 40 };
+                let snaps = scene(n, 80.0, 60.0, 11 + seed);
+                let mut dense = vec![0.0f32; (w * roi.height) as usize];
+                let mut sink = DenseSink {
+                    sig: &mut dense,
+                    roi,
+                    row: 0,
+                };
+                let mut prof = Profiles::new();
+                for &(key, _, _) in &model.render_order(&snaps, false) {
+                    let s = &snaps[(key & 0xFFFF_FFFF) as usize];
+                    model.particle_rows(s, &mut prof, &mut sink);
+                }
+                for floor in [f32::from_bits(1), model.c_floor_f32, 0.05, 0.4] {
+                    let mut hits = Vec::new();
+                    model.render_signals(&snaps, floor, &mut hits);
+                    let mut got: Vec<(u32, u32)> = hits
+                        .iter()
+                        .map(|h| {
+                            let (r, c) = h.row_col();
+                            assert!(r < roi.height && c < w, "{r} {c}");
+                            (r * w + c, h.v.to_bits())
+                        })
+                        .collect();
+                    got.sort_unstable();
+                    let want: Vec<(u32, u32)> = dense
+                        .iter()
+                        .enumerate()
+                        .filter(|(_, &v)| v >= floor)
+                        .map(|(i, v)| (i as u32, v.to_bits()))
+                        .collect();
+                    assert!(
+                        got == want,
+                        "{streaks:?} {diameter} seed {seed} floor {floor}: {} hits vs {}",
+                        got.len(),
+                        want.len()
+                    );
+                    RENDER_RING.with(|cell| {
+                        let ring = cell.borrow();
+                        assert!(ring.sig.iter().all(|&v| v.to_bits() == 0));
+                        assert!(ring.boxes.iter().all(|b| b.is_empty()));
+                    });
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn response_passes_match_respond() {
+        // `render_pulse`'s two passes (branch-free threshold pass, then
+        // the crossings) against `respond::<false>` (the same fast
+        // arithmetic in one plain function) for each pixel the renderer
+        // hands over: the same events, bit for bit, for every combination
+        // of the switches the passes are specialised on.
+        let mut sc = Scenario::default();
+        sc.sensor = small_sensor();
+        sc.light.pulse_streaks = Some(PulseStreaks { scale: 1.0 });
+        for (mismatch, off, jitter, latency) in [
+            (false, false, false, false),
+            (true, false, false, false),
+            (false, true, false, true),
+            (true, true, true, true),
+            (true, false, true, false),
+            (false, true, true, false),
+        ] {
+            sc.pixel.threshold_mismatch = mismatch.then_some(ThresholdMismatch { sigma: 0.3 });
+            sc.pixel.off_events = off.then_some(OffEvents {
+                threshold: 0.3,
+                tau_us: 15.0,
+            });
+            sc.pixel.latency_jitter = jitter.then_some(LatencyJitter { spread_us: 2.0 });
+            sc.pixel.intensity_latency = latency.then_some(IntensityLatency {
+                exponent: 0.5,
+                reference: 2.0,
+            });
+            let model = PixelModel::new(&sc, 4);
+            let mut total = 0;
+            for pulse in 0..3 {
+                let snaps = scene(900, 80.0, 60.0, 5 + pulse);
+                let seed = stream_seed(9, 6, pulse);
+                let mut fast: Vec<Arrival> = Vec::new();
+                model.render_pulse(&snaps, 100.0, seed, &mut fast);
+                let mut hits = Vec::new();
+                model.render_signals(&snaps, model.c_floor_f32, &mut hits);
+                let mut plain: Vec<Arrival> = Vec::new();
+                for h in &hits {
+                    let (r, c) = h.row_col();
+                    let (x, y) = ((model.roi.x + c) as u16, (model.roi.y + r) as u16);
+                    let idx = r * model.roi.width + c;
+                    model.respond::<false>(idx, x, y, h.v as f64, 100.0, seed, &mut plain);
+                }
+                assert!(!plain.is_empty());
+                assert!(
+                    fast == plain,
+                    "{mismatch} {off} {jitter} {latency} pulse {pulse}: {} vs {}",
+                    fast.len(),
+                    plain.len()
+                );
+                total += plain.len();
+            }
+            assert!(total > 1000, "{total}");
         }
     }
 
