@@ -1219,15 +1219,10 @@ impl PixelModel {
                     // no branch on how many pixels of the group fire
                     // (the loop over the mask's bits mispredicted ~once
                     // per group).
-                    let rc = r << 16 | c as u32;
-                    for (j, &v) in lanes.iter().enumerate() {
-                        let hit = (v.to_bits() as u64) << 32 | (rc + j as u32) as u64;
-                        // SAFETY: n counts hits among the lanes before
-                        // this one of at most `most` lanes: n < most.
-                        // `Hit` is `repr(C)` {rc: u32, v: f32}: this u64.
-                        unsafe { (out.add(n) as *mut u64).write_unaligned(hit) };
-                        n += (m >> j) as usize & 1;
-                    }
+                    // SAFETY: n counts the hits among the lanes before
+                    // this group, of at most `most` lanes in all, and the
+                    // group's eight lanes are among them: n + 8 ≤ most.
+                    n = unsafe { write_hits8(out.add(n), lanes, r << 16 | c as u32, m) } + n;
                     clear_lanes8(lanes, own);
                     c += 8;
                     if c >= c1 {
@@ -1720,6 +1715,63 @@ impl RingRows<'_> {
         b.row0 = b.row0.min(self.row);
         b.row1 = b.row1.max(self.row);
     }
+}
+
+/// Write the eight lanes of `v` as [`Hit`]s with keys `rc + j` to
+/// consecutive slots from `out`, the j-th to the slot after the hits of
+/// lanes below j whose bit is set in `m`: every lane written (a later one
+/// overwrites a lane whose bit is clear), no branch on how many fire
+/// (the loop over the mask's bits mispredicted ~once per group). Returns
+/// the number of set bits.
+///
+/// # Safety
+/// `out` must be valid for writes of eight `Hit`s.
+#[inline(always)]
+unsafe fn write_hits8(
+    out: *mut std::mem::MaybeUninit<Hit>,
+    v: &[f32; 8],
+    rc: u32,
+    m: u32,
+) -> usize {
+    // (`Hit` is `repr(C)` {rc: u32, v: f32}: one u64, key low.)
+    let out = out as *mut u64;
+    let mut n = 0;
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::*;
+        // SAFETY: SSE2 is part of the x86_64 baseline; the loads read
+        // the eight f32 of `v`; every store is to one of the eight slots
+        // (n ≤ j for lane j).
+        unsafe {
+            let k0 = _mm_add_epi32(_mm_set1_epi32(rc as i32), _mm_setr_epi32(0, 1, 2, 3));
+            let k1 = _mm_add_epi32(k0, _mm_set1_epi32(4));
+            let v0 = _mm_castps_si128(_mm_loadu_ps(v.as_ptr()));
+            let v1 = _mm_castps_si128(_mm_loadu_ps(v.as_ptr().add(4)));
+            // Key and value interleaved: two hits per register.
+            let pairs = [
+                _mm_unpacklo_epi32(k0, v0),
+                _mm_unpackhi_epi32(k0, v0),
+                _mm_unpacklo_epi32(k1, v1),
+                _mm_unpackhi_epi32(k1, v1),
+            ];
+            for (i, &p) in pairs.iter().enumerate() {
+                _mm_storel_epi64(out.add(n) as *mut __m128i, p);
+                n += (m >> (2 * i)) as usize & 1;
+                _mm_storeh_pd(out.add(n) as *mut f64, _mm_castsi128_pd(p));
+                n += (m >> (2 * i + 1)) as usize & 1;
+            }
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    for (j, &x) in v.iter().enumerate() {
+        // SAFETY: n ≤ j < 8.
+        unsafe {
+            out.add(n)
+                .write_unaligned((x.to_bits() as u64) << 32 | (rc + j as u32) as u64)
+        };
+        n += (m >> j) as usize & 1;
+    }
+    n
 }
 
 /// Set lanes `0..n` (n ≤ 8) of `v` to +0.0, keep the others bit for bit.
