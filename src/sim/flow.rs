@@ -607,7 +607,10 @@ impl Turbulent {
 
     /// The generic RK4 sub-step (the full field per stage, as `rk4` in
     /// `seeding`) and fresh phases at its end, into `cs`: the fallback of
-    /// [`Turbulent::rk4_substep`].
+    /// [`Turbulent::rk4_substep`]. The stage formula is written out here
+    /// and in `rk4` on purpose: one shared step taking the field as a
+    /// closure compiles the closure without the caller's AVX2 target
+    /// feature and does not inline it (tried: `rib_wake` 4.7× slower).
     #[inline(always)]
     fn rk4_substep_full<T: Lanes>(
         &self,
