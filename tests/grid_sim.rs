@@ -88,7 +88,7 @@ fn mean_errors(
     e
 }
 
-/// The tracker with the fixed 11-point output fit of sessions 1–2. The
+/// The tracker with a fixed 11-point output fit. The
 /// noise estimators (pairs, spectral floor) are checked against the
 /// robust truth (median-based), which is the noise rms only when every
 /// sample has the same noise; the default adaptive fit mixes long windows
@@ -122,7 +122,7 @@ fn vortex_scene(seconds: f64) -> Scenario {
 /// 11-point quadratic underestimates the speed on curved paths by
 /// ω²⟨τ⁴⟩/(6⟨τ²⟩) (ω the turning angle per pulse), about −2 % of the local
 /// speed in this core (0.086 rad/pulse): 1.41 % of v_max at worst in the
-/// bins (session 2); a fixed 5-point fit 0.63 %. The adaptive window
+/// bins; a fixed 5-point fit 0.63 %. The adaptive window
 /// (`track::fit::fit_adaptive`) shortens the window where the path's cubic
 /// term makes the bias exceed the noise.
 #[test]

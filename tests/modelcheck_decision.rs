@@ -46,8 +46,8 @@ fn with(rows: &[(&'static str, f64)]) -> DiscrepancyTable {
 
 /// Many effects at once: the best candidate removes two components, its
 /// rival one of the same two and less of it. On the disputed rows (a, b)
-/// the best leaves 200, the rival 1300: clear. The rule of sessions 4–8
-/// asked for a lead of 0.25 × (8000 − 700) = 1825 (a quarter of all the
+/// the best leaves 200, the rival 1300: clear. The whole-gap rule
+/// (`judge_candidates_whole_gap`, the default without the paired judgement) asks for a lead of 0.25 × (8000 − 700) = 1825 (a quarter of all the
 /// rival leaves, other effects' rows included) and named nothing.
 #[test]
 fn a_clear_winner_among_many_effects_is_named() {

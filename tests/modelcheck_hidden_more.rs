@@ -1,4 +1,4 @@
-//! Model check with the real simulator, session 4: the clock-drift
+//! Model check with the real simulator: the clock-drift
 //! candidate (signature and hidden-effect search) and two hidden effects at
 //! once (both named, joint refit). "Measured" recordings are simulated with
 //! seeds the search never uses.
@@ -186,11 +186,11 @@ fn real_sim_two_hidden_effects_hot_pixels_and_clock_drift() {
     assert_both_found(&truth, 64, 74);
 }
 
-// Not met (session 4): hot pixels 23 px × 2089 Hz + latency jitter
+// Not met (default judgement): hot pixels 23 px × 2089 Hz + latency jitter
 // 14.2 µs. Round 1: `intensity_latency` leaves 78.6 of 2160, the true
 // `latency_jitter` 95.7 (both leave the hot pixels' part): a near tie of
 // two rival explanations of the burst's width, so nothing is accepted
-// ("unexplained"; the old rule named intensity latency).
+// ("unexplained").
 #[test]
 #[ignore]
 fn real_sim_two_hidden_effects_hot_pixels_and_latency_jitter() {
@@ -207,7 +207,7 @@ fn real_sim_two_hidden_effects_hot_pixels_and_latency_jitter() {
     assert_both_found(&truth, 62, 72);
 }
 
-// Not met (session 4): background noise 13.5 Hz + latency jitter 14.2 µs.
+// Not met (default judgement): background noise 13.5 Hz + latency jitter 14.2 µs.
 // `off_events` with τ at its range's end (300 µs) is named first and
 // leaves 310 of 3255: its OFF events mimic both the OFF half of the
 // background (spread over the period by the long decay) and the jitter
@@ -223,7 +223,7 @@ fn real_sim_two_hidden_effects_background_and_latency_jitter() {
     assert_both_found(&truth, 62, 72);
 }
 
-/// Several hidden effects at once (session 9, with the paired judgement,
+/// Several hidden effects at once (with the paired judgement,
 /// `WorkflowOptions::paired_judgement`): every effect named must be
 /// one of the hidden ones (no impostor that mimics two of them), the gap
 /// must shrink with every effect added, and most of the hidden effects
@@ -257,10 +257,10 @@ fn assert_several_found(truth: &[EffectSetting], seed: u64, order_seed: u64, at_
 /// Three effects, each with a component of the gap of its own (busy
 /// timestamp ticks; a fixed pattern of off-burst activity; the latency's
 /// slope over the recording), so that each round's best holds only part of
-/// the gap: the rule of sessions 4–8 asked for a lead of a quarter of the
+/// the gap: the whole-gap rule (the default judgement) asks for a lead of a quarter of the
 /// *whole* remaining gap over the best rival, which the other effects'
 /// parts alone can make unreachable.
-// Not met (session 9): `arbiter_saturation` is named first but with the
+// Not met (paired judgement): `arbiter_saturation` is named first but with the
 // wrong split (row 0.0047 µs, event 0.258 µs) and leaves only 68.6 of a
 // gap of 2799, so the hot pixels and the drift are then within chance
 // (clock drift removes 26.5, chance 63.5).
@@ -287,7 +287,7 @@ fn real_sim_three_hidden_effects_arbiter_hot_pixels_clock_drift() {
     assert_several_found(&truth, 85, 95, 3);
 }
 
-/// Not met (session 9): background noise + latency jitter + hot pixels.
+/// Not met (paired judgement): background noise + latency jitter + hot pixels.
 /// `off_events` with a long decay (τ ≈ 280 µs: OFF events spread over the
 /// whole period like the background's) is named first and explains
 /// background noise away (background on top of it adds nothing: 166.8 →

@@ -151,8 +151,8 @@ fn real_sim_null_case_names_nothing() {
     );
 }
 
-// Hot pixels (missed in session 1: a zero-spread scalar swamped the fit
-// objective, and no signature told count from rate) stay in CI.
+// Hot pixels stay in CI: they are missed when a zero-spread scalar swamps
+// the fit objective, or when no signature tells count from rate.
 #[test]
 fn real_sim_hidden_hot_pixels() {
     let truth = setting(
@@ -165,10 +165,9 @@ fn real_sim_hidden_hot_pixels() {
     assert_recovered(&check_hidden(Some(truth.clone()), 5, 15), &truth);
 }
 
-// Every hidden-effect test below runs in CI (6-21 s of CPU each, measured
-// in session 4). Intensity latency failed until the second stage of
-// two-parameter fits searched locally (exponent 0.31 for 0.55 before;
-// BENCHMARKS.md).
+// Every hidden-effect test below runs in CI (6-21 s of CPU each).
+// Intensity latency needs the second stage of two-parameter fits to
+// search locally (without it: exponent 0.31 for 0.55).
 
 #[test]
 fn real_sim_hidden_background_noise() {
@@ -206,13 +205,12 @@ fn real_sim_hidden_arbiter_saturation() {
     assert_recovered(&check_hidden(Some(truth.clone()), 9, 19), &truth);
 }
 
-// The effects added in session 3 (pulse streaks, threshold mismatch, rate
-// limiter, OFF events): each has a signature that sees it (elongation,
+// Pulse streaks, threshold mismatch, rate limiter, OFF events: each has a signature that sees it (elongation,
 // yield_split_covariance / yield_split_correlation, events_per_pulse /
 // latency, on_fraction / off_latency).
 //
-// Streaks and mismatch run on the `mixing` scene (session 4). On `base`
-// they were not met in session 3 (streaks 10.3 → unexplained, nothing
+// Streaks and mismatch run on the `mixing` scene. On `base`
+// they are not met (streaks 10.3 → unexplained, nothing
 // named; mismatch σ 0.32 → "consistent"): its lit particles cross the same
 // pixels at the same sub-pixel phase all recording long, so the per-pixel
 // yields carry a fixed pattern without any mismatch (split-half r 0.33 ±

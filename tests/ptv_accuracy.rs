@@ -42,7 +42,7 @@ fn paper_like_conditions() {
         s.precision_merged_ok
     );
     // 0.921 with the backward extension of new tracks and the fixed-lag
-    // repair (session 4; 0.922 → 0.940 on the 384² scene).
+    // repair (they take the 384² scene from 0.922 to 0.940).
     assert!(s.recall >= 0.91, "recall {}", s.recall);
     assert!(
         s.velocity_rms_interior_px_per_pulse <= 0.10,
@@ -72,10 +72,10 @@ fn sparse_seeding_meets_the_issue_targets_on_links() {
 #[test]
 fn dense_noisy_fast_conditions() {
     // The hardest row of BENCHMARKS.md: ppp 0.02, up to 12 px/pulse, 5 %
-    // noise events (384², 60 pulses). Session 4: precision 0.754, recall
-    // 0.651, velocity rms 3.44 px/pulse; with the position-noise ceiling at
-    // 0.45 px (session 5): 0.800, 0.678, 2.86; with the ghost test
-    // against the local flow (session 7): 0.860, 0.821, 0.658.
+    // noise events (384², 60 pulses). Without the position-noise ceiling
+    // and the ghost test: precision 0.754, recall 0.651, velocity rms 3.44
+    // px/pulse; with the ceiling at 0.45 px: 0.800, 0.678, 2.86; with the
+    // ghost test against the local flow too: 0.860, 0.821, 0.658.
     let sp = SynthParams {
         ppp: 0.02,
         max_disp: 12.0,
@@ -105,8 +105,8 @@ fn dense_noisy_fast_conditions() {
 fn splitting_merged_images_between_tracks() {
     // The paper-like scene at 384² (BENCHMARKS.md's), tracked without and
     // with the track-guided split of merged images
-    // (`TrackParams::split_merged`, off by default). Session 6: precision
-    // 0.9628 → 0.9635, recall 0.9395 → 0.9404, velocity rms 0.149 → 0.149.
+    // (`TrackParams::split_merged`, off by default). Without the ghost
+    // test: precision 0.9628 → 0.9635, recall 0.9395 → 0.9404, velocity rms 0.149 → 0.149.
     let sp = SynthParams {
         width: 384,
         height: 384,
@@ -156,10 +156,10 @@ fn splitting_merged_images_between_tracks() {
 
 #[test]
 fn ghost_test_keeps_short_tracks_at_paper_like_conditions() {
-    // The 384² paper-like scene of BENCHMARKS.md. Session 6 (no ghost
-    // test, `min_length` 5): precision 0.9628, recall 0.9395, velocity rms
+    // The 384² paper-like scene of BENCHMARKS.md. No ghost test,
+    // `min_length` 5: precision 0.9628, recall 0.9395, velocity rms
     // 0.1337 px/pulse; with `min_length` 4 alone recall 0.9501 but
-    // velocity 0.244 (four-detection ghosts). Session 7: short tracks and
+    // velocity 0.244 (four-detection ghosts). With short tracks and
     // new chains checked against the local flow of the established tracks
     // (`TrackParams::ghost_check_length`, `ghost_check_init`) and chains
     // with one missed pulse (`init_gap`): 0.9632 / 0.9529 / 0.1313.
@@ -191,10 +191,10 @@ fn ghost_test_keeps_short_tracks_at_paper_like_conditions() {
 
 #[test]
 fn cutting_tracks_at_steps_removes_swaps() {
-    // Session 8: a track whose particle is missed while an untracked
+    // A track whose particle is missed while an untracked
     // neighbour 1–4 px away lies in its gate goes on with the neighbour
     // (`tests/ptv_swaps.rs`); ended tracks are cut where their positions
-    // jump (`TrackParams::step_split`). Paper-like 384² scene, before:
+    // jump (`TrackParams::step_split`). Paper-like 384² scene, without the cut:
     // precision 0.9632, recall 0.9529, interior velocity rms 0.064.
     let run = paper_like_384_runner();
     let on = run(&TrackParams::default());
@@ -220,7 +220,7 @@ fn cutting_tracks_at_steps_removes_swaps() {
 
 #[test]
 fn steps_that_match_a_neighbour_are_cut_lower() {
-    // Session 10 (`TrackParams::step_split_hinted`, off by default): a
+    // `TrackParams::step_split_hinted` (off by default): a
     // step that lines up with a neighbour of the track (beside it one
     // pulse before the step, or its own particle left behind after it) is
     // cut at χ² 8 instead of 12. Paper-like 384² scene, seed 1: precision
@@ -244,7 +244,7 @@ fn steps_that_match_a_neighbour_are_cut_lower() {
 
 #[test]
 fn gapped_chains_search_only_along_the_flow() {
-    // Session 8: chains that skip a pulse look for their second particle
+    // Chains that skip a pulse look for their second particle
     // only where the local flow leads (`TrackParams::gap_first_step`):
     // far fewer first steps expanded, the same links to within a few.
     use ebptv::track::synth::cluster_with_truth;

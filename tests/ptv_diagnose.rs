@@ -177,7 +177,7 @@ fn breakdown_of_link_errors() {
 /// --toggle-collect='*link_linked*' target/release/deps/ptv_diagnose-* --ignored linking_cost`).
 /// Back extension and the delayed repair switched by PTV_BACK_EXTEND /
 /// PTV_REPAIR_LAG, the ghost test by PTV_GHOST_LEN (0 = off, with
-/// PTV_INIT_GAP=0 the linking of session 6).
+/// PTV_INIT_GAP=0 the linking without ghost test and gapped chains).
 #[test]
 #[ignore]
 fn linking_cost() {
@@ -230,7 +230,7 @@ fn linking_cost() {
 /// Merged images of two particles on the paper-like scene, by the
 /// particles' true distance (0.25 px bins), whether a pixel holds events of
 /// both, and the image's pixel count: which of them could be split at all,
-/// given to which two tracks they belong (session 5: ~3 800 of 83 200
+/// given to which two tracks they belong (~3 800 of 83 200
 /// images; most are 1–2.5 px pairs on disjoint pixels, 2–3 pixels).
 #[test]
 #[ignore]

@@ -1,7 +1,7 @@
 //! The output fit's curvature prior on the paper-like synthetic scene
 //! (`ebptv::track::synth`, the test size of tests/ptv_accuracy.rs): the
 //! velocity error over all scored points, against the same tracks fitted
-//! without the prior (`fit_accel_rms: Some(0.0)`, the session-5 fit). The
+//! without the prior (`fit_accel_rms: Some(0.0)`, a plain least-squares fit). The
 //! links are the same either way; only the fitted velocities change.
 
 use ebptv::cluster::ClusterParams;
@@ -39,7 +39,7 @@ fn curvature_prior_lowers_the_velocity_error_on_the_paper_like_scene() {
         plain.velocity_rms_interior_px_per_pulse,
         prior.velocity_rms_interior_px_per_pulse
     );
-    // Session 5 (no prior): 0.213 over all points; the prior 0.193. The
+    // No prior: 0.213 over all points; the prior 0.193. The
     // error is the ends of short tracks (tests/ptv_velocity_breakdown.rs).
     assert!(
         prior.velocity_rms_px_per_pulse <= 0.20,

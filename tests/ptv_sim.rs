@@ -65,7 +65,7 @@ fn demo_scenario_tracks_against_truth() {
     // before wide clusters were split).
     assert!(s.precision >= 0.975, "precision {}", s.precision);
     assert!(s.recall >= 0.95, "recall {}", s.recall);
-    // 0.027 with the adaptive output fit (session 2: 0.036; target 0.05).
+    // 0.027 with the adaptive output fit (a fixed 11-point fit: 0.036; target 0.05).
     assert!(
         s.velocity_rms_px_per_pulse <= 0.035,
         "velocity rms {}",

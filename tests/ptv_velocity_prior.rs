@@ -1,5 +1,5 @@
 //! The output fit's velocity prior from the local flow
-//! (`TrackParams::velocity_prior`, session 9): the velocity error of the
+//! (`TrackParams::velocity_prior`): the velocity error of the
 //! paper-like synthetic scene (issue #5's target 0.05 px/pulse), and, on
 //! a turbulent simulated scene, that it does not shrink the fluctuations
 //! the grid stage turns into Reynolds stresses.
@@ -44,7 +44,7 @@ fn two_pass(mean: bool) -> TrackParams {
     }
 }
 
-/// The two-pass prior (session 10; `TrackParams::velocity_prior_two_pass`,
+/// The two-pass prior (`TrackParams::velocity_prior_two_pass`,
 /// the flow from the first pass's fitted velocities over the whole run)
 /// with the posterior mean on the paper-like scene, seed 1 (the scene its
 /// radius and window were chosen on): issue #5's 0.05 px/pulse, 0.0494
@@ -90,7 +90,7 @@ fn turbulent_two_pass_numbers() {
 
 /// Paper-like 384² scene (seed 1, the scene the design was tried on, and
 /// seed 2, held out): the prior takes the velocity rms from 0.130 /
-/// 0.133 px/pulse to 0.100 / 0.103 (session 9); the links are the same
+/// 0.133 px/pulse to 0.100 / 0.103; the links are the same
 /// (the prior only changes the output velocities).
 #[test]
 fn flow_prior_cuts_the_velocity_error_at_paper_like_conditions() {
@@ -203,7 +203,7 @@ fn turbulent(
 /// there, so the prior weakens by itself. It must neither bias the
 /// grid's Reynolds stresses low (shrinking the fluctuations towards the
 /// local mean) nor raise the stress errors or the samples' velocity
-/// error (session 9: see BENCHMARKS.md for the numbers).
+/// error (see BENCHMARKS.md, "Tracking accuracy", for the numbers).
 #[test]
 fn flow_prior_does_not_shrink_turbulent_stresses() {
     let sc = chain_common::turbulent_roi_scenario();
@@ -229,7 +229,7 @@ fn flow_prior_does_not_shrink_turbulent_stresses() {
     }
 }
 
-/// The numbers of BENCHMARKS.md (session 9): seeds 1–3 of the paper-like
+/// The numbers of BENCHMARKS.md ("Tracking accuracy"): seeds 1–3 of the paper-like
 /// scene and the harsh one (ppp 0.02, 12 px/pulse, 5 % noise), prior off,
 /// variance-matching, posterior mean. Ignored: `cargo test --release
 /// --test ptv_velocity_prior -- --ignored --nocapture`.

@@ -6,8 +6,8 @@
 //! detections, which misses a path accelerating at 1 px/pulse² by 2.5–3.5
 //! px (outside the gate), so nearly every core track dies at its fifth
 //! detection; the option falls back to the quadratic there
-//! (`TrackParams::young_order_sigma`; BENCHMARKS.md, session 11,
-//! "Diagnosis (ptv-vortex)").
+//! (`TrackParams::young_order_sigma`; BENCHMARKS.md, "Tracking
+//! accuracy").
 
 use std::path::Path;
 use std::process::Command;

@@ -1,6 +1,6 @@
 //! Seed-to-seed statistics of the calibrated presets: the table that a
-//! change of the random stream is judged by (BENCHMARKS.md "## Simulator",
-//! session 9). Not a test (no assertion; the calibration tests hold the
+//! change of the random stream is judged by (BENCHMARKS.md "## Simulator").
+//! Not a test (no assertion; the calibration tests hold the
 //! thresholds): `cargo test --release --test sim_stats -- --ignored
 //! --nocapture` prints one line `STAT <name> <seed> <value>` per statistic
 //! and seed, to be compared between two builds (mean and seed-to-seed

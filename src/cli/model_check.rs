@@ -56,7 +56,7 @@ pub struct ModelCheckArgs {
     /// (then nothing is named). Off by default; `--profile-fit true`.
     #[arg(long, default_value_t = false, action = clap::ArgAction::Set)]
     pub profile_fit: bool,
-    /// Session-9 judgement: paired held-out gaps, rival margin on the disputed rows, explaining away (see docs/readme/modelcheck.md).
+    /// Paired judgement: paired held-out gaps, rival margin on the disputed rows, explaining away (see docs/readme/modelcheck.md). Off by default; `--paired-judgement true`.
     #[arg(long, default_value_t = false, action = clap::ArgAction::Set)]
     pub paired_judgement: bool,
 }

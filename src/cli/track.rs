@@ -46,7 +46,7 @@ pub struct TrackArgs {
     #[arg(long)]
     pub split_merged: bool,
     /// Typical particle acceleration (px/pulse², rms) of the output fit's
-    /// curvature prior; 0 = no prior (the fit of sessions before 6); unset
+    /// curvature prior; 0 = no prior (a plain least-squares fit); unset
     /// = estimated from the tracks kept so far. See
     /// `TrackParams::fit_accel_rms`.
     #[arg(long)]

@@ -5,7 +5,7 @@
 //! A track of four or five detections cannot prove on its own that it is
 //! one particle: in a seeding of 0.01 particles per pixel, four images of
 //! *different* particles line up within the predictor's gate now and then
-//! ("ghost" tracks; session 6: 29 of 288 four-detection tracks of the
+//! ("ghost" tracks; without the ghost test: 29 of 288 four-detection tracks of the
 //! paper-like synthetic scene, holding 64 % of the squared velocity error
 //! once such tracks are kept). A ghost chain's velocity, though, is that of
 //! a random pair of particles up to `max_disp` apart, while a real short
@@ -694,7 +694,7 @@ pub const MIN_CALIBRATION_POINTS: u64 = 200;
 /// misses what the grid cannot see — a track's own links in its
 /// neighbourhood (they pull the plane towards it), an optimistic σ, flow
 /// structure finer than the cells' — and on a turbulent scene it is low
-/// by ~2× (session 9): without this the prior shrank the fluctuations.
+/// by ~2×: without this the prior shrank the fluctuations.
 /// Kept by the finaliser from the tracks fitted so far (in order, like
 /// [`crate::track::fit::AccelPrior`]): deterministic.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -827,8 +827,7 @@ pub fn posterior_mean(
 /// point): it shrinks every point's fluctuation about the local flow,
 /// the quiet interior too, and the grid stage's stresses, which subtract
 /// the measured noise from the samples' spread, came out 3.5–5.5 % low
-/// on a turbulent scene (about −2 × the interior noise variance; session
-/// 9). This variance-matching form ("constrained Bayes") keeps each
+/// on a turbulent scene (about −2 × the interior noise variance). This variance-matching form ("constrained Bayes") keeps each
 /// sample's spread at truth + typical noise, which the noise correction
 /// removes; at the ends, where the one-sided fits are several times
 /// noisier than typical, it still takes most of the posterior mean's

@@ -195,13 +195,13 @@ pub struct TrackParams {
     /// Ceiling of the estimated position noise (px per axis). The estimate
     /// comes from the innovations of accepted links; in dense, noisy scenes
     /// wrong links inflate it, wider gates admit more wrong links, and the
-    /// tracker runs away (session 1: precision 0.29 at ppp 0.02, 12 px/pulse,
-    /// 5 % noise). A centroid of 1–4 events of a 1–1.5 px image errs by
+    /// tracker runs away (without a ceiling: precision 0.29 at ppp 0.02,
+    /// 12 px/pulse, 5 % noise). A centroid of 1–4 events of a 1–1.5 px image errs by
     /// at most ~0.45 px per axis (a single event: √(σ_image² + 1/12)
     /// with σ_image ≈ 0.35 px), which is the default: what the innovations
     /// show beyond it is predictor bias at high speeds and wrong links, and
     /// gates widened for it admit more wrong links than they recover
-    /// (session 5, ppp 0.02, 12 px/pulse, 5 % noise: ceiling 1 → 0.45 px,
+    /// (ppp 0.02, 12 px/pulse, 5 % noise: ceiling 1 → 0.45 px,
     /// estimate 0.54 → 0.45, precision 0.754 → 0.800, recall 0.651 →
     /// 0.678; the paper-like scene, σ ≈ 0.415, is unchanged). Raise it for
     /// larger particle images.
@@ -302,9 +302,9 @@ pub struct TrackParams {
     pub repair_lag: usize,
     /// Also start tracks from four detections over five pulses that miss
     /// one of the three middle pulses (after the gap-free chains), for
-    /// particles that never show four images in a row. On by default
-    /// since session 7, where such a chain must also agree with a known
-    /// local flow (`ghost_check_init`): alone (session 5) it gained 0.0014
+    /// particles that never show four images in a row. On by default;
+    /// such a chain must also agree with a known local flow
+    /// (`ghost_check_init`): without that check it gained 0.0014
     /// recall for 0.0012 precision on the paper-like scene and started
     /// many wrong tracks in dense, noisy scenes (precision 0.75 → 0.67);
     /// with the ghost test the paper-like recall goes 0.9491 → 0.9529 at
@@ -323,7 +323,7 @@ pub struct TrackParams {
     /// its own particle's events instead of one of them taking the
     /// centroid between them and the other missing.
     ///
-    /// Off by default (session 6): on the paper-like synthetic scene (384²)
+    /// Off by default: on the paper-like synthetic scene (384²)
     /// it moves precision 0.9628 → 0.9635 and recall 0.9395 → 0.9404 at
     /// equal velocity error, but in the dense, fast, noisy scene (ppp 0.02,
     /// 12 px/pulse, 5 % noise) it costs precision 0.8004 → 0.7977 and
@@ -357,7 +357,7 @@ pub struct TrackParams {
     /// missed (it left the sheet, did not fire, merged with another) while
     /// an untracked neighbour 1–4 px away lies in the gate is taken over
     /// by the neighbour: smooth, but shifted by their distance, which the
-    /// detections on both sides of the jump show (session 8). Paper-like
+    /// detections on both sides of the jump show. Paper-like
     /// synthetic scene (384², seed 1): 0 / 20 / 16 / 12 / 10 / 8 give
     /// precision 0.9632 / 0.9641 / 0.9644 / 0.9652 / 0.9656 / 0.9662,
     /// recall 0.9529 / 0.9533 / 0.9533 / 0.9523 / 0.9506 / 0.9470,
@@ -376,7 +376,7 @@ pub struct TrackParams {
     /// the test can go lower there without cutting many good tracks.
     /// 0 = the plain test everywhere (default).
     ///
-    /// Session 10, threshold 8 (tuned on seed 1 of the paper-like 384²
+    /// Threshold 8 (tuned on seed 1 of the paper-like 384²
     /// synthetic scene): precision 0.9652 → 0.9658 and recall 0.9523 →
     /// 0.9516 there; held-out seeds 2 / 3: 0.9618 → 0.9626 / 0.9635 →
     /// 0.9642, recall 0.9521 → 0.9514 / 0.9519 → 0.9507; harsh scene
@@ -430,7 +430,7 @@ pub struct TrackParams {
     #[serde(default)]
     pub velocity_prior_mean: bool,
     /// With `velocity_prior`: take the prior from a first pass over the
-    /// whole run instead of the links made so far (session 10). Every
+    /// whole run instead of the links made so far. Every
     /// kept track is fitted without a prior first; the fitted velocities
     /// of all tracks then give the local flow
     /// ([`local_flow::WholeRunFlow`]: a quadratic in space, linear in
@@ -443,7 +443,8 @@ pub struct TrackParams {
     /// v_max). Paper-like scene with the posterior mean 0.130 → 0.049
     /// px/pulse (seed 1), demo 0.0233 → 0.0124; ~10× the CPU of the
     /// tracker, and neighbours share their prior, so the grid stage's
-    /// pair noise estimate comes out low (BENCHMARKS.md, session 10). Tracks are held until the end of the run
+    /// pair noise estimate comes out low (BENCHMARKS.md, "Tracking
+    /// accuracy"). Tracks are held until the end of the run
     /// ([`Tracker::finish`], [`Finaliser::refit_held`]; the streaming
     /// pipeline hands them on before its end): memory grows with the run.
     #[serde(default)]
@@ -458,8 +459,8 @@ pub struct TrackParams {
     /// accelerating at `a` px/pulse² misses the next position by 2.5 a
     /// (3.5 a) px: at the ~1 px/pulse² of the 8 px/pulse Lamb–Oseen core
     /// that is beyond the ~2.3 px gate, and nearly every core track died
-    /// at its fifth detection (session 11, "Diagnosis (ptv-vortex)" in
-    /// BENCHMARKS.md: at 2, core coverage 0.12 → 0.94). 0 = the line
+    /// at its fifth detection (`tests/ptv_vortex_core.rs`: at 2, core
+    /// coverage 0.12 → 0.94). 0 = the line
     /// alone (default): as a default, 2 cost the synthetic paper-like
     /// scene of `tests/ptv_accuracy.rs` velocity (0.130 → 0.135 px/pulse,
     /// over that test's limit) and 3 the dense, fast, noisy one
@@ -636,8 +637,8 @@ fn default_fit_bias_weight() -> f64 {
     4.0
 }
 
-/// Window of the outlier check at finalisation (the fixed output window of
-/// sessions 1–2; the output fit itself is adaptive now).
+/// Window of the outlier check at finalisation (an 11-point fixed window;
+/// the output fit itself chooses its window adaptively).
 const OUTLIER_WINDOW: usize = 11;
 
 /// Cell size (px) of the local flow grid of the ghost test: the flow is
@@ -821,7 +822,7 @@ struct Det {
 }
 
 /// Neighbours further than this (px) are not recorded in [`Det::nb`]:
-/// the swaps the step test misses are 1–2 px jumps (session 8), and
+/// the swaps the step test misses are 1–2 px jumps (`tests/ptv_swaps.rs`), and
 /// neighbours 4 px away are outside every gate at σ ≈ 0.4 px.
 const NEIGHBOUR_RADIUS: f64 = 4.0;
 

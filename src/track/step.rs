@@ -2,7 +2,7 @@
 //! to a close neighbour and stay there (a *swap*), found in hindsight.
 //!
 //! # Why
-//! On the paper-like synthetic scene (384², session 8, `tests/ptv_swaps.rs`)
+//! On the paper-like synthetic scene (384², `tests/ptv_swaps.rs`)
 //! 356 of a track's links inside the track join clean images of two
 //! different particles; 284 of them are *exchanges*: the track goes on
 //! with the other particle. In 149 the track's own particle was not
@@ -26,7 +26,7 @@
 //! single-outlier models by `threshold / 2` (an excursion through one
 //! wrong image, which the output fit's outlier gate removes, is no
 //! step). The best step of a track is cut, and both pieces are searched
-//! again. Cost (session 9): per detection of an ended track, a screen of
+//! again. Cost: per detection of an ended track, a screen of
 //! one quadratic fit with tabulated window terms ([`surely_below`]); the
 //! exact gains ([`gains`]: tabulated terms, the data's residuals) only
 //! where the screen cannot rule a step out — ~470 instructions per

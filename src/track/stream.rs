@@ -29,7 +29,7 @@
 //! bounded stages passed on while the caller waited for room, so it stays
 //! bounded too.
 //!
-//! **The output fits have a stage of their own** (session 7): linking is
+//! **The output fits have a stage of their own**: linking is
 //! the longest serial chain of the run, and while the tracker waited for
 //! the fits of each batch of ended tracks it stood still. The tracker now
 //! hands its ended tracks over unfitted ([`Tracker::defer_fits`]), with

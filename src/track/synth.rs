@@ -25,10 +25,10 @@
 //! A detection (particle) belongs to the truth particle that made most of
 //! its events (none if noise made most). When two particles made equally
 //! many events of one merged image, it belongs to the one whose true
-//! position is nearest its centroid (noise never wins a tie). (Session 1
-//! counted such ties as noise, which scored every link through a 1 + 1
-//! event merged image as wrong, even the link of the particle the image
-//! sits on.) A *link* is a pair of consecutive
+//! position is nearest its centroid (noise never wins a tie). (Counting
+//! such ties as noise would score every link through a 1 + 1 event
+//! merged image as wrong, even the link of the particle the image sits
+//! on.) A *link* is a pair of consecutive
 //! detections of one output track (across a bridged gap, too); it is
 //! correct when both detections belong to the same truth particle.
 //! *Precision* = correct links / output links. A wrong link whose two
@@ -919,7 +919,7 @@ fn label_segment(
 
 /// Track points at least this many detections from both ends of their
 /// track count as interior in [`run_and_score`] (the half-width of the
-/// 11-point output window of sessions 1–2, kept so numbers compare).
+/// 11-point fixed output window, kept so numbers compare across fits).
 pub const INTERIOR_MARGIN: usize = 5;
 
 /// A scene clustered and tracked, with the truth of every detection
