@@ -11,8 +11,13 @@ use ebptv::cluster::ClusterParams;
 use ebptv::events::{Chunk, Edge, EventChunk, Geometry};
 use ebptv::modelcheck::baseline::{baseline_from_measurement, BaselineOptions};
 use ebptv::modelcheck::report::write_outputs;
-use ebptv::modelcheck::scene::{active_effects, particles_of, timing_of, SceneSimulator};
-use ebptv::modelcheck::signatures::burst_window;
+use ebptv::modelcheck::scene::{
+    active_effects, median_event_latency, particles_of, timing_of, SceneSimulator,
+};
+use ebptv::modelcheck::standard::{
+    check as standard_check, standard_effects, StandardOptions, StandardSensor,
+};
+use ebptv::modelcheck::signatures::{burst_window, quiet_complement};
 use ebptv::modelcheck::workflow::{run as run_check, signatures_of, Recording, WorkflowOptions};
 use ebptv::sim::scenario::Scenario;
 
@@ -139,8 +144,24 @@ pub fn run(a: ModelCheckArgs) -> anyhow::Result<()> {
     ));
     let mut sc = scenario.clone();
     sc.duration_s = (block_us + timing.first_pulse_us) * 1e-6;
-    let start_model = active_effects(&sc);
-    let sim = SceneSimulator::new(sc.without_effects())?;
+    let standard = a.model.is_none();
+    let mut start_model = active_effects(&sc);
+    let mut sim = SceneSimulator::new(sc.without_effects())?;
+    // Against the standard sensor: the measured rate scales its noise, and
+    // every simulation is moved to the measured median latency.
+    let event_rate_hz = fit_ev.len() as f64 / (block_us * 1e-6);
+    let pixels = geometry.width as f64 * geometry.height as f64;
+    if standard {
+        let median = median_event_latency(&fit_ev, &timing);
+        sim = sim.with_latency_median(Some(median));
+        start_model = standard_effects(&StandardSensor::default(), event_rate_hz, pixels);
+        notes.push(format!(
+            "standard sensor: latency spread {:.0} us, background noise {:.1} % of events; median latency {:.1} us refitted with every simulation",
+            StandardSensor::default().latency_spread_us,
+            100.0 * StandardSensor::default().noise_fraction,
+            median
+        ));
+    }
     let cluster = ClusterParams {
         radius: ClusterParams::radius_for_image_diameter(sc.optics.particle_diameter_px),
         ..ClusterParams::default()
@@ -157,10 +178,14 @@ pub fn run(a: ModelCheckArgs) -> anyhow::Result<()> {
     let hold = recording(hold_ev)?;
     let mut cfg = sim.signature_config();
     let lat = signatures_of(&cfg, &fit)?;
-    cfg.burst_window_us = Some(burst_window(
-        lat.histogram("latency").context("latency signature")?,
-        0.95,
-    )?);
+    let lat = lat.histogram("latency").context("latency signature")?;
+    cfg.burst_window_us = Some(if standard {
+        // Off-burst = the quietest quarter of the period: background and
+        // hot pixels, not the tails of the latency distribution.
+        quiet_complement(lat, 0.25)?
+    } else {
+        burst_window(lat, 0.95)?
+    });
 
     let opts = WorkflowOptions {
         replicates: a.replicates,
@@ -175,7 +200,27 @@ pub fn run(a: ModelCheckArgs) -> anyhow::Result<()> {
     bar.set_style(ProgressStyle::with_template("{spinner} {elapsed} {msg}")?);
     bar.set_message("fitting candidate effects (simulating)…");
     bar.enable_steady_tick(std::time::Duration::from_millis(200));
-    let result = run_check(&sim, &cfg, &fit, &hold, &start_model, &opts)?;
+    let result = if standard {
+        let sopts = StandardOptions {
+            replicates: a.replicates,
+            evaluations: a.evaluations,
+            max_effects: a.max_effects,
+            seed: a.seed,
+            ..StandardOptions::default()
+        };
+        standard_check(
+            &sim,
+            &cfg,
+            &fit,
+            &hold,
+            &start_model,
+            event_rate_hz,
+            pixels,
+            &sopts,
+        )?
+    } else {
+        run_check(&sim, &cfg, &fit, &hold, &start_model, &opts)?
+    };
     bar.finish_and_clear();
     write_outputs(
         &a.out,

@@ -28,7 +28,7 @@
 
 use std::path::{Path, PathBuf};
 
-use super::scene::{particles_of, pulses_of, timing_of};
+use super::scene::{median_event_latency, particles_of, pulses_of, timing_of};
 use crate::cluster::{ClusterParams, Particle};
 use crate::error::{Error, Result};
 use crate::events::{EventChunk, Geometry};
@@ -261,20 +261,6 @@ pub fn baseline_from_measurement(
 
 fn mean_events(ps: &[Particle]) -> f64 {
     ps.iter().map(|p| p.n_events as f64).sum::<f64>() / ps.len().max(1) as f64
-}
-
-/// Median time of the events after the start of their pulse (µs).
-fn median_event_latency(events: &EventChunk, timing: &crate::pulses::PulseTiming) -> f64 {
-    let mut l: Vec<f64> = events
-        .t
-        .iter()
-        .filter_map(|&t| timing.assign(t).map(|k| t as f64 - timing.pulse_start(k)))
-        .collect();
-    if l.is_empty() {
-        return f64::NAN;
-    }
-    l.sort_by(f64::total_cmp);
-    l[l.len() / 2]
 }
 
 /// Median (u, v) over all track points (0 without tracks).

@@ -15,6 +15,10 @@
 //!   effects, including `clock_drift`, and the processing the measurement
 //!   went through);
 //! - [`baseline`]: the starting model built from the measurement itself;
+//! - [`standard`]: the search against a standard sensor calibrated to the
+//!   measurement (the default without a starting model): a yardstick per
+//!   signature that tolerates what a well-behaved sensor may show, and the
+//!   acceptance rule (half the gap, a clear lead over every rival);
 //! - [`report`]: `model_check.json`, the fitted scenario, Markdown + PNG.
 
 pub mod baseline;
@@ -22,4 +26,5 @@ pub mod distance;
 pub mod report;
 pub mod scene;
 pub mod signatures;
+pub mod standard;
 pub mod workflow;

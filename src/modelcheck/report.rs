@@ -203,8 +203,11 @@ fn markdown(
         }
     }
     s.push_str(
-        "\nThe gap is Σ max(z, 0) over the signature distances, each z measured against \
-         simulation-vs-simulation replicates (held-out data).\n",
+        "\nThe gap sums the standardised disagreement of the signature rows on held-out data. \
+         With a starting model (`--model`) it is Σ max(z, 0), z against simulation-vs-simulation \
+         replicates; against the standard sensor (no `--model`) it is Σ max(z − 1, 0), z against \
+         the replicates and the range a well-behaved sensor covers, over the rows that are not a \
+         structural mismatch (listed in each round's note).\n",
     );
     for (i, round) in r.rounds.iter().enumerate() {
         s.push_str(&format!(

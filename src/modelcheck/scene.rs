@@ -102,6 +102,9 @@ pub struct SceneSimulator {
     base: Scenario,
     catalogue: Vec<EffectSpec>,
     cluster: ClusterParams,
+    /// Median event latency (µs after the pulse start) every simulated
+    /// recording is moved to; `None` leaves the simulator's own.
+    latency_median_us: Option<f64>,
 }
 
 impl SceneSimulator {
@@ -117,7 +120,35 @@ impl SceneSimulator {
             catalogue: default_catalogue(&base),
             base,
             cluster,
+            latency_median_us: None,
         })
+    }
+
+    /// Refit the median latency with every simulation: each simulated
+    /// recording is moved in time so that the median latency of its events
+    /// (µs after their pulse's start) is `median_us`.
+    ///
+    /// The median latency is a nuisance of every recording (bias settings,
+    /// ROI height, readout load), not an effect; but an effect can move it
+    /// (a saturated arbiter delays the whole burst, an intensity-dependent
+    /// latency delays the faint part). Refitting it with each candidate
+    /// keeps it from absorbing the candidate's first-order signature in the
+    /// baseline. A common shift of all event times is the same as a change
+    /// of the fixed latency: the readout is time-invariant, and the noise
+    /// is uniform in time.
+    pub fn with_latency_median(mut self, median_us: Option<f64>) -> Self {
+        self.latency_median_us = median_us.filter(|m| m.is_finite());
+        self
+    }
+
+    /// The scenario-only variant of this simulator (same catalogue, same
+    /// latency refit) over another base scenario.
+    pub fn with_base(&self, base: Scenario) -> Result<Self> {
+        let mut s = SceneSimulator::new(base)?;
+        // The measurement's processing stays the same for every variant.
+        s.cluster = self.cluster.clone();
+        Ok(s.with_catalogue(self.catalogue.clone())
+            .with_latency_median(self.latency_median_us))
     }
 
     /// Restrict or reorder the catalogue (names must be known effects).
@@ -282,13 +313,40 @@ impl Simulator for SceneSimulator {
     fn simulate(&self, effects: &[EffectSetting], seed: u64) -> Result<Recording> {
         let sc = self.scenario_with(effects)?;
         let out = crate::sim::simulate(&sc, seed)?;
-        let particles = particles_of(&out.events, &timing_of(&sc), &self.cluster)?;
+        let timing = timing_of(&sc);
+        let mut particles = particles_of(&out.events, &timing, &self.cluster)?;
+        let mut events = out.events;
+        if let Some(target) = self.latency_median_us {
+            let m = median_event_latency(&events, &timing);
+            if m.is_finite() {
+                let shift = (target - m).round() as i64;
+                events.t.iter_mut().for_each(|t| *t += shift);
+                particles
+                    .iter_mut()
+                    .for_each(|p| p.first_latency_us += shift as f32);
+            }
+        }
         Ok(Recording {
-            events: out.events,
+            events,
             particles,
             tracks: None,
         })
     }
+}
+
+/// Median time of the events after the start of their pulse (µs); NaN
+/// without events inside a pulse.
+pub fn median_event_latency(events: &EventChunk, timing: &PulseTiming) -> f64 {
+    let mut l: Vec<f64> = events
+        .t
+        .iter()
+        .filter_map(|&t| timing.assign(t).map(|k| t as f64 - timing.pulse_start(k)))
+        .collect();
+    if l.is_empty() {
+        return f64::NAN;
+    }
+    let mid = l.len() / 2;
+    *l.select_nth_unstable_by(mid, f64::total_cmp).1
 }
 
 /// Parameters as a plain map (for reports).

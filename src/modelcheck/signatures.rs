@@ -446,6 +446,42 @@ pub fn burst_window(latency: &Histogram, fraction: f64) -> Result<(f64, f64)> {
     Ok((start - shift, end - shift))
 }
 
+/// The burst window as the complement of the quietest part of the period:
+/// the circular run of bins holding `quiet_fraction` of the period with
+/// the fewest events is "off-burst", the rest is the burst. Returns
+/// `[start, end)` µs (end may exceed the period), as [`burst_window`].
+///
+/// Unlike [`burst_window`]'s share of the events, this window does not
+/// reach into the tails of the latency distribution: events there are the
+/// floor of the folded histogram (background activity, hot pixels), not
+/// the latency model's tails, whose shape differs from one sensor model to
+/// another.
+pub fn quiet_complement(latency: &Histogram, quiet_fraction: f64) -> Result<(f64, f64)> {
+    if latency.total() <= 0.0 {
+        return Err(Error::analysis(
+            "no events in the latency histogram: cannot locate the burst",
+        ));
+    }
+    if !(quiet_fraction > 0.0 && quiet_fraction < 1.0) {
+        return Err(Error::param(
+            "quiet fraction",
+            format!("{quiet_fraction} must be in (0, 1)"),
+        ));
+    }
+    let n = latency.n_bins();
+    let k = ((quiet_fraction * n as f64).round() as usize).clamp(1, n - 1);
+    let c = &latency.counts;
+    let sum_at = |a: usize| (0..k).map(|j| c[(a + j) % n]).sum::<f64>();
+    let best = (0..n)
+        .min_by(|&a, &b| sum_at(a).total_cmp(&sum_at(b)).then(a.cmp(&b)))
+        .unwrap_or(0);
+    let w = latency.edges[1] - latency.edges[0];
+    let period = latency.edges[n] - latency.edges[0];
+    // Burst: from the end of the quiet run round to its start.
+    let start = latency.edges[0] + ((best + k) % n) as f64 * w;
+    Ok((start, start + period - k as f64 * w))
+}
+
 /// Streaming computation of [`Signatures`].
 ///
 /// Fast path (session 5; [`reference::ReferenceAccumulator`] is the plain
