@@ -99,8 +99,7 @@ pub fn run(a: ModelCheckArgs) -> anyhow::Result<()> {
             Scenario::from_toml_file(p)?
         }
         None => {
-            std::fs::create_dir_all(&a.out)
-                .with_context(|| format!("creating {}", a.out.display()))?;
+            ebptv::io::atomic::create_output_dir(&a.out)?;
             let b = baseline_from_measurement(
                 &events,
                 &rising,
