@@ -4,8 +4,9 @@
 //! - [`Checked`] wraps every source [`super::open_with`] returns. A stated
 //!   geometry no sensor has (a side of 0 or above [`MAX_SENSOR_SIDE`]) is
 //!   dropped (the stages then use the extent of the events, capped the
-//!   same way) and reported in [`StreamInfo::warnings`]; a `% format`
-//!   line contradicting `% evt` is reported; a RAW file without any header
+//!   same way) and reported ([`EventSource::warnings`]); a `% format`
+//!   line contradicting `% evt` is refused unless the caller names the
+//!   format ([`check_header`]); a RAW file without any header
 //!   whose first chunk is mostly words of undefined types is refused (the
 //!   same bytes on standard input are refused for lacking a header).
 //! - [`TimeGuard`] is put in front of the stages that map time to pulses
@@ -67,11 +68,6 @@ impl Checked {
             }
         }
         let raw = matches!(info.format, Format::Evt2 | Format::Evt21 | Format::Evt3);
-        if raw {
-            if let Some(w) = contradiction(&info) {
-                warnings.push(w);
-            }
-        }
         let check_content = raw && info.header.is_empty() && info.payload_offset == 0;
         Checked {
             inner,
@@ -80,6 +76,22 @@ impl Checked {
             warnings,
             check_content,
         }
+    }
+}
+
+/// A RAW header whose `% format` line names another encoding than its
+/// `% evt` line: an error (decoding with the wrong one makes garbage that
+/// can even look periodic), unless the caller named the format.
+pub fn check_header(info: &StreamInfo) -> Result<()> {
+    if !matches!(info.format, Format::Evt2 | Format::Evt21 | Format::Evt3) {
+        return Ok(());
+    }
+    match contradiction(info) {
+        Some(why) => Err(Error::UnknownFormat {
+            path: info.path.clone(),
+            why,
+        }),
+        None => Ok(()),
     }
 }
 
@@ -108,9 +120,7 @@ fn contradiction(info: &StreamInfo) -> Option<String> {
     };
     (!by_evt_ok).then(|| {
         format!(
-            "{}: the header contradicts itself: `% format {fmt}` but `% evt {evt}`; decoding as {} (the `% format` line); name the format with --format if that is wrong",
-            info.path.display(),
-            info.format.name()
+            "the header contradicts itself: `% format {fmt}` but `% evt {evt}`; name the format with --format (ebptv info / convert) or correct the header"
         )
     })
 }
@@ -424,17 +434,19 @@ mod tests {
     }
 
     #[test]
-    fn contradicting_format_lines_are_reported() {
+    fn contradicting_format_lines_are_refused() {
         let mut i = info();
         i.header = vec![
             ("format".into(), "EVT2;height=720;width=1280".into()),
             ("evt".into(), "3.0".into()),
         ];
         i.format = Format::Evt2;
-        let c = Checked::new(Box::new(Vecs(i.clone(), vec![])));
-        assert!(c.warnings()[0].contains("contradicts"), "{:?}", c.warnings());
+        let e = check_header(&i).unwrap_err().to_string();
+        assert!(e.contains("contradicts") && e.contains("x.raw"), "{e}");
         i.header[1].1 = "2.0".into();
-        let c = Checked::new(Box::new(Vecs(i, vec![])));
-        assert!(c.warnings().is_empty());
+        assert!(check_header(&i).is_ok());
+        i.header[0].1 = "EVT3".into();
+        i.header[1].1 = "3.0".into();
+        assert!(check_header(&i).is_ok());
     }
 }

@@ -218,6 +218,9 @@ pub fn open_with(path: impl AsRef<Path>, opts: &OpenOptions) -> Result<Box<dyn E
             })
         }
     };
+    if opts.format.is_none() {
+        guard::check_header(src.info())?;
+    }
     Ok(Box::new(guard::Checked::new(src)))
 }
 
