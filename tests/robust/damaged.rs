@@ -289,7 +289,7 @@ fn small_items() {
     let o = run(&["info".as_ref(), g.as_os_str()]);
     assert_eq!(o.status.code(), Some(1));
     assert!(stderr(&o).contains("contradicts"), "{}", stderr(&o));
-    let o = run(&["info".as_ref(), g.as_os_str(), "--format".as_ref(), "evt3".as_ref()]);
+    let o = run(&["info".as_ref(), g.as_os_str(), "--format".as_ref(), "evt2".as_ref()]);
     assert!(o.status.success(), "{}", stderr(&o));
 
     // A truncated copy: convert reports the tail in words.
