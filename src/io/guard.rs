@@ -120,7 +120,7 @@ fn contradiction(info: &StreamInfo) -> Option<String> {
     };
     (!by_evt_ok).then(|| {
         format!(
-            "the header contradicts itself: `% format {fmt}` but `% evt {evt}`; name the format with --format (ebptv info / convert) or correct the header"
+            "the header contradicts itself: `% format {fmt}` but `% evt {evt}`; name the format (ebptv info --format, ebptv convert --in-format) or correct the header"
         )
     })
 }
@@ -223,7 +223,7 @@ impl<S: EventSource> TimeGuard<S> {
         self.run = Some((first, lo, hi));
         if hi - lo >= JUMP_PERSIST_US {
             return Err(Error::analysis(format!(
-                "{}: the clock jumps by {:+.3} s at {clock} µs (from {clock} to {first} µs) and stays there ({} events and triggers since): the recording is discontinuous, a damaged file? Convert the parts on either side separately (ebptv convert --t-start/--t-end)",
+                "{}: the clock jumps by {:+.3} s at {clock} µs (from {clock} to {first} µs) and stays there ({} events and triggers since): the recording is discontinuous, a damaged file? Convert the parts on either side separately (ebptv convert --from-us/--to-us)",
                 self.inner.info().path.display(),
                 (first - clock) as f64 * 1e-6,
                 self.dropped
@@ -403,7 +403,7 @@ mod tests {
         ts.extend((0..1000).map(|k| 3_600_000_000 + k * 200));
         let mut g = TimeGuard::new(Vecs(info(), vec![chunk(&ts)]));
         let e = drain(&mut g).unwrap_err().to_string();
-        assert!(e.contains("x.raw") && e.contains("jumps by +3600"), "{e}");
+        assert!(e.contains("x.raw") && e.contains("jumps by +3599.999") && e.contains("stays"), "{e}");
     }
 
     #[test]
