@@ -7,7 +7,12 @@ use clap::Parser;
 
 fn main() {
     let args = cli::Cli::parse();
+    // A failed or interrupted run leaves nothing: the outputs it committed,
+    // its temporaries and the output folders it created are removed.
+    ebptv::io::atomic::track_run();
+    cli::install_interrupt_handler();
     if let Err(e) = cli::run(args) {
+        ebptv::io::atomic::rollback();
         eprintln!("error: {e:#}");
         std::process::exit(1);
     }

@@ -1,6 +1,7 @@
 //! `ebptv pulses` and `ebptv monitor` end to end on a simulated RAW file.
 
 mod cli_common;
+mod robust;
 use cli_common::{ebptv, run_ok};
 
 use ebptv::sim::{presets::preset, simulate};

@@ -24,7 +24,7 @@ pub fn run(a: CompareArgs) -> anyhow::Result<()> {
     let ptv = read_table(&a.ptv, &["x", "y", "count", "u", "v", "uu", "vv", "uv"])?;
     let piv = read_table(&a.piv, &["x", "y", "u", "v", "uu", "vv", "uv", "valid"])?;
     let c = compare(&ptv, &piv, a.min_count)?;
-    std::fs::create_dir_all(&a.out).map_err(|e| ebptv::Error::io(&a.out, e))?;
+    ebptv::io::atomic::create_output_dir(&a.out)?;
     let mut json = serde_json::json!({
         "ptv": a.ptv.display().to_string(),
         "piv": a.piv.display().to_string(),

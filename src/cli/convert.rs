@@ -124,7 +124,32 @@ pub fn run(args: ConvertArgs) -> anyhow::Result<()> {
         args.output.display()
     );
     if a.any_problem() {
-        eprintln!("input anomalies: {a:?}");
+        eprintln!("input anomalies: {}", describe_anomalies(&a));
     }
     Ok(())
+}
+
+/// The anomalies a reader met, in words (the counts that are not zero).
+pub(crate) fn describe_anomalies(a: &ebptv::io::Anomalies) -> String {
+    let items = [
+        (a.words_before_time_base, "words before the first time base (skipped)"),
+        (a.unknown_word_types, "words of undefined types"),
+        (a.vector_without_base, "vector words without a base"),
+        (a.out_of_geometry, "events outside the stated geometry"),
+        (a.truncated_tail_bytes, "trailing bytes of an incomplete word"),
+        (a.time_loops, "time-counter loops unwrapped"),
+        (a.skipped_other_words, "other/IMU/continued words skipped"),
+        (a.time_jumps, "clock jumps"),
+        (a.time_jump_events, "events dropped with clock jumps"),
+    ];
+    let parts: Vec<String> = items
+        .iter()
+        .filter(|(n, _)| *n > 0)
+        .map(|(n, what)| format!("{n} {what}"))
+        .collect();
+    if parts.is_empty() {
+        "none".into()
+    } else {
+        parts.join(", ")
+    }
 }

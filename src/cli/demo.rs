@@ -69,7 +69,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         }
     };
     let out = &args.out;
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    ebptv::io::atomic::create_output_dir(out)?;
     let (sim, ptv, grid, piv, cmp) = (
         out.join("sim"),
         out.join("ptv"),

@@ -173,8 +173,7 @@ pub fn run(a: GridArgs) -> anyhow::Result<()> {
         noise_rms: a.noise_rms,
     };
     opt.validate()?;
-    std::fs::create_dir_all(&a.out)
-        .with_context(|| format!("creating output directory {}", a.out.display()))?;
+    ebptv::io::atomic::create_output_dir(&a.out)?;
 
     let mut samples: Vec<Sample> = Vec::new();
     let acc = if !a.merge.is_empty() {

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use clap::Args;
 use ebptv::io::summary::{summarize, Summary};
-use ebptv::io::{self, Format, OpenOptions};
+use ebptv::io::{self, EventSource, Format, OpenOptions};
 
 #[derive(Args, Debug)]
 pub struct InfoArgs {
@@ -70,15 +70,76 @@ pub fn run(args: InfoArgs) -> anyhow::Result<()> {
     }
     let opts = open_options(args.format.as_deref(), args.time_unit.as_deref())?;
     let mut src = io::open_with(&args.file, &opts)?;
+    super::print_warnings(&src);
+    let rejected = src.rejected_geometry();
     let pb = progress_bar(src.info().file_size);
     let summary = summarize(&mut src, args.peak_bin_us, |b| pb.set_position(b))?;
     pb.finish_and_clear();
+    let verdict = pulsed_verdict(&args.file, &opts);
     let text = if args.json {
-        serde_json::to_string_pretty(&summary)? + "\n"
+        let mut v = serde_json::to_value(&summary)?;
+        if let Some(o) = v.as_object_mut() {
+            let j = match &verdict {
+                Ok(v) => serde_json::to_value(v)?,
+                Err(e) => serde_json::json!({ "pulsed": false, "reason": e }),
+            };
+            o.insert("pulsed".into(), j);
+        }
+        serde_json::to_string_pretty(&v)? + "\n"
     } else {
-        render(&summary)
+        let mut t = render(&summary);
+        if let Some(g) = rejected {
+            t = t.replacen(
+                "geometry           not stated",
+                &format!(
+                    "geometry           stated as {}x{}, impossible: ignored",
+                    g.width, g.height
+                ),
+                1,
+            );
+        }
+        t.push_str(&format!(
+            "{:<18} {}\n",
+            "pulsed light",
+            match &verdict {
+                Ok(v) if v.pulsed => format!(
+                    "yes (burst contrast {:.1}, excess {:.0} σ, {:.0} % of events in blocks showing the burst)",
+                    v.burst_contrast,
+                    v.excess_z,
+                    100.0 * v.locked_share
+                ),
+                Ok(v) => format!("no: {}", v.reason),
+                Err(e) => format!("no: {e}"),
+            }
+        ));
+        t
     };
     write_stdout(&text)
+}
+
+/// Events looked at for the pulsed-light verdict of `info` (a prefix of
+/// the recording bounds its cost).
+const VERDICT_EVENTS: u64 = 4_000_000;
+
+/// The pulsed-light test ([`ebptv::pulses::PulsedVerdict`]) on the first
+/// [`VERDICT_EVENTS`] events, triggers used when regular; an error when
+/// no period could be found at all.
+fn pulsed_verdict(
+    path: &std::path::Path,
+    opts: &OpenOptions,
+) -> Result<ebptv::pulses::PulsedVerdict, String> {
+    let run = || -> ebptv::Result<ebptv::pulses::PulsedVerdict> {
+        let mut src = ebptv::io::guard::TimeGuard::new(io::open_with(path, opts)?);
+        let mut an = ebptv::pulses::Analyzer::new(Default::default(), src.info().geometry)?;
+        let mut chunk = ebptv::Chunk::default();
+        let mut seen = 0u64;
+        while seen < VERDICT_EVENTS && src.next_chunk(&mut chunk)? {
+            seen += chunk.events.len() as u64;
+            an.push(&chunk)?;
+        }
+        Ok(an.finish()?.pulsed)
+    };
+    run().map_err(|e| e.to_string())
 }
 
 /// Print, treating a closed pipe (`ebptv info f | head`) as success.

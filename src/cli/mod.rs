@@ -60,6 +60,36 @@ pub enum Command {
     ModelCheck(model_check::ModelCheckArgs),
 }
 
+/// Set by a command that stops cleanly on Ctrl-C (`monitor`); otherwise
+/// Ctrl-C removes what the run wrote and exits with 130.
+static INTERRUPT_FLAG: std::sync::OnceLock<std::sync::Arc<std::sync::atomic::AtomicBool>> =
+    std::sync::OnceLock::new();
+
+pub fn install_interrupt_handler() {
+    let _ = ctrlc::set_handler(|| match INTERRUPT_FLAG.get() {
+        Some(flag) => flag.store(true, std::sync::atomic::Ordering::Relaxed),
+        None => {
+            eprintln!("interrupted: the outputs of this run are removed");
+            ebptv::io::atomic::rollback_and_exit(130)
+        }
+    });
+}
+
+/// Ctrl-C sets the returned flag instead of ending the process.
+pub fn interrupt_flag() -> std::sync::Arc<std::sync::atomic::AtomicBool> {
+    INTERRUPT_FLAG
+        .get_or_init(|| std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false)))
+        .clone()
+}
+
+/// Print the warnings of an opened source (impossible geometry, a header
+/// contradicting itself).
+pub fn print_warnings(src: &dyn ebptv::io::EventSource) {
+    for w in src.warnings() {
+        eprintln!("warning: {w}");
+    }
+}
+
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Demo(a) => demo::run(a),

@@ -66,7 +66,21 @@ pub struct ModelCheckArgs {
     pub paired_judgement: bool,
 }
 
+/// Fewest pulses per fit / held-out block: fewer hold too few events per
+/// pixel for the signatures.
+const MIN_BLOCK_PULSES: u64 = 20;
+
 pub fn run(a: ModelCheckArgs) -> anyhow::Result<()> {
+    if a.block_pulses < MIN_BLOCK_PULSES {
+        return Err(ebptv::Error::param(
+            "block-pulses",
+            format!(
+                "{}: must be at least {MIN_BLOCK_PULSES} (fewer pulses hold too few events for the signatures)",
+                a.block_pulses
+            ),
+        )
+        .into());
+    }
     let mut src = ebptv::io::open(&a.measured)?;
     let geometry_hint = src.info().geometry;
     let mut events = EventChunk::default();
@@ -104,8 +118,7 @@ pub fn run(a: ModelCheckArgs) -> anyhow::Result<()> {
             Scenario::from_toml_file(p)?
         }
         None => {
-            std::fs::create_dir_all(&a.out)
-                .with_context(|| format!("creating {}", a.out.display()))?;
+            ebptv::io::atomic::create_output_dir(&a.out)?;
             let b = baseline_from_measurement(
                 &events,
                 &rising,
@@ -133,7 +146,7 @@ pub fn run(a: ModelCheckArgs) -> anyhow::Result<()> {
         + (timing.assign(t0).unwrap_or(0) as f64 + half_pulses) * timing.period_us;
     // Every objective evaluation simulates one block: its length is what
     // the search costs, so it is capped (`--block-pulses`).
-    let block_pulses = half_pulses.min(a.block_pulses.max(20) as f64);
+    let block_pulses = half_pulses.min(a.block_pulses as f64);
     let block_us = block_pulses * timing.period_us;
     let mut fit_ev = events.clone();
     fit_ev.retain(|t, _, _, _| (t as f64) >= split - block_us && (t as f64) < split);

@@ -1,7 +1,7 @@
 //! `ebptv monitor`: live pulse diagnostics of a recording being written.
 
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
 use clap::Args;
@@ -58,11 +58,7 @@ pub fn run(args: MonitorArgs) -> anyhow::Result<()> {
         args.ignore_triggers,
         None,
     );
-    let stop = Arc::new(AtomicBool::new(false));
-    {
-        let stop = stop.clone();
-        ctrlc::set_handler(move || stop.store(true, Ordering::Relaxed))?;
-    }
+    let stop: Arc<AtomicBool> = super::interrupt_flag();
     let mut src = if stdin {
         ebptv::pulses::live::open_stdin()?
     } else if args.follow {

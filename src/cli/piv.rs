@@ -75,12 +75,17 @@ pub struct PivArgs {
     /// threads); the fields do not depend on it, memory grows with it.
     #[arg(long)]
     pub batch: Option<usize>,
+    /// Go on even when the events show no bursts locked to pulses (see
+    /// `ebptv pulses`).
+    #[arg(long)]
+    pub force_pulses: bool,
     #[arg(long)]
     pub out: PathBuf,
 }
 
 pub fn run(a: PivArgs) -> anyhow::Result<()> {
-    let mut src = ebptv::io::open(&a.recording)?;
+    let mut src = ebptv::io::open_for_analysis(&a.recording)?;
+    super::print_warnings(&src);
     let geom = src.info().geometry.ok_or_else(|| {
         anyhow::anyhow!(
             "{}: the sensor size is not stated in the file; PIV needs it for the pseudo-images",
@@ -91,6 +96,7 @@ pub fn run(a: PivArgs) -> anyhow::Result<()> {
         src.as_mut(),
         &PulseOptions {
             pulse_hz: a.pulse_hz,
+            require_pulsed: !a.force_pulses,
             ..Default::default()
         },
     )?;
@@ -112,14 +118,14 @@ pub fn run(a: PivArgs) -> anyhow::Result<()> {
     let (w, h) = (geom.width as usize, geom.height as usize);
     let mut stream = PivStream::new(w, h, report.timing, opts)?;
     let g = *stream.grid();
-    std::fs::create_dir_all(&a.out).map_err(|e| ebptv::Error::io(&a.out, e))?;
+    ebptv::io::atomic::create_output_dir(&a.out)?;
     let mut su = NpyStack::create(&a.out.join("piv_u.npy"), "<f4", g.ny, g.nx)?;
     let mut sv = NpyStack::create(&a.out.join("piv_v.npy"), "<f4", g.ny, g.nx)?;
     let mut sf = NpyStack::create(&a.out.join("piv_flag.npy"), "|u1", g.ny, g.nx)?;
     let mut times = Vec::new();
     let hz = stream.pulse_hz();
     let bar = indicatif::ProgressBar::new_spinner();
-    let mut src = ebptv::io::open(&a.recording)?;
+    let mut src = ebptv::io::open_for_analysis(&a.recording)?;
     stream.set_batch(a.batch.unwrap_or_else(rayon::current_num_threads))?;
     let mut emit = |f: ebptv::piv::StepField| -> ebptv::Result<()> {
         su.push_f32(f.field.u.iter().map(|&x| (x * hz) as f32))?;

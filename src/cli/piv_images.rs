@@ -46,7 +46,7 @@ pub fn run(a: PivImagesArgs) -> anyhow::Result<()> {
     }
     let step = if a.sequence { 1 } else { a.frames };
     let starts: Vec<usize> = (0..=imgs.len() - a.frames).step_by(step).collect();
-    std::fs::create_dir_all(&a.out).map_err(|e| ebptv::Error::io(&a.out, e))?;
+    ebptv::io::atomic::create_output_dir(&a.out)?;
     let bar = indicatif::ProgressBar::new(starts.len() as u64);
     let t0 = std::time::Instant::now();
     let c0 = process_cpu_seconds();

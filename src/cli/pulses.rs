@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use clap::Args;
 use ebptv::io::atomic::AtomicFile;
+use ebptv::io::EventSource;
 use ebptv::plot::{self, Heatmap, LinePlot, Series, SeriesStyle};
 use ebptv::pulses::{Analyzer, PulseOptions, PulseReport};
 
@@ -29,6 +30,10 @@ pub struct PulsesArgs {
     /// from estimated pulse starts.
     #[arg(long)]
     pub onset_latency_us: Option<f64>,
+    /// Go on even when the events show no bursts locked to pulses (the
+    /// pulsed-light test of `PulsedVerdict` fails).
+    #[arg(long)]
+    pub force_pulses: bool,
     /// Output directory.
     #[arg(long)]
     pub out: PathBuf,
@@ -62,22 +67,25 @@ pub fn options(
         trigger_channel: ch,
         ignore_triggers: ignore,
         onset_latency_us: onset,
+        require_pulsed: false,
     }
 }
 
 pub fn run(args: PulsesArgs) -> anyhow::Result<()> {
-    let opts = options(
+    let mut opts = options(
         args.pulse_hz,
         args.pulse_hz_range,
         args.trigger_channel,
         args.ignore_triggers,
         args.onset_latency_us,
     );
-    let mut src = if args.file.as_os_str() == "-" {
+    opts.require_pulsed = !args.force_pulses;
+    let mut src = ebptv::io::guard::TimeGuard::new(if args.file.as_os_str() == "-" {
         ebptv::pulses::live::open_stdin()?
     } else {
         ebptv::io::open(&args.file)?
-    };
+    });
+    super::print_warnings(&src);
     let size = src.info().file_size.unwrap_or(0);
     let bar = indicatif::ProgressBar::new(size);
     bar.set_style(
@@ -93,11 +101,27 @@ pub fn run(args: PulsesArgs) -> anyhow::Result<()> {
         bar.set_position(src.bytes_read());
     }
     bar.finish_and_clear();
-    let report = an
+    let mut report = an
         .finish()
         .with_context(|| format!("{}: pulse analysis", args.file.display()))?;
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("creating {}", args.out.display()))?;
+    (report.time_jumps, report.time_jump_events) = src.jumps();
+    if report.time_jumps > 0 {
+        eprintln!(
+            "warning: {}: the clock jumped {} times by more than {} s; {} events and triggers stamped with the jumped time were dropped",
+            args.file.display(),
+            report.time_jumps,
+            ebptv::io::guard::TIME_JUMP_US / 1_000_000,
+            report.time_jump_events
+        );
+    }
+    if !report.pulsed.pulsed {
+        eprintln!(
+            "warning: {}: {} (going on: --force-pulses)",
+            args.file.display(),
+            report.not_pulsed_error()
+        );
+    }
+    ebptv::io::atomic::create_output_dir(&args.out)?;
     write_outputs(&report, &args.out)?;
     print_summary(&report);
     Ok(())

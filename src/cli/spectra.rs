@@ -2,7 +2,6 @@
 
 use std::path::PathBuf;
 
-use anyhow::Context;
 use clap::{Args, ValueEnum};
 use serde_json::json;
 
@@ -109,8 +108,7 @@ pub fn run(a: SpectraArgs) -> anyhow::Result<()> {
         moving_average: a.moving_average,
         min_count: a.min_count,
     };
-    std::fs::create_dir_all(&a.out)
-        .with_context(|| format!("creating output directory {}", a.out.display()))?;
+    ebptv::io::atomic::create_output_dir(&a.out)?;
     let samples = read_tracks_csv(&a.tracks)?;
 
     let mut summary = json!({});

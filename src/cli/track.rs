@@ -95,6 +95,10 @@ pub struct TrackArgs {
     /// Ignore the trigger channel and estimate pulse times from the events.
     #[arg(long)]
     pub ignore_triggers: bool,
+    /// Go on even when the events show no bursts locked to pulses (see
+    /// `ebptv pulses`).
+    #[arg(long)]
+    pub force_pulses: bool,
     /// Cluster OFF events too (default: ON events only).
     #[arg(long)]
     pub all_polarities: bool,
@@ -520,8 +524,7 @@ fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
                 .context("--slice-pulses / --slice-overlap")?
         }
     };
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("creating {}", args.out.display()))?;
+    ebptv::io::atomic::create_output_dir(&args.out)?;
 
     let progress = ProgressBar::new_spinner();
     progress.set_style(
@@ -553,12 +556,17 @@ fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
     let opts = PulseOptions {
         pulse_hz: args.pulse_hz,
         ignore_triggers: args.ignore_triggers,
+        require_pulsed: !args.force_pulses,
         ..Default::default()
     };
-    let geometry = ebptv::io::open(&args.input)?.info().geometry;
+    let geometry = {
+        let src = ebptv::io::open(&args.input)?;
+        super::print_warnings(&src);
+        src.info().geometry
+    };
     let progress = pipe.progress.clone();
     let (report, stats, unassigned) = track_recording(
-        &|| ebptv::io::open(&args.input),
+        &|| ebptv::io::open_for_analysis(&args.input),
         &opts,
         stream,
         &mut pipe,

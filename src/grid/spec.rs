@@ -201,6 +201,24 @@ impl GridSpec {
         }
         let ((i_lo, _), (j_lo, _)) = lattice.candidates(x_min, y_min, weighting);
         let ((_, i_hi), (_, j_hi)) = lattice.candidates(x_max, y_max, weighting);
+        let (nx, ny) = ((i_hi - i_lo + 1) as f64, (j_hi - j_lo + 1) as f64);
+        if nx * ny > MAX_BINS as f64 {
+            // The extent, not the bin size, is what is wrong when it is
+            // wider than any sensor.
+            let side = crate::io::guard::MAX_SENSOR_SIDE as f64;
+            let absurd = x_max - x_min > 4.0 * side || y_max - y_min > 4.0 * side;
+            return Err(Error::param(
+                if absurd { "extent" } else { "bin" },
+                format!(
+                    "the samples span x [{x_min}, {x_max}], y [{y_min}, {y_max}] px: {nx} x {ny} bins, more than {MAX_BINS}; {}",
+                    if absurd {
+                        "positions this far apart come from no sensor (damaged or foreign input?); check the input's x and y columns"
+                    } else {
+                        "use a larger bin or a smaller extent"
+                    }
+                ),
+            ));
+        }
         GridSpec::from_window(
             lattice,
             weighting,

@@ -5,12 +5,90 @@
 //! which is renamed over the target on [`AtomicFile::commit`]. Dropped without
 //! commit (an error, a panic, Ctrl-C unwinding), the temporary is removed, so
 //! a failed run never leaves a half-written file that looks like a result.
+//!
+//! A whole run can be made to leave nothing either: after [`track_run`]
+//! every temporary, every committed target and every directory made by
+//! [`create_output_dir`] is recorded, and [`rollback`] (the command line
+//! calls it on an error and on Ctrl-C) removes them: committed outputs,
+//! temporaries still open, then the directories the run created if they are
+//! empty. Errors name the target, never the hidden temporary.
 
 use std::fs::File;
 use std::io::{BufWriter, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
+
+/// What the current run made (recorded once [`track_run`] was called).
+#[derive(Default)]
+struct Made {
+    active: bool,
+    temps: Vec<PathBuf>,
+    committed: Vec<PathBuf>,
+    dirs: Vec<PathBuf>,
+}
+
+static MADE: std::sync::Mutex<Made> = std::sync::Mutex::new(Made {
+    active: false,
+    temps: Vec::new(),
+    committed: Vec::new(),
+    dirs: Vec::new(),
+});
+
+fn made() -> std::sync::MutexGuard<'static, Made> {
+    MADE.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Record what this process writes, for [`rollback`].
+pub fn track_run() {
+    made().active = true;
+}
+
+/// Create the output directory `dir` (and missing parents); the
+/// directories created are recorded for [`rollback`].
+pub fn create_output_dir(dir: impl AsRef<Path>) -> Result<()> {
+    let dir = dir.as_ref();
+    let mut missing = Vec::new();
+    let mut p = Some(dir);
+    while let Some(d) = p {
+        if d.as_os_str().is_empty() || d.exists() {
+            break;
+        }
+        missing.push(d.to_path_buf());
+        p = d.parent();
+    }
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    let mut m = made();
+    if m.active {
+        // Outermost last: removed after the inner ones.
+        m.dirs.extend(missing);
+    }
+    Ok(())
+}
+
+/// Remove everything the run made (see the module doc); returns the number
+/// of files removed. Holds the record's lock: no new temporary appears
+/// meanwhile (a Ctrl-C handler calls this, then exits).
+pub fn rollback() -> usize {
+    let mut m = made();
+    let mut n = 0;
+    let mut files = std::mem::take(&mut m.temps);
+    files.append(&mut m.committed);
+    for f in files {
+        n += std::fs::remove_file(&f).is_ok() as usize;
+    }
+    for d in std::mem::take(&mut m.dirs) {
+        let _ = std::fs::remove_dir(&d);
+    }
+    n
+}
+
+/// Rollback, keeping the lock until the process exits (Ctrl-C).
+pub fn rollback_and_exit(code: i32) -> ! {
+    rollback();
+    let _hold = made();
+    std::process::exit(code)
+}
 
 pub struct AtomicFile {
     target: PathBuf,
@@ -33,7 +111,14 @@ impl AtomicFile {
             .to_string_lossy()
             .into_owned();
         let tmp = dir.join(format!(".{}.{}.partial", name, std::process::id()));
-        let file = File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
+        let file = {
+            let mut m = made();
+            let file = File::create(&tmp).map_err(|e| Error::io(&target, e))?;
+            if m.active {
+                m.temps.push(tmp.clone());
+            }
+            file
+        };
         Ok(AtomicFile {
             target,
             tmp,
@@ -53,7 +138,19 @@ impl AtomicFile {
             .map_err(|e| Error::io(&self.target, e.into_error()))?;
         file.sync_all().map_err(|e| Error::io(&self.target, e))?;
         drop(file);
-        std::fs::rename(&self.tmp, &self.target).map_err(|e| Error::io(&self.target, e))?;
+        let mut m = made();
+        let renamed = std::fs::rename(&self.tmp, &self.target);
+        if m.active {
+            m.temps.retain(|t| t != &self.tmp);
+            if renamed.is_ok() {
+                m.committed.push(self.target.clone());
+            }
+        }
+        drop(m);
+        if let Err(e) = renamed {
+            let _ = std::fs::remove_file(&self.tmp);
+            return Err(Error::io(&self.target, e));
+        }
         Ok(())
     }
 
@@ -108,6 +205,10 @@ impl Drop for AtomicFile {
     fn drop(&mut self) {
         if self.writer.take().is_some() {
             let _ = std::fs::remove_file(&self.tmp);
+            let mut m = made();
+            if m.active {
+                m.temps.retain(|t| t != &self.tmp);
+            }
         }
     }
 }
@@ -126,6 +227,16 @@ mod tests {
         }
         assert!(!target.exists());
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+    }
+
+    /// A directory that cannot be written: the error names the target the
+    /// user asked for, not the hidden temporary.
+    #[test]
+    fn errors_name_the_target() {
+        let dir = tempfile::tempdir().unwrap();
+        let target = dir.path().join("missing").join("out.csv");
+        let e = AtomicFile::create(&target).err().unwrap().to_string();
+        assert!(e.contains("out.csv") && !e.contains(".partial"), "{e}");
     }
 
     #[test]

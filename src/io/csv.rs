@@ -559,10 +559,12 @@ fn parse_polarity(s: &str) -> Option<u8> {
         _ => match s.to_ascii_lowercase().as_str() {
             "true" | "on" | "pos" | "+" => Some(ON),
             "false" | "off" | "neg" | "-" => Some(OFF),
+            // Numbers: only -1, 0 and 1 (written as 1.0 etc.); 7 is not a
+            // polarity but a sign of a wrong column or a damaged file.
             other => other
                 .parse::<f64>()
                 .ok()
-                .filter(|v| v.is_finite())
+                .filter(|v| *v == 1.0 || *v == 0.0 || *v == -1.0)
                 .map(|v| (v > 0.0) as u8),
         },
     }
@@ -1033,6 +1035,13 @@ mod tests {
         );
         let cols = info.header.iter().find(|(k, _)| k == "columns").unwrap();
         assert!(cols.1.contains("assumed"));
+        // Numbers other than -1/0/1 are not polarities.
+        for bad in ["7", "2", "0.5", "-3"] {
+            assert_eq!(parse_polarity(bad), None, "{bad}");
+        }
+        for (ok, v) in [("1.0", ON), ("-1.0", OFF), ("0.0", OFF)] {
+            assert_eq!(parse_polarity(ok), Some(v), "{ok}");
+        }
         // A t,x,y,p file without header: the "polarity" column holds y values.
         let p = write(dir.path(), "h2.csv", "100,3,4,1\n200,5,66,0\n");
         let e = read_all(&p, 10, None).unwrap_err().to_string();

@@ -103,6 +103,13 @@ pub struct Anomalies {
     pub time_loops: u64,
     /// Skipped OTHERS / IMU / CONTINUED words (legal, not errors).
     pub skipped_other_words: u64,
+    /// Runs of events whose time jumped by more than
+    /// [`guard::TIME_JUMP_US`] against the clock ([`guard::TimeGuard`]).
+    #[serde(default)]
+    pub time_jumps: u64,
+    /// Events and triggers dropped with those jumps.
+    #[serde(default)]
+    pub time_jump_events: u64,
 }
 
 impl Anomalies {
@@ -112,6 +119,7 @@ impl Anomalies {
             || self.vector_without_base > 0
             || self.out_of_geometry > 0
             || self.truncated_tail_bytes > 0
+            || self.time_jumps > 0
     }
 }
 
@@ -133,6 +141,17 @@ pub trait EventSource: Send {
     fn bytes_read(&self) -> u64 {
         0
     }
+
+    /// What the user should hear about the file before its events
+    /// (an impossible stated geometry, a self-contradicting header).
+    fn warnings(&self) -> Vec<String> {
+        Vec::new()
+    }
+
+    /// A stated geometry that was dropped as impossible ([`guard::Checked`]).
+    fn rejected_geometry(&self) -> Option<Geometry> {
+        None
+    }
 }
 
 impl EventSource for Box<dyn EventSource> {
@@ -147,6 +166,12 @@ impl EventSource for Box<dyn EventSource> {
     }
     fn bytes_read(&self) -> u64 {
         (**self).bytes_read()
+    }
+    fn warnings(&self) -> Vec<String> {
+        (**self).warnings()
+    }
+    fn rejected_geometry(&self) -> Option<Geometry> {
+        (**self).rejected_geometry()
     }
 }
 
@@ -178,23 +203,32 @@ pub fn open_with(path: impl AsRef<Path>, opts: &OpenOptions) -> Result<Box<dyn E
         None => sniff::detect_format(path)?,
     };
     let chunk = opts.chunk_events.unwrap_or(DEFAULT_CHUNK_EVENTS).max(1);
-    match format {
-        Format::Evt2 => Ok(Box::new(evt2::Evt2Reader::open(path, chunk)?)),
-        Format::Evt21 => Ok(Box::new(evt21::Evt21Reader::open(path, chunk)?)),
-        Format::Evt3 => Ok(Box::new(evt3::Evt3Reader::open(path, chunk)?)),
-        Format::Dat => Ok(Box::new(dat::DatReader::open(path, chunk)?)),
-        Format::Csv => Ok(Box::new(csv::CsvReader::open(
-            path,
-            chunk,
-            opts.csv_time_unit,
-        )?)),
-        Format::Aedat4 => Ok(Box::new(aedat4::Aedat4Reader::open(path, chunk)?)),
-        Format::Es => Ok(Box::new(es::EsReader::open(path, chunk)?)),
-        Format::Npy => Err(Error::UnknownFormat {
-            path: path.to_path_buf(),
-            why: ".npy is an output format of ebptv; read it with numpy".into(),
-        }),
+    let src: Box<dyn EventSource> = match format {
+        Format::Evt2 => Box::new(evt2::Evt2Reader::open(path, chunk)?),
+        Format::Evt21 => Box::new(evt21::Evt21Reader::open(path, chunk)?),
+        Format::Evt3 => Box::new(evt3::Evt3Reader::open(path, chunk)?),
+        Format::Dat => Box::new(dat::DatReader::open(path, chunk)?),
+        Format::Csv => Box::new(csv::CsvReader::open(path, chunk, opts.csv_time_unit)?),
+        Format::Aedat4 => Box::new(aedat4::Aedat4Reader::open(path, chunk)?),
+        Format::Es => Box::new(es::EsReader::open(path, chunk)?),
+        Format::Npy => {
+            return Err(Error::UnknownFormat {
+                path: path.to_path_buf(),
+                why: ".npy is an output format of ebptv; read it with numpy".into(),
+            })
+        }
+    };
+    if opts.format.is_none() {
+        guard::check_header(src.info())?;
     }
+    Ok(Box::new(guard::Checked::new(src)))
+}
+
+/// [`open`] for the stages that map time to pulses: the source behind a
+/// [`guard::TimeGuard`] (events whose time jumped are dropped and counted;
+/// a jump that stays is an error).
+pub fn open_for_analysis(path: impl AsRef<Path>) -> Result<Box<dyn EventSource>> {
+    Ok(Box::new(guard::TimeGuard::new(open(path)?)))
 }
 
 /// A sink for events and triggers.
@@ -249,6 +283,7 @@ pub mod evt2;
 pub mod evt21;
 pub mod evt3;
 pub mod filter;
+pub mod guard;
 pub mod npy;
 pub mod raw_header;
 pub mod raw_reader;

@@ -48,6 +48,10 @@ pub const MAX_GROUP: usize = 64;
 /// Events sharing (row, timestamp) in a run at least this long are the
 /// arbiter-saturation signature.
 pub const LARGE_GROUP: usize = 4;
+/// Largest side of the pixel-count map: the largest sensor side ebptv
+/// accepts ([`crate::io::guard::MAX_SENSOR_SIDE`]); 16 MB of u8 at most,
+/// whatever geometry a file states or coordinates damaged data holds.
+pub const MAX_MAP_SIDE: usize = crate::io::guard::MAX_SENSOR_SIDE as usize;
 /// Interleaved run-size tables (breaks store-to-load chains).
 const GROUP_TABLES: usize = 4;
 
@@ -183,6 +187,8 @@ pub struct Accumulator {
     counts: Vec<u8>,
     /// Pixels whose count wrapped, once per wrap.
     overflow: Vec<u32>,
+    /// Events with x or y at or beyond [`MAX_MAP_SIDE`]: not in the map.
+    pub off_map: u64,
     pub n_events: u64,
     pub n_on: u64,
     pub t_min: i64,
@@ -237,12 +243,14 @@ fn merge_pairs(blocks: &mut Vec<Block>) {
 
 impl Accumulator {
     pub fn new(width: usize, height: usize, block_us: i64, max_blocks: usize) -> Self {
-        let (width, height) = (width.max(1), height.max(1));
+        let width = width.clamp(1, MAX_MAP_SIDE);
+        let height = height.clamp(1, MAX_MAP_SIDE);
         Accumulator {
             width,
             height,
             counts: vec![0; width * height],
             overflow: Vec::new(),
+            off_map: 0,
             n_events: 0,
             n_on: 0,
             t_min: i64::MAX,
@@ -376,7 +384,12 @@ impl Accumulator {
         let mx = xs.iter().copied().max().unwrap_or(0) as usize;
         let my = ys.iter().copied().max().unwrap_or(0) as usize;
         if mx >= self.width || my >= self.height {
-            self.grow_map(mx + 1, my + 1);
+            self.grow_map((mx + 1).min(MAX_MAP_SIDE), (my + 1).min(MAX_MAP_SIDE));
+            if mx >= MAX_MAP_SIDE || my >= MAX_MAP_SIDE {
+                // Coordinates no sensor has (damaged data): not mapped,
+                // counted; the map stays within MAX_MAP_SIDE².
+                return self.count_pixels_capped(xs, ys);
+            }
         }
         let w = self.width;
         let counts = &mut self.counts[..];
@@ -384,6 +397,24 @@ impl Accumulator {
             let i = y as usize * w + x as usize;
             let c = counts[i].wrapping_add(1);
             counts[i] = c;
+            if c == 0 {
+                self.overflow.push(i as u32);
+            }
+        }
+    }
+
+    #[cold]
+    fn count_pixels_capped(&mut self, xs: &[u16], ys: &[u16]) {
+        let (w, h) = (self.width, self.height);
+        for (&x, &y) in xs.iter().zip(ys) {
+            let (x, y) = (x as usize, y as usize);
+            if x >= w || y >= h {
+                self.off_map += 1;
+                continue;
+            }
+            let i = y * w + x;
+            let c = self.counts[i].wrapping_add(1);
+            self.counts[i] = c;
             if c == 0 {
                 self.overflow.push(i as u32);
             }
@@ -810,6 +841,25 @@ pub(crate) mod tests {
             }
             assert!(checked > 190_000);
         }
+    }
+
+    #[test]
+    fn map_stays_bounded_for_absurd_coordinates() {
+        let f = Fold::new(0, 50.0, 50);
+        let mut a = Accumulator::new(65535, 65535, 1000, 8);
+        assert_eq!((a.width, a.height), (MAX_MAP_SIDE, MAX_MAP_SIDE));
+        let mut a2 = Accumulator::new(4, 4, 1000, 8);
+        let mut c = EventChunk::default();
+        c.push(1, 1, 1, 1);
+        c.push(2, 65535, 3, 1);
+        c.push(3, 2, 60000, 1);
+        c.push(4, 2, 2, 1);
+        a2.push(&f, &c);
+        a.push(&f, &c);
+        assert!(a2.width <= MAX_MAP_SIDE && a2.height <= MAX_MAP_SIDE);
+        assert_eq!(a2.off_map, 2);
+        assert_eq!(a2.pixel_counts().iter().sum::<u32>(), 2);
+        assert_eq!(a2.n_events, 4);
     }
 
     #[test]

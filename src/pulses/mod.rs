@@ -157,6 +157,10 @@ pub struct PulseOptions {
     /// Known delay from the light pulse to the burst onset (µs), subtracted
     /// from estimated pulse starts (ignored with triggers).
     pub onset_latency_us: Option<f64>,
+    /// Fail in [`Analyzer::finish`] when the recording does not pass the
+    /// pulsed-light test ([`PulsedVerdict`]); the report carries the
+    /// verdict either way.
+    pub require_pulsed: bool,
 }
 
 /// Default search band without any frequency hint (Hz).
@@ -186,6 +190,25 @@ const WARMUP_TRIGGER_EDGES: usize = 64;
 /// Events buffered at least before the warm-up may end early.
 const WARMUP_MIN_EVENTS: usize = 10_000;
 const BLOCK_US_INITIAL: i64 = 2_000;
+/// Lowest pulse frequency handled (Hz): a longer period is no laser pulsing
+/// of a velocimetry recording (a camera's frame triggers, a damaged file),
+/// and it bounds the latency histogram (1 µs bins) to 50 000 bins.
+pub const MIN_PULSE_HZ: f64 = 20.0;
+/// Bins of each block's fold histogram at most (bins are 1 µs up to this
+/// period, wider above): bounds the block histograms to 1024 × 8192 × 4 B.
+const MAX_FOLD_BINS: usize = 8192;
+/// Empty pulses [`Splitter`] hands over in a row at most (a gap of
+/// minutes at kHz rates): beyond, the clock jumped.
+pub const MAX_EMPTY_PULSES: i64 = 1_000_000;
+/// Pulsed-light test: least contrast of the burst window (see
+/// [`PulsedVerdict`]).
+pub const MIN_PULSED_CONTRAST: f64 = 2.0;
+/// Pulsed-light test: least significance of the burst's excess over the
+/// random floor (standard deviations of the floor's Poisson count).
+pub const MIN_PULSED_Z: f64 = 5.0;
+/// Pulsed-light test: least share of events in time blocks that show the
+/// burst themselves.
+pub const MIN_LOCKED_SHARE: f64 = 0.5;
 const MAX_BLOCKS: usize = 1024;
 const MAX_SLICES: usize = 16;
 
@@ -193,18 +216,18 @@ impl PulseOptions {
     /// Check the user's values; name the parameter that is wrong.
     pub fn validate(&self) -> Result<()> {
         if let Some(f) = self.pulse_hz {
-            if !(f.is_finite() && f > 0.0 && f <= 200_000.0) {
+            if !(f.is_finite() && f >= MIN_PULSE_HZ && f <= 200_000.0) {
                 return Err(Error::param(
                     "pulse_hz",
-                    format!("{f} Hz: must be in (0, 200000]"),
+                    format!("{f} Hz: must be in [{MIN_PULSE_HZ}, 200000]"),
                 ));
             }
         }
         if let Some((a, b)) = self.pulse_hz_range {
-            if !(a.is_finite() && b.is_finite() && a > 0.0 && a < b && b <= 200_000.0) {
+            if !(a.is_finite() && b.is_finite() && a >= MIN_PULSE_HZ && a < b && b <= 200_000.0) {
                 return Err(Error::param(
                     "pulse_hz_range",
-                    format!("{a}..{b} Hz: need 0 < A < B ≤ 200000"),
+                    format!("{a}..{b} Hz: need {MIN_PULSE_HZ} ≤ A < B ≤ 200000"),
                 ));
             }
         }
@@ -314,6 +337,104 @@ pub struct RateMapReport {
     pub rate: Vec<f32>,
 }
 
+/// Is the recording pulsed at all? The test behind the verdict.
+///
+/// A pulsed light sheet makes the particles fire within a latency window
+/// that is a fraction of the period, every pulse; events of anything else
+/// (noise, a scene under steady light) fall anywhere in the period. So, in
+/// the latency histogram (events folded on the pulse train, from triggers
+/// or estimated):
+///
+/// 1. **Contrast** ≥ [`MIN_PULSED_CONTRAST`]: the event density inside the
+///    burst window (the shortest interval holding 95 % of the excess over
+///    the floor) is at least twice that outside, i.e. inside the window the
+///    events locked to the pulses at least equal the random ones. A scene
+///    without pulsed light folded on any period (the best one of a search
+///    included) gives 1.0–1.3: its excess is spread over most of the period.
+/// 2. **Significance** ≥ [`MIN_PULSED_Z`]: the excess in the window exceeds
+///    the Poisson spread of the random count expected there by that many
+///    standard deviations (few events cannot pass by chance).
+/// 3. **Locked in time** ≥ [`MIN_LOCKED_SHARE`]: at least half of the events
+///    lie in time blocks (of ≥ 100 events) whose own burst fraction reaches
+///    half of the recording's; one flash of the scene folded into the
+///    histogram makes a peak, but only in its own block.
+///
+/// A trigger channel alone does not make a recording pulsed: with triggers
+/// the same test runs on the events folded on the trigger train (a
+/// camera's frame-exposure triggers are regular, but the events are not
+/// locked to them). A saturated readout also fails (its timing no longer
+/// follows the pulses) — the error then names the saturation measure.
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
+pub struct PulsedVerdict {
+    pub pulsed: bool,
+    pub burst_contrast: f64,
+    pub excess_z: f64,
+    pub locked_share: f64,
+    /// What failed (empty when pulsed).
+    pub reason: String,
+}
+
+impl PulsedVerdict {
+    /// Apply the test to a latency histogram and the time blocks' burst
+    /// fractions (`(events, burst fraction)` per block).
+    pub fn judge(stats: &diagnostics::LatencyStats, blocks: &[(u64, f64)]) -> PulsedVerdict {
+        let h = &stats.histogram;
+        let n = h.len();
+        let total: f64 = h.iter().sum();
+        let (w0, w1) = stats.window95_us;
+        let (w0, wl) = (w0.max(0.0) as usize, ((w1 - w0).max(0.0) as usize).min(n));
+        let inside: f64 = (w0..w0 + wl).map(|i| h[i % n.max(1)]).sum();
+        let outside = (total - inside).max(0.0);
+        let expected = if wl < n {
+            outside / (n - wl) as f64 * wl as f64
+        } else {
+            inside
+        };
+        let excess_z = (inside - expected) / expected.max(1.0).sqrt();
+        let global = stats.burst_fraction;
+        let (mut all, mut locked) = (0u64, 0u64);
+        for &(events, burst) in blocks {
+            if events >= 100 {
+                all += events;
+                if burst >= 0.5 * global {
+                    locked += events;
+                }
+            }
+        }
+        let locked_share = if all > 0 {
+            locked as f64 / all as f64
+        } else {
+            1.0
+        };
+        let contrast = stats.burst_contrast;
+        let mut why = Vec::new();
+        if !(contrast >= MIN_PULSED_CONTRAST) {
+            why.push(format!(
+                "burst contrast {contrast:.2} < {MIN_PULSED_CONTRAST} (events in the burst window per µs against those outside)"
+            ));
+        }
+        if !(excess_z >= MIN_PULSED_Z) {
+            why.push(format!(
+                "burst excess {excess_z:.1} σ < {MIN_PULSED_Z} σ over the random floor"
+            ));
+        }
+        if !(locked_share >= MIN_LOCKED_SHARE) {
+            why.push(format!(
+                "only {:.0} % of the events in time blocks showing the burst (< {:.0} %)",
+                100.0 * locked_share,
+                100.0 * MIN_LOCKED_SHARE
+            ));
+        }
+        PulsedVerdict {
+            pulsed: why.is_empty(),
+            burst_contrast: contrast,
+            excess_z,
+            locked_share,
+            reason: why.join("; "),
+        }
+    }
+}
+
 /// Result of the pulse stage, serialised flat as `pulses.json`.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct PulseReport {
@@ -348,6 +469,50 @@ pub struct PulseReport {
     /// (figure of the rate with pulse marks).
     pub rate_trace: Vec<u32>,
     pub rate_trace_t0_us: i64,
+    /// Is the recording pulsed at all ([`PulsedVerdict`]).
+    #[serde(default)]
+    pub pulsed: PulsedVerdict,
+    /// Events with x or y beyond any sensor (damaged data): not in the map.
+    #[serde(default)]
+    pub off_sensor_events: u64,
+    /// Clock jumps met by the caller's [`crate::io::guard::TimeGuard`]
+    /// (filled in by the caller; 0 without one).
+    #[serde(default)]
+    pub time_jumps: u64,
+    /// Events and triggers dropped with those jumps.
+    #[serde(default)]
+    pub time_jump_events: u64,
+}
+
+impl PulseReport {
+    /// The error of a recording without pulsed light: what was measured,
+    /// and how to go on anyway.
+    pub fn not_pulsed_error(&self) -> Error {
+        let v = &self.pulsed;
+        let how = match self.timing.source {
+            PulseSource::Trigger => format!(
+                "events folded on the trigger train of channel {} ({:.3} Hz)",
+                self.triggers.fit.as_ref().map_or(0, |f| f.channel),
+                1e6 / self.timing.period_us
+            ),
+            PulseSource::Estimated => format!(
+                "events folded on the best period found, {:.3} Hz",
+                1e6 / self.timing.period_us
+            ),
+        };
+        let sat = if self.saturation.large_group_fraction > SATURATION_GROUP_FRACTION {
+            format!(
+                "; or the readout saturated ({:.0} % of events in row groups)",
+                100.0 * self.saturation.large_group_fraction
+            )
+        } else {
+            String::new()
+        };
+        Error::analysis(format!(
+            "no pulsed illumination: the events show no bursts locked to pulses ({how}: {}){sat}. If the light was pulsed, give its frequency (--pulse-hz, or --trigger-channel for the laser's trigger), or go on anyway with --force-pulses",
+            v.reason
+        ))
+    }
 }
 
 /// One streaming pass over `source`: pulse timing and diagnostics.
@@ -566,6 +731,7 @@ impl Analyzer {
         let (t_min, t_max) = (self.acc.t_min, self.acc.t_max);
         let channel = self.choose_channel()?;
         let fit = channel.and_then(|c| timing::fit_trigger_train(c, &self.edges[&c]).ok());
+        let from_triggers = fit.is_some();
         let (p_ref, t_ref) = match fit {
             Some(f) => (f.period_us, f.first_us.floor() as i64),
             None => {
@@ -578,7 +744,14 @@ impl Analyzer {
                 (p, t_min)
             }
         };
-        let nbins = (p_ref.round() as usize).max(8);
+        if !(p_ref.is_finite() && p_ref >= 1.0 && p_ref <= 1e6 / MIN_PULSE_HZ) {
+            return Err(Error::analysis(format!(
+                "pulse period {p_ref:.1} µs ({:.3} Hz) from the {}: outside what ebptv handles ({MIN_PULSE_HZ} Hz .. 1 MHz); choose another channel with --trigger-channel or --ignore-triggers",
+                1e6 / p_ref,
+                if from_triggers { "trigger train" } else { "events" }
+            )));
+        }
+        let nbins = (p_ref.round() as usize).clamp(8, MAX_FOLD_BINS);
         let f = Fold::new(t_ref, p_ref, nbins);
         self.fold = Some(f);
         // Two periods hold one whole assignment window wherever it sits.
@@ -860,6 +1033,9 @@ impl Analyzer {
             }
         }
         let sat_events = flagged as f64 / self.acc.n_events as f64;
+        let block_bursts: Vec<(u64, f64)> =
+            windows.iter().map(|w| (w.events, w.burst_fraction)).collect();
+        let pulsed = PulsedVerdict::judge(&stats, &block_bursts);
         let shared: u64 = self.acc.blocks.iter().map(|b| b.shared).sum();
         let large: u64 = self.acc.blocks.iter().map(|b| b.large).sum();
         let large_fraction = large as f64 / self.acc.n_events as f64;
@@ -961,6 +1137,17 @@ impl Analyzer {
             rate_map,
             rate_trace: self.acc.trace.clone(),
             rate_trace_t0_us: self.acc.trace_t0,
+            pulsed,
+            off_sensor_events: self.acc.off_map,
+            time_jumps: 0,
+            time_jump_events: 0,
+        })
+        .and_then(|r| {
+            if self.opts.require_pulsed && !r.pulsed.pulsed {
+                Err(r.not_pulsed_error())
+            } else {
+                Ok(r)
+            }
         })
     }
 
@@ -1228,6 +1415,15 @@ impl Splitter {
         let mut i = 0;
         while i < n {
             let t = ev.t[i];
+            if t >= self.emit_after {
+                let gap = (t as f64 - origin) / p - self.base as f64;
+                if gap > (MAX_EMPTY_PULSES + self.pending.len() as i64) as f64 {
+                    return Err(Error::analysis(format!(
+                        "event time {t} µs lies {gap:.0} pulses after pulse {}: the clock jumped (a damaged recording?)",
+                        self.base
+                    )));
+                }
+            }
             while t >= self.emit_after {
                 self.emit_front(on_pulse)?;
             }
