@@ -10,11 +10,15 @@
 //!    binned with [`crate::grid`] (top-hat bins, `bin_px` wide) → the mean
 //!    field, empty bins filled from their neighbours → a regular
 //!    `x,y,u,v` grid that the simulator replays as its `gridded` flow.
-//! 3. **Seeding density**: particles found per pulse per pixel.
-//! 4. **Brightness / events per particle**: the light energy that makes
-//!    the simulator's clusters hold as many events on average as the
+//! 3. **Brightness / pixels per particle**: the light energy that makes
+//!    the simulator's clusters light as many pixels on average as the
 //!    measured ones (bisection on log energy with the simulator on a small
-//!    crop, common random numbers so the search is monotone).
+//!    crop, common random numbers so the search is monotone). Pixels, not
+//!    events: the image size is the light's and the optics'; the events
+//!    each lit pixel gives are the pixel's response, which effects change.
+//! 4. **Seeding density**: the seeded density scaled until the simulator's
+//!    clusters per pulse and pixel match the measured ones (some seeded
+//!    particles are too dim to be found, some overlap).
 //! 5. **Latency median**: the fixed pixel latency shifted until the median
 //!    latency of all events (time after their pulse's start) matches the
 //!    measured. All events, not each cluster's first: a symmetric latency
@@ -198,56 +202,79 @@ pub fn baseline_from_measurement(
         n_pulses
     ));
 
-    // Events per particle and latency, calibrated with the simulator on a
+    // Light energy, seeding and latency, calibrated with the simulator on a
     // crop (a uniform flow at the measured median speed: only the pixels'
-    // response matters here).
+    // response and the clustering matter here).
+    //
+    // The energy is matched on the pixels a particle lights, not on its
+    // events: how large a particle image is depends on the light and the
+    // optics, how many events each lit pixel gives is the pixel's response,
+    // which effects change (a refractory pixel fires once per pulse). An
+    // energy matched on events would absorb such an effect into smaller
+    // images.
+    let measured_ppc = mean_pixels(&sink.particles);
     let measured_epc = mean_events(&sink.particles);
+    let measured_density = sink.particles.len() as f64 / n_pulses as f64 / geometry.pixels() as f64;
     let measured_lat = median_event_latency(events, &timing);
     let speeds = median_velocity(&sink.tracks);
-    let base = sc.clone();
-    let calib = |energy: f64, latency_us: f64| -> Result<(f64, f64)> {
-        let mut c = base.clone();
+    let calib = |sc: &Scenario| -> Result<(f64, f64, f64)> {
+        let mut c = sc.clone();
         c.sensor = Sensor {
-            width: base.sensor.width.min(192),
-            height: base.sensor.height.min(144),
+            width: sc.sensor.width.min(192),
+            height: sc.sensor.height.min(144),
             roi: None,
         };
         c.flow = FlowSpec::Uniform {
             u: speeds.0,
             v: speeds.1,
         };
-        c.duration_s = (base.period_us() * 60.0 + base.light.first_pulse_us) * 1e-6;
-        c.light.energy = energy;
-        c.pixel.latency_us = latency_us;
+        let pulses = 60.0;
+        c.duration_s = (sc.period_us() * pulses + sc.light.first_pulse_us) * 1e-6;
         c.validate()?;
         let out = crate::sim::simulate(&c, opts.seed)?;
         let t = timing_of(&c);
         let parts = particles_of(&out.events, &t, &cluster)?;
         if parts.is_empty() {
-            return Ok((0.0, f64::NAN));
+            return Ok((0.0, 0.0, f64::NAN));
         }
-        Ok((mean_events(&parts), median_event_latency(&out.events, &t)))
+        let density = parts.len() as f64 / pulses / (c.sensor.width as f64 * c.sensor.height as f64);
+        Ok((
+            mean_pixels(&parts),
+            density,
+            median_event_latency(&out.events, &t),
+        ))
     };
     let (mut lo, mut hi) = (0.2f64.ln(), 500f64.ln());
     for _ in 0..14 {
         let mid = 0.5 * (lo + hi);
-        let (epc, _) = calib(mid.exp(), sc.pixel.latency_us)?;
-        if epc < measured_epc {
+        let mut c = sc.clone();
+        c.light.energy = mid.exp();
+        let (ppc, _, _) = calib(&c)?;
+        if ppc < measured_ppc {
             lo = mid;
         } else {
             hi = mid;
         }
     }
     sc.light.energy = (0.5 * (lo + hi)).exp();
+    // The seeded density is more than the density of particles found
+    // (some are too dim or overlap): scale it until the simulator's found
+    // density matches the measured one (the count is proportional to it).
     for _ in 0..2 {
-        let (_, lat) = calib(sc.light.energy, sc.pixel.latency_us)?;
+        let (_, density, _) = calib(&sc)?;
+        if density > 0.0 && measured_density > 0.0 {
+            sc.seeding.ppp = (sc.seeding.ppp * measured_density / density).clamp(1e-5, 0.1);
+        }
+    }
+    for _ in 0..2 {
+        let (_, _, lat) = calib(&sc)?;
         if lat.is_finite() && measured_lat.is_finite() {
             sc.pixel.latency_us = (sc.pixel.latency_us + measured_lat - lat).max(0.0);
         }
     }
     notes.push(format!(
-        "brightness: light energy {:.3} for {:.2} events per particle; latency: fixed part {:.1} us for a median event latency of {:.1} us; particle image diameter and brightness spread are the simulator defaults",
-        sc.light.energy, measured_epc, sc.pixel.latency_us, measured_lat
+        "brightness: light energy {:.3} for {:.2} pixels per particle ({:.2} events); seeding {:.5} per pixel for {:.5} particles found per pixel and pulse; latency: fixed part {:.1} us for a median event latency of {:.1} us; particle image diameter and brightness spread are the simulator defaults",
+        sc.light.energy, measured_ppc, measured_epc, sc.seeding.ppp, measured_density, sc.pixel.latency_us, measured_lat
     ));
     sc.validate()?;
     Ok(Baseline {
@@ -257,6 +284,10 @@ pub fn baseline_from_measurement(
         particles: sink.particles,
         notes,
     })
+}
+
+fn mean_pixels(ps: &[Particle]) -> f64 {
+    ps.iter().map(|p| p.n_pixels as f64).sum::<f64>() / ps.len().max(1) as f64
 }
 
 fn mean_events(ps: &[Particle]) -> f64 {
