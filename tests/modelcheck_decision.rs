@@ -156,3 +156,104 @@ fn explaining_away() {
         PairOutcome::Ambiguous
     );
 }
+
+// ------------------------------------------------------------------
+// The standard-sensor check's rule (`modelcheck::standard`).
+
+mod standard_rule {
+    use super::table;
+    use ebptv::modelcheck::standard::{
+        decide, excess, gap_on, structural_rows, ACCEPT_RATIO, RIVAL_MARGIN,
+    };
+    use ebptv::modelcheck::workflow::CandidateResult;
+    use std::collections::BTreeMap;
+
+    fn cand(name: &str, n_params: usize, gap_after: f64) -> CandidateResult {
+        CandidateResult {
+            name: name.into(),
+            parameters: (0..n_params).map(|k| (format!("p{k}"), 1.0)).collect::<BTreeMap<_, _>>(),
+            objective: 0.0,
+            gap_after,
+            improvement: 0.0,
+            evaluations: 1,
+            z_after: BTreeMap::new(),
+        }
+    }
+
+    #[test]
+    fn the_gap_counts_only_what_lies_beyond_the_standard_range() {
+        assert_eq!(excess(0.4), 0.0);
+        assert_eq!(excess(1.0), 0.0);
+        assert!((excess(5.5) - 4.5).abs() < 1e-12);
+        let t = table(&[("a", 6.0), ("b", 0.5), ("c", 3.0)]);
+        assert!((gap_on(&t, &[]) - 7.0).abs() < 1e-12);
+        assert!((gap_on(&t, &["a".to_string()]) - 2.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_clear_winner_that_halves_the_gap_is_named() {
+        let sorted = [cand("x", 1, 4.0), cand("y", 1, 15.0)];
+        let (pick, note) = decide(20.0, true, &sorted);
+        assert_eq!(pick, Some(0), "{note}");
+    }
+
+    #[test]
+    fn nothing_is_named_without_a_disagreement_or_below_half() {
+        let sorted = [cand("x", 1, 4.0)];
+        assert_eq!(decide(20.0, false, &sorted).0, None);
+        // Removes less than half: the closest impostor of something else.
+        let sorted = [cand("x", 1, 10.5), cand("y", 1, 19.0)];
+        assert!(10.5 > ACCEPT_RATIO * 20.0);
+        assert_eq!(decide(20.0, true, &sorted).0, None);
+    }
+
+    #[test]
+    fn a_near_tie_is_not_named_unless_one_explanation_is_simpler() {
+        // Gain 16; the rival is within a quarter of it (lead 2 < 4).
+        assert!(2.0 < RIVAL_MARGIN * 16.0);
+        let tie = [cand("x", 2, 4.0), cand("y", 2, 6.0)];
+        assert_eq!(decide(20.0, true, &tie).0, None);
+        // The simpler of the two, itself halving the gap, is named.
+        let tie = [cand("x", 2, 4.0), cand("y", 1, 6.0), cand("z", 1, 15.0)];
+        assert_eq!(decide(20.0, true, &tie).0, Some(1));
+        // Two equally simple ones within the margin: nothing.
+        let tie = [cand("x", 2, 4.0), cand("y", 1, 6.0), cand("z", 1, 7.0)];
+        assert_eq!(decide(20.0, true, &tie).0, None);
+    }
+
+    #[test]
+    fn rows_no_candidate_brings_half_way_back_are_structural() {
+        let before = table(&[("a", 11.0), ("b", 9.0), ("c", 0.5)]);
+        // Candidate 1 fixes a; candidate 2 moves b only a little.
+        let c1 = table(&[("a", 1.0), ("b", 8.5), ("c", 0.5)]);
+        let c2 = table(&[("a", 10.0), ("b", 7.0), ("c", 0.5)]);
+        let s = structural_rows(&before, &[&c1, &c2]);
+        assert_eq!(s, vec!["b".to_string()]);
+        // With b left out, candidate 1 removes the whole gap.
+        assert!((gap_on(&before, &s) - 10.0).abs() < 1e-12);
+        assert_eq!(gap_on(&c1, &s), 0.0);
+    }
+}
+
+mod quiet_window {
+    use ebptv::modelcheck::signatures::{quiet_complement, BinScale, Histogram};
+
+    #[test]
+    fn the_burst_window_is_the_complement_of_the_quietest_quarter() {
+        // 200 µs period in 20 bins: a burst over 40–120 µs, a floor elsewhere.
+        let edges: Vec<f64> = (0..=20).map(|k| 10.0 * k as f64).collect();
+        let mut h = Histogram::new(edges, BinScale::Linear).unwrap();
+        for k in 0..20 {
+            let c = if (4..12).contains(&k) { 1000.0 } else { 10.0 + k as f64 };
+            h.counts[k] = c;
+        }
+        let (a, e) = quiet_complement(&h, 0.25).unwrap();
+        // The quietest five consecutive bins (circular) are 190–240 µs,
+        // i.e. 190–200 and 0–40 (29 + 10 + 11 + 12 + 13): the burst window
+        // runs from 40 µs to 190 µs.
+        assert_eq!((a, e), (40.0, 190.0));
+        assert!(quiet_complement(&h, 0.0).is_err());
+        let empty = Histogram::new((0..=20).map(|k| 10.0 * k as f64).collect(), BinScale::Linear).unwrap();
+        assert!(quiet_complement(&empty, 0.25).is_err());
+    }
+}

@@ -575,27 +575,38 @@ fn fit(
             return Ok(f64::INFINITY);
         }
         let sg = signatures_of(cfg, &rec)?;
-        if std::env::var("EBPTV_DEBUG").is_ok() {
-            let mut terms: Vec<(String, f64)> = distances(measured_fit, &sg)?
-                .into_iter()
-                .filter_map(|(n, d)| yard.rows.get(&n).map(|r| (n, d / r.scale())))
-                .collect();
-            terms.sort_by(|a, b| b.1.total_cmp(&a.1));
-            terms.truncate(6);
-            eprintln!("DBG {} {:?} -> {:.1} {:?}", spec.name, setting_at(spec, u).parameters, yard.objective(measured_fit, &sg)?, terms);
-        }
         yard.objective(measured_fit, &sg)
     };
     let (u, v, n) = if spec.params.len() == 1 {
         let (u, v, n) = minimise_1d_in(&mut |x| objective(&[x]), 0.0, 1.0, evaluations.max(5))?;
         (vec![u], v, n)
     } else {
-        nelder_mead(
-            &mut objective,
-            &vec![0.5; spec.params.len()],
-            0.3,
-            evaluations.max(5) * spec.params.len(),
-        )?
+        // A coarse grid first (three levels per parameter), then the
+        // simplex from its best point: an effect's parameters span decades
+        // and its signature can be far off at the box centre (a few dozen
+        // hot pixels at a kilohertz look nothing like a hundred at four),
+        // where a simplex started there never looks.
+        let dims = spec.params.len();
+        let levels = [1.0 / 6.0, 0.5, 5.0 / 6.0];
+        let mut best = (vec![0.5; dims], f64::INFINITY);
+        let mut n_grid = 0;
+        for k in 0..levels.len().pow(dims as u32) {
+            let u: Vec<f64> = (0..dims)
+                .map(|d| levels[(k / levels.len().pow(d as u32)) % levels.len()])
+                .collect();
+            let v = objective(&u)?;
+            n_grid += 1;
+            if v < best.1 {
+                best = (u, v);
+            }
+        }
+        let budget = (evaluations.max(5) * dims).saturating_sub(n_grid).max(6);
+        let (u, v, n) = nelder_mead(&mut objective, &best.0, 0.15, budget)?;
+        if v <= best.1 {
+            (u, v, n + n_grid)
+        } else {
+            (best.0, best.1, n + n_grid)
+        }
     };
     Ok((setting_at(spec, &u), v, n))
 }
