@@ -161,6 +161,10 @@ pub struct Envelope {
     pub noise_fraction: [f64; 2],
     /// Particle image diameter (px): 1.2–1.5 px in the seed paper.
     pub particle_diameter_px: [f64; 2],
+    /// ON contrast threshold: how many events a lit pixel gives (the
+    /// sensor's bias setting; "1–3 events per particle" at a given image
+    /// size).
+    pub contrast_threshold: [f64; 2],
 }
 
 impl Default for Envelope {
@@ -169,6 +173,7 @@ impl Default for Envelope {
             latency_spread_us: [10.0, 22.0],
             noise_fraction: [0.001, 0.01],
             particle_diameter_px: [1.1, 1.6],
+            contrast_threshold: [0.2, 0.32],
         }
     }
 }
@@ -402,6 +407,11 @@ fn envelope_members(
     for &d in &env.particle_diameter_px {
         let mut b = base.clone();
         b.optics.particle_diameter_px = d;
+        out.push((sim.with_base(b)?, start.to_vec()));
+    }
+    for &c in &env.contrast_threshold {
+        let mut b = base.clone();
+        b.pixel.contrast_threshold = c;
         out.push((sim.with_base(b)?, start.to_vec()));
     }
     Ok(out)
