@@ -66,6 +66,7 @@ pub mod slice;
 pub mod step;
 pub mod stream;
 pub mod synth;
+pub mod turn;
 
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -468,6 +469,16 @@ pub struct TrackParams {
     /// linear start breaks tracks.
     #[serde(default = "default_young_order_sigma")]
     pub young_order_sigma: f64,
+    /// Predict running tracks with a path that turns at a constant rate
+    /// ([`turn`]: the rate fitted to the window, the quadratic's count of
+    /// coefficients) instead of a polynomial in time.
+    #[serde(default = "default_turn_model")]
+    pub turn_model: bool,
+    /// With `turn_model`: young tracks (predicted by a line) take the
+    /// constant-speed turning path's prediction where the line's ± this
+    /// many σ misses it (0 = the line alone).
+    #[serde(default = "default_young_turn_sigma")]
+    pub young_turn_sigma: f64,
     /// Search radius (px) around the prior's prediction for the first step.
     pub prior_radius: f64,
     /// Mean-flow prior for initialisation.
@@ -516,6 +527,8 @@ impl Default for TrackParams {
             velocity_prior_mean: false,
             velocity_prior_two_pass: false,
             young_order_sigma: default_young_order_sigma(),
+            turn_model: default_turn_model(),
+            young_turn_sigma: default_young_turn_sigma(),
             prior_radius: 3.0,
             prior: None,
         }
@@ -532,6 +545,14 @@ fn clipped_second_moment(k: f64) -> f64 {
 }
 
 fn default_young_order_sigma() -> f64 {
+    0.0
+}
+
+fn default_turn_model() -> bool {
+    true
+}
+
+fn default_young_turn_sigma() -> f64 {
     0.0
 }
 
@@ -1415,6 +1436,11 @@ impl Tracker {
         let w = p.predict_window.min(n);
         let win = &track.dets[n - w..];
         let last = track.last();
+        if p.turn_model {
+            if let Some(r) = self.predict_turn(track, pulse) {
+                return r;
+            }
+        }
         if win[0].pulse + w as i64 - 1 != last.pulse {
             return self.predict_reference(track, pulse);
         }
@@ -1445,6 +1471,46 @@ impl Tracker {
         let leverage = preds[m - 1].2;
         let (r, lev) = self.search_radius(leverage, ahead);
         (x, y, r, lev)
+    }
+
+    /// The turning-path predictor ([`turn`]): mature tracks by the
+    /// constant-turn-rate path with a linear speed change over the window,
+    /// young ones by the line, or (`young_turn_sigma`) by the
+    /// constant-speed turning path where the line's prediction is
+    /// visibly off it. `None`: too few detections for the model.
+    fn predict_turn(&self, track: &ActiveTrack, pulse: i64) -> Option<(f64, f64, f64, f64)> {
+        let p = &self.params;
+        let n = track.dets.len();
+        let w = p.predict_window.min(n).min(64);
+        let win = &track.dets[n - w..];
+        let last = track.last();
+        let (mut tau, mut xs, mut ys) = ([0.0; 64], [0.0; 64], [0.0; 64]);
+        for (i, d) in win.iter().enumerate() {
+            tau[i] = (d.pulse - last.pulse) as f64;
+            xs[i] = d.x;
+            ys[i] = d.y;
+        }
+        let (tau, xs, ys) = (&tau[..w], &xs[..w], &ys[..w]);
+        let at = (pulse - last.pulse) as f64;
+        let order = self.predict_order(n);
+        let (x, y, lev) = if order >= 2 {
+            let f = turn::turn_eval(tau, xs, ys, at, true)?;
+            (f.x, f.y, f.leverage)
+        } else {
+            let line = fit::fit_eval(tau, xs, ys, 1, at)?;
+            let k = p.young_turn_sigma;
+            let mut pick = (line.x, line.y);
+            if k > 0.0 {
+                if let Some(f) = turn::turn_eval(tau, xs, ys, at, false) {
+                    let preds = [(f.x, f.y, f.leverage), (line.x, line.y, line.leverage)];
+                    let c = ici_choice(&preds, self.position_sigma(), k);
+                    pick = (preds[c].0, preds[c].1);
+                }
+            }
+            (pick.0, pick.1, line.leverage)
+        };
+        let (r, lev) = self.search_radius(lev, pulse - last.pulse);
+        Some((x, y, r, lev))
     }
 
     /// Cached predictor weights of a gap-free window.
@@ -2190,8 +2256,28 @@ impl Tracker {
                 }
                 let order = self.predict_order(n);
                 let at = (frame.pulse - first) as f64;
-                let Some(f) = fit::fit_eval(&tau[..n], &xs[..n], &ys[..n], order, at) else {
-                    continue;
+                let turned = (self.params.turn_model && order >= 2)
+                    .then(|| turn::turn_eval(&tau[..n], &xs[..n], &ys[..n], at, true))
+                    .flatten();
+                let f = match turned {
+                    Some(t) => fit::FitState {
+                        x: t.x,
+                        y: t.y,
+                        vx: t.u,
+                        vy: t.v,
+                        ax: 0.0,
+                        ay: 0.0,
+                        rms_residual: 0.0,
+                        leverage: t.leverage,
+                        velocity_variance: 0.0,
+                    },
+                    None => {
+                        let Some(f) = fit::fit_eval(&tau[..n], &xs[..n], &ys[..n], order, at)
+                        else {
+                            continue;
+                        };
+                        f
+                    }
                 };
                 let (r, _) = self.search_radius(f.leverage, first - frame.pulse);
                 sc.near.clear();
@@ -2247,7 +2333,7 @@ impl Tracker {
                 let fwd = match fwd_at.iter().find(|e| e.0 == start.pulse) {
                     Some(e) => e.1,
                     None => {
-                        let f = extrapolate(&old.dets, p.predict_window, start.pulse);
+                        let f = extrapolate(&old.dets, p.predict_window, start.pulse, p);
                         fwd_at.push((start.pulse, f));
                         f
                     }
@@ -2259,7 +2345,7 @@ impl Tracker {
                     continue;
                 }
                 let fwd = Some(fwd);
-                let bwd = extrapolate(&new.dets, INIT_FRAMES, end.pulse);
+                let bwd = extrapolate(&new.dets, p.predict_window, end.pulse, p);
                 let (Some(fwd), Some(bwd)) = (fwd, bwd) else {
                     continue;
                 };
@@ -3081,16 +3167,28 @@ fn trim_unconfirmed_tail(dets: &mut Vec<Det>, confirm: usize) {
     }
 }
 
-/// Polynomial extrapolation of the positions of `dets` (last `window`
-/// detections, order ≤ 1) to pulse `pulse`.
-fn extrapolate(dets: &[Det], window: usize, pulse: i64) -> Option<(f64, f64)> {
+/// Extrapolation of the positions of `dets` (the `window` detections
+/// nearest to `pulse`) to pulse `pulse`: the turning path ([`turn`],
+/// with `turn_model`, from 6 detections on), else a line through the
+/// nearest `INIT_FRAMES`.
+fn extrapolate(dets: &[Det], window: usize, pulse: i64, p: &TrackParams) -> Option<(f64, f64)> {
     let n = dets.len();
-    let w = window.min(n).max(1);
-    let win = if pulse >= dets[n - 1].pulse {
-        &dets[n - w..]
-    } else {
-        &dets[..w]
-    };
+    let forward = pulse >= dets[n - 1].pulse;
+    let w = window.min(n).clamp(1, 64);
+    if p.turn_model && w >= 2 * INIT_FRAMES - 2 {
+        let win = if forward { &dets[n - w..] } else { &dets[..w] };
+        let (mut tau, mut xs, mut ys) = ([0.0; 64], [0.0; 64], [0.0; 64]);
+        for (i, d) in win.iter().enumerate() {
+            tau[i] = (d.pulse - pulse) as f64;
+            xs[i] = d.x;
+            ys[i] = d.y;
+        }
+        if let Some(f) = turn::turn_eval(&tau[..w], &xs[..w], &ys[..w], 0.0, true) {
+            return Some((f.x, f.y));
+        }
+    }
+    let w = if p.turn_model { w.min(INIT_FRAMES) } else { w };
+    let win = if forward { &dets[n - w..] } else { &dets[..w] };
     let tau: Vec<f64> = win.iter().map(|d| d.pulse as f64 - pulse as f64).collect();
     let xs: Vec<f64> = win.iter().map(|d| d.x).collect();
     let ys: Vec<f64> = win.iter().map(|d| d.y).collect();
