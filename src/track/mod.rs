@@ -479,6 +479,11 @@ pub struct TrackParams {
     /// many σ misses it (0 = the line alone).
     #[serde(default = "default_young_turn_sigma")]
     pub young_turn_sigma: f64,
+    /// With `turn_model`: detections (≥ 7; 0 = off) of the output fit's
+    /// turning-path window, taken where the heading visibly turns and the
+    /// turning path fits the window better than the quadratic.
+    #[serde(default = "default_turn_fit_window")]
+    pub turn_fit_window: usize,
     /// Search radius (px) around the prior's prediction for the first step.
     pub prior_radius: f64,
     /// Mean-flow prior for initialisation.
@@ -529,6 +534,7 @@ impl Default for TrackParams {
             young_order_sigma: default_young_order_sigma(),
             turn_model: default_turn_model(),
             young_turn_sigma: default_young_turn_sigma(),
+            turn_fit_window: default_turn_fit_window(),
             prior_radius: 3.0,
             prior: None,
         }
@@ -553,8 +559,20 @@ fn default_turn_model() -> bool {
 }
 
 fn default_young_turn_sigma() -> f64 {
-    0.0
+    2.0
 }
+
+fn default_turn_fit_window() -> usize {
+    11
+}
+
+/// The output fit's turning path is tried where the heading change over
+/// its window is this many standard deviations of its noise ...
+const TURN_SCREEN_Z: f64 = 1.5;
+
+/// ... and taken where it fits the window better than the quadratic by
+/// this χ² (units of σ²; one coefficient more, the rate of turn).
+const TURN_GAIN_MIN: f64 = 4.0;
 
 /// Polynomial orders the predictor compares for a track of `w` detections
 /// in its window whose order by its length is `order`: a young track's
@@ -3276,6 +3294,11 @@ fn fit_track_with(
             run_start.push(if joined { run_start[i - 1] } else { i });
         }
     }
+    // Where the path turns, the turning path's fit (`turn_fit_window`).
+    let heading = (p.turn_model && p.turn_fit_window >= 7 && n >= p.turn_fit_window).then(|| {
+        let pulses: Vec<i64> = dets.iter().map(|d| d.pulse).collect();
+        turn::heading_prefix(&pulses, &xs, &ys, sigma)
+    });
     // Samples whose pilot window is centred take running moments.
     let mut run_fit = tables
         .as_deref()
@@ -3306,7 +3329,7 @@ fn fit_track_with(
             }
             _ => fit::fit_adaptive_with(&tau, &xs, &ys, j, at, &rule, !grid),
         };
-        let f = fitted.map(|(f, _)| f).unwrap_or(fit::FitState {
+        let mut f = fitted.map(|(f, _)| f).unwrap_or(fit::FitState {
             x: dets[j].x,
             y: dets[j].y,
             vx: 0.0,
@@ -3317,6 +3340,27 @@ fn fit_track_with(
             leverage: 1.0,
             velocity_variance: 0.0,
         });
+        if let Some(hp) = &heading {
+            let wt = p.turn_fit_window;
+            let a = j.saturating_sub(wt / 2).min(n - wt);
+            let b = a + wt;
+            // Heading changes at detections a+1..b-1 (inside the window).
+            let (dth, var) = (hp[b - 1][0] - hp[a + 1][0], hp[b - 1][1] - hp[a + 1][1]);
+            if var > 0.0 && dth * dth > TURN_SCREEN_Z * TURN_SCREEN_Z * var {
+                if let Some((t, gain)) =
+                    turn::turn_eval_with_gain(&tau[a..b], &xs[a..b], &ys[a..b], at)
+                {
+                    if gain > TURN_GAIN_MIN * sigma * sigma {
+                        f.x = t.x;
+                        f.y = t.y;
+                        f.vx = t.u;
+                        f.vy = t.v;
+                        f.ax = t.ax;
+                        f.ay = t.ay;
+                    }
+                }
+            }
+        }
         if here {
             ssr += (dets[j].x - f.x).powi(2) + (dets[j].y - f.y).powi(2);
         }

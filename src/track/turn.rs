@@ -151,6 +151,9 @@ pub struct TurnFit {
     /// Velocity (px per unit of `tau`) there.
     pub u: f64,
     pub v: f64,
+    /// Acceleration (px per unit of `tau`²) there.
+    pub ax: f64,
+    pub ay: f64,
     /// Prediction variance over the per-axis position noise variance.
     pub leverage: f64,
     /// Rate of turn (rad per unit of `tau`).
@@ -263,21 +266,64 @@ pub fn turn_eval(tau: &[f64], xs: &[f64], ys: &[f64], at: f64, accel: bool) -> O
     }
     let s = &s[..n];
     let w = turn_rate(s, xs, ys)?;
-    let (z0, v, lev) = if accel {
-        let (z0, v, _, lev) = fit_at::<3>(s, xs, ys, w)?;
-        (z0, v, lev)
+    let (z0, v, a, lev) = if accel {
+        fit_at::<3>(s, xs, ys, w)?
     } else {
-        let (z0, v, _, lev) = fit_at::<2>(s, xs, ys, w)?;
-        (z0, v, lev)
+        fit_at::<2>(s, xs, ys, w)?
     };
+    // d/ds [(V + A s) e^{iωs}] at s = 0.
+    let acc = a + C::new(0.0, w) * v;
     Some(TurnFit {
         x: z0.re,
         y: z0.im,
         u: v.re,
         v: v.im,
+        ax: acc.re,
+        ay: acc.im,
         leverage: lev,
         omega: w,
     })
+}
+
+/// [`turn_eval`] with speed change, and the drop of the residual sum of
+/// squares (px², both axes) from the quadratic in time to it: how much
+/// the samples say the path turns beyond what a quadratic follows.
+pub fn turn_eval_with_gain(tau: &[f64], xs: &[f64], ys: &[f64], at: f64) -> Option<(TurnFit, f64)> {
+    let f = turn_eval(tau, xs, ys, at, true)?;
+    let n = tau.len().min(64);
+    let mut s = [0.0; 64];
+    for i in 0..n {
+        s[i] = tau[i] - at;
+    }
+    let s = &s[..n];
+    let q = rss_at(s, xs, ys, 0.0)?;
+    let t = rss_at(s, xs, ys, f.omega)?;
+    Some((f, (q - t).max(0.0)))
+}
+
+/// Heading changes along a track, for a cheap screen of where it turns:
+/// prefix sums over the detections of the change of heading between the
+/// steps into and out of each detection (rad; 0 across gaps and for slow
+/// steps) and of its noise variance (from the position noise `sigma`:
+/// three positions, ~6σ²/|step|²), so that a window's sums cost O(1).
+pub fn heading_prefix(pulses: &[i64], xs: &[f64], ys: &[f64], sigma: f64) -> Vec<[f64; 2]> {
+    let n = pulses.len();
+    let mut out = Vec::with_capacity(n + 1);
+    out.push([0.0, 0.0]);
+    let mut acc = [0.0, 0.0];
+    for i in 0..n {
+        if i > 0 && i + 1 < n && pulses[i] == pulses[i - 1] + 1 && pulses[i + 1] == pulses[i] + 1 {
+            let (ax, ay) = (xs[i] - xs[i - 1], ys[i] - ys[i - 1]);
+            let (bx, by) = (xs[i + 1] - xs[i], ys[i + 1] - ys[i]);
+            let (la, lb) = (ax * ax + ay * ay, bx * bx + by * by);
+            if la.min(lb) > (MIN_SPEED * 4.0).powi(2) {
+                acc[0] += (ax * by - ay * bx).atan2(ax * bx + ay * by);
+                acc[1] += 3.0 * sigma * sigma * (1.0 / la + 1.0 / lb);
+            }
+        }
+        out.push(acc);
+    }
+    out
 }
 
 #[cfg(test)]
