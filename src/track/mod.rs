@@ -574,6 +574,29 @@ const TURN_SCREEN_Z: f64 = 1.5;
 /// this χ² (units of σ²; one coefficient more, the rate of turn).
 const TURN_GAIN_MIN: f64 = 4.0;
 
+/// The line through `(tau, xs, ys)` evaluated at `at`, or, where the
+/// line's ±`k` σ misses the constant-speed turning path's ([`turn`]), the
+/// turning path's: a young track's prediction (`young_turn_sigma`). The
+/// line's leverage comes along (the gate stays the line's).
+fn young_prediction(
+    tau: &[f64],
+    xs: &[f64],
+    ys: &[f64],
+    at: f64,
+    sigma: f64,
+    k: f64,
+) -> Option<(f64, f64, f64)> {
+    let line = fit::fit_eval(tau, xs, ys, 1, at)?;
+    if k > 0.0 {
+        if let Some(f) = turn::turn_eval(tau, xs, ys, at, false) {
+            let preds = [(f.x, f.y, f.leverage), (line.x, line.y, line.leverage)];
+            let c = ici_choice(&preds, sigma, k);
+            return Some((preds[c].0, preds[c].1, line.leverage));
+        }
+    }
+    Some((line.x, line.y, line.leverage))
+}
+
 /// Polynomial orders the predictor compares for a track of `w` detections
 /// in its window whose order by its length is `order`: a young track's
 /// full order first (unbiased, noisier), then its own.
@@ -1515,17 +1538,7 @@ impl Tracker {
             let f = turn::turn_eval(tau, xs, ys, at, true)?;
             (f.x, f.y, f.leverage)
         } else {
-            let line = fit::fit_eval(tau, xs, ys, 1, at)?;
-            let k = p.young_turn_sigma;
-            let mut pick = (line.x, line.y);
-            if k > 0.0 {
-                if let Some(f) = turn::turn_eval(tau, xs, ys, at, false) {
-                    let preds = [(f.x, f.y, f.leverage), (line.x, line.y, line.leverage)];
-                    let c = ici_choice(&preds, self.position_sigma(), k);
-                    pick = (preds[c].0, preds[c].1);
-                }
-            }
-            (pick.0, pick.1, line.leverage)
+            young_prediction(tau, xs, ys, at, self.position_sigma(), p.young_turn_sigma)?
         };
         let (r, lev) = self.search_radius(lev, pulse - last.pulse);
         Some((x, y, r, lev))
@@ -2274,19 +2287,25 @@ impl Tracker {
                 }
                 let order = self.predict_order(n);
                 let at = (frame.pulse - first) as f64;
-                let turned = (self.params.turn_model && order >= 2)
-                    .then(|| turn::turn_eval(&tau[..n], &xs[..n], &ys[..n], at, true))
-                    .flatten();
+                let turned = if !self.params.turn_model {
+                    None
+                } else if order >= 2 {
+                    turn::turn_eval(&tau[..n], &xs[..n], &ys[..n], at, true)
+                        .map(|t| (t.x, t.y, t.leverage))
+                } else {
+                    let k = self.params.young_turn_sigma;
+                    young_prediction(&tau[..n], &xs[..n], &ys[..n], at, self.position_sigma(), k)
+                };
                 let f = match turned {
-                    Some(t) => fit::FitState {
-                        x: t.x,
-                        y: t.y,
-                        vx: t.u,
-                        vy: t.v,
+                    Some((x, y, leverage)) => fit::FitState {
+                        x,
+                        y,
+                        vx: 0.0,
+                        vy: 0.0,
                         ax: 0.0,
                         ay: 0.0,
                         rms_residual: 0.0,
-                        leverage: t.leverage,
+                        leverage,
                         velocity_variance: 0.0,
                     },
                     None => {
@@ -2329,6 +2348,7 @@ impl Tracker {
         if self.pool.is_empty() || chains.is_empty() {
             return chains;
         }
+        let sigma = self.position_sigma();
         let p = &self.params;
         let mut edges = Vec::new();
         for (ri, old) in self.pool.iter().enumerate() {
@@ -2351,7 +2371,7 @@ impl Tracker {
                 let fwd = match fwd_at.iter().find(|e| e.0 == start.pulse) {
                     Some(e) => e.1,
                     None => {
-                        let f = extrapolate(&old.dets, p.predict_window, start.pulse, p);
+                        let f = extrapolate(&old.dets, p.predict_window, start.pulse, p, sigma);
                         fwd_at.push((start.pulse, f));
                         f
                     }
@@ -2363,7 +2383,7 @@ impl Tracker {
                     continue;
                 }
                 let fwd = Some(fwd);
-                let bwd = extrapolate(&new.dets, p.predict_window, end.pulse, p);
+                let bwd = extrapolate(&new.dets, p.predict_window, end.pulse, p, sigma);
                 let (Some(fwd), Some(bwd)) = (fwd, bwd) else {
                     continue;
                 };
@@ -3188,8 +3208,16 @@ fn trim_unconfirmed_tail(dets: &mut Vec<Det>, confirm: usize) {
 /// Extrapolation of the positions of `dets` (the `window` detections
 /// nearest to `pulse`) to pulse `pulse`: the turning path ([`turn`],
 /// with `turn_model`, from 6 detections on), else a line through the
-/// nearest `INIT_FRAMES`.
-fn extrapolate(dets: &[Det], window: usize, pulse: i64, p: &TrackParams) -> Option<(f64, f64)> {
+/// nearest `INIT_FRAMES` (with `turn_model`, the young tracks' choice
+/// between it and the constant-speed turning path, position noise
+/// `sigma`).
+fn extrapolate(
+    dets: &[Det],
+    window: usize,
+    pulse: i64,
+    p: &TrackParams,
+    sigma: f64,
+) -> Option<(f64, f64)> {
     let n = dets.len();
     let forward = pulse >= dets[n - 1].pulse;
     let w = window.min(n).clamp(1, 64);
@@ -3210,6 +3238,10 @@ fn extrapolate(dets: &[Det], window: usize, pulse: i64, p: &TrackParams) -> Opti
     let tau: Vec<f64> = win.iter().map(|d| d.pulse as f64 - pulse as f64).collect();
     let xs: Vec<f64> = win.iter().map(|d| d.x).collect();
     let ys: Vec<f64> = win.iter().map(|d| d.y).collect();
+    if p.turn_model {
+        return young_prediction(&tau, &xs, &ys, 0.0, sigma, p.young_turn_sigma)
+            .map(|(x, y, _)| (x, y));
+    }
     fit::fit_eval(&tau, &xs, &ys, 1, 0.0).map(|f| (f.x, f.y))
 }
 
