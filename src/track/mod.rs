@@ -449,26 +449,6 @@ pub struct TrackParams {
     /// pipeline hands them on before its end): memory grows with the run.
     #[serde(default)]
     pub velocity_prior_two_pass: bool,
-    /// Young tracks (fewer than 3 detections per coefficient of
-    /// `predict_order`, so predicted by a straight line) are also
-    /// predicted with the full order over the same detections; where the
-    /// line's prediction ± `young_order_sigma` of its noise (σ·√leverage
-    /// per axis) does not overlap the full order's ± the same, the path's
-    /// acceleration shows and the full order's prediction is taken (with
-    /// the line's gate). A line through 4 (5) detections of a path
-    /// accelerating at `a` px/pulse² misses the next position by 2.5 a
-    /// (3.5 a) px: at the ~1 px/pulse² of the 8 px/pulse Lamb–Oseen core
-    /// that is beyond the ~2.3 px gate, and nearly every core track died
-    /// at its fifth detection (session 11, "Diagnosis (ptv-vortex)" in
-    /// BENCHMARKS.md: at 2, core coverage 0.12 → 0.94). 0 = the line
-    /// alone (default): as a default, 2 cost the synthetic paper-like
-    /// scene of `tests/ptv_accuracy.rs` velocity (0.130 → 0.135 px/pulse,
-    /// over that test's limit) and 3 the dense, fast, noisy one
-    /// precision (0.867 → 0.864), while 3 kept only part of the vortex
-    /// gain. For flows turning at more than ~0.5 px/pulse² where the
-    /// linear start breaks tracks.
-    #[serde(default = "default_young_order_sigma")]
-    pub young_order_sigma: f64,
     /// Predict running tracks with a path that turns at a constant rate
     /// ([`turn`]: the rate fitted to the window, the quadratic's count of
     /// coefficients) instead of a polynomial in time.
@@ -531,7 +511,6 @@ impl Default for TrackParams {
             velocity_prior: 0.0,
             velocity_prior_mean: false,
             velocity_prior_two_pass: false,
-            young_order_sigma: default_young_order_sigma(),
             turn_model: default_turn_model(),
             young_turn_sigma: default_young_turn_sigma(),
             turn_fit_window: default_turn_fit_window(),
@@ -548,10 +527,6 @@ const CLIP_K: f64 = 2.5;
 fn clipped_second_moment(k: f64) -> f64 {
     let e = (-0.5 * k * k).exp();
     (1.0 - (1.0 + 0.5 * k * k) * e) / (1.0 - e)
-}
-
-fn default_young_order_sigma() -> f64 {
-    0.0
 }
 
 fn default_turn_model() -> bool {
@@ -595,22 +570,6 @@ fn young_prediction(
         }
     }
     Some((line.x, line.y, line.leverage))
-}
-
-/// Polynomial orders the predictor compares for a track of `w` detections
-/// in its window whose order by its length is `order`: a young track's
-/// full order first (unbiased, noisier), then its own.
-fn predict_orders(
-    w: usize,
-    order: usize,
-    full_order: usize,
-    k: f64,
-) -> impl Iterator<Item = usize> {
-    let young = k > 0.0 && order < full_order && w >= full_order + 2;
-    young
-        .then_some(full_order)
-        .into_iter()
-        .chain(std::iter::once(order))
 }
 
 /// Index of the prediction kept among `(x, y, leverage)` ordered from
@@ -1487,30 +1446,17 @@ impl Tracker {
         }
         let order = self.predict_order(n);
         let ahead = pulse - last.pulse;
-        let k_young = p.young_order_sigma;
-        let mut preds = [(0.0, 0.0, 0.0); 2];
-        let mut m = 0;
-        for oo in predict_orders(w, order, p.predict_order, k_young) {
-            let Some(k) = self.weights_index(w, oo, ahead) else {
-                return self.predict_reference(&self.active[ti], pulse);
-            };
-            let c = &self.weights[k];
-            let win = &self.active[ti].dets[n - w..];
-            let (mut x, mut y) = (0.0, 0.0);
-            for (ci, d) in c.c.iter().zip(win) {
-                x += ci * d.x;
-                y += ci * d.y;
-            }
-            preds[m] = (x, y, c.leverage);
-            m += 1;
+        let Some(k) = self.weights_index(w, order, ahead) else {
+            return self.predict_reference(&self.active[ti], pulse);
+        };
+        let c = &self.weights[k];
+        let win = &self.active[ti].dets[n - w..];
+        let (mut x, mut y) = (0.0, 0.0);
+        for (ci, d) in c.c.iter().zip(win) {
+            x += ci * d.x;
+            y += ci * d.y;
         }
-        let (x, y, _) = preds[ici_choice(&preds[..m], self.position_sigma(), k_young)];
-        // The gate stays the track's own order's: the fallback moves the
-        // centre onto the curved path; the quadratic's wider gate (4
-        // detections: leverage 7.75 against the line's 1.5) also kept
-        // chains through noise and neighbours alive.
-        let leverage = preds[m - 1].2;
-        let (r, lev) = self.search_radius(leverage, ahead);
+        let (r, lev) = self.search_radius(c.leverage, ahead);
         (x, y, r, lev)
     }
 
@@ -1599,22 +1545,11 @@ impl Tracker {
         let ys: Vec<f64> = win.iter().map(|d| d.y).collect();
         let at = (pulse - last.pulse) as f64;
         let order = self.predict_order(n);
-        let mut preds = Vec::with_capacity(2);
-        for oo in predict_orders(w, order, p.predict_order, p.young_order_sigma) {
-            // A full order the detections (with gaps) cannot carry yields
-            // nothing and the track's own order is taken.
-            if let Some(f) = fit::fit_eval(&tau, &xs, &ys, oo, at) {
-                preds.push((f.x, f.y, f.leverage));
-            }
-        }
-        if preds.is_empty() {
+        let Some(f) = fit::fit_eval(&tau, &xs, &ys, order, at) else {
             return (last.x, last.y, p.max_disp, 1.0);
-        }
-        let (x, y, _) = preds[ici_choice(&preds, self.position_sigma(), p.young_order_sigma)];
-        // The own order's gate, as in `predict`.
-        let leverage = preds[preds.len() - 1].2;
-        let (r, lev) = self.search_radius(leverage, pulse - last.pulse);
-        (x, y, r, lev)
+        };
+        let (r, lev) = self.search_radius(f.leverage, pulse - last.pulse);
+        (f.x, f.y, r, lev)
     }
 
     /// Extend active tracks with this pulse's detections (global
@@ -2293,8 +2228,10 @@ impl Tracker {
                     turn::turn_eval(&tau[..n], &xs[..n], &ys[..n], at, true)
                         .map(|t| (t.x, t.y, t.leverage))
                 } else {
-                    let k = self.params.young_turn_sigma;
-                    young_prediction(&tau[..n], &xs[..n], &ys[..n], at, self.position_sigma(), k)
+                    // The line: young tracks' turning choice here cost the
+                    // synthetic paper-like scene recall (0.9505 → 0.9493)
+                    // and did not help the vortex.
+                    young_prediction(&tau[..n], &xs[..n], &ys[..n], at, self.position_sigma(), 0.0)
                 };
                 let f = match turned {
                     Some((x, y, leverage)) => fit::FitState {
@@ -3208,9 +3145,7 @@ fn trim_unconfirmed_tail(dets: &mut Vec<Det>, confirm: usize) {
 /// Extrapolation of the positions of `dets` (the `window` detections
 /// nearest to `pulse`) to pulse `pulse`: the turning path ([`turn`],
 /// with `turn_model`, from 6 detections on), else a line through the
-/// nearest `INIT_FRAMES` (with `turn_model`, the young tracks' choice
-/// between it and the constant-speed turning path, position noise
-/// `sigma`).
+/// nearest `INIT_FRAMES` (`sigma`: the position noise).
 fn extrapolate(
     dets: &[Det],
     window: usize,
@@ -3239,7 +3174,7 @@ fn extrapolate(
     let xs: Vec<f64> = win.iter().map(|d| d.x).collect();
     let ys: Vec<f64> = win.iter().map(|d| d.y).collect();
     if p.turn_model {
-        return young_prediction(&tau, &xs, &ys, 0.0, sigma, p.young_turn_sigma)
+        return young_prediction(&tau, &xs, &ys, 0.0, sigma, 0.0)
             .map(|(x, y, _)| (x, y));
     }
     fit::fit_eval(&tau, &xs, &ys, 1, 0.0).map(|f| (f.x, f.y))
