@@ -119,7 +119,7 @@ pub fn generate(cfg: &Config) -> Scene {
     let bright = LogNormal::new(0.0, 0.45).unwrap();
     let delay = Gamma::new(2.0, 20.0).unwrap();
     let mut next_pid = 0u64;
-    let mut spawn = |rng: &mut rand_pcg::Pcg64, next_pid: &mut u64| {
+    let spawn = |rng: &mut rand_pcg::Pcg64, next_pid: &mut u64| {
         *next_pid += 1;
         Seed {
             pid: *next_pid,
