@@ -2305,6 +2305,18 @@ impl Tracker {
                 if (end.x - start.x).powi(2) + (end.y - start.y).powi(2) > reach * reach {
                     continue;
                 }
+                // One turning path through both pieces, its residuals
+                // those of the position noise: the pair joins even where
+                // each piece's own extrapolation across the gap is off
+                // (a young chain's line in a vortex core).
+                if p.turn_model {
+                    if let Some(z) = joint_turn_cost(&old.dets, &new.dets, sigma) {
+                        if z <= 1.0 {
+                            edges.push((ri, ci, z));
+                            continue;
+                        }
+                    }
+                }
                 let fwd = match fwd_at.iter().find(|e| e.0 == start.pulse) {
                     Some(e) => e.1,
                     None => {
@@ -3140,6 +3152,34 @@ fn trim_unconfirmed_tail(dets: &mut Vec<Det>, confirm: usize) {
     if n - last_gap < confirm {
         dets.truncate(last_gap);
     }
+}
+
+/// Detections of each piece the stitch test's joint turning path fits.
+const JOINT_SIDE: usize = 8;
+
+/// Cost of joining `old` to `new` (which starts after it) by one turning
+/// path ([`turn::turn_rss`]) through the last [`JOINT_SIDE`] detections
+/// of `old` and the first of `new`: its residual sum of squares over the
+/// position noise `sigma`², in units of the χ² bound `dof + 3·√(2 dof)`
+/// (dof = 2·points − 7); ≤ 1 is a fit by noise alone. `None`: fewer than
+/// 6 detections on the old side or 10 in all.
+fn joint_turn_cost(old: &[Det], new: &[Det], sigma: f64) -> Option<f64> {
+    let a = old.len().min(JOINT_SIDE);
+    let b = new.len().min(JOINT_SIDE);
+    if a < 6 || a + b < 10 || sigma <= 0.0 {
+        return None;
+    }
+    let t0 = old[old.len() - 1].pulse;
+    let (mut tau, mut xs, mut ys) = ([0.0; 2 * JOINT_SIDE], [0.0; 2 * JOINT_SIDE], [0.0; 2 * JOINT_SIDE]);
+    for (i, d) in old[old.len() - a..].iter().chain(&new[..b]).enumerate() {
+        tau[i] = (d.pulse - t0) as f64;
+        xs[i] = d.x;
+        ys[i] = d.y;
+    }
+    let m = a + b;
+    let rss = turn::turn_rss(&tau[..m], &xs[..m], &ys[..m])?;
+    let dof = (2 * m - 7) as f64;
+    Some(rss / (sigma * sigma) / (dof + 3.0 * (2.0 * dof).sqrt()))
 }
 
 /// Extrapolation of the positions of `dets` (the `window` detections

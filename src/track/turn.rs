@@ -39,7 +39,7 @@ pub const MAX_TURN: f64 = 0.8;
 pub const MIN_SPEED: f64 = 0.25;
 
 /// Fixed-point iterations for ω.
-const ITERATIONS: usize = 4;
+const ITERATIONS: usize = 8;
 
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 struct C {
@@ -299,6 +299,23 @@ pub fn turn_eval_with_gain(tau: &[f64], xs: &[f64], ys: &[f64], at: f64) -> Opti
     let q = rss_at(s, xs, ys, 0.0)?;
     let t = rss_at(s, xs, ys, f.omega)?;
     Some((f, (q - t).max(0.0)))
+}
+
+/// Residual sum of squares (px², both axes) of the turning path with
+/// speed change through the samples (at least 7).
+pub fn turn_rss(tau: &[f64], xs: &[f64], ys: &[f64]) -> Option<f64> {
+    let n = tau.len().min(64);
+    if n < 7 {
+        return None;
+    }
+    let mid = 0.5 * (tau[0] + tau[n - 1]);
+    let mut s = [0.0; 64];
+    for i in 0..n {
+        s[i] = tau[i] - mid;
+    }
+    let s = &s[..n];
+    let w = turn_rate(s, xs, ys)?;
+    rss_at(s, xs, ys, w)
 }
 
 /// Heading changes along a track, for a cheap screen of where it turns:
