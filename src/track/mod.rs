@@ -2964,7 +2964,12 @@ fn finalise_one(
     // Points up to this pulse went out with an earlier segment.
     let handed_out = (t.context > 0).then(|| t.dets[t.context - 1].pulse);
     if params.outlier_sigma > 0.0 {
-        remove_outliers(&mut t.dets, params.fit_window.min(OUTLIER_WINDOW), gate);
+        let window = params.fit_window.min(OUTLIER_WINDOW);
+        if params.turn_model {
+            remove_outliers_turning(&mut t.dets, window, gate, sigma);
+        } else {
+            remove_outliers(&mut t.dets, window, gate);
+        }
     }
     trim_unconfirmed_tail(&mut t.dets, params.confirm_after_gap);
     let fresh = match handed_out {
@@ -3083,6 +3088,67 @@ fn short_track_verdict(
 /// grabs while its own is missing, and wrong first/last detections.
 fn remove_outliers(dets: &mut Vec<Det>, window: usize, gate: f64) {
     remove_outliers_with(dets, window, gate, true)
+}
+
+/// [`remove_outliers`] where the path turns: a detection whose window's
+/// heading changes visibly (the output fit's screen, position noise
+/// `sigma`) is predicted by the turning path through the window
+/// ([`turn`]) instead of the quadratic, which would take good detections
+/// of a vortex core for outliers and the stray one a young track took
+/// there for good.
+fn remove_outliers_turning(dets: &mut Vec<Det>, window: usize, gate: f64, sigma: f64) {
+    let n = dets.len();
+    if n < 8 || sigma <= 0.0 {
+        return remove_outliers(dets, window, gate);
+    }
+    let w = window.min(n - 1).max(5);
+    let pulses: Vec<i64> = dets.iter().map(|d| d.pulse).collect();
+    let xs: Vec<f64> = dets.iter().map(|d| d.x).collect();
+    let ys: Vec<f64> = dets.iter().map(|d| d.y).collect();
+    let hp = turn::heading_prefix(&pulses, &xs, &ys, sigma);
+    // The verdicts of the polynomial pass (detections numbered by their
+    // index), replaced by the turning path's where the heading turns.
+    let mut marked: Vec<Det> = dets.clone();
+    for (k, d) in marked.iter_mut().enumerate() {
+        d.serial = k as u64;
+    }
+    remove_outliers(&mut marked, window, gate);
+    let mut keep = vec![false; n];
+    for d in &marked {
+        keep[d.serial as usize] = true;
+    }
+    let (mut tau, mut wx, mut wy) = (Vec::with_capacity(w), Vec::with_capacity(w), Vec::with_capacity(w));
+    for i in 0..n {
+        let mut lo = i.saturating_sub(w / 2);
+        if lo + w + 1 > n {
+            lo = n - w - 1;
+        }
+        let hi = lo + w + 1;
+        // Heading changes at detections lo+1..hi-1.
+        let (dth, var) = (hp[hi - 1][0] - hp[lo + 1][0], hp[hi - 1][1] - hp[lo + 1][1]);
+        if !(var > 0.0 && dth * dth > TURN_SCREEN_Z * TURN_SCREEN_Z * var) {
+            continue;
+        }
+        tau.clear();
+        wx.clear();
+        wy.clear();
+        for j in lo..hi {
+            if j != i {
+                tau.push((pulses[j] - pulses[i]) as f64);
+                wx.push(xs[j]);
+                wy.push(ys[j]);
+            }
+        }
+        if let Some(f) = turn::turn_eval(&tau, &wx, &wy, 0.0, true) {
+            let d2 = (f.x - xs[i]).powi(2) + (f.y - ys[i]).powi(2);
+            keep[i] = d2 <= gate * gate * (1.0 + f.leverage);
+        }
+    }
+    let mut k = 0;
+    dets.retain(|_| {
+        k += 1;
+        keep[k - 1]
+    });
 }
 
 /// [`remove_outliers`]; `grid` takes the tabulated predictions
