@@ -2305,18 +2305,6 @@ impl Tracker {
                 if (end.x - start.x).powi(2) + (end.y - start.y).powi(2) > reach * reach {
                     continue;
                 }
-                // One turning path through both pieces, its residuals
-                // those of the position noise: the pair joins even where
-                // each piece's own extrapolation across the gap is off
-                // (a young chain's line in a vortex core).
-                if p.turn_model {
-                    if let Some(z) = joint_turn_cost(&old.dets, &new.dets, sigma) {
-                        if z <= 1.0 {
-                            edges.push((ri, ci, z));
-                            continue;
-                        }
-                    }
-                }
                 let fwd = match fwd_at.iter().find(|e| e.0 == start.pulse) {
                     Some(e) => e.1,
                     None => {
@@ -2328,8 +2316,22 @@ impl Tracker {
                 let Some(fwd) = fwd else {
                     continue;
                 };
-                if (fwd.0 - start.x).powi(2) + (fwd.1 - start.y).powi(2) > 2.0 * r * r {
+                let fwd_d2 = (fwd.0 - start.x).powi(2) + (fwd.1 - start.y).powi(2);
+                if fwd_d2 > 2.0 * r * r {
                     continue;
+                }
+                // The old track's extrapolation reaches the chain, and one
+                // turning path through both pieces has the residuals of
+                // the position noise: the pair joins even where the young
+                // chain's own line back across the gap is off (a vortex
+                // core).
+                if p.turn_model {
+                    if let Some(z) = joint_turn_cost(&old.dets, &new.dets, sigma) {
+                        if z <= 1.0 {
+                            edges.push((ri, ci, z.max(0.5 * fwd_d2 / (r * r))));
+                            continue;
+                        }
+                    }
                 }
                 let fwd = Some(fwd);
                 let bwd = extrapolate(&new.dets, p.predict_window, end.pulse, p, sigma);
@@ -3139,9 +3141,13 @@ fn remove_outliers_turning(dets: &mut Vec<Det>, window: usize, gate: f64, sigma:
                 wy.push(ys[j]);
             }
         }
-        if let Some(f) = turn::turn_eval(&tau, &wx, &wy, 0.0, true) {
-            let d2 = (f.x - xs[i]).powi(2) + (f.y - ys[i]).powi(2);
-            keep[i] = d2 <= gate * gate * (1.0 + f.leverage);
+        // Only where the window's other detections show the turn: the
+        // turning path beats the quadratic by the output fit's margin.
+        if let Some((f, gain)) = turn::turn_eval_with_gain(&tau, &wx, &wy, 0.0) {
+            if gain > TURN_GAIN_MIN * sigma * sigma {
+                let d2 = (f.x - xs[i]).powi(2) + (f.y - ys[i]).powi(2);
+                keep[i] = d2 <= gate * gate * (1.0 + f.leverage);
+            }
         }
     }
     let mut k = 0;

@@ -38,8 +38,11 @@ pub const MAX_TURN: f64 = 0.8;
 /// noise: the quadratic (ω = 0) is kept.
 pub const MIN_SPEED: f64 = 0.25;
 
-/// Fixed-point iterations for ω.
+/// Fixed-point iterations for ω ...
 const ITERATIONS: usize = 8;
+
+/// ... and for up to 6 samples.
+const YOUNG_ITERATIONS: usize = 4;
 
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 struct C {
@@ -212,21 +215,30 @@ fn rss_at(s: &[f64], xs: &[f64], ys: &[f64], w: f64) -> Option<f64> {
 /// origin near the samples); 0 when the path is too slow to have a
 /// heading.
 fn turn_rate(s: &[f64], xs: &[f64], ys: &[f64]) -> Option<f64> {
+    // Up to 6 samples the six coefficients leave too few residuals to
+    // check a rate by: a few steps from the quadratic's own rate, no
+    // further (more follow the noise; the young tracks' choice between
+    // the line and the turning path decides whether it is used).
+    let few = s.len() < 7;
+    let iterations = if few { YOUNG_ITERATIONS } else { ITERATIONS };
     let mut w = 0.0;
-    for _ in 0..ITERATIONS {
+    for _ in 0..iterations {
         let (_, v, a, _) = fit_at::<3>(s, xs, ys, w)?;
         let sp2 = v.norm2();
         if sp2 < MIN_SPEED * MIN_SPEED {
             return Some(0.0);
         }
         let next = (w + (a * v.conj()).im / sp2).clamp(-MAX_TURN, MAX_TURN);
-        let done = (next - w).abs() < 1e-5;
+        let converged = (next - w).abs() < 1e-5;
         w = next;
-        if done {
+        if converged {
             break;
         }
     }
-    Some(w)
+    // A rate that fits worse than the quadratic (noise taken for a turn,
+    // an iteration run off) is no turn.
+    let ok = few || rss_at(s, xs, ys, w)? <= rss_at(s, xs, ys, 0.0)?;
+    Some(if ok { w } else { 0.0 })
 }
 
 /// How much better (drop of the residual sum of squares, both axes, px²)
