@@ -169,8 +169,8 @@ const SCULLY: Flow = Flow::Vortex {
 /// A Scully vortex (rc 25 px, peak 5 px/pulse on 1.5 px/pulse of drift)
 /// from the independent generator, with the defaults and with the
 /// polynomial path (`turn_model: false`). Measured (seed 11): precision
-/// 0.985 / 0.985, recall 0.914 / 0.916, velocity 0.068 / 0.064 px/pulse,
-/// within 1.5 rc 0.068 / 0.056, coverage there 0.864 / 0.867: on this
+/// 0.985 / 0.985, recall 0.915 / 0.916, velocity 0.068 / 0.064 px/pulse,
+/// within 1.5 rc 0.067 / 0.056, coverage there 0.864 / 0.867: on this
 /// generator's vortex the turning path does not help (its tracks do not
 /// break in the core as those of `ptvdev_vortex` did) and costs a little
 /// velocity noise. Guards against both paths getting worse.
@@ -198,8 +198,8 @@ fn independent_vortex_core_is_tracked() {
 
 /// A shear layer (1 → 5 px/pulse across 2·15 px) rolled into travelling
 /// cat's eyes, from the independent generator. Measured (seed 12):
-/// precision 0.981, recall 0.907, velocity 0.083 px/pulse, coverage
-/// 0.849, ends 0.191.
+/// precision 0.981, recall 0.907, velocity 0.082 px/pulse, coverage
+/// 0.849, ends 0.190.
 #[test]
 fn independent_shear_layer_is_tracked() {
     let flow = Flow::Shear {
