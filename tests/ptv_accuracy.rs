@@ -307,4 +307,3 @@ fn paper_like_384_runner() -> impl Fn(&TrackParams) -> ebptv::track::synth::Link
         s
     }
 }
-

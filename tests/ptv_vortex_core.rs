@@ -108,10 +108,7 @@ fn fast_vortex_core_is_tracked() {
     );
     let ptv = dir.path().join("ptv");
     let rec = sim.join("recording.raw");
-    ebptv(
-        &["track", rec.to_str().unwrap()],
-        &ptv,
-    );
+    ebptv(&["track", rec.to_str().unwrap()], &ptv);
     let truth = sim.join("truth_particles.csv");
     let tracks = ptv.join("tracks.csv");
 
@@ -192,8 +189,14 @@ fn independent_vortex_core_is_tracked() {
     assert!(on.core_vel_rms < 0.08, "{on:?}");
     assert!(on.core_coverage > 0.84, "{on:?}");
     assert!(on.ends_vel_rms < 0.18, "{on:?}");
-    assert!(on.core_vel_rms < 1.3 * off.core_vel_rms, "{on:?} vs {off:?}");
-    assert!(on.core_coverage > off.core_coverage - 0.01, "{on:?} vs {off:?}");
+    assert!(
+        on.core_vel_rms < 1.3 * off.core_vel_rms,
+        "{on:?} vs {off:?}"
+    );
+    assert!(
+        on.core_coverage > off.core_coverage - 0.01,
+        "{on:?} vs {off:?}"
+    );
 }
 
 /// A shear layer (1 → 5 px/pulse across 2·15 px) rolled into travelling
@@ -227,8 +230,8 @@ fn independent_shear_layer_is_tracked() {
 #[ignore]
 fn ptvdev_vortex_meets_the_goals() {
     let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared");
-    let dir = std::env::var("PTVDEV_DIR")
-        .unwrap_or_else(|_| format!("{root}/data/dev/ptvdev_vortex"));
+    let dir =
+        std::env::var("PTVDEV_DIR").unwrap_or_else(|_| format!("{root}/data/dev/ptvdev_vortex"));
     let eval = std::env::var("PTVDEV_EVAL").unwrap_or_else(|_| format!("{root}/eval"));
     let out = tempfile::tempdir().unwrap();
     ebptv(&["track", &format!("{dir}/events.raw")], out.path());
@@ -236,7 +239,11 @@ fn ptvdev_vortex_meets_the_goals() {
         let o = Command::new("python3").args(args).output().unwrap();
         let text = String::from_utf8_lossy(&o.stdout).to_string();
         eprintln!("{text}");
-        assert!(o.status.success(), "{args:?}: {text}{}", String::from_utf8_lossy(&o.stderr));
+        assert!(
+            o.status.success(),
+            "{args:?}: {text}{}",
+            String::from_utf8_lossy(&o.stderr)
+        );
     };
     let tracks = out.path().join("tracks.csv");
     py(&[

@@ -2231,7 +2231,14 @@ impl Tracker {
                     // The line: young tracks' turning choice here cost the
                     // synthetic paper-like scene recall (0.9505 → 0.9493)
                     // and did not help the vortex.
-                    young_prediction(&tau[..n], &xs[..n], &ys[..n], at, self.position_sigma(), 0.0)
+                    young_prediction(
+                        &tau[..n],
+                        &xs[..n],
+                        &ys[..n],
+                        at,
+                        self.position_sigma(),
+                        0.0,
+                    )
                 };
                 let f = match turned {
                     Some((x, y, leverage)) => fit::FitState {
@@ -3119,7 +3126,11 @@ fn remove_outliers_turning(dets: &mut Vec<Det>, window: usize, gate: f64, sigma:
     for d in &marked {
         keep[d.serial as usize] = true;
     }
-    let (mut tau, mut wx, mut wy) = (Vec::with_capacity(w), Vec::with_capacity(w), Vec::with_capacity(w));
+    let (mut tau, mut wx, mut wy) = (
+        Vec::with_capacity(w),
+        Vec::with_capacity(w),
+        Vec::with_capacity(w),
+    );
     for i in 0..n {
         let mut lo = i.saturating_sub(w / 2);
         if lo + w + 1 > n {
@@ -3242,7 +3253,11 @@ fn joint_turn_cost(old: &[Det], new: &[Det], sigma: f64) -> Option<f64> {
         return None;
     }
     let t0 = old[old.len() - 1].pulse;
-    let (mut tau, mut xs, mut ys) = ([0.0; 2 * JOINT_SIDE], [0.0; 2 * JOINT_SIDE], [0.0; 2 * JOINT_SIDE]);
+    let (mut tau, mut xs, mut ys) = (
+        [0.0; 2 * JOINT_SIDE],
+        [0.0; 2 * JOINT_SIDE],
+        [0.0; 2 * JOINT_SIDE],
+    );
     for (i, d) in old[old.len() - a..].iter().chain(&new[..b]).enumerate() {
         tau[i] = (d.pulse - t0) as f64;
         xs[i] = d.x;
@@ -3286,8 +3301,7 @@ fn extrapolate(
     let xs: Vec<f64> = win.iter().map(|d| d.x).collect();
     let ys: Vec<f64> = win.iter().map(|d| d.y).collect();
     if p.turn_model {
-        return young_prediction(&tau, &xs, &ys, 0.0, sigma, 0.0)
-            .map(|(x, y, _)| (x, y));
+        return young_prediction(&tau, &xs, &ys, 0.0, sigma, 0.0).map(|(x, y, _)| (x, y));
     }
     fit::fit_eval(&tau, &xs, &ys, 1, 0.0).map(|f| (f.x, f.y))
 }

@@ -386,7 +386,12 @@ mod tests {
 
     #[test]
     fn an_arc_is_extrapolated_exactly_and_a_quadratic_is_not() {
-        for (r, w, acc) in [(20.0, 0.19, 0.0), (10.0, 0.3, 0.0), (30.0, 0.13, 0.03), (25.0, -0.2, -0.02)] {
+        for (r, w, acc) in [
+            (20.0, 0.19, 0.0),
+            (10.0, 0.3, 0.0),
+            (30.0, 0.13, 0.03),
+            (25.0, -0.2, -0.02),
+        ] {
             let (tau, xs, ys) = arc(r, w, acc, 12);
             let k = 11;
             let f = turn_eval(&tau[..k], &xs[..k], &ys[..k], tau[k], true).unwrap();
@@ -395,7 +400,10 @@ mod tests {
             assert!((f.omega - w).abs() < 0.01, "omega {} vs {w}", f.omega);
             let q = crate::track::fit::fit_eval(&tau[..k], &xs[..k], &ys[..k], 2, tau[k]).unwrap();
             let qerr = (q.x - xs[k]).hypot(q.y - ys[k]);
-            assert!(qerr > 10.0 * err.max(0.01), "quadratic {qerr} vs turn {err}");
+            assert!(
+                qerr > 10.0 * err.max(0.01),
+                "quadratic {qerr} vs turn {err}"
+            );
         }
     }
 
@@ -403,7 +411,10 @@ mod tests {
     fn a_straight_or_accelerating_path_gives_the_quadratic() {
         let tau: Vec<f64> = (0..10).map(|i| i as f64).collect();
         let xs: Vec<f64> = tau.iter().map(|t| 3.0 + 2.0 * t + 0.05 * t * t).collect();
-        let ys: Vec<f64> = tau.iter().map(|t| -1.0 + 0.5 * t + 0.0125 * t * t).collect();
+        let ys: Vec<f64> = tau
+            .iter()
+            .map(|t| -1.0 + 0.5 * t + 0.0125 * t * t)
+            .collect();
         let f = turn_eval(&tau, &xs, &ys, 10.0, true).unwrap();
         let q = crate::track::fit::fit_eval(&tau, &xs, &ys, 2, 10.0).unwrap();
         assert!(f.omega.abs() < 1e-6, "{}", f.omega);
@@ -411,7 +422,14 @@ mod tests {
         assert!((f.leverage - q.leverage).abs() < 1e-6 * q.leverage);
         // Constant speed: the line's leverage.
         let l = crate::track::fit::fit_eval(&tau, &xs, &ys, 1, 10.0).unwrap();
-        let g = turn_eval(&tau, &tau.iter().map(|t| 2.0 * t).collect::<Vec<_>>(), &ys.iter().map(|_| 0.0).collect::<Vec<_>>(), 10.0, false).unwrap();
+        let g = turn_eval(
+            &tau,
+            &tau.iter().map(|t| 2.0 * t).collect::<Vec<_>>(),
+            &ys.iter().map(|_| 0.0).collect::<Vec<_>>(),
+            10.0,
+            false,
+        )
+        .unwrap();
         assert!((g.leverage - l.leverage).abs() < 1e-6 * l.leverage);
         assert!((g.x - 20.0).abs() < 1e-9 && g.y.abs() < 1e-9);
     }
@@ -427,8 +445,14 @@ mod tests {
         let sig = 0.3;
         let (mut s2, mut lev, m) = (0.0, 0.0, 4000);
         for _ in 0..m {
-            let nx: Vec<f64> = xs[..k].iter().map(|x| x + sig * rng.sample::<f64, _>(StandardNormal)).collect();
-            let ny: Vec<f64> = ys[..k].iter().map(|y| y + sig * rng.sample::<f64, _>(StandardNormal)).collect();
+            let nx: Vec<f64> = xs[..k]
+                .iter()
+                .map(|x| x + sig * rng.sample::<f64, _>(StandardNormal))
+                .collect();
+            let ny: Vec<f64> = ys[..k]
+                .iter()
+                .map(|y| y + sig * rng.sample::<f64, _>(StandardNormal))
+                .collect();
             let f = turn_eval(&tau[..k], &nx, &ny, tau[k], true).unwrap();
             s2 += 0.5 * ((f.x - xs[k]).powi(2) + (f.y - ys[k]).powi(2));
             lev += f.leverage;
@@ -437,6 +461,9 @@ mod tests {
         // itself adds about half as much again on an 11-point arc (1.56
         // here): a known understatement of the gate in turning regions.
         let ratio = s2 / m as f64 / (sig * sig) / (lev / m as f64);
-        assert!((1.0..2.0).contains(&ratio), "variance / stated leverage = {ratio}");
+        assert!(
+            (1.0..2.0).contains(&ratio),
+            "variance / stated leverage = {ratio}"
+        );
     }
 }

@@ -22,24 +22,52 @@ pub enum Flow {
     /// Scully vortex (tangential speed `2·vmax·(r/rc)/(1 + (r/rc)²)`,
     /// peak `vmax` at `rc`; counter-clockwise in x right, y down) on a
     /// uniform flow `(u0, v0)`; px, px per pulse.
-    Vortex { xc: f64, yc: f64, rc: f64, vmax: f64, u0: f64, v0: f64 },
+    Vortex {
+        xc: f64,
+        yc: f64,
+        rc: f64,
+        vmax: f64,
+        u0: f64,
+        v0: f64,
+    },
     /// Shear layer `u = uc + du/2·tanh((y − yc)/delta)` with the stream
     /// function perturbation `amp·cos(k(x − uc·t))·sech((y − yc)/delta)`.
-    Shear { yc: f64, delta: f64, uc: f64, du: f64, amp: f64, wavelength: f64 },
+    Shear {
+        yc: f64,
+        delta: f64,
+        uc: f64,
+        du: f64,
+        amp: f64,
+        wavelength: f64,
+    },
 }
 
 impl Flow {
     /// Velocity (px per pulse) at `(x, y)` and time `t` (pulses).
     pub fn velocity(&self, x: f64, y: f64, t: f64) -> (f64, f64) {
         match *self {
-            Flow::Vortex { xc, yc, rc, vmax, u0, v0 } => {
+            Flow::Vortex {
+                xc,
+                yc,
+                rc,
+                vmax,
+                u0,
+                v0,
+            } => {
                 let (dx, dy) = (x - xc, y - yc);
                 let r2 = dx * dx + dy * dy;
                 // v_θ / r = 2 vmax / (rc (1 + r²/rc²)) / rc
                 let f = 2.0 * vmax / (rc * rc + r2);
                 (u0 - f * dy, v0 + f * dx)
             }
-            Flow::Shear { yc, delta, uc, du, amp, wavelength } => {
+            Flow::Shear {
+                yc,
+                delta,
+                uc,
+                du,
+                amp,
+                wavelength,
+            } => {
                 let k = 2.0 * std::f64::consts::PI / wavelength;
                 let eta = (y - yc) / delta;
                 let (th, sech) = (eta.tanh(), 1.0 / eta.cosh());
@@ -174,7 +202,9 @@ pub fn generate(cfg: &Config) -> Scene {
                 }
             }
         }
-        let noise = Poisson::new(cfg.noise_per_pulse.max(1e-9)).unwrap().sample(&mut rng) as usize;
+        let noise = Poisson::new(cfg.noise_per_pulse.max(1e-9))
+            .unwrap()
+            .sample(&mut rng) as usize;
         for _ in 0..noise {
             let t = start + rng.gen_range(0.0..cfg.period_us);
             windows[k].push((
@@ -310,7 +340,10 @@ pub fn score(scene: &Scene, tracks: &[Track], flow: &Flow, core: f64) -> Scores 
         .filter(|t| t.events > 0 && seen.get(&(t.pid, t.pulse + 1)) == Some(&true))
         .map(|t| (t.pid, t.pulse))
         .collect();
-    let recall = truth_pairs.iter().filter(|k| found_pairs.contains(k)).count() as f64
+    let recall = truth_pairs
+        .iter()
+        .filter(|k| found_pairs.contains(k))
+        .count() as f64
         / truth_pairs.len().max(1) as f64;
     let (mut vis, mut vis_core, mut cov, mut cov_core) = (0usize, 0usize, 0usize, 0usize);
     for (i, t) in scene.truth.iter().enumerate() {
