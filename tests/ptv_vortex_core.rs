@@ -114,7 +114,7 @@ fn fast_vortex_core_is_tracked() {
 
     // Inside the core radius (60 px): with the line-only young predictor
     // 0.12 of the truth samples had a track point within 1 px, with the
-    // quadratic fallback (session 11) 0.95.
+    // quadratic fallback of young tracks 0.95.
     let (cover, _) = core_scores(&tracks, &truth, 60.0);
     assert!(cover > 0.8, "core (r < 60 px) coverage {cover:.3}");
     // Within 90 px (the swirl's peak at ~67 px): velocity rms of the
