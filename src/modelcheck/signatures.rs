@@ -484,7 +484,7 @@ pub fn quiet_complement(latency: &Histogram, quiet_fraction: f64) -> Result<(f64
 
 /// Streaming computation of [`Signatures`].
 ///
-/// Fast path (session 5; [`reference::ReferenceAccumulator`] is the plain
+/// Fast path ([`reference::ReferenceAccumulator`] is the plain
 /// version the tests compare it with, signature for signature): the
 /// per-pixel state is one 32-byte record per pixel ([`PixelState`]), so
 /// an event touches one cache line instead of eight arrays of the sensor
@@ -1350,7 +1350,7 @@ pub fn compute(
 }
 
 // ---------------------------------------------------------------------------
-// Clock drift (session 4, appended as its own block; computed by
+// Clock drift (its own block; computed by
 // `workflow::signatures_of` next to the accumulator's signatures).
 
 /// Time blocks of [`latency_drift`]: enough points for a slope, each block

@@ -27,8 +27,8 @@
 //!    with the stage-1 fit added, since an effect changes the noise of the
 //!    signatures it drives.
 //! 4. **Judge on held-out data** (as described here with
-//!    [`WorkflowOptions::paired_judgement`]; by default the rule of sessions
-//!    4–8, [`judge_candidates_whole_gap`]: fresh seeds per round, the rival
+//!    [`WorkflowOptions::paired_judgement`]; by default the whole-gap rule,
+//!    [`judge_candidates_whole_gap`]: fresh seeds per round, the rival
 //!    margin a quarter of the whole gap the rival leaves, no explaining
 //!    away): assess each fitted candidate against the
 //!    *held-out* measurement with the same replicate seeds as the current
@@ -55,10 +55,11 @@
 //!    other is in, the other is named; if each adds, both are named (A
 //!    first); if neither adds, they are interchangeable explanations and
 //!    the search stops with "unexplained" (the note names both).
-//!    Why the disputed rows and not the whole gap (sessions 4–8): with one
+//!    Why the disputed rows and not the whole gap: with one
 //!    hidden effect the two are nearly the same; with seven the whole gap
 //!    holds every other effect's part too, and a margin on it can never be
-//!    met (session 7: a lead of 1079 against a required 2553 of 11 020).
+//!    met (on a seven-effect recording: a lead of 1079 against a
+//!    required 2553 of 11 020).
 //! 5. After an acceptance with two or more effects found, the found effects
 //!    are refitted jointly (see `joint_refit`), kept only if the held-out
 //!    gap does not grow.
@@ -147,14 +148,14 @@ pub struct WorkflowOptions {
     /// names nothing.
     #[serde(default)]
     pub profile_fit: bool,
-    /// The session-9 judgement ([`judge_candidates`]): one replicate seed
+    /// The paired judgement ([`judge_candidates`]): one replicate seed
     /// set for every held-out assessment (paired gaps), candidates compared
     /// on the current model's rows, the rival margin on the disputed rows,
     /// and explaining away ([`explain_away`]) when the lead is not clear.
     /// Off by default: with it an effect outside the catalogue (long pulse
     /// streaks on the 160×120 test scene) gets two compensating effects
     /// named (refractory, then arbiter: gap 290 → 216 → 149) where the
-    /// default names nothing (BENCHMARKS.md, "Model check", session 9).
+    /// default names nothing.
     #[serde(default)]
     pub paired_judgement: bool,
 }
@@ -870,7 +871,7 @@ fn joint_refit(
 /// appears once a candidate produces it. Comparing Σ max(z, 0) over
 /// different row sets rewards or penalises a candidate for the rows it
 /// brings, not for how well it fits: with the new rows in the after-gap
-/// only (sessions 4–8) a candidate paid for bringing them; counted at the
+/// only (the whole-gap rule) a candidate paid for bringing them; counted at the
 /// cap before, every candidate that makes any OFF event earned ~4000 for
 /// four rows that all say "no OFF events" (on_fraction already says it).
 /// So candidates are compared on the rows the current model has; a row
@@ -1008,7 +1009,7 @@ impl Judgement {
 /// (latency jitter leaving 9 where intensity latency leaves 41 is clear;
 /// 43.7 against 47.5 is not). With seven, the whole gap also holds every
 /// other effect's part, rows neither touches, and a margin on it can never
-/// be met (session 7: a lead of 1079 against a required 2553 of 11 020).
+/// be met (a lead of 1079 against a required 2553 of 11 020).
 pub fn judge_candidates(
     before: &DiscrepancyTable,
     names: &[&str],
@@ -1063,7 +1064,7 @@ pub fn judge_candidates(
     }
 }
 
-/// The rule of sessions 4–8 (the default; see
+/// The whole-gap rule (the default with a starting model; see
 /// [`WorkflowOptions::paired_judgement`]): improvement = gap before −
 /// gap after (each table on its own rows); a rival's overlap counted on
 /// the rows of `before` (a row missing after counts as unchanged); clear

@@ -10,7 +10,10 @@
 //!
 //! # Algorithm (streaming, one pulse at a time: [`Tracker::push`])
 //! 1. **Predict** every active track at the new pulse time: a polynomial fit
-//!    (order ≤ 2) over its last `predict_window` detections, extrapolated.
+//!    (order ≤ 2) over its last `predict_window` detections, extrapolated;
+//!    where the window visibly turns, a path turning at a constant rate
+//!    ([`turn`], `turn_model`), and for young tracks the line unless it
+//!    misses the constant-speed turning path by `young_turn_sigma`.
 //!    The search radius is `n_sigma` times the predictor's position
 //!    uncertainty (residual rms, floored, times the fit's leverage at the
 //!    extrapolation point), clamped to `[min_search_radius, max_disp]` and
@@ -66,6 +69,7 @@ pub mod slice;
 pub mod step;
 pub mod stream;
 pub mod synth;
+pub mod turn;
 
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -449,26 +453,27 @@ pub struct TrackParams {
     /// pipeline hands them on before its end): memory grows with the run.
     #[serde(default)]
     pub velocity_prior_two_pass: bool,
-    /// Young tracks (fewer than 3 detections per coefficient of
-    /// `predict_order`, so predicted by a straight line) are also
-    /// predicted with the full order over the same detections; where the
-    /// line's prediction ± `young_order_sigma` of its noise (σ·√leverage
-    /// per axis) does not overlap the full order's ± the same, the path's
-    /// acceleration shows and the full order's prediction is taken (with
-    /// the line's gate). A line through 4 (5) detections of a path
-    /// accelerating at `a` px/pulse² misses the next position by 2.5 a
-    /// (3.5 a) px: at the ~1 px/pulse² of the 8 px/pulse Lamb–Oseen core
-    /// that is beyond the ~2.3 px gate, and nearly every core track died
-    /// at its fifth detection (`tests/ptv_vortex_core.rs`: at 2, core
-    /// coverage 0.12 → 0.94). 0 = the line
-    /// alone (default): as a default, 2 cost the synthetic paper-like
-    /// scene of `tests/ptv_accuracy.rs` velocity (0.130 → 0.135 px/pulse,
-    /// over that test's limit) and 3 the dense, fast, noisy one
-    /// precision (0.867 → 0.864), while 3 kept only part of the vortex
-    /// gain. For flows turning at more than ~0.5 px/pulse² where the
-    /// linear start breaks tracks.
-    #[serde(default = "default_young_order_sigma")]
-    pub young_order_sigma: f64,
+    /// Follow turning paths ([`turn`]: a path turning at a constant rate
+    /// with a linear speed change, the rate fitted to the window, the
+    /// quadratic's count of coefficients): the predictor of tracks whose
+    /// window visibly turns, the stitch test, the backward extension, the
+    /// step test's rival model, and the outlier pass and output fit where
+    /// the heading turns (`turn_fit_window`). `false`: polynomials in time
+    /// throughout. On the
+    /// independent `ptvdev_vortex` recording velocity rms 0.081 → 0.039
+    /// px/pulse, within 1.5 core radii 0.38 → 0.13 (docs/readme/ptv.md).
+    #[serde(default = "default_turn_model")]
+    pub turn_model: bool,
+    /// With `turn_model`: young tracks (predicted by a line) take the
+    /// constant-speed turning path's prediction where the line's ± this
+    /// many σ misses it (0 = the line alone).
+    #[serde(default = "default_young_turn_sigma")]
+    pub young_turn_sigma: f64,
+    /// With `turn_model`: detections (≥ 7; 0 = off) of the output fit's
+    /// turning-path window, taken where the heading visibly turns and the
+    /// turning path fits the window better than the quadratic.
+    #[serde(default = "default_turn_fit_window")]
+    pub turn_fit_window: usize,
     /// Search radius (px) around the prior's prediction for the first step.
     pub prior_radius: f64,
     /// Mean-flow prior for initialisation.
@@ -516,7 +521,9 @@ impl Default for TrackParams {
             velocity_prior: 0.0,
             velocity_prior_mean: false,
             velocity_prior_two_pass: false,
-            young_order_sigma: default_young_order_sigma(),
+            turn_model: default_turn_model(),
+            young_turn_sigma: default_young_turn_sigma(),
+            turn_fit_window: default_turn_fit_window(),
             prior_radius: 3.0,
             prior: None,
         }
@@ -532,24 +539,52 @@ fn clipped_second_moment(k: f64) -> f64 {
     (1.0 - (1.0 + 0.5 * k * k) * e) / (1.0 - e)
 }
 
-fn default_young_order_sigma() -> f64 {
-    0.0
+fn default_turn_model() -> bool {
+    true
 }
 
-/// Polynomial orders the predictor compares for a track of `w` detections
-/// in its window whose order by its length is `order`: a young track's
-/// full order first (unbiased, noisier), then its own.
-fn predict_orders(
-    w: usize,
-    order: usize,
-    full_order: usize,
+fn default_young_turn_sigma() -> f64 {
+    2.0
+}
+
+fn default_turn_fit_window() -> usize {
+    11
+}
+
+/// The predictor takes the turning path where the heading of a window's
+/// second half differs from its first half's by this many standard
+/// deviations of its noise.
+const PREDICT_TURN_Z: f64 = 2.0;
+
+/// The output fit's turning path is tried where the heading change over
+/// its window is this many standard deviations of its noise ...
+const TURN_SCREEN_Z: f64 = 1.5;
+
+/// ... and taken where it fits the window better than the quadratic by
+/// this χ² (units of σ²; one coefficient more, the rate of turn).
+const TURN_GAIN_MIN: f64 = 4.0;
+
+/// The line through `(tau, xs, ys)` evaluated at `at`, or, where the
+/// line's ±`k` σ misses the constant-speed turning path's ([`turn`]), the
+/// turning path's: a young track's prediction (`young_turn_sigma`). The
+/// line's leverage comes along (the gate stays the line's).
+fn young_prediction(
+    tau: &[f64],
+    xs: &[f64],
+    ys: &[f64],
+    at: f64,
+    sigma: f64,
     k: f64,
-) -> impl Iterator<Item = usize> {
-    let young = k > 0.0 && order < full_order && w >= full_order + 2;
-    young
-        .then_some(full_order)
-        .into_iter()
-        .chain(std::iter::once(order))
+) -> Option<(f64, f64, f64)> {
+    let line = fit::fit_eval(tau, xs, ys, 1, at)?;
+    if k > 0.0 {
+        if let Some(f) = turn::turn_eval(tau, xs, ys, at, false) {
+            let preds = [(f.x, f.y, f.leverage), (line.x, line.y, line.leverage)];
+            let c = ici_choice(&preds, sigma, k);
+            return Some((preds[c].0, preds[c].1, line.leverage));
+        }
+    }
+    Some((line.x, line.y, line.leverage))
 }
 
 /// Index of the prediction kept among `(x, y, leverage)` ordered from
@@ -1416,36 +1451,84 @@ impl Tracker {
         let w = p.predict_window.min(n);
         let win = &track.dets[n - w..];
         let last = track.last();
+        if p.turn_model {
+            if let Some(r) = self.predict_turn(track, pulse) {
+                return r;
+            }
+        }
         if win[0].pulse + w as i64 - 1 != last.pulse {
             return self.predict_reference(track, pulse);
         }
         let order = self.predict_order(n);
         let ahead = pulse - last.pulse;
-        let k_young = p.young_order_sigma;
-        let mut preds = [(0.0, 0.0, 0.0); 2];
-        let mut m = 0;
-        for oo in predict_orders(w, order, p.predict_order, k_young) {
-            let Some(k) = self.weights_index(w, oo, ahead) else {
-                return self.predict_reference(&self.active[ti], pulse);
-            };
-            let c = &self.weights[k];
-            let win = &self.active[ti].dets[n - w..];
-            let (mut x, mut y) = (0.0, 0.0);
-            for (ci, d) in c.c.iter().zip(win) {
-                x += ci * d.x;
-                y += ci * d.y;
-            }
-            preds[m] = (x, y, c.leverage);
-            m += 1;
+        let Some(k) = self.weights_index(w, order, ahead) else {
+            return self.predict_reference(&self.active[ti], pulse);
+        };
+        let c = &self.weights[k];
+        let win = &self.active[ti].dets[n - w..];
+        let (mut x, mut y) = (0.0, 0.0);
+        for (ci, d) in c.c.iter().zip(win) {
+            x += ci * d.x;
+            y += ci * d.y;
         }
-        let (x, y, _) = preds[ici_choice(&preds[..m], self.position_sigma(), k_young)];
-        // The gate stays the track's own order's: the fallback moves the
-        // centre onto the curved path; the quadratic's wider gate (4
-        // detections: leverage 7.75 against the line's 1.5) also kept
-        // chains through noise and neighbours alive.
-        let leverage = preds[m - 1].2;
-        let (r, lev) = self.search_radius(leverage, ahead);
+        let (r, lev) = self.search_radius(c.leverage, ahead);
         (x, y, r, lev)
+    }
+
+    /// The turning-path predictor ([`turn`]): mature tracks by the
+    /// constant-turn-rate path with a linear speed change over the window,
+    /// young ones by the line, or (`young_turn_sigma`) by the
+    /// constant-speed turning path where the line's prediction is
+    /// visibly off it. `None`: too few detections for the model.
+    fn predict_turn(&self, track: &ActiveTrack, pulse: i64) -> Option<(f64, f64, f64, f64)> {
+        let p = &self.params;
+        let n = track.dets.len();
+        let w = p.predict_window.min(n).min(64);
+        let win = &track.dets[n - w..];
+        let last = track.last();
+        let (mut tau, mut xs, mut ys) = ([0.0; 64], [0.0; 64], [0.0; 64]);
+        for (i, d) in win.iter().enumerate() {
+            tau[i] = (d.pulse - last.pulse) as f64;
+            xs[i] = d.x;
+            ys[i] = d.y;
+        }
+        let (tau, xs, ys) = (&tau[..w], &xs[..w], &ys[..w]);
+        let at = (pulse - last.pulse) as f64;
+        let order = self.predict_order(n);
+        let (x, y, lev) = if order >= 2 {
+            // Cheap screen first: the heading of the window's second half
+            // against its first half's, in units of its noise; where it
+            // does not visibly turn the quadratic (the cached fast path)
+            // serves as well at a tenth of the cost.
+            let h = w / 2;
+            let (a, b) = (&win[..h], &win[h..]);
+            let (la, lb) = (
+                (a[h - 1].pulse - a[0].pulse) as f64,
+                (b[b.len() - 1].pulse - b[0].pulse) as f64,
+            );
+            if la < 1.0 || lb < 1.0 {
+                return None;
+            }
+            let (ux, uy) = ((a[h - 1].x - a[0].x) / la, (a[h - 1].y - a[0].y) / la);
+            let (vx, vy) = (
+                (b[b.len() - 1].x - b[0].x) / lb,
+                (b[b.len() - 1].y - b[0].y) / lb,
+            );
+            let turned = (ux * vy - uy * vx).atan2(ux * vx + uy * vy);
+            let speed2 = (ux * ux + uy * uy).min(vx * vx + vy * vy);
+            // Each half's heading: σ√2 per end over its span.
+            let sigma = self.position_sigma();
+            let var = 2.0 * sigma * sigma / speed2 * (1.0 / (la * la) + 1.0 / (lb * lb));
+            if !(turned * turned > PREDICT_TURN_Z * PREDICT_TURN_Z * var) {
+                return None;
+            }
+            let f = turn::turn_eval(tau, xs, ys, at, true)?;
+            (f.x, f.y, f.leverage)
+        } else {
+            young_prediction(tau, xs, ys, at, self.position_sigma(), p.young_turn_sigma)?
+        };
+        let (r, lev) = self.search_radius(lev, pulse - last.pulse);
+        Some((x, y, r, lev))
     }
 
     /// Cached predictor weights of a gap-free window.
@@ -1503,22 +1586,11 @@ impl Tracker {
         let ys: Vec<f64> = win.iter().map(|d| d.y).collect();
         let at = (pulse - last.pulse) as f64;
         let order = self.predict_order(n);
-        let mut preds = Vec::with_capacity(2);
-        for oo in predict_orders(w, order, p.predict_order, p.young_order_sigma) {
-            // A full order the detections (with gaps) cannot carry yields
-            // nothing and the track's own order is taken.
-            if let Some(f) = fit::fit_eval(&tau, &xs, &ys, oo, at) {
-                preds.push((f.x, f.y, f.leverage));
-            }
-        }
-        if preds.is_empty() {
+        let Some(f) = fit::fit_eval(&tau, &xs, &ys, order, at) else {
             return (last.x, last.y, p.max_disp, 1.0);
-        }
-        let (x, y, _) = preds[ici_choice(&preds, self.position_sigma(), p.young_order_sigma)];
-        // The own order's gate, as in `predict`.
-        let leverage = preds[preds.len() - 1].2;
-        let (r, lev) = self.search_radius(leverage, pulse - last.pulse);
-        (x, y, r, lev)
+        };
+        let (r, lev) = self.search_radius(f.leverage, pulse - last.pulse);
+        (f.x, f.y, r, lev)
     }
 
     /// Extend active tracks with this pulse's detections (global
@@ -2191,8 +2263,43 @@ impl Tracker {
                 }
                 let order = self.predict_order(n);
                 let at = (frame.pulse - first) as f64;
-                let Some(f) = fit::fit_eval(&tau[..n], &xs[..n], &ys[..n], order, at) else {
-                    continue;
+                let turned = if !self.params.turn_model {
+                    None
+                } else if order >= 2 {
+                    turn::turn_eval(&tau[..n], &xs[..n], &ys[..n], at, true)
+                        .map(|t| (t.x, t.y, t.leverage))
+                } else {
+                    // The line: young tracks' turning choice here cost the
+                    // synthetic paper-like scene recall (0.9505 → 0.9493)
+                    // and did not help the vortex.
+                    young_prediction(
+                        &tau[..n],
+                        &xs[..n],
+                        &ys[..n],
+                        at,
+                        self.position_sigma(),
+                        0.0,
+                    )
+                };
+                let f = match turned {
+                    Some((x, y, leverage)) => fit::FitState {
+                        x,
+                        y,
+                        vx: 0.0,
+                        vy: 0.0,
+                        ax: 0.0,
+                        ay: 0.0,
+                        rms_residual: 0.0,
+                        leverage,
+                        velocity_variance: 0.0,
+                    },
+                    None => {
+                        let Some(f) = fit::fit_eval(&tau[..n], &xs[..n], &ys[..n], order, at)
+                        else {
+                            continue;
+                        };
+                        f
+                    }
                 };
                 let (r, _) = self.search_radius(f.leverage, first - frame.pulse);
                 sc.near.clear();
@@ -2226,6 +2333,7 @@ impl Tracker {
         if self.pool.is_empty() || chains.is_empty() {
             return chains;
         }
+        let sigma = self.position_sigma();
         let p = &self.params;
         let mut edges = Vec::new();
         for (ri, old) in self.pool.iter().enumerate() {
@@ -2248,7 +2356,7 @@ impl Tracker {
                 let fwd = match fwd_at.iter().find(|e| e.0 == start.pulse) {
                     Some(e) => e.1,
                     None => {
-                        let f = extrapolate(&old.dets, p.predict_window, start.pulse);
+                        let f = extrapolate(&old.dets, p.predict_window, start.pulse, p, sigma);
                         fwd_at.push((start.pulse, f));
                         f
                     }
@@ -2256,11 +2364,25 @@ impl Tracker {
                 let Some(fwd) = fwd else {
                     continue;
                 };
-                if (fwd.0 - start.x).powi(2) + (fwd.1 - start.y).powi(2) > 2.0 * r * r {
+                let fwd_d2 = (fwd.0 - start.x).powi(2) + (fwd.1 - start.y).powi(2);
+                if fwd_d2 > 2.0 * r * r {
                     continue;
                 }
+                // The old track's extrapolation reaches the chain, and one
+                // turning path through both pieces has the residuals of
+                // the position noise: the pair joins even where the young
+                // chain's own line back across the gap is off (a vortex
+                // core).
+                if p.turn_model {
+                    if let Some(z) = joint_turn_cost(&old.dets, &new.dets, sigma) {
+                        if z <= 1.0 {
+                            edges.push((ri, ci, z.max(0.5 * fwd_d2 / (r * r))));
+                            continue;
+                        }
+                    }
+                }
                 let fwd = Some(fwd);
-                let bwd = extrapolate(&new.dets, INIT_FRAMES, end.pulse);
+                let bwd = extrapolate(&new.dets, p.predict_window, end.pulse, p, sigma);
                 let (Some(fwd), Some(bwd)) = (fwd, bwd) else {
                     continue;
                 };
@@ -2892,7 +3014,12 @@ fn finalise_one(
     // Points up to this pulse went out with an earlier segment.
     let handed_out = (t.context > 0).then(|| t.dets[t.context - 1].pulse);
     if params.outlier_sigma > 0.0 {
-        remove_outliers(&mut t.dets, params.fit_window.min(OUTLIER_WINDOW), gate);
+        let window = params.fit_window.min(OUTLIER_WINDOW);
+        if params.turn_model {
+            remove_outliers_turning(&mut t.dets, window, gate, sigma);
+        } else {
+            remove_outliers(&mut t.dets, window, gate);
+        }
     }
     trim_unconfirmed_tail(&mut t.dets, params.confirm_after_gap);
     let fresh = match handed_out {
@@ -3013,6 +3140,75 @@ fn remove_outliers(dets: &mut Vec<Det>, window: usize, gate: f64) {
     remove_outliers_with(dets, window, gate, true)
 }
 
+/// [`remove_outliers`] where the path turns: a detection whose window's
+/// heading changes visibly (the output fit's screen, position noise
+/// `sigma`) is predicted by the turning path through the window
+/// ([`turn`]) instead of the quadratic, which would take good detections
+/// of a vortex core for outliers and the stray one a young track took
+/// there for good.
+fn remove_outliers_turning(dets: &mut Vec<Det>, window: usize, gate: f64, sigma: f64) {
+    let n = dets.len();
+    if n < 8 || sigma <= 0.0 {
+        return remove_outliers(dets, window, gate);
+    }
+    let w = window.min(n - 1).max(5);
+    let pulses: Vec<i64> = dets.iter().map(|d| d.pulse).collect();
+    let xs: Vec<f64> = dets.iter().map(|d| d.x).collect();
+    let ys: Vec<f64> = dets.iter().map(|d| d.y).collect();
+    let hp = turn::heading_prefix(&pulses, &xs, &ys, sigma);
+    // The verdicts of the polynomial pass (detections numbered by their
+    // index), replaced by the turning path's where the heading turns.
+    let mut marked: Vec<Det> = dets.clone();
+    for (k, d) in marked.iter_mut().enumerate() {
+        d.serial = k as u64;
+    }
+    remove_outliers(&mut marked, window, gate);
+    let mut keep = vec![false; n];
+    for d in &marked {
+        keep[d.serial as usize] = true;
+    }
+    let (mut tau, mut wx, mut wy) = (
+        Vec::with_capacity(w),
+        Vec::with_capacity(w),
+        Vec::with_capacity(w),
+    );
+    for i in 0..n {
+        let mut lo = i.saturating_sub(w / 2);
+        if lo + w + 1 > n {
+            lo = n - w - 1;
+        }
+        let hi = lo + w + 1;
+        // Heading changes at detections lo+1..hi-1.
+        let (dth, var) = (hp[hi - 1][0] - hp[lo + 1][0], hp[hi - 1][1] - hp[lo + 1][1]);
+        if !(var > 0.0 && dth * dth > TURN_SCREEN_Z * TURN_SCREEN_Z * var) {
+            continue;
+        }
+        tau.clear();
+        wx.clear();
+        wy.clear();
+        for j in lo..hi {
+            if j != i {
+                tau.push((pulses[j] - pulses[i]) as f64);
+                wx.push(xs[j]);
+                wy.push(ys[j]);
+            }
+        }
+        // Only where the window's other detections show the turn: the
+        // turning path beats the quadratic by the output fit's margin.
+        if let Some((f, gain)) = turn::turn_eval_with_gain(&tau, &wx, &wy, 0.0) {
+            if gain > TURN_GAIN_MIN * sigma * sigma {
+                let d2 = (f.x - xs[i]).powi(2) + (f.y - ys[i]).powi(2);
+                keep[i] = d2 <= gate * gate * (1.0 + f.leverage);
+            }
+        }
+    }
+    let mut k = 0;
+    dets.retain(|_| {
+        k += 1;
+        keep[k - 1]
+    });
+}
+
 /// [`remove_outliers`]; `grid` takes the tabulated predictions
 /// ([`fit::LeaveOneOut`]) on gap-free windows, `false` the plain fit
 /// everywhere (the reference).
@@ -3082,19 +3278,72 @@ fn trim_unconfirmed_tail(dets: &mut Vec<Det>, confirm: usize) {
     }
 }
 
-/// Polynomial extrapolation of the positions of `dets` (last `window`
-/// detections, order ≤ 1) to pulse `pulse`.
-fn extrapolate(dets: &[Det], window: usize, pulse: i64) -> Option<(f64, f64)> {
+/// Detections of each piece the stitch test's joint turning path fits.
+const JOINT_SIDE: usize = 8;
+
+/// Cost of joining `old` to `new` (which starts after it) by one turning
+/// path ([`turn::turn_rss`]) through the last [`JOINT_SIDE`] detections
+/// of `old` and the first of `new`: its residual sum of squares over the
+/// position noise `sigma`², in units of the χ² bound `dof + 3·√(2 dof)`
+/// (dof = 2·points − 7); ≤ 1 is a fit by noise alone. `None`: fewer than
+/// 6 detections on the old side or 10 in all.
+fn joint_turn_cost(old: &[Det], new: &[Det], sigma: f64) -> Option<f64> {
+    let a = old.len().min(JOINT_SIDE);
+    let b = new.len().min(JOINT_SIDE);
+    if a < 6 || a + b < 10 || sigma <= 0.0 {
+        return None;
+    }
+    let t0 = old[old.len() - 1].pulse;
+    let (mut tau, mut xs, mut ys) = (
+        [0.0; 2 * JOINT_SIDE],
+        [0.0; 2 * JOINT_SIDE],
+        [0.0; 2 * JOINT_SIDE],
+    );
+    for (i, d) in old[old.len() - a..].iter().chain(&new[..b]).enumerate() {
+        tau[i] = (d.pulse - t0) as f64;
+        xs[i] = d.x;
+        ys[i] = d.y;
+    }
+    let m = a + b;
+    let rss = turn::turn_rss(&tau[..m], &xs[..m], &ys[..m])?;
+    let dof = (2 * m - 7) as f64;
+    Some(rss / (sigma * sigma) / (dof + 3.0 * (2.0 * dof).sqrt()))
+}
+
+/// Extrapolation of the positions of `dets` (the `window` detections
+/// nearest to `pulse`) to pulse `pulse`: the turning path ([`turn`],
+/// with `turn_model`, from 6 detections on), else a line through the
+/// nearest `INIT_FRAMES` (`sigma`: the position noise).
+fn extrapolate(
+    dets: &[Det],
+    window: usize,
+    pulse: i64,
+    p: &TrackParams,
+    sigma: f64,
+) -> Option<(f64, f64)> {
     let n = dets.len();
-    let w = window.min(n).max(1);
-    let win = if pulse >= dets[n - 1].pulse {
-        &dets[n - w..]
-    } else {
-        &dets[..w]
-    };
+    let forward = pulse >= dets[n - 1].pulse;
+    let w = window.min(n).clamp(1, 64);
+    if p.turn_model && w >= 2 * INIT_FRAMES - 2 {
+        let win = if forward { &dets[n - w..] } else { &dets[..w] };
+        let (mut tau, mut xs, mut ys) = ([0.0; 64], [0.0; 64], [0.0; 64]);
+        for (i, d) in win.iter().enumerate() {
+            tau[i] = (d.pulse - pulse) as f64;
+            xs[i] = d.x;
+            ys[i] = d.y;
+        }
+        if let Some(f) = turn::turn_eval(&tau[..w], &xs[..w], &ys[..w], 0.0, true) {
+            return Some((f.x, f.y));
+        }
+    }
+    let w = if p.turn_model { w.min(INIT_FRAMES) } else { w };
+    let win = if forward { &dets[n - w..] } else { &dets[..w] };
     let tau: Vec<f64> = win.iter().map(|d| d.pulse as f64 - pulse as f64).collect();
     let xs: Vec<f64> = win.iter().map(|d| d.x).collect();
     let ys: Vec<f64> = win.iter().map(|d| d.y).collect();
+    if p.turn_model {
+        return young_prediction(&tau, &xs, &ys, 0.0, sigma, 0.0).map(|(x, y, _)| (x, y));
+    }
     fit::fit_eval(&tau, &xs, &ys, 1, 0.0).map(|f| (f.x, f.y))
 }
 
@@ -3179,6 +3428,11 @@ fn fit_track_with(
             run_start.push(if joined { run_start[i - 1] } else { i });
         }
     }
+    // Where the path turns, the turning path's fit (`turn_fit_window`).
+    let heading = (p.turn_model && p.turn_fit_window >= 7 && n >= p.turn_fit_window).then(|| {
+        let pulses: Vec<i64> = dets.iter().map(|d| d.pulse).collect();
+        turn::heading_prefix(&pulses, &xs, &ys, sigma)
+    });
     // Samples whose pilot window is centred take running moments.
     let mut run_fit = tables
         .as_deref()
@@ -3209,7 +3463,7 @@ fn fit_track_with(
             }
             _ => fit::fit_adaptive_with(&tau, &xs, &ys, j, at, &rule, !grid),
         };
-        let f = fitted.map(|(f, _)| f).unwrap_or(fit::FitState {
+        let mut f = fitted.map(|(f, _)| f).unwrap_or(fit::FitState {
             x: dets[j].x,
             y: dets[j].y,
             vx: 0.0,
@@ -3220,6 +3474,27 @@ fn fit_track_with(
             leverage: 1.0,
             velocity_variance: 0.0,
         });
+        if let Some(hp) = &heading {
+            let wt = p.turn_fit_window;
+            let a = j.saturating_sub(wt / 2).min(n - wt);
+            let b = a + wt;
+            // Heading changes at detections a+1..b-1 (inside the window).
+            let (dth, var) = (hp[b - 1][0] - hp[a + 1][0], hp[b - 1][1] - hp[a + 1][1]);
+            if var > 0.0 && dth * dth > TURN_SCREEN_Z * TURN_SCREEN_Z * var {
+                if let Some((t, gain)) =
+                    turn::turn_eval_with_gain(&tau[a..b], &xs[a..b], &ys[a..b], at)
+                {
+                    if gain > TURN_GAIN_MIN * sigma * sigma {
+                        f.x = t.x;
+                        f.y = t.y;
+                        f.vx = t.u;
+                        f.vy = t.v;
+                        f.ax = t.ax;
+                        f.ay = t.ay;
+                    }
+                }
+            }
+        }
         if here {
             ssr += (dets[j].x - f.x).powi(2) + (dets[j].y - f.y).powi(2);
         }

@@ -700,6 +700,18 @@ fn find_cuts_hinted(
             })
             .map(|h| h.threshold)
         };
+        // A path that turns is no step: the gain must hold against the
+        // turning path's fit as well as against the quadratic's.
+        let used = used.filter(|&t| {
+            let a = s.saturating_sub(STEP_HALF_WINDOW).max(lo);
+            let b = (s + STEP_HALF_WINDOW).min(hi);
+            let w = &dets[a..b];
+            let tau: Vec<f64> = w.iter().map(|d| d.0 as f64).collect();
+            let xs: Vec<f64> = w.iter().map(|d| d.1).collect();
+            let ys: Vec<f64> = w.iter().map(|d| d.2).collect();
+            let turn = crate::track::turn::turn_rss_gain(&tau, &xs, &ys).unwrap_or(0.0);
+            gain - turn / (sigma * sigma) > t
+        });
         if let Some(t) = used {
             let score = gain / t;
             if best.is_none_or(|b| score > b.0) {

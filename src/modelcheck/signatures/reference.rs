@@ -1,7 +1,6 @@
 //! The reference implementation of [`super::SignatureAccumulator`]: one
 //! array per per-pixel quantity, every histogram binned by its binary
-//! search. It is the accumulator as it was before the fast path (session
-//! 5), kept unchanged so that tests can compare the fast one with it
+//! search. It is the plain accumulator, kept unchanged so that tests can compare the fast one with it
 //! (`tests/modelcheck_signatures.rs`: equal signatures on simulated
 //! recordings with every effect on). Not used by the workflow.
 
