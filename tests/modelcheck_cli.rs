@@ -216,7 +216,7 @@ fn dev_passes(dev: &Path, name: &str, out: &Path, extra: &[&str]) -> (bool, Stri
 fn standard_check_on_independent_dev_recordings_short() {
     let Some(dev) = dev_dir() else { return };
     let dir = tempfile::tempdir().unwrap();
-    for name in ["mcdev_null", "mcdev_refractory"] {
+    for name in ["mcdev_null", "mcdev_background_noise"] {
         let (ok, what) = dev_passes(&dev, name, &dir.path().join(name), &[]);
         assert!(ok, "{what}");
     }
