@@ -85,8 +85,9 @@ use super::distance::{distances, DiscrepancyRow, DiscrepancyTable, Standardised,
 use super::scene::SceneSimulator;
 use super::signatures::{SignatureConfig, Signatures};
 use super::workflow::{
-    minimise_1d_in, nelder_mead, signatures_of, CandidateResult, EffectSetting, EffectSpec,
-    FoundEffect, ModelCheckResult, ParamSpec, Recording, Round, Simulator, Verdict,
+    minimise_1d_in, nelder_mead, seed_for, setting as workflow_setting, signatures_of,
+    CandidateResult, EffectSetting, EffectSpec, FoundEffect, ModelCheckResult, Recording, Round,
+    Simulator, Verdict,
 };
 use crate::error::{Error, Result};
 use crate::sim::Scenario;
@@ -364,16 +365,6 @@ pub fn structural_rows(before: &DiscrepancyTable, after: &[&DiscrepancyTable]) -
         .collect()
 }
 
-/// Disjoint seed streams per purpose (splitmix64 of the triple).
-fn seed_for(base: u64, purpose: u64, k: u64) -> u64 {
-    let mut z = base
-        .wrapping_add(purpose.wrapping_mul(0x9E37_79B9_7F4A_7C15))
-        .wrapping_add(k.wrapping_mul(0xBF58_476D_1CE4_E5B9));
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
-}
-
 /// One envelope member: a base scenario and the standard effects at one
 /// end of one shape parameter's range.
 fn envelope_members(
@@ -545,27 +536,6 @@ fn candidates(sim: &SceneSimulator, start: &[EffectSetting], pixel_rate_hz: f64)
 /// least (see [`candidates`]).
 pub const HOT_PIXEL_FACTOR: f64 = 10.0;
 
-fn to_value(p: &ParamSpec, u: f64) -> f64 {
-    let u = u.clamp(0.0, 1.0);
-    if p.log {
-        (p.lo.ln() + u * (p.hi.ln() - p.lo.ln())).exp()
-    } else {
-        p.lo + u * (p.hi - p.lo)
-    }
-}
-
-fn setting_at(spec: &EffectSpec, u: &[f64]) -> EffectSetting {
-    EffectSetting {
-        name: spec.name.clone(),
-        parameters: spec
-            .params
-            .iter()
-            .zip(u)
-            .map(|(p, &x)| (p.name.clone(), to_value(p, x)))
-            .collect(),
-    }
-}
-
 /// Fit one candidate on top of `model` to the fit block.
 #[allow(clippy::too_many_arguments)]
 fn fit(
@@ -579,7 +549,7 @@ fn fit(
     crn_seed: u64,
 ) -> Result<(EffectSetting, f64, usize)> {
     let mut objective = |u: &[f64]| -> Result<f64> {
-        let m = with_effect(model, setting_at(spec, u));
+        let m = with_effect(model, workflow_setting(spec, u));
         let rec = sim.simulate(&m, crn_seed)?;
         if rec.events.is_empty() {
             return Ok(f64::INFINITY);
@@ -618,7 +588,7 @@ fn fit(
             (best.0, best.1, n + n_grid)
         }
     };
-    Ok((setting_at(spec, &u), v, n))
+    Ok((workflow_setting(spec, &u), v, n))
 }
 
 /// The rows that disagree, for a note.

@@ -256,7 +256,7 @@ pub fn signatures_of(cfg: &SignatureConfig, rec: &Recording) -> Result<Signature
 
 /// Seeds: disjoint streams per purpose so that nothing reuses another's
 /// random numbers by accident.
-fn seed_for(base: u64, purpose: u64, k: u64) -> u64 {
+pub(crate) fn seed_for(base: u64, purpose: u64, k: u64) -> u64 {
     // splitmix64 of the triple.
     let mut z = base
         .wrapping_add(purpose.wrapping_mul(0x9E37_79B9_7F4A_7C15))
@@ -412,7 +412,7 @@ fn validate_catalogue(cat: &[EffectSpec]) -> Result<()> {
 }
 
 /// Unit-cube coordinate ↔ parameter value.
-fn to_value(p: &ParamSpec, u: f64) -> f64 {
+pub(crate) fn to_value(p: &ParamSpec, u: f64) -> f64 {
     let u = u.clamp(0.0, 1.0);
     if p.log {
         (p.lo.ln() + u * (p.hi.ln() - p.lo.ln())).exp()
@@ -445,7 +445,7 @@ fn unit_of(spec: &EffectSpec, set: &EffectSetting) -> Vec<f64> {
         .collect()
 }
 
-fn setting(spec: &EffectSpec, u: &[f64]) -> EffectSetting {
+pub(crate) fn setting(spec: &EffectSpec, u: &[f64]) -> EffectSetting {
     EffectSetting {
         name: spec.name.clone(),
         parameters: spec
