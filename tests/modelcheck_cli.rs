@@ -156,8 +156,8 @@ fn names_departure(departure: independent::Departure, name: &str) {
     let rec = dir.path().join("measured.raw");
     independent::Recording::new(departure, 12).write(&rec);
     let json = standard_check(&rec, &dir.path().join("check"), &SHORT);
-    let (first, ratio) = first_named(&json)
-        .unwrap_or_else(|| panic!("{name}: nothing named: {:#}", json["rounds"]));
+    let (first, ratio) =
+        first_named(&json).unwrap_or_else(|| panic!("{name}: nothing named: {:#}", json["rounds"]));
     assert_eq!(first, name, "{:#}", json["rounds"]);
     assert!(ratio <= 0.5, "{name}: gap ratio {ratio}");
 }

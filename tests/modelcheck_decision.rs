@@ -171,7 +171,9 @@ mod standard_rule {
     fn cand(name: &str, n_params: usize, gap_after: f64) -> CandidateResult {
         CandidateResult {
             name: name.into(),
-            parameters: (0..n_params).map(|k| (format!("p{k}"), 1.0)).collect::<BTreeMap<_, _>>(),
+            parameters: (0..n_params)
+                .map(|k| (format!("p{k}"), 1.0))
+                .collect::<BTreeMap<_, _>>(),
             objective: 0.0,
             gap_after,
             improvement: 0.0,
@@ -244,7 +246,11 @@ mod quiet_window {
         let edges: Vec<f64> = (0..=20).map(|k| 10.0 * k as f64).collect();
         let mut h = Histogram::new(edges, BinScale::Linear).unwrap();
         for k in 0..20 {
-            let c = if (4..12).contains(&k) { 1000.0 } else { 10.0 + k as f64 };
+            let c = if (4..12).contains(&k) {
+                1000.0
+            } else {
+                10.0 + k as f64
+            };
             h.counts[k] = c;
         }
         let (a, e) = quiet_complement(&h, 0.25).unwrap();
@@ -253,7 +259,11 @@ mod quiet_window {
         // runs from 40 µs to 190 µs.
         assert_eq!((a, e), (40.0, 190.0));
         assert!(quiet_complement(&h, 0.0).is_err());
-        let empty = Histogram::new((0..=20).map(|k| 10.0 * k as f64).collect(), BinScale::Linear).unwrap();
+        let empty = Histogram::new(
+            (0..=20).map(|k| 10.0 * k as f64).collect(),
+            BinScale::Linear,
+        )
+        .unwrap();
         assert!(quiet_complement(&empty, 0.25).is_err());
     }
 }

@@ -132,11 +132,17 @@ pub fn run(args: ConvertArgs) -> anyhow::Result<()> {
 /// The anomalies a reader met, in words (the counts that are not zero).
 pub(crate) fn describe_anomalies(a: &ebptv::io::Anomalies) -> String {
     let items = [
-        (a.words_before_time_base, "words before the first time base (skipped)"),
+        (
+            a.words_before_time_base,
+            "words before the first time base (skipped)",
+        ),
         (a.unknown_word_types, "words of undefined types"),
         (a.vector_without_base, "vector words without a base"),
         (a.out_of_geometry, "events outside the stated geometry"),
-        (a.truncated_tail_bytes, "trailing bytes of an incomplete word"),
+        (
+            a.truncated_tail_bytes,
+            "trailing bytes of an incomplete word",
+        ),
         (a.time_loops, "time-counter loops unwrapped"),
         (a.skipped_other_words, "other/IMU/continued words skipped"),
         (a.time_jumps, "clock jumps"),

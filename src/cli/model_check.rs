@@ -14,10 +14,10 @@ use ebptv::modelcheck::report::write_outputs;
 use ebptv::modelcheck::scene::{
     active_effects, median_event_latency, particles_of, timing_of, SceneSimulator,
 };
+use ebptv::modelcheck::signatures::{burst_window, quiet_complement};
 use ebptv::modelcheck::standard::{
     check as standard_check, standard_effects, StandardOptions, StandardSensor,
 };
-use ebptv::modelcheck::signatures::{burst_window, quiet_complement};
 use ebptv::modelcheck::workflow::{run as run_check, signatures_of, Recording, WorkflowOptions};
 use ebptv::sim::scenario::Scenario;
 

@@ -105,7 +105,12 @@ fn contradiction(info: &StreamInfo) -> Option<String> {
     };
     let fmt = get("format")?;
     let evt = get("evt")?;
-    let named = fmt.split(';').next().unwrap_or("").trim().to_ascii_lowercase();
+    let named = fmt
+        .split(';')
+        .next()
+        .unwrap_or("")
+        .trim()
+        .to_ascii_lowercase();
     let by_evt = match evt.as_str() {
         "2.0" | "2" => "evt2",
         "2.1" => "evt21",
@@ -403,7 +408,10 @@ mod tests {
         ts.extend((0..1000).map(|k| 3_600_000_000 + k * 200));
         let mut g = TimeGuard::new(Vecs(info(), vec![chunk(&ts)]));
         let e = drain(&mut g).unwrap_err().to_string();
-        assert!(e.contains("x.raw") && e.contains("jumps by +3599.999") && e.contains("stays"), "{e}");
+        assert!(
+            e.contains("x.raw") && e.contains("jumps by +3599.999") && e.contains("stays"),
+            "{e}"
+        );
     }
 
     #[test]

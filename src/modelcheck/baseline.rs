@@ -237,7 +237,8 @@ pub fn baseline_from_measurement(
         if parts.is_empty() {
             return Ok((0.0, 0.0, f64::NAN));
         }
-        let density = parts.len() as f64 / pulses / (c.sensor.width as f64 * c.sensor.height as f64);
+        let density =
+            parts.len() as f64 / pulses / (c.sensor.width as f64 * c.sensor.height as f64);
         Ok((
             mean_pixels(&parts),
             density,

@@ -323,6 +323,14 @@ pub fn rank(
 }
 
 impl DiscrepancyTable {
+    /// z of every row, by signature name.
+    pub fn z_by_row(&self) -> std::collections::BTreeMap<String, f64> {
+        self.rows
+            .iter()
+            .map(|r| (r.signature.clone(), r.stats.z))
+            .collect()
+    }
+
     pub fn any_disagreement(&self) -> bool {
         self.rows.iter().any(|r| r.disagrees)
     }

@@ -282,7 +282,12 @@ pub struct Yardstick {
 
 impl Yardstick {
     /// The discrepancy table of `measured` against a model's signatures.
-    pub fn table(&self, measured: &Signatures, model: &Signatures, z_thr: f64) -> Result<DiscrepancyTable> {
+    pub fn table(
+        &self,
+        measured: &Signatures,
+        model: &Signatures,
+        z_thr: f64,
+    ) -> Result<DiscrepancyTable> {
         let mut rows = Vec::new();
         for (name, d) in distances(measured, model)? {
             let Some(r) = self.rows.get(&name) else {
@@ -473,10 +478,7 @@ pub fn yardstick(
         let mean = reps.iter().sum::<f64>() / n;
         let sd = (reps.iter().map(|r| (r - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
         let envs: Vec<f64> = env_d.iter().filter_map(|r| find(r, &name)).collect();
-        let tolerance = envs
-            .iter()
-            .map(|e| (e - mean).max(0.0))
-            .fold(0.0, f64::max);
+        let tolerance = envs.iter().map(|e| (e - mean).max(0.0)).fold(0.0, f64::max);
         let members: Vec<f64> = reps.iter().chain(&envs).copied().collect();
         let member_max = members.iter().copied().fold(f64::NEG_INFINITY, f64::max);
         rows.insert(
@@ -506,7 +508,11 @@ pub fn yardstick(
 /// makes its pixels fire cannot be told from the flow, and a "hot pixel"
 /// at such a rate is diffuse activity (background, latency tails), which
 /// other candidates describe.
-fn candidates(sim: &SceneSimulator, start: &[EffectSetting], pixel_rate_hz: f64) -> Vec<EffectSpec> {
+fn candidates(
+    sim: &SceneSimulator,
+    start: &[EffectSetting],
+    pixel_rate_hz: f64,
+) -> Vec<EffectSpec> {
     sim.catalogue()
         .into_iter()
         .map(|mut spec| {
@@ -775,30 +781,28 @@ pub fn check(
         let crn = seed_for(opts.seed, 6000 + round_no, 0);
         let mut results: Vec<(CandidateResult, Signatures, DiscrepancyTable)> = remaining
             .par_iter()
-            .map(|spec| -> Result<(CandidateResult, Signatures, DiscrepancyTable)> {
-                let (set, objective, evaluations) =
-                    fit(sim, cfg, &model, spec, &m_fit, &yard, opts.evaluations, crn)?;
-                let m = with_effect(&model, set.clone());
-                let sigs = signatures_of(cfg, &sim.simulate(&m, yard.reference_seed)?)?;
-                let after = yard.table(&m_hold, &sigs, z)?;
-                Ok((
-                    CandidateResult {
-                        name: set.name.clone(),
-                        parameters: set.parameters,
-                        objective,
-                        gap_after: 0.0,
-                        improvement: 0.0,
-                        evaluations,
-                        z_after: after
-                            .rows
-                            .iter()
-                            .map(|r| (r.signature.clone(), r.stats.z))
-                            .collect(),
-                    },
-                    sigs,
-                    after,
-                ))
-            })
+            .map(
+                |spec| -> Result<(CandidateResult, Signatures, DiscrepancyTable)> {
+                    let (set, objective, evaluations) =
+                        fit(sim, cfg, &model, spec, &m_fit, &yard, opts.evaluations, crn)?;
+                    let m = with_effect(&model, set.clone());
+                    let sigs = signatures_of(cfg, &sim.simulate(&m, yard.reference_seed)?)?;
+                    let after = yard.table(&m_hold, &sigs, z)?;
+                    Ok((
+                        CandidateResult {
+                            name: set.name.clone(),
+                            parameters: set.parameters,
+                            objective,
+                            gap_after: 0.0,
+                            improvement: 0.0,
+                            evaluations,
+                            z_after: after.z_by_row(),
+                        },
+                        sigs,
+                        after,
+                    ))
+                },
+            )
             .collect::<Result<_>>()?;
         // The rows no candidate can bring back are a structural mismatch:
         // reported, and left out of this round's gap (before and after

@@ -1348,11 +1348,7 @@ pub fn run(
                         gap_after,
                         improvement: gap_before - gap_after,
                         evaluations,
-                        z_after: table_after
-                            .rows
-                            .iter()
-                            .map(|r| (r.signature.clone(), r.stats.z))
-                            .collect(),
+                        z_after: table_after.z_by_row(),
                     },
                     a,
                     set,

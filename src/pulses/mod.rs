@@ -1033,8 +1033,10 @@ impl Analyzer {
             }
         }
         let sat_events = flagged as f64 / self.acc.n_events as f64;
-        let block_bursts: Vec<(u64, f64)> =
-            windows.iter().map(|w| (w.events, w.burst_fraction)).collect();
+        let block_bursts: Vec<(u64, f64)> = windows
+            .iter()
+            .map(|w| (w.events, w.burst_fraction))
+            .collect();
         let pulsed = PulsedVerdict::judge(&stats, &block_bursts);
         let shared: u64 = self.acc.blocks.iter().map(|b| b.shared).sum();
         let large: u64 = self.acc.blocks.iter().map(|b| b.large).sum();

@@ -248,16 +248,8 @@ fn turn_rate(s: &[f64], xs: &[f64], ys: &[f64]) -> Option<f64> {
 /// the turning path fits the samples than the quadratic in time with the
 /// same number of coefficients; 0 when it does not (at least 7 samples).
 pub fn turn_rss_gain(tau: &[f64], xs: &[f64], ys: &[f64]) -> Option<f64> {
-    let n = tau.len().min(64);
-    if n < 7 {
-        return None;
-    }
-    let mid = 0.5 * (tau[0] + tau[n - 1]);
-    let mut s = [0.0; 64];
-    for i in 0..n {
-        s[i] = tau[i] - mid;
-    }
-    let s = &s[..n];
+    let (buf, n) = centred(tau)?;
+    let s = &buf[..n];
     let w = turn_rate(s, xs, ys)?;
     let q = rss_at(s, xs, ys, 0.0)?;
     let t = rss_at(s, xs, ys, w)?;
@@ -319,6 +311,15 @@ pub fn turn_eval_with_gain(tau: &[f64], xs: &[f64], ys: &[f64], at: f64) -> Opti
 /// Residual sum of squares (px², both axes) of the turning path with
 /// speed change through the samples (at least 7).
 pub fn turn_rss(tau: &[f64], xs: &[f64], ys: &[f64]) -> Option<f64> {
+    let (buf, n) = centred(tau)?;
+    let s = &buf[..n];
+    let w = turn_rate(s, xs, ys)?;
+    rss_at(s, xs, ys, w)
+}
+
+/// The first (at most 64) sample times relative to their mid-range, and
+/// how many; `None` below the 7 samples a turning fit needs.
+fn centred(tau: &[f64]) -> Option<([f64; 64], usize)> {
     let n = tau.len().min(64);
     if n < 7 {
         return None;
@@ -328,9 +329,7 @@ pub fn turn_rss(tau: &[f64], xs: &[f64], ys: &[f64]) -> Option<f64> {
     for i in 0..n {
         s[i] = tau[i] - mid;
     }
-    let s = &s[..n];
-    let w = turn_rate(s, xs, ys)?;
-    rss_at(s, xs, ys, w)
+    Some((s, n))
 }
 
 /// Heading changes along a track, for a cheap screen of where it turns:

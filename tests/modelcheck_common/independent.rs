@@ -104,8 +104,8 @@ impl Recording {
                         let mut lat = 45.0 + delay.sample(&mut rng);
                         if let Departure::LatencyJitter { scale_us } = self.departure {
                             let e: f64 = rng.gen::<f64>() - 0.5;
-                            lat = (lat - scale_us * e.signum() * (1.0 - 2.0 * e.abs()).ln())
-                                .max(1.0);
+                            lat =
+                                (lat - scale_us * e.signum() * (1.0 - 2.0 * e.abs()).ln()).max(1.0);
                         }
                         for j in 0..m {
                             if j > 0 {
@@ -149,8 +149,8 @@ impl Recording {
         for (t, x, y, p) in ev {
             events.push(t, x, y, p);
         }
-        let mut w = ebptv::io::create(path, None, Geometry::new(self.width, self.height))
-            .expect("writer");
+        let mut w =
+            ebptv::io::create(path, None, Geometry::new(self.width, self.height)).expect("writer");
         w.write_chunk(&Chunk {
             events,
             triggers: trig,

@@ -8,7 +8,9 @@ use std::process::Output;
 use crate::cli_common::ebptv;
 
 fn shared(sub: &str) -> Option<PathBuf> {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data").join(sub);
+    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../shared/data")
+        .join(sub);
     p.exists().then_some(p)
 }
 
@@ -36,7 +38,10 @@ fn split_header(b: &[u8]) -> (Vec<u8>, Vec<u8>) {
 fn assert_clean_failure(o: &Output, out: &Path, what: &str) {
     let e = stderr(o);
     assert_eq!(o.status.code(), Some(1), "{what}: {e}");
-    assert!(e.contains("error:") && !e.contains("panicked"), "{what}: {e}");
+    assert!(
+        e.contains("error:") && !e.contains("panicked"),
+        "{what}: {e}"
+    );
     assert!(!out.exists(), "{what}: {} was left behind", out.display());
 }
 
@@ -54,7 +59,12 @@ fn real_recordings_are_not_pulsed() {
         }
         for stage in ["pulses", "track"] {
             let out = dir.path().join(format!("{stage}_out"));
-            let o = run(&[stage.as_ref(), f.as_os_str(), "--out".as_ref(), out.as_os_str()]);
+            let o = run(&[
+                stage.as_ref(),
+                f.as_os_str(),
+                "--out".as_ref(),
+                out.as_os_str(),
+            ]);
             assert_clean_failure(&o, &out, &format!("{stage} {}", f.display()));
             let e = stderr(&o);
             assert!(
@@ -69,9 +79,17 @@ fn real_recordings_are_not_pulsed() {
     // error says what was measured and how to override.
     let davis = real.join("davis346_test.aedat4");
     let out = dir.path().join("davis");
-    let o = run(&["pulses".as_ref(), davis.as_os_str(), "--out".as_ref(), out.as_os_str()]);
+    let o = run(&[
+        "pulses".as_ref(),
+        davis.as_os_str(),
+        "--out".as_ref(),
+        out.as_os_str(),
+    ]);
     let e = stderr(&o);
-    assert!(e.contains("trigger train of channel 3") && e.contains("--force-pulses"), "{e}");
+    assert!(
+        e.contains("trigger train of channel 3") && e.contains("--force-pulses"),
+        "{e}"
+    );
     // Forced, the same run goes through and says the verdict in pulses.json.
     let o = run(&[
         "pulses".as_ref(),
@@ -92,11 +110,18 @@ fn real_recordings_are_not_pulsed() {
 fn dev_recordings_are_pulsed() {
     let Some(dev) = shared("dev") else { return };
     let dir = tempfile::tempdir().unwrap();
-    for (name, extra) in [("mcdev_latency_jitter", None), ("speeddev_shedding", Some("5000"))] {
+    for (name, extra) in [
+        ("mcdev_latency_jitter", None),
+        ("speeddev_shedding", Some("5000")),
+    ] {
         let f = dev.join(name).join("events.raw");
         let out = dir.path().join(name);
-        let mut args: Vec<&std::ffi::OsStr> =
-            vec!["pulses".as_ref(), f.as_os_str(), "--out".as_ref(), out.as_os_str()];
+        let mut args: Vec<&std::ffi::OsStr> = vec![
+            "pulses".as_ref(),
+            f.as_os_str(),
+            "--out".as_ref(),
+            out.as_os_str(),
+        ];
         if let Some(hz) = extra {
             args.push(std::ffi::OsStr::new("--pulse-hz"));
             args.push(std::ffi::OsStr::new(hz));
@@ -134,12 +159,18 @@ fn absurd_stated_geometry_is_replaced() {
     assert!(e.contains("65535x65535 is impossible"), "{e}");
     let v: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("pulses.json")).unwrap()).unwrap();
-    let (w, h) = (v["rate_map"]["width"].as_u64().unwrap(), v["rate_map"]["height"].as_u64().unwrap());
+    let (w, h) = (
+        v["rate_map"]["width"].as_u64().unwrap(),
+        v["rate_map"]["height"].as_u64().unwrap(),
+    );
     assert!(w <= 1280 && h <= 720, "{w}x{h}");
     // info says what was stated and that it was ignored.
     let o = run(&["info".as_ref(), f.as_os_str()]);
     let t = String::from_utf8_lossy(&o.stdout);
-    assert!(t.contains("stated as 65535x65535, impossible: ignored"), "{t}");
+    assert!(
+        t.contains("stated as 65535x65535, impossible: ignored"),
+        "{t}"
+    );
     assert!(t.contains("pulsed light       no"), "{t}");
 }
 
@@ -164,7 +195,12 @@ fn one_corrupted_time_word_is_a_counted_glitch() {
     let f = dir.path().join("jump.raw");
     std::fs::write(&f, [hdr, pay].concat()).unwrap();
     let out = dir.path().join("out");
-    let o = run(&["pulses".as_ref(), f.as_os_str(), "--out".as_ref(), out.as_os_str()]);
+    let o = run(&[
+        "pulses".as_ref(),
+        f.as_os_str(),
+        "--out".as_ref(),
+        out.as_os_str(),
+    ]);
     let e = stderr(&o);
     assert!(o.status.success(), "{e}");
     assert!(e.contains("the clock jumped"), "{e}");
@@ -172,7 +208,11 @@ fn one_corrupted_time_word_is_a_counted_glitch() {
         serde_json::from_slice(&std::fs::read(out.join("pulses.json")).unwrap()).unwrap();
     assert!(v["time_jumps"].as_u64().unwrap() >= 1);
     assert!(v["time_jump_events"].as_u64().unwrap() >= 1);
-    assert!(v["duration_s"].as_f64().unwrap() < 1.0, "{}", v["duration_s"]);
+    assert!(
+        v["duration_s"].as_f64().unwrap() < 1.0,
+        "{}",
+        v["duration_s"]
+    );
     assert_eq!(v["pulsed"]["pulsed"], true);
 }
 
@@ -184,14 +224,27 @@ fn failed_runs_leave_nothing() {
     let dir = tempfile::tempdir().unwrap();
     let f = real.join("evt3_sample.raw");
     let out = dir.path().join("a").join("b");
-    let o = run(&["track".as_ref(), f.as_os_str(), "--out".as_ref(), out.as_os_str()]);
+    let o = run(&[
+        "track".as_ref(),
+        f.as_os_str(),
+        "--out".as_ref(),
+        out.as_os_str(),
+    ]);
     assert_clean_failure(&o, &dir.path().join("a"), "track");
     let keep = dir.path().join("existing");
     std::fs::create_dir(&keep).unwrap();
     std::fs::write(keep.join("mine.txt"), "x").unwrap();
-    let o = run(&["track".as_ref(), f.as_os_str(), "--out".as_ref(), keep.as_os_str()]);
+    let o = run(&[
+        "track".as_ref(),
+        f.as_os_str(),
+        "--out".as_ref(),
+        keep.as_os_str(),
+    ]);
     assert_eq!(o.status.code(), Some(1));
-    let left: Vec<_> = std::fs::read_dir(&keep).unwrap().map(|e| e.unwrap().file_name()).collect();
+    let left: Vec<_> = std::fs::read_dir(&keep)
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
     assert_eq!(left, vec![std::ffi::OsString::from("mine.txt")]);
     // grid on a tracks file with an absurd position blames the extent,
     // and leaves no folder either.
@@ -202,10 +255,18 @@ fn failed_runs_leave_nothing() {
     )
     .unwrap();
     let gout = dir.path().join("grid");
-    let o = run(&["grid".as_ref(), tracks.as_os_str(), "--out".as_ref(), gout.as_os_str()]);
+    let o = run(&[
+        "grid".as_ref(),
+        tracks.as_os_str(),
+        "--out".as_ref(),
+        gout.as_os_str(),
+    ]);
     assert_clean_failure(&o, &gout, "grid");
     let e = stderr(&o);
-    assert!(e.contains("extent") && e.contains("1000000000000000"), "{e}");
+    assert!(
+        e.contains("extent") && e.contains("1000000000000000"),
+        "{e}"
+    );
 }
 
 /// Ctrl-C during `simulate`: the temporaries are removed, exit 130.
@@ -214,7 +275,14 @@ fn interrupted_simulate_leaves_no_partial_file() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("sim");
     let mut child = ebptv()
-        .args(["simulate", "--preset", "water_jet_5khz", "--seconds", "5", "--out"])
+        .args([
+            "simulate",
+            "--preset",
+            "water_jet_5khz",
+            "--seconds",
+            "5",
+            "--out",
+        ])
         .arg(&out)
         .stderr(std::process::Stdio::piped())
         .spawn()
@@ -226,7 +294,12 @@ fn interrupted_simulate_leaves_no_partial_file() {
             .into_iter()
             .flatten()
             .chain(std::fs::read_dir(&out).into_iter().flatten())
-            .any(|e| e.unwrap().file_name().to_string_lossy().ends_with(".partial"));
+            .any(|e| {
+                e.unwrap()
+                    .file_name()
+                    .to_string_lossy()
+                    .ends_with(".partial")
+            });
         if partial || child.try_wait().unwrap().is_some() {
             break;
         }
@@ -261,7 +334,9 @@ fn small_items() {
     let mut s: u64 = 99;
     let bytes: Vec<u8> = (0..200_000)
         .map(|_| {
-            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             (s >> 56) as u8
         })
         .collect();
@@ -269,7 +344,11 @@ fn small_items() {
     std::fs::write(&f, &bytes).unwrap();
     let o = run(&["info".as_ref(), f.as_os_str()]);
     assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
-    assert!(stderr(&o).contains("does not define") && stderr(&o).contains("noise.raw"), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("does not define") && stderr(&o).contains("noise.raw"),
+        "{}",
+        stderr(&o)
+    );
 
     let o = run(&[
         "model-check".as_ref(),
@@ -280,22 +359,39 @@ fn small_items() {
         dir.path().join("mc").as_os_str(),
     ]);
     assert_eq!(o.status.code(), Some(1));
-    assert!(stderr(&o).contains("block-pulses") && stderr(&o).contains("at least 20"), "{}", stderr(&o));
+    assert!(
+        stderr(&o).contains("block-pulses") && stderr(&o).contains("at least 20"),
+        "{}",
+        stderr(&o)
+    );
 
     let Some(real) = shared("real") else { return };
     let src = std::fs::read(real.join("evt3_sample.raw")).unwrap();
     let g = dir.path().join("contra.raw");
-    std::fs::write(&g, [b"% format EVT2;height=720;width=1280\n".as_slice(), &src].concat()).unwrap();
+    std::fs::write(
+        &g,
+        [b"% format EVT2;height=720;width=1280\n".as_slice(), &src].concat(),
+    )
+    .unwrap();
     let o = run(&["info".as_ref(), g.as_os_str()]);
     assert_eq!(o.status.code(), Some(1));
     assert!(stderr(&o).contains("contradicts"), "{}", stderr(&o));
-    let o = run(&["info".as_ref(), g.as_os_str(), "--format".as_ref(), "evt2".as_ref()]);
+    let o = run(&[
+        "info".as_ref(),
+        g.as_os_str(),
+        "--format".as_ref(),
+        "evt2".as_ref(),
+    ]);
     assert!(o.status.success(), "{}", stderr(&o));
 
     // A truncated copy: convert reports the tail in words.
     let t = dir.path().join("trunc.raw");
     std::fs::write(&t, &src[..src.len() - 1]).unwrap();
-    let o = run(&["convert".as_ref(), t.as_os_str(), dir.path().join("t.csv").as_os_str()]);
+    let o = run(&[
+        "convert".as_ref(),
+        t.as_os_str(),
+        dir.path().join("t.csv").as_os_str(),
+    ]);
     let e = stderr(&o);
     assert!(!e.contains("Anomalies {"), "{e}");
 }

@@ -77,11 +77,23 @@ impl PtvSink for Collect {
 enum Mutation {
     None,
     /// Add `dt` µs to the events from index `at` on (a clock jump that stays).
-    Jump { at: usize, dt: i64 },
+    Jump {
+        at: usize,
+        dt: i64,
+    },
     /// Add `dt` µs to `len` events from `at` (a glitch that comes back).
-    Glitch { at: usize, len: usize, dt: i64 },
+    Glitch {
+        at: usize,
+        len: usize,
+        dt: i64,
+    },
     /// Coordinates of `len` events from `at` set to (x, y).
-    Coords { at: usize, len: usize, x: u16, y: u16 },
+    Coords {
+        at: usize,
+        len: usize,
+        x: u16,
+        y: u16,
+    },
     /// Every event on one pixel.
     OnePixel,
     /// Times replaced by uniform noise over the span.
@@ -91,9 +103,20 @@ enum Mutation {
 fn mutation() -> impl Strategy<Value = Mutation> {
     prop_oneof![
         Just(Mutation::None),
-        (0usize..4000, prop_oneof![Just(3_600_000_000i64), Just(-3_600_000_000), 1i64..20_000_000])
+        (
+            0usize..4000,
+            prop_oneof![
+                Just(3_600_000_000i64),
+                Just(-3_600_000_000),
+                1i64..20_000_000
+            ]
+        )
             .prop_map(|(at, dt)| Mutation::Jump { at, dt }),
-        (0usize..4000, 1usize..300, prop_oneof![Just(16_000_000_000i64), 6_000_000i64..1_000_000_000])
+        (
+            0usize..4000,
+            1usize..300,
+            prop_oneof![Just(16_000_000_000i64), 6_000_000i64..1_000_000_000]
+        )
             .prop_map(|(at, len, dt)| Mutation::Glitch { at, len, dt }),
         (0usize..4000, 1usize..500, any::<u16>(), any::<u16>())
             .prop_map(|(at, len, x, y)| Mutation::Coords { at, len, x, y }),
@@ -105,7 +128,9 @@ fn mutation() -> impl Strategy<Value = Mutation> {
 fn pulsed_stream(period: i64, pulses: i64, seed: u64) -> EventChunk {
     let mut s = seed | 1;
     let mut rnd = |m: u64| {
-        s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        s = s
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         (s >> 33) % m.max(1)
     };
     let mut ev = EventChunk::default();
@@ -116,7 +141,12 @@ fn pulsed_stream(period: i64, pulses: i64, seed: u64) -> EventChunk {
             let t = 1_000 + k * period + 40 + rnd(20) as i64;
             ev.push(t, x as u16, y as u16, 1);
         }
-        ev.push(1_000 + k * period + rnd(period as u64) as i64, rnd(320) as u16, rnd(240) as u16, 0);
+        ev.push(
+            1_000 + k * period + rnd(period as u64) as i64,
+            rnd(320) as u16,
+            rnd(240) as u16,
+            0,
+        );
     }
     ev
 }
@@ -150,7 +180,9 @@ fn mutate(mut ev: EventChunk, m: &Mutation) -> EventChunk {
             let mut s = seed | 1;
             let mut ts: Vec<i64> = (0..n)
                 .map(|_| {
-                    s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                    s = s
+                        .wrapping_mul(6364136223846793005)
+                        .wrapping_add(1442695040888963407);
                     lo + ((s >> 33) % (hi - lo + 1) as u64) as i64
                 })
                 .collect();
@@ -201,19 +233,34 @@ fn chain(ev: &EventChunk, geometry: Option<Geometry>, force: bool) {
     if split.is_err() {
         return;
     }
-    let Ok(_stats) = stream.finish(&mut sink) else { return };
-    assert!(sink.pulses <= report.pulses + 8, "{} > {}", sink.pulses, report.pulses);
+    let Ok(_stats) = stream.finish(&mut sink) else {
+        return;
+    };
+    assert!(
+        sink.pulses <= report.pulses + 8,
+        "{} > {}",
+        sink.pulses,
+        report.pulses
+    );
     assert!(sink.particles <= n);
     let samples: Vec<Sample> = sink
         .tracks
         .iter()
-        .flat_map(|t| t.points.iter().map(move |p| Sample::from_track_point(t.id, p)))
+        .flat_map(|t| {
+            t.points
+                .iter()
+                .map(move |p| Sample::from_track_point(t.id, p))
+        })
         .collect();
     assert!(samples.len() as u64 <= sink.pulses * n.max(1));
     if samples.is_empty() {
         return;
     }
-    match bin_samples(&samples, Lattice::new(16.0, 16.0, 0.0).unwrap(), Weighting::TopHat) {
+    match bin_samples(
+        &samples,
+        Lattice::new(16.0, 16.0, 0.0).unwrap(),
+        Weighting::TopHat,
+    ) {
         Ok(acc) => {
             let _ = acc;
         }
