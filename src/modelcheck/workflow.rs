@@ -623,33 +623,8 @@ fn fit_candidate(
         // model's replicate spreads.
         let d = distances(measured_fit, &s)?;
         let v = base.scaled_sum(&d, &floors);
-        if std::env::var("EBPTV_MC_TRACE").is_ok() {
-            eprintln!(
-                "TRACE {} {:?} -> {v:.2}",
-                spec.name,
-                setting(spec, u).parameters
-            );
-        }
         Ok(v)
     };
-    if let Ok(probe) = std::env::var("EBPTV_MC_PROBE") {
-        // Diagnostics: the objective at given parameters, e.g.
-        // EBPTV_MC_PROBE="intensity_latency:exponent=0.55,reference=2.09".
-        if let Some((name, rest)) = probe.split_once(':') {
-            if name == spec.name {
-                let set = EffectSetting {
-                    name: name.into(),
-                    parameters: rest
-                        .split(',')
-                        .filter_map(|kv| kv.split_once('='))
-                        .filter_map(|(k, v)| Some((k.to_string(), v.parse().ok()?)))
-                        .collect(),
-                };
-                let u = unit_of(spec, &set);
-                eprintln!("PROBE {} {:?}: {:.2}", name, set.parameters, objective(&u)?);
-            }
-        }
-    }
     if spec.params.len() == 1 {
         let (lo, hi) = match refine_from {
             Some(u) => (u[0] - REFINE_HALF_WIDTH, u[0] + REFINE_HALF_WIDTH),

@@ -511,6 +511,9 @@ unsafe fn deform_row_fma(
         let base = (y0 * w + x0) as usize;
         let stride = w as usize;
         let r = &data[base..base + 3 * stride + 4];
+        // SAFETY: each load reads the 4 floats of a bounds-checked 4-float
+        // sub-slice of `r` (unaligned loads allowed); the function's caller
+        // checked AVX2 + FMA.
         let ld = |m: usize| _mm_loadu_ps(r[m * stride..m * stride + 4].as_ptr());
         let mut acc = _mm_mul_ps(ld(0), _mm_shuffle_ps::<0x00>(wy, wy));
         acc = _mm_fmadd_ps(ld(1), _mm_shuffle_ps::<0x55>(wy, wy), acc);
@@ -786,6 +789,8 @@ unsafe fn measure_node_avx2(
     ww: usize,
     wh: usize,
 ) -> (f64, f64, f32, bool) {
+    // SAFETY: a safe function with no pointer work; the caller checked
+    // AVX2 + FMA, the only requirement of this `target_feature` build.
     measure_node(t, pairs, chain, x_start, y_start, ww, wh)
 }
 
