@@ -63,8 +63,10 @@ pub struct Particle {
     pub first_latency_us: f32,
 }
 
-/// Options of the clustering.
+/// Options of the clustering. In a TOML file (`ebptv track --params`,
+/// table `[cluster]`) any key left out takes its default.
 #[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct ClusterParams {
     /// Events on pixels whose centres are at most this far apart (px) join
     /// one cluster.
@@ -75,8 +77,8 @@ pub struct ClusterParams {
     pub min_events: u32,
     /// Largest cluster kept (events); larger ones are flares or hot spots.
     pub max_events: u32,
-    /// Pixels whose events are ignored, as `(x, y)`.
-    #[serde(default)]
+    /// Pixels whose events are ignored, as `(x, y)` (written sorted).
+    #[serde(serialize_with = "sorted_pixels")]
     pub hot_pixels: HashSet<(u16, u16)>,
     /// Clusters spanning at least this many pixels along x or y are split
     /// in two along their principal axis ([`split_wide_clusters`]); 0 = never.
@@ -84,10 +86,8 @@ pub struct ClusterParams {
     /// adjacent pixels per axis, so a span of 3 is nearly always two
     /// particles (or a particle and a noise event) closer than the join
     /// radius.
-    #[serde(default = "default_split_extent")]
     pub split_extent: u32,
     /// How neighbouring pixels are found (identical clusters either way).
-    #[serde(default)]
     pub neighbour_search: NeighbourSearch,
 }
 
@@ -108,6 +108,17 @@ pub enum NeighbourSearch {
 
 fn default_split_extent() -> u32 {
     3
+}
+
+/// The hot pixels in (x, y) order, so that a written file does not depend
+/// on the set's hashing.
+fn sorted_pixels<S: serde::Serializer>(
+    set: &HashSet<(u16, u16)>,
+    s: S,
+) -> std::result::Result<S::Ok, S::Error> {
+    let mut v: Vec<&(u16, u16)> = set.iter().collect();
+    v.sort_unstable();
+    serde::Serialize::serialize(&v, s)
 }
 
 impl Default for ClusterParams {
@@ -658,115 +669,6 @@ pub fn particles_from_labels(
     out
 }
 
-/// One pixel of a particle image: its position and the events it holds.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct ImagePixel {
-    pub x: u16,
-    pub y: u16,
-    pub count: u32,
-}
-
-/// The pixels of each particle of one pulse (an optional side table of
-/// the clustering, for the tracker's split of merged images): particle
-/// `i` owns `pixels[start[i]..start[i + 1]]`, in the (y, x) order of
-/// [`pulse_pixels`]. Built only when asked for ([`cluster_pulse_with_pixels`]),
-/// so the default path and `particles.csv` are unchanged.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct ParticlePixels {
-    pub start: Vec<u32>,
-    pub pixels: Vec<ImagePixel>,
-}
-
-impl ParticlePixels {
-    /// Number of particles described.
-    pub fn len(&self) -> usize {
-        self.start.len().saturating_sub(1)
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
-
-    /// The pixels of particle `i`.
-    pub fn of(&self, i: usize) -> &[ImagePixel] {
-        &self.pixels[self.start[i] as usize..self.start[i + 1] as usize]
-    }
-}
-
-/// The pixel table matching [`particles_from_labels`]'s particles (same
-/// labels, same size filter, same order).
-pub fn particle_pixels_from_labels(
-    pixels: &[PixelHits],
-    labels: &[u32],
-    params: &ClusterParams,
-) -> ParticlePixels {
-    let n_labels = labels.iter().map(|&l| l as usize + 1).max().unwrap_or(0);
-    let mut events = vec![0u32; n_labels];
-    let mut npix = vec![0u32; n_labels];
-    for (p, &l) in pixels.iter().zip(labels) {
-        events[l as usize] += p.count;
-        npix[l as usize] += 1;
-    }
-    // Kept labels get consecutive slots (label order), dropped ones none.
-    const DROPPED: u32 = u32::MAX;
-    let mut start = Vec::with_capacity(n_labels + 1);
-    let mut slot = vec![DROPPED; n_labels];
-    let mut next = 0u32;
-    start.push(0);
-    for l in 0..n_labels {
-        if events[l] >= params.min_events && events[l] <= params.max_events {
-            slot[l] = next;
-            next += npix[l];
-            start.push(next);
-        }
-    }
-    let mut out = vec![
-        ImagePixel {
-            x: 0,
-            y: 0,
-            count: 0
-        };
-        next as usize
-    ];
-    for (p, &l) in pixels.iter().zip(labels) {
-        let s = &mut slot[l as usize];
-        if *s != DROPPED {
-            out[*s as usize] = ImagePixel {
-                x: p.x,
-                y: p.y,
-                count: p.count,
-            };
-            *s += 1;
-        }
-    }
-    ParticlePixels { start, pixels: out }
-}
-
-/// [`cluster_pulse`] with the pixels of each particle.
-pub fn cluster_pulse_with_pixels(
-    pulse: &PulseEvents,
-    params: &ClusterParams,
-) -> (Vec<Particle>, ParticlePixels) {
-    let pixels = pulse_pixels(pulse, params);
-    let mut labels = pixel_labels_with(&pixels, params);
-    split_wide_clusters(&pixels, &mut labels, params.split_extent);
-    let parts = particles_from_labels(pulse, &pixels, &labels, params);
-    let table = particle_pixels_from_labels(&pixels, &labels, params);
-    (parts, table)
-}
-
-/// [`cluster_pulses`] with the pixels of each particle.
-pub fn cluster_pulses_with_pixels(
-    pulses: &[PulseEvents],
-    params: &ClusterParams,
-) -> Result<Vec<(Vec<Particle>, ParticlePixels)>> {
-    params.validate()?;
-    Ok(pulses
-        .par_iter()
-        .map(|p| cluster_pulse_with_pixels(p, params))
-        .collect())
-}
-
 /// Cluster the events of one pulse into particles. `params` is assumed
 /// valid (see [`ClusterParams::validate`]).
 pub fn cluster_pulse(pulse: &PulseEvents, params: &ClusterParams) -> Vec<Particle> {
@@ -941,52 +843,6 @@ mod tests {
         );
         assert_eq!(q.first_latency_us, 90.0);
         assert_eq!((q.pulse, q.t_us), (3, 1000.0));
-    }
-
-    #[test]
-    fn pixel_table_matches_the_particles() {
-        // Three images (one dropped by max_events) and an isolated event.
-        let p = pulse_of(&[
-            (1100, 10, 10, 1),
-            (1090, 10, 10, 1),
-            (1120, 11, 10, 1),
-            (1200, 30, 5, 1),
-            (1300, 50, 50, 1),
-            (1300, 50, 51, 1),
-            (1300, 51, 51, 1),
-            (1300, 51, 51, 1),
-        ]);
-        let params = ClusterParams {
-            max_events: 3,
-            ..Default::default()
-        };
-        let (parts, table) = cluster_pulse_with_pixels(&p, &params);
-        assert_eq!(parts, cluster_pulse(&p, &params));
-        assert_eq!(table.len(), parts.len());
-        for (i, q) in parts.iter().enumerate() {
-            let px = table.of(i);
-            let n: u32 = px.iter().map(|p| p.count).sum();
-            let sx: f64 = px.iter().map(|p| p.x as f64 * p.count as f64).sum();
-            let sy: f64 = px.iter().map(|p| p.y as f64 * p.count as f64).sum();
-            assert_eq!((n, px.len() as u32), (q.n_events, q.n_pixels));
-            assert!((sx / n as f64 - q.x).abs() < 1e-12 && (sy / n as f64 - q.y).abs() < 1e-12);
-        }
-        assert_eq!(parts.len(), 2);
-        assert_eq!(
-            table.of(1),
-            &[
-                ImagePixel {
-                    x: 10,
-                    y: 10,
-                    count: 2
-                },
-                ImagePixel {
-                    x: 11,
-                    y: 10,
-                    count: 1
-                }
-            ]
-        );
     }
 
     #[test]

@@ -102,59 +102,6 @@ fn dense_noisy_fast_conditions() {
 }
 
 #[test]
-fn splitting_merged_images_between_tracks() {
-    // The paper-like scene at 384² (BENCHMARKS.md's), tracked without and
-    // with the track-guided split of merged images
-    // (`TrackParams::split_merged`, off by default). Without the ghost
-    // test: precision 0.9628 → 0.9635, recall 0.9395 → 0.9404, velocity rms 0.149 → 0.149.
-    let sp = SynthParams {
-        width: 384,
-        height: 384,
-        ..Default::default()
-    };
-    let scene = generate(&sp);
-    let score = |split: bool| {
-        let tp = TrackParams {
-            split_merged: split,
-            ..Default::default()
-        };
-        let run = ebptv::track::synth::run_scene(&scene, &ClusterParams::default(), &tp).unwrap();
-        let s = ebptv::track::synth::score_with_sources(
-            &run.tracks,
-            &run.det_truth,
-            &run.det_sources,
-            &run.det_pulse,
-            &run.truth,
-            sp.period_us,
-            ebptv::track::synth::INTERIOR_MARGIN,
-        );
-        println!(
-            "split {split}: {} images split, {s:?}",
-            run.stats.images_split
-        );
-        (s, run.stats.images_split)
-    };
-    let (off, none) = score(false);
-    let (on, split) = score(true);
-    assert_eq!(none, 0);
-    assert!(split > 100, "{split} images split");
-    assert!(on.precision >= 0.9632, "precision {}", on.precision);
-    assert!(on.precision > off.precision);
-    assert!(
-        on.recall >= off.recall,
-        "recall {} vs {}",
-        on.recall,
-        off.recall
-    );
-    assert!(
-        on.velocity_rms_px_per_pulse <= off.velocity_rms_px_per_pulse + 0.002,
-        "velocity rms {} vs {}",
-        on.velocity_rms_px_per_pulse,
-        off.velocity_rms_px_per_pulse
-    );
-}
-
-#[test]
 fn ghost_test_keeps_short_tracks_at_paper_like_conditions() {
     // The 384² paper-like scene of BENCHMARKS.md. No ghost test,
     // `min_length` 5: precision 0.9628, recall 0.9395, velocity rms
@@ -180,9 +127,12 @@ fn ghost_test_keeps_short_tracks_at_paper_like_conditions() {
     // The ghost test is what makes four-detection tracks affordable:
     // without it, the same short tracks cost velocity.
     let without = run(&TrackParams {
-        ghost_check_length: 0,
-        ghost_check_init: false,
         min_length: 4,
+        init: ebptv::track::InitParams {
+            ghost_check_length: 0,
+            ghost_check_init: false,
+            ..Default::default()
+        },
         ..Default::default()
     });
     assert!(
@@ -203,7 +153,10 @@ fn cutting_tracks_at_steps_removes_swaps() {
     let run = paper_like_384_runner();
     let on = run(&TrackParams::default());
     let off = run(&TrackParams {
-        step_split: 0.0,
+        stitch: ebptv::track::StitchParams {
+            step_split: 0.0,
+            ..Default::default()
+        },
         ..Default::default()
     });
     assert!(on.precision >= 0.9645, "precision {}", on.precision);
@@ -219,30 +172,6 @@ fn cutting_tracks_at_steps_removes_swaps() {
         "velocity rms {} vs {}",
         on.velocity_rms_px_per_pulse,
         off.velocity_rms_px_per_pulse
-    );
-}
-
-#[test]
-fn steps_that_match_a_neighbour_are_cut_lower() {
-    // `TrackParams::step_split_hinted` (off by default): a
-    // step that lines up with a neighbour of the track (beside it one
-    // pulse before the step, or its own particle left behind after it) is
-    // cut at χ² 8 instead of 12. Paper-like 384² scene, seed 1: precision
-    // 0.9652 → 0.9658, recall 0.9523 → 0.9516; the wrong links it removes
-    // are swaps and merged pairs (2 520 → 2 471).
-    let run = paper_like_384_runner();
-    let off = run(&TrackParams::default());
-    let on = run(&TrackParams {
-        step_split_hinted: 8.0,
-        ..Default::default()
-    });
-    assert!(on.precision >= off.precision + 0.0004, "{on:?} vs {off:?}");
-    assert!(on.recall >= 0.95, "recall {}", on.recall);
-    assert!(
-        on.velocity_rms_interior_px_per_pulse <= off.velocity_rms_interior_px_per_pulse,
-        "interior velocity rms {} vs {}",
-        on.velocity_rms_interior_px_per_pulse,
-        off.velocity_rms_interior_px_per_pulse
     );
 }
 

@@ -55,9 +55,13 @@ fn bounds_table() {
         let d = TrackParams::default();
         let tp = TrackParams {
             max_disp: sp.search_reach(),
-            fit_min_window: env("PTV_FIT_MIN_WINDOW").map_or(d.fit_min_window, |v| v as usize),
-            fit_bias_weight: env("PTV_FIT_BIAS_WEIGHT").unwrap_or(d.fit_bias_weight),
-            fit_accel_rms: env("PTV_FIT_ACCEL").map_or(d.fit_accel_rms, Some),
+            fit: ebptv::track::FitParams {
+                fit_min_window: env("PTV_FIT_MIN_WINDOW")
+                    .map_or(d.fit.fit_min_window, |v| v as usize),
+                fit_bias_weight: env("PTV_FIT_BIAS_WEIGHT").unwrap_or(d.fit.fit_bias_weight),
+                fit_accel_rms: env("PTV_FIT_ACCEL").map_or(d.fit.fit_accel_rms, Some),
+                ..d.fit
+            },
             ..d
         };
         let run = run_scene(&generate(&sp), &ClusterParams::default(), &tp).unwrap();

@@ -36,9 +36,18 @@ fn conditions_table() {
         let tp = TrackParams {
             max_disp: sp.search_reach(),
             min_length: env("PTV_MIN_LENGTH").map_or(d.min_length, |v| v as usize),
-            fit_accel_rms: env("PTV_FIT_ACCEL").map_or(d.fit_accel_rms, Some),
-            step_split: env("PTV_STEP").unwrap_or(d.step_split),
-            gap_first_step: env("PTV_GAP_FIRST").map_or(d.gap_first_step, |v| v != 0.0),
+            fit: ebptv::track::FitParams {
+                fit_accel_rms: env("PTV_FIT_ACCEL").map_or(d.fit.fit_accel_rms, Some),
+                ..d.fit
+            },
+            stitch: ebptv::track::StitchParams {
+                step_split: env("PTV_STEP").unwrap_or(d.stitch.step_split),
+                ..d.stitch
+            },
+            init: ebptv::track::InitParams {
+                gap_first_step: env("PTV_GAP_FIRST").map_or(d.init.gap_first_step, |v| v != 0.0),
+                ..d.init
+            },
             ..d
         };
         let (_, s) = run_and_score(&scene, &ClusterParams::default(), &tp, sp.period_us).unwrap();

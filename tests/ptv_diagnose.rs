@@ -26,26 +26,40 @@ fn breakdown_of_link_errors() {
         let d = TrackParams::default();
         let tp = TrackParams {
             max_disp: sp.search_reach(),
-            predict_window: env("PTV_PREDICT_WINDOW").map_or(d.predict_window, |v| v as usize),
-            fit_window: env("PTV_FIT_WINDOW").map_or(d.fit_window, |v| v as usize),
             max_gap: env("PTV_MAX_GAP").map_or(d.max_gap, |v| v as u32),
-            n_sigma: env("PTV_N_SIGMA").unwrap_or(d.n_sigma),
-            min_search_radius: env("PTV_MIN_SEARCH").unwrap_or(d.min_search_radius),
             min_length: env("PTV_MIN_LENGTH").map_or(d.min_length, |v| v as usize),
-            outlier_sigma: env("PTV_OUTLIER_SIGMA").unwrap_or(d.outlier_sigma),
-            confirm_after_gap: env("PTV_CONFIRM").map_or(d.confirm_after_gap, |v| v as usize),
-            stitch_gap: env("PTV_STITCH_GAP").map_or(d.stitch_gap, |v| v as u32),
-            back_extend: env("PTV_BACK_EXTEND").map_or(d.back_extend, |v| v as usize),
-            repair_lag: env("PTV_REPAIR_LAG").map_or(d.repair_lag, |v| v as usize),
-            init_gap: env("PTV_INIT_GAP").map_or(d.init_gap, |v| v != 0.0),
-            sigma_ceiling: env("PTV_SIGMA_CEILING").unwrap_or(d.sigma_ceiling),
-            split_merged: env("PTV_SPLIT").map_or(d.split_merged, |v| v != 0.0),
-            split_penalty: env("PTV_SPLIT_PENALTY").unwrap_or(d.split_penalty),
-            ghost_check_length: env("PTV_GHOST_LEN").map_or(d.ghost_check_length, |v| v as usize),
-            ghost_sigma: env("PTV_GHOST_SIGMA").unwrap_or(d.ghost_sigma),
-            ghost_check_init: env("PTV_GHOST_INIT").map_or(d.ghost_check_init, |v| v != 0.0),
-            step_split: env("PTV_STEP").unwrap_or(d.step_split),
-            gap_first_step: env("PTV_GAP_FIRST").map_or(d.gap_first_step, |v| v != 0.0),
+            gates: ebptv::track::GateParams {
+                predict_window: env("PTV_PREDICT_WINDOW")
+                    .map_or(d.gates.predict_window, |v| v as usize),
+                n_sigma: env("PTV_N_SIGMA").unwrap_or(d.gates.n_sigma),
+                min_search_radius: env("PTV_MIN_SEARCH").unwrap_or(d.gates.min_search_radius),
+                repair_lag: env("PTV_REPAIR_LAG").map_or(d.gates.repair_lag, |v| v as usize),
+                sigma_ceiling: env("PTV_SIGMA_CEILING").unwrap_or(d.gates.sigma_ceiling),
+                ..d.gates
+            },
+            fit: ebptv::track::FitParams {
+                fit_window: env("PTV_FIT_WINDOW").map_or(d.fit.fit_window, |v| v as usize),
+                outlier_sigma: env("PTV_OUTLIER_SIGMA").unwrap_or(d.fit.outlier_sigma),
+                ..d.fit
+            },
+            stitch: ebptv::track::StitchParams {
+                confirm_after_gap: env("PTV_CONFIRM")
+                    .map_or(d.stitch.confirm_after_gap, |v| v as usize),
+                stitch_gap: env("PTV_STITCH_GAP").map_or(d.stitch.stitch_gap, |v| v as u32),
+                step_split: env("PTV_STEP").unwrap_or(d.stitch.step_split),
+                ..d.stitch
+            },
+            init: ebptv::track::InitParams {
+                back_extend: env("PTV_BACK_EXTEND").map_or(d.init.back_extend, |v| v as usize),
+                init_gap: env("PTV_INIT_GAP").map_or(d.init.init_gap, |v| v != 0.0),
+                ghost_check_length: env("PTV_GHOST_LEN")
+                    .map_or(d.init.ghost_check_length, |v| v as usize),
+                ghost_sigma: env("PTV_GHOST_SIGMA").unwrap_or(d.init.ghost_sigma),
+                ghost_check_init: env("PTV_GHOST_INIT")
+                    .map_or(d.init.ghost_check_init, |v| v != 0.0),
+                gap_first_step: env("PTV_GAP_FIRST").map_or(d.init.gap_first_step, |v| v != 0.0),
+                ..d.init
+            },
             ..d
         };
         let run = ebptv::track::synth::run_scene(&scene, &ClusterParams::default(), &tp).unwrap();
@@ -60,7 +74,7 @@ fn breakdown_of_link_errors() {
         );
         println!(
             "precision {:.4} (merged ok {:.4}, identity {:.4}) recall {:.4} ({} of {} truth links; \
-             present {:.4}; set {:.4}) vel {:.3} interior {:.3}; {} links, {} images split",
+             present {:.4}; set {:.4}) vel {:.3} interior {:.3}; {} links",
             s.precision,
             s.precision_merged_ok,
             s.precision_identity,
@@ -72,7 +86,6 @@ fn breakdown_of_link_errors() {
             s.velocity_rms_px_per_pulse,
             s.velocity_rms_interior_px_per_pulse,
             s.links,
-            run.stats.images_split
         );
         // Merged images by size: does extent or event count single them out?
         let mut table = std::collections::BTreeMap::new();
@@ -91,79 +104,6 @@ fn breakdown_of_link_errors() {
         if std::env::var("PTV_TABLE").is_ok() {
             println!("(max extent, events): (clean, merged) {table:?}");
         }
-        // Split parts: does the track that took a part follow the part's
-        // particle (its neighbours on the track are that particle's)?
-        let mut track_of: HashMap<usize, (usize, usize)> = HashMap::new();
-        for (ti, t) in run.tracks.iter().enumerate() {
-            for (i, d) in t.detections.iter().flatten().enumerate() {
-                track_of.insert(*d as usize, (ti, i));
-            }
-        }
-        let mut quality: BTreeMap<&str, u32> = BTreeMap::new();
-        for &(part, _, was_mixed) in &run.split_parts {
-            let Some(&(ti, i)) = track_of.get(&part) else {
-                *quality.entry("part on no kept track").or_default() += 1;
-                continue;
-            };
-            let dets: Vec<usize> = run.tracks[ti]
-                .detections
-                .iter()
-                .flatten()
-                .map(|&d| d as usize)
-                .collect();
-            let me = run.det_truth[part];
-            let agree = [i.checked_sub(1), Some(i + 1)]
-                .into_iter()
-                .flatten()
-                .filter_map(|k| dets.get(k))
-                .filter(|&&k| me.is_some() && run.det_truth[k] == me)
-                .count();
-            let key = match (was_mixed, agree) {
-                (true, 0) => "merged image, part's particle not the track's",
-                (true, _) => "merged image, part's particle is the track's",
-                (false, 0) => "clean image, part's particle not the track's",
-                (false, _) => "clean image, part's particle is the track's",
-            };
-            *quality.entry(key).or_default() += 1;
-        }
-        println!("split parts: {quality:#?}");
-        // Per split image: the previous detections' particles of its two
-        // tracks, against the image's particles.
-        let mut by_parent: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
-        for &(part, parent, _) in &run.split_parts {
-            by_parent.entry(parent).or_default().push(part);
-        }
-        let mut pairs: BTreeMap<String, u32> = BTreeMap::new();
-        for (_, parts) in by_parent {
-            let prev = |part: usize| {
-                let &(ti, i) = track_of.get(&part)?;
-                let d = run.tracks[ti]
-                    .detections
-                    .iter()
-                    .flatten()
-                    .nth(i.checked_sub(1)?)?;
-                run.det_truth[*d as usize]
-            };
-            let (a, b) = (parts[0], parts[1]);
-            let (ta, tb) = (run.det_truth[a], run.det_truth[b]);
-            let (pa, pb) = (prev(a), prev(b));
-            let good = ta != tb && pa.is_some() && pa == ta && pb.is_some() && pb == tb;
-            let ev = |d: usize| -> u32 { run.det_events[d] };
-            let key = format!(
-                "{} events {}+{}",
-                if good {
-                    "good"
-                } else if ta == tb {
-                    "one particle"
-                } else {
-                    "other"
-                },
-                ev(a).min(ev(b)),
-                ev(a).max(ev(b))
-            );
-            *pairs.entry(key).or_default() += 1;
-        }
-        println!("split images: {pairs:#?}");
         let d = run_and_diagnose(&scene, &ClusterParams::default(), &tp).unwrap();
         println!("ppp {ppp} disp {disp} noise {noise}: {d:#?}");
         let detail =
@@ -194,13 +134,22 @@ fn linking_cost() {
     let env = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<usize>().ok());
     let d = TrackParams::default();
     let tp = TrackParams {
-        back_extend: env("PTV_BACK_EXTEND").unwrap_or(d.back_extend),
-        repair_lag: env("PTV_REPAIR_LAG").unwrap_or(d.repair_lag),
-        init_gap: env("PTV_INIT_GAP").map_or(d.init_gap, |v| v != 0),
-        ghost_check_length: env("PTV_GHOST_LEN").unwrap_or(d.ghost_check_length),
-        ghost_check_init: env("PTV_GHOST_LEN").map_or(d.ghost_check_init, |v| v != 0),
-        step_split: env("PTV_STEP").map_or(d.step_split, |v| v as f64),
-        gap_first_step: env("PTV_GAP_FIRST").map_or(d.gap_first_step, |v| v != 0),
+        init: ebptv::track::InitParams {
+            back_extend: env("PTV_BACK_EXTEND").unwrap_or(d.init.back_extend),
+            init_gap: env("PTV_INIT_GAP").map_or(d.init.init_gap, |v| v != 0),
+            ghost_check_length: env("PTV_GHOST_LEN").unwrap_or(d.init.ghost_check_length),
+            ghost_check_init: env("PTV_GHOST_LEN").map_or(d.init.ghost_check_init, |v| v != 0),
+            gap_first_step: env("PTV_GAP_FIRST").map_or(d.init.gap_first_step, |v| v != 0),
+            ..d.init
+        },
+        gates: ebptv::track::GateParams {
+            repair_lag: env("PTV_REPAIR_LAG").unwrap_or(d.gates.repair_lag),
+            ..d.gates
+        },
+        stitch: ebptv::track::StitchParams {
+            step_split: env("PTV_STEP").map_or(d.stitch.step_split, |v| v as f64),
+            ..d.stitch
+        },
         ..d
     };
     let cpu = || {

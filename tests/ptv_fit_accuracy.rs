@@ -21,7 +21,10 @@ fn curvature_prior_lowers_the_velocity_error_on_the_paper_like_scene() {
     let plain = score(
         &sp,
         &TrackParams {
-            fit_accel_rms: Some(0.0),
+            fit: ebptv::track::FitParams {
+                fit_accel_rms: Some(0.0),
+                ..Default::default()
+            },
             ..Default::default()
         },
     );

@@ -22,11 +22,15 @@ fn ghost_features() {
     let d = TrackParams::default();
     let tp = TrackParams {
         min_length: env("PTV_MIN_LENGTH").map_or(d.min_length, |v| v as usize),
-        ghost_check_length: env("PTV_GHOST_LEN").map_or(d.ghost_check_length, |v| v as usize),
-        min_length_flow: env("PTV_MIN_FLOW").map_or(d.min_length_flow, |v| v as usize),
-        ghost_sigma: env("PTV_GHOST_SIGMA").unwrap_or(d.ghost_sigma),
-        ghost_check_init: env("PTV_GHOST_INIT").map_or(d.ghost_check_init, |v| v != 0.0),
-        init_gap: env("PTV_INIT_GAP").map_or(d.init_gap, |v| v != 0.0),
+        init: ebptv::track::InitParams {
+            ghost_check_length: env("PTV_GHOST_LEN")
+                .map_or(d.init.ghost_check_length, |v| v as usize),
+            min_length_flow: env("PTV_MIN_FLOW").map_or(d.init.min_length_flow, |v| v as usize),
+            ghost_sigma: env("PTV_GHOST_SIGMA").unwrap_or(d.init.ghost_sigma),
+            ghost_check_init: env("PTV_GHOST_INIT").map_or(d.init.ghost_check_init, |v| v != 0.0),
+            init_gap: env("PTV_INIT_GAP").map_or(d.init.init_gap, |v| v != 0.0),
+            ..d.init
+        },
         ..d
     };
     let (_, s) =

@@ -167,7 +167,10 @@ fn sliced_output_is_identical_for_any_thread_count() {
     });
     let c = cluster(&scene);
     let tp = TrackParams {
-        max_track_length: 60,
+        gates: ebptv::track::GateParams {
+            max_track_length: 60,
+            ..Default::default()
+        },
         ..Default::default()
     };
     let run = |threads: usize, in_flight: usize| {

@@ -24,9 +24,14 @@ fn swap_anatomy() {
     let d = TrackParams::default();
     let tp = TrackParams {
         max_disp: 10.0,
-        step_split: env("PTV_STEP").unwrap_or(d.step_split),
-        step_split_hinted: env("PTV_STEP_HINT").unwrap_or(d.step_split_hinted),
-        gap_first_step: env("PTV_GAP_FIRST").map_or(d.gap_first_step, |v| v != 0.0),
+        stitch: ebptv::track::StitchParams {
+            step_split: env("PTV_STEP").unwrap_or(d.stitch.step_split),
+            ..d.stitch
+        },
+        init: ebptv::track::InitParams {
+            gap_first_step: env("PTV_GAP_FIRST").map_or(d.init.gap_first_step, |v| v != 0.0),
+            ..d.init
+        },
         ..d
     };
     let run = run_scene(&scene, &ClusterParams::default(), &tp).unwrap();

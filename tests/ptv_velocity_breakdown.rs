@@ -20,10 +20,13 @@ fn velocity_error_by_track_position() {
     let scene = generate(&sp);
     let d = TrackParams::default();
     let tp = TrackParams {
-        fit_window: env("PTV_FIT_WINDOW").map_or(d.fit_window, |v| v as usize),
-        fit_min_window: env("PTV_FIT_MIN_WINDOW").map_or(d.fit_min_window, |v| v as usize),
         min_length: env("PTV_MIN_LENGTH").map_or(d.min_length, |v| v as usize),
-        fit_accel_rms: env("PTV_FIT_ACCEL").map_or(d.fit_accel_rms, Some),
+        fit: ebptv::track::FitParams {
+            fit_window: env("PTV_FIT_WINDOW").map_or(d.fit.fit_window, |v| v as usize),
+            fit_min_window: env("PTV_FIT_MIN_WINDOW").map_or(d.fit.fit_min_window, |v| v as usize),
+            fit_accel_rms: env("PTV_FIT_ACCEL").map_or(d.fit.fit_accel_rms, Some),
+            ..d.fit
+        },
         ..d
     };
     let mut tracker = Tracker::new(tp).unwrap();

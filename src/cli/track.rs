@@ -7,11 +7,11 @@ use anyhow::Context;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use ebptv::cluster::{ClusterParams, NeighbourSearch, Particle};
+use ebptv::cluster::Particle;
 use ebptv::pulses::PulseOptions;
 use ebptv::track::{
-    track_recording, ParticlesCsvWriter, PtvSink, PtvStream, SliceParams, SummaryAcc, Track,
-    TrackParams, TrackerStats, TracksCsvWriter, TracksNpyWriter,
+    track_recording, Linker, ParticlesCsvWriter, PtvSink, PtvStream, SummaryAcc, Track,
+    TrackConfig, TrackerStats, TracksCsvWriter, TracksNpyWriter,
 };
 
 #[derive(Args, Debug)]
@@ -19,107 +19,62 @@ pub struct TrackArgs {
     /// A recording (any supported event format) or a `particles.csv`
     /// (`pulse,t_us,x,y,n_events`: linking only).
     pub input: PathBuf,
-    /// Output directory (created if missing).
+    /// Output directory (created if missing). It also receives
+    /// `params.toml`, every option of the run, for --params.
     #[arg(long)]
     pub out: PathBuf,
+    /// Largest distance (px) a particle moves between two pulses: new
+    /// tracks look this far for their second position, and no track looks
+    /// further. Set it a little above the fastest motion [default: 10].
+    #[arg(long)]
+    pub max_disp: Option<f64>,
+    /// Pulses in a row a track may miss and still go on; the missed
+    /// positions are filled in and marked `interpolated` [default: 1].
+    #[arg(long)]
+    pub gap: Option<u32>,
+    /// Shortest track kept, in detections (at least 4); shorter ones that
+    /// move with their neighbours are kept too [default: 5].
+    #[arg(long)]
+    pub min_length: Option<usize>,
+    /// Events on pixels at most this far apart (px) make one particle
+    /// image [default: 1.5].
+    #[arg(long)]
+    pub radius: Option<f64>,
+    /// Mean flow `U,V` (px/s): new tracks look for their second position
+    /// where this flow carries the first, which helps in fast flows.
+    #[arg(long, value_delimiter = ',', num_args = 2)]
+    pub prior: Option<Vec<f64>>,
+    /// Pulse frequency (Hz), needed when the recording has no trigger
+    /// channel and the pulse times are found from the events.
+    #[arg(long)]
+    pub pulse_hz: Option<f64>,
+    /// Find the pulse times from the events even when the recording has
+    /// trigger events.
+    #[arg(long)]
+    pub ignore_triggers: bool,
+    /// Track even when the events show no bursts locked to pulses (see
+    /// `ebptv pulses`).
+    #[arg(long)]
+    pub force_pulses: bool,
+    /// Use OFF events too (default: ON events only).
+    #[arg(long)]
+    pub all_polarities: bool,
+    /// File of pixels to ignore (hot or stuck pixels), one `x,y` per line.
+    #[arg(long)]
+    pub hot_pixels: Option<PathBuf>,
     /// Also bin the tracks onto a grid in one go, into OUT/grid: the options
     /// of `ebptv grid` as one string, e.g. --grid "--bin 16 --fit linear"
     /// (an empty string takes grid's defaults).
     #[arg(long, allow_hyphen_values = true)]
     pub grid: Option<String>,
-    /// Clustering radius (px): events on pixels at most this far apart join.
-    #[arg(long, default_value_t = 1.5)]
-    pub radius: f64,
-    /// Largest particle displacement between pulses (px).
-    #[arg(long, default_value_t = 10.0)]
-    pub max_disp: f64,
-    /// Fewest detections of a kept track.
-    #[arg(long, default_value_t = 5)]
-    pub min_length: usize,
-    /// Missed pulses a track may bridge.
-    #[arg(long, default_value_t = 1)]
-    pub gap: u32,
-    /// Typical particle acceleration (px/pulse², rms) of the output fit's
-    /// curvature prior; 0 = no prior (a plain least-squares fit); unset
-    /// = estimated from the tracks kept so far. See
-    /// `TrackParams::fit_accel_rms`.
+    /// Read every option of the run from a TOML file: the tracker's parts
+    /// ([track.gates], [track.init], [track.stitch], [track.fit]), the
+    /// clustering ([cluster]) and run options such as tracks.npy output,
+    /// the plot window, batching and the sliced linker ([run]). Keys left
+    /// out take their defaults; options given here override the file. A
+    /// run's OUT/params.toml is such a file.
     #[arg(long)]
-    pub fit_accel_rms: Option<f64>,
-    /// Tracks with fewer detections are checked against the local flow of
-    /// the established tracks and dropped as ghosts when their velocity
-    /// disagrees; 4-detection tracks that agree are kept. 0 = no ghost
-    /// test (then new chains are not checked either and chains that skip
-    /// a pulse are not started). See `TrackParams::ghost_check_length`.
-    #[arg(long, default_value_t = 6)]
-    pub ghost_check_length: usize,
-    /// Tolerance of the ghost test (standard deviations of the velocity
-    /// difference). See `TrackParams::ghost_sigma`.
-    #[arg(long, default_value_t = 2.25)]
-    pub ghost_sigma: f64,
-    /// Cut ended tracks where their positions jump to a close neighbour
-    /// and stay (a swap after the track's particle was missed): the χ²
-    /// gain, in units of the position noise, a step must bring. 0 = off
-    /// (about 10 % less CPU). See `TrackParams::step_split`.
-    #[arg(long, default_value_t = 12.0)]
-    pub step_split: f64,
-    /// Nominal pulse frequency (Hz) when pulse times are estimated from the
-    /// events (no trigger channel).
-    #[arg(long)]
-    pub pulse_hz: Option<f64>,
-    /// Ignore the trigger channel and estimate pulse times from the events.
-    #[arg(long)]
-    pub ignore_triggers: bool,
-    /// Go on even when the events show no bursts locked to pulses (see
-    /// `ebptv pulses`).
-    #[arg(long)]
-    pub force_pulses: bool,
-    /// Cluster OFF events too (default: ON events only).
-    #[arg(long)]
-    pub all_polarities: bool,
-    /// Smallest cluster kept (events).
-    #[arg(long, default_value_t = 1)]
-    pub min_events: u32,
-    /// Largest cluster kept (events).
-    #[arg(long, default_value_t = 64)]
-    pub max_events: u32,
-    /// Split clusters spanning at least this many pixels along x or y in
-    /// two (merged images of close particle pairs); 0 = never.
-    #[arg(long, default_value_t = 3)]
-    pub split_extent: u32,
-    /// Neighbour search for clustering: `row-sweep` (default, fastest) or
-    /// `kd-tree` (kiddo); both give identical clusters.
-    #[arg(long, value_enum, default_value = "row-sweep")]
-    pub neighbour_search: NeighbourSearchArg,
-    /// File of pixels to ignore, one `x,y` per line.
-    #[arg(long)]
-    pub hot_pixels: Option<PathBuf>,
-    /// Uniform mean-flow prior `U,V` (px/s) for track initialisation.
-    #[arg(long, value_delimiter = ',', num_args = 2)]
-    pub prior: Option<Vec<f64>>,
-    /// Pulses shown in tracks.png (from the first pulse); a short window
-    /// keeps individual tracks visible at paper seeding densities.
-    #[arg(long, default_value_t = 20)]
-    pub plot_pulses: i64,
-    /// Also write tracks.npy (a structured array with the tracks.csv
-    /// columns), streamed like the CSV files.
-    #[arg(long)]
-    pub npy: bool,
-    /// Pulses clustered per parallel batch.
-    #[arg(long, default_value_t = 64)]
-    pub batch: usize,
-    /// Linking: `sequential` (default: one tracker over the whole run) or
-    /// `sliced` (independent trackers on time slices in parallel, joined at
-    /// the seams: same accuracy, the same result for any thread count, but
-    /// ~40 % more CPU and ~5× the memory, so no faster on 2 cores).
-    #[arg(long, value_enum, default_value = "sequential")]
-    pub linker: LinkerArg,
-    /// Pulses per slice of the sliced linker.
-    #[arg(long, default_value_t = SliceParams::default().slice_pulses)]
-    pub slice_pulses: usize,
-    /// Pulses each slice's tracker also sees on both sides (warm-up and
-    /// look-ahead at the seams).
-    #[arg(long, default_value_t = SliceParams::default().overlap)]
-    pub slice_overlap: usize,
+    pub params: Option<PathBuf>,
 }
 
 /// What the tracking thread hands to the writer thread.
@@ -449,50 +404,76 @@ pub fn run(args: TrackArgs) -> anyhow::Result<()> {
     }
 }
 
-fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
-    let cluster = ClusterParams {
-        radius: args.radius,
-        on_only: !args.all_polarities,
-        min_events: args.min_events,
-        max_events: args.max_events,
-        hot_pixels: match &args.hot_pixels {
-            Some(p) => read_hot_pixels(p)?,
-            None => Default::default(),
-        },
-        split_extent: args.split_extent,
-        neighbour_search: match args.neighbour_search {
-            NeighbourSearchArg::RowSweep => NeighbourSearch::RowSweep,
-            NeighbourSearchArg::KdTree => NeighbourSearch::KdTree,
-        },
+/// The run's full set of options: the --params file (or the defaults),
+/// then the command-line options over it.
+fn config_of(args: &TrackArgs) -> anyhow::Result<TrackConfig> {
+    let mut c = match &args.params {
+        Some(p) => TrackConfig::read(p)?,
+        None => TrackConfig::default(),
     };
-    let mut tparams = TrackParams {
-        max_disp: args.max_disp,
-        min_length: args.min_length,
-        max_gap: args.gap,
-        fit_accel_rms: args.fit_accel_rms,
-        ghost_check_length: args.ghost_check_length,
-        ghost_sigma: args.ghost_sigma,
-        step_split: args.step_split,
-        ghost_check_init: args.ghost_check_length > 0,
-        init_gap: args.ghost_check_length > 0,
-        ..Default::default()
-    };
-    if let Some(p) = &args.prior {
-        tparams.prior = Some(ebptv::track::FlowPrior::uniform(p[0], p[1]));
+    if let Some(v) = args.max_disp {
+        c.track.max_disp = v;
     }
-    let mut stream = match args.linker {
-        LinkerArg::Sequential => PtvStream::new(cluster, tparams, args.batch)?,
-        LinkerArg::Sliced => {
-            let slicing = SliceParams {
-                slice_pulses: args.slice_pulses,
-                overlap: args.slice_overlap,
-                in_flight: 0,
-            };
-            PtvStream::sliced(cluster, tparams, slicing, args.batch)
-                .context("--slice-pulses / --slice-overlap")?
-        }
+    if let Some(v) = args.gap {
+        c.track.max_gap = v;
+    }
+    if let Some(v) = args.min_length {
+        c.track.min_length = v;
+    }
+    if let Some(v) = args.radius {
+        c.cluster.radius = v;
+    }
+    if let Some(p) = &args.prior {
+        c.run.prior = Some([p[0], p[1]]);
+    }
+    if args.pulse_hz.is_some() {
+        c.run.pulse_hz = args.pulse_hz;
+    }
+    c.run.ignore_triggers |= args.ignore_triggers;
+    c.run.force_pulses |= args.force_pulses;
+    if args.all_polarities {
+        c.cluster.on_only = false;
+    }
+    if args.hot_pixels.is_some() {
+        c.run.hot_pixels = args.hot_pixels.clone();
+    }
+    // The hot pixels' file goes into the set (the written params.toml
+    // then holds the pixels themselves).
+    if let Some(p) = c.run.hot_pixels.take() {
+        c.cluster.hot_pixels.extend(read_hot_pixels(&p)?);
+    }
+    // Without the ghost test there is no flow to check new chains against.
+    if c.track.init.ghost_check_length == 0 {
+        c.track.init.ghost_check_init = false;
+        c.track.init.init_gap = false;
+    }
+    Ok(c)
+}
+
+fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
+    let config = config_of(&args)?;
+    let TrackConfig {
+        run,
+        cluster,
+        track: mut tparams,
+    } = config.clone();
+    if let Some([u, v]) = run.prior {
+        tparams.prior = Some(ebptv::track::FlowPrior::uniform(u, v));
+    }
+    let mut stream = match run.linker {
+        Linker::Sequential => PtvStream::new(cluster, tparams, run.batch)?,
+        Linker::Sliced => PtvStream::sliced(cluster, tparams, run.slicing(), run.batch)
+            .context("run.slice_pulses / run.slice_overlap")?,
     };
     ebptv::io::atomic::create_output_dir(&args.out)?;
+    // Written with the other outputs, once tracking succeeded.
+    let params_toml = config.to_toml()?;
+    let write_params = || {
+        ebptv::io::atomic::AtomicFile::write_all_to(
+            args.out.join("params.toml"),
+            params_toml.as_bytes(),
+        )
+    };
 
     let progress = ProgressBar::new_spinner();
     progress.set_style(
@@ -500,7 +481,7 @@ fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
             .expect("valid template"),
     );
     progress.enable_steady_tick(std::time::Duration::from_millis(200));
-    let writer = Writer::create(&args.out, args.npy, args.plot_pulses)?;
+    let writer = Writer::create(&args.out, run.npy, run.plot_pulses)?;
     let mut pipe = Pipeline::start(writer, progress)?;
 
     if is_particles_csv(&args.input) {
@@ -518,13 +499,14 @@ fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
             s = e;
         }
         let stats = stream.finish(&mut pipe)?;
+        write_params()?;
         return pipe.finish(&stats, &args.out, None, None);
     }
 
     let opts = PulseOptions {
-        pulse_hz: args.pulse_hz,
-        ignore_triggers: args.ignore_triggers,
-        require_pulsed: !args.force_pulses,
+        pulse_hz: run.pulse_hz,
+        ignore_triggers: run.ignore_triggers,
+        require_pulsed: !run.force_pulses,
         ..Default::default()
     };
     let geometry = {
@@ -554,24 +536,11 @@ fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
     // Written with the other outputs, once tracking succeeded.
     let json = serde_json::to_vec_pretty(&report)?;
     ebptv::io::atomic::AtomicFile::write_all_to(args.out.join("pulses.json"), &json)?;
+    write_params()?;
     pipe.finish(
         &stats,
         &args.out,
         geometry.map(|g| g.width as f64),
         geometry.map(|g| g.height as f64),
     )
-}
-
-/// `--neighbour-search` values (clap's mirror of [`NeighbourSearch`]).
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-pub enum NeighbourSearchArg {
-    RowSweep,
-    KdTree,
-}
-
-/// `--linker` values.
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-pub enum LinkerArg {
-    Sliced,
-    Sequential,
 }

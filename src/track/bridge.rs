@@ -187,11 +187,11 @@ impl Tracker {
             .map(|i| (true, i))
             .chain((0..self.back_frames.len()).rev().map(|i| (false, i)))
             .collect();
-        if tracks.is_empty() || older.is_empty() || self.params.back_extend == 0 {
+        if tracks.is_empty() || older.is_empty() || self.params.init.back_extend == 0 {
             return;
         }
         let p = &self.params;
-        let w = p.predict_window;
+        let w = p.gates.predict_window;
         let max_gap = p.max_gap as i64;
         let mut sc = std::mem::take(&mut self.scratch);
         let mut idx: Vec<usize> = Vec::new();
@@ -316,10 +316,10 @@ impl Tracker {
             for (ci, new) in chains.iter().enumerate() {
                 let start = &new.dets[0];
                 let gap = start.pulse - end.pulse - 1;
-                if gap < 0 || gap > p.stitch_gap as i64 {
+                if gap < 0 || gap > p.stitch.stitch_gap as i64 {
                     continue;
                 }
-                let r = p.min_search_radius * (1.0 + p.stitch_growth * gap as f64);
+                let r = p.gates.min_search_radius * (1.0 + p.stitch.stitch_growth * gap as f64);
                 // Out of reach whatever the extrapolation (cheap test first).
                 let reach = (gap + 1) as f64 * p.max_disp + 2.0 * r;
                 if (end.x - start.x).powi(2) + (end.y - start.y).powi(2) > reach * reach {
@@ -328,7 +328,8 @@ impl Tracker {
                 let fwd = match fwd_at.iter().find(|e| e.0 == start.pulse) {
                     Some(e) => e.1,
                     None => {
-                        let f = extrapolate(&old.dets, p.predict_window, start.pulse, p, sigma);
+                        let f =
+                            extrapolate(&old.dets, p.gates.predict_window, start.pulse, p, sigma);
                         fwd_at.push((start.pulse, f));
                         f
                     }
@@ -354,7 +355,7 @@ impl Tracker {
                     }
                 }
                 let fwd = Some(fwd);
-                let bwd = extrapolate(&new.dets, p.predict_window, end.pulse, p, sigma);
+                let bwd = extrapolate(&new.dets, p.gates.predict_window, end.pulse, p, sigma);
                 let (Some(fwd), Some(bwd)) = (fwd, bwd) else {
                     continue;
                 };

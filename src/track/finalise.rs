@@ -23,7 +23,7 @@ impl Tracker {
         let ended = EndedTracks {
             tracks: ended,
             sigma,
-            gate: self.params.outlier_sigma * sigma,
+            gate: self.params.fit.outlier_sigma * sigma,
             flow_samples: std::mem::take(&mut self.flow_log),
         };
         match &mut self.deferred {
@@ -42,35 +42,14 @@ impl Tracker {
 /// [`step::step_cuts`]): the pieces, in order, each to be fitted as a track
 /// of its own, and the number of cuts. A pure function of the track, so
 /// it runs on the finaliser's parallel workers, not on the linking thread.
-pub(super) fn cut_at_steps(
-    t: ActiveTrack,
-    sigma: f64,
-    threshold: f64,
-    hinted_threshold: f64,
-) -> (u64, Vec<ActiveTrack>) {
+pub(super) fn cut_at_steps(t: ActiveTrack, sigma: f64, threshold: f64) -> (u64, Vec<ActiveTrack>) {
     if threshold <= 0.0 {
         return (0, vec![t]);
     }
     let xy: Vec<(i64, f64, f64)> = t.dets.iter().map(|d| (d.pulse, d.x, d.y)).collect();
     // Context detections were handed out with an earlier segment: a cut
     // among them could not change that segment.
-    let cuts = if hinted_threshold > 0.0 {
-        let nb: Vec<[f64; 2]> = t
-            .dets
-            .iter()
-            .map(|d| [d.nb[0] as f64, d.nb[1] as f64])
-            .collect();
-        step::step_cuts_hinted(
-            &xy,
-            &nb,
-            sigma,
-            threshold,
-            hinted_threshold,
-            t.context.max(1),
-        )
-    } else {
-        step::step_cuts(&xy, sigma, threshold, t.context.max(1))
-    };
+    let cuts = step::step_cuts(&xy, sigma, threshold, t.context.max(1));
     if cuts.is_empty() {
         return (0, vec![t]);
     }
@@ -121,14 +100,7 @@ pub struct Finaliser {
     /// A copy of the tracker's local flow, brought up to date from each
     /// batch's `flow_samples` (the ghost test of short tracks).
     pub(super) flow: local_flow::LocalFlow,
-    /// The same samples with their positions: the local linear flow of
-    /// the output fit's velocity prior (`TrackParams::velocity_prior`).
-    pub(super) linear_flow: local_flow::FlowHistory,
-    /// The prior's variance as measured on the tracks kept so far.
-    pub(super) prior_calibration: local_flow::PriorCalibration,
     pub(super) next_id: u64,
-    /// Numbered tracks waiting for [`Finaliser::refit_held`].
-    pub(super) held: Vec<(LinkedTrack, Box<Refit>)>,
 }
 
 impl Finaliser {
@@ -137,15 +109,7 @@ impl Finaliser {
             params,
             accel_prior: fit::AccelPrior::default(),
             flow: local_flow::LocalFlow::new(FLOW_CELL, FLOW_MEMORY),
-            linear_flow: local_flow::FlowHistory::new(
-                FLOW_CELL,
-                FLOW_MEMORY,
-                PRIOR_BLOCK,
-                PRIOR_KEEP,
-            ),
-            prior_calibration: local_flow::PriorCalibration::default(),
             next_id: 0,
-            held: Vec::new(),
         }
     }
 
@@ -166,40 +130,25 @@ impl Finaliser {
             flow_samples,
         } = ended;
         let params = &self.params;
-        // The flow as the tracker saw it when these tracks ended (the
-        // two-pass prior comes later, from all tracks).
-        let with_prior = params.velocity_prior > 0.0 && !params.velocity_prior_two_pass;
+        // The flow as the tracker saw it when these tracks ended.
         for sample in flow_samples {
             self.flow.add_sample(sample);
-            if with_prior {
-                self.linear_flow.add_sample(sample);
-            }
         }
         // The prior as of the tracks kept before this batch: the same for
         // every track of the batch, whatever the thread count (and so is
         // the local flow).
         let accel = params
+            .fit
             .fit_accel_rms
             .unwrap_or_else(|| self.accel_prior.accel_rms(sigma));
         let flow = &self.flow;
-        // The prior applies once its variance is calibrated (as of the
-        // batches before this one); before, only the calibration runs.
-        let prior = with_prior.then(|| VelocityPriorUse {
-            flow: &self.linear_flow,
-            scale: self
-                .prior_calibration
-                .scale()
-                .zip(self.prior_calibration.typical_fit_variance()),
-            strength: params.velocity_prior,
-        });
         // Step cuts first (each piece is fitted as a track of its own),
         // on the same workers as the fits.
         let cut_and_fit = |t: ActiveTrack| -> (u64, Vec<Finalised>) {
-            let (cuts, pieces) =
-                cut_at_steps(t, sigma, params.step_split, params.step_split_hinted);
+            let (cuts, pieces) = cut_at_steps(t, sigma, params.stitch.step_split);
             let fitted = pieces
                 .into_iter()
-                .map(|p| finalise_one(p, params, flow, prior.as_ref(), gate, sigma, accel))
+                .map(|p| finalise_one(p, params, flow, gate, sigma, accel))
                 .collect();
             (cuts, fitted)
         };
@@ -227,139 +176,26 @@ impl Finaliser {
                     detections,
                     fresh,
                     curvature,
-                    calibration,
                     by_flow,
-                    refit,
                 } => {
-                    self.prior_calibration.merge(&calibration);
                     stats.tracks_kept_by_flow += by_flow as u64;
                     self.accel_prior.merge(&curvature);
                     stats.tracks_kept += 1;
                     stats.particles_on_tracks += fresh as u64;
-                    let linked = LinkedTrack {
+                    out.push(LinkedTrack {
                         track: Track {
                             id: self.next_id,
                             points,
                         },
                         detections,
-                    };
-                    match refit {
-                        Some(r) => self.held.push((linked, r)),
-                        None => out.push(linked),
-                    }
+                    });
                     self.next_id += 1;
                 }
             }
         }
         out
     }
-
-    /// The second pass of `TrackParams::velocity_prior_two_pass`: the
-    /// held tracks' first-pass points become the whole run's flow
-    /// ([`local_flow::WholeRunFlow`]), the prior's variance is calibrated
-    /// on all of them (their first-pass fits, every point), and each
-    /// point's fit is combined with its prior as the output fit would
-    /// (the fit is the first pass's: links, positions and residuals
-    /// stay; only the velocities move). Returns the tracks in id order;
-    /// none when nothing is held. Each point's prior depends only on its
-    /// track and the (fixed) flow: parallel, independent of the thread
-    /// count.
-    pub fn refit_held(&mut self) -> Vec<LinkedTrack> {
-        use rayon::prelude::*;
-        let held = std::mem::take(&mut self.held);
-        if held.is_empty() {
-            return Vec::new();
-        }
-        let params = &self.params;
-        let mut samples = Vec::new();
-        for (lt, r) in &held {
-            let period = r.period_s;
-            for ((p, d), &fit_var) in lt.track.points.iter().zip(&lt.detections).zip(&r.fit_vars) {
-                if let (Some(serial), false) = (d, p.interpolated) {
-                    samples.push(local_flow::RunSample {
-                        pulse: p.pulse,
-                        x: p.x,
-                        y: p.y,
-                        u: p.u * period,
-                        v: p.v * period,
-                        fit_var,
-                        serial: *serial,
-                    });
-                }
-            }
-        }
-        let flow = local_flow::WholeRunFlow::new(&samples, RUN_PRIOR_RADIUS, RUN_PRIOR_HALF_WINDOW);
-        // Each point's prior, once, and the calibration on the first-pass
-        // fits (every point).
-        let priors: Vec<(
-            Vec<Option<local_flow::VelocityPrior>>,
-            local_flow::PriorCalibration,
-        )> = held
-            .par_iter()
-            .with_max_len(1)
-            .map(|(lt, r)| {
-                let mut cal = local_flow::PriorCalibration::default();
-                let priors = lt
-                    .track
-                    .points
-                    .iter()
-                    .zip(&r.fit_vars)
-                    .map(|(p, &fit_var)| {
-                        cal.note_fit_variance(fit_var);
-                        let pr = flow.prior(p.pulse, p.x, p.y, &r.own);
-                        if let Some(pr) = &pr {
-                            cal.add(p.u * r.period_s, p.v * r.period_s, fit_var, pr);
-                        }
-                        pr
-                    })
-                    .collect();
-                (priors, cal)
-            })
-            .collect();
-        let mut calibration = local_flow::PriorCalibration::default();
-        for (_, c) in &priors {
-            calibration.merge(c);
-        }
-        let Some((scale, typical)) = calibration.scale().zip(calibration.typical_fit_variance())
-        else {
-            return held.into_iter().map(|(lt, _)| lt).collect();
-        };
-        // The output fit with this prior (`fit_track_with`'s combination;
-        // the fit itself is the first pass's).
-        let strength = params.velocity_prior;
-        held.into_iter()
-            .zip(priors)
-            .map(|((mut lt, r), (priors, _))| {
-                for ((p, &fit_var), pr) in lt.track.points.iter_mut().zip(&r.fit_vars).zip(priors) {
-                    let apply = fit_var > typical || (params.velocity_prior_mean && fit_var > 0.0);
-                    let Some(mut pr) = pr.filter(|_| apply) else {
-                        continue;
-                    };
-                    pr.variance *= scale;
-                    let (vx, vy) = (p.u * r.period_s, p.v * r.period_s);
-                    let (vx, vy) = if params.velocity_prior_mean {
-                        local_flow::posterior_mean(vx, vy, fit_var, &pr, strength)
-                    } else {
-                        local_flow::combine(vx, vy, fit_var, &pr, strength, typical)
-                    };
-                    p.u = vx / r.period_s;
-                    p.v = vy / r.period_s;
-                }
-                lt
-            })
-            .collect()
-    }
 }
-
-/// Radius (px) of [`local_flow::WholeRunFlow`]'s neighbourhood: a few
-/// particle spacings at ppp 0.01 (half the one-pass prior's 48 px).
-/// Paper-like seed 1, posterior mean: 16 px 0.067 px/pulse (too few
-/// samples for the quadratic), 24 px 0.049, 32 px 0.052.
-pub(super) const RUN_PRIOR_RADIUS: f64 = 24.0;
-
-/// Its half window (pulses): 2 gave 0.055, 3 0.049, 5 0.047 px/pulse at
-/// twice the cost of the queries.
-pub(super) const RUN_PRIOR_HALF_WINDOW: i64 = 3;
 
 /// What [`finalise_one`] made of an ended track.
 pub(super) enum Finalised {
@@ -378,24 +214,9 @@ pub(super) enum Finalised {
         detections: Vec<Option<u64>>,
         fresh: usize,
         curvature: fit::AccelPrior,
-        /// Its points' check of the velocity prior's variance.
-        calibration: local_flow::PriorCalibration,
         /// Below `min_length`, kept by the local-flow test.
         by_flow: bool,
-        /// What the second pass of `velocity_prior_two_pass` refits.
-        refit: Option<Box<Refit>>,
     },
-}
-
-/// What the second pass of `TrackParams::velocity_prior_two_pass` needs
-/// of a kept track besides its points: the serials of its cleaned
-/// detections (sorted; left out of its own prior), its mean pulse period
-/// (s; the fit's velocity unit is px per mean period) and each point's
-/// fit noise variance per axis (px²/pulse²).
-pub(super) struct Refit {
-    pub(super) own: Vec<u64>,
-    pub(super) period_s: f64,
-    pub(super) fit_vars: Vec<f64>,
 }
 
 /// Clean (outliers, unconfirmed tail), validate and fit one ended track;
@@ -405,22 +226,21 @@ pub(super) fn finalise_one(
     mut t: ActiveTrack,
     params: &TrackParams,
     flow: &local_flow::LocalFlow,
-    prior: Option<&VelocityPriorUse>,
     gate: f64,
     sigma: f64,
     accel_rms: f64,
 ) -> Finalised {
     // Points up to this pulse went out with an earlier segment.
     let handed_out = (t.context > 0).then(|| t.dets[t.context - 1].pulse);
-    if params.outlier_sigma > 0.0 {
-        let window = params.fit_window.min(OUTLIER_WINDOW);
+    if params.fit.outlier_sigma > 0.0 {
+        let window = params.fit.fit_window.min(OUTLIER_WINDOW);
         if params.turn_model {
             remove_outliers_turning(&mut t.dets, window, gate, sigma);
         } else {
             remove_outliers(&mut t.dets, window, gate);
         }
     }
-    trim_unconfirmed_tail(&mut t.dets, params.confirm_after_gap);
+    trim_unconfirmed_tail(&mut t.dets, params.stitch.confirm_after_gap);
     let fresh = match handed_out {
         None => t.dets.len(),
         Some(h) => t.dets.iter().filter(|d| d.pulse > h).count(),
@@ -436,21 +256,9 @@ pub(super) fn finalise_one(
             Verdict::Keep { by_flow: f } => by_flow = f,
         }
     }
-    let mut calibration = local_flow::PriorCalibration::default();
-    let hold = params.velocity_prior > 0.0 && params.velocity_prior_two_pass;
-    let mut fit_vars = Vec::new();
-    let (mut points, mut detections, rms) = fit_track_with(
-        &t.dets,
-        params,
-        sigma,
-        accel_rms,
-        prior,
-        &mut calibration,
-        true,
-        &mut 0,
-        hold.then_some(&mut fit_vars),
-    );
-    if rms > params.max_fit_residual {
+    let (mut points, mut detections, rms) =
+        fit_track_with(&t.dets, params, sigma, accel_rms, true, &mut 0);
+    if rms > params.fit.max_fit_residual {
         return Finalised::Rough;
     }
     let mut curvature = fit::AccelPrior::default();
@@ -467,27 +275,13 @@ pub(super) fn finalise_one(
             .unwrap_or(points.len());
         points.drain(..first);
         detections.drain(..first);
-        if hold {
-            fit_vars.drain(..first);
-        }
     }
-    let refit = hold.then(|| {
-        let mut own: Vec<u64> = t.dets.iter().map(|d| d.serial).collect();
-        own.sort_unstable();
-        Box::new(Refit {
-            own,
-            period_s: fit_period_s(&t.dets),
-            fit_vars,
-        })
-    });
     Finalised::Kept {
         points,
         detections,
         fresh,
         curvature,
-        calibration,
         by_flow,
-        refit,
     }
 }
 
@@ -511,15 +305,15 @@ pub(super) fn short_track_verdict(
     sigma: f64,
 ) -> Verdict {
     let n = dets.len();
-    let checked = n < params.ghost_check_length;
-    if n < params.min_length && (!checked || n < params.min_length_flow) {
+    let checked = n < params.init.ghost_check_length;
+    if n < params.min_length && (!checked || n < params.init.min_length_flow) {
         return Verdict::Short;
     }
     if !checked {
         return Verdict::Keep { by_flow: false };
     }
     let xy: Vec<(i64, f64, f64)> = dets.iter().map(|d| (d.pulse, d.x, d.y)).collect();
-    match local_flow::flow_consistent(&xy, flow, sigma, params.ghost_sigma) {
+    match local_flow::flow_consistent(&xy, flow, sigma, params.init.ghost_sigma) {
         local_flow::FlowCheck::Ghost => Verdict::Ghost,
         local_flow::FlowCheck::Consistent => Verdict::Keep {
             by_flow: n < params.min_length,
@@ -686,16 +480,6 @@ pub(super) fn fit_period_s(dets: &[Det]) -> f64 {
         * 1e-6
 }
 
-/// The output fit's velocity prior as one batch of the finaliser uses it:
-/// the flow, the calibration's variance factor (`None`: not calibrated
-/// yet, the prior is only checked) with the fits' typical noise variance,
-/// and `TrackParams::velocity_prior`.
-pub(super) struct VelocityPriorUse<'a> {
-    pub(super) flow: &'a local_flow::FlowHistory,
-    pub(super) scale: Option<(f64, f64)>,
-    pub(super) strength: f64,
-}
-
 /// Sliding-window polynomial fit of a track at every pulse from its first
 /// to its last detection, the window chosen per pulse by
 /// [`fit::fit_adaptive`] for position noise `sigma` (px per axis). Returns
@@ -705,18 +489,14 @@ pub(super) struct VelocityPriorUse<'a> {
 /// `grid` takes [`fit::fit_adaptive_grid`] (tabulated
 /// windows) at the detections whose fit windows are gap-free with regular
 /// times, `false` runs [`fit::fit_adaptive`] everywhere (the reference the
-/// tests compare with); `grid_fits` counts the tabulated fits; `fit_vars`
-/// receives each point's fit noise variance per axis (px²/pulse²).
+/// tests compare with); `grid_fits` counts the tabulated fits.
 pub(super) fn fit_track_with(
     dets: &[Det],
     p: &TrackParams,
     sigma: f64,
     accel_rms: f64,
-    prior: Option<&VelocityPriorUse>,
-    calibration: &mut local_flow::PriorCalibration,
     grid: bool,
     grid_fits: &mut usize,
-    mut fit_vars: Option<&mut Vec<f64>>,
 ) -> (Vec<TrackPoint>, Vec<Option<u64>>, f64) {
     let n = dets.len();
     let first = dets[0].pulse;
@@ -733,11 +513,11 @@ pub(super) fn fit_track_with(
     let xs: Vec<f64> = dets.iter().map(|d| d.x).collect();
     let ys: Vec<f64> = dets.iter().map(|d| d.y).collect();
     let rule = fit::WindowRule {
-        min_window: p.fit_min_window,
-        max_window: p.fit_window,
-        order: p.fit_order,
+        min_window: p.fit.fit_min_window,
+        max_window: p.fit.fit_window,
+        order: p.fit.fit_order,
         sigma,
-        bias_weight: p.fit_bias_weight,
+        bias_weight: p.fit.fit_bias_weight,
         // px/pulse² to px/τ² (τ in mean periods: the same on the grid).
         accel_rms,
     };
@@ -759,10 +539,11 @@ pub(super) fn fit_track_with(
         }
     }
     // Where the path turns, the turning path's fit (`turn_fit_window`).
-    let heading = (p.turn_model && p.turn_fit_window >= 7 && n >= p.turn_fit_window).then(|| {
-        let pulses: Vec<i64> = dets.iter().map(|d| d.pulse).collect();
-        turn::heading_prefix(&pulses, &xs, &ys, sigma)
-    });
+    let heading =
+        (p.turn_model && p.fit.turn_fit_window >= 7 && n >= p.fit.turn_fit_window).then(|| {
+            let pulses: Vec<i64> = dets.iter().map(|d| d.pulse).collect();
+            turn::heading_prefix(&pulses, &xs, &ys, sigma)
+        });
     // Samples whose pilot window is centred take running moments.
     let mut run_fit = tables
         .as_deref()
@@ -805,7 +586,7 @@ pub(super) fn fit_track_with(
             velocity_variance: 0.0,
         });
         if let Some(hp) = &heading {
-            let wt = p.turn_fit_window;
+            let wt = p.fit.turn_fit_window;
             let a = j.saturating_sub(wt / 2).min(n - wt);
             let b = a + wt;
             // Heading changes at detections a+1..b-1 (inside the window).
@@ -828,46 +609,13 @@ pub(super) fn fit_track_with(
         if here {
             ssr += (dets[j].x - f.x).powi(2) + (dets[j].y - f.y).powi(2);
         }
-        // The velocity prior from the local flow (px per pulse = px/τ on
-        // the grid; τ is in mean periods), after the residual: the
-        // validation sees the track's own fit.
-        let (mut vx, mut vy) = (f.vx, f.vy);
-        if let Some(v) = fit_vars.as_deref_mut() {
-            v.push(sigma * sigma * f.velocity_variance);
-        }
-        if let Some(use_) = prior {
-            let fit_var = sigma * sigma * f.velocity_variance;
-            calibration.note_fit_variance(fit_var);
-            let check = pulse.rem_euclid(local_flow::CALIBRATION_STRIDE) == 0;
-            let apply = use_.scale.is_some_and(|(_, typical)| {
-                fit_var > typical || (p.velocity_prior_mean && fit_var > 0.0)
-            });
-            let pr = if check || apply {
-                use_.flow.prior(pulse, f.x, f.y, sigma)
-            } else {
-                None
-            };
-            if let Some(mut pr) = pr {
-                if check {
-                    calibration.add(vx, vy, fit_var, &pr);
-                }
-                if let (true, Some((scale, typical))) = (apply, use_.scale) {
-                    pr.variance *= scale;
-                    (vx, vy) = if p.velocity_prior_mean {
-                        local_flow::posterior_mean(vx, vy, fit_var, &pr, use_.strength)
-                    } else {
-                        local_flow::combine(vx, vy, fit_var, &pr, use_.strength, typical)
-                    };
-                }
-            }
-        }
         points.push(TrackPoint {
             pulse,
             t_us,
             x: f.x,
             y: f.y,
-            u: vx / period_s,
-            v: vy / period_s,
+            u: f.vx / period_s,
+            v: f.vy / period_s,
             ax: f.ax / (period_s * period_s),
             ay: f.ay / (period_s * period_s),
             interpolated: !here,
@@ -895,8 +643,8 @@ pub struct FitInput {
 /// from outside: for analysis, e.g. fitting the ideal tracks of a
 /// synthetic scene ([`synth::oracle_tracks`]) with exactly the code that
 /// fits the tracker's own, so that the two velocity errors differ only in
-/// the links. Only the fit: no outlier removal, length rule, step cut or
-/// velocity prior (those are link decisions or use other tracks).
+/// the links. Only the fit: no outlier removal, length rule or step cut
+/// (those are link decisions).
 /// `dets` must be in increasing pulse order, at least one.
 pub fn fit_detections(
     dets: &[FitInput],
@@ -912,20 +660,9 @@ pub fn fit_detections(
             t_us: d.t_us,
             x: d.x,
             y: d.y,
-            nb: NO_NEIGHBOUR,
         })
         .collect();
-    let (points, detections, _) = fit_track_with(
-        &dets,
-        params,
-        sigma,
-        accel_rms,
-        None,
-        &mut local_flow::PriorCalibration::default(),
-        true,
-        &mut 0,
-        None,
-    );
+    let (points, detections, _) = fit_track_with(&dets, params, sigma, accel_rms, true, &mut 0);
     LinkedTrack {
         track: Track { id: 0, points },
         detections,

@@ -78,6 +78,7 @@
 //! unassigned particles and the stitch pool; finished tracks are handed out
 //! as soon as they can no longer change.
 
+pub mod config;
 pub mod fit;
 pub mod grid_index;
 pub mod io;
@@ -104,11 +105,12 @@ use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 
-use crate::cluster::{ImagePixel, Particle, ParticlePixels};
+use crate::cluster::Particle;
 use crate::error::{Error, Result};
 use grid_index::GridIndex;
 
-pub use assign::*;
+use assign::*;
+pub use config::{Linker, RunParams, TrackConfig};
 pub use finalise::*;
 pub use io::{
     read_particles_csv, read_tracks_csv, write_particles_csv, write_summary_json, write_tracks_csv,
@@ -162,136 +164,6 @@ mod tests {
     }
 
     #[test]
-    fn split_matches_the_brute_force_partition() {
-        use rand::{Rng, SeedableRng};
-        let mut rng = rand_pcg::Pcg64::seed_from_u64(11);
-        let mut side = Vec::new();
-        let mut split = 0;
-        for case in 0..3000 {
-            let n = 1 + case % 9;
-            let mut pixels: Vec<ImagePixel> = Vec::new();
-            while pixels.len() < n {
-                let p = ImagePixel {
-                    x: rng.gen_range(100..104),
-                    y: rng.gen_range(200..204),
-                    count: rng.gen_range(1..4),
-                };
-                if !pixels.iter().any(|q| (q.x, q.y) == (p.x, p.y)) {
-                    pixels.push(p);
-                }
-            }
-            let pred = |rng: &mut rand_pcg::Pcg64| {
-                (
-                    rng.gen_range(99.0..105.0),
-                    rng.gen_range(199.0..205.0),
-                    rng.gen_range(0.5..3.0),
-                )
-            };
-            let (a, b) = (pred(&mut rng), pred(&mut rng));
-            let fast = split_by_predictions(&pixels, a, b, &mut side);
-            let reference = split_by_predictions_reference(&pixels, a, b);
-            match (fast, reference) {
-                (None, None) => assert!(n < 2, "case {case}"),
-                (Some((c, parts)), Some((rc, rside, rparts))) => {
-                    assert_eq!(c.to_bits(), rc.to_bits(), "case {case}");
-                    assert_eq!(side, rside, "case {case}");
-                    assert_eq!(parts, rparts, "case {case}");
-                    assert_eq!(
-                        parts[0].2 + parts[1].2,
-                        pixels.iter().map(|p| p.count).sum::<u32>()
-                    );
-                    split += 1;
-                }
-                (f, r) => panic!("case {case}: {f:?} vs {r:?}"),
-            }
-        }
-        assert!(split > 2000);
-        // Two one-event pixels, each near one prediction: each to its own.
-        let two = [
-            ImagePixel {
-                x: 10,
-                y: 10,
-                count: 1,
-            },
-            ImagePixel {
-                x: 11,
-                y: 10,
-                count: 1,
-            },
-        ];
-        let (c, parts) =
-            split_by_predictions(&two, (11.1, 10.1, 1.5), (9.8, 9.9, 1.5), &mut side).unwrap();
-        assert_eq!(side, [true, false]);
-        assert_eq!(parts, [(11.0, 10.0, 1), (10.0, 10.0, 1)]);
-        assert!((c - (0.02 + 0.05) / 2.25).abs() < 1e-12);
-    }
-
-    /// Two particles crossing at a shallow angle: their one-event images
-    /// merge at pulses 9 (1 px apart), 10 (one pixel: nothing to split)
-    /// and 11. With the pixels, the merged two-pixel images are split and
-    /// each track gets its own particle's pixel; without, nothing is split.
-    #[test]
-    fn merged_images_are_split_between_their_tracks() {
-        use crate::cluster::{cluster_pulse_with_pixels, ClusterParams};
-        use crate::events::EventChunk;
-        use crate::pulses::PulseEvents;
-        let paths = |k: i64| [(20 + 5 * k, 50), (20 + 5 * k, 60 - k)];
-        let run = |split: bool| {
-            let mut t = Tracker::new(TrackParams {
-                split_merged: split,
-                ..Default::default()
-            })
-            .unwrap();
-            t.record_splits(true);
-            let mut tracks = Vec::new();
-            let mut splits = Vec::new();
-            for k in 0..21i64 {
-                let mut ev = EventChunk::default();
-                for (x, y) in paths(k) {
-                    ev.push(k * 200 + 50, x as u16, y as u16, 1);
-                }
-                let pe = PulseEvents {
-                    index: k,
-                    start_us: k as f64 * 200.0,
-                    events: ev,
-                };
-                let (ps, px) = cluster_pulse_with_pixels(&pe, &ClusterParams::default());
-                tracks.extend(
-                    t.push_linked_with_pixels(k, pe.start_us, &ps, Some(&px))
-                        .unwrap(),
-                );
-                splits.extend(t.take_splits());
-            }
-            let (rest, stats) = t.finish();
-            tracks.extend(rest);
-            (tracks, splits, stats)
-        };
-        let (tracks, splits, stats) = run(true);
-        assert_eq!(stats.images_split, 2);
-        assert_eq!(splits.len(), 4);
-        assert_eq!(tracks.len(), 2);
-        for tr in &tracks {
-            // Which particle: particle 0 stays at y = 50.
-            let p = (tr.track.points[0].y - 50.0).abs() > 5.0;
-            let mine: Vec<&SplitDetection> = splits
-                .iter()
-                .filter(|s| tr.detections.contains(&Some(s.serial)))
-                .collect();
-            assert_eq!(mine.len(), 2, "one part at pulse 9, one at 11");
-            for s in mine {
-                assert!(s.serial & SPLIT_SERIAL_BIT != 0);
-                assert_eq!((s.x, s.y), {
-                    let (x, y) = paths(s.pulse)[p as usize];
-                    (x as f64, y as f64)
-                });
-            }
-            assert_eq!(tr.track.points.len(), 21);
-        }
-        let (_, splits, stats) = run(false);
-        assert_eq!((stats.images_split, splits.len()), (0, 0));
-    }
-
-    #[test]
     fn gaps_are_bridged_and_marked() {
         let mut ps = Vec::new();
         for k in 0..15 {
@@ -315,7 +187,10 @@ mod tests {
             .map(|k| particle(k, 5.0 + 2.0 * k as f64, 20.0 + 0.5 * k as f64))
             .collect();
         let p = TrackParams {
-            max_track_length: 44, // ≥ 2 × the largest fit window (21)
+            gates: GateParams {
+                max_track_length: 44, // ≥ 2 × the largest fit window (21)
+                ..Default::default()
+            },
             ..Default::default()
         };
         let tracks = link(&ps, &p).unwrap();
@@ -329,38 +204,13 @@ mod tests {
             assert!((q.u - 2.0 * 5000.0).abs() < 1e-6 && (q.v - 0.5 * 5000.0).abs() < 1e-6);
         }
         assert!(Tracker::new(TrackParams {
-            max_track_length: 10,
+            gates: GateParams {
+                max_track_length: 10,
+                ..Default::default()
+            },
             ..Default::default()
         })
         .is_err());
-    }
-
-    #[test]
-    fn session_10_options_refuse_bad_values_by_name() {
-        for bad in [-1.0, f64::NAN, f64::INFINITY] {
-            let e = Tracker::new(TrackParams {
-                step_split_hinted: bad,
-                ..Default::default()
-            })
-            .err()
-            .expect("a bad hinted step threshold is refused");
-            assert!(e.to_string().contains("step_split_hinted"), "{e}");
-        }
-        let e = Tracker::new(TrackParams {
-            velocity_prior_two_pass: true,
-            velocity_prior: 0.0,
-            ..Default::default()
-        })
-        .err()
-        .expect("two passes without a prior are refused");
-        assert!(e.to_string().contains("velocity_prior_two_pass"), "{e}");
-        assert!(Tracker::new(TrackParams {
-            velocity_prior_two_pass: true,
-            velocity_prior: 1.0,
-            step_split_hinted: 8.0,
-            ..Default::default()
-        })
-        .is_ok());
     }
 
     #[test]
@@ -377,7 +227,10 @@ mod tests {
                 .map(|&k| particle(k, 10.0 + 5.0 * k as f64, 30.0 + 0.5 * k as f64)),
         );
         let off = TrackParams {
-            init_gap: false,
+            init: InitParams {
+                init_gap: false,
+                ..Default::default()
+            },
             ..Default::default()
         };
         assert_eq!(link(&ps, &off).unwrap().len(), 1);
@@ -388,8 +241,11 @@ mod tests {
         // Without the ghost test at initialisation (with it, a chain with
         // a gap needs a known local flow, and this scene has none).
         let p = TrackParams {
-            init_gap: true,
-            ghost_check_init: false,
+            init: InitParams {
+                init_gap: true,
+                ghost_check_init: false,
+                ..Default::default()
+            },
             ..Default::default()
         };
         let tracks = link(&ps, &p).unwrap();
@@ -450,12 +306,6 @@ mod tests {
         t.push(5, 0.0, &[]).unwrap();
         assert!(t.push(5, 0.0, &[]).is_err());
         assert!(t.push(6, 0.0, &[particle(6, f64::NAN, 1.0)]).is_err());
-        let no_pixels = crate::cluster::ParticlePixels::default();
-        let err = t
-            .push_linked_with_pixels(7, 0.0, &[particle(7, 1.0, 1.0)], Some(&no_pixels))
-            .err()
-            .unwrap();
-        assert!(err.to_string().contains("pixel table"), "{err}");
     }
 
     #[test]
@@ -502,7 +352,6 @@ mod tests {
                     t_us: pulse as f64 * 200.0,
                     x: 100.0 + 6.0 * s + 0.05 * s * s + rng.gen_range(-0.2..0.2) + stray,
                     y: 300.0 - 2.0 * s + rng.gen_range(-0.2..0.2) - stray,
-                    nb: NO_NEIGHBOUR,
                 });
                 pulse += 1;
             }
@@ -523,7 +372,6 @@ mod tests {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
         let params = TrackParams::default();
         let mut compared = 0;
-        let mut prior_moved = 0;
         for case in 0..12 {
             // Pulse times as the pulses stage gives them (first + k·period,
             // far into a recording), or jittered (off the grid: the
@@ -548,7 +396,6 @@ mod tests {
                         + 30.0 * (0.02 * case as f64 * s).sin()
                         + rng.gen_range(-0.3..0.3),
                     y: 400.0 - 3.0 * s + 0.01 * s * s + rng.gen_range(-0.3..0.3),
-                    nb: NO_NEIGHBOUR,
                 });
                 pulse += 1;
             }
@@ -556,50 +403,8 @@ mod tests {
             let mut grid_fits = 0;
             // Half the cases with the curvature prior.
             let accel = [0.0, 0.0, 0.08, 0.3][(case / 2) % 4];
-            // Every third case with the velocity prior: links of a flow
-            // close to the track's own motion all along it.
-            let mut flow = local_flow::FlowHistory::new(FLOW_CELL, FLOW_MEMORY, 4, 8);
-            for d in &dets {
-                for k in 0..12 {
-                    let (dx, dy) = ((k % 4) as f64 * 9.0 - 13.0, (k / 4) as f64 * 11.0 - 11.0);
-                    flow.add_sample(local_flow::FlowSample {
-                        pulse: d.pulse,
-                        x: d.x + dx,
-                        y: d.y + dy,
-                        u: 5.2 + 0.01 * dx + rng.gen_range(-0.3..0.3),
-                        v: -3.1 + rng.gen_range(-0.3..0.3),
-                    });
-                }
-            }
-            let with_prior = VelocityPriorUse {
-                flow: &flow,
-                scale: Some((1.0, 0.0005)),
-                strength: 1.0,
-            };
-            let prior = (case % 3 == 2).then_some(&with_prior);
-            let (mut cal_fast, mut cal_reference) = Default::default();
-            let (fp, fs, frms) = fit_track_with(
-                &dets,
-                &params,
-                sigma,
-                accel,
-                prior,
-                &mut cal_fast,
-                true,
-                &mut grid_fits,
-                None,
-            );
-            let (rp, rs, rrms) = fit_track_with(
-                &dets,
-                &params,
-                sigma,
-                accel,
-                prior,
-                &mut cal_reference,
-                false,
-                &mut 0,
-                None,
-            );
+            let (fp, fs, frms) = fit_track_with(&dets, &params, sigma, accel, true, &mut grid_fits);
+            let (rp, rs, rrms) = fit_track_with(&dets, &params, sigma, accel, false, &mut 0);
             // On the grid the tabulated path takes every detection whose
             // pilot window has no gap; jittered times never.
             if jitter > 0.0 {
@@ -611,29 +416,6 @@ mod tests {
             }
             assert_eq!(fs, rs);
             assert_eq!(fp.len(), rp.len());
-            if prior.is_some() {
-                // The prior moved the noisy points (the ends), and both
-                // paths checked it at the same points.
-                let (plain, _, _) = fit_track_with(
-                    &dets,
-                    &params,
-                    sigma,
-                    accel,
-                    None,
-                    &mut Default::default(),
-                    true,
-                    &mut 0,
-                    None,
-                );
-                let moved = plain.iter().zip(&fp).filter(|(a, b)| a.u != b.u).count();
-                assert!(moved > 0, "case {case}");
-                prior_moved += moved;
-                assert_eq!(
-                    cal_fast.typical_fit_variance(),
-                    cal_reference.typical_fit_variance(),
-                    "case {case}"
-                );
-            }
             assert!((frms - rrms).abs() <= 1e-9 * rrms.max(1.0));
             for (f, r) in fp.iter().zip(&rp) {
                 assert_eq!(
@@ -661,6 +443,5 @@ mod tests {
             }
         }
         assert!(compared > 500);
-        assert!(prior_moved > 20, "{prior_moved}");
     }
 }

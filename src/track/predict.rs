@@ -120,7 +120,7 @@ impl Tracker {
         let p = &self.params;
         let track = &self.active[ti];
         let n = track.dets.len();
-        let w = p.predict_window.min(n);
+        let w = p.gates.predict_window.min(n);
         let win = &track.dets[n - w..];
         let last = track.last();
         if p.turn_model {
@@ -159,7 +159,7 @@ impl Tracker {
     ) -> Option<(f64, f64, f64, f64)> {
         let p = &self.params;
         let n = track.dets.len();
-        let w = p.predict_window.min(n).min(64);
+        let w = p.gates.predict_window.min(n).min(64);
         let win = &track.dets[n - w..];
         let last = track.last();
         let (mut tau, mut xs, mut ys) = ([0.0; 64], [0.0; 64], [0.0; 64]);
@@ -201,7 +201,14 @@ impl Tracker {
             let f = turn::turn_eval(tau, xs, ys, at, true)?;
             (f.x, f.y, f.leverage)
         } else {
-            young_prediction(tau, xs, ys, at, self.position_sigma(), p.young_turn_sigma)?
+            young_prediction(
+                tau,
+                xs,
+                ys,
+                at,
+                self.position_sigma(),
+                p.gates.young_turn_sigma,
+            )?
         };
         let (r, lev) = self.search_radius(lev, pulse - last.pulse);
         Some((x, y, r, lev))
@@ -230,10 +237,10 @@ impl Tracker {
 
     pub(super) fn predict_order(&self, n: usize) -> usize {
         let p = &self.params;
-        if n >= p.predict_order * 3 {
-            p.predict_order
+        if n >= p.gates.predict_order * 3 {
+            p.gates.predict_order
         } else {
-            p.predict_order.min(1)
+            p.gates.predict_order.min(1)
         }
     }
 
@@ -243,8 +250,8 @@ impl Tracker {
         let p = &self.params;
         let gap = (ahead - 1).max(0) as f64;
         let sigma = self.position_sigma() * (1.0 + leverage).sqrt();
-        let r =
-            (p.n_sigma * sigma).clamp(p.min_search_radius, p.max_disp) * (1.0 + p.gap_growth * gap);
+        let r = (p.gates.n_sigma * sigma).clamp(p.gates.min_search_radius, p.max_disp)
+            * (1.0 + p.gates.gap_growth * gap);
         (r.min(p.max_disp * (1.0 + gap)), leverage)
     }
 
@@ -257,7 +264,7 @@ impl Tracker {
     ) -> (f64, f64, f64, f64) {
         let p = &self.params;
         let n = track.dets.len();
-        let w = p.predict_window.min(n);
+        let w = p.gates.predict_window.min(n);
         let win = &track.dets[n - w..];
         let last = track.last();
         // τ in pulse periods (by pulse index), conditioning-friendly.

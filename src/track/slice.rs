@@ -353,7 +353,7 @@ impl SliceTracker {
         }
         // Long tracks go out in segments, as the sequential tracker's.
         for j in &mut open {
-            if j.points.len() >= self.params.max_track_length {
+            if j.points.len() >= self.params.gates.max_track_length {
                 let segment = Joined {
                     points: std::mem::take(&mut j.points),
                     detections: std::mem::take(&mut j.detections),

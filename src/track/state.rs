@@ -107,15 +107,6 @@ pub(super) const FLOW_CELL: f64 = 16.0;
 /// Time constant (pulses) of the local flow's memory.
 pub(super) const FLOW_MEMORY: f64 = 8.0;
 
-/// The velocity prior's flow keeps a copy of its grid every this many
-/// pulses ([`local_flow::FlowHistory`]) ...
-pub(super) const PRIOR_BLOCK: i64 = 4;
-
-/// ... the last this many: the starts of tracks up to ~128 pulses long
-/// see the flow of their moment; before that the prior fades (the
-/// grid's forgetting, symmetric in time).
-pub(super) const PRIOR_KEEP: usize = 32;
-
 /// Detections a track must hold before its links feed the local flow
 /// (longer than any track the ghost test judges).
 pub(super) const FLOW_MIN_DETECTIONS: usize = 6;
@@ -133,22 +124,7 @@ pub(super) struct Det {
     pub(super) t_us: f64,
     pub(super) x: f64,
     pub(super) y: f64,
-    /// Offset (px) from this detection to the nearest other detection of
-    /// its pulse within [`NEIGHBOUR_RADIUS`], recorded when a running
-    /// track takes it (NaN: none, or not looked for). A track that jumps
-    /// to a close neighbour q at pulse k had q beside it at k − 1: the
-    /// step test ([`step::step_cuts_hinted`]) trusts a smaller step where
-    /// the step matches such a neighbour.
-    pub(super) nb: [f32; 2],
 }
-
-/// Neighbours further than this (px) are not recorded in [`Det::nb`]:
-/// the swaps the step test misses are 1–2 px jumps (`tests/ptv_swaps.rs`), and
-/// neighbours 4 px away are outside every gate at σ ≈ 0.4 px.
-pub(super) const NEIGHBOUR_RADIUS: f64 = 4.0;
-
-/// No neighbour recorded ([`Det::nb`]).
-pub(super) const NO_NEIGHBOUR: [f32; 2] = [f32::NAN, f32::NAN];
 
 #[derive(Debug, Clone)]
 pub(super) struct ActiveTrack {
@@ -193,10 +169,6 @@ pub(super) struct Frame {
     pub(super) t_us: f64,
     /// Serial of the pulse's first particle (the next serial if none).
     pub(super) first_serial: u64,
-    /// Particles pushed (`dets` holds them, then the split parts).
-    pub(super) n_pushed: usize,
-    /// Serial of the first split part of this pulse.
-    pub(super) first_split: u64,
     /// The track (uid) each particle went to (`NO_OWNER`: none).
     pub(super) owner: Vec<u64>,
     /// Tracks (uids) that found no particle at this pulse.
@@ -210,33 +182,9 @@ pub(super) struct Frame {
 impl Frame {
     /// Index in `dets` of the detection with this serial.
     pub(super) fn index_of(&self, serial: u64) -> Option<usize> {
-        let i = if serial & SPLIT_SERIAL_BIT == 0 {
-            serial.checked_sub(self.first_serial)? as usize
-        } else {
-            self.n_pushed + serial.checked_sub(self.first_split)? as usize
-        };
+        let i = serial.checked_sub(self.first_serial)? as usize;
         (i < self.dets.len()).then_some(i)
     }
-}
-
-/// Serials of the parts of split images have this bit set (the pushed
-/// particles keep serials counted from 0, so that a serial still indexes
-/// the input of [`link_linked`]); the rest counts the parts from 0.
-pub const SPLIT_SERIAL_BIT: u64 = 1 << 63;
-
-/// A part of a merged image split by the tracker (see
-/// `TrackParams::split_merged`): a detection that was not in the input.
-#[derive(Debug, Clone, PartialEq)]
-pub struct SplitDetection {
-    /// Its serial (with [`SPLIT_SERIAL_BIT`] set).
-    pub serial: u64,
-    /// Serial of the image it was split from.
-    pub parent: u64,
-    pub pulse: i64,
-    /// Event-weighted centroid of its pixels (px).
-    pub x: f64,
-    pub y: f64,
-    pub pixels: Vec<ImagePixel>,
 }
 
 /// Counters of what the tracker did (for `summary.json`).
@@ -251,7 +199,9 @@ pub struct TrackerStats {
     pub tracks_rejected_rough: u64,
     /// Detections on kept tracks.
     pub particles_on_tracks: u64,
-    /// Merged images split between two tracks (`TrackParams::split_merged`).
+    /// Always 0: the tracker takes the images as clustering made them
+    /// (clustering splits wide ones, `ClusterParams::split_extent`); the
+    /// key stays in `summary.json` for its readers.
     #[serde(default)]
     pub images_split: u64,
     /// Short tracks dropped as ghosts by the local-flow test
@@ -294,12 +244,6 @@ pub struct Tracker {
     /// Ended tracks waiting for a possible stitch.
     pub(super) pool: Vec<ActiveTrack>,
     pub(super) next_serial: u64,
-    /// Split parts made so far (their serials count from
-    /// [`SPLIT_SERIAL_BIT`]).
-    pub(super) next_split: u64,
-    /// Keep a [`SplitDetection`] of every split part (for scoring).
-    pub(super) record_splits: bool,
-    pub(super) splits: Vec<SplitDetection>,
     pub(super) next_uid: u64,
     /// Sum and count of squared normalised innovations (px², per axis),
     /// seeded with `sigma_floor` as a prior worth a few dozen links.
@@ -347,16 +291,12 @@ pub(super) struct Scratch {
     pub(super) row_start: Vec<usize>,
     pub(super) leverage: Vec<f64>,
     pub(super) miss: Vec<f64>,
-    /// Each active track's prediction (x, y, search radius).
-    pub(super) pred: Vec<(f64, f64, f64)>,
-    /// (detection, track, cost) candidate pairs of multi-pixel images.
-    pub(super) multi: Vec<(usize, usize, f64)>,
 }
 
 impl Tracker {
     pub fn new(params: TrackParams) -> Result<Self> {
         params.validate()?;
-        let floor2 = params.sigma_floor.powi(2);
+        let floor2 = params.gates.sigma_floor.powi(2);
         Ok(Tracker {
             params: params.clone(),
             active: Vec::new(),
@@ -364,9 +304,6 @@ impl Tracker {
             back_frames: VecDeque::new(),
             pool: Vec::new(),
             next_serial: 0,
-            next_split: 0,
-            record_splits: false,
-            splits: Vec::new(),
             next_uid: 0,
             innov_sum: floor2 * 30.0,
             innov_n: 30.0,
@@ -406,17 +343,6 @@ impl Tracker {
             .collect())
     }
 
-    /// Keep a record of every split part (see [`Tracker::take_splits`]);
-    /// off by default (the records grow with the run).
-    pub fn record_splits(&mut self, on: bool) {
-        self.record_splits = on;
-    }
-
-    /// The split parts recorded since the last call.
-    pub fn take_splits(&mut self) -> Vec<SplitDetection> {
-        std::mem::take(&mut self.splits)
-    }
-
     /// [`Tracker::push`], keeping the detection serial numbers.
     pub fn push_linked(
         &mut self,
@@ -424,49 +350,6 @@ impl Tracker {
         t_us: f64,
         particles: &[Particle],
     ) -> Result<Vec<LinkedTrack>> {
-        self.push_linked_with_pixels(pulse, t_us, particles, None)
-    }
-
-    /// [`Tracker::push`] with the pixels of each particle (from
-    /// [`crate::cluster::cluster_pulse_with_pixels`]), which lets the
-    /// tracker split merged images (`TrackParams::split_merged`).
-    pub fn push_with_pixels(
-        &mut self,
-        pulse: i64,
-        t_us: f64,
-        particles: &[Particle],
-        pixels: &ParticlePixels,
-    ) -> Result<Vec<Track>> {
-        Ok(self
-            .push_linked_with_pixels(pulse, t_us, particles, Some(pixels))?
-            .into_iter()
-            .map(|t| t.track)
-            .collect())
-    }
-
-    /// [`Tracker::push_linked`] with the pixels of each particle (or none).
-    /// Parts of split images get serials with [`SPLIT_SERIAL_BIT`] set.
-    pub fn push_linked_with_pixels(
-        &mut self,
-        pulse: i64,
-        t_us: f64,
-        particles: &[Particle],
-        pixels: Option<&ParticlePixels>,
-    ) -> Result<Vec<LinkedTrack>> {
-        if let Some(px) = pixels {
-            if px.len() != particles.len()
-                || px.start.last().map(|&e| e as usize) != Some(px.pixels.len())
-            {
-                return Err(Error::param(
-                    "pixels",
-                    format!(
-                        "pulse {pulse}: pixel table of {} particles for {} particles",
-                        px.len(),
-                        particles.len()
-                    ),
-                ));
-            }
-        }
         if let Some(last) = self.last_pulse {
             if pulse <= last {
                 return Err(Error::param(
@@ -494,8 +377,7 @@ impl Tracker {
         self.stats.pulses += 1;
         self.stats.particles += particles.len() as u64;
         let first_serial = self.next_serial;
-        let first_split = self.next_split;
-        let mut dets: Vec<Det> = particles
+        let dets: Vec<Det> = particles
             .iter()
             .map(|p| {
                 let d = Det {
@@ -504,7 +386,6 @@ impl Tracker {
                     t_us,
                     x: p.x,
                     y: p.y,
-                    nb: NO_NEIGHBOUR,
                 };
                 self.next_serial += 1;
                 d
@@ -542,8 +423,7 @@ impl Tracker {
         self.active.truncate(kept);
         debug_assert!(self.active.windows(2).all(|w| w[0].uid < w[1].uid));
 
-        let n_pushed = dets.len();
-        let links = self.extend_active(&mut dets, pixels, pulse);
+        let links = self.extend_active(&dets, pulse);
         let segments = self.cut_long_tracks();
         let mut grid = std::mem::take(&mut self.scratch.grid);
         if links.grid_stale {
@@ -553,33 +433,31 @@ impl Tracker {
             pulse,
             t_us,
             first_serial,
-            n_pushed,
-            first_split,
             dets,
             used: links.used,
             owner: links.owner,
             hungry: links.hungry,
             grid,
         });
-        if self.params.repair_lag > 0 {
-            self.repair(pulse - self.params.repair_lag as i64);
+        if self.params.gates.repair_lag > 0 {
+            self.repair(pulse - self.params.gates.repair_lag as i64);
         }
-        let kept_frames = INIT_FRAMES + self.params.init_gap as usize;
+        let kept_frames = INIT_FRAMES + self.params.init.init_gap as usize;
         while self.frames.len() > kept_frames {
             let mut old = self.frames.pop_front().expect("more frames than kept");
             // The grid goes back to the scratch for reuse.
             self.scratch.grid = std::mem::take(&mut old.grid);
-            if self.params.back_extend > 0 {
+            if self.params.init.back_extend > 0 {
                 self.back_frames.push_back(old);
             }
         }
-        while self.back_frames.len() > self.params.back_extend {
+        while self.back_frames.len() > self.params.init.back_extend {
             self.back_frames.pop_front();
         }
         self.initialise();
 
         // Pool entries no new chain can reach any more are final.
-        let horizon = pulse - (INIT_FRAMES as i64 - 1) - self.params.stitch_gap as i64 - 1;
+        let horizon = pulse - (INIT_FRAMES as i64 - 1) - self.params.stitch.stitch_gap as i64 - 1;
         let (done, keep): (Vec<_>, Vec<_>) = std::mem::take(&mut self.pool)
             .into_iter()
             .partition(|t| t.last().pulse < horizon);
@@ -594,8 +472,12 @@ impl Tracker {
     /// few detections as context, so that memory does not grow with the
     /// life of a particle that stays in view.
     pub(super) fn cut_long_tracks(&mut self) -> Vec<ActiveTrack> {
-        let max = self.params.max_track_length;
-        let keep = self.params.predict_window.max(self.params.fit_window);
+        let max = self.params.gates.max_track_length;
+        let keep = self
+            .params
+            .gates
+            .predict_window
+            .max(self.params.fit.fit_window);
         let mut segments = Vec::new();
         for t in &mut self.active {
             if t.dets.len() >= max {
@@ -617,10 +499,7 @@ impl Tracker {
         let mut all = std::mem::take(&mut self.pool);
         all.append(&mut self.active);
         all.sort_unstable_by_key(|t| t.dets[0].serial);
-        let mut out = self.finalise(all);
-        // The second pass of `velocity_prior_two_pass` (no tracks held
-        // otherwise): every track so far, in id order.
-        out.extend(self.finaliser.refit_held());
+        let out = self.finalise(all);
         (out, self.stats)
     }
 
@@ -637,8 +516,8 @@ impl Tracker {
     pub fn position_sigma(&self) -> f64 {
         (self.innov_sum / self.innov_n)
             .sqrt()
-            .min(self.params.sigma_ceiling)
-            .max(self.params.sigma_floor)
+            .min(self.params.gates.sigma_ceiling)
+            .max(self.params.gates.sigma_floor)
     }
 
     /// The output fit's prior rms acceleration per axis (px/pulse²) for
@@ -647,6 +526,7 @@ impl Tracker {
     /// [`Tracker::defer_fits`] the estimate lives in the [`Finaliser`]).
     pub fn fit_accel_rms(&self) -> f64 {
         self.params
+            .fit
             .fit_accel_rms
             .unwrap_or_else(|| self.finaliser.accel_prior.accel_rms(self.position_sigma()))
     }
@@ -706,7 +586,7 @@ impl Tracker {
         if consecutive(&self.frames, n - INIT_FRAMES) {
             self.start_chains(last, &mut new_tracks);
         }
-        if self.params.init_gap && n == INIT_FRAMES + 1 && consecutive(&self.frames, 0) {
+        if self.params.init.init_gap && n == INIT_FRAMES + 1 && consecutive(&self.frames, 0) {
             // A particle missed once in its first pulses (5 % of the
             // images are lost, and merged ones are taken by a neighbour)
             // starts here instead of waiting for four clean pulses in a row.
@@ -746,7 +626,8 @@ impl Tracker {
             (1.0 + a).powi(2) + a * a + 1.0
         };
         let (var2, var3) = (var(2), var(3));
-        let gate = |v: f64| (p.n_sigma * sigma * v.sqrt()).clamp(p.init_radius, p.max_disp);
+        let gate =
+            |v: f64| (p.gates.n_sigma * sigma * v.sqrt()).clamp(p.init.init_radius, p.max_disp);
         let (gate2, gate3) = (gate(var2), gate(var3));
         // Grids over the unused particles of frames 1..3.
         let mut sc = std::mem::take(&mut self.scratch);
@@ -770,7 +651,7 @@ impl Tracker {
             std::mem::take(&mut sc.near3),
         );
         let (f0, f1, f2, f3) = (&f[idx[0]], &f[idx[1]], &f[idx[2]], &f[idx[3]]);
-        let check = p.ghost_check_init && p.ghost_check_length > 0;
+        let check = p.init.ghost_check_init && p.init.ghost_check_length > 0;
         // A chain that skips a pulse must show that it moves with the
         // local flow (an unknown flow is no excuse): it is the likelier
         // ghost (wider first steps, one image fewer per span).
@@ -778,7 +659,7 @@ impl Tracker {
         // Its first step can be held to the flow at once
         // (`gap_first_step`): the pulse and Σ(τ − τ̄)² of the ghost test's
         // line fit, for its flow tolerance.
-        let first_step_flow = gappy && check && p.gap_first_step;
+        let first_step_flow = gappy && check && p.init.gap_first_step;
         let taus: [f64; INIT_FRAMES] = std::array::from_fn(|k| span(0, k));
         let tau_mean = taus.iter().sum::<f64>() / INIT_FRAMES as f64;
         let stt: f64 = taus.iter().map(|t| (t - tau_mean).powi(2)).sum();
@@ -794,7 +675,7 @@ impl Tracker {
                 Some(prior) => {
                     let (u, v) = (prior.0)(d0.x, d0.y);
                     let s = dt(0, 1) * 1e-6;
-                    (d0.x + u * s, d0.y + v * s, p.prior_radius * span(0, 1))
+                    (d0.x + u * s, d0.y + v * s, p.init.prior_radius * span(0, 1))
                 }
                 None => (d0.x, d0.y, p.max_disp * span(0, 1)),
             };
@@ -809,7 +690,7 @@ impl Tracker {
                 // velocity (curvature over two pulses).
                 let variation = (flow.spread2 - 2.0 * s2).max(0.0);
                 let tol =
-                    p.ghost_sigma * (variation + s2 / stt + flow.spread2 / flow.weight).sqrt();
+                    p.init.ghost_sigma * (variation + s2 / stt + flow.spread2 / flow.weight).sqrt();
                 let s01 = span(0, 1);
                 let r = (s01 * tol + 3.0 * std::f64::consts::SQRT_2 * sigma + 1.0).min(r1);
                 near(1, d0.x + flow.u * s01, d0.y + flow.v * s01, r, &mut n1);
@@ -860,7 +741,7 @@ impl Tracker {
                     let d = &f[idx[k]].dets[ids[k]];
                     (d.pulse, d.x, d.y)
                 });
-                match local_flow::flow_consistent(&xy, &self.flow, sigma, p.ghost_sigma) {
+                match local_flow::flow_consistent(&xy, &self.flow, sigma, p.init.ghost_sigma) {
                     local_flow::FlowCheck::Ghost => continue,
                     local_flow::FlowCheck::Unknown if gappy => continue,
                     _ => {}

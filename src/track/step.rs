@@ -351,19 +351,6 @@ fn gains_direct(
     Some(((erx * erx + ery * ery) / qe / s2, outlier / s2))
 }
 
-/// The fitted step at `s` (the quadratic-plus-step model of [`gains`]):
-/// its vector Δ (px, detections from `s` on minus before) and the factor
-/// 1 / e·(I − H)e of its variance (Var Δ = σ² times it, per axis).
-fn step_vector(
-    dets: &[(i64, f64, f64)],
-    s: usize,
-    lo: usize,
-    hi: usize,
-) -> Option<([f64; 2], f64)> {
-    let (erx, ery, qe, _) = direct_parts(dets, s, lo, hi)?;
-    Some(([erx / qe, ery / qe], 1.0 / qe))
-}
-
 /// The sums behind [`gains_direct`]: the step column's residual sums
 /// e·r per axis, its residual norm e·(I − H)e and the larger outlier
 /// drop at `s − 1` or `s` (px², not yet over σ²).
@@ -464,72 +451,6 @@ pub fn step_cuts(
     first_cut: usize,
 ) -> Vec<usize> {
     step_cuts_with(dets, sigma, threshold, first_cut, true)
-}
-
-/// [`step_cuts`] with a second, lower threshold `hinted` where the step
-/// lines up with a neighbour: `nb[i]` is the offset (px) from detection
-/// `i` to the nearest other detection of its pulse (NaN: none known).
-/// A candidate step Δ at `s` is *hinted* when the detection before it had
-/// a neighbour at about +Δ (the particle the track jumps to, one pulse
-/// earlier) or the detection at `s` one at about −Δ (the track's own
-/// particle, left behind): the offset and Δ agree within a χ² of 2
-/// degrees of freedom below [`HINT_CHI2`] (their difference has variance
-/// σ² (2 + Var Δ / σ²) per axis: two centroids and the fitted step).
-/// Elsewhere `threshold` holds, as in [`step_cuts`]; with `hinted ≥
-/// threshold` the result is that of [`step_cuts`].
-pub fn step_cuts_hinted(
-    dets: &[(i64, f64, f64)],
-    nb: &[[f64; 2]],
-    sigma: f64,
-    threshold: f64,
-    hinted: f64,
-    first_cut: usize,
-) -> Vec<usize> {
-    assert_eq!(dets.len(), nb.len(), "one neighbour offset per detection");
-    let mut cuts = Vec::new();
-    if threshold > 0.0 && sigma > 0.0 {
-        let hint = (hinted > 0.0 && hinted < threshold).then_some(Hint {
-            nb,
-            threshold: hinted,
-        });
-        find_cuts_hinted(
-            dets,
-            0,
-            dets.len(),
-            sigma,
-            threshold,
-            hint.as_ref(),
-            first_cut,
-            true,
-            &mut cuts,
-        );
-    }
-    cuts.sort_unstable();
-    cuts
-}
-
-/// χ² (2 degrees of freedom) within which a neighbour's offset must match
-/// a fitted step for the step to count as hinted (5.99: 95 % of true
-/// matches).
-pub const HINT_CHI2: f64 = 5.99;
-
-/// The neighbour offsets and the lower threshold of [`step_cuts_hinted`].
-struct Hint<'a> {
-    nb: &'a [[f64; 2]],
-    threshold: f64,
-}
-
-impl Hint<'_> {
-    /// Whether the step Δ at `s` (variance factor `var`) lines up with
-    /// the neighbour of `s − 1` (at +Δ) or of `s` (at −Δ).
-    fn matches(&self, s: usize, delta: [f64; 2], var: f64, sigma: f64) -> bool {
-        let tol = HINT_CHI2 * sigma * sigma * (2.0 + var);
-        let near = |o: [f64; 2], sign: f64| {
-            let (dx, dy) = (o[0] - sign * delta[0], o[1] - sign * delta[1]);
-            dx * dx + dy * dy <= tol // false for NaN
-        };
-        near(self.nb[s - 1], 1.0) || near(self.nb[s], -1.0)
-    }
 }
 
 /// [`step_cuts`] with or without the screening of candidates
@@ -641,10 +562,11 @@ fn surely_below(
     upper * (1.0 + 1e-9) < threshold
 }
 
-/// The recursive search of [`step_cuts`]; with `screen`, candidates that
-/// [`surely_below`] rules out are skipped (the same cuts: those could not
-/// pass the `gain > threshold` test).
-#[allow(clippy::too_many_arguments)]
+/// The recursive search of [`step_cuts`]: the best step of `lo..hi` is
+/// cut and both sides searched again (the best is the largest gain over
+/// the threshold). With `screen`, candidates that [`surely_below`] rules
+/// out are skipped (the same cuts: those could not pass the
+/// `gain > threshold` test).
 #[allow(clippy::too_many_arguments)]
 fn find_cuts(
     dets: &[(i64, f64, f64)],
@@ -656,50 +578,19 @@ fn find_cuts(
     screen: bool,
     cuts: &mut Vec<usize>,
 ) {
-    find_cuts_hinted(
-        dets, lo, hi, sigma, threshold, None, first_cut, screen, cuts,
-    )
-}
-
-/// The best step of `lo..hi` is cut and both sides searched again. A
-/// candidate passes at `threshold`, or at the hint's lower threshold
-/// when its step lines up with a neighbour; the best is the largest gain
-/// over its own threshold.
-#[allow(clippy::too_many_arguments)]
-fn find_cuts_hinted(
-    dets: &[(i64, f64, f64)],
-    lo: usize,
-    hi: usize,
-    sigma: f64,
-    threshold: f64,
-    hint: Option<&Hint>,
-    first_cut: usize,
-    screen: bool,
-    cuts: &mut Vec<usize>,
-) {
     if hi - lo < 2 * STEP_MIN_SIDE {
         return;
     }
-    let lowest = hint.map_or(threshold, |h| h.threshold.min(threshold));
     let mut best: Option<(f64, usize)> = None;
     for s in (lo + STEP_MIN_SIDE).max(first_cut)..=hi - STEP_MIN_SIDE {
-        if screen && surely_below(dets, s, lo, hi, sigma, lowest) {
+        if screen && surely_below(dets, s, lo, hi, sigma, threshold) {
             continue;
         }
         let Some((gain, outlier)) = gains(dets, s, lo, hi, sigma) else {
             continue;
         };
         let passes = |t: f64| gain > t && gain - outlier > 0.5 * t;
-        let used = if passes(threshold) {
-            Some(threshold)
-        } else {
-            hint.filter(|h| {
-                passes(h.threshold)
-                    && step_vector(dets, s, lo, hi)
-                        .is_some_and(|(delta, var)| h.matches(s, delta, var, sigma))
-            })
-            .map(|h| h.threshold)
-        };
+        let used = passes(threshold).then_some(threshold);
         // A path that turns is no step: the gain must hold against the
         // turning path's fit as well as against the quadratic's.
         let used = used.filter(|&t| {
@@ -721,8 +612,8 @@ fn find_cuts_hinted(
     }
     if let Some((_, s)) = best {
         cuts.push(s);
-        find_cuts_hinted(dets, lo, s, sigma, threshold, hint, first_cut, screen, cuts);
-        find_cuts_hinted(dets, s, hi, sigma, threshold, hint, first_cut, screen, cuts);
+        find_cuts(dets, lo, s, sigma, threshold, first_cut, screen, cuts);
+        find_cuts(dets, s, hi, sigma, threshold, first_cut, screen, cuts);
     }
 }
 
@@ -800,50 +691,6 @@ mod tests {
         assert!(step_cuts(&t, 0.4, 12.0, 12).is_empty());
         // Off.
         assert!(step_cuts(&t, 0.4, 0.0, 0).is_empty());
-    }
-
-    /// A jump too small for the plain threshold is cut at the lower one
-    /// only where a neighbour lines up with it: beside the detection
-    /// before the step at +Δ, or beside the one after it at −Δ.
-    #[test]
-    fn a_small_jump_is_cut_where_a_neighbour_matches_it() {
-        let (jx, jy) = (1.0, -0.8);
-        let t = track(20, 0.3, 11, jx, jy);
-        let (sigma, plain, hinted) = (0.4, 12.0, 8.0);
-        assert!(step_cuts(&t, sigma, plain, 0).is_empty());
-        assert_eq!(step_cuts(&t, sigma, hinted, 0), vec![11]);
-        let (delta, var) = step_vector(&t, 11, 0, t.len()).unwrap();
-        assert!(
-            (delta[0] - jx).abs() < 0.3 && (delta[1] - jy).abs() < 0.3,
-            "{delta:?}"
-        );
-        assert!(var > 0.0 && var.is_finite(), "{var}");
-        let none = vec![[f64::NAN; 2]; t.len()];
-        let cut = |nb: &[[f64; 2]]| step_cuts_hinted(&t, nb, sigma, plain, hinted, 0);
-        assert!(cut(&none).is_empty());
-        // The particle jumped to, one pulse before the step.
-        let mut nb = none.clone();
-        nb[10] = [jx + 0.3, jy - 0.2];
-        assert_eq!(cut(&nb), vec![11]);
-        // The track's own particle, left behind after it.
-        let mut nb = none.clone();
-        nb[11] = [-jx, -jy + 0.3];
-        assert_eq!(cut(&nb), vec![11]);
-        // A neighbour on the other side, or elsewhere on the track: no cut.
-        let mut nb = none.clone();
-        nb[10] = [-jx, -jy];
-        nb[5] = [jx, jy];
-        nb[15] = [-jx, -jy];
-        assert!(cut(&nb).is_empty());
-        // A hinted threshold at or above the plain one is the plain test.
-        let mut nb = none.clone();
-        nb[10] = [jx, jy];
-        assert!(step_cuts_hinted(&t, &nb, sigma, plain, plain, 0).is_empty());
-        let big = track(20, 0.3, 11, 1.5, -1.2);
-        assert_eq!(
-            step_cuts_hinted(&big, &none, sigma, plain, hinted, 0),
-            step_cuts(&big, sigma, plain, 0)
-        );
     }
 
     #[test]

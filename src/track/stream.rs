@@ -61,9 +61,7 @@ use std::sync::mpsc::{self, Receiver, Sender, SyncSender, TryRecvError};
 use std::sync::Arc;
 use std::thread::JoinHandle;
 
-use crate::cluster::{
-    cluster_pulses, cluster_pulses_with_pixels, ClusterParams, Particle, ParticlePixels,
-};
+use crate::cluster::{cluster_pulses, ClusterParams, Particle};
 use crate::error::{Error, Result};
 use crate::io::EventSource;
 use crate::pulses::{self, PulseEvents, PulseOptions, PulseReport};
@@ -88,13 +86,6 @@ impl Linker {
         }
     }
 
-    /// Whether the linker uses the pixels of each particle (the
-    /// sequential tracker splitting merged images,
-    /// `TrackParams::split_merged`): the cluster stage then builds them.
-    fn wants_pixels(&self) -> bool {
-        matches!(self, Linker::Sequential(t) if t.params().split_merged)
-    }
-
     /// Link one clustered pulse; the particles, then the tracks that
     /// ended, go to `out` (the order the sink sees them in).
     fn push(
@@ -102,17 +93,13 @@ impl Linker {
         pulse: i64,
         t_us: f64,
         ps: Vec<Particle>,
-        px: Option<ParticlePixels>,
         out: &mut dyn FnMut(Output),
     ) -> Result<()> {
         match self {
             Linker::Sequential(tracker) => {
                 // The tracker defers its fits (`Stages::start`): `done` is
                 // empty, the ended tracks wait in `take_ended`.
-                let done = match &px {
-                    Some(px) => tracker.push_with_pixels(pulse, t_us, &ps, px)?,
-                    None => tracker.push(pulse, t_us, &ps)?,
-                };
+                let done = tracker.push(pulse, t_us, &ps)?;
                 out(Output::Particles(pulse, t_us, ps));
                 if !done.is_empty() {
                     out(Output::Tracks(done));
@@ -196,9 +183,8 @@ enum Output {
     Finished(TrackerStats),
 }
 
-/// A clustered batch: per pulse its index, start time, particles and,
-/// when the linker wants them, their pixels.
-type Clustered = Vec<(i64, f64, Vec<Particle>, Option<ParticlePixels>)>;
+/// A clustered batch: per pulse its index, start time and particles.
+type Clustered = Vec<(i64, f64, Vec<Particle>)>;
 
 /// The running stages of a [`PtvStream`].
 struct Stages {
@@ -242,12 +228,10 @@ impl Stages {
                 .map_err(|e| Error::analysis(format!("starting the {name} thread: {e}")))
         };
         let stop = cancel.clone();
-        let with_pixels = linker.wants_pixels();
         let clusterer = spawn(
             "ebptv-cluster",
             Box::new(move || {
-                cluster_pool
-                    .install(|| cluster_stage(&cluster, with_pixels, batches, to_track, &stop))
+                cluster_pool.install(|| cluster_stage(&cluster, batches, to_track, &stop))
             }),
         )?;
         let mut stages = Stages {
@@ -312,7 +296,6 @@ impl Stages {
 /// Cluster batches until the input closes (or the tracker stage stops).
 fn cluster_stage(
     params: &ClusterParams,
-    with_pixels: bool,
     batches: Receiver<Vec<PulseEvents>>,
     to_track: SyncSender<Result<Clustered>>,
     cancel: &AtomicBool,
@@ -321,23 +304,13 @@ fn cluster_stage(
         if cancel.load(Ordering::Relaxed) {
             return;
         }
-        let clustered = if with_pixels {
-            cluster_pulses_with_pixels(&batch, params).map(|parts| {
-                batch
-                    .iter()
-                    .zip(parts)
-                    .map(|(pe, (ps, px))| (pe.index, pe.start_us, ps, Some(px)))
-                    .collect()
-            })
-        } else {
-            cluster_pulses(&batch, params).map(|parts| {
-                batch
-                    .iter()
-                    .zip(parts)
-                    .map(|(pe, ps)| (pe.index, pe.start_us, ps, None))
-                    .collect()
-            })
-        };
+        let clustered = cluster_pulses(&batch, params).map(|parts| {
+            batch
+                .iter()
+                .zip(parts)
+                .map(|(pe, ps)| (pe.index, pe.start_us, ps))
+                .collect()
+        });
         drop(batch); // free the events before waiting for room
         let failed = clustered.is_err();
         if to_track.send(clustered).is_err() || failed {
@@ -369,9 +342,9 @@ fn track_stage(
                 return;
             }
         };
-        for (pulse, t_us, ps, px) in batch {
+        for (pulse, t_us, ps) in batch {
             let mut outs = Vec::with_capacity(3);
-            if let Err(e) = linker.push(pulse, t_us, ps, px, &mut |o| outs.push(o)) {
+            if let Err(e) = linker.push(pulse, t_us, ps, &mut |o| outs.push(o)) {
                 outs.push(Output::Failed(e));
                 let _ = to_fit.send(outs);
                 return;
@@ -429,14 +402,6 @@ fn fit_stage(
                     )),
                 },
                 Output::Finished(mut stats) => {
-                    // Tracks held for a second pass (velocity_prior_two_pass).
-                    let held = finaliser
-                        .as_mut()
-                        .map(|f| f.refit_held())
-                        .unwrap_or_default();
-                    if !held.is_empty() && to_caller.send(Output::Tracks(unlinked(held))).is_err() {
-                        return;
-                    }
                     stats.add_fit_counters(&fit_stats);
                     Output::Finished(stats)
                 }
@@ -800,7 +765,10 @@ mod tests {
         });
         let cparams = ClusterParams::default();
         let tparams = TrackParams {
-            max_track_length: 44,
+            gates: GateParams {
+                max_track_length: 44,
+                ..Default::default()
+            },
             ..Default::default()
         };
         let pool = |n: usize| {

@@ -120,16 +120,6 @@
 //! knowing the true path — the error of fitting the true positions plus
 //! the noise of the window — without and with the acceleration prior.
 //!
-//! # Split images
-//! With `TrackParams::split_merged` the tracker may replace a merged image
-//! by two parts (new detections, serials with `SPLIT_SERIAL_BIT`).
-//! [`run_scene`] renumbers them after the pushed particles and attributes
-//! each part by the events on its pixels, with the rule above; the split
-//! image keeps no truth (it is on no track, and the particle it was
-//! attributed to is detected by its part). A part is a detection like any
-//! other, so a particle outvoted in a merged image becomes detected there
-//! and the truth-link count grows.
-//!
 //! # One definition, two kinds of truth
 //! A correct link is the same everywhere: two consecutive detections of
 //! one track that are images of one truth particle. What differs is how a
@@ -164,8 +154,8 @@ use serde::{Deserialize, Serialize};
 
 use super::LinkedTrack;
 use crate::cluster::{
-    particle_pixels_from_labels, particles_from_labels, pixel_labels_with, pulse_pixels,
-    split_wide_clusters, ClusterParams, Particle, ParticlePixels,
+    particles_from_labels, pixel_labels_with, pulse_pixels, split_wide_clusters, ClusterParams,
+    Particle,
 };
 use crate::events::{EventChunk, ON};
 use crate::pulses::PulseEvents;
@@ -412,20 +402,10 @@ pub type TruthClusters = (Vec<Particle>, Vec<Option<u64>>, Vec<bool>, Vec<Vec<u6
 /// [`cluster_with_truth_mixed`], also listing for each particle every
 /// truth particle that made at least one of its events (sorted).
 pub fn cluster_with_truth_sources(sp: &SynthPulse, params: &ClusterParams) -> TruthClusters {
-    cluster_with_truth_pixels(sp, params).0
-}
-
-/// [`cluster_with_truth_sources`], also with the pixels of each particle
-/// (for the tracker's split of merged images).
-pub fn cluster_with_truth_pixels(
-    sp: &SynthPulse,
-    params: &ClusterParams,
-) -> (TruthClusters, ParticlePixels) {
     let pixels = pulse_pixels(&sp.pulse, params);
     let mut labels = pixel_labels_with(&pixels, params);
     split_wide_clusters(&pixels, &mut labels, params.split_extent);
     let particles = particles_from_labels(&sp.pulse, &pixels, &labels, params);
-    let table = particle_pixels_from_labels(&pixels, &labels, params);
     let label_of: HashMap<(u16, u16), u32> = pixels
         .iter()
         .zip(&labels)
@@ -467,7 +447,7 @@ pub fn cluster_with_truth_pixels(
         .map(|(&l, part)| attribute_votes(&votes[l], (part.x, part.y), &truth_xy))
         .collect();
     debug_assert_eq!(ids.len(), particles.len());
-    ((particles, ids, mixed, sources), table)
+    (particles, ids, mixed, sources)
 }
 
 /// The truth particle an image belongs to, from the sources of its events
@@ -845,9 +825,15 @@ mod tests {
         // depends on its detections only, so refitting them with
         // `fit_detections` must give its points exactly.
         let tp = super::super::TrackParams {
-            sigma_floor: 0.4,
-            sigma_ceiling: 0.4,
-            fit_accel_rms: Some(0.0),
+            gates: GateParams {
+                sigma_floor: 0.4,
+                sigma_ceiling: 0.4,
+                ..Default::default()
+            },
+            fit: FitParams {
+                fit_accel_rms: Some(0.0),
+                ..Default::default()
+            },
             ..Default::default()
         };
         let (sp, run) = small_run(&tp);
@@ -885,7 +871,7 @@ mod tests {
             &run.det_truth,
             &run.det_sources,
             &run.det_pulse,
-            tp.stitch_gap,
+            tp.stitch.stitch_gap,
         );
         let mut relabelled = HashSet::new();
         for t in &oracle {

@@ -258,7 +258,7 @@ pub fn quadratic_velocity_variance_factor(
 }
 
 /// Build the oracle tracks of a scene run ([`oracle_tracks`], gaps of up
-/// to `tparams.stitch_gap` missed pulses bridged — the longest the
+/// to `tparams.stitch.stitch_gap` missed pulses bridged — the longest the
 /// tracker bridges, by stitching — longer ones cut), fit each with the
 /// tracker's output fit ([`crate::track::fit_detections`]) and score them: links
 /// (strict, merged-ok, identity; all, long, exclusive), the velocity
@@ -279,7 +279,7 @@ pub fn oracle_report(
         &run.det_truth,
         &run.det_sources,
         &run.det_pulse,
-        tparams.stitch_gap,
+        tparams.stitch.stitch_gap,
     );
     r.tracks = oracle.len() as u64;
     r.bridged_links = oracle
@@ -318,7 +318,12 @@ pub fn oracle_report(
     // detection's particles, fitted like the first, scored.
     let (fit_sigma, fit_accel_rms) = (r.fit_sigma, r.fit_accel_rms);
     let score_oracle = |sources: &[Vec<u64>]| {
-        let tracks = oracle_tracks(&run.det_truth, sources, &run.det_pulse, tparams.stitch_gap);
+        let tracks = oracle_tracks(
+            &run.det_truth,
+            sources,
+            &run.det_pulse,
+            tparams.stitch.stitch_gap,
+        );
         score(&fit_oracle(run, &tracks, tparams, fit_sigma, fit_accel_rms))
     };
     let long_fitted: Vec<LinkedTrack> = oracle
@@ -445,7 +450,7 @@ pub fn oracle_report(
         let n = taus.len();
         let n_points = lt.track.points.len();
         let first = lt.track.points[0].pulse;
-        let w = tparams.fit_window.min(n);
+        let w = tparams.fit.fit_window.min(n);
         let weights: Vec<f64> = t
             .detections
             .iter()
