@@ -100,8 +100,11 @@ fn mean_errors(
 /// (turbulence uu 1.6 %, vv 1.1 %, uv 4.2 %; wake peaks within 0.2 Hz).
 fn fixed_window_fit() -> TrackParams {
     TrackParams {
-        fit_window: 11,
-        fit_min_window: 11,
+        fit: ebptv::track::FitParams {
+            fit_window: 11,
+            fit_min_window: 11,
+            ..Default::default()
+        },
         ..TrackParams::default()
     }
 }

@@ -190,7 +190,10 @@ fn gapped_chains_search_only_along_the_flow() {
     let scene = generate(&sp);
     let run = |gap_first_step: bool| {
         let mut tracker = Tracker::new(TrackParams {
-            gap_first_step,
+            init: ebptv::track::InitParams {
+                gap_first_step,
+                ..Default::default()
+            },
             ..Default::default()
         })
         .unwrap();

@@ -32,13 +32,16 @@ fn links_a_particles_csv() {
     let dir = tempfile::tempdir().unwrap();
     let (input, particles) = synthetic_particles_csv(dir.path(), 30);
     let out = dir.path().join("out");
+    let params = dir.path().join("npy.toml");
+    std::fs::write(&params, "[run]\nnpy = true\n").unwrap();
     run_ok(
         ebptv()
             .arg("track")
             .arg(&input)
             .arg("--out")
             .arg(&out)
-            .arg("--npy"),
+            .arg("--params")
+            .arg(&params),
     );
     let tracks = ebptv::track::read_tracks_csv(&out.join("tracks.csv")).unwrap();
     assert!(tracks.len() > 50, "{} tracks", tracks.len());
@@ -88,6 +91,7 @@ fn links_a_particles_csv() {
     assert_eq!(
         names,
         [
+            "params.toml",
             "particles.csv",
             "summary.json",
             "tracks.csv",
@@ -183,18 +187,18 @@ fn sliced_and_sequential_linkers_agree() {
         let tracks = ebptv::track::read_tracks_csv(&out.join("tracks.csv")).unwrap();
         (tracks, summary)
     };
-    let (seq, seq_summary) = run("seq", &["--linker", "sequential"]);
-    let (sli, sli_summary) = run(
-        "sli",
-        &[
-            "--linker",
-            "sliced",
-            "--slice-pulses",
-            "16",
-            "--slice-overlap",
-            "12",
-        ],
+    let params = |name: &str, text: &str| {
+        let p = dir.path().join(name);
+        std::fs::write(&p, text).unwrap();
+        p.display().to_string()
+    };
+    let seq_toml = params("seq.toml", "[run]\nlinker = \"sequential\"\n");
+    let sli_toml = params(
+        "sli.toml",
+        "[run]\nlinker = \"sliced\"\nslice_pulses = 16\nslice_overlap = 12\n",
     );
+    let (seq, seq_summary) = run("seq", &["--params", &seq_toml]);
+    let (sli, sli_summary) = run("sli", &["--params", &sli_toml]);
     let points = |ts: &[ebptv::track::Track]| ts.iter().map(|t| t.points.len()).sum::<usize>();
     let (a, b) = (points(&seq) as f64, points(&sli) as f64);
     assert!(
@@ -215,8 +219,12 @@ fn sliced_and_sequential_linkers_agree() {
     assert!((fa - fb).abs() < 0.01, "{fa} vs {fb}");
     assert_eq!(sli_summary["tracks"].as_u64().unwrap(), sli.len() as u64);
 
+    let zero = params(
+        "zero.toml",
+        "[run]\nlinker = \"sliced\"\nslice_pulses = 0\n",
+    );
     let st = ebptv()
-        .args(["track", "--linker", "sliced", "--slice-pulses", "0"])
+        .args(["track", "--params", &zero])
         .arg(&input)
         .arg("--out")
         .arg(dir.path().join("zero"))
@@ -224,4 +232,83 @@ fn sliced_and_sequential_linkers_agree() {
         .unwrap();
     let err = String::from_utf8_lossy(&st.stderr);
     assert!(!st.status.success() && err.contains("slice"), "{err}");
+}
+
+/// The params.toml a run writes, passed back, gives the same outputs; a
+/// command-line option beats the file; an unknown key is refused with its
+/// name and the file's.
+#[test]
+fn params_file_round_trip_override_and_unknown_keys() {
+    let dir = tempfile::tempdir().unwrap();
+    let (input, _) = synthetic_particles_csv(dir.path(), 40);
+    let track = |out: &str, args: &[&str]| {
+        let out = dir.path().join(out);
+        let st = ebptv()
+            .arg("track")
+            .arg(&input)
+            .arg("--out")
+            .arg(&out)
+            .args(args)
+            .output()
+            .unwrap();
+        (out, st)
+    };
+    let read = |p: std::path::PathBuf| std::fs::read_to_string(p).unwrap();
+    // Non-default options on the command line end up in params.toml.
+    let (a, st) = track("a", &["--max-disp", "8", "--gap", "2", "--min-length", "6"]);
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    let written = read(a.join("params.toml"));
+    assert!(written.contains("max_disp = 8.0"), "{written}");
+    assert!(written.contains("max_gap = 2"), "{written}");
+    let params = a.join("params.toml").display().to_string();
+    let (b, st) = track("b", &["--params", &params]);
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    for f in ["tracks.csv", "particles.csv", "params.toml"] {
+        assert_eq!(read(a.join(f)), read(b.join(f)), "{f}");
+    }
+    let strip = |p: std::path::PathBuf| -> serde_json::Value {
+        let mut v: serde_json::Value = serde_json::from_str(&read(p)).unwrap();
+        v.as_object_mut()
+            .unwrap()
+            .retain(|k, _| !k.contains("time"));
+        v
+    };
+    assert_eq!(strip(a.join("summary.json")), strip(b.join("summary.json")));
+    // The command line beats the file.
+    let (c, st) = track("c", &["--params", &params, "--min-length", "9"]);
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    let written = read(c.join("params.toml"));
+    assert!(written.contains("min_length = 9"), "{written}");
+    assert!(written.contains("max_disp = 8.0"), "{written}");
+    let tracks = ebptv::track::read_tracks_csv(&c.join("tracks.csv")).unwrap();
+    let before = ebptv::track::read_tracks_csv(&a.join("tracks.csv")).unwrap();
+    assert!(
+        !tracks.is_empty() && tracks.len() < before.len(),
+        "{} vs {} tracks",
+        tracks.len(),
+        before.len()
+    );
+    // An unknown key: the file and the key named, no outputs.
+    let bad = dir.path().join("bad.toml");
+    std::fs::write(&bad, "[track.gates]\nn_sigma = 3.0\nsearch_sigma = 2.0\n").unwrap();
+    let (d, st) = track("d", &["--params", &bad.display().to_string()]);
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert!(!st.status.success(), "{err}");
+    assert!(
+        err.contains("bad.toml") && err.contains("search_sigma"),
+        "{err}"
+    );
+    assert!(!d.join("tracks.csv").exists());
 }

@@ -765,7 +765,7 @@ mod tests {
         });
         let cparams = ClusterParams::default();
         let tparams = TrackParams {
-            gates: GateParams {
+            gates: crate::track::GateParams {
                 max_track_length: 44,
                 ..Default::default()
             },

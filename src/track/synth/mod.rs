@@ -825,12 +825,12 @@ mod tests {
         // depends on its detections only, so refitting them with
         // `fit_detections` must give its points exactly.
         let tp = super::super::TrackParams {
-            gates: GateParams {
+            gates: crate::track::GateParams {
                 sigma_floor: 0.4,
                 sigma_ceiling: 0.4,
                 ..Default::default()
             },
-            fit: FitParams {
+            fit: crate::track::FitParams {
                 fit_accel_rms: Some(0.0),
                 ..Default::default()
             },

@@ -299,6 +299,7 @@ pub fn oracle_report(
     }
     r.fit_sigma = run.position_sigma;
     r.fit_accel_rms = tparams
+        .fit
         .fit_accel_rms
         .unwrap_or_else(|| prior.accel_rms(r.fit_sigma));
     let fitted = fit_oracle(run, &oracle, tparams, r.fit_sigma, r.fit_accel_rms);
