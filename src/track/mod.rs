@@ -10,64 +10,75 @@
 //!
 //! # Algorithm (streaming, one pulse at a time: [`Tracker::push`])
 //! The tracker's state, one pulse's step and the life cycle of a track
-//! are in `state.rs`, its options ([`TrackParams`]) in `params.rs`. Each
-//! pulse runs these stages, in this order:
+//! are in `state.rs`, its options ([`TrackParams`]: five top-level knobs
+//! and the parts `gates`, `init`, `stitch`, `fit`) in `params.rs`, the full
+//! set of a run ([`TrackConfig`]: run options, clustering, tracker; the
+//! TOML of `ebptv track --params`) in `config.rs`. Each pulse runs these
+//! stages, in this order:
 //!
 //! 1. **Predict** (`predict.rs`) every active track at the new pulse time:
-//!    a polynomial fit (order ≤ 2) over its last `predict_window`
+//!    a polynomial fit (order ≤ 2) over its last `gates.predict_window`
 //!    detections, extrapolated;
 //!    where the window visibly turns, a path turning at a constant rate
 //!    ([`turn`], `turn_model`), and for young tracks the line unless it
-//!    misses the constant-speed turning path by `young_turn_sigma`.
-//!    The search radius is `n_sigma` times the predictor's position
-//!    uncertainty (residual rms, floored, times the fit's leverage at the
-//!    extrapolation point), clamped to `[min_search_radius, max_disp]` and
-//!    grown by `gap_growth` per missed pulse.
+//!    misses the constant-speed turning path by `gates.young_turn_sigma`.
+//!    The search radius is `gates.n_sigma` times the predictor's position
+//!    uncertainty (the position noise σ, estimated from the innovations of
+//!    accepted links between `gates.sigma_floor` and `gates.sigma_ceiling`,
+//!    times the fit's leverage at the extrapolation point), clamped to
+//!    `[gates.min_search_radius, max_disp]` and grown by `gates.gap_growth`
+//!    per missed pulse.
 //! 2. **Gate and assign** (`assign.rs`) globally: candidates inside each
 //!    track's radius come from a grid index over the pulse's particles;
 //!    the cost of a pair is `(d / radius)²`, the cost of a miss 1. A
 //!    minimum-total-cost assignment ([`lap`], Hungarian on the connected
 //!    components of the sparse candidate graph) resolves conflicts — no
-//!    first-come order. Tracks that reached `max_track_length` hand out
+//!    first-come order. Tracks that reached `gates.max_track_length` hand out
 //!    their detections as a segment and go on (`state.rs`).
 //! 3. **Bridge gaps and repair** (`bridge.rs`): a track without a match
 //!    keeps predicting for up to `max_gap` pulses with a growing radius;
-//!    then it ends. The pulse `repair_lag` pulses back is revisited
+//!    then it ends. The pulse `gates.repair_lag` pulses back is revisited
 //!    (a fixed-lag smoother): tracks that missed it are fitted on both
 //!    sides of it and its particles in their gates are assigned again.
 //! 4. **Initialise** (`state.rs`; four-frame best estimate, as MyPTV/OpenPTV
 //!    and Shake-The-Box's initialisation): particles left unassigned in the
 //!    last four pulses are chained p0→p1 (within `max_disp`, or around
-//!    `p0 + u(p0)·Δt` within `prior_radius` when a mean-flow prior is given),
-//!    →p2 and →p3 (within `init_radius` of the constant-velocity
+//!    `p0 + u(p0)·Δt` within `init.prior_radius` when a mean-flow prior is given),
+//!    →p2 and →p3 (within `init.init_radius` of the constant-velocity
 //!    prediction). A chain's cost is the sum of its squared velocity changes;
 //!    chains are accepted best-first without sharing particles, except
 //!    those whose velocity disagrees with the local flow of the
-//!    established tracks ([`local_flow`], `ghost_check_init`). Chains of
-//!    four detections over five pulses (`init_gap`) follow, for particles
+//!    established tracks ([`local_flow`], `init.ghost_check_init`). Chains of
+//!    four detections over five pulses (`init.init_gap`) follow, for particles
 //!    missed once early; they need a known local flow that they match.
 //!    New tracks are then extended backward into the pulses before their
-//!    start (`back_extend`, `bridge.rs`).
+//!    start (`init.back_extend`, `bridge.rs`).
 //! 5. **Stitch** (`bridge.rs`): a new chain may be the continuation of a
-//!    track that ended in the last `stitch_gap` pulses (lost through a
+//!    track that ended in the last `stitch.stitch_gap` pulses (lost through a
 //!    longer gap or a missed detection streak). Ends and starts are matched
 //!    by the same assignment solver on the cost of extrapolating each
 //!    across the gap, and a matched pair becomes one track.
 //! 6. **Finish and validate** (`finalise.rs`): a track whose stitch window
 //!    has passed is first cut where its positions jump to a close neighbour
-//!    and stay there ([`step`], `step_split`: its particle was missed and an
-//!    untracked neighbour in the gate took its place); outliers are removed
-//!    and each piece is
-//!    fitted ([`fit`]: local polynomial of order `fit_order` over a sliding
-//!    window of `fit_min_window`..=`fit_window` detections around each
+//!    and stay there ([`step`], `stitch.step_split`: its particle was missed and an
+//!    untracked neighbour in the gate took its place); detections further
+//!    than `fit.outlier_sigma` σ from their neighbours' fit are removed,
+//!    detections after a last gap with fewer than
+//!    `stitch.confirm_after_gap` behind it are cut, and each piece is
+//!    fitted ([`fit`]: local polynomial of order `fit.fit_order` over a sliding
+//!    window of `fit.fit_min_window`..=`fit.fit_window` detections around each
 //!    pulse, chosen per pulse from the position noise by
-//!    [`fit::fit_adaptive`]: position, velocity in px/s from the pulse
-//!    times, acceleration in px/s²), and kept when it has at
+//!    [`fit::fit_adaptive`], with a prior on the curvature
+//!    (`fit.fit_accel_rms`, estimated from the tracks kept so far unless
+//!    set) and, where the heading visibly turns, the turning path over
+//!    `fit.turn_fit_window` detections: position, velocity in px/s from the
+//!    pulse times, acceleration in px/s²), and kept when it has at
 //!    least `min_length` detections and the rms fit residual is at most
-//!    `max_fit_residual`. Tracks of fewer than `ghost_check_length`
+//!    `fit.max_fit_residual`. Tracks of fewer than `init.ghost_check_length`
 //!    detections are tested against the local flow and dropped as ghosts
 //!    (images of different particles in a line) when they disagree; those
-//!    of `min_length_flow..min_length` detections are kept when they agree.
+//!    of `init.min_length_flow..min_length` detections are kept when they
+//!    agree.
 //!    The fits can run off the linking thread ([`Finaliser`]).
 //!
 //! Around the tracker: [`stream`] runs it over a recording (pulses,
