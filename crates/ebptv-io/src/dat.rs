@@ -28,7 +28,7 @@ use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
 use crate::events::{Chunk, Edge, Geometry, Trigger};
-use crate::io::{raw_header, Anomalies, EventSource, Format, StreamInfo};
+use crate::{raw_header, Anomalies, EventSource, Format, StreamInfo};
 
 /// Event type byte of a DAT file.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -17,10 +17,10 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use super::{Scenario, SimStats, Simulator, TruthSample};
-use crate::error::{Error, Result};
-use crate::events::{Chunk, Geometry};
-use crate::io::atomic::AtomicFile;
-use crate::io::{EventSource, Format};
+use ebptv_io::error::{Error, Result};
+use ebptv_io::events::{Chunk, Geometry};
+use ebptv_io::atomic::AtomicFile;
+use ebptv_io::{EventSource, Format};
 
 /// Streams truth rows to `truth_particles.csv`.
 ///
@@ -631,7 +631,7 @@ pub fn write_recording(
         let (back_tx, back_rx) = std::sync::mpsc::channel::<Chunk>();
         let (truth_back_tx, truth_back_rx) = std::sync::mpsc::channel::<Vec<TruthSample>>();
         let events_thread = scope.spawn(move || -> Result<()> {
-            let mut writer = crate::io::create(dir.join(name), Some(format), geometry)?;
+            let mut writer = ebptv_io::create(dir.join(name), Some(format), geometry)?;
             for msg in events_rx.iter() {
                 match msg {
                     Msg::Block(chunk) => {

@@ -39,7 +39,7 @@ pub const OFF: u8 = 0;
 /// A block of contrast-detection events, struct-of-arrays.
 ///
 /// All four vectors always have the same length. Reuse one chunk across
-/// [`crate::io::EventSource::next_chunk`] calls: `clear` keeps the capacity.
+/// [`crate::EventSource::next_chunk`] calls: `clear` keeps the capacity.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct EventChunk {
     /// Raw sensor time, µs.

@@ -18,7 +18,7 @@ use std::path::Path;
 
 use crate::error::{Error, Result};
 use crate::events::{Chunk, EventChunk, Geometry, Trigger};
-use crate::io::atomic::AtomicFile;
+use crate::atomic::AtomicFile;
 
 /// Create a RAW output with the modern header (`% format NAME;height;width`,
 /// `% geometry`, `% generator`, `% end`) for the writers; `label` names the

@@ -21,8 +21,8 @@ use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
 use crate::events::{Chunk, Edge};
-use crate::io::atomic::AtomicFile;
-use crate::io::EventWriter;
+use crate::atomic::AtomicFile;
+use crate::EventWriter;
 
 const MAGIC: &[u8] = b"\x93NUMPY\x01\x00";
 
@@ -294,7 +294,7 @@ impl StreamingNpy {
 /// Finish a streamed 1-D structured array: overwrite its provisional header
 /// (written with room for any row count, `header_len` bytes) with the final
 /// row count, then commit the file.
-pub(crate) fn commit_streamed_table(
+pub fn commit_streamed_table(
     mut file: AtomicFile,
     descr: &str,
     rows: usize,

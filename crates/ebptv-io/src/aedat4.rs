@@ -38,7 +38,7 @@ use std::path::Path;
 
 use crate::error::{Error, Result};
 use crate::events::{Chunk, Edge, Geometry, Trigger};
-use crate::io::{Anomalies, EventSource, Format, StreamInfo};
+use crate::{Anomalies, EventSource, Format, StreamInfo};
 
 pub const MAGIC: &[u8; 14] = b"#!AER-DAT4.0\r\n";
 /// Largest packet, compressed or decompressed, that the reader accepts.

@@ -16,7 +16,7 @@ use serde::Serialize;
 
 use crate::error::Result;
 use crate::events::{Chunk, Edge, Geometry};
-use crate::io::{Anomalies, EventSource, Format, StreamInfo};
+use crate::{Anomalies, EventSource, Format, StreamInfo};
 
 const RING: usize = 256;
 

@@ -52,9 +52,9 @@ pub use flow::Flow;
 pub use record::{write_recording, RecordingSummary, TruthWriter};
 pub use scenario::{Scenario, EFFECT_NAMES};
 
-use crate::error::{Error, Result};
-use crate::events::{Chunk, Edge, EventChunk, Geometry, Trigger};
-use crate::io::{EventSource, Format, StreamInfo};
+use ebptv_io::error::{Error, Result};
+use ebptv_io::events::{Chunk, Edge, EventChunk, Geometry, Trigger};
+use ebptv_io::{EventSource, Format, StreamInfo};
 
 /// Ground truth of one particle at one pulse (`truth_particles.csv`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -788,7 +788,7 @@ impl Simulator {
             .events
             .p
             .iter()
-            .filter(|&&p| p == crate::events::ON)
+            .filter(|&&p| p == ebptv_io::events::ON)
             .count() as u64;
         self.stats.on_events += on;
         self.stats.off_events += chunk.events.len() as u64 - on;

@@ -17,10 +17,10 @@ use std::path::Path;
 
 use crate::error::Result;
 use crate::events::{Chunk, Edge, Trigger};
-use crate::io::evt2::TimeBase34;
-use crate::io::raw_header::READ_BUFFER_BYTES;
-use crate::io::raw_reader::{RawReader, WordDecoder};
-use crate::io::{Anomalies, Format};
+use crate::evt2::TimeBase34;
+use crate::raw_header::READ_BUFFER_BYTES;
+use crate::raw_reader::{RawReader, WordDecoder};
+use crate::{Anomalies, Format};
 
 /// Most events one EVT 2.1 word can produce.
 pub const MAX_EVENTS_PER_WORD: usize = 32;

@@ -11,9 +11,9 @@ use crate::error::Result;
 use crate::events::Chunk;
 use std::path::Path;
 
-use crate::io::evt3::{check_header_format, check_not_empty, count_out_of_geometry};
-use crate::io::raw_header::{read_raw_header, stream_info, PayloadReader, RawHeader};
-use crate::io::{Anomalies, EventSource, Format, StreamInfo};
+use crate::evt3::{check_header_format, check_not_empty, count_out_of_geometry};
+use crate::raw_header::{read_raw_header, stream_info, PayloadReader, RawHeader};
+use crate::{Anomalies, EventSource, Format, StreamInfo};
 
 /// Decodes a run of whole words of one RAW encoding.
 pub trait WordDecoder: Send {

@@ -7,7 +7,7 @@
 //! the low time bits. OTHERS (0xE), IMU (0xD) and CONTINUED (0xF) words are
 //! skipped (counted). Each word stands alone, so the only state is the time
 //! base, and a read-buffer boundary never splits anything but a word (which
-//! [`crate::io::raw_header::PayloadReader`] keeps whole).
+//! [`crate::raw_header::PayloadReader`] keeps whole).
 //!
 //! The 34-bit time wraps after ~4.8 h: a loop is counted only when TIME_HIGH
 //! drops by nearly a full cycle (reference decoder's rule, threshold 10
@@ -18,11 +18,11 @@ use std::path::Path;
 
 use crate::error::Result;
 use crate::events::{Chunk, Edge, EventChunk, Geometry, Trigger};
-use crate::io::evt3::RawAppend;
-use crate::io::raw_header::READ_BUFFER_BYTES;
-use crate::io::raw_reader::{RawReader, WordDecoder};
-use crate::io::raw_writer::{encode_chunk, RawEncoder, RawWordWriter, TimeSplit};
-use crate::io::{Anomalies, Format};
+use crate::evt3::RawAppend;
+use crate::raw_header::READ_BUFFER_BYTES;
+use crate::raw_reader::{RawReader, WordDecoder};
+use crate::raw_writer::{encode_chunk, RawEncoder, RawWordWriter, TimeSplit};
+use crate::{Anomalies, Format};
 
 const MAX_TIME_BASE: u64 = ((1 << 28) - 1) << 6;
 /// Period of the 34-bit clock, µs.
@@ -203,7 +203,7 @@ impl WordDecoder for Evt2Decoder {
 }
 
 /// EVT 2.0 writer (through [`AtomicFile`]: nothing appears at the target
-/// until [`crate::io::EventWriter::finish`]).
+/// until [`crate::EventWriter::finish`]).
 pub struct Evt2Writer {
     raw: RawWordWriter<u32>,
 }
@@ -256,7 +256,7 @@ impl RawEncoder for Evt2Writer {
     }
 }
 
-impl crate::io::EventWriter for Evt2Writer {
+impl crate::EventWriter for Evt2Writer {
     fn write_chunk(&mut self, chunk: &Chunk) -> Result<()> {
         encode_chunk(self, chunk)
     }

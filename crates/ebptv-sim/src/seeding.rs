@@ -887,7 +887,7 @@ std::thread_local! {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sim::presets;
+    use crate::presets;
 
     /// The steady-parallel-flow loop gives exactly what the generic loop
     /// gives: snapshots, ids (recycling through both faces of the slab and
@@ -896,7 +896,7 @@ mod tests {
     /// a uniform flow, over blocks with repeated times (dt = 0).
     #[test]
     fn parallel_flow_loop_matches_generic_loop() {
-        use crate::sim::scenario::FlowSpec;
+        use crate::scenario::FlowSpec;
         let mut cases = Vec::new();
         for name in ["water_jet_5khz", "laminar_bl"] {
             cases.push(presets::preset(name).unwrap());
@@ -914,7 +914,7 @@ mod tests {
         };
         cases.push(sc);
         for mut sc in cases {
-            sc.sensor.roi = Some(crate::sim::scenario::Roi {
+            sc.sensor.roi = Some(crate::scenario::Roi {
                 x: 100,
                 y: 200,
                 width: 300,
@@ -988,7 +988,7 @@ mod tests {
             (turbulent_with_length(12.0), 1.0),
         ] {
             let (mut sc, name) = (sc.clone(), sc.name);
-            sc.sensor.roi = Some(crate::sim::scenario::Roi {
+            sc.sensor.roi = Some(crate::scenario::Roi {
                 x: 100,
                 y: 200,
                 width: 301,
@@ -1074,7 +1074,7 @@ mod tests {
         cases.push(turbulent_with_length(12.0));
         for sc in cases {
             let (mut sc, name) = (sc.clone(), sc.name);
-            sc.sensor.roi = Some(crate::sim::scenario::Roi {
+            sc.sensor.roi = Some(crate::scenario::Roi {
                 x: 100,
                 y: 200,
                 width: 301,
@@ -1132,8 +1132,8 @@ mod tests {
     /// The turbulent preset with the modes' length scale `ls` px (the
     /// preset's is 120; short ones push the phase increments of a step
     /// past the small-angle polynomials' domains: the fallback).
-    fn turbulent_with_length(ls: f64) -> crate::sim::Scenario {
-        use crate::sim::scenario::FlowSpec;
+    fn turbulent_with_length(ls: f64) -> crate::Scenario {
+        use crate::scenario::FlowSpec;
         let mut sc = presets::preset("turbulent_bl").unwrap();
         let FlowSpec::Turbulent { length_scale, .. } = &mut sc.flow else {
             panic!()
@@ -1167,7 +1167,7 @@ mod tests {
         cases.push((turbulent_with_length(4.0), 3));
         for (mut sc, blocks) in cases {
             let name = sc.name.clone();
-            sc.sensor.roi = Some(crate::sim::scenario::Roi {
+            sc.sensor.roi = Some(crate::scenario::Roi {
                 x: 300,
                 y: 250,
                 width: 200,
@@ -1180,7 +1180,7 @@ mod tests {
             let mut b = Particles::seed(&sc, &plain, 4);
             let (mut t, mut dx, mut du, mut rows) = (0.0, 0.0f64, 0.0f64, 0);
             let period = 1.0 / sc.light.pulse_hz;
-            let fallbacks = crate::sim::flow::FALLBACK_LANES.load(Relaxed);
+            let fallbacks = crate::flow::FALLBACK_LANES.load(Relaxed);
             for block in 0..blocks {
                 let times: Vec<f64> = (0..10)
                     .map(|k| (block * 10 + k + 1) as f64 * period)
@@ -1201,7 +1201,7 @@ mod tests {
             }
             // Other tests' fallbacks may count too (threads): a lower
             // bound for the short scales only.
-            let fallbacks = crate::sim::flow::FALLBACK_LANES.load(Relaxed) - fallbacks;
+            let fallbacks = crate::flow::FALLBACK_LANES.load(Relaxed) - fallbacks;
             let steps = (a.len() * blocks * 10) as u64;
             eprintln!(
                 "{name}: |dx| {dx:e} px, |du|/|u| {du:e}, fallback lanes ≤ {fallbacks} of {steps} steps"
@@ -1224,7 +1224,7 @@ mod tests {
     fn velocity_cache_changes_nothing() {
         for name in ["water_jet_5khz", "demo", "rib_wake"] {
             let mut sc = presets::preset(name).unwrap();
-            sc.sensor.roi = Some(crate::sim::scenario::Roi {
+            sc.sensor.roi = Some(crate::scenario::Roi {
                 x: 100,
                 y: 200,
                 width: 300,

@@ -31,7 +31,7 @@ use rand_pcg::Pcg64;
 
 use super::fastmath::{self, Lanes};
 use super::scenario::FlowSpec;
-use crate::error::{Error, Result};
+use ebptv_io::error::{Error, Result};
 
 /// A built velocity field.
 #[derive(Debug, Clone)]
@@ -1035,7 +1035,7 @@ mod tests {
     fn fast_fields_match_plain_formulas() {
         let mut specs = vec![];
         for name in ["turbulent_bl", "rib_wake", "demo"] {
-            specs.push(crate::sim::presets::preset(name).unwrap().flow);
+            specs.push(crate::presets::preset(name).unwrap().flow);
         }
         specs.push(FlowSpec::Turbulent {
             u_mean: -3000.0,
@@ -1100,10 +1100,10 @@ mod tests {
     /// for every field (the lane-by-lane fallback included).
     #[test]
     fn lanes_are_the_scalar_field() {
-        use crate::sim::fastmath::F64x2;
+        use crate::fastmath::F64x2;
         let mut specs = vec![];
-        for name in crate::sim::presets::names() {
-            specs.push(crate::sim::presets::preset(name).unwrap().flow);
+        for name in crate::presets::names() {
+            specs.push(crate::presets::preset(name).unwrap().flow);
         }
         specs.push(FlowSpec::Uniform { u: 3.0, v: -2.0 });
         specs.push(FlowSpec::Poiseuille {
@@ -1151,7 +1151,7 @@ mod tests {
     /// (the carried rotations' drift).
     #[test]
     fn turbulent_rotation_step_matches_full_step() {
-        let f = Flow::build(&crate::sim::presets::preset("turbulent_bl").unwrap().flow).unwrap();
+        let f = Flow::build(&crate::presets::preset("turbulent_bl").unwrap().flow).unwrap();
         let Flow::Turbulent(tb) = &f else { panic!() };
         let amp: f64 = tb.modes.iter().map(|m| m[0].abs() + m[1].abs()).sum();
         let h = 1e-4;

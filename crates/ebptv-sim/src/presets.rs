@@ -3,7 +3,7 @@
 //! per pulse, with the camera's latency, readout and noise effects on.
 
 use super::scenario::*;
-use crate::error::{Error, Result};
+use ebptv_io::error::{Error, Result};
 
 /// Preset names with a one-line description.
 pub const PRESETS: [(&str, &str); 9] = [

@@ -22,8 +22,8 @@ use std::io::Read;
 use std::path::Path;
 
 use crate::error::{Error, Result};
-use crate::io::raw_header::{interpret, parse_percent_header, MAX_HEADER_BYTES};
-use crate::io::Format;
+use crate::raw_header::{interpret, parse_percent_header, MAX_HEADER_BYTES};
+use crate::Format;
 
 /// Bytes read to sniff a file. Enough for any RAW/DAT header in practice.
 const SNIFF_BYTES: u64 = MAX_HEADER_BYTES as u64;

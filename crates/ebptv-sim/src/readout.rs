@@ -23,7 +23,7 @@ use std::collections::VecDeque;
 
 use super::pixel::Arrival;
 use super::scenario::{ArbiterSaturation, Roi};
-use crate::events::EventChunk;
+use ebptv_io::events::EventChunk;
 
 /// Drops requests of a pixel within `period_us` after its previous one.
 pub struct Refractory {

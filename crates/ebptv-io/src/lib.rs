@@ -18,8 +18,11 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::error::{Error, Result};
-use crate::events::{Chunk, Geometry};
+pub mod error;
+pub mod events;
+
+pub use error::{Error, Result};
+pub use events::{Chunk, Edge, Event, EventChunk, Geometry, Trigger};
 
 /// File formats ebptv knows.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]

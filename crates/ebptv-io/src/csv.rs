@@ -14,7 +14,7 @@
 //! such as `% geometry 1280x720` or `%geometry:1280,720` gives the geometry.
 //!
 //! **Time unit.** From the header name's suffix, else from
-//! [`crate::io::OpenOptions::csv_time_unit`], else microseconds *assumed*.
+//! [`crate::OpenOptions::csv_time_unit`], else microseconds *assumed*.
 //! A fractional time value (`0.000123`) with an assumed unit is an error
 //! rather than a silent guess: name the column (`t_s`) or pass the unit.
 //! Seconds are converted exactly from their decimal digits (no float
@@ -47,9 +47,9 @@ use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
 use crate::events::{Chunk, Edge, Geometry, Trigger, OFF, ON};
-use crate::io::atomic::AtomicFile;
-use crate::io::npy::sidecar_path;
-use crate::io::{EventSource, Format, StreamInfo};
+use crate::atomic::AtomicFile;
+use crate::npy::sidecar_path;
+use crate::{EventSource, Format, StreamInfo};
 
 /// Unit of a CSV time column.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -857,7 +857,7 @@ impl CsvWriter {
     }
 }
 
-impl crate::io::EventWriter for CsvWriter {
+impl crate::EventWriter for CsvWriter {
     fn write_chunk(&mut self, chunk: &Chunk) -> Result<()> {
         let ev = &chunk.events;
         self.buf.clear();
@@ -912,7 +912,7 @@ impl crate::io::EventWriter for CsvWriter {
 mod tests {
     use super::*;
     use crate::events::Event;
-    use crate::io::EventWriter;
+    use crate::EventWriter;
 
     fn read_all(
         path: &Path,

@@ -38,12 +38,12 @@ use std::path::Path;
 
 use crate::error::{Error, Result};
 use crate::events::{Chunk, Edge, EventChunk, Geometry, Trigger};
-use crate::io::raw_header::READ_BUFFER_BYTES;
-use crate::io::raw_reader::{RawReader, WordDecoder};
+use crate::raw_header::READ_BUFFER_BYTES;
+use crate::raw_reader::{RawReader, WordDecoder};
 #[cfg(test)]
-use crate::io::raw_writer::time_high_steps;
-use crate::io::raw_writer::{encode_chunk, RawEncoder, RawWordWriter, TimeSplit};
-use crate::io::{Anomalies, Format, StreamInfo};
+use crate::raw_writer::time_high_steps;
+use crate::raw_writer::{encode_chunk, RawEncoder, RawWordWriter, TimeSplit};
+use crate::{Anomalies, Format, StreamInfo};
 
 /// Most events one EVT 3.0 word can produce (VECT_12).
 pub const MAX_EVENTS_PER_WORD: usize = 12;
@@ -555,7 +555,7 @@ impl WordDecoder for Evt3Decoder {
 // ---------------------------------------------------------------- writer
 
 /// EVT 3.0 writer (through [`AtomicFile`]: nothing appears at the target
-/// until [`crate::io::EventWriter::finish`]).
+/// until [`crate::EventWriter::finish`]).
 pub struct Evt3Writer {
     raw: RawWordWriter<u16>,
     /// Time of the last TIME_LOW written.
@@ -705,7 +705,7 @@ impl Evt3Writer {
         self.raw.flush()
     }
 
-    /// [`crate::io::EventWriter::write_chunk`] through the plain
+    /// [`crate::EventWriter::write_chunk`] through the plain
     /// [`encode_chunk`] loop (the reference the fast path is tested
     /// against).
     pub fn write_chunk_reference(&mut self, chunk: &Chunk) -> Result<()> {
@@ -789,7 +789,7 @@ impl RawEncoder for Evt3Writer {
     }
 }
 
-impl crate::io::EventWriter for Evt3Writer {
+impl crate::EventWriter for Evt3Writer {
     fn write_chunk(&mut self, chunk: &Chunk) -> Result<()> {
         self.encode_chunk_fast(chunk)
     }
@@ -937,7 +937,7 @@ mod tests {
     /// Write `chunks` with the fast path or the reference; the file's
     /// bytes, or the first error's text.
     fn write_file(chunks: &[Chunk], fast: bool) -> std::result::Result<Vec<u8>, String> {
-        use crate::io::EventWriter;
+        use crate::EventWriter;
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("w.raw");
         let mut w = Box::new(Evt3Writer::create(&path, Geometry::new(1280, 720)).unwrap());

@@ -24,7 +24,7 @@ use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
 use crate::events::Geometry;
-use crate::io::{Format, StreamInfo};
+use crate::{Format, StreamInfo};
 
 /// Longest line accepted as a header line.
 pub const MAX_HEADER_LINE: usize = 4096;

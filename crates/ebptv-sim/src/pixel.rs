@@ -36,7 +36,7 @@ use super::{stream_key, stream_seed};
 const MISMATCH_CLAMP: f64 = 6.0;
 /// … and the factor to at least this.
 const MIN_MISMATCH_FACTOR: f64 = 0.05;
-use crate::events::{OFF, ON};
+use ebptv_io::events::{OFF, ON};
 
 /// An event as it leaves the pixel (before the readout timestamps it).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -2371,8 +2371,8 @@ fn poisson(rng: &mut Pcg64, mean: f64) -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sim::flow::erf;
-    use crate::sim::scenario::*;
+    use crate::flow::erf;
+    use crate::scenario::*;
 
     /// Snapshots: dense, overlapping, some straddling the ROI edge; jet-
     /// like (v = 0), u = 0, at rest and general velocities.

@@ -3,7 +3,7 @@
 
 use crate::error::{Error, Result};
 use crate::events::{Chunk, OFF, ON};
-use crate::io::{Anomalies, EventSource, StreamInfo};
+use crate::{Anomalies, EventSource, StreamInfo};
 
 /// Which polarities to keep.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]

@@ -26,7 +26,7 @@ use std::path::Path;
 
 use crate::error::{Error, Result};
 use crate::events::{Chunk, Geometry};
-use crate::io::{Anomalies, EventSource, Format, StreamInfo};
+use crate::{Anomalies, EventSource, Format, StreamInfo};
 
 const MAGIC: &[u8; 12] = b"Event Stream";
 const HEADER_BYTES: usize = 20;
