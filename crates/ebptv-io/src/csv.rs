@@ -45,9 +45,9 @@ use std::fs::File;
 use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
 
+use crate::atomic::AtomicFile;
 use crate::error::{Error, Result};
 use crate::events::{Chunk, Edge, Geometry, Trigger, OFF, ON};
-use crate::atomic::AtomicFile;
 use crate::npy::sidecar_path;
 use crate::{EventSource, Format, StreamInfo};
 

@@ -19,9 +19,9 @@
 use std::io::{Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
+use crate::atomic::AtomicFile;
 use crate::error::{Error, Result};
 use crate::events::{Chunk, Edge};
-use crate::atomic::AtomicFile;
 use crate::EventWriter;
 
 const MAGIC: &[u8] = b"\x93NUMPY\x01\x00";

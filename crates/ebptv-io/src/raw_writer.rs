@@ -16,9 +16,9 @@
 use std::io::Write;
 use std::path::Path;
 
+use crate::atomic::AtomicFile;
 use crate::error::{Error, Result};
 use crate::events::{Chunk, EventChunk, Geometry, Trigger};
-use crate::atomic::AtomicFile;
 
 /// Create a RAW output with the modern header (`% format NAME;height;width`,
 /// `% geometry`, `% generator`, `% end`) for the writers; `label` names the

@@ -169,11 +169,13 @@ mod x2 {
     impl F64x2 {
         #[inline(always)]
         pub fn new(a: [f64; 2]) -> F64x2 {
+            // SAFETY: SSE2, part of the x86_64 baseline; the pointer is to an owned array of the lane count.
             F64x2(unsafe { _mm_loadu_pd(a.as_ptr()) })
         }
         #[inline(always)]
         pub fn to_array(self) -> [f64; 2] {
             let mut a = [0.0; 2];
+            // SAFETY: SSE2, part of the x86_64 baseline; the pointer is to an owned array of the lane count.
             unsafe { _mm_storeu_pd(a.as_mut_ptr(), self.0) };
             a
         }
@@ -182,6 +184,7 @@ mod x2 {
         type Output = F64x2;
         #[inline(always)]
         fn add(self, o: F64x2) -> F64x2 {
+            // SAFETY: SSE2, part of the x86_64 baseline.
             F64x2(unsafe { _mm_add_pd(self.0, o.0) })
         }
     }
@@ -189,6 +192,7 @@ mod x2 {
         type Output = F64x2;
         #[inline(always)]
         fn sub(self, o: F64x2) -> F64x2 {
+            // SAFETY: SSE2, part of the x86_64 baseline.
             F64x2(unsafe { _mm_sub_pd(self.0, o.0) })
         }
     }
@@ -196,6 +200,7 @@ mod x2 {
         type Output = F64x2;
         #[inline(always)]
         fn mul(self, o: F64x2) -> F64x2 {
+            // SAFETY: SSE2, part of the x86_64 baseline.
             F64x2(unsafe { _mm_mul_pd(self.0, o.0) })
         }
     }
@@ -203,6 +208,7 @@ mod x2 {
         type Output = F64x2;
         #[inline(always)]
         fn div(self, o: F64x2) -> F64x2 {
+            // SAFETY: SSE2, part of the x86_64 baseline.
             F64x2(unsafe { _mm_div_pd(self.0, o.0) })
         }
     }
@@ -210,6 +216,7 @@ mod x2 {
         type Output = F64x2;
         #[inline(always)]
         fn neg(self) -> F64x2 {
+            // SAFETY: SSE2, part of the x86_64 baseline.
             F64x2(unsafe { _mm_xor_pd(self.0, _mm_set1_pd(-0.0)) })
         }
     }
@@ -217,6 +224,7 @@ mod x2 {
         const N: usize = 2;
         #[inline(always)]
         fn splat(v: f64) -> F64x2 {
+            // SAFETY: SSE2, part of the x86_64 baseline.
             F64x2(unsafe { _mm_set1_pd(v) })
         }
         #[inline(always)]
@@ -230,6 +238,7 @@ mod x2 {
         }
         #[inline(always)]
         fn select_lt(self, b: F64x2, yes: F64x2, no: F64x2) -> F64x2 {
+            // SAFETY: SSE2, part of the x86_64 baseline.
             unsafe {
                 let m = _mm_cmplt_pd(self.0, b.0);
                 F64x2(_mm_or_pd(_mm_and_pd(m, yes.0), _mm_andnot_pd(m, no.0)))
@@ -237,10 +246,12 @@ mod x2 {
         }
         #[inline(always)]
         fn abs(self) -> F64x2 {
+            // SAFETY: SSE2, part of the x86_64 baseline.
             F64x2(unsafe { _mm_andnot_pd(_mm_set1_pd(-0.0), self.0) })
         }
         #[inline(always)]
         fn sign_one(self) -> F64x2 {
+            // SAFETY: SSE2, part of the x86_64 baseline.
             unsafe {
                 let sign = _mm_and_pd(_mm_set1_pd(-0.0), self.0);
                 F64x2(_mm_or_pd(sign, _mm_set1_pd(1.0)))
@@ -248,6 +259,7 @@ mod x2 {
         }
         #[inline(always)]
         fn raise_to(self, lo: f64) -> F64x2 {
+            // SAFETY: SSE2, part of the x86_64 baseline.
             unsafe {
                 let lo = _mm_set1_pd(lo);
                 let m = _mm_cmplt_pd(self.0, lo);
@@ -256,6 +268,7 @@ mod x2 {
         }
         #[inline(always)]
         fn lower_to(self, hi: f64) -> F64x2 {
+            // SAFETY: SSE2, part of the x86_64 baseline.
             unsafe {
                 let hi = _mm_set1_pd(hi);
                 let m = _mm_cmpgt_pd(self.0, hi);
@@ -264,6 +277,7 @@ mod x2 {
         }
         #[inline(always)]
         fn low_bit_as_sign(self) -> F64x2 {
+            // SAFETY: SSE2, part of the x86_64 baseline.
             unsafe {
                 F64x2(_mm_castsi128_pd(_mm_slli_epi64::<63>(_mm_castpd_si128(
                     self.0,
@@ -272,10 +286,12 @@ mod x2 {
         }
         #[inline(always)]
         fn xor(self, o: F64x2) -> F64x2 {
+            // SAFETY: SSE2, part of the x86_64 baseline.
             F64x2(unsafe { _mm_xor_pd(self.0, o.0) })
         }
         #[inline(always)]
         fn pow2_of_rounded(self) -> F64x2 {
+            // SAFETY: SSE2, part of the x86_64 baseline.
             unsafe {
                 let n = _mm_sub_epi64(
                     _mm_castpd_si128(self.0),
@@ -507,6 +523,7 @@ mod x4avx {
         type Output = F64x4Avx;
         #[inline(always)]
         fn add(self, o: F64x4Avx) -> F64x4Avx {
+            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
             F64x4Avx(unsafe { _mm256_add_pd(self.0, o.0) })
         }
     }
@@ -514,6 +531,7 @@ mod x4avx {
         type Output = F64x4Avx;
         #[inline(always)]
         fn sub(self, o: F64x4Avx) -> F64x4Avx {
+            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
             F64x4Avx(unsafe { _mm256_sub_pd(self.0, o.0) })
         }
     }
@@ -521,6 +539,7 @@ mod x4avx {
         type Output = F64x4Avx;
         #[inline(always)]
         fn mul(self, o: F64x4Avx) -> F64x4Avx {
+            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
             F64x4Avx(unsafe { _mm256_mul_pd(self.0, o.0) })
         }
     }
@@ -528,6 +547,7 @@ mod x4avx {
         type Output = F64x4Avx;
         #[inline(always)]
         fn div(self, o: F64x4Avx) -> F64x4Avx {
+            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
             F64x4Avx(unsafe { _mm256_div_pd(self.0, o.0) })
         }
     }
@@ -535,6 +555,7 @@ mod x4avx {
         type Output = F64x4Avx;
         #[inline(always)]
         fn neg(self) -> F64x4Avx {
+            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
             F64x4Avx(unsafe { _mm256_xor_pd(self.0, _mm256_set1_pd(-0.0)) })
         }
     }
@@ -542,21 +563,25 @@ mod x4avx {
         const N: usize = 4;
         #[inline(always)]
         fn splat(v: f64) -> F64x4Avx {
+            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
             F64x4Avx(unsafe { _mm256_set1_pd(v) })
         }
         #[inline(always)]
         fn lane(self, i: usize) -> f64 {
             let mut a = [0.0; 4];
+            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment); the pointer is to an owned array of the lane count.
             unsafe { _mm256_storeu_pd(a.as_mut_ptr(), self.0) };
             a[i]
         }
         #[inline(always)]
         fn from_fn(mut f: impl FnMut(usize) -> f64) -> F64x4Avx {
             let a = [f(0), f(1), f(2), f(3)];
+            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment); the pointer is to an owned array of the lane count.
             F64x4Avx(unsafe { _mm256_loadu_pd(a.as_ptr()) })
         }
         #[inline(always)]
         fn select_lt(self, b: F64x4Avx, yes: F64x4Avx, no: F64x4Avx) -> F64x4Avx {
+            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
             unsafe {
                 let m = _mm256_cmp_pd::<_CMP_LT_OQ>(self.0, b.0);
                 F64x4Avx(_mm256_blendv_pd(no.0, yes.0, m))
@@ -564,10 +589,12 @@ mod x4avx {
         }
         #[inline(always)]
         fn abs(self) -> F64x4Avx {
+            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
             F64x4Avx(unsafe { _mm256_andnot_pd(_mm256_set1_pd(-0.0), self.0) })
         }
         #[inline(always)]
         fn sign_one(self) -> F64x4Avx {
+            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
             unsafe {
                 let sign = _mm256_and_pd(_mm256_set1_pd(-0.0), self.0);
                 F64x4Avx(_mm256_or_pd(sign, _mm256_set1_pd(1.0)))
@@ -575,6 +602,7 @@ mod x4avx {
         }
         #[inline(always)]
         fn raise_to(self, lo: f64) -> F64x4Avx {
+            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
             unsafe {
                 let lo = _mm256_set1_pd(lo);
                 let m = _mm256_cmp_pd::<_CMP_LT_OQ>(self.0, lo);
@@ -583,6 +611,7 @@ mod x4avx {
         }
         #[inline(always)]
         fn lower_to(self, hi: f64) -> F64x4Avx {
+            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
             unsafe {
                 let hi = _mm256_set1_pd(hi);
                 let m = _mm256_cmp_pd::<_CMP_GT_OQ>(self.0, hi);
@@ -591,6 +620,7 @@ mod x4avx {
         }
         #[inline(always)]
         fn low_bit_as_sign(self) -> F64x4Avx {
+            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
             unsafe {
                 F64x4Avx(_mm256_castsi256_pd(_mm256_slli_epi64::<63>(
                     _mm256_castpd_si256(self.0),
@@ -599,10 +629,12 @@ mod x4avx {
         }
         #[inline(always)]
         fn xor(self, o: F64x4Avx) -> F64x4Avx {
+            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
             F64x4Avx(unsafe { _mm256_xor_pd(self.0, o.0) })
         }
         #[inline(always)]
         fn pow2_of_rounded(self) -> F64x4Avx {
+            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
             unsafe {
                 let n = _mm256_sub_epi64(
                     _mm256_castpd_si256(self.0),

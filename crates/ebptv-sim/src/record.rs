@@ -17,9 +17,9 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use super::{Scenario, SimStats, Simulator, TruthSample};
+use ebptv_io::atomic::AtomicFile;
 use ebptv_io::error::{Error, Result};
 use ebptv_io::events::{Chunk, Geometry};
-use ebptv_io::atomic::AtomicFile;
 use ebptv_io::{EventSource, Format};
 
 /// Streams truth rows to `truth_particles.csv`.
