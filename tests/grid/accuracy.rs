@@ -1,8 +1,7 @@
 //! Binning against analytic truth: steady vortex and channel (means),
 //! homogeneous shear with known stresses, the in-bin fit against the
 //! top-hat gradient bias, standard errors, noise correction, walls.
-
-mod grid_common;
+use crate::grid_common;
 
 use ebptv::grid::profiles::{profile_at_x, wall_fit, WallOptions, WallSide};
 use ebptv::grid::{

@@ -9,8 +9,7 @@
 //! bin centres for means, at the tracked samples' own positions and times
 //! for stresses and noise, and its shedding frequency. Numbers printed by
 //! each test are quoted in ARCHITECTURE.md / BENCHMARKS.md.
-
-mod chain_common;
+use crate::chain_common;
 
 use ebptv::grid::{
     bin_samples, estimate, EstimateOptions, Fit, GridStats, Lattice, Sample, Weighting,

@@ -3,8 +3,7 @@
 //! paper-like synthetic scene (issue #5's target 0.05 px/pulse), and, on
 //! a turbulent simulated scene, that it does not shrink the fluctuations
 //! the grid stage turns into Reynolds stresses.
-
-mod chain_common;
+use crate::chain_common;
 
 use ebptv::cluster::ClusterParams;
 use ebptv::events::Chunk;

@@ -1,7 +1,6 @@
 //! Split-and-merge equals one run; the accumulator's fits equal a direct
 //! least-squares reference; bad input gives clear errors.
-
-mod grid_common;
+use crate::grid_common;
 
 use ebptv::grid::accumulate::basis;
 use ebptv::grid::io::{load_state, save_state};

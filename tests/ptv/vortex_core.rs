@@ -10,6 +10,7 @@
 //! tracker predicts with a constant-turn-rate path (`track::turn`,
 //! `TrackParams::turn_model`, `young_turn_sigma`) and its output fit
 //! follows it where the heading turns (`turn_fit_window`).
+use crate::turning_gen;
 
 use std::path::Path;
 use std::process::Command;
@@ -130,8 +131,6 @@ fn fast_vortex_core_is_tracked() {
     assert!(s.link_recall > 0.91, "{s:?}");
     assert!(s.velocity_rms_px_per_pulse < 0.14, "{s:?}");
 }
-
-mod turning_gen;
 
 use ebptv::track::{link, TrackParams};
 use turning_gen::{generate, score, Config, Flow, Scores};

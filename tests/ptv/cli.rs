@@ -1,6 +1,6 @@
 //! `ebptv track` on a particles.csv: outputs, contracts and bad input.
+use crate::cli_common;
 
-mod cli_common;
 use cli_common::{ebptv, run_ok};
 
 use ebptv::cluster::{cluster_pulse, ClusterParams};

@@ -2,8 +2,8 @@
 //! candidate (signature and hidden-effect search) and two hidden effects at
 //! once (both named, joint refit). "Measured" recordings are simulated with
 //! seeds the search never uses.
+use crate::modelcheck_common;
 
-mod modelcheck_common;
 use modelcheck_common::{base, setting, strength};
 
 use std::collections::BTreeMap;

@@ -1,7 +1,6 @@
 //! `ebptv pulses` and `ebptv monitor` end to end on a simulated RAW file.
+use crate::cli_common;
 
-mod cli_common;
-mod robust;
 use cli_common::{ebptv, run_ok};
 
 use ebptv::sim::{presets::preset, simulate};

@@ -4,8 +4,8 @@
 //! with other seeds and a different (finer) generator than the model being
 //! fitted; the workflow must name that effect first, recover its parameters,
 //! and at least halve the gap.
+use crate::modelcheck_common;
 
-mod modelcheck_common;
 use modelcheck_common::setting;
 
 use ebptv::cluster::Particle;

@@ -93,7 +93,7 @@ fn model_check_cli_names_a_hidden_latency_jitter() {
 // The default check (no `--model`: a standard sensor calibrated to the
 // measurement) on recordings ebptv's simulator did not make.
 
-#[path = "modelcheck_common/independent.rs"]
+#[path = "../modelcheck_common/independent.rs"]
 mod independent;
 
 use std::path::{Path, PathBuf};

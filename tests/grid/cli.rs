@@ -1,7 +1,6 @@
 //! The `ebptv grid` / `ebptv spectra` commands end to end: file contracts,
 //! split-and-merge through files, clear errors on bad input.
-
-mod grid_common;
+use crate::grid_common;
 
 use std::path::Path;
 use std::process::Command;

@@ -1,8 +1,8 @@
 //! End to end on the simulator: a Lamb–Oseen vortex recorded by the
 //! simulated event camera (latency, noise, refractory period, …) →
 //! `ebptv piv` → mean field against the analytic truth.
+use crate::cli_common;
 
-mod cli_common;
 use cli_common::{ebptv, run_ok};
 
 #[test]

@@ -1,8 +1,8 @@
 //! The model-check search driven by ebptv's own simulator (`crate::sim`):
 //! hidden effects in "measured" recordings simulated with seeds the search
 //! never sees.
+use crate::modelcheck_common;
 
-mod modelcheck_common;
 use modelcheck_common::{base, setting, strength};
 
 use std::time::Instant;
