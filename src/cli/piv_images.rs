@@ -13,7 +13,7 @@ pub struct PivImagesArgs {
     /// Images in time order: PNG, TIFF (8/16-bit grey, palette, RGB; every
     /// page of a multi-page stack is a frame) or BMP files, folders of
     /// such files, or quoted patterns such as 'run/frame*.tif'; folders
-    /// and patterns are read in natural order (frame2 before frame10).
+    /// and patterns are read in natural order (frame2, then frame10).
     #[arg(required = true, num_args = 1..)]
     pub images: Vec<PathBuf>,
     #[command(flatten)]
@@ -25,6 +25,8 @@ pub struct PivImagesArgs {
     /// Treat the list as a sequence (1-2, 2-3, ...) instead of pairs (1-2, 3-4, ...).
     #[arg(long)]
     pub sequence: bool,
+    /// Output folder: one vectors_NNNNN.csv (x,y,u,v,flag) per evaluation,
+    /// NNNNN its first frame.
     #[arg(long)]
     pub out: PathBuf,
 }

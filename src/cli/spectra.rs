@@ -35,11 +35,13 @@ pub struct SpectraArgs {
     /// Velocity component of the line map.
     #[arg(long, value_enum, default_value_t = Component::V)]
     pub component: Component,
+    /// Output folder: spectrum.json, spectra.csv, the line map and figures.
     #[arg(long)]
     pub out: PathBuf,
     /// Bin width (px) of the time series.
     #[arg(long, default_value_t = 16.0)]
     pub bin: f64,
+    /// Bin height (px); default = --bin (square bins).
     #[arg(long)]
     pub bin_h: Option<f64>,
     /// One frame every K pulses.
@@ -51,9 +53,11 @@ pub struct SpectraArgs {
     /// Welch segment overlap fraction.
     #[arg(long, default_value_t = 0.5)]
     pub seg_overlap: f64,
-    /// Peak search band (Hz).
+    /// Lower end of the peak search band (Hz).
     #[arg(long, default_value_t = 1.0)]
     pub f_min: f64,
+    /// Upper end of the peak search band (Hz); default = the Nyquist
+    /// frequency of the series.
     #[arg(long, default_value_t = f64::INFINITY)]
     pub f_max: f64,
     /// Also report the rms about a moving average of N frames.
@@ -62,6 +66,7 @@ pub struct SpectraArgs {
     /// Minimum samples per bin for the maximum mean speed.
     #[arg(long, default_value_t = 10)]
     pub min_count: u64,
+    /// Write the CSV and JSON outputs only, no PNG figures.
     #[arg(long)]
     pub no_plots: bool,
 }
