@@ -41,25 +41,24 @@ pub struct TrackArgs {
     pub gap: u32,
     /// Typical particle acceleration (px/pulse², rms) of the output fit's
     /// curvature prior; 0 = no prior (a plain least-squares fit); unset
-    /// = estimated from the tracks kept so far. See
-    /// `TrackParams::fit_accel_rms`.
+    /// = estimated from the tracks kept so far.
     #[arg(long)]
     pub fit_accel_rms: Option<f64>,
     /// Tracks with fewer detections are checked against the local flow of
     /// the established tracks and dropped as ghosts when their velocity
     /// disagrees; 4-detection tracks that agree are kept. 0 = no ghost
     /// test (then new chains are not checked either and chains that skip
-    /// a pulse are not started). See `TrackParams::ghost_check_length`.
+    /// a pulse are not started).
     #[arg(long, default_value_t = 6)]
     pub ghost_check_length: usize,
     /// Tolerance of the ghost test (standard deviations of the velocity
-    /// difference). See `TrackParams::ghost_sigma`.
+    /// difference).
     #[arg(long, default_value_t = 2.25)]
     pub ghost_sigma: f64,
     /// Cut ended tracks where their positions jump to a close neighbour
     /// and stay (a swap after the track's particle was missed): the χ²
     /// gain, in units of the position noise, a step must bring. 0 = off
-    /// (about 10 % less CPU). See `TrackParams::step_split`.
+    /// (about 10 % less CPU).
     #[arg(long, default_value_t = 12.0)]
     pub step_split: f64,
     /// Nominal pulse frequency (Hz) when pulse times are estimated from the

@@ -47,6 +47,14 @@ fn demo_runs_every_stage_and_scores_against_truth() {
     ] {
         assert!(out.join(step).exists(), "{step} missing");
     }
+    // A steady vortex: no frequency in the flow, so no significant peak
+    // (particles crossing the bin make a bump above the resolved band).
+    let sp: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("spectra/spectrum.json")).unwrap())
+            .unwrap();
+    assert_eq!(sp["peak_significant"], false, "{sp}");
+    assert!(sp["peak_hz"].is_null(), "{sp}");
+    assert!(sp["peak_false_alarm"].as_f64().unwrap() > 0.01, "{sp}");
 }
 
 /// `--config` runs the same chain on a scenario file, and the report says

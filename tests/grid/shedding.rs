@@ -194,6 +194,9 @@ fn spectra_command_writes_peak_hz() {
         serde_json::from_str(&std::fs::read_to_string(out.join("spectrum.json")).unwrap()).unwrap();
     let peak = j["peak_hz"].as_f64().unwrap();
     assert!((peak - 35.4).abs() < 1.5, "{peak}");
+    assert_eq!(j["peak_significant"], true);
+    assert!(j["peak_false_alarm"].as_f64().unwrap() < 0.01);
+    assert_eq!(j["false_alarm_level"], 0.01);
     assert!(j["dynamic_range"].as_f64().unwrap() > 10.0);
     assert!((j["fs_hz"].as_f64().unwrap() - 2000.0).abs() < 1e-6);
     let csv = std::fs::read_to_string(out.join("spectra.csv")).unwrap();
