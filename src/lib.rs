@@ -15,9 +15,9 @@
 //! See ARCHITECTURE.md for the design and README.md for the file contracts.
 
 pub mod decimal;
-pub mod error;
-pub mod events;
-pub mod io;
+pub use ebptv_io as io;
+pub use ebptv_io::{error, events};
+pub use ebptv_sim as sim;
 
 pub mod cluster;
 pub mod compare;
@@ -27,7 +27,6 @@ pub mod modelcheck;
 pub mod piv;
 pub mod plot;
 pub mod pulses;
-pub mod sim;
 pub mod spectra;
 pub mod track;
 

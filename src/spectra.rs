@@ -177,7 +177,8 @@ pub struct Peak {
 
 /// The largest PSD value in `[f_min, f_max]` (DC excluded), its frequency
 /// refined by a parabola through the logarithms of the three bins around it
-/// (exact for a Gaussian-shaped lobe, close for the Hann main lobe).
+/// (exact for a Gaussian-shaped lobe, close for the Hann main lobe). No
+/// test of significance: see [`significant_peak`].
 pub fn find_peak(p: &Psd, f_min: f64, f_max: f64) -> Option<Peak> {
     let (mut best, mut k0) = (f64::NEG_INFINITY, None);
     for k in 1..p.psd.len() {
@@ -187,6 +188,15 @@ pub fn find_peak(p: &Psd, f_min: f64, f_max: f64) -> Option<Peak> {
         }
     }
     let k = k0?;
+    Some(Peak {
+        f_hz: refine(p, k),
+        psd: best,
+        bin: k,
+    })
+}
+
+/// Frequency of bin `k` refined by the log-parabola through its neighbours.
+fn refine(p: &Psd, k: usize) -> f64 {
     let mut f = p.f_hz[k];
     if k > 0 && k + 1 < p.psd.len() && p.psd[k - 1] > 0.0 && p.psd[k + 1] > 0.0 && p.psd[k] > 0.0 {
         let (a, b, c) = (p.psd[k - 1].ln(), p.psd[k].ln(), p.psd[k + 1].ln());
@@ -196,11 +206,248 @@ pub fn find_peak(p: &Psd, f_min: f64, f_max: f64) -> Option<Peak> {
             f += delta * p.df();
         }
     }
-    Some(Peak {
-        f_hz: f,
-        psd: best,
-        bin: k,
-    })
+    f
+}
+
+/// False-alarm probability at which a spectral peak is reported: the
+/// chance that noise alone puts a peak this high anywhere in the band.
+pub const PEAK_FALSE_ALARM: f64 = 0.01;
+
+/// Result of [`significant_peak`].
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PeakTest {
+    /// The strongest local maximum that passes the test, if any.
+    pub peak: Option<Peak>,
+    /// False-alarm probability (corrected for the bins tested) of the
+    /// reported peak, or of the most significant candidate when none
+    /// passes.
+    pub false_alarm: f64,
+    /// The largest PSD value in the band, significant or not.
+    pub strongest: Option<Peak>,
+    /// Degrees of freedom the test used (see [`significant_peak`]).
+    pub dof: f64,
+}
+
+/// Equivalent degrees of freedom of a Welch estimate (Welch 1967): the
+/// `n_segments` periodograms of `nperseg` Hann-windowed samples, `step`
+/// apart, are correlated where they overlap;
+/// ν = 2K / (1 + 2 Σ_j (1 − j/K) ρ_j), ρ_j the squared normalised overlap
+/// product of the window with itself shifted by j steps.
+pub fn welch_dof(nperseg: usize, overlap: f64, n_segments: usize) -> f64 {
+    let k = n_segments.max(1);
+    let w = hann(nperseg);
+    let s2: f64 = w.iter().map(|v| v * v).sum();
+    let step = ((nperseg as f64 * (1.0 - overlap)).round() as usize).max(1);
+    let mut corr = 0.0;
+    for j in 1..k {
+        let shift = j * step;
+        if shift >= nperseg {
+            break;
+        }
+        let c: f64 = (0..nperseg - shift)
+            .map(|i| w[i] * w[i + shift])
+            .sum::<f64>()
+            / s2;
+        corr += (1.0 - j as f64 / k as f64) * c * c;
+    }
+    2.0 * k as f64 / (1.0 + 2.0 * corr)
+}
+
+/// The spectral peak in `[f_min, f_max]` that stands above the noise at
+/// false-alarm probability `alpha`.
+///
+/// Under noise alone each Welch bin is the local mean density S times
+/// χ²_ν/ν. S at bin k is estimated from the median of the bins around it
+/// (k±3 … k±(3+h), h = max(8, bins/16); the main lobe k±2 left out),
+/// divided by the median of χ²_ν/ν. ν is the smaller of `dof` (Welch's
+/// equivalent degrees of freedom, see [`welch_dof`]) and the value whose
+/// χ² distribution reproduces the observed interquartile range of
+/// ln(P_k / local median) over the spectrum: velocity series from binned
+/// tracks are not Gaussian (particles entering and leaving a bin make
+/// jumps), and their spectra scatter more than the segment count says.
+/// A local maximum P_k has the tail probability p = P(χ²_ν > ν·P_k/S);
+/// corrected for the N bins tested (Šidák: 1 − (1 − p)^N) it must fall
+/// below `alpha`. Of the local maxima that pass, the strongest is reported.
+pub fn significant_peak(p: &Psd, f_min: f64, f_max: f64, dof: f64, alpha: f64) -> PeakTest {
+    let strongest = find_peak(p, f_min, f_max);
+    let nf = p.psd.len();
+    let h = (nf / 16).max(8);
+    // Local median of every bin (DC and the main lobe left out).
+    let local: Vec<Option<f64>> = (0..nf)
+        .map(|k| {
+            if k == 0 {
+                return None;
+            }
+            let mut near: Vec<f64> = (k.saturating_sub(3 + h)..(k + 4 + h).min(nf))
+                .filter(|&j| j >= 1 && j.abs_diff(k) >= 3)
+                .map(|j| p.psd[j])
+                .collect();
+            if near.len() < 3 {
+                return None;
+            }
+            let mid = near.len() / 2;
+            let (_, m, _) = near.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
+            (*m > 0.0).then_some(*m)
+        })
+        .collect();
+    let mut logs: Vec<f64> = (1..nf)
+        .filter_map(|k| {
+            local[k]
+                .filter(|_| p.psd[k] > 0.0)
+                .map(|m| (p.psd[k] / m).ln())
+        })
+        .collect();
+    let mut nu = dof;
+    if logs.len() >= 8 {
+        logs.sort_by(|a, b| a.total_cmp(b));
+        let q = |f: f64| logs[((logs.len() - 1) as f64 * f).round() as usize];
+        let iqr = q(0.75) - q(0.25);
+        nu = nu.min(dof_from_log_iqr(iqr));
+    }
+    let band: Vec<usize> = (1..nf)
+        .filter(|&k| p.f_hz[k] >= f_min && p.f_hz[k] <= f_max)
+        .collect();
+    let n_tested = band.len().max(1) as f64;
+    let median_factor = chi2_quantile(0.5, nu) / nu;
+    let mut best: Option<(usize, f64)> = None;
+    let mut min_fa = 1.0f64;
+    for &k in &band {
+        let v = p.psd[k];
+        let left = if k > 1 { p.psd[k - 1] } else { 0.0 };
+        let right = if k + 1 < nf { p.psd[k + 1] } else { 0.0 };
+        let Some(m) = local[k] else { continue };
+        if !(v > 0.0 && v >= left && v >= right) {
+            continue;
+        }
+        let floor = m / median_factor;
+        let tail = chi2_sf(nu * v / floor, nu);
+        let fa = -((n_tested * (-tail).ln_1p()).exp_m1());
+        min_fa = min_fa.min(fa);
+        if fa < alpha && best.map_or(true, |(b, _)| v > p.psd[b]) {
+            best = Some((k, fa));
+        }
+    }
+    PeakTest {
+        peak: best.map(|(k, _)| Peak {
+            f_hz: refine(p, k),
+            psd: p.psd[k],
+            bin: k,
+        }),
+        false_alarm: best.map_or(min_fa, |(_, fa)| fa),
+        strongest,
+        dof: nu,
+    }
+}
+
+/// The degrees of freedom ν whose ln χ²_ν has interquartile range `iqr`
+/// (bisection on log ν over [0.5, 10⁴]; the range shrinks as ν grows).
+fn dof_from_log_iqr(iqr: f64) -> f64 {
+    let spread = |nu: f64| (chi2_quantile(0.75, nu) / chi2_quantile(0.25, nu)).ln();
+    let (mut lo, mut hi) = (0.5f64.ln(), 1e4f64.ln());
+    if !(iqr.is_finite()) || iqr >= spread(0.5) {
+        return 0.5;
+    }
+    for _ in 0..60 {
+        let mid = 0.5 * (lo + hi);
+        if spread(mid.exp()) > iqr {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    (0.5 * (lo + hi)).exp()
+}
+
+/// ln Γ(x), x > 0 (Lanczos, g = 7, 9 terms; ~1e-15 relative).
+fn ln_gamma(x: f64) -> f64 {
+    const C: [f64; 9] = [
+        0.999_999_999_999_809_9,
+        676.520_368_121_885_1,
+        -1_259.139_216_722_402_8,
+        771.323_428_777_653_1,
+        -176.615_029_162_140_6,
+        12.507_343_278_686_905,
+        -0.138_571_095_265_720_12,
+        9.984_369_578_019_572e-6,
+        1.505_632_735_149_311_6e-7,
+    ];
+    if x < 0.5 {
+        let pi = std::f64::consts::PI;
+        return (pi / (pi * x).sin()).ln() - ln_gamma(1.0 - x);
+    }
+    let x = x - 1.0;
+    let mut a = C[0];
+    let t = x + 7.5;
+    for (i, c) in C.iter().enumerate().skip(1) {
+        a += c / (x + i as f64);
+    }
+    0.5 * (2.0 * std::f64::consts::PI).ln() + (x + 0.5) * t.ln() - t + a.ln()
+}
+
+/// Regularised upper incomplete gamma Q(a, x) (series below a + 1,
+/// continued fraction above).
+fn gamma_q(a: f64, x: f64) -> f64 {
+    if x <= 0.0 {
+        return 1.0;
+    }
+    let lead = -x + a * x.ln() - ln_gamma(a);
+    if x < a + 1.0 {
+        let (mut sum, mut term, mut n) = (1.0 / a, 1.0 / a, a);
+        for _ in 0..1000 {
+            n += 1.0;
+            term *= x / n;
+            sum += term;
+            if term.abs() < sum.abs() * 1e-15 {
+                break;
+            }
+        }
+        (1.0 - sum * lead.exp()).clamp(0.0, 1.0)
+    } else {
+        // Modified Lentz.
+        let tiny = 1e-300;
+        let mut b = x + 1.0 - a;
+        let mut c = 1.0 / tiny;
+        let mut d = 1.0 / b;
+        let mut h = d;
+        for i in 1..1000 {
+            let an = -(i as f64) * (i as f64 - a);
+            b += 2.0;
+            d = an * d + b;
+            if d.abs() < tiny {
+                d = tiny;
+            }
+            c = b + an / c;
+            if c.abs() < tiny {
+                c = tiny;
+            }
+            d = 1.0 / d;
+            let del = d * c;
+            h *= del;
+            if (del - 1.0).abs() < 1e-15 {
+                break;
+            }
+        }
+        (lead.exp() * h).clamp(0.0, 1.0)
+    }
+}
+
+/// P(χ²_ν > x).
+pub fn chi2_sf(x: f64, nu: f64) -> f64 {
+    gamma_q(nu / 2.0, x / 2.0)
+}
+
+/// The `q` quantile of χ²_ν (bisection on [`chi2_sf`]).
+fn chi2_quantile(q: f64, nu: f64) -> f64 {
+    let (mut lo, mut hi) = (0.0, nu + 20.0 * (2.0 * nu).sqrt() + 50.0);
+    for _ in 0..100 {
+        let m = 0.5 * (lo + hi);
+        if chi2_sf(m, nu) > 1.0 - q {
+            lo = m;
+        } else {
+            hi = m;
+        }
+    }
+    0.5 * (lo + hi)
 }
 
 /// Noise floor: the median density over the top quarter of the band.
@@ -364,10 +611,19 @@ pub struct PointSpectrum {
     pub bin_y: f64,
     pub psd_u: Psd,
     pub psd_v: Psd,
-    /// Peak of the summed spectrum of u and v.
+    /// Significant peak (at [`PEAK_FALSE_ALARM`]) of the summed spectrum
+    /// of u and v; `None` when no peak stands above the noise.
     pub peak: Option<Peak>,
     pub peak_u: Option<Peak>,
     pub peak_v: Option<Peak>,
+    /// The test behind `peak` (false-alarm probability, strongest bin).
+    pub peak_test: PeakTest,
+    /// Welch's equivalent degrees of freedom of the estimates.
+    pub dof: f64,
+    /// Highest frequency the bin resolves at its mean velocity,
+    /// |U|/(2b) with b the bin's extent along the flow (Hz); peaks are
+    /// searched below it.
+    pub f_resolved_hz: f64,
     /// Fraction of frames without a sample (filled by interpolation).
     pub gap_fraction: f64,
     pub mean_u: f64,
@@ -464,6 +720,9 @@ pub fn point_spectra(
                 .collect(),
             ..psd_u.clone()
         };
+        // The sum of the u and v estimates has between ν and 2ν degrees of
+        // freedom; ν is the conservative choice.
+        let dof = welch_dof(opt.welch.nperseg, opt.welch.overlap, psd_u.n_segments);
         let stats = |x: &[f64]| {
             let m = x.iter().sum::<f64>() / x.len() as f64;
             (
@@ -473,6 +732,19 @@ pub fn point_spectra(
         };
         let (mean_u, rms_u) = stats(&u);
         let (mean_v, rms_v) = stats(&v);
+        // Resolved band: a pattern carried through the bin at the mean
+        // velocity is averaged over the bin's extent along the flow, b; a
+        // wavelength |U|/f shorter than 2b is not resolved (and particles
+        // crossing the bin make artefacts there), so f ≤ |U|/(2b).
+        let speed = mean_u.hypot(mean_v);
+        let f_resolved = if speed > 0.0 {
+            let b = (mean_u.abs() * opt.lattice.bin_w + mean_v.abs() * opt.lattice.bin_h) / speed;
+            (speed / (2.0 * b)).min(fs / 2.0)
+        } else {
+            fs / 2.0
+        };
+        let f_top = opt.f_max.min(f_resolved);
+        let test = significant_peak(&sum, opt.f_min, f_top, dof, PEAK_FALSE_ALARM);
         let ma = |x: &[f64]| {
             opt.moving_average
                 .map(|n| rms_about_moving_average(x, n))
@@ -483,9 +755,12 @@ pub fn point_spectra(
             y: p.1,
             bin_x: xs[b % spec.nx],
             bin_y: ys[b / spec.nx],
-            peak: find_peak(&sum, opt.f_min, opt.f_max),
-            peak_u: find_peak(&psd_u, opt.f_min, opt.f_max),
-            peak_v: find_peak(&psd_v, opt.f_min, opt.f_max),
+            peak: test.peak,
+            peak_u: significant_peak(&psd_u, opt.f_min, f_top, dof, PEAK_FALSE_ALARM).peak,
+            peak_v: significant_peak(&psd_v, opt.f_min, f_top, dof, PEAK_FALSE_ALARM).peak,
+            f_resolved_hz: f_resolved,
+            peak_test: test,
+            dof,
             gap_fraction: gap,
             mean_u,
             mean_v,
@@ -542,4 +817,74 @@ pub fn line_points(a: (f64, f64), b: (f64, f64), n: usize) -> Vec<(f64, f64)> {
             (a.0 + t * (b.0 - a.0), a.1 + t * (b.1 - a.1))
         })
         .collect()
+}
+
+#[cfg(test)]
+mod significance_tests {
+    use super::*;
+
+    #[test]
+    fn chi_square_tail_matches_closed_forms() {
+        // ν = 2: P(χ² > x) = exp(−x/2); ν = 1 at 3.841: 0.05; ν = 10 at 23.209: 0.01.
+        for x in [0.1, 1.0, 5.0, 20.0] {
+            assert!((chi2_sf(x, 2.0) - (-x / 2.0).exp()).abs() < 1e-12);
+        }
+        assert!((chi2_sf(3.841_458_820_694_124, 1.0) - 0.05).abs() < 1e-9);
+        assert!((chi2_sf(23.209_251_158_954_36, 10.0) - 0.01).abs() < 1e-9);
+        assert!((chi2_quantile(0.5, 2.0) - 2.0 * std::f64::consts::LN_2).abs() < 1e-9);
+        // The interquartile range of ln χ²_ν is inverted.
+        let iqr = (chi2_quantile(0.75, 7.0) / chi2_quantile(0.25, 7.0)).ln();
+        assert!((dof_from_log_iqr(iqr) - 7.0).abs() < 1e-3);
+    }
+
+    #[test]
+    fn welch_dof_of_hann_half_overlap() {
+        // One segment: 2; many: ≈ 2K/(1 + 2·(1/6)²) (Welch's ratio).
+        assert!((welch_dof(256, 0.5, 1) - 2.0).abs() < 1e-12);
+        let d = welch_dof(256, 0.5, 100);
+        let expect = 200.0 / (1.0 + 2.0 * 0.99 / 36.0);
+        assert!((d - expect).abs() < 0.05 * expect, "{d} vs {expect}");
+    }
+
+    /// White noise: no significant peak in (nearly) every realisation, the
+    /// false-alarm rate near the stated level; a sine well above the
+    /// noise is found.
+    #[test]
+    fn significance_of_peaks_in_white_noise() {
+        use rand::SeedableRng;
+        use rand_distr::{Distribution, Normal};
+        let opt = WelchOptions {
+            nperseg: 128,
+            overlap: 0.5,
+        };
+        let nz = Normal::new(0.0, 1.0).unwrap();
+        let mut alarms = 0;
+        let runs = 300;
+        for seed in 0..runs {
+            let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
+            let x: Vec<f64> = (0..1024).map(|_| nz.sample(&mut rng)).collect();
+            let p = welch(&x, 1000.0, &opt).unwrap();
+            let dof = welch_dof(128, 0.5, p.n_segments);
+            let t = significant_peak(&p, 1.0, 500.0, dof, PEAK_FALSE_ALARM);
+            assert!(t.strongest.is_some());
+            if t.peak.is_some() {
+                alarms += 1;
+            }
+        }
+        // Expected 1 % (3 of 300); the median floor is itself noisy, so
+        // allow up to 4 %.
+        assert!(alarms <= 12, "{alarms} false alarms in {runs}");
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
+        let x: Vec<f64> = (0..1024)
+            .map(|i| {
+                nz.sample(&mut rng)
+                    + 0.8 * (2.0 * std::f64::consts::PI * 123.0 * i as f64 / 1000.0).sin()
+            })
+            .collect();
+        let p = welch(&x, 1000.0, &opt).unwrap();
+        let t = significant_peak(&p, 1.0, 500.0, welch_dof(128, 0.5, p.n_segments), 0.01);
+        let pk = t.peak.expect("the sine is significant");
+        assert!((pk.f_hz - 123.0).abs() < 3.0, "{}", pk.f_hz);
+        assert!(t.false_alarm < 1e-6);
+    }
 }

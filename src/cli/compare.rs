@@ -16,6 +16,8 @@ pub struct CompareArgs {
     /// Ignore PTV bins with fewer samples.
     #[arg(long, default_value_t = 1.0)]
     pub min_count: f64,
+    /// Output folder: compare.json (differences per component) and
+    /// profiles.png.
     #[arg(long)]
     pub out: PathBuf,
 }

@@ -79,6 +79,8 @@ pub struct PivArgs {
     /// `ebptv pulses`).
     #[arg(long)]
     pub force_pulses: bool,
+    /// Output folder: piv_mean.csv, piv_steps.csv and the per-step fields
+    /// piv_u.npy, piv_v.npy, piv_flag.npy.
     #[arg(long)]
     pub out: PathBuf,
 }

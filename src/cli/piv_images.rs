@@ -1,7 +1,7 @@
 use std::path::PathBuf;
 
 use clap::Args;
-use ebptv::piv::images::load_image;
+use ebptv::piv::images::{expand_inputs, load_frames};
 use ebptv::piv::output::write_vectors_csv;
 use ebptv::piv::piv_frames;
 
@@ -10,8 +10,11 @@ use rayon::prelude::*;
 
 #[derive(Args, Debug)]
 pub struct PivImagesArgs {
-    /// Images (8/16-bit PNG or TIFF), in time order.
-    #[arg(required = true, num_args = 2..)]
+    /// Images in time order: PNG, TIFF (8/16-bit grey, palette, RGB; every
+    /// page of a multi-page stack is a frame) or BMP files, folders of
+    /// such files, or quoted patterns such as 'run/frame*.tif'; folders
+    /// and patterns are read in natural order (frame2, then frame10).
+    #[arg(required = true, num_args = 1..)]
     pub images: Vec<PathBuf>,
     #[command(flatten)]
     pub correlation: CorrelationArgs,
@@ -22,6 +25,8 @@ pub struct PivImagesArgs {
     /// Treat the list as a sequence (1-2, 2-3, ...) instead of pairs (1-2, 3-4, ...).
     #[arg(long)]
     pub sequence: bool,
+    /// Output folder: one vectors_NNNNN.csv (x,y,u,v,flag) per evaluation,
+    /// NNNNN its first frame.
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -31,15 +36,35 @@ pub fn run(a: PivImagesArgs) -> anyhow::Result<()> {
         anyhow::bail!("invalid parameter `frames`: {} (need at least 2)", a.frames);
     }
     let o = a.correlation.options();
+    let files = expand_inputs(&a.images)?;
     // Decoded in parallel (wall time; the CPU time is the same).
-    let imgs = a
-        .images
+    let loaded = files
         .par_iter()
-        .map(|p| load_image(p))
+        .map(|p| load_frames(p))
         .collect::<Result<Vec<_>, _>>()?;
+    // Each frame remembers its file (and page) for error messages.
+    let mut imgs = Vec::new();
+    let mut names = Vec::new();
+    for (p, l) in files.iter().zip(loaded) {
+        if l.colour {
+            eprintln!(
+                "note: {} is a colour image; its luminance is used",
+                p.display()
+            );
+        }
+        let pages = l.frames.len();
+        for (k, im) in l.frames.into_iter().enumerate() {
+            imgs.push(im);
+            names.push(if pages > 1 {
+                format!("{} (page {})", p.display(), k + 1)
+            } else {
+                p.display().to_string()
+            });
+        }
+    }
     if imgs.len() < a.frames {
         anyhow::bail!(
-            "{} images given, --frames {} needs at least that many",
+            "{} frame(s) given, --frames {} needs at least that many",
             imgs.len(),
             a.frames
         );
@@ -58,8 +83,7 @@ pub fn run(a: PivImagesArgs) -> anyhow::Result<()> {
         .par_iter()
         .map(|&s| -> anyhow::Result<_> {
             let refs: Vec<_> = imgs[s..s + a.frames].iter().collect();
-            let f = piv_frames(&refs, &o)
-                .map_err(|e| anyhow::anyhow!("{}: {e}", a.images[s].display()))?;
+            let f = piv_frames(&refs, &o).map_err(|e| anyhow::anyhow!("{}: {e}", names[s]))?;
             bar.inc(1);
             Ok(f)
         })

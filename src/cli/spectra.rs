@@ -8,7 +8,9 @@ use serde_json::json;
 use ebptv::grid::{Lattice, Weighting};
 use ebptv::io::atomic::AtomicFile;
 use ebptv::plot::{self, Heatmap, LinePlot, Series, SeriesStyle};
-use ebptv::spectra::{line_points, point_spectra, PointSpectrum, SpectraOptions, WelchOptions};
+use ebptv::spectra::{
+    line_points, point_spectra, PointSpectrum, SpectraOptions, WelchOptions, PEAK_FALSE_ALARM,
+};
 
 use super::grid::{parse_pair, read_tracks_csv};
 
@@ -35,11 +37,13 @@ pub struct SpectraArgs {
     /// Velocity component of the line map.
     #[arg(long, value_enum, default_value_t = Component::V)]
     pub component: Component,
+    /// Output folder: spectrum.json, spectra.csv, the line map and figures.
     #[arg(long)]
     pub out: PathBuf,
     /// Bin width (px) of the time series.
     #[arg(long, default_value_t = 16.0)]
     pub bin: f64,
+    /// Bin height (px); default = --bin (square bins).
     #[arg(long)]
     pub bin_h: Option<f64>,
     /// One frame every K pulses.
@@ -51,9 +55,11 @@ pub struct SpectraArgs {
     /// Welch segment overlap fraction.
     #[arg(long, default_value_t = 0.5)]
     pub seg_overlap: f64,
-    /// Peak search band (Hz).
+    /// Lower end of the peak search band (Hz).
     #[arg(long, default_value_t = 1.0)]
     pub f_min: f64,
+    /// Upper end of the peak search band (Hz); default = the Nyquist
+    /// frequency of the series.
     #[arg(long, default_value_t = f64::INFINITY)]
     pub f_max: f64,
     /// Also report the rms about a moving average of N frames.
@@ -62,6 +68,7 @@ pub struct SpectraArgs {
     /// Minimum samples per bin for the maximum mean speed.
     #[arg(long, default_value_t = 10)]
     pub min_count: u64,
+    /// Write the CSV and JSON outputs only, no PNG figures.
     #[arg(long)]
     pub no_plots: bool,
 }
@@ -81,6 +88,8 @@ fn point_json(p: &PointSpectrum) -> serde_json::Value {
     json!({
         "x": p.x, "y": p.y, "bin_x": p.bin_x, "bin_y": p.bin_y,
         "peak_hz": p.peak.map(|k| k.f_hz), "peak_u_hz": p.peak_u.map(|k| k.f_hz), "peak_v_hz": p.peak_v.map(|k| k.f_hz),
+        "peak_significant": p.peak.is_some(), "peak_false_alarm": p.peak_test.false_alarm,
+        "strongest_hz": p.peak_test.strongest.map(|k| k.f_hz), "peak_test_dof": p.peak_test.dof, "f_resolved_hz": p.f_resolved_hz,
         "gap_fraction": p.gap_fraction, "mean_u": p.mean_u, "mean_v": p.mean_v, "rms_u": p.rms_u, "rms_v": p.rms_v,
         "noise_rms_u": p.noise_rms_u, "noise_rms_v": p.noise_rms_v, "rms_ma_u": p.rms_ma_u, "rms_ma_v": p.rms_ma_v,
     })
@@ -117,6 +126,8 @@ pub fn run(a: SpectraArgs) -> anyhow::Result<()> {
         let first = &r.points[0];
         summary = json!({
             "peak_hz": first.peak.map(|k| k.f_hz),
+            "peak_significant": first.peak.is_some(), "peak_false_alarm": first.peak_test.false_alarm,
+            "false_alarm_level": PEAK_FALSE_ALARM, "strongest_hz": first.peak_test.strongest.map(|k| k.f_hz),
             "fs_hz": r.frames.rate_hz(), "frame_step_us": r.frames.step_us, "frames": r.frames.n,
             "nperseg": a.nperseg, "n_segments": first.psd_u.n_segments, "df_hz": first.psd_u.df(),
             "noise_rms": r.noise_rms, "max_speed": r.max_speed, "dynamic_range": r.dynamic_range,
@@ -138,10 +149,23 @@ pub fn run(a: SpectraArgs) -> anyhow::Result<()> {
         if !a.no_plots {
             for (k, p) in r.points.iter().enumerate() {
                 let f = &p.psd_u.f_hz[1..];
-                let title = format!("PSD at ({:.0}, {:.0}) px", p.bin_x, p.bin_y);
+                let title = match p.peak {
+                    Some(_) => format!("PSD at ({:.0}, {:.0}) px", p.bin_x, p.bin_y),
+                    None => format!(
+                        "PSD at ({:.0}, {:.0}) px: no significant peak (false alarm {:.0} %)",
+                        p.bin_x,
+                        p.bin_y,
+                        100.0 * PEAK_FALSE_ALARM
+                    ),
+                };
                 let peak_label = p
                     .peak
-                    .map(|pk| format!("peak {:.2} Hz", pk.f_hz))
+                    .map(|pk| {
+                        format!(
+                            "peak {:.2} Hz (false alarm {:.1e})",
+                            pk.f_hz, p.peak_test.false_alarm
+                        )
+                    })
                     .unwrap_or_default();
                 let plot = LinePlot {
                     title: &title,
@@ -172,11 +196,14 @@ pub fn run(a: SpectraArgs) -> anyhow::Result<()> {
             }
         }
         eprintln!(
-            "spectra: peak {} at ({}, {}); noise rms {:.2} px/s, dynamic range {:.0}:1 → {}",
+            "spectra: {} at ({}, {}); noise rms {:.2} px/s, dynamic range {:.0}:1 → {}",
             first
                 .peak
-                .map(|k| format!("{:.2} Hz", k.f_hz))
-                .unwrap_or_else(|| "none".into()),
+                .map(|k| format!("peak {:.2} Hz", k.f_hz))
+                .unwrap_or_else(|| format!(
+                    "no significant peak (false alarm {:.0} %)",
+                    100.0 * PEAK_FALSE_ALARM
+                )),
             first.bin_x,
             first.bin_y,
             r.noise_rms,

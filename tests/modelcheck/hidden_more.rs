@@ -1,0 +1,313 @@
+//! Model check with the real simulator: the clock-drift
+//! candidate (signature and hidden-effect search) and two hidden effects at
+//! once (both named, joint refit). "Measured" recordings are simulated with
+//! seeds the search never uses.
+use crate::modelcheck_common;
+
+use modelcheck_common::{base, setting, strength};
+
+use std::collections::BTreeMap;
+use std::time::Instant;
+
+use ebptv::modelcheck::scene::{default_catalogue, SceneSimulator};
+use ebptv::modelcheck::signatures::{burst_window, LATENCY_DRIFT};
+use ebptv::modelcheck::workflow::{
+    run, signatures_of, EffectSetting, EffectSpec, ModelCheckResult, Simulator, Verdict,
+    WorkflowOptions,
+};
+
+use rand::seq::SliceRandom;
+use rand::SeedableRng;
+use rand_pcg::Pcg64;
+
+fn opts(max_effects: usize) -> WorkflowOptions {
+    WorkflowOptions {
+        replicates: 4,
+        max_evaluations: 14,
+        max_effects,
+        seed: 77,
+        profile_fit: true,
+        ..WorkflowOptions::default()
+    }
+}
+
+/// Measured = the scene with `truth` on (fit and held-out blocks from two
+/// seeds the search never uses); the catalogue shuffled by `order_seed`.
+fn check_hidden(
+    truth: &[EffectSetting],
+    seed: u64,
+    order_seed: u64,
+    catalogue: Option<Vec<EffectSpec>>,
+    max_effects: usize,
+) -> ModelCheckResult {
+    check_hidden_opts(truth, seed, order_seed, catalogue, &opts(max_effects))
+}
+
+/// [`check_hidden`] with given options.
+fn check_hidden_opts(
+    truth: &[EffectSetting],
+    seed: u64,
+    order_seed: u64,
+    catalogue: Option<Vec<EffectSpec>>,
+    options: &WorkflowOptions,
+) -> ModelCheckResult {
+    let mut catalogue = catalogue.unwrap_or_else(|| default_catalogue(&base()));
+    catalogue.shuffle(&mut Pcg64::seed_from_u64(order_seed));
+    let sim = SceneSimulator::new(base())
+        .unwrap()
+        .with_catalogue(catalogue);
+    let fit = sim.simulate(truth, 1_000_000 + seed).unwrap();
+    let hold = sim.simulate(truth, 2_000_000 + seed).unwrap();
+    let mut cfg = sim.signature_config();
+    cfg.latency_bin_us = 2.0;
+    let clean = sim.simulate(&[], 3_000_000 + seed).unwrap();
+    let lat = signatures_of(&cfg, &clean).unwrap();
+    cfg.burst_window_us = Some(burst_window(lat.histogram("latency").unwrap(), 0.99).unwrap());
+    let t = Instant::now();
+    let res = run(&sim, &cfg, &fit, &hold, &[], options).unwrap();
+    println!(
+        "truth {:?}\n -> {:?} {:?} in {:?}",
+        truth,
+        res.verdict,
+        res.effects,
+        t.elapsed()
+    );
+    for r in &res.rounds {
+        let top: Vec<String> = r
+            .candidates
+            .iter()
+            .take(4)
+            .map(|c| format!("{} {:.1}", c.name, c.gap_after))
+            .collect();
+        println!(
+            "  round: gap {:.1} (null sd {:.2}); {}; {}",
+            r.gap_before,
+            r.gap_null_sd,
+            top.join(", "),
+            r.note
+        );
+    }
+    res
+}
+
+fn assert_parameters(found: &BTreeMap<String, f64>, truth: &EffectSetting) {
+    for (k, v) in &truth.parameters {
+        let got = found[k];
+        assert!(
+            (got - v).abs() <= 0.3 * v.abs(),
+            "{} {k}: fitted {got}, true {v}",
+            truth.name
+        );
+    }
+}
+
+/// The signature against the simulator's ground truth: the drift in ppm
+/// comes back as the latency slope, with its sign; without drift the slope
+/// is within the noise of zero.
+#[test]
+fn latency_drift_signature_measures_the_simulated_drift() {
+    let sim = SceneSimulator::new(base()).unwrap();
+    let cfg = sim.signature_config();
+    let slope = |ppm: Option<f64>, seed: u64| -> f64 {
+        let effects: Vec<EffectSetting> = ppm
+            .map(|p| setting("clock_drift", &[("ppm", p)]))
+            .into_iter()
+            .collect();
+        let rec = sim.simulate(&effects, seed).unwrap();
+        signatures_of(&cfg, &rec)
+            .unwrap()
+            .scalar(LATENCY_DRIFT)
+            .unwrap()
+    };
+    let clean: Vec<f64> = (0..3).map(|s| slope(None, 10 + s)).collect();
+    println!("no drift: {clean:?} ppm");
+    for c in &clean {
+        assert!(c.abs() < 40.0, "slope {c} ppm without drift");
+    }
+    for (ppm, seed) in [(250.0, 21), (-250.0, 22), (120.0, 23)] {
+        let got = slope(Some(ppm), seed);
+        println!("drift {ppm} ppm: slope {got:.1} ppm");
+        assert!(
+            (got - ppm).abs() <= 0.2 * ppm.abs(),
+            "drift {ppm} ppm measured as {got}"
+        );
+    }
+}
+
+#[test]
+fn real_sim_hidden_clock_drift() {
+    // A slow laser clock or a fast one: the sign is part of the truth.
+    let ppm = -strength(61, 150.0, 400.0);
+    let truth = setting("clock_drift", &[("ppm", ppm)]);
+    let res = check_hidden(std::slice::from_ref(&truth), 61, 71, None, 2);
+    let first = res
+        .effects
+        .first()
+        .unwrap_or_else(|| panic!("nothing found: {:#?}", res.rounds));
+    assert_eq!(first.name, "clock_drift", "{:#?}", res.rounds);
+    assert_parameters(&first.parameters, &truth);
+    assert!(first.gap_after <= 0.5 * first.gap_before, "{first:?}");
+}
+
+/// Both of `truth` named, each within 30 %, the model with both
+/// consistent with the held-out data, the gap at least halved.
+fn assert_both_found(truth: &[EffectSetting], seed: u64, order_seed: u64) {
+    let res = check_hidden(truth, seed, order_seed, None, 3);
+    for t in truth {
+        let found = res
+            .effects
+            .iter()
+            .find(|e| e.name == t.name)
+            .unwrap_or_else(|| panic!("{} not named: {:#?}", t.name, res.rounds));
+        assert_parameters(&found.parameters, t);
+    }
+    assert_eq!(res.effects.len(), 2, "{:?}", res.effects);
+    assert_eq!(res.verdict, Verdict::Explained, "{:#?}", res.rounds);
+    let first_gap = res.effects[0].gap_before;
+    let last_gap = res.effects.last().unwrap().gap_after;
+    assert!(last_gap <= 0.5 * first_gap, "{:?}", res.effects);
+}
+
+/// Two catalogue effects at once, seen by different signatures (a fixed
+/// pattern of off-burst activity; the latency's slope over the recording):
+/// the second round's acceptance triggers the joint refit of both.
+#[test]
+fn real_sim_two_hidden_effects_hot_pixels_and_clock_drift() {
+    let truth = [
+        setting(
+            "hot_pixels",
+            &[
+                ("count", strength(64, 20.0, 60.0).round()),
+                ("rate_hz", strength(65, 300.0, 3000.0)),
+            ],
+        ),
+        setting("clock_drift", &[("ppm", strength(66, 150.0, 400.0))]),
+    ];
+    assert_both_found(&truth, 64, 74);
+}
+
+// Not met (default judgement): hot pixels 23 px × 2089 Hz + latency jitter
+// 14.2 µs. Round 1: `intensity_latency` leaves 78.6 of 2160, the true
+// `latency_jitter` 95.7 (both leave the hot pixels' part): a near tie of
+// two rival explanations of the burst's width, so nothing is accepted
+// ("unexplained").
+#[test]
+#[ignore]
+fn real_sim_two_hidden_effects_hot_pixels_and_latency_jitter() {
+    let truth = [
+        setting(
+            "hot_pixels",
+            &[
+                ("count", strength(64, 20.0, 60.0).round()),
+                ("rate_hz", strength(65, 300.0, 3000.0)),
+            ],
+        ),
+        setting("latency_jitter", &[("spread_us", strength(63, 6.0, 15.0))]),
+    ];
+    assert_both_found(&truth, 62, 72);
+}
+
+// Not met (default judgement): background noise 13.5 Hz + latency jitter 14.2 µs.
+// `off_events` with τ at its range's end (300 µs) is named first and
+// leaves 310 of 3255: its OFF events mimic both the OFF half of the
+// background (spread over the period by the long decay) and the jitter
+// (OFF events after the burst widen the all-events latency histogram);
+// no signature separates ON-only latency from OFF activity well enough.
+#[test]
+#[ignore]
+fn real_sim_two_hidden_effects_background_and_latency_jitter() {
+    let truth = [
+        setting("background_noise", &[("rate_hz", strength(62, 3.0, 15.0))]),
+        setting("latency_jitter", &[("spread_us", strength(63, 6.0, 15.0))]),
+    ];
+    assert_both_found(&truth, 62, 72);
+}
+
+/// Several hidden effects at once (with the paired judgement,
+/// `WorkflowOptions::paired_judgement`): every effect named must be
+/// one of the hidden ones (no impostor that mimics two of them), the gap
+/// must shrink with every effect added, and most of the hidden effects
+/// must be found, each within 30 %.
+fn assert_several_found(truth: &[EffectSetting], seed: u64, order_seed: u64, at_least: usize) {
+    let options = WorkflowOptions {
+        paired_judgement: true,
+        ..opts(truth.len())
+    };
+    let res = check_hidden_opts(truth, seed, order_seed, None, &options);
+    for e in &res.effects {
+        let t = truth
+            .iter()
+            .find(|t| t.name == e.name)
+            .unwrap_or_else(|| panic!("named `{}`, not hidden: {:#?}", e.name, res.rounds));
+        assert_parameters(&e.parameters, t);
+        assert!(e.gap_after < e.gap_before, "gap grew: {e:?}");
+    }
+    assert!(
+        res.effects.len() >= at_least,
+        "{} of {} hidden effects named: {:?}",
+        res.effects.len(),
+        truth.len(),
+        res.effects
+    );
+    let first_gap = res.effects[0].gap_before;
+    let last_gap = res.effects.last().unwrap().gap_after;
+    assert!(last_gap <= 0.5 * first_gap, "{:?}", res.effects);
+}
+
+/// Three effects, each with a component of the gap of its own (busy
+/// timestamp ticks; a fixed pattern of off-burst activity; the latency's
+/// slope over the recording), so that each round's best holds only part of
+/// the gap: the whole-gap rule (the default judgement) asks for a lead of a quarter of the
+/// *whole* remaining gap over the best rival, which the other effects'
+/// parts alone can make unreachable.
+// Not met (paired judgement): `arbiter_saturation` is named first but with the
+// wrong split (row 0.0047 µs, event 0.258 µs) and leaves only 68.6 of a
+// gap of 2799, so the hot pixels and the drift are then within chance
+// (clock drift removes 26.5, chance 63.5).
+#[test]
+#[ignore]
+fn real_sim_three_hidden_effects_arbiter_hot_pixels_clock_drift() {
+    let truth = [
+        setting(
+            "arbiter_saturation",
+            &[
+                ("row_time_us", strength(85, 0.02, 0.1)),
+                ("event_time_us", strength(86, 0.05, 0.3)),
+            ],
+        ),
+        setting(
+            "hot_pixels",
+            &[
+                ("count", strength(83, 20.0, 60.0).round()),
+                ("rate_hz", strength(84, 300.0, 3000.0)),
+            ],
+        ),
+        setting("clock_drift", &[("ppm", strength(87, 150.0, 400.0))]),
+    ];
+    assert_several_found(&truth, 85, 95, 3);
+}
+
+/// Not met (paired judgement): background noise + latency jitter + hot pixels.
+/// `off_events` with a long decay (τ ≈ 280 µs: OFF events spread over the
+/// whole period like the background's) is named first and explains
+/// background noise away (background on top of it adds nothing: 166.8 →
+/// 168.6, while OFF events on top of background still remove 71), and it
+/// leaves only 167 of a gap of 3134, so the jitter and the hot pixels are
+/// then within chance. No signature separates the background's ON/OFF
+/// pairs from a slowly decaying OFF response on this scene.
+#[test]
+#[ignore]
+fn real_sim_three_hidden_effects_background_jitter_hot_pixels() {
+    let truth = [
+        setting("background_noise", &[("rate_hz", strength(81, 3.0, 15.0))]),
+        setting("latency_jitter", &[("spread_us", strength(82, 6.0, 15.0))]),
+        setting(
+            "hot_pixels",
+            &[
+                ("count", strength(83, 20.0, 60.0).round()),
+                ("rate_hz", strength(84, 300.0, 3000.0)),
+            ],
+        ),
+    ];
+    assert_several_found(&truth, 81, 91, 3);
+}

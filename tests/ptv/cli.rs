@@ -1,0 +1,314 @@
+//! `ebptv track` on a particles.csv: outputs, contracts and bad input.
+use crate::cli_common;
+
+use cli_common::{ebptv, run_ok};
+
+use ebptv::cluster::{cluster_pulse, ClusterParams};
+use ebptv::track::synth::{generate, SynthParams};
+
+/// A synthetic 128×128 scene of `pulses` pulses, clustered with the
+/// defaults and written as `dir/particles.csv` (its path and particles).
+fn synthetic_particles_csv(
+    dir: &std::path::Path,
+    pulses: usize,
+) -> (std::path::PathBuf, Vec<ebptv::cluster::Particle>) {
+    let scene = generate(&SynthParams {
+        pulses,
+        width: 128,
+        height: 128,
+        ..Default::default()
+    });
+    let particles: Vec<_> = scene
+        .iter()
+        .flat_map(|s| cluster_pulse(&s.pulse, &ClusterParams::default()))
+        .collect();
+    let input = dir.join("particles.csv");
+    ebptv::track::write_particles_csv(&input, &particles).unwrap();
+    (input, particles)
+}
+
+#[test]
+fn links_a_particles_csv() {
+    let dir = tempfile::tempdir().unwrap();
+    let (input, particles) = synthetic_particles_csv(dir.path(), 30);
+    let out = dir.path().join("out");
+    let params = dir.path().join("npy.toml");
+    std::fs::write(&params, "[run]\nnpy = true\n").unwrap();
+    run_ok(
+        ebptv()
+            .arg("track")
+            .arg(&input)
+            .arg("--out")
+            .arg(&out)
+            .arg("--params")
+            .arg(&params),
+    );
+    let tracks = ebptv::track::read_tracks_csv(&out.join("tracks.csv")).unwrap();
+    assert!(tracks.len() > 50, "{} tracks", tracks.len());
+    for t in &tracks {
+        // min_length 5, or 4 for tracks that agree with the local flow.
+        assert!(t.points.len() >= 4);
+        assert!(t.points.windows(2).all(|w| w[1].pulse == w[0].pulse + 1));
+    }
+    let back = ebptv::track::read_particles_csv(&out.join("particles.csv")).unwrap();
+    assert_eq!(back.len(), particles.len());
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["tracks"].as_u64().unwrap(), tracks.len() as u64);
+    assert_eq!(
+        summary["particles"].as_u64().unwrap(),
+        particles.len() as u64
+    );
+    let f = summary["fraction_on_tracks"].as_f64().unwrap();
+    assert!(f > 0.5 && f <= 1.0, "{f}");
+    assert!(out.join("tracks.png").exists());
+    let npy = std::fs::read(out.join("tracks.npy")).unwrap();
+    let h = ebptv::io::npy::parse_npy_header(&npy).unwrap();
+    assert!(
+        h.descr.contains("track_id") && h.descr.contains("'v'"),
+        "{}",
+        h.descr
+    );
+    let rows: usize = tracks.iter().map(|t| t.points.len()).sum();
+    assert_eq!(h.shape, vec![rows]);
+    // Streamed records: 56 bytes each, the last one the last CSV row.
+    assert_eq!(npy.len(), h.data_offset + 56 * rows);
+    let last = &npy[npy.len() - 56..];
+    let (t, p) = (
+        tracks.last().unwrap(),
+        tracks.last().unwrap().points.last().unwrap(),
+    );
+    assert_eq!(u64::from_le_bytes(last[..8].try_into().unwrap()), t.id);
+    assert_eq!(i64::from_le_bytes(last[8..16].try_into().unwrap()), p.pulse);
+    let x = f64::from_le_bytes(last[24..32].try_into().unwrap());
+    assert!((x - p.x).abs() <= 5e-5, "{x} vs {}", p.x);
+    // Nothing but the outputs in the directory (no temporary files).
+    let mut names: Vec<String> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    assert_eq!(
+        names,
+        [
+            "params.toml",
+            "particles.csv",
+            "summary.json",
+            "tracks.csv",
+            "tracks.npy",
+            "tracks.png"
+        ]
+    );
+}
+
+#[test]
+fn bad_input_gives_clear_errors_and_no_outputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("particles.csv");
+    let out = dir.path().join("out");
+    std::fs::write(&input, "pulse,t_us,x,n_events\n0,0,1,1\n").unwrap();
+    let st = ebptv()
+        .arg("track")
+        .arg(&input)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert!(
+        !st.status.success() && err.contains("missing column(s) y"),
+        "{err}"
+    );
+    assert!(!out.join("tracks.csv").exists() && !out.join("particles.csv").exists());
+
+    std::fs::write(
+        &input,
+        "pulse,t_us,x,y,n_events\n0,0,1,1,1\n1,200,nan,1,1\n",
+    )
+    .unwrap();
+    let st = ebptv()
+        .arg("track")
+        .arg(&input)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert!(!st.status.success() && err.contains("line 3"), "{err}");
+    // Failed runs leave nothing behind, not even temporary files.
+    let left: Vec<_> = std::fs::read_dir(&out)
+        .map(|d| d.map(|e| e.unwrap().file_name()).collect())
+        .unwrap_or_default();
+    assert!(left.is_empty(), "{left:?}");
+
+    std::fs::write(&input, "pulse,t_us,x,y,n_events\n0,0,1,1,1\n").unwrap();
+    for r in ["--radius=0", "--radius=-1"] {
+        let st = ebptv()
+            .args(["track", r])
+            .arg(&input)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&st.stderr);
+        assert!(!st.status.success() && err.contains("radius"), "{err}");
+    }
+    let st = ebptv()
+        .args(["track", "--max-disp", "0"])
+        .arg(&input)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(!st.status.success() && String::from_utf8_lossy(&st.stderr).contains("max_disp"));
+}
+
+/// The sliced linker and the sequential one (default) on the same
+/// particles.csv, with short slices so that several seams are crossed:
+/// both link nearly every particle the same way (the accuracy comparison
+/// on truth is tests/ptv_slice.rs), detections are never shared, and a
+/// slice of zero pulses is refused.
+#[test]
+fn sliced_and_sequential_linkers_agree() {
+    let dir = tempfile::tempdir().unwrap();
+    let (input, _) = synthetic_particles_csv(dir.path(), 80);
+    let run = |name: &str, args: &[&str]| {
+        let out = dir.path().join(name);
+        run_ok(
+            ebptv()
+                .arg("track")
+                .arg(&input)
+                .arg("--out")
+                .arg(&out)
+                .args(args),
+        );
+        let summary: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
+        let tracks = ebptv::track::read_tracks_csv(&out.join("tracks.csv")).unwrap();
+        (tracks, summary)
+    };
+    let params = |name: &str, text: &str| {
+        let p = dir.path().join(name);
+        std::fs::write(&p, text).unwrap();
+        p.display().to_string()
+    };
+    let seq_toml = params("seq.toml", "[run]\nlinker = \"sequential\"\n");
+    let sli_toml = params(
+        "sli.toml",
+        "[run]\nlinker = \"sliced\"\nslice_pulses = 16\nslice_overlap = 12\n",
+    );
+    let (seq, seq_summary) = run("seq", &["--params", &seq_toml]);
+    let (sli, sli_summary) = run("sli", &["--params", &sli_toml]);
+    let points = |ts: &[ebptv::track::Track]| ts.iter().map(|t| t.points.len()).sum::<usize>();
+    let (a, b) = (points(&seq) as f64, points(&sli) as f64);
+    assert!(
+        a > 10_000.0 && (a - b).abs() < 0.01 * a,
+        "{a} vs {b} points"
+    );
+    let mut seen = std::collections::HashSet::new();
+    for t in &sli {
+        // min_length 5, or 4 for tracks that agree with the local flow.
+        assert!(t.points.len() >= 4);
+        assert!(t.points.windows(2).all(|w| w[1].pulse == w[0].pulse + 1));
+        for p in &t.points {
+            assert!(seen.insert((p.pulse, p.x.to_bits(), t.id)));
+        }
+    }
+    let fa = seq_summary["fraction_on_tracks"].as_f64().unwrap();
+    let fb = sli_summary["fraction_on_tracks"].as_f64().unwrap();
+    assert!((fa - fb).abs() < 0.01, "{fa} vs {fb}");
+    assert_eq!(sli_summary["tracks"].as_u64().unwrap(), sli.len() as u64);
+
+    let zero = params(
+        "zero.toml",
+        "[run]\nlinker = \"sliced\"\nslice_pulses = 0\n",
+    );
+    let st = ebptv()
+        .args(["track", "--params", &zero])
+        .arg(&input)
+        .arg("--out")
+        .arg(dir.path().join("zero"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert!(!st.status.success() && err.contains("slice"), "{err}");
+}
+
+/// The params.toml a run writes, passed back, gives the same outputs; a
+/// command-line option beats the file; an unknown key is refused with its
+/// name and the file's.
+#[test]
+fn params_file_round_trip_override_and_unknown_keys() {
+    let dir = tempfile::tempdir().unwrap();
+    let (input, _) = synthetic_particles_csv(dir.path(), 40);
+    let track = |out: &str, args: &[&str]| {
+        let out = dir.path().join(out);
+        let st = ebptv()
+            .arg("track")
+            .arg(&input)
+            .arg("--out")
+            .arg(&out)
+            .args(args)
+            .output()
+            .unwrap();
+        (out, st)
+    };
+    let read = |p: std::path::PathBuf| std::fs::read_to_string(p).unwrap();
+    // Non-default options on the command line end up in params.toml.
+    let (a, st) = track("a", &["--max-disp", "8", "--gap", "2", "--min-length", "6"]);
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    let written = read(a.join("params.toml"));
+    assert!(written.contains("max_disp = 8.0"), "{written}");
+    assert!(written.contains("max_gap = 2"), "{written}");
+    let params = a.join("params.toml").display().to_string();
+    let (b, st) = track("b", &["--params", &params]);
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    for f in ["tracks.csv", "particles.csv", "params.toml"] {
+        assert_eq!(read(a.join(f)), read(b.join(f)), "{f}");
+    }
+    let strip = |p: std::path::PathBuf| -> serde_json::Value {
+        let mut v: serde_json::Value = serde_json::from_str(&read(p)).unwrap();
+        v.as_object_mut()
+            .unwrap()
+            .retain(|k, _| !k.contains("time"));
+        v
+    };
+    assert_eq!(strip(a.join("summary.json")), strip(b.join("summary.json")));
+    // The command line beats the file.
+    let (c, st) = track("c", &["--params", &params, "--min-length", "9"]);
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    let written = read(c.join("params.toml"));
+    assert!(written.contains("min_length = 9"), "{written}");
+    assert!(written.contains("max_disp = 8.0"), "{written}");
+    let tracks = ebptv::track::read_tracks_csv(&c.join("tracks.csv")).unwrap();
+    let before = ebptv::track::read_tracks_csv(&a.join("tracks.csv")).unwrap();
+    assert!(
+        !tracks.is_empty() && tracks.len() < before.len(),
+        "{} vs {} tracks",
+        tracks.len(),
+        before.len()
+    );
+    // An unknown key: the file and the key named, no outputs.
+    let bad = dir.path().join("bad.toml");
+    std::fs::write(&bad, "[track.gates]\nn_sigma = 3.0\nsearch_sigma = 2.0\n").unwrap();
+    let (d, st) = track("d", &["--params", &bad.display().to_string()]);
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert!(!st.status.success(), "{err}");
+    assert!(
+        err.contains("bad.toml") && err.contains("search_sigma"),
+        "{err}"
+    );
+    assert!(!d.join("tracks.csv").exists());
+}

@@ -1,0 +1,9 @@
+//! Integration tests of the sim area, one binary (modules by concern).
+
+mod calibration;
+mod cli;
+mod determinism;
+mod effects;
+mod scenario;
+mod stats;
+mod truth;
