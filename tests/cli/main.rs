@@ -2,3 +2,4 @@
 
 mod demo_cli;
 mod plot_figures;
+mod help;

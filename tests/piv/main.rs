@@ -8,3 +8,4 @@ mod cli_common;
 mod flows;
 mod pyramid;
 mod sim;
+mod image_formats;
