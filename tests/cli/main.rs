@@ -1,5 +1,5 @@
 //! Integration tests of the cli area, one binary (modules by concern).
 
 mod demo_cli;
-mod plot_figures;
 mod help;
+mod plot_figures;
