@@ -141,8 +141,7 @@ impl Tracker {
         if sc.multi.len() < 2 {
             return parents;
         }
-        sc.multi
-            .sort_unstable_by(|a, b| (a.0, a.1).cmp(&(b.0, b.1)));
+        sc.multi.sort_unstable_by_key(|a| (a.0, a.1));
         // What a track pays now: its assigned candidate's cost, or a miss.
         let cost_now = |sc: &Scratch, sol: &[Option<usize>], ti: usize| match sol[ti] {
             None => sc.miss[ti],
@@ -203,7 +202,7 @@ impl Tracker {
                     let bonus = sep_weight * na * nb / (na + nb) * sep2;
                     let gain =
                         cost_now(sc, sol, a) + cost_now(sc, sol, b) - (cost + penalty - bonus);
-                    if gain > 0.0 && best.as_ref().map_or(true, |x| gain > x.0) {
+                    if gain > 0.0 && best.as_ref().is_none_or(|x| gain > x.0) {
                         best = Some((gain, a, b, parts));
                     }
                 }
@@ -347,7 +346,7 @@ pub fn split_by_predictions(
         mask ^= 1 << bit;
         inb = (inb.0 + sign * q.0, inb.1 + sign * q.1, inb.2 + sign * q.2);
         if let Some(c) = split_cost(total, inb, a, b) {
-            if best.map_or(true, |(bc, bm)| c < bc || (c == bc && mask < bm)) {
+            if best.is_none_or(|(bc, bm)| c < bc || (c == bc && mask < bm)) {
                 best = Some((c, mask));
             }
         }
@@ -394,7 +393,7 @@ pub fn split_by_predictions_reference(
             }
         }
         let c = split_cost(total, inb, a, b).expect("both parts hold pixels");
-        if best.map_or(true, |(bc, _)| c < bc) {
+        if best.is_none_or(|(bc, _)| c < bc) {
             best = Some((c, mask));
         }
     }

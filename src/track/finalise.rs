@@ -362,6 +362,7 @@ pub(super) const RUN_PRIOR_RADIUS: f64 = 24.0;
 pub(super) const RUN_PRIOR_HALF_WINDOW: i64 = 3;
 
 /// What [`finalise_one`] made of an ended track.
+#[allow(clippy::large_enum_variant)]
 pub(super) enum Finalised {
     /// A continuation segment with nothing after the last handed-out one.
     NothingNew,
@@ -707,6 +708,7 @@ pub(super) struct VelocityPriorUse<'a> {
 /// times, `false` runs [`fit::fit_adaptive`] everywhere (the reference the
 /// tests compare with); `grid_fits` counts the tabulated fits; `fit_vars`
 /// receives each point's fit noise variance per axis (px²/pulse²).
+#[allow(clippy::too_many_arguments)]
 pub(super) fn fit_track_with(
     dets: &[Det],
     p: &TrackParams,

@@ -645,7 +645,6 @@ fn surely_below(
 /// [`surely_below`] rules out are skipped (the same cuts: those could not
 /// pass the `gain > threshold` test).
 #[allow(clippy::too_many_arguments)]
-#[allow(clippy::too_many_arguments)]
 fn find_cuts(
     dets: &[(i64, f64, f64)],
     lo: usize,
