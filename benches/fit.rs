@@ -89,7 +89,9 @@ fn bench(c: &mut Criterion) {
             let mut sum = 0.0;
             for i in 0..n - w {
                 let e = i + w / 2;
-                (t.clear(), ox.clear(), oy.clear());
+                t.clear();
+                ox.clear();
+                oy.clear();
                 for k in (i..=i + w).filter(|&k| k != e) {
                     t.push(k as f64 - e as f64);
                     ox.push(xs[k]);

@@ -63,6 +63,7 @@ fn main() {
     ] {
         let mut sc = presets::preset(name).unwrap();
         sc.duration_s = secs;
+        #[allow(clippy::type_complexity)]
         let paths: &[(&str, fn(&Scenario) -> u64)] = if name == "water_jet_5khz" {
             &[("in memory", in_memory), ("to files", to_files)]
         } else {

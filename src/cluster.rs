@@ -241,6 +241,7 @@ const COUNTING_SORT_MIN_EVENTS: usize = 64;
 
 /// The selected events as (pixel key `y << 16 | x`, time), in input order,
 /// and the (x, y) range they span.
+#[allow(clippy::type_complexity)]
 fn selected_events(
     pulse: &PulseEvents,
     params: &ClusterParams,
@@ -785,7 +786,7 @@ fn two_means_split(pixels: &[PixelHits], members: &[usize]) -> Option<Vec<usize>
         }
         let (w1, s1, q1) = (wt - w0, st - s0, qt - q0);
         let cost = (q0 - s0 * s0 / w0) + (q1 - s1 * s1 / w1);
-        if best.map_or(true, |(c, _)| cost < c - 1e-9) {
+        if best.is_none_or(|(c, _)| cost < c - 1e-9) {
             best = Some((cost, k));
         }
     }

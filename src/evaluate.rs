@@ -49,6 +49,7 @@ use crate::error::{Error, Result};
 /// Truth samples grouped by pulse, with a k-d tree per pulse for matching.
 pub struct Truth {
     /// Per pulse: (particle_id, x, y, u, v).
+    #[allow(clippy::type_complexity)]
     by_pulse: HashMap<i64, Vec<(u64, f64, f64, f64, f64)>>,
     trees: HashMap<i64, KdTree<f64, 2>>,
     pub samples: usize,
@@ -71,6 +72,7 @@ impl Truth {
             col("u"),
             col("v"),
         );
+        #[allow(clippy::type_complexity)]
         let mut by_pulse: HashMap<i64, Vec<(u64, f64, f64, f64, f64)>> = HashMap::new();
         for i in 0..t.rows() {
             by_pulse.entry(pulse[i] as i64).or_default().push((
@@ -308,6 +310,7 @@ pub fn score_mean_field(
         ));
     }
     // Hash truth samples on a bin-sized lattice for box queries.
+    #[allow(clippy::type_complexity)]
     let mut cells: HashMap<(i64, i64), Vec<(f64, f64, f64, f64)>> = HashMap::new();
     for p in truth.all() {
         let key = ((p.1 / bin_w).floor() as i64, (p.2 / bin_h).floor() as i64);

@@ -323,7 +323,7 @@ pub fn significant_peak(p: &Psd, f_min: f64, f_max: f64, dof: f64, alpha: f64) -
         let tail = chi2_sf(nu * v / floor, nu);
         let fa = -((n_tested * (-tail).ln_1p()).exp_m1());
         min_fa = min_fa.min(fa);
-        if fa < alpha && best.map_or(true, |(b, _)| v > p.psd[b]) {
+        if fa < alpha && best.is_none_or(|(b, _)| v > p.psd[b]) {
             best = Some((k, fa));
         }
     }

@@ -435,7 +435,7 @@ mod tests {
 
     #[test]
     fn gram_index_packs_upper_triangle() {
-        let mut seen = vec![false; NG];
+        let mut seen = [false; NG];
         for a in 0..NB {
             for b in a..NB {
                 let k = gidx(a, b);

@@ -316,6 +316,7 @@ fn median_velocity(tracks: &[Track]) -> (f64, f64) {
 /// The mean field of the tracks on a regular grid covering the sensor,
 /// empty bins filled by repeated neighbour averaging. Returns the nodes and
 /// how many bins were measured; `None` when no bin has `min_count` points.
+#[allow(clippy::type_complexity)]
 pub fn flow_grid(
     tracks: &[Track],
     geometry: Geometry,

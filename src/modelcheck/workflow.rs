@@ -464,6 +464,7 @@ pub(crate) fn setting(spec: &EffectSpec, u: &[f64]) -> EffectSetting {
 }
 
 /// Fit one candidate effect on top of `model` to the fit measurement.
+#[allow(clippy::too_many_arguments)]
 fn fit_candidate(
     sim: &dyn Simulator,
     cfg: &SignatureConfig,

@@ -550,7 +550,7 @@ fn tiff_palette_page<R: Read + Seek>(
         if rows == 0 {
             break;
         }
-        if off.checked_add(cnt).map_or(true, |end| end > len) {
+        if off.checked_add(cnt).is_none_or(|end| end > len) {
             return Err(Error::corrupt(
                 path,
                 off,
@@ -620,7 +620,7 @@ fn unpack_bits(src: &[u8], need: usize) -> Vec<u8> {
             i += k;
         } else if n != -128 {
             if let Some(&b) = src.get(i) {
-                out.extend(std::iter::repeat(b).take((1 - n as isize) as usize));
+                out.extend(std::iter::repeat_n(b, (1 - n as isize) as usize));
                 i += 1;
             }
         }

@@ -187,9 +187,7 @@ pub fn node_grid(width: usize, height: usize, o: &PivOptions) -> Result<NodeGrid
 pub fn bspline_coefficients(img: &Image) -> Image {
     let mut c = img.clone();
     let (w, h) = (img.width, img.height);
-    c.data
-        .par_chunks_mut(w.max(1))
-        .for_each(|row| prefilter_line(row));
+    c.data.par_chunks_mut(w.max(1)).for_each(prefilter_line);
     // Columns in strips of adjacent columns, the recursion run down the
     // strip row by row (the same f64 operations per column as
     // [`prefilter_line`], hence the same bits, but contiguous memory and

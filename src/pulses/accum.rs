@@ -70,7 +70,7 @@ pub struct Fold {
 impl Fold {
     pub fn new(t_ref: i64, p_ref: f64, nbins: usize) -> Fold {
         assert!(
-            p_ref >= 1.0 && nbins >= 1 && nbins < 1 << 31,
+            p_ref >= 1.0 && (1..1 << 31).contains(&nbins),
             "fold period {p_ref} µs / {nbins} bins"
         );
         Fold {

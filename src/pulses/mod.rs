@@ -223,7 +223,7 @@ impl PulseOptions {
     /// Check the user's values; name the parameter that is wrong.
     pub fn validate(&self) -> Result<()> {
         if let Some(f) = self.pulse_hz {
-            if !(f.is_finite() && f >= MIN_PULSE_HZ && f <= 200_000.0) {
+            if !(f.is_finite() && (MIN_PULSE_HZ..=200_000.0).contains(&f)) {
                 return Err(Error::param(
                     "pulse_hz",
                     format!("{f} Hz: must be in [{MIN_PULSE_HZ}, 200000]"),
@@ -494,7 +494,7 @@ impl Analyzer {
                 (p, t_min)
             }
         };
-        if !(p_ref.is_finite() && p_ref >= 1.0 && p_ref <= 1e6 / MIN_PULSE_HZ) {
+        if !(p_ref.is_finite() && (1.0..=1e6 / MIN_PULSE_HZ).contains(&p_ref)) {
             return Err(Error::analysis(format!(
                 "pulse period {p_ref:.1} µs ({:.3} Hz) from the {}: outside what ebptv handles ({MIN_PULSE_HZ} Hz .. 1 MHz); choose another channel with --trigger-channel or --ignore-triggers",
                 1e6 / p_ref,

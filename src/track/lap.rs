@@ -141,7 +141,7 @@ pub fn assign_sparse_reference(
             for &k in &comp {
                 let (r, _, w) = edges[k];
                 let gain = miss_cost[r] - w;
-                if gain > 0.0 && best.map_or(true, |(g, _)| gain > g) {
+                if gain > 0.0 && best.is_none_or(|(g, _)| gain > g) {
                     best = Some((gain, k));
                 }
             }

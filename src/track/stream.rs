@@ -70,6 +70,7 @@ use super::slice::{SliceParams, SliceTracker};
 use super::{EndedTracks, Finaliser, Track, TrackParams, Tracker, TrackerStats};
 
 /// The linking stage of a [`PtvStream`].
+#[allow(clippy::large_enum_variant)]
 enum Linker {
     /// One [`Tracker`] over the whole stream.
     Sequential(Tracker),

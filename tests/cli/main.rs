@@ -1,4 +1,5 @@
 //! Integration tests of the cli area, one binary (modules by concern).
 
 mod demo_cli;
+mod help;
 mod plot_figures;

@@ -188,7 +188,7 @@ fn heatmap_rejects_bad_input_without_writing() {
         [1.0, f64::INFINITY]
             .iter()
             .copied()
-            .chain(std::iter::repeat(0.0).take(10))
+            .chain(std::iter::repeat_n(0.0, 10))
             .collect::<Vec<_>>()
             .into_boxed_slice(),
     );

@@ -1,11 +1,9 @@
 //! Integration tests of the grid area, one binary (modules by concern).
 
 mod accuracy;
-#[allow(dead_code)]
 #[path = "../chain_common/mod.rs"]
 mod chain_common;
 mod cli;
-#[allow(dead_code)]
 #[path = "../grid_common/mod.rs"]
 mod grid_common;
 mod merge;

@@ -34,6 +34,7 @@ impl Vortex {
 /// Tracks of `n_samples` points, `dt_us` apart, seeded uniformly in
 /// [0, w) × [0, h), advected (RK2) by `flow`; velocity samples get white
 /// noise of rms `noise` (px/s). Rows grouped by track, as in tracks.csv.
+#[allow(clippy::too_many_arguments)]
 pub fn tracks_in_steady_flow(
     flow: impl Fn(f64, f64) -> (f64, f64),
     w: f64,
@@ -100,6 +101,7 @@ impl Shear {
         self.u0 + self.shear * y
     }
 
+    #[allow(clippy::too_many_arguments)]
     pub fn tracks(
         &self,
         w: f64,

@@ -562,7 +562,7 @@ proptest! {
             tail in 0usize..4, chunk in 1usize..100, buf in 1usize..64) {
         let dir = tempfile::tempdir().unwrap();
         let mut payload: Vec<u8> = words.iter().flat_map(|w| w.to_le_bytes()).collect();
-        payload.extend(std::iter::repeat(0x11).take(tail));
+        payload.extend(std::iter::repeat_n(0x11, tail));
         let path = write_tmp(&dir, "r.raw", EVT2_HEADER, &payload);
         let reference = reference_evt2(&std::fs::read(&path).unwrap());
         let mut src = Evt2Reader::open_with_buffer(&path, chunk, buf * 4 + 3).unwrap();
@@ -583,7 +583,7 @@ proptest! {
             payload.extend(a.to_le_bytes());
             payload.extend(b.to_le_bytes());
         }
-        payload.extend(std::iter::repeat(0x11).take(tail));
+        payload.extend(std::iter::repeat_n(0x11, tail));
         let header = if legacy { "% format EVT21;endianness=legacy;height=720;width=1280\n% end\n" } else { "% format EVT21;height=720;width=1280\n% end\n" };
         let path = write_tmp(&dir, "r.raw", header, &payload);
         let reference = reference_evt21(&std::fs::read(&path).unwrap(), legacy);

@@ -4,7 +4,6 @@ mod baseline;
 mod cli;
 mod decision;
 mod hidden_more;
-#[allow(dead_code)]
 #[path = "../modelcheck_common/mod.rs"]
 mod modelcheck_common;
 mod scene;

@@ -6,5 +6,6 @@ mod cli;
 #[path = "../cli_common/mod.rs"]
 mod cli_common;
 mod flows;
+mod image_formats;
 mod pyramid;
 mod sim;

@@ -2,7 +2,6 @@
 
 mod accuracy;
 mod bounds;
-#[allow(dead_code)]
 #[path = "../chain_common/mod.rs"]
 mod chain_common;
 mod cli;

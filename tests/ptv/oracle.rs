@@ -192,7 +192,7 @@ fn brute_split(pix: &[(f64, f64, f64)]) -> Option<BTreeSet<usize>> {
                 .sum::<f64>()
         };
         let cost = part_cost(&|i| far.contains(&i)) + part_cost(&|i| !far.contains(&i));
-        if best.as_ref().map_or(true, |(c, _)| cost < c - 1e-9) {
+        if best.as_ref().is_none_or(|(c, _)| cost < c - 1e-9) {
             best = Some((cost, far));
         }
     }

@@ -34,7 +34,7 @@ fn cluster(scene: &[SynthPulse]) -> Clustered {
     for sp in scene {
         let (parts, ids, _, sources) = cluster_with_truth_sources(sp, &params);
         c.det_pulse
-            .extend(std::iter::repeat(sp.pulse.index).take(parts.len()));
+            .extend(std::iter::repeat_n(sp.pulse.index, parts.len()));
         c.det_truth.extend(ids);
         c.det_sources.extend(sources);
         c.truth.extend_from_slice(&sp.truth);

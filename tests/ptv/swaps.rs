@@ -132,7 +132,7 @@ fn swap_anatomy() {
                 10..=19 => "len10-19",
                 _ => "len>=20",
             };
-            bump(format!("{place}"));
+            bump(place.to_string());
             bump(format!("{place}/{pattern}"));
             bump(format!("{place}/partner: {partner}"));
             bump(format!("{place}/dist {dbin}"));

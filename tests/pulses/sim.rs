@@ -133,7 +133,7 @@ fn generate(s: &Scene) -> (EventChunk, Vec<Trigger>, Truth) {
         }
         starts.push(t0);
         if let Some(c) = s.trigger_channel {
-            if s.missing_every.map_or(true, |m| k as usize % m != 3) {
+            if s.missing_every.is_none_or(|m| k as usize % m != 3) {
                 triggers.push(Trigger {
                     t: t0.round() as i64,
                     channel: c,

@@ -47,7 +47,7 @@ fn minus(a: &[Event], b: &[Event]) -> Vec<Event> {
     }
     count
         .into_iter()
-        .flat_map(|(e, c)| std::iter::repeat(e).take(c as usize))
+        .flat_map(|(e, c)| std::iter::repeat_n(e, c as usize))
         .collect()
 }
 

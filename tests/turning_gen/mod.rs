@@ -274,7 +274,7 @@ pub fn score(scene: &Scene, tracks: &[Track], flow: &Flow, core: f64) -> Scores 
     for (i, t) in scene.truth.iter().enumerate() {
         by_pulse.entry(t.pulse).or_default().push(i);
     }
-    let in_core = |x: f64, y: f64| flow.radius(x, y).map_or(true, |r| r < core);
+    let in_core = |x: f64, y: f64| flow.radius(x, y).is_none_or(|r| r < core);
     let nearest = |pulse: i64, x: f64, y: f64| -> Option<usize> {
         let c = by_pulse.get(&pulse)?;
         let mut best = (1.0f64, None);

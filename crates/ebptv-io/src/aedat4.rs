@@ -542,7 +542,7 @@ impl Aedat4Reader {
         let b = &self.packet;
         if start
             .checked_add(n.saturating_mul(4))
-            .map_or(true, |e| e > b.len())
+            .is_none_or(|e| e > b.len())
         {
             return Err(self.corrupt(
                 at,
@@ -656,7 +656,7 @@ impl EventSource for Aedat4Reader {
                         let bytes = n.checked_mul(EVENT_BYTES);
                         if bytes
                             .and_then(|k| start.checked_add(k))
-                            .map_or(true, |e| e > self.packet.len())
+                            .is_none_or(|e| e > self.packet.len())
                         {
                             return Err(self.corrupt(
                                 at,

@@ -726,7 +726,7 @@ fn encode_row_run(xs: &[u16], pbit: u16, words: &mut Vec<u16>) {
         // A vector pays when the 12-wide window from `base` holds three
         // events or more: as x increases strictly, when the event two
         // further on is in it.
-        if !xs.get(i + 2).is_some_and(|&x| x < base + 12) {
+        if xs.get(i + 2).is_none_or(|&x| x >= base + 12) {
             words.push(0x2000 | pbit | base);
             i += 1;
             continue;

@@ -140,7 +140,7 @@ impl<S: EventSource> EventSource for Filtered<S> {
             chunk.events.retain(|t, x, y, p| {
                 t >= from
                     && t < to
-                    && roi.map_or(true, |r| r.contains(x, y))
+                    && roi.is_none_or(|r| r.contains(x, y))
                     && match pol {
                         PolaritySelect::Both => true,
                         PolaritySelect::On => p == ON,

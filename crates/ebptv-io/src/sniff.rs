@@ -181,7 +181,7 @@ fn looks_like_csv(head: &[u8]) -> bool {
         return false;
     };
     let fields: Vec<&str> = first
-        .split(|c| c == ',' || c == ';' || c == '\t' || c == ' ')
+        .split([',', ';', '\t', ' '])
         .filter(|f| !f.is_empty())
         .collect();
     fields.len() >= 3

@@ -877,6 +877,7 @@ impl Front {
         let layout = self.layout;
         let group_ns = self.group_ns;
         let buffers = &*self.buffers;
+        #[allow(clippy::type_complexity)]
         let per_pulse: Vec<(Vec<u64>, Vec<(u64, u64)>)> = snaps
             .par_iter()
             .enumerate()

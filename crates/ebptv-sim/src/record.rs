@@ -260,7 +260,7 @@ impl TruthWriter {
         let n = std::mem::take(&mut self.pos);
         self.file
             .write_all(&self.buf[..n])
-            .map_err(|e| Error::io(self.file.target().to_path_buf(), e))?;
+            .map_err(|e| Error::io(self.file.target(), e))?;
         if n >= BATCH {
             self.batches_since_writeback += 1;
             if self.batches_since_writeback == WRITEBACK_BATCHES {
@@ -307,7 +307,7 @@ impl TruthWriter {
                     truth_line_reference(&mut line, r);
                     self.file
                         .write_all(&line)
-                        .map_err(|e| Error::io(self.file.target().to_path_buf(), e))?;
+                        .map_err(|e| Error::io(self.file.target(), e))?;
                 }
             }
         }

@@ -385,7 +385,7 @@ pub(crate) fn fit_adaptive_grid_with(
         && wmax == tables.max_window
         && centre >= wmax / 2
         && centre + wmax - wmax / 2 <= n
-        && (wmax - wmin + 1) / 2 < MAX_CANDIDATES
+        && (wmax - wmin).div_ceil(2) < MAX_CANDIDATES
     {
         let mut w = wmax;
         let g = tables.window(w, centre - w / 2, centre);
@@ -422,7 +422,7 @@ pub(crate) fn fit_adaptive_grid_with(
         if g.ok {
             nc += 1;
             let crit = criterion(g);
-            if best.map_or(true, |b| crit.total_cmp(&b.0).is_le()) {
+            if best.is_none_or(|b| crit.total_cmp(&b.0).is_le()) {
                 best = Some((crit, w, start));
             }
         }

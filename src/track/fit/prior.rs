@@ -98,6 +98,7 @@ pub struct LeaveOneOut {
     pub(super) max_window: usize,
     /// Per `w` (index `w`), per `e` in `0..=w`: weights of the `w + 1`
     /// samples (0 at `e`) and the leverage; `None` when the fit is singular.
+    #[allow(clippy::type_complexity)]
     pub(super) table: Vec<Vec<Option<(Vec<f64>, f64)>>>,
 }
 

@@ -268,7 +268,7 @@ impl<'t> GridRunFit<'t> {
         let (w, window, cached) = if interior
             && ridge == 0.0
             && tables.centred_unimodal
-            && (wmax - wmin + 1) / 2 < MAX_CANDIDATES
+            && (wmax - wmin).div_ceil(2) < MAX_CANDIDATES
         {
             // Down from the largest window to the first rise (the table
             // entries of windows between the candidates too).
@@ -322,7 +322,7 @@ impl<'t> GridRunFit<'t> {
                 if g.ok {
                     let (v, b) = g.variance_and_bias(ridge);
                     let q = crit(v, b);
-                    if best.map_or(true, |b| q.total_cmp(&b.0).is_le()) {
+                    if best.is_none_or(|b| q.total_cmp(&b.0).is_le()) {
                         best = Some((q, c.w, window));
                     }
                 }

@@ -65,9 +65,9 @@ pub fn diagnose(
             d.links += 1;
             let (a, b) = (w[0] as usize, w[1] as usize);
             let (ia, ib) = (det_truth[a], det_truth[b]);
-            if ia.is_some() && ia == ib {
+            if let Some(id) = ia.filter(|_| ia == ib) {
                 if det_pulse[b] == det_pulse[a] + 1 {
-                    found.insert((det_pulse[a], ia.unwrap()));
+                    found.insert((det_pulse[a], id));
                 }
                 continue;
             }
@@ -217,9 +217,9 @@ pub fn diagnose_detail(
         for (i, w) in serials.windows(2).enumerate() {
             let (a, b) = (w[0], w[1]);
             let (ia, ib) = (det_truth[a], det_truth[b]);
-            if ia.is_some() && ia == ib {
+            if let Some(id) = ia.filter(|_| ia == ib) {
                 if det_pulse[b] == det_pulse[a] + 1 {
-                    found.insert((det_pulse[a], ia.unwrap()));
+                    found.insert((det_pulse[a], id));
                 }
                 continue;
             }

@@ -53,12 +53,12 @@ pub fn run_scene(
     for sp in scene {
         let (parts, ids, mixed, sources) = cluster_with_truth_sources(sp, cparams);
         run.det_pulse
-            .extend(std::iter::repeat(sp.pulse.index).take(parts.len()));
+            .extend(std::iter::repeat_n(sp.pulse.index, parts.len()));
         run.det_truth.extend(ids);
         run.det_events.extend(parts.iter().map(|p| p.n_events));
         run.det_xy.extend(parts.iter().map(|p| [p.x, p.y]));
         run.det_t_us
-            .extend(std::iter::repeat(sp.pulse.start_us).take(parts.len()));
+            .extend(std::iter::repeat_n(sp.pulse.start_us, parts.len()));
         run.det_mixed.extend(mixed);
         run.det_sources.extend(sources);
         run.tracks

@@ -21,6 +21,7 @@
 //! - `latency_jitter`: Gaussian spread added to each event time;
 //! - `off_events`: when the pulse ends the signal decays with `tau_us` of
 //!   the effect and crosses the OFF threshold floor(ΔL/C_off) times.
+//!
 //! Refractory period, noise and readout live in `readout`.
 
 use rand::{Rng, SeedableRng};
@@ -323,7 +324,7 @@ impl PixelModel {
         for p in lit {
             let (x, y) = (p.x, p.y);
             let tau = match self.intensity_latency {
-                Some((e, r)) if e == 0.5 => self.tau_us * (r / p.sig).sqrt().min(100.0),
+                Some((0.5, r)) => self.tau_us * (r / p.sig).sqrt().min(100.0),
                 Some((e, r)) => self.tau_us * (r / p.sig).powf(e).min(100.0),
                 None => self.tau_us,
             };
@@ -653,7 +654,7 @@ impl PixelModel {
             return;
         }
         let tau = match self.intensity_latency {
-            Some((e, r)) if e == 0.5 => self.tau_us * (r / sig).sqrt().min(100.0),
+            Some((0.5, r)) => self.tau_us * (r / sig).sqrt().min(100.0),
             Some((e, r)) => self.tau_us * (r / sig).powf(e).min(100.0),
             None => self.tau_us,
         };

@@ -148,7 +148,7 @@ fn fast_pixel_signals_match_exact_model() {
             let mut pos = Vec::new();
             model.particle_contributions(s, &mut pos, |x, y, v| e.push((y, x, v)));
             let sum = |v: &mut Vec<(u32, u32, f64)>| {
-                v.sort_by(|a, b| (a.0, a.1).cmp(&(b.0, b.1)));
+                v.sort_by_key(|a| (a.0, a.1));
                 let mut out: Vec<(u32, u32, f64)> = Vec::new();
                 for &(y, x, s) in v.iter() {
                     match out.last_mut() {
