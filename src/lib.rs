@@ -13,6 +13,62 @@
 //! Each stage is a module with one entry point; the `ebptv` binary only
 //! parses arguments, calls these, shows progress and writes files.
 //! See ARCHITECTURE.md for the design and README.md for the file contracts.
+//!
+//! ## The pipeline in one example
+//!
+//! Open a recording, find the light pulses, cluster each pulse's events
+//! into particles, link them into tracks and bin the tracks onto a grid.
+//! (The recording here is simulated and written to a temporary file, so the
+//! example runs anywhere; point [`io::open`] at a camera file instead.)
+//!
+//! ```
+//! use ebptv::{cluster, grid, io, pulses, sim, track, Chunk};
+//!
+//! # fn main() -> Result<(), Box<dyn std::error::Error>> {
+//! # let dir = std::env::temp_dir().join(format!("ebptv-doc-{}", std::process::id()));
+//! # std::fs::create_dir_all(&dir)?;
+//! # let path = dir.join("vortex.raw");
+//! # let mut scenario = sim::presets::preset("demo")?;
+//! # scenario.duration_s = 0.01; // 50 pulses at 5 kHz
+//! # let rec = sim::simulate(&scenario, 1)?;
+//! # let mut w = io::create(&path, None, rec.geometry.unwrap())?;
+//! # let mut chunk = Chunk::default();
+//! # chunk.events = rec.events;
+//! # chunk.triggers = rec.triggers;
+//! # w.write_chunk(&chunk)?;
+//! # w.finish()?;
+//! // 1. Pulse timing: from the trigger channel, or estimated from the events.
+//! let report = pulses::analyze(&mut *io::open(&path)?, &pulses::PulseOptions::default())?;
+//! println!("{:?} pulses every {:.1} µs", report.timing.source, report.timing.period_us);
+//!
+//! // 2. Each pulse's events → particles (sub-pixel centroids).
+//! let params = cluster::ClusterParams::default();
+//! let mut particles = Vec::new();
+//! pulses::split_pulses(&mut *io::open(&path)?, &report.timing, &mut |pulse| {
+//!     particles.extend(cluster::cluster_pulse(&pulse, &params));
+//!     Ok(())
+//! })?;
+//!
+//! // 3. Particles → Lagrangian tracks (positions and fitted velocities).
+//! let tracks = track::link(&particles, &track::TrackParams::default())?;
+//! assert!(tracks.len() > 100);
+//!
+//! // 4. Tracks → an Eulerian grid of means and Reynolds stresses.
+//! let samples: Vec<grid::Sample> = tracks
+//!     .iter()
+//!     .flat_map(|t| t.points.iter().map(|p| grid::Sample::from_track_point(t.id, p)))
+//!     .collect();
+//! let lattice = grid::Lattice::new(32.0, 32.0, 0.0)?;
+//! let acc = grid::bin_samples(&samples, lattice, grid::Weighting::TopHat)?;
+//! let field = grid::estimate(&acc, &grid::EstimateOptions::default())?;
+//! assert!(field.bins.iter().any(|b| b.count > 0 && b.u.is_finite()));
+//! # std::fs::remove_dir_all(&dir)?;
+//! # Ok(())
+//! # }
+//! ```
+//!
+//! The `ebptv` command line runs the same stages with streaming, progress
+//! and files (`ebptv track`, `ebptv grid`, …).
 
 pub mod decimal;
 pub use ebptv_io as io;
