@@ -238,17 +238,20 @@ pub fn write_outputs(r: &PulseReport, out: &Path) -> anyhow::Result<()> {
             ],
         },
     )?;
-    let tx: Vec<f64> = (0..r.rate_trace.len())
-        .map(|i| (r.rate_trace_t0_us + i as i64) as f64)
-        .collect();
+    // Time since the start of the recording (its first event), ms: the
+    // absolute clock (~1e7 µs) would give every tick the same label.
+    let t0 = r.rate_trace_t0_us as f64;
+    let ms = |t_us: f64| (t_us - t0) * 1e-3;
+    let tx: Vec<f64> = (0..r.rate_trace.len()).map(|i| i as f64 * 1e-3).collect();
     let ty: Vec<f64> = r.rate_trace.iter().map(|&c| c as f64).collect();
     let mut marks = Vec::new();
-    if let (Some(&t0), Some(&t1)) = (tx.first(), tx.last()) {
+    if !tx.is_empty() {
+        let t1 = t0 + (r.rate_trace.len() - 1) as f64;
         let k0 = ((t0 - r.timing.first_pulse_us) / r.timing.period_us).ceil() as i64;
         let mut k = k0;
         while r.timing.pulse_start(k) <= t1 && marks.len() < 50 {
             marks.push((
-                r.timing.pulse_start(k),
+                ms(r.timing.pulse_start(k)),
                 if k == k0 { "pulse start" } else { "" },
             ));
             k += 1;
@@ -259,7 +262,7 @@ pub fn write_outputs(r: &PulseReport, out: &Path) -> anyhow::Result<()> {
             &out.join("rate_trace.png"),
             &LinePlot {
                 title: "Event rate at the start of the recording",
-                x_label: "t (µs)",
+                x_label: "time since the start of the recording (ms)",
                 y_label: "events per µs",
                 series: vec![Series {
                     label: "events",
