@@ -80,27 +80,20 @@ pub fn run(args: PulsesArgs) -> anyhow::Result<()> {
         args.onset_latency_us,
     );
     opts.require_pulsed = !args.force_pulses;
-    let mut src = ebptv::io::guard::TimeGuard::new(if args.file.as_os_str() == "-" {
+    let src = ebptv::io::guard::TimeGuard::new(if args.file.as_os_str() == "-" {
         ebptv::pulses::live::open_stdin()?
     } else {
         ebptv::io::open(&args.file)?
     });
     super::print_warnings(&src);
-    let size = src.info().file_size.unwrap_or(0);
-    let bar = indicatif::ProgressBar::new(size);
-    bar.set_style(
-        indicatif::ProgressStyle::with_template(
-            "{bar:40} {bytes}/{total_bytes} {bytes_per_sec} eta {eta}",
-        )
-        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
-    );
+    let mut src = super::progress::Reading::with_bar(src, "reading");
     let mut an = Analyzer::new(opts, src.info().geometry)?;
     let mut chunk = ebptv::Chunk::default();
     while src.next_chunk(&mut chunk)? {
         an.push(&chunk)?;
-        bar.set_position(src.bytes_read());
     }
-    bar.finish_and_clear();
+    src.bar().finish_and_clear();
+    let src = src.into_inner();
     let mut report = an
         .finish()
         .with_context(|| format!("{}: pulse analysis", args.file.display()))?;
