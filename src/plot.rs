@@ -25,6 +25,7 @@
 //!   is a [`Error::InvalidParameter`] naming the figure and what is wrong;
 //!   nothing is written then.
 
+use std::cell::Cell;
 use std::io::Write;
 use std::ops::Range;
 use std::path::Path;
@@ -389,6 +390,37 @@ fn fmt_tick(v: f64) -> String {
     }
 }
 
+/// Tick label of a line plot axis: [`fmt_tick`], except that a log axis
+/// spanning more than a decade (`decades`) labels only the ticks at 1, 2
+/// and 5 × 10^k (only 10^k beyond six decades). Labelling every multiple
+/// makes the top of each decade (…, 800, 900, 1000) run together.
+fn axis_tick(v: f64, decades: Option<f64>) -> String {
+    match decades {
+        Some(d) if d > 1.0 && !log_tick_labelled(v, d) => String::new(),
+        _ => fmt_tick(v),
+    }
+}
+
+/// Whether `v` (a tick of a log axis spanning `decades` > 1) is 1, 2 or 5
+/// × 10^k (1 × 10^k only beyond six decades).
+fn log_tick_labelled(v: f64, decades: f64) -> bool {
+    if !(v > 0.0 && v.is_finite()) {
+        return false;
+    }
+    let e = v.log10().floor();
+    let m = v / 10f64.powf(e);
+    // Rounding may put 10^k just below it (mantissa 9.999…).
+    let d = if m.round() >= 10.0 { 1.0 } else { m.round() };
+    if (m - m.round()).abs() > 1e-6 * m {
+        return false;
+    }
+    if decades > 6.0 {
+        d == 1.0
+    } else {
+        d == 1.0 || d == 2.0 || d == 5.0
+    }
+}
+
 fn text_style(size: u32) -> TextStyle<'static> {
     (FONT, size).into_font().color(&BLACK)
 }
@@ -434,6 +466,31 @@ fn draw_colorbar<DB: DrawingBackend>(
         .map_err(render_err)?;
     Ok(())
 }
+
+/// The key for cells without data: a grey swatch labelled "no data" under
+/// the colour bar (in the bar's bottom margin).
+fn draw_no_data_key<DB: DrawingBackend>(
+    area: &DrawingArea<DB, plotters::coord::Shift>,
+) -> Result<()> {
+    let (_, h) = area.dim_in_pixel();
+    let top = h as i32 - NO_DATA_KEY_FROM_BOTTOM;
+    area.draw(&Rectangle::new(
+        [(10, top), (30, top + 14)],
+        rgb(NAN_GREY).filled(),
+    ))
+    .map_err(render_err)?;
+    area.draw(&Rectangle::new(
+        [(10, top), (30, top + 14)],
+        RGBColor(90, 90, 90).stroke_width(1),
+    ))
+    .map_err(render_err)?;
+    area.draw(&Text::new("no data", (36, top), text_style(14)))
+        .map_err(render_err)?;
+    Ok(())
+}
+
+/// Distance of the "no data" swatch's top edge from the image bottom, px.
+const NO_DATA_KEY_FROM_BOTTOM: i32 = 50;
 
 /// Pixel rectangle of a chart's plotting area: (x range, y range).
 pub(crate) type PixelRect = (Range<i32>, Range<i32>);
@@ -570,6 +627,9 @@ fn render_heatmap_impl(
         }
         rect = (px, py);
         draw_colorbar(&bar, vmin, vmax, &cmap, map.colorbar_label)?;
+        if map.values.iter().any(|v| v.is_nan()) {
+            draw_no_data_key(&bar)?;
+        }
         root.present().map_err(render_err)?;
     }
     Ok((buf, rect))
@@ -698,13 +758,14 @@ fn render_line_plot(plot: &LinePlot, size: (u32, u32)) -> Result<Vec<u8>> {
         let root = BitMapBackend::with_buffer(&mut buf, size).into_drawing_area();
         root.fill(&WHITE).map_err(render_err)?;
         match (plot.log_x, plot.log_y) {
-            (false, false) => draw_lines(&root, plot, &series, xr.0..xr.1, yr.0..yr.1, yr)?,
+            (false, false) => draw_lines(&root, plot, &series, xr.0..xr.1, yr.0..yr.1, xr, yr)?,
             (true, false) => draw_lines(
                 &root,
                 plot,
                 &series,
                 (xr.0..xr.1).log_scale(),
                 yr.0..yr.1,
+                xr,
                 yr,
             )?,
             (false, true) => draw_lines(
@@ -713,6 +774,7 @@ fn render_line_plot(plot: &LinePlot, size: (u32, u32)) -> Result<Vec<u8>> {
                 &series,
                 xr.0..xr.1,
                 (yr.0..yr.1).log_scale(),
+                xr,
                 yr,
             )?,
             (true, true) => draw_lines(
@@ -721,6 +783,7 @@ fn render_line_plot(plot: &LinePlot, size: (u32, u32)) -> Result<Vec<u8>> {
                 &series,
                 (xr.0..xr.1).log_scale(),
                 (yr.0..yr.1).log_scale(),
+                xr,
                 yr,
             )?,
         }
@@ -735,6 +798,7 @@ fn draw_lines<DB, X, Y>(
     series: &[Prepared],
     xr: X,
     yr: Y,
+    x_bounds: (f64, f64),
     y_bounds: (f64, f64),
 ) -> Result<()>
 where
@@ -744,6 +808,22 @@ where
     X::CoordDescType: ValueFormatter<f64>,
     Y::CoordDescType: ValueFormatter<f64>,
 {
+    // Decades spanned by a log axis (None on a linear one): how many of
+    // its tick labels fit.
+    let decades = |log: bool, (lo, hi): (f64, f64)| log.then(|| (hi / lo).log10());
+    let (x_decades, y_decades) = (decades(plot.log_x, x_bounds), decades(plot.log_y, y_bounds));
+    // plotters' log axes give 10^k twice (end of one decade, start of the
+    // next): a repeated tick gets no second label (it would print bold).
+    let (last_x, last_y) = (Cell::new(f64::NAN), Cell::new(f64::NAN));
+    let once = |last: &Cell<f64>, v: f64, label: String| {
+        let repeated = (v - last.get()).abs() <= 1e-9 * v.abs();
+        last.set(v);
+        if repeated {
+            String::new()
+        } else {
+            label
+        }
+    };
     let mut chart = ChartBuilder::on(root)
         .caption(plot.title, text_style(22))
         .margin(15)
@@ -757,8 +837,8 @@ where
         .bold_line_style(RGBColor(210, 210, 210))
         .x_labels(10)
         .y_labels(8)
-        .x_label_formatter(&|v| fmt_tick(*v))
-        .y_label_formatter(&|v| fmt_tick(*v))
+        .x_label_formatter(&|v| once(&last_x, *v, axis_tick(*v, x_decades)))
+        .y_label_formatter(&|v| once(&last_y, *v, axis_tick(*v, y_decades)))
         .label_style(text_style(14))
         .x_desc(plot.x_label)
         .y_desc(plot.y_label)
@@ -987,6 +1067,53 @@ mod tests {
         );
         let left = pixel(&buf, size.0, px.start + w / 6, yc);
         assert_eq!(left, diverging(0.5 - 1.0 / 6.0), "-1 of ±3 sits at 1/3");
+    }
+
+    #[test]
+    fn crowded_log_axes_label_one_two_five() {
+        // 70..2200 Hz: ticks at 100, 200, …, 900, 1000, 2000.
+        let d = (2200.0f64 / 70.0).log10();
+        let shown: Vec<String> = [100.0, 200.0, 300.0, 500.0, 800.0, 900.0, 1000.0, 2000.0]
+            .iter()
+            .map(|&v| axis_tick(v, Some(d)))
+            .collect();
+        assert_eq!(shown, ["100", "200", "", "500", "", "", "1000", "2000"]);
+        // Rounding noise around a power of ten still counts as one.
+        assert!(log_tick_labelled(999.999_999_9, d));
+        // Within a decade every tick keeps its label; linear axes too.
+        assert_eq!(axis_tick(900.0, Some(0.9)), "900");
+        assert_eq!(axis_tick(900.0, None), "900");
+        // Beyond six decades only powers of ten.
+        assert_eq!(axis_tick(200.0, Some(7.0)), "");
+        assert_eq!(axis_tick(100.0, Some(7.0)), "100");
+    }
+
+    #[test]
+    fn heatmap_with_empty_cells_has_a_no_data_key() {
+        let key_pixel = |values: &[f64]| {
+            let map = Heatmap {
+                title: "k",
+                values,
+                nx: 2,
+                ny: 1,
+                x_range: (0.0, 2.0),
+                y_range: (0.0, 1.0),
+                colorbar_label: "v",
+                diverging: false,
+            };
+            let size = (800u32, 400u32);
+            let (buf, _) = render_heatmap(&map, size).unwrap();
+            // Centre of the swatch in the colour-bar column.
+            let x = (size.0 - 170 + 20) as i32;
+            let y = size.1 as i32 - NO_DATA_KEY_FROM_BOTTOM + 7;
+            pixel(&buf, size.0, x, y)
+        };
+        assert_eq!(key_pixel(&[f64::NAN, 1.0]), NAN_GREY);
+        assert_eq!(
+            key_pixel(&[0.0, 1.0]),
+            (255, 255, 255),
+            "no key without empty cells"
+        );
     }
 
     #[test]

@@ -69,12 +69,12 @@ pub fn run(args: InfoArgs) -> anyhow::Result<()> {
         .into());
     }
     let opts = open_options(args.format.as_deref(), args.time_unit.as_deref())?;
-    let mut src = io::open_with(&args.file, &opts)?;
+    let src = io::open_with(&args.file, &opts)?;
     super::print_warnings(&src);
     let rejected = src.rejected_geometry();
-    let pb = progress_bar(src.info().file_size);
-    let summary = summarize(&mut src, args.peak_bin_us, |b| pb.set_position(b))?;
-    pb.finish_and_clear();
+    let mut src = super::progress::Reading::with_bar(src, "reading");
+    let summary = summarize(&mut src, args.peak_bin_us, |_| {})?;
+    src.bar().finish_and_clear();
     let verdict = pulsed_verdict(&args.file, &opts);
     let text = if args.json {
         let mut v = serde_json::to_value(&summary)?;

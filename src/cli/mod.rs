@@ -12,6 +12,7 @@ pub mod model_check;
 pub mod monitor;
 pub mod piv;
 pub mod piv_images;
+pub mod progress;
 pub mod pulses;
 pub mod simulate;
 pub mod spectra;

@@ -1,4 +1,6 @@
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
 
 use clap::Args;
 use ebptv::piv::output::{write_mean_csv, NpyStack};
@@ -86,7 +88,7 @@ pub struct PivArgs {
 }
 
 pub fn run(a: PivArgs) -> anyhow::Result<()> {
-    let mut src = ebptv::io::open_for_analysis(&a.recording)?;
+    let src = ebptv::io::open_for_analysis(&a.recording)?;
     super::print_warnings(&src);
     let geom = src.info().geometry.ok_or_else(|| {
         anyhow::anyhow!(
@@ -94,8 +96,9 @@ pub fn run(a: PivArgs) -> anyhow::Result<()> {
             a.recording.display()
         )
     })?;
+    let mut src = super::progress::Reading::with_bar(src, "pulse timing");
     let report = analyze(
-        src.as_mut(),
+        &mut src,
         &PulseOptions {
             pulse_hz: a.pulse_hz,
             require_pulsed: !a.force_pulses,
@@ -126,23 +129,30 @@ pub fn run(a: PivArgs) -> anyhow::Result<()> {
     let mut sf = NpyStack::create(&a.out.join("piv_flag.npy"), "|u1", g.ny, g.nx)?;
     let mut times = Vec::new();
     let hz = stream.pulse_hz();
-    let bar = indicatif::ProgressBar::new_spinner();
-    let mut src = ebptv::io::open_for_analysis(&a.recording)?;
+    // Second pass over the recording: the bar restarts, with the fields so far.
+    let bar = src.bar().clone();
+    bar.reset();
+    bar.set_prefix("PIV");
+    let fields = Arc::new(AtomicU64::new(0));
+    let shown = fields.clone();
+    let mut src = super::progress::Reading::new(ebptv::io::open_for_analysis(&a.recording)?, bar)
+        .with_note(Arc::new(move || {
+            format!("{} fields", shown.load(Ordering::Relaxed))
+        }));
     stream.set_batch(a.batch.unwrap_or_else(rayon::current_num_threads))?;
     let mut emit = |f: ebptv::piv::StepField| -> ebptv::Result<()> {
         su.push_f32(f.field.u.iter().map(|&x| (x * hz) as f32))?;
         sv.push_f32(f.field.v.iter().map(|&x| (x * hz) as f32))?;
         sf.push_u8(&f.field.flags)?;
         times.push((f.first_pulse, f.t_us));
-        bar.set_message(format!("{} fields", times.len()));
-        bar.tick();
+        fields.store(times.len() as u64, Ordering::Relaxed);
         Ok(())
     };
-    split_pulses(src.as_mut(), &report.timing, &mut |pe| {
+    split_pulses(&mut src, &report.timing, &mut |pe| {
         stream.feed(&pe, &mut emit)
     })?;
     stream.flush(&mut emit)?;
-    bar.finish_and_clear();
+    src.bar().finish_and_clear();
     if times.is_empty() {
         anyhow::bail!(
             "{}: no PIV field: fewer than {} consecutive pulses with events",

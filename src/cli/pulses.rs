@@ -80,27 +80,20 @@ pub fn run(args: PulsesArgs) -> anyhow::Result<()> {
         args.onset_latency_us,
     );
     opts.require_pulsed = !args.force_pulses;
-    let mut src = ebptv::io::guard::TimeGuard::new(if args.file.as_os_str() == "-" {
+    let src = ebptv::io::guard::TimeGuard::new(if args.file.as_os_str() == "-" {
         ebptv::pulses::live::open_stdin()?
     } else {
         ebptv::io::open(&args.file)?
     });
     super::print_warnings(&src);
-    let size = src.info().file_size.unwrap_or(0);
-    let bar = indicatif::ProgressBar::new(size);
-    bar.set_style(
-        indicatif::ProgressStyle::with_template(
-            "{bar:40} {bytes}/{total_bytes} {bytes_per_sec} eta {eta}",
-        )
-        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
-    );
+    let mut src = super::progress::Reading::with_bar(src, "reading");
     let mut an = Analyzer::new(opts, src.info().geometry)?;
     let mut chunk = ebptv::Chunk::default();
     while src.next_chunk(&mut chunk)? {
         an.push(&chunk)?;
-        bar.set_position(src.bytes_read());
     }
-    bar.finish_and_clear();
+    src.bar().finish_and_clear();
+    let src = src.into_inner();
     let mut report = an
         .finish()
         .with_context(|| format!("{}: pulse analysis", args.file.display()))?;
@@ -238,17 +231,20 @@ pub fn write_outputs(r: &PulseReport, out: &Path) -> anyhow::Result<()> {
             ],
         },
     )?;
-    let tx: Vec<f64> = (0..r.rate_trace.len())
-        .map(|i| (r.rate_trace_t0_us + i as i64) as f64)
-        .collect();
+    // Time since the start of the recording (its first event), ms: the
+    // absolute clock (~1e7 µs) would give every tick the same label.
+    let t0 = r.rate_trace_t0_us as f64;
+    let ms = |t_us: f64| (t_us - t0) * 1e-3;
+    let tx: Vec<f64> = (0..r.rate_trace.len()).map(|i| i as f64 * 1e-3).collect();
     let ty: Vec<f64> = r.rate_trace.iter().map(|&c| c as f64).collect();
     let mut marks = Vec::new();
-    if let (Some(&t0), Some(&t1)) = (tx.first(), tx.last()) {
+    if !tx.is_empty() {
+        let t1 = t0 + (r.rate_trace.len() - 1) as f64;
         let k0 = ((t0 - r.timing.first_pulse_us) / r.timing.period_us).ceil() as i64;
         let mut k = k0;
         while r.timing.pulse_start(k) <= t1 && marks.len() < 50 {
             marks.push((
-                r.timing.pulse_start(k),
+                ms(r.timing.pulse_start(k)),
                 if k == k0 { "pulse start" } else { "" },
             ));
             k += 1;
@@ -259,7 +255,7 @@ pub fn write_outputs(r: &PulseReport, out: &Path) -> anyhow::Result<()> {
             &out.join("rate_trace.png"),
             &LinePlot {
                 title: "Event rate at the start of the recording",
-                x_label: "t (µs)",
+                x_label: "time since the start of the recording (ms)",
                 y_label: "events per µs",
                 series: vec![Series {
                     label: "events",

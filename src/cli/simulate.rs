@@ -52,11 +52,9 @@ pub fn run(a: SimulateArgs) -> anyhow::Result<()> {
         .with_context(|| format!("unknown --format `{}` (evt3, evt2, csv, npy)", a.format))?;
     let out = a.out.expect("clap requires --out");
     let bar = indicatif::ProgressBar::new(sc.pulse_count());
-    bar.set_style(
-        indicatif::ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} pulses ({eta})")
-            .expect("static template")
-            .progress_chars("=> "),
-    );
+    bar.set_style(super::progress::style(
+        "{msg} [{bar:40}] {pos}/{len} pulses ({eta})",
+    ));
     bar.set_message(format!("simulating {}", sc.name));
     let summary = write_recording(&sc, a.seed, &out, format, |done, _| bar.set_position(done))?;
     bar.finish_and_clear();

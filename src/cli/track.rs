@@ -2,10 +2,12 @@
 
 use std::io::BufRead;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
 
 use anyhow::Context;
 use clap::Args;
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
 
 use ebptv::cluster::Particle;
 use ebptv::pulses::PulseOptions;
@@ -475,12 +477,8 @@ fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
         )
     };
 
-    let progress = ProgressBar::new_spinner();
-    progress.set_style(
-        ProgressStyle::with_template("{spinner} {elapsed} {pos} pulses  {msg}")
-            .expect("valid template"),
-    );
-    progress.enable_steady_tick(std::time::Duration::from_millis(200));
+    let size = std::fs::metadata(&args.input).ok().map(|m| m.len());
+    let progress = super::progress::file_bar(size, "pulse timing");
     let writer = Writer::create(&args.out, run.npy, run.plot_pulses)?;
     let mut pipe = Pipeline::start(writer, progress)?;
 
@@ -514,20 +512,33 @@ fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
         super::print_warnings(&src);
         src.info().geometry
     };
+    // The recording is read twice: pulse timing, then tracking (with the
+    // tracker's counts on the bar).
     let progress = pipe.progress.clone();
-    let (report, stats, unassigned) = track_recording(
-        &|| ebptv::io::open_for_analysis(&args.input),
-        &opts,
-        stream,
-        &mut pipe,
-        &mut |s| {
-            let (particles, active) = s.progress();
-            progress.set_message(format!(
-                "{} events, {particles} particles, {active} active tracks",
-                s.events()
-            ));
-        },
-    )?;
+    let counts = Arc::new([AtomicU64::new(0), AtomicU64::new(0)]);
+    let passes = AtomicU64::new(0);
+    let open = || -> ebptv::Result<Box<dyn ebptv::io::EventSource>> {
+        let src = ebptv::io::open_for_analysis(&args.input)?;
+        let reading = super::progress::Reading::new(src, progress.clone());
+        if passes.fetch_add(1, Ordering::Relaxed) == 0 {
+            return Ok(Box::new(reading));
+        }
+        progress.reset();
+        progress.set_prefix("tracking");
+        let c = counts.clone();
+        Ok(Box::new(reading.with_note(Arc::new(move || {
+            format!(
+                "{} particles, {} active tracks",
+                c[0].load(Ordering::Relaxed),
+                c[1].load(Ordering::Relaxed)
+            )
+        }))))
+    };
+    let (report, stats, unassigned) = track_recording(&open, &opts, stream, &mut pipe, &mut |s| {
+        let (particles, active) = s.progress();
+        counts[0].store(particles, Ordering::Relaxed);
+        counts[1].store(active as u64, Ordering::Relaxed);
+    })?;
     if unassigned > 0 {
         pipe.progress.println(format!(
             "{unassigned} events could not be attributed to a pulse"

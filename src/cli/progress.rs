@@ -1,0 +1,176 @@
+//! Progress on stderr while a command reads an event file: a bar of bytes
+//! read against the file size, the events decoded, their rate and an ETA.
+//!
+//! [`Reading`] wraps any [`EventSource`] and moves the bar after each chunk
+//! from the reader's own byte count, so no reader changes. Drawing is
+//! limited to [`REFRESH_HZ`] and happens only when stderr is a terminal
+//! (indicatif hides the bar otherwise: pipes, logs and tests stay quiet).
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use ebptv::io::{Anomalies, EventSource, StreamInfo};
+use ebptv::Geometry;
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+
+/// Redraws per second at most.
+pub(crate) const REFRESH_HZ: u8 = 10;
+
+/// Bar layout after `simulate`'s (`{msg} [{bar:40}] … ({eta})`); the
+/// message last, cut to the terminal's width.
+const BAR_TEMPLATE: &str = "{prefix} [{bar:20}] {bytes}/{total_bytes} ({eta}) {wide_msg}";
+/// Size unknown (standard input): no bar and no ETA.
+const SPINNER_TEMPLATE: &str = "{spinner} {prefix} {bytes} {wide_msg}";
+
+/// The style of `simulate`'s bar: `=` done, `>` the head, blank to do.
+pub(crate) fn style(template: &str) -> ProgressStyle {
+    ProgressStyle::with_template(template)
+        .unwrap_or_else(|_| ProgressStyle::default_bar())
+        .progress_chars("=> ")
+}
+
+/// A bar for reading `total` bytes (a spinner when the size is unknown),
+/// drawn on stderr at most [`REFRESH_HZ`] times a second.
+pub(crate) fn file_bar(total: Option<u64>, what: &str) -> ProgressBar {
+    let target = ProgressDrawTarget::stderr_with_hz(REFRESH_HZ);
+    let bar = ProgressBar::with_draw_target(total, target);
+    bar.set_style(style(if total.is_some() {
+        BAR_TEMPLATE
+    } else {
+        SPINNER_TEMPLATE
+    }));
+    bar.set_prefix(what.to_string());
+    bar
+}
+
+/// Extra text after the event counts (e.g. tracks so far).
+pub(crate) type Note = Arc<dyn Fn() -> String + Send + Sync>;
+
+/// An [`EventSource`] that moves a progress bar as it is read.
+pub(crate) struct Reading<S> {
+    inner: S,
+    bar: ProgressBar,
+    note: Option<Note>,
+    events: u64,
+    started: Instant,
+    shown: Option<Instant>,
+}
+
+impl<S: EventSource> Reading<S> {
+    /// Wrap `inner`, moving `bar` (its message is cleared).
+    pub(crate) fn new(inner: S, bar: ProgressBar) -> Self {
+        bar.set_message("");
+        Reading {
+            inner,
+            bar,
+            note: None,
+            events: 0,
+            started: Instant::now(),
+            shown: None,
+        }
+    }
+
+    /// A bar of its own for `inner`, sized from its file.
+    pub(crate) fn with_bar(inner: S, what: &str) -> Self {
+        let bar = file_bar(inner.info().file_size, what);
+        Reading::new(inner, bar)
+    }
+
+    /// Text appended to the message (evaluated at each redraw).
+    pub(crate) fn with_note(mut self, note: Note) -> Self {
+        self.note = Some(note);
+        self
+    }
+
+    /// The wrapped source (e.g. for its own counters after the pass).
+    pub(crate) fn into_inner(self) -> S {
+        self.inner
+    }
+
+    /// The bar, e.g. to print a line above it or clear it.
+    pub(crate) fn bar(&self) -> &ProgressBar {
+        &self.bar
+    }
+
+    fn show(&mut self, now: Instant) {
+        self.shown = Some(now);
+        self.bar.set_position(self.inner.bytes_read());
+        let secs = now.duration_since(self.started).as_secs_f64();
+        let rate = if secs > 0.0 {
+            self.events as f64 / secs
+        } else {
+            0.0
+        };
+        let mut msg = format!("{}ev, {}ev/s", count(self.events as f64), count(rate));
+        if let Some(note) = &self.note {
+            msg.push_str(", ");
+            msg.push_str(&note());
+        }
+        self.bar.set_message(msg);
+    }
+}
+
+/// `1234567` → `1.23 M`, `12` → `12 `.
+fn count(n: f64) -> String {
+    if n >= 1e9 {
+        format!("{:.2} G", n / 1e9)
+    } else if n >= 1e6 {
+        format!("{:.1} M", n / 1e6)
+    } else if n >= 1e3 {
+        format!("{:.1} k", n / 1e3)
+    } else {
+        format!("{n:.0} ")
+    }
+}
+
+impl<S: EventSource> EventSource for Reading<S> {
+    fn info(&self) -> &StreamInfo {
+        self.inner.info()
+    }
+
+    fn next_chunk(&mut self, chunk: &mut ebptv::Chunk) -> ebptv::Result<bool> {
+        let more = self.inner.next_chunk(chunk)?;
+        self.events += chunk.events.len() as u64;
+        if self.bar.is_hidden() {
+            return Ok(more);
+        }
+        let now = Instant::now();
+        let due = self.shown.is_none_or(|t| {
+            now.duration_since(t) >= Duration::from_millis(1000 / REFRESH_HZ as u64)
+        });
+        if due || !more {
+            self.show(now);
+        }
+        Ok(more)
+    }
+
+    fn anomalies(&self) -> Anomalies {
+        self.inner.anomalies()
+    }
+
+    fn bytes_read(&self) -> u64 {
+        self.inner.bytes_read()
+    }
+
+    fn warnings(&self) -> Vec<String> {
+        self.inner.warnings()
+    }
+
+    fn rejected_geometry(&self) -> Option<Geometry> {
+        self.inner.rejected_geometry()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn counts_are_short() {
+        assert_eq!(count(0.0), "0 ");
+        assert_eq!(count(999.0), "999 ");
+        assert_eq!(count(12_345.0), "12.3 k");
+        assert_eq!(count(22_530_000.0), "22.5 M");
+        assert_eq!(count(3.2e9), "3.20 G");
+    }
+}
