@@ -539,3 +539,72 @@ impl PtvSink for FileSink {
         self.send(Output::Tracks(chunk))
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::atomic::{AtomicU64, Ordering};
+
+    /// Two particles crossing the field at constant speed, 12 pulses.
+    fn write_particles(path: &Path) {
+        let mut text = String::from("pulse,t_us,x,y,n_events\n");
+        for k in 0..12 {
+            let t = 200.0 * k as f64;
+            let k = k as f64;
+            text.push_str(&format!("{k},{t},{},{},2\n", 20.0 + 3.0 * k, 30.0));
+            text.push_str(&format!("{k},{t},{},{},2\n", 60.0, 80.0 - 2.0 * k));
+        }
+        std::fs::write(path, text).unwrap();
+    }
+
+    #[test]
+    fn particles_csv_into_a_directory() {
+        let dir = tempfile::tempdir().unwrap();
+        let input = dir.path().join("particles.csv");
+        write_particles(&input);
+        let out = dir.path().join("out");
+        let pulses = AtomicU64::new(0);
+        let writing = AtomicU64::new(0);
+        let run = track_to_dir(&input, &TrackConfig::default(), &out, &|p| match p {
+            TrackProgress::Pulse { .. } => {
+                pulses.fetch_add(1, Ordering::Relaxed);
+            }
+            TrackProgress::Writing => {
+                writing.fetch_add(1, Ordering::Relaxed);
+            }
+            _ => {}
+        })
+        .unwrap();
+        assert_eq!(pulses.load(Ordering::Relaxed), 12);
+        assert_eq!(writing.load(Ordering::Relaxed), 1);
+        assert!(run.pulses.is_none());
+        assert_eq!(run.summary.pulses, 12);
+        assert_eq!(run.summary.particles, 24);
+        assert_eq!(run.summary.tracks, 2);
+        for f in [
+            "particles.csv",
+            "tracks.csv",
+            "summary.json",
+            "tracks.png",
+            "params.toml",
+        ] {
+            assert!(out.join(f).is_file(), "{f} missing");
+        }
+        assert!(!out.join("tracks.npy").exists());
+        let tracks = super::super::read_tracks_csv(&out.join("tracks.csv")).unwrap();
+        assert_eq!(tracks.len(), 2);
+    }
+
+    #[test]
+    fn a_failed_run_leaves_no_files() {
+        let dir = tempfile::tempdir().unwrap();
+        let input = dir.path().join("missing.raw");
+        let out = dir.path().join("out");
+        let err = track_to_dir(&input, &TrackConfig::default(), &out, &|_| {}).unwrap_err();
+        assert!(err.to_string().contains("missing.raw"), "{err}");
+        let left: Vec<_> = std::fs::read_dir(&out)
+            .map(|d| d.filter_map(|e| e.ok()).map(|e| e.file_name()).collect())
+            .unwrap_or_default();
+        assert!(left.is_empty(), "{left:?}");
+    }
+}
