@@ -68,7 +68,9 @@
 //! ```
 //!
 //! The `ebptv` command line runs the same stages with streaming, progress
-//! and files (`ebptv track`, `ebptv grid`, …).
+//! and files (`ebptv track`, `ebptv grid`, …). What `ebptv track` writes
+//! (particles, tracks, pulses, summary, figure, the run's parameters) is one
+//! call: [`track::track_to_dir`]`(recording, &config, out_dir, &on_progress)`.
 
 pub mod decimal;
 pub use ebptv_io as io;

@@ -111,7 +111,7 @@ impl<S: EventSource> Reading<S> {
 }
 
 /// `1234567` → `1.23 M`, `12` → `12 `.
-fn count(n: f64) -> String {
+pub(crate) fn count(n: f64) -> String {
     if n >= 1e9 {
         format!("{:.2} G", n / 1e9)
     } else if n >= 1e6 {

@@ -95,6 +95,7 @@ pub mod grid_index;
 pub mod io;
 pub mod lap;
 pub mod local_flow;
+pub mod sink;
 pub mod slice;
 pub mod step;
 pub mod stream;
@@ -129,9 +130,10 @@ pub use io::{
 };
 pub use params::*;
 use predict::*;
+pub use sink::{read_hot_pixels, track_to_dir, DirRun, FileSink, TrackProgress, TrackStage};
 pub use slice::{SliceParams, SliceTracker};
 pub use state::*;
-pub use stream::{track_recording, PtvSink, PtvStream};
+pub use stream::{track_recording, PtvSink, PtvStream, TrackingRun};
 
 #[cfg(test)]
 mod tests {

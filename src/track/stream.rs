@@ -642,24 +642,36 @@ fn unlinked(tracks: Vec<super::LinkedTrack>) -> Vec<Track> {
     tracks.into_iter().map(|t| t.track).collect()
 }
 
+/// What [`track_recording`] found besides the tracks it handed to its sink.
+#[derive(Clone, Debug)]
+pub struct TrackingRun {
+    /// The pulse analysis (timing, lock-in test), as in `pulses.json`.
+    pub pulses: PulseReport,
+    /// The tracker's counters.
+    pub stats: TrackerStats,
+    /// Events that fell outside every pulse window.
+    pub unassigned_events: u64,
+}
+
 /// The whole PTV stage on a recording. `open` opens the recording afresh
 /// (it is read twice: pulse analysis, then tracking); `on_pulse` is called
-/// after each pulse for progress reports. Returns the pulse report, the
-/// tracker's counters and the number of events not attributable to a pulse.
-pub fn track_recording(
-    open: &dyn Fn() -> Result<Box<dyn EventSource>>,
+/// after each pulse for progress reports.
+pub fn track_recording<'a>(
+    open: &dyn Fn() -> Result<Box<dyn EventSource + 'a>>,
     pulse_options: &PulseOptions,
     stream: PtvStream,
     sink: &mut dyn PtvSink,
     on_pulse: &mut dyn FnMut(&PtvStream),
-) -> Result<(PulseReport, TrackerStats, u64)> {
+) -> Result<TrackingRun> {
     let mut src = open()?;
+    let path = (*src).info().path.clone();
     let report = pulses::analyze_pipelined(&mut *src, pulse_options).map_err(|e| {
         crate::Error::analysis(format!(
             "finding the light pulses in {}: {e}",
-            src.info().path.display()
+            path.display()
         ))
     })?;
+    drop(src);
     let mut src = open()?;
     let mut stream = stream;
     let unassigned = pulses::split_pulses(&mut *src, &report.timing, &mut |p| {
@@ -668,7 +680,11 @@ pub fn track_recording(
         Ok(())
     })?;
     let stats = stream.finish(sink)?;
-    Ok((report, stats, unassigned))
+    Ok(TrackingRun {
+        pulses: report,
+        stats,
+        unassigned_events: unassigned,
+    })
 }
 
 #[cfg(test)]

@@ -3,8 +3,8 @@
 //! (a tracker that knew every particle), and the velocity error of the
 //! tracker, of the tracker's own output fit on the oracle tracks, and the
 //! quadratic floors (definitions in `ebptv::track::synth`'s module docs).
-//! Ignored by default (~6 s for the four scenes after the build):
-//! `cargo test --release --test ptv_bounds -- --ignored --nocapture`
+//! ~6 s for the four scenes after the build:
+//! `cargo run --release --example ptv_bounds`
 //! (`PTV_SCENES=paper` runs the three paper-like seeds only;
 //! `PTV_FIT_MIN_WINDOW`, `PTV_FIT_BIAS_WEIGHT`, `PTV_FIT_ACCEL` override
 //! the output fit's parameters, for the tracker and the oracle alike).
@@ -16,9 +16,7 @@ use ebptv::track::synth::{
 };
 use ebptv::track::TrackParams;
 
-#[test]
-#[ignore]
-fn bounds_table() {
+fn main() {
     let paper_only = std::env::var("PTV_SCENES").is_ok_and(|v| v == "paper");
     // (name, ppp, px/pulse, noise, seed): the 384² scenes of BENCHMARKS.md.
     let scenes = [

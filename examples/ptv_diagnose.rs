@@ -1,6 +1,7 @@
 //! Where the wrong and missed links of the synthetic scene come from
-//! (`ebptv::track::synth::diagnose`). Ignored by default:
-//! `cargo test --release --test ptv_diagnose -- --ignored --nocapture`
+//! (`ebptv::track::synth::diagnose`), what linking costs, and which merged
+//! images could be split:
+//! `cargo run --release --example ptv_diagnose -- links|cost|merged`
 
 use std::collections::{BTreeMap, HashMap};
 
@@ -8,8 +9,6 @@ use ebptv::cluster::{pixel_labels_with, pulse_pixels, split_wide_clusters, Clust
 use ebptv::track::synth::{cluster_with_truth_mixed, generate, run_and_diagnose, SynthParams};
 use ebptv::track::TrackParams;
 
-#[test]
-#[ignore]
 fn breakdown_of_link_errors() {
     for (ppp, disp, noise) in [(0.01, 8.0, 0.01), (0.02, 12.0, 0.05)] {
         if std::env::var("PTV_ONLY_PAPER").is_ok() && ppp > 0.01 {
@@ -114,12 +113,10 @@ fn breakdown_of_link_errors() {
 }
 
 /// Linking cost (for callgrind: `valgrind --tool=callgrind
-/// --toggle-collect='*link_linked*' target/release/deps/ptv_diagnose-* --ignored linking_cost`).
+/// --toggle-collect='*link_linked*' target/release/examples/ptv_diagnose cost`).
 /// Back extension and the delayed repair switched by PTV_BACK_EXTEND /
 /// PTV_REPAIR_LAG, the ghost test by PTV_GHOST_LEN (0 = off, with
 /// PTV_INIT_GAP=0 the linking without ghost test and gapped chains).
-#[test]
-#[ignore]
 fn linking_cost() {
     let sp = SynthParams {
         width: 384,
@@ -181,8 +178,6 @@ fn linking_cost() {
 /// both, and the image's pixel count: which of them could be split at all,
 /// given to which two tracks they belong (~3 800 of 83 200
 /// images; most are 1–2.5 px pairs on disjoint pixels, 2–3 pixels).
-#[test]
-#[ignore]
 fn merged_image_geometry() {
     let sp = SynthParams {
         width: 384,
@@ -241,5 +236,17 @@ fn merged_image_geometry() {
     println!("{images} images; merged pairs (distance from, shared pixel, pixels): count");
     for ((d, shared, n), c) in hist {
         println!("{:.2} px  shared {shared:5}  {n} px: {c}", d as f64 / 4.0);
+    }
+}
+
+fn main() {
+    match std::env::args().nth(1).as_deref() {
+        Some("links") => breakdown_of_link_errors(),
+        Some("cost") => linking_cost(),
+        Some("merged") => merged_image_geometry(),
+        _ => {
+            eprintln!("usage: ptv_diagnose links|cost|merged");
+            std::process::exit(2);
+        }
     }
 }

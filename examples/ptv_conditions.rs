@@ -1,6 +1,5 @@
 //! The table of BENCHMARKS.md: link scores as conditions get harder.
-//! Ignored by default (a few seconds per row):
-//! `cargo test --release --test ptv_conditions -- --ignored --nocapture`
+//! A few seconds per row: `cargo run --release --example ptv_conditions`
 //! (`PTV_MIN_LENGTH`, `PTV_FIT_ACCEL`, `PTV_STEP`, `PTV_GAP_FIRST`
 //! override those parameters, `PTV_SEED` the scene's seed, `PTV_ROWS=1`
 //! runs the paper-like and the all-three rows only).
@@ -9,9 +8,7 @@ use ebptv::cluster::ClusterParams;
 use ebptv::track::synth::{generate, run_and_score, SynthParams};
 use ebptv::track::TrackParams;
 
-#[test]
-#[ignore]
-fn conditions_table() {
+fn main() {
     // Overrides for comparisons: PTV_MIN_LENGTH, PTV_FIT_ACCEL (px/pulse²;
     // 0 = the output fit without the curvature prior).
     let env = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<f64>().ok());

@@ -1,10 +1,9 @@
 //! Writes a synthetic scene as `particles.csv` + `truth_particles.csv` for
-//! the peer comparison (benches/peers/trackpy_compare.py) until the full
-//! simulator is in main. Ignored by default:
+//! the peer comparison (benches/peers/trackpy_compare.py):
 //!
 //! ```text
 //! PTV_SYNTH_OUT=/tmp/ptv PTV_SYNTH_PPP=0.01 PTV_SYNTH_DISP=8 PTV_SYNTH_NOISE=0.01 \
-//!   cargo test --release --test ptv_synth_export -- --ignored
+//!   cargo run --release --example ptv_synth_export
 //! ```
 
 use std::io::Write;
@@ -19,9 +18,7 @@ fn env_f64(name: &str, default: f64) -> f64 {
         .unwrap_or(default)
 }
 
-#[test]
-#[ignore]
-fn export_scene() {
+fn main() {
     let Ok(out) = std::env::var("PTV_SYNTH_OUT") else {
         println!("set PTV_SYNTH_OUT to a directory");
         return;

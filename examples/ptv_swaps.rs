@@ -1,8 +1,8 @@
 //! Swaps: links of one track between clean images of two different
 //! particles. Where are they, and what happened to the other particle?
-//! Ignored diagnosis (prints counts against the truth, paper-like 384²):
-//! `cargo test --release --test ptv_swaps -- --ignored --nocapture`
-//! (`PTV_SEED` picks the scene; parameters as `ptv_diagnose`'s knobs).
+//! Prints counts against the truth, paper-like 384²:
+//! `cargo run --release --example ptv_swaps`
+//! (`PTV_SEED` picks the scene; parameters as `ptv_diagnose links`'s knobs).
 
 use std::collections::{BTreeMap, HashMap};
 
@@ -10,9 +10,7 @@ use ebptv::cluster::ClusterParams;
 use ebptv::track::synth::{generate, run_scene, SynthParams};
 use ebptv::track::TrackParams;
 
-#[test]
-#[ignore]
-fn swap_anatomy() {
+fn main() {
     let env = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<f64>().ok());
     let sp = SynthParams {
         width: 384,

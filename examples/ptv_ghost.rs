@@ -1,7 +1,7 @@
 //! Ghost tracks: short tracks made of detections of different particles
 //! that happen to line up. Which rule tells them from real short tracks?
-//! Ignored diagnosis (prints counts against the truth):
-//! `cargo test --release --test ptv_ghost -- --ignored --nocapture`
+//! Prints counts against the truth:
+//! `cargo run --release --example ptv_ghost`
 
 use std::collections::{BTreeMap, HashMap};
 
@@ -9,9 +9,7 @@ use ebptv::cluster::ClusterParams;
 use ebptv::track::synth::{cluster_with_truth, generate, SynthParams};
 use ebptv::track::{TrackParams, Tracker};
 
-#[test]
-#[ignore]
-fn ghost_features() {
+fn main() {
     let env = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<f64>().ok());
     let sp = SynthParams {
         width: 384,

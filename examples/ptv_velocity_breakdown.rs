@@ -1,6 +1,6 @@
 //! Where the velocity error of the synthetic scene comes from: rms by
-//! distance from the track end and by track length. Ignored by default:
-//! `cargo test --release --test ptv_velocity_breakdown -- --ignored --nocapture`
+//! distance from the track end and by track length:
+//! `cargo run --release --example ptv_velocity_breakdown`
 
 use std::collections::{BTreeMap, HashMap};
 
@@ -8,9 +8,7 @@ use ebptv::cluster::ClusterParams;
 use ebptv::track::synth::{cluster_with_truth, generate, SynthParams};
 use ebptv::track::{TrackParams, Tracker};
 
-#[test]
-#[ignore]
-fn velocity_error_by_track_position() {
+fn main() {
     let env = |k: &str| std::env::var(k).ok().and_then(|v| v.parse::<f64>().ok());
     let sp = SynthParams {
         width: 384,

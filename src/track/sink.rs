@@ -1,0 +1,610 @@
+//! A recording (or a `particles.csv`) into an output directory:
+//! [`track_to_dir`] runs pulses → particles → tracks and writes
+//! `particles.csv`, `tracks.csv`, `tracks.npy` (when `run.npy`),
+//! `pulses.json` (from a recording), `summary.json`, `tracks.png` and
+//! `params.toml`; [`FileSink`] is the [`PtvSink`] behind it, for a caller
+//! that drives its own [`PtvStream`].
+//!
+//! The files are formatted on a thread of their own: formatting ~10⁶ rows
+//! per second of recording is about a fifth of the work of a full-frame
+//! run, and on a second core it overlaps tracking. Every file appears at
+//! the end, atomically; a run that fails leaves none behind.
+
+use std::collections::HashSet;
+use std::io::BufRead;
+use std::path::Path;
+
+use crate::cluster::Particle;
+use crate::error::{Error, Result};
+use crate::io::atomic::{create_output_dir, AtomicFile};
+use crate::io::{Anomalies, EventSource, StreamInfo};
+use crate::pulses::{PulseOptions, PulseReport};
+use crate::Geometry;
+
+use super::{
+    read_particles_csv, track_recording, write_summary_json, Linker, ParticlesCsvWriter, PtvSink,
+    PtvStream, RunParams, Summary, SummaryAcc, Track, TrackConfig, TrackerStats, TracksCsvWriter,
+    TracksNpyWriter,
+};
+
+/// Which pass over the input a [`TrackProgress`] report is about.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TrackStage {
+    /// The first pass over a recording: finding the pulse times.
+    PulseTiming,
+    /// The second pass: clustering and linking.
+    Tracking,
+}
+
+/// What [`track_to_dir`] reports to its progress callback as it goes.
+#[derive(Clone, Copy, Debug)]
+#[non_exhaustive]
+pub enum TrackProgress<'a> {
+    /// A pass over the input starts; `file_size` is its size in bytes when
+    /// known.
+    Stage {
+        stage: TrackStage,
+        file_size: Option<u64>,
+    },
+    /// After each chunk read: the bytes read and events decoded so far in
+    /// this pass; `done` on the last chunk.
+    Read {
+        stage: TrackStage,
+        bytes: u64,
+        events: u64,
+        done: bool,
+    },
+    /// After each pulse tracked: particles found so far and tracks active.
+    Pulse {
+        particles: u64,
+        active_tracks: usize,
+    },
+    /// A reader's warning about the input (e.g. a header it could not use).
+    Warning(&'a str),
+    /// Tracking is done; the output files are being committed.
+    Writing,
+}
+
+/// What [`track_to_dir`] did, besides writing its files.
+#[derive(Clone, Debug)]
+pub struct DirRun {
+    /// The run's `summary.json`.
+    pub summary: Summary,
+    /// The pulse analysis (`pulses.json`); `None` for a `particles.csv`
+    /// input.
+    pub pulses: Option<PulseReport>,
+    /// Events that fell outside every pulse window.
+    pub unassigned_events: u64,
+}
+
+/// Track `input` (a recording in any supported event format, or a
+/// `particles.csv`: then linking only) with `config` and write the outputs
+/// into `out` (created if missing). `on_progress` receives
+/// [`TrackProgress`] reports, from the reading threads too.
+///
+/// A `config.run.hot_pixels` file is read into `config.cluster.hot_pixels`
+/// (the written `params.toml` then holds the pixels themselves).
+pub fn track_to_dir(
+    input: &Path,
+    config: &TrackConfig,
+    out: &Path,
+    on_progress: &(dyn Fn(TrackProgress<'_>) + Sync),
+) -> Result<DirRun> {
+    let mut config = config.clone();
+    if let Some(p) = config.run.hot_pixels.take() {
+        config.cluster.hot_pixels.extend(read_hot_pixels(&p)?);
+    }
+    let TrackConfig {
+        run,
+        cluster,
+        track: mut tparams,
+    } = config.clone();
+    if let Some([u, v]) = run.prior {
+        tparams.prior = Some(super::FlowPrior::uniform(u, v));
+    }
+    let mut stream = match run.linker {
+        Linker::Sequential => PtvStream::new(cluster, tparams, run.batch)?,
+        Linker::Sliced => PtvStream::sliced(cluster, tparams, run.slicing(), run.batch)
+            .map_err(|e| Error::analysis(format!("run.slice_pulses / run.slice_overlap: {e}")))?,
+    };
+    create_output_dir(out)?;
+    // Written with the other outputs, once tracking succeeded.
+    let params_toml = config.to_toml()?;
+    let write_params = || AtomicFile::write_all_to(out.join("params.toml"), params_toml.as_bytes());
+    let mut sink = FileSink::create(out, &run)?;
+
+    if is_particles_csv(input) {
+        on_progress(TrackProgress::Stage {
+            stage: TrackStage::Tracking,
+            file_size: std::fs::metadata(input).ok().map(|m| m.len()),
+        });
+        let particles = read_particles_csv(input)?;
+        let mut order: Vec<usize> = (0..particles.len()).collect();
+        order.sort_by_key(|&i| particles[i].pulse);
+        let sorted: Vec<Particle> = order.iter().map(|&i| particles[i]).collect();
+        let mut s = 0;
+        while s < sorted.len() {
+            let mut e = s;
+            while e < sorted.len() && sorted[e].pulse == sorted[s].pulse {
+                e += 1;
+            }
+            stream.push_particles(sorted[s].pulse, sorted[s].t_us, &sorted[s..e], &mut sink)?;
+            let (particles, active_tracks) = stream.progress();
+            on_progress(TrackProgress::Pulse {
+                particles,
+                active_tracks,
+            });
+            s = e;
+        }
+        let stats = stream.finish(&mut sink)?;
+        on_progress(TrackProgress::Writing);
+        write_params()?;
+        let summary = sink.finish(&stats, None)?;
+        return Ok(DirRun {
+            summary,
+            pulses: None,
+            unassigned_events: 0,
+        });
+    }
+
+    let opts = PulseOptions {
+        pulse_hz: run.pulse_hz,
+        ignore_triggers: run.ignore_triggers,
+        require_pulsed: !run.force_pulses,
+        ..Default::default()
+    };
+    let geometry = {
+        let src = crate::io::open(input)?;
+        for w in src.warnings() {
+            on_progress(TrackProgress::Warning(&w));
+        }
+        src.info().geometry
+    };
+    // The recording is read twice: pulse timing, then tracking.
+    let passes = std::sync::atomic::AtomicUsize::new(0);
+    let open = || -> Result<Box<dyn EventSource + '_>> {
+        let inner = crate::io::open_for_analysis(input)?;
+        let stage = match passes.fetch_add(1, std::sync::atomic::Ordering::Relaxed) {
+            0 => TrackStage::PulseTiming,
+            _ => TrackStage::Tracking,
+        };
+        on_progress(TrackProgress::Stage {
+            stage,
+            file_size: inner.info().file_size,
+        });
+        Ok(Box::new(Observed {
+            inner,
+            stage,
+            events: 0,
+            on_progress,
+        }))
+    };
+    let run_result = track_recording(&open, &opts, stream, &mut sink, &mut |s| {
+        let (particles, active_tracks) = s.progress();
+        on_progress(TrackProgress::Pulse {
+            particles,
+            active_tracks,
+        });
+    })?;
+    on_progress(TrackProgress::Writing);
+    let json = serde_json::to_vec_pretty(&run_result.pulses)
+        .map_err(|e| Error::analysis(format!("pulses.json: {e}")))?;
+    AtomicFile::write_all_to(out.join("pulses.json"), &json)?;
+    write_params()?;
+    let summary = sink.finish(
+        &run_result.stats,
+        geometry.map(|g| (g.width as f64, g.height as f64)),
+    )?;
+    Ok(DirRun {
+        summary,
+        pulses: Some(run_result.pulses),
+        unassigned_events: run_result.unassigned_events,
+    })
+}
+
+/// Reads pixels to ignore from `path`: one `x,y` per line (a header line
+/// and blank lines are skipped).
+pub fn read_hot_pixels(path: &Path) -> Result<HashSet<(u16, u16)>> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let mut set = HashSet::new();
+    for (i, line) in text.lines().enumerate() {
+        let f: Vec<&str> = line.split(',').map(|s| s.trim()).collect();
+        if f.len() < 2 || line.trim().is_empty() {
+            continue;
+        }
+        match (f[0].parse::<u16>(), f[1].parse::<u16>()) {
+            (Ok(x), Ok(y)) => {
+                set.insert((x, y));
+            }
+            _ if i == 0 => {} // header
+            _ => {
+                return Err(Error::analysis(format!(
+                    "{}: line {}: expected `x,y` pixel coordinates, got `{line}`",
+                    path.display(),
+                    i + 1
+                )))
+            }
+        }
+    }
+    Ok(set)
+}
+
+/// True when the file's first line looks like a particles.csv header (has
+/// a `pulse` column; event CSVs do not). Missing columns are then reported
+/// by the particles.csv reader.
+fn is_particles_csv(path: &Path) -> bool {
+    let Ok(f) = std::fs::File::open(path) else {
+        return false;
+    };
+    let mut line = String::new();
+    if std::io::BufReader::new(f).read_line(&mut line).is_err() {
+        return false;
+    }
+    let cols: Vec<&str> = line.trim().split(',').map(|c| c.trim()).collect();
+    cols.contains(&"pulse")
+}
+
+/// An [`EventSource`] that reports its reading to the progress callback.
+struct Observed<'a> {
+    inner: Box<dyn EventSource>,
+    stage: TrackStage,
+    events: u64,
+    on_progress: &'a (dyn Fn(TrackProgress<'_>) + Sync),
+}
+
+impl EventSource for Observed<'_> {
+    fn info(&self) -> &StreamInfo {
+        self.inner.info()
+    }
+
+    fn next_chunk(&mut self, chunk: &mut crate::Chunk) -> Result<bool> {
+        let more = self.inner.next_chunk(chunk)?;
+        self.events += chunk.events.len() as u64;
+        (self.on_progress)(TrackProgress::Read {
+            stage: self.stage,
+            bytes: self.inner.bytes_read(),
+            events: self.events,
+            done: !more,
+        });
+        Ok(more)
+    }
+
+    fn anomalies(&self) -> Anomalies {
+        self.inner.anomalies()
+    }
+
+    fn bytes_read(&self) -> u64 {
+        self.inner.bytes_read()
+    }
+
+    fn warnings(&self) -> Vec<String> {
+        self.inner.warnings()
+    }
+
+    fn rejected_geometry(&self) -> Option<Geometry> {
+        self.inner.rejected_geometry()
+    }
+}
+
+/// What the tracking thread hands to the writer thread.
+enum Output {
+    /// A pulse's index and particles.
+    Particles(i64, Vec<Particle>),
+    Tracks(Vec<Track>),
+}
+
+/// The outputs of one run, on their own thread ([`FileSink`] feeds it):
+/// the CSV/NPY writers, the summary and the figure's polylines.
+struct Writer {
+    particles_out: ParticlesCsvWriter,
+    tracks_out: TracksCsvWriter,
+    npy_out: Option<TracksNpyWriter>,
+    summary: SummaryAcc,
+    first_pulse: Option<i64>,
+    plot_pulses: i64,
+    plot_lines: Vec<Vec<(f64, f64)>>,
+    plot_speeds: Vec<f64>,
+    width: f64,
+    height: f64,
+}
+
+impl Writer {
+    fn create(out: &Path, npy: bool, plot_pulses: i64) -> Result<Self> {
+        Ok(Writer {
+            particles_out: ParticlesCsvWriter::create(&out.join("particles.csv"))?,
+            tracks_out: TracksCsvWriter::create(&out.join("tracks.csv"))?,
+            npy_out: npy
+                .then(|| TracksNpyWriter::create(&out.join("tracks.npy")))
+                .transpose()?,
+            summary: SummaryAcc::default(),
+            first_pulse: None,
+            plot_pulses,
+            plot_lines: Vec::new(),
+            plot_speeds: Vec::new(),
+            width: 0.0,
+            height: 0.0,
+        })
+    }
+
+    /// Write everything that arrives until the channel closes.
+    fn run(mut self, rx: std::sync::mpsc::Receiver<Output>) -> Result<Self> {
+        for msg in rx {
+            match msg {
+                Output::Particles(pulse, ps) => self.particles(pulse, &ps)?,
+                Output::Tracks(ts) => self.tracks(&ts)?,
+            }
+        }
+        Ok(self)
+    }
+
+    fn particles(&mut self, pulse: i64, ps: &[Particle]) -> Result<()> {
+        self.first_pulse.get_or_insert(pulse);
+        for p in ps {
+            self.width = self.width.max(p.x + 1.0);
+            self.height = self.height.max(p.y + 1.0);
+        }
+        self.particles_out.write(ps)
+    }
+
+    fn tracks(&mut self, tracks: &[Track]) -> Result<()> {
+        self.tracks_out.write(tracks)?;
+        if let Some(npy) = &mut self.npy_out {
+            npy.write(tracks)?;
+        }
+        self.summary.add(tracks);
+        let end = self.first_pulse.unwrap_or(0) + self.plot_pulses;
+        for t in tracks {
+            let pts: Vec<(f64, f64)> = t
+                .points
+                .iter()
+                .filter(|p| p.pulse < end)
+                .map(|p| (p.x, p.y))
+                .collect();
+            if pts.len() >= 2 {
+                let speed =
+                    t.points.iter().map(|p| p.u.hypot(p.v)).sum::<f64>() / t.points.len() as f64;
+                self.plot_lines.push(pts);
+                self.plot_speeds.push(speed);
+            }
+        }
+        Ok(())
+    }
+
+    /// Commits the files, writes summary.json and tracks.png (`size`: the
+    /// sensor's, else the extent of the particles).
+    fn finish(self, stats: &TrackerStats, out: &Path, size: Option<(f64, f64)>) -> Result<Summary> {
+        let summary = self.summary.summary(stats);
+        // The big files' commits wait for the disk (their sync) and the
+        // figure is CPU work: nothing else runs at this point, so they run
+        // side by side instead of one after another.
+        let Writer {
+            particles_out,
+            tracks_out,
+            npy_out,
+            first_pulse,
+            plot_pulses,
+            plot_lines,
+            plot_speeds,
+            width: seen_width,
+            height: seen_height,
+            ..
+        } = self;
+        let (width, height) = size.unwrap_or((seen_width.max(1.0), seen_height.max(1.0)));
+        std::thread::scope(|scope| -> Result<()> {
+            let particles = scope.spawn(move || particles_out.finish());
+            let tracks = scope.spawn(move || tracks_out.finish());
+            let npy = npy_out.map(|npy| scope.spawn(move || npy.finish()));
+            let rest = write_summary_json(&out.join("summary.json"), &summary).and_then(|()| {
+                crate::plot::polylines(
+                    &out.join("tracks.png"),
+                    &crate::plot::Polylines {
+                        title: &format!(
+                            "tracks, pulses {}..{}",
+                            first_pulse.unwrap_or(0),
+                            first_pulse.unwrap_or(0) + plot_pulses
+                        ),
+                        width,
+                        height,
+                        lines: &plot_lines,
+                        values: &plot_speeds,
+                        colorbar_label: "speed (px/s)",
+                    },
+                )
+            });
+            let join = |h: std::thread::ScopedJoinHandle<'_, Result<()>>| {
+                h.join().unwrap_or_else(|e| std::panic::resume_unwind(e))
+            };
+            // Every commit is waited for; the first error is reported.
+            let particles = join(particles);
+            let tracks = join(tracks);
+            let npy = npy.map(join).unwrap_or(Ok(()));
+            particles?;
+            tracks?;
+            npy?;
+            rest
+        })?;
+        Ok(summary)
+    }
+}
+
+/// Track points per message to the writer (×128 messages in the channel:
+/// ~40 MB at most waiting).
+const MESSAGE_POINTS: usize = 4096;
+
+/// A [`PtvSink`] that writes a run's files into a directory:
+/// `particles.csv`, `tracks.csv`, `tracks.npy` (when `run.npy`), and at
+/// [`FileSink::finish`] `summary.json` and `tracks.png`. Results go to a
+/// writer thread through a bounded channel, so a slow disk holds the
+/// tracker back instead of filling memory. Dropped without `finish` (an
+/// error on the way), it writes no file.
+pub struct FileSink {
+    out: std::path::PathBuf,
+    tx: Option<std::sync::mpsc::SyncSender<Output>>,
+    writer: Option<std::thread::JoinHandle<Result<Writer>>>,
+}
+
+impl FileSink {
+    /// Starts the writer for the outputs in `out` (which must exist), with
+    /// the `npy` and `plot_pulses` options of `run`.
+    pub fn create(out: &Path, run: &RunParams) -> Result<Self> {
+        let writer = Writer::create(out, run.npy, run.plot_pulses)?;
+        let (tx, rx) = std::sync::mpsc::sync_channel(128);
+        let handle = std::thread::Builder::new()
+            .name("ebptv-track-writer".into())
+            .spawn(move || writer.run(rx))
+            .map_err(|e| Error::analysis(format!("starting the output writer thread: {e}")))?;
+        Ok(FileSink {
+            out: out.to_path_buf(),
+            tx: Some(tx),
+            writer: Some(handle),
+        })
+    }
+
+    fn send(&mut self, msg: Output) -> Result<()> {
+        let Some(tx) = self.tx.as_ref() else {
+            return Err(Error::analysis("the output writer stopped early"));
+        };
+        if tx.send(msg).is_ok() {
+            return Ok(());
+        }
+        // The writer stopped: it failed; report its error.
+        self.tx = None;
+        match self.join() {
+            Err(e) => Err(e),
+            Ok(_) => Err(Error::analysis("the output writer stopped early")),
+        }
+    }
+
+    fn join(&mut self) -> Result<Writer> {
+        let Some(handle) = self.writer.take() else {
+            return Err(Error::analysis("the output writer stopped early"));
+        };
+        handle
+            .join()
+            .unwrap_or_else(|e| std::panic::resume_unwind(e))
+    }
+
+    /// Commits the files and writes `summary.json` (from `stats`, the
+    /// tracker's counters) and `tracks.png`, drawn over `size` (the
+    /// sensor's width and height; `None`: the extent of the particles).
+    pub fn finish(mut self, stats: &TrackerStats, size: Option<(f64, f64)>) -> Result<Summary> {
+        self.tx = None; // closes the channel: the writer drains it and returns
+        let writer = self.join()?;
+        writer.finish(stats, &self.out, size)
+    }
+}
+
+/// On an error the run ends without `finish`: close the channel and wait
+/// for the writer, whose uncommitted files then remove themselves (no
+/// temporary files left behind).
+impl Drop for FileSink {
+    fn drop(&mut self) {
+        self.tx = None;
+        if let Some(handle) = self.writer.take() {
+            let _ = handle.join();
+        }
+    }
+}
+
+impl PtvSink for FileSink {
+    fn particles(&mut self, pulse: i64, t_us: f64, ps: &[Particle]) -> Result<()> {
+        self.take_particles(pulse, t_us, ps.to_vec())
+    }
+
+    fn take_particles(&mut self, pulse: i64, _t_us: f64, ps: Vec<Particle>) -> Result<()> {
+        self.send(Output::Particles(pulse, ps))
+    }
+
+    fn tracks(&mut self, tracks: &[Track]) -> Result<()> {
+        self.take_tracks(tracks.to_vec())
+    }
+
+    /// Large hand-outs (the sliced linker's come a group of slices at a
+    /// time) go in messages of at most [`MESSAGE_POINTS`] points, so the
+    /// bounded channel bounds the memory waiting for the writer.
+    fn take_tracks(&mut self, tracks: Vec<Track>) -> Result<()> {
+        let mut chunk = Vec::new();
+        let mut points = 0;
+        for t in tracks {
+            points += t.points.len();
+            chunk.push(t);
+            if points >= MESSAGE_POINTS {
+                self.send(Output::Tracks(std::mem::take(&mut chunk)))?;
+                points = 0;
+            }
+        }
+        if chunk.is_empty() {
+            return Ok(());
+        }
+        self.send(Output::Tracks(chunk))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::atomic::{AtomicU64, Ordering};
+
+    /// Two particles crossing the field at constant speed, 12 pulses.
+    fn write_particles(path: &Path) {
+        let mut text = String::from("pulse,t_us,x,y,n_events\n");
+        for k in 0..12 {
+            let t = 200.0 * k as f64;
+            let k = k as f64;
+            text.push_str(&format!("{k},{t},{},{},2\n", 20.0 + 3.0 * k, 30.0));
+            text.push_str(&format!("{k},{t},{},{},2\n", 60.0, 80.0 - 2.0 * k));
+        }
+        std::fs::write(path, text).unwrap();
+    }
+
+    #[test]
+    fn particles_csv_into_a_directory() {
+        let dir = tempfile::tempdir().unwrap();
+        let input = dir.path().join("particles.csv");
+        write_particles(&input);
+        let out = dir.path().join("out");
+        let pulses = AtomicU64::new(0);
+        let writing = AtomicU64::new(0);
+        let run = track_to_dir(&input, &TrackConfig::default(), &out, &|p| match p {
+            TrackProgress::Pulse { .. } => {
+                pulses.fetch_add(1, Ordering::Relaxed);
+            }
+            TrackProgress::Writing => {
+                writing.fetch_add(1, Ordering::Relaxed);
+            }
+            _ => {}
+        })
+        .unwrap();
+        assert_eq!(pulses.load(Ordering::Relaxed), 12);
+        assert_eq!(writing.load(Ordering::Relaxed), 1);
+        assert!(run.pulses.is_none());
+        assert_eq!(run.summary.pulses, 12);
+        assert_eq!(run.summary.particles, 24);
+        assert_eq!(run.summary.tracks, 2);
+        for f in [
+            "particles.csv",
+            "tracks.csv",
+            "summary.json",
+            "tracks.png",
+            "params.toml",
+        ] {
+            assert!(out.join(f).is_file(), "{f} missing");
+        }
+        assert!(!out.join("tracks.npy").exists());
+        let tracks = super::super::read_tracks_csv(&out.join("tracks.csv")).unwrap();
+        assert_eq!(tracks.len(), 2);
+    }
+
+    #[test]
+    fn a_failed_run_leaves_no_files() {
+        let dir = tempfile::tempdir().unwrap();
+        let input = dir.path().join("missing.raw");
+        let out = dir.path().join("out");
+        let err = track_to_dir(&input, &TrackConfig::default(), &out, &|_| {}).unwrap_err();
+        assert!(err.to_string().contains("missing.raw"), "{err}");
+        let left: Vec<_> = std::fs::read_dir(&out)
+            .map(|d| d.filter_map(|e| e.ok()).map(|e| e.file_name()).collect())
+            .unwrap_or_default();
+        assert!(left.is_empty(), "{left:?}");
+    }
+}
