@@ -40,7 +40,7 @@ use crate::error::{Error, Result};
 use crate::events::{Chunk, Edge, Geometry, Trigger};
 use crate::{Anomalies, EventSource, Format, StreamInfo};
 
-pub const MAGIC: &[u8; 14] = b"#!AER-DAT4.0\r\n";
+pub(crate) const MAGIC: &[u8; 14] = b"#!AER-DAT4.0\r\n";
 /// Largest packet, compressed or decompressed, that the reader accepts.
 pub const MAX_PACKET_BYTES: usize = 256 << 20;
 /// Largest IOHeader accepted.
@@ -57,7 +57,7 @@ pub enum Compression {
 }
 
 impl Compression {
-    pub fn from_code(c: i32) -> Option<Self> {
+    pub(crate) fn from_code(c: i32) -> Option<Self> {
         Some(match c {
             0 => Compression::None,
             1 => Compression::Lz4,
@@ -166,7 +166,7 @@ fn root(b: &[u8], base: usize, ident: &[u8; 4]) -> std::result::Result<Table, St
 
 /// One stream declared in the header's XML.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
-pub struct StreamDecl {
+pub(crate) struct StreamDecl {
     pub id: i32,
     pub type_identifier: String,
     pub name: String,
@@ -184,7 +184,7 @@ fn xml_attr_value(tag: &str, name: &str) -> Option<String> {
 /// Streams under `outInfo` in dv's XML: `<node name="outInfo">` /
 /// `<node name="ID">` / `<attr key="typeIdentifier">EVTS</attr>` and
 /// `<node name="info">` / `<attr key="sizeX">346</attr>`.
-pub fn parse_streams(xml: &str) -> Vec<StreamDecl> {
+pub(crate) fn parse_streams(xml: &str) -> Vec<StreamDecl> {
     let mut streams: Vec<StreamDecl> = Vec::new();
     let mut stack: Vec<String> = Vec::new();
     let mut rest = xml;

@@ -26,7 +26,7 @@ use crate::{Anomalies, Format};
 
 const MAX_TIME_BASE: u64 = ((1 << 28) - 1) << 6;
 /// Period of the 34-bit clock, µs.
-pub const TIME_LOOP_US: u64 = MAX_TIME_BASE + (1 << 6);
+pub(crate) const TIME_LOOP_US: u64 = MAX_TIME_BASE + (1 << 6);
 const LOOP_THRESHOLD: u64 = 10 << 6;
 
 /// Unwrap a 28-bit TIME_HIGH field into a full time base (shared by EVT 2.0
@@ -204,7 +204,7 @@ impl WordDecoder for Evt2Decoder {
 
 /// EVT 2.0 writer (through [`AtomicFile`]: nothing appears at the target
 /// until [`crate::EventWriter::finish`]).
-pub struct Evt2Writer {
+pub(crate) struct Evt2Writer {
     raw: RawWordWriter<u32>,
 }
 

@@ -52,7 +52,7 @@ const TIME_HIGH_BITS: u32 = 12;
 /// Largest time base a TIME_HIGH can express, µs.
 const MAX_TIME_BASE: u64 = ((1 << 12) - 1) << 12;
 /// Period of the 24-bit clock, µs.
-pub const TIME_LOOP_US: u64 = MAX_TIME_BASE + (1 << 12);
+pub(crate) const TIME_LOOP_US: u64 = MAX_TIME_BASE + (1 << 12);
 /// Tolerance of the loop detection (reference decoder's value), µs.
 const LOOP_THRESHOLD: u64 = 10 << 12;
 

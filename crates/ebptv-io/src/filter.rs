@@ -90,12 +90,6 @@ pub struct Selection {
 }
 
 impl Selection {
-    pub fn is_everything(&self) -> bool {
-        self.from_us.is_none()
-            && self.to_us.is_none()
-            && self.roi.is_none()
-            && self.polarity == PolaritySelect::Both
-    }
     pub fn validate(&self) -> Result<()> {
         if let (Some(a), Some(b)) = (self.from_us, self.to_us) {
             if b <= a {

@@ -36,7 +36,7 @@ pub const TIME_JUMP_US: i64 = 5_000_000;
 pub const JUMP_PERSIST_US: i64 = 100_000;
 
 /// True for a geometry some sensor can have.
-pub fn plausible_geometry(g: Geometry) -> bool {
+pub(crate) fn plausible_geometry(g: Geometry) -> bool {
     g.width > 0 && g.height > 0 && g.width <= MAX_SENSOR_SIDE && g.height <= MAX_SENSOR_SIDE
 }
 

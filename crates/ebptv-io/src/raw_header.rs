@@ -246,7 +246,7 @@ pub(crate) fn stream_info(path: &Path, format: Format, header: &RawHeader) -> Re
 }
 
 /// Default size of the payload read buffer.
-pub const READ_BUFFER_BYTES: usize = 1 << 20;
+pub(crate) const READ_BUFFER_BYTES: usize = 1 << 20;
 
 /// Reads a RAW payload through one fixed-size buffer, handing out whole
 /// words (`word_bytes` = 2, 4 or 8) and carrying a partial word over to the
@@ -308,7 +308,7 @@ impl PayloadReader {
     /// Mark `n` bytes (a whole number of words) of the last `words()` slice
     /// consumed.
     #[inline]
-    pub fn consume(&mut self, n: usize) {
+    pub(crate) fn consume(&mut self, n: usize) {
         debug_assert!(n % self.word_bytes == 0 && self.start + n <= self.end);
         self.start += n;
         self.consumed += n as u64;
@@ -341,7 +341,7 @@ impl PayloadReader {
     }
 
     /// At end of file: the bytes left over that do not form a whole word.
-    pub fn trailing_partial_bytes(&self) -> u64 {
+    pub(crate) fn trailing_partial_bytes(&self) -> u64 {
         if self.eof {
             ((self.end - self.start) % self.word_bytes) as u64
         } else {
@@ -349,12 +349,8 @@ impl PayloadReader {
         }
     }
 
-    pub fn at_eof(&self) -> bool {
-        self.eof && self.end - self.start < self.word_bytes
-    }
-
     /// File offset of the next unconsumed byte.
-    pub fn file_offset(&self) -> u64 {
+    pub(crate) fn file_offset(&self) -> u64 {
         self.payload_offset + self.consumed
     }
 

@@ -413,7 +413,7 @@ impl Flow {
     }
 
     /// Whether (x, y) is fluid (particles are seeded and recycled only there).
-    pub fn is_fluid(&self, _x: f64, y: f64) -> bool {
+    pub(crate) fn is_fluid(&self, _x: f64, y: f64) -> bool {
         match self {
             Flow::Poiseuille { y0, width, .. } => y >= *y0 && y <= y0 + width,
             Flow::BoundaryLayer { wall_y, .. } => y < *wall_y,

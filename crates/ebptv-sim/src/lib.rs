@@ -73,7 +73,7 @@ pub mod scenario;
 pub mod seeding;
 
 pub use flow::Flow;
-pub use record::{write_recording, RecordingSummary, TruthWriter};
+pub use record::{write_recording, RecordingSummary};
 pub use scenario::{Scenario, EFFECT_NAMES};
 
 use ebptv_io::error::{Error, Result};
@@ -353,7 +353,8 @@ pub fn sort_requests_reference(reqs: &mut [pixel::Arrival], t_begin: f64) {
 
 /// The simulator's request sort ([`KeyLayout`] keys through
 /// [`radix_sort_above`]) for requests inside `roi` (for tests).
-pub fn sort_requests(reqs: &mut [pixel::Arrival], t_begin: f64, roi: scenario::Roi) {
+#[cfg(test)]
+pub(crate) fn sort_requests(reqs: &mut [pixel::Arrival], t_begin: f64, roi: scenario::Roi) {
     let layout = KeyLayout::new(roi);
     let mut keys: Vec<u64> = reqs.iter().map(|a| layout.key(a, t_begin)).collect();
     sort_request_keys(&mut keys, &mut Vec::new(), layout);

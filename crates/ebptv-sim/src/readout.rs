@@ -67,7 +67,7 @@ impl Refractory {
     /// [`Self::keep`] for a request at time `t` of the pixel at (`dx`,
     /// `dy`) from the ROI's corner.
     #[inline(always)]
-    pub fn keep_at(&mut self, dx: usize, dy: usize, t: f64) -> bool {
+    pub(crate) fn keep_at(&mut self, dx: usize, dy: usize, t: f64) -> bool {
         let last = &mut self.last[dy * self.roi.width as usize + dx];
         if t - *last >= self.period_us {
             *last = t;
@@ -79,7 +79,7 @@ impl Refractory {
 
     /// Whether request `a` would pass now (no state change).
     #[inline]
-    pub fn would_keep(&self, a: &Arrival) -> bool {
+    pub(crate) fn would_keep(&self, a: &Arrival) -> bool {
         a.t - self.last[self.index(a)] >= self.period_us
     }
 
@@ -232,7 +232,7 @@ impl Arbiter {
     /// [`Self::offer`] for a request at time `t` of the pixel at (`dx`,
     /// `dy`) from the ROI's corner with polarity `p` (0 or 1).
     #[inline(always)]
-    pub fn offer_at(
+    pub(crate) fn offer_at(
         &mut self,
         t: f64,
         dx: usize,
@@ -452,7 +452,7 @@ pub(crate) fn prefetch_ptr<T>(p: *const T) {
 }
 
 /// Stamp requests without a readout bottleneck: each at its own time.
-pub fn stamp_ideal(reqs: &[Arrival], out: &mut EventChunk) {
+pub(crate) fn stamp_ideal(reqs: &[Arrival], out: &mut EventChunk) {
     for a in reqs {
         out.push(floor_i64(a.t), a.x, a.y, a.p);
     }

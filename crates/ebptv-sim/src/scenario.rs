@@ -215,7 +215,7 @@ pub struct ClockDrift {
 
 impl ClockDrift {
     /// δ(τ) (µs) for laser time τ (µs since pulse 0).
-    pub fn offset_us(&self, tau_us: f64) -> f64 {
+    pub(crate) fn offset_us(&self, tau_us: f64) -> f64 {
         let p = self.wander_period_s * 1e6;
         let wander = self.wander_ppm * p / std::f64::consts::TAU
             * (1.0 - (std::f64::consts::TAU * tau_us / p).cos());
@@ -548,7 +548,7 @@ impl Scenario {
 
     /// Start of pulse `k` in camera time (µs): `first_pulse_us + k·period`,
     /// moved by the `clock_drift` effect when it is on.
-    pub fn pulse_start_us(&self, k: u64) -> f64 {
+    pub(crate) fn pulse_start_us(&self, k: u64) -> f64 {
         let tau = k as f64 * self.period_us();
         let drift = self.light.clock_drift.map_or(0.0, |c| c.offset_us(tau));
         self.light.first_pulse_us + tau + drift

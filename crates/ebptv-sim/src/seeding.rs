@@ -236,7 +236,7 @@ impl Particles {
 
     /// Whether the particle is lit by the sheet.
     #[inline]
-    pub fn in_sheet(&self, p: &Particle) -> bool {
+    pub(crate) fn in_sheet(&self, p: &Particle) -> bool {
         p.z.abs() <= self.sheet_half
     }
 
@@ -257,7 +257,7 @@ impl Particles {
     /// time, the lists of an earlier call reused: a block's snapshots are
     /// ~1.5 MB at full frame, whose fresh pages cost more system time
     /// than the copy into them).
-    pub fn advance_and_snapshot_into(
+    pub(crate) fn advance_and_snapshot_into(
         &mut self,
         flow: &Flow,
         t0: f64,

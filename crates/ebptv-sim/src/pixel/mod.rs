@@ -65,6 +65,7 @@ pub struct PixelModel {
     mismatch: Option<(f64, u64)>,
     /// The smallest threshold any pixel can have (ON or OFF): signals
     /// below it cannot fire.
+    #[cfg(test)]
     c_floor: f64,
     /// [`f32_at_least`]`(c_floor)`: the same test on the f32 sums
     /// without converting each touched pixel's sum to f64.
@@ -160,6 +161,7 @@ impl PixelModel {
             streak_nodes,
             background_rate: sc.noise.background_noise.map(|b| b.rate_hz),
             hot,
+            #[cfg(test)]
             c_floor,
             c_floor_f32: f32_at_least(c_floor),
             quad: QuadTable::new(&table),
@@ -366,7 +368,8 @@ impl PixelModel {
     /// The summed signal of every pixel the fast path gives a non-zero
     /// sum for one pulse, in ROI-index order: `(roi_index, signal)`
     /// (tests compare it with [`Self::pixel_signals_reference`]).
-    pub fn pixel_signals(&self, snaps: &[Snapshot]) -> Vec<(u32, f32)> {
+    #[cfg(test)]
+    pub(crate) fn pixel_signals(&self, snaps: &[Snapshot]) -> Vec<(u32, f32)> {
         let mut v = Vec::new();
         // (The least positive f32: every pixel with a non-zero sum.)
         self.render_signals(snaps, f32::from_bits(1), &mut v);
@@ -577,7 +580,8 @@ impl PixelModel {
     /// ([`Self::pixel_signals_reference`]), responses with libm's
     /// logarithms; pixels in ROI-index order, so the random draws pair up
     /// with the fast path's.
-    pub fn render_pulse_reference(
+    #[cfg(test)]
+    pub(crate) fn render_pulse_reference(
         &self,
         snaps: &[Snapshot],
         t_pulse_us: f64,
@@ -617,6 +621,7 @@ impl PixelModel {
     /// resolution).
     #[allow(clippy::too_many_arguments)]
     #[inline]
+    #[cfg(test)]
     fn respond<const EXACT: bool>(
         &self,
         idx: u32,
