@@ -143,7 +143,7 @@ impl RegularGrid {
     }
     /// Bilinear interpolation of a rastered field; NaN outside the hull or
     /// when a surrounding node is NaN.
-    pub fn bilinear(&self, field: &[f64], x: f64, y: f64) -> f64 {
+    pub(crate) fn bilinear(&self, field: &[f64], x: f64, y: f64) -> f64 {
         let seg = |axis: &[f64], v: f64| -> Option<(usize, f64)> {
             if axis.len() == 1 {
                 return ((axis[0] - v).abs() < 1e-9).then_some((0, 0.0));

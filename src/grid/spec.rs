@@ -272,7 +272,7 @@ impl GridSpec {
 
     /// Row-major flat index of lattice bin (i, j), if inside the window.
     #[inline]
-    pub fn flat(&self, i: i64, j: i64) -> Option<usize> {
+    pub(crate) fn flat(&self, i: i64, j: i64) -> Option<usize> {
         let a = i - self.i0;
         let b = j - self.j0;
         if a < 0 || b < 0 || a as usize >= self.nx || b as usize >= self.ny {
@@ -288,7 +288,7 @@ impl GridSpec {
     }
 
     /// The smallest window holding both.
-    pub fn union(&self, o: &GridSpec) -> Result<GridSpec> {
+    pub(crate) fn union(&self, o: &GridSpec) -> Result<GridSpec> {
         let i0 = self.i0.min(o.i0);
         let j0 = self.j0.min(o.j0);
         let i1 = (self.i0 + self.nx as i64).max(o.i0 + o.nx as i64);

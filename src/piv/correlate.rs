@@ -454,7 +454,7 @@ impl Workspace {
     /// spectra: `acc += A*·B / sqrt(ea·eb)`. A window with no signal adds
     /// nothing.
     #[inline(always)]
-    pub fn accumulate(&mut self, a: &Spectrum, b: &Spectrum) {
+    pub(crate) fn accumulate(&mut self, a: &Spectrum, b: &Spectrum) {
         if !(a.energy > 0.0 && b.energy > 0.0) {
             return;
         }
@@ -673,7 +673,7 @@ pub(crate) fn subpixel3(lm: f32, c: f32, rp: f32) -> f64 {
 /// Highest peak of a circular correlation plane with a 3-point Gaussian
 /// sub-pixel estimate in x and y separately.
 #[inline(always)]
-pub fn find_peak(plane: &[f32], w: usize, h: usize) -> Peak {
+pub(crate) fn find_peak(plane: &[f32], w: usize, h: usize) -> Peak {
     // Maximum over 8 independent lanes (vectorises: the comparison form is
     // a plain `max` instruction), then the first chunk holding it, then its
     // first index: the same peak as a sequential scan, without its

@@ -176,7 +176,7 @@ impl PseudoImager {
     /// the image are ignored. Sparse frames are blurred by splatting the
     /// kernel around the lit pixels ([`blur_sparse`]), dense ones with the
     /// separable [`blur`]; both give the same image.
-    pub fn render(&mut self, events: &EventChunk, out: &mut Image) {
+    pub(crate) fn render(&mut self, events: &EventChunk, out: &mut Image) {
         out.width = self.width;
         out.height = self.height;
         out.data.clear();
@@ -262,7 +262,7 @@ impl FrameRing {
     }
 
     /// Forget all frames (e.g. after a gap in the pulse sequence).
-    pub fn clear(&mut self) {
+    pub(crate) fn clear(&mut self) {
         while let Some((_, f)) = self.frames.pop_front() {
             self.recycle(f);
         }

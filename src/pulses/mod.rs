@@ -94,7 +94,7 @@ pub use report::*;
 pub use split::*;
 
 pub(crate) use timing::ChannelEdges;
-pub use timing::Periodicity;
+pub(crate) use timing::Periodicity;
 
 /// Where the pulse times came from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]

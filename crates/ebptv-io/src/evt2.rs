@@ -40,7 +40,7 @@ pub(crate) struct TimeBase34 {
 impl TimeBase34 {
     /// Returns true when a loop was counted.
     #[inline]
-    pub fn update(&mut self, field: u32) -> bool {
+    pub(crate) fn update(&mut self, field: u32) -> bool {
         let mut new_base = ((field as u64 & 0x0FFF_FFFF) << 6) + self.loops * TIME_LOOP_US;
         let looped = self.base > new_base && self.base - new_base >= MAX_TIME_BASE - LOOP_THRESHOLD;
         if looped {

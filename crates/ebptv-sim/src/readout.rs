@@ -42,7 +42,8 @@ impl Refractory {
     }
 
     /// Filter time-ordered requests in place.
-    pub fn apply(&mut self, reqs: &mut Vec<Arrival>) {
+    #[cfg(test)]
+    pub(crate) fn apply(&mut self, reqs: &mut Vec<Arrival>) {
         reqs.retain(|a| self.keep(a));
     }
 
@@ -378,7 +379,7 @@ impl RateLimiter {
         }
     }
 
-    pub fn apply(&mut self, ev: &mut EventChunk) {
+    pub(crate) fn apply(&mut self, ev: &mut EventChunk) {
         ev.retain(|t, _, _, _| {
             let w = (t as f64 / self.window_us).floor() as i64;
             if w != self.window {
