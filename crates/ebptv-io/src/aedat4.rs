@@ -49,10 +49,15 @@ const MAX_HEADER_BYTES: u32 = 16 << 20;
 /// Packet compression of an AEDAT4 file.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Compression {
+    /// Packets stored as they are.
     None,
+    /// LZ4 frames.
     Lz4,
+    /// LZ4 frames at high compression (decoded the same way).
     Lz4High,
+    /// Zstandard frames.
     Zstd,
+    /// Zstandard frames at high compression (decoded the same way).
     ZstdHigh,
 }
 
@@ -67,9 +72,11 @@ impl Compression {
             _ => return None,
         })
     }
+    /// The compression code the IOHeader stores.
     pub fn code(self) -> i32 {
         self as i32
     }
+    /// The name the IOHeader and summaries use.
     pub fn name(self) -> &'static str {
         match self {
             Compression::None => "none",
@@ -244,6 +251,7 @@ enum Kind {
     Other,
 }
 
+/// Reads an AEDAT4 (iniVation) file packet by packet as an [`EventSource`](crate::EventSource).
 pub struct Aedat4Reader {
     info: StreamInfo,
     reader: BufReader<File>,
@@ -262,6 +270,7 @@ pub struct Aedat4Reader {
 }
 
 impl Aedat4Reader {
+    /// Opens `path` and reads its IOHeader; `chunk_events` is the target chunk size.
     pub fn open(path: &Path, chunk_events: usize) -> Result<Self> {
         let file = File::open(path).map_err(|e| Error::io(path, e))?;
         let file_size = file.metadata().map_err(|e| Error::io(path, e))?.len();

@@ -57,10 +57,12 @@ impl TimeBase34 {
 pub struct Evt2Decoder {
     have_time_base: bool,
     time: TimeBase34,
+    /// Malformed or unexpected words met so far.
     pub anomalies: Anomalies,
 }
 
 impl Evt2Decoder {
+    /// A decoder at the start of a stream.
     pub fn new() -> Self {
         Self::default()
     }

@@ -75,10 +75,12 @@ pub struct Evt3Decoder {
     /// (exposure-measurement events follow, not CD).
     row: u8,
     vector: VectorState,
+    /// Malformed or unexpected words met so far.
     pub anomalies: Anomalies,
 }
 
 impl Evt3Decoder {
+    /// A decoder at the start of a stream.
     pub fn new() -> Self {
         Self::default()
     }
@@ -572,6 +574,7 @@ const EVT3_TIME: TimeSplit = TimeSplit {
 };
 
 impl Evt3Writer {
+    /// Creates a writer for `path`, a RAW file of `geometry`.
     pub fn create(path: &Path, geometry: Geometry) -> Result<Self> {
         Ok(Evt3Writer {
             raw: RawWordWriter::create(path, "EVT3", EVT3_TIME, geometry)?,

@@ -51,6 +51,7 @@ pub struct Checked {
 }
 
 impl Checked {
+    /// Wraps `inner`.
     pub fn new(inner: Box<dyn EventSource>) -> Self {
         let mut info = inner.info().clone();
         let mut warnings = Vec::new();
@@ -193,6 +194,7 @@ pub struct TimeGuard<S: EventSource> {
 }
 
 impl<S: EventSource> TimeGuard<S> {
+    /// Wraps `inner`.
     pub fn new(inner: S) -> Self {
         TimeGuard {
             inner,

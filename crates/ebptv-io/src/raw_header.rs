@@ -79,10 +79,13 @@ pub fn parse_percent_header(bytes: &[u8]) -> (Vec<(String, String)>, usize) {
 /// What a RAW header says (or implies) about the payload.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RawHeader {
+    /// The header's `% key value` lines, in file order.
     pub entries: Vec<(String, String)>,
+    /// Byte offset of the first payload word.
     pub payload_offset: u64,
     /// The encoding, when the header names or implies it.
     pub format: Option<Format>,
+    /// The sensor geometry, when the header states or implies it.
     pub geometry: Option<Geometry>,
     /// EVT 2.1 only: the two 32-bit halves of each 64-bit word are swapped
     /// (`endianness=legacy`, and the default of old `% evt 2.1` files).
@@ -266,6 +269,7 @@ pub struct PayloadReader {
 }
 
 impl PayloadReader {
+    /// Opens a RAW file and reads its header.
     pub fn open(
         path: &Path,
         payload_offset: u64,
@@ -354,6 +358,7 @@ impl PayloadReader {
         self.payload_offset + self.consumed
     }
 
+    /// The file being read.
     pub fn path(&self) -> &Path {
         &self.path
     }
