@@ -33,6 +33,7 @@ pub struct Refractory {
 }
 
 impl Refractory {
+    /// A refractory filter of `period_us` over `roi`.
     pub fn new(period_us: f64, roi: Roi) -> Self {
         Refractory {
             period_us,
@@ -97,6 +98,7 @@ impl Refractory {
     }
 }
 
+/// Row-arbitrated readout that delays events when many rows request at once.
 pub struct Arbiter {
     params: ArbiterSaturation,
     roi_x: u16,
@@ -131,6 +133,7 @@ pub struct Arbiter {
 }
 
 impl Arbiter {
+    /// An arbiter with the given timings over `roi`.
     pub fn new(params: ArbiterSaturation, roi: Roi) -> Self {
         let words_per_row = (roi.width as usize).div_ceil(64);
         assert!(words_per_row <= 64, "ROI wider than 4096 px");
@@ -370,6 +373,7 @@ pub struct RateLimiter {
 }
 
 impl RateLimiter {
+    /// A limiter allowing `max_rate_ev_s` events/s in windows of `window_us`.
     pub fn new(max_rate_ev_s: f64, window_us: f64) -> Self {
         RateLimiter {
             window_us,

@@ -549,14 +549,20 @@ pub fn truth_line_reference(line: &mut Vec<u8>, r: &TruthSample) {
 /// `summary.json`.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct RecordingSummary {
+    /// The scenario's name.
     pub scenario: String,
+    /// The seed of the run.
     pub seed: u64,
+    /// The recording written.
     pub recording: PathBuf,
+    /// Its encoding.
     pub format: Format,
     /// The run's counters, as top-level keys of the JSON.
     #[serde(flatten)]
     pub stats: SimStats,
+    /// Mean event rate (events/s).
     pub event_rate_ev_s: f64,
+    /// Mean events per lit particle and pulse.
     pub events_per_particle_per_pulse: f64,
 }
 

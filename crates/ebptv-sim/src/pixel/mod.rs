@@ -44,11 +44,15 @@ use ebptv_io::events::{OFF, ON};
 pub struct Arrival {
     /// Time the pixel requests readout (µs, fractional).
     pub t: f64,
+    /// Column (px).
     pub x: u16,
+    /// Row (px).
     pub y: u16,
+    /// Polarity (`ON` or `OFF`).
     pub p: u8,
 }
 
+/// The event pixels of a scenario: turns particle images at each pulse into pixel events.
 pub struct PixelModel {
     roi: Roi,
     light: Light,
@@ -93,6 +97,7 @@ pub struct PixelModel {
 }
 
 impl PixelModel {
+    /// The pixel model of scenario `sc`; `seed` fixes the fixed-pattern and per-event draws.
     pub fn new(sc: &Scenario, seed: u64) -> PixelModel {
         let roi = sc.roi();
         let n = roi.width as usize * roi.height as usize;
@@ -866,6 +871,7 @@ pub(crate) fn round_i64(v: f64) -> i64 {
 /// Where a pixel's events go: a list of arrivals (tests, the reference)
 /// or the simulator's request keys.
 pub trait ArrivalSink {
+    /// Receives one event.
     fn arrive(&mut self, a: Arrival);
     /// Events of pixel (x, y), all of polarity `p`, at `times` (in this
     /// order): what [`PixelModel::respond`] hands over, so a sink can do

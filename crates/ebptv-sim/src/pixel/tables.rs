@@ -387,6 +387,7 @@ impl LnTable {
         LnTable { nodes }
     }
 
+    /// Natural logarithm of `x` (x > 0).
     #[inline(always)]
     pub fn ln(&self, x: f64) -> f64 {
         let bits = x.to_bits();
@@ -452,6 +453,7 @@ impl ErfTable {
         ErfTable { nodes }
     }
 
+    /// The error function at `x`.
     #[inline(always)]
     pub fn eval(&self, x: f64) -> f64 {
         let ax = x.abs();
