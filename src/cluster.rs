@@ -316,7 +316,11 @@ fn fold_pixels(keyed: &[(u32, i64)]) -> Vec<PixelHits> {
 /// [`pulse_pixels`] by the plain route: a comparison sort of (pixel key,
 /// time) pairs, the earliest time of a pixel being its first after the
 /// sort. The reference the counting sort is tested against.
-pub fn pulse_pixels_reference(pulse: &PulseEvents, params: &ClusterParams) -> Vec<PixelHits> {
+#[cfg(test)]
+pub(crate) fn pulse_pixels_reference(
+    pulse: &PulseEvents,
+    params: &ClusterParams,
+) -> Vec<PixelHits> {
     let ev = &pulse.events;
     let mut keyed: Vec<(u32, i64)> = Vec::with_capacity(ev.len());
     let use_mask = !params.hot_pixels.is_empty();
@@ -409,7 +413,7 @@ pub fn pixel_labels(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u32> {
 /// Components are numbered by their first run, whose first pixel is the
 /// component's first pixel: the same labels as the sweep (tested, and
 /// `tests/cluster_oracle.rs`). Other radii go to the sweep.
-pub fn pixel_labels_runs(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u32> {
+pub(crate) fn pixel_labels_runs(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u32> {
     let max_d2 = params.max_d2();
     if !(1..=3).contains(&max_d2) {
         return pixel_labels_sweep(pixels, params);
@@ -469,7 +473,7 @@ pub fn pixel_labels_runs(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u3
 /// coordinates — for each pixel only rows `y..=y+R` (`R = ⌊√max_d2⌋`) can
 /// hold partners, and one forward-only cursor per row offset finds them
 /// in amortised O(1). Any radius; [`pixel_labels`] for radii above √3 px.
-pub fn pixel_labels_sweep(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u32> {
+pub(crate) fn pixel_labels_sweep(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u32> {
     let n = pixels.len();
     let mut uf = UnionFind::new(n);
     let max_d2 = params.max_d2();
@@ -521,7 +525,8 @@ pub fn pixel_labels_sweep(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u
 /// offset, the same row included, every pair distance-tested): the
 /// reference of [`pixel_labels`], which takes same-row partners without a
 /// test.
-pub fn pixel_labels_reference(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u32> {
+#[cfg(test)]
+pub(crate) fn pixel_labels_reference(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u32> {
     let n = pixels.len();
     let mut uf = UnionFind::new(n);
     let max_d2 = params.max_d2();

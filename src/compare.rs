@@ -120,7 +120,7 @@ fn uniq(v: &[f64]) -> Vec<f64> {
 }
 
 impl RegularGrid {
-    pub fn from_nodes(x: &[f64], y: &[f64]) -> Self {
+    pub(crate) fn from_nodes(x: &[f64], y: &[f64]) -> Self {
         RegularGrid {
             xs: uniq(x),
             ys: uniq(y),
@@ -132,7 +132,7 @@ impl RegularGrid {
             .or_else(|| axis.iter().position(|a| (a - v).abs() < 1e-6))
     }
     /// Fill a `ny × nx` row-major array with `vals` placed at their nodes.
-    pub fn raster(&self, x: &[f64], y: &[f64], vals: &[f64]) -> Vec<f64> {
+    pub(crate) fn raster(&self, x: &[f64], y: &[f64], vals: &[f64]) -> Vec<f64> {
         let mut out = vec![f64::NAN; self.xs.len() * self.ys.len()];
         for k in 0..x.len() {
             if let (Some(i), Some(j)) = (Self::index(&self.xs, x[k]), Self::index(&self.ys, y[k])) {
@@ -143,7 +143,7 @@ impl RegularGrid {
     }
     /// Bilinear interpolation of a rastered field; NaN outside the hull or
     /// when a surrounding node is NaN.
-    pub fn bilinear(&self, field: &[f64], x: f64, y: f64) -> f64 {
+    pub(crate) fn bilinear(&self, field: &[f64], x: f64, y: f64) -> f64 {
         let seg = |axis: &[f64], v: f64| -> Option<(usize, f64)> {
             if axis.len() == 1 {
                 return ((axis[0] - v).abs() < 1e-9).then_some((0, 0.0));
@@ -208,7 +208,7 @@ pub struct Comparison {
     pub profiles: Vec<(f64, f64, f64, f64, f64)>,
 }
 
-pub const QUANTITIES: [&str; 5] = ["u", "v", "uu", "vv", "uv"];
+pub(crate) const QUANTITIES: [&str; 5] = ["u", "v", "uu", "vv", "uv"];
 
 /// Compare PTV bins (`grid.csv`: `x,y,count,u,v,uu,vv,uv`) with PIV nodes
 /// (`piv_mean.csv`: `x,y,u,v,uu,vv,uv,valid`). `min_count`: bins with fewer

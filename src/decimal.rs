@@ -33,7 +33,7 @@ pub fn push_fixed(out: &mut Vec<u8>, v: f64, decimals: u32) {
 }
 
 /// Append `n` in decimal.
-pub fn push_u64(out: &mut Vec<u8>, n: u64) {
+pub(crate) fn push_u64(out: &mut Vec<u8>, n: u64) {
     let mut b = RevDigits::<24>::new();
     b.u64(n);
     out.extend_from_slice(b.as_slice());

@@ -233,7 +233,7 @@ pub struct PeakTest {
 /// apart, are correlated where they overlap;
 /// ν = 2K / (1 + 2 Σ_j (1 − j/K) ρ_j), ρ_j the squared normalised overlap
 /// product of the window with itself shifted by j steps.
-pub fn welch_dof(nperseg: usize, overlap: f64, n_segments: usize) -> f64 {
+pub(crate) fn welch_dof(nperseg: usize, overlap: f64, n_segments: usize) -> f64 {
     let k = n_segments.max(1);
     let w = hann(nperseg);
     let s2: f64 = w.iter().map(|v| v * v).sum();
@@ -268,7 +268,7 @@ pub fn welch_dof(nperseg: usize, overlap: f64, n_segments: usize) -> f64 {
 /// A local maximum P_k has the tail probability p = P(χ²_ν > ν·P_k/S);
 /// corrected for the N bins tested (Šidák: 1 − (1 − p)^N) it must fall
 /// below `alpha`. Of the local maxima that pass, the strongest is reported.
-pub fn significant_peak(p: &Psd, f_min: f64, f_max: f64, dof: f64, alpha: f64) -> PeakTest {
+pub(crate) fn significant_peak(p: &Psd, f_min: f64, f_max: f64, dof: f64, alpha: f64) -> PeakTest {
     let strongest = find_peak(p, f_min, f_max);
     let nf = p.psd.len();
     let h = (nf / 16).max(8);
@@ -432,7 +432,7 @@ fn gamma_q(a: f64, x: f64) -> f64 {
 }
 
 /// P(χ²_ν > x).
-pub fn chi2_sf(x: f64, nu: f64) -> f64 {
+pub(crate) fn chi2_sf(x: f64, nu: f64) -> f64 {
     gamma_q(nu / 2.0, x / 2.0)
 }
 
@@ -470,7 +470,7 @@ pub fn noise_rms_from_floor(floor: f64, fs_hz: f64) -> f64 {
 /// Linear interpolation over NaN gaps (ends take the nearest value).
 /// Returns the filled series and the fraction of samples that were missing;
 /// an error when there is no valid sample at all.
-pub fn fill_gaps(x: &[f64]) -> Result<(Vec<f64>, f64)> {
+pub(crate) fn fill_gaps(x: &[f64]) -> Result<(Vec<f64>, f64)> {
     let valid: Vec<usize> = (0..x.len()).filter(|&i| x[i].is_finite()).collect();
     if valid.is_empty() {
         return Err(Error::analysis(

@@ -80,13 +80,13 @@ impl KSum {
 }
 
 /// Number of basis functions of the quadratic in-bin model.
-pub const NB: usize = 6;
+pub(crate) const NB: usize = 6;
 /// Entries of the upper triangle of the NB×NB Gram matrix.
-pub const NG: usize = NB * (NB + 1) / 2;
+pub(crate) const NG: usize = NB * (NB + 1) / 2;
 
 /// Index of Gram entry (a, b), a ≤ b, in the packed upper triangle.
 #[inline]
-pub fn gidx(a: usize, b: usize) -> usize {
+pub(crate) fn gidx(a: usize, b: usize) -> usize {
     let (a, b) = if a <= b { (a, b) } else { (b, a) };
     a * NB - a * (a + 1) / 2 + b
 }
@@ -222,7 +222,7 @@ impl BinAcc {
     }
 
     /// All cluster sums including the open head and tail.
-    pub fn all_clusters(&self) -> ClusterSums {
+    pub(crate) fn all_clusters(&self) -> ClusterSums {
         let mut c = self.closed;
         for k in [self.head, self.tail].into_iter().flatten() {
             c.close(&k);

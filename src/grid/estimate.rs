@@ -219,7 +219,7 @@ fn solve_spd(g: &[[f64; NB]; NB], b: &[f64], p: usize) -> Option<[f64; NB]> {
 }
 
 /// Statistics of one bin.
-pub fn estimate_bin(b: &BinAcc, spec: &GridSpec, opt: &EstimateOptions) -> BinStats {
+pub(crate) fn estimate_bin(b: &BinAcc, spec: &GridSpec, opt: &EstimateOptions) -> BinStats {
     let n_tracks = b.n_tracks();
     if b.n < opt.min_count.max(1) {
         return BinStats::empty(b.n, n_tracks);

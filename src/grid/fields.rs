@@ -25,7 +25,7 @@ pub struct Frames {
 }
 
 /// Upper limit on frames × bins of one series (memory guard, 3 f64 each).
-pub const MAX_FIELD_VALUES: usize = 200_000_000;
+pub(crate) const MAX_FIELD_VALUES: usize = 200_000_000;
 
 impl Frames {
     pub fn validate(&self) -> Result<()> {
@@ -69,7 +69,7 @@ impl Frames {
         })
     }
 
-    pub fn time_us(&self, k: usize) -> f64 {
+    pub(crate) fn time_us(&self, k: usize) -> f64 {
         self.t0_us + k as f64 * self.step_us
     }
     pub fn rate_hz(&self) -> f64 {
@@ -78,7 +78,7 @@ impl Frames {
 }
 
 /// Median positive time step between consecutive samples of the same track.
-pub fn sample_period_us(samples: &[Sample]) -> Result<f64> {
+pub(crate) fn sample_period_us(samples: &[Sample]) -> Result<f64> {
     let mut d: Vec<f64> = samples
         .windows(2)
         .filter(|w| w[0].track_id == w[1].track_id)
@@ -107,10 +107,10 @@ pub struct FieldSeries {
 }
 
 impl FieldSeries {
-    pub fn u_series(&self, slot: usize) -> &[f64] {
+    pub(crate) fn u_series(&self, slot: usize) -> &[f64] {
         &self.u[slot * self.frames.n..(slot + 1) * self.frames.n]
     }
-    pub fn v_series(&self, slot: usize) -> &[f64] {
+    pub(crate) fn v_series(&self, slot: usize) -> &[f64] {
         &self.v[slot * self.frames.n..(slot + 1) * self.frames.n]
     }
 }

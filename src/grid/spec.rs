@@ -25,7 +25,7 @@ pub enum Weighting {
 
 impl Weighting {
     /// Half-width of the support in units of the bin size.
-    pub fn half_support(&self) -> f64 {
+    pub(crate) fn half_support(&self) -> f64 {
         match self {
             Weighting::TopHat => 0.5,
             Weighting::Gaussian => 3.0 * GAUSS_SIGMA,
@@ -58,7 +58,7 @@ impl Weighting {
 }
 
 /// σ of the Gaussian weighting in bin units: 1/√12, the top-hat's rms width.
-pub const GAUSS_SIGMA: f64 = 0.288_675_134_594_812_9;
+pub(crate) const GAUSS_SIGMA: f64 = 0.288_675_134_594_812_9;
 
 /// An infinite regular lattice of (possibly overlapping, rectangular) bins.
 ///
@@ -121,16 +121,16 @@ impl Lattice {
         })
     }
 
-    pub fn stride_x(&self) -> f64 {
+    pub(crate) fn stride_x(&self) -> f64 {
         self.bin_w * (1.0 - self.overlap)
     }
-    pub fn stride_y(&self) -> f64 {
+    pub(crate) fn stride_y(&self) -> f64 {
         self.bin_h * (1.0 - self.overlap)
     }
-    pub fn centre_x(&self, i: i64) -> f64 {
+    pub(crate) fn centre_x(&self, i: i64) -> f64 {
         self.origin_x + 0.5 * self.bin_w + i as f64 * self.stride_x()
     }
-    pub fn centre_y(&self, j: i64) -> f64 {
+    pub(crate) fn centre_y(&self, j: i64) -> f64 {
         self.origin_y + 0.5 * self.bin_h + j as f64 * self.stride_y()
     }
 
@@ -154,7 +154,7 @@ impl Lattice {
     }
 
     /// Same bin geometry (to a relative 1e-12, so a JSON round trip is fine).
-    pub fn compatible(&self, o: &Lattice) -> bool {
+    pub(crate) fn compatible(&self, o: &Lattice) -> bool {
         let close = |a: f64, b: f64| (a - b).abs() <= 1e-12 * a.abs().max(b.abs()).max(1.0);
         close(self.bin_w, o.bin_w)
             && close(self.bin_h, o.bin_h)
@@ -177,7 +177,7 @@ pub struct GridSpec {
 
 /// Upper limit on the number of bins of one grid (guards against absurd
 /// extents / bin sizes that would exhaust memory).
-pub const MAX_BINS: usize = 50_000_000;
+pub(crate) const MAX_BINS: usize = 50_000_000;
 
 impl GridSpec {
     /// The smallest window holding every bin that can receive a sample in
@@ -229,7 +229,7 @@ impl GridSpec {
         )
     }
 
-    pub fn from_window(
+    pub(crate) fn from_window(
         lattice: Lattice,
         weighting: Weighting,
         i0: i64,
@@ -272,7 +272,7 @@ impl GridSpec {
 
     /// Row-major flat index of lattice bin (i, j), if inside the window.
     #[inline]
-    pub fn flat(&self, i: i64, j: i64) -> Option<usize> {
+    pub(crate) fn flat(&self, i: i64, j: i64) -> Option<usize> {
         let a = i - self.i0;
         let b = j - self.j0;
         if a < 0 || b < 0 || a as usize >= self.nx || b as usize >= self.ny {
@@ -283,12 +283,12 @@ impl GridSpec {
     }
 
     /// Same lattice and weighting (windows may differ).
-    pub fn compatible(&self, o: &GridSpec) -> bool {
+    pub(crate) fn compatible(&self, o: &GridSpec) -> bool {
         self.weighting == o.weighting && self.lattice.compatible(&o.lattice)
     }
 
     /// The smallest window holding both.
-    pub fn union(&self, o: &GridSpec) -> Result<GridSpec> {
+    pub(crate) fn union(&self, o: &GridSpec) -> Result<GridSpec> {
         let i0 = self.i0.min(o.i0);
         let j0 = self.j0.min(o.j0);
         let i1 = (self.i0 + self.nx as i64).max(o.i0 + o.nx as i64);

@@ -77,7 +77,7 @@ pub struct Baseline {
 }
 
 /// Write the flow grid as the simulator's `gridded` CSV (`x,y,u,v`).
-pub fn write_flow_csv(path: &Path, flow: &[(f64, f64, f64, f64)]) -> Result<()> {
+pub(crate) fn write_flow_csv(path: &Path, flow: &[(f64, f64, f64, f64)]) -> Result<()> {
     let mut s = String::from("x,y,u,v\n");
     for (x, y, u, v) in flow {
         s.push_str(&format!("{x},{y},{u},{v}\n"));
@@ -317,7 +317,7 @@ fn median_velocity(tracks: &[Track]) -> (f64, f64) {
 /// empty bins filled by repeated neighbour averaging. Returns the nodes and
 /// how many bins were measured; `None` when no bin has `min_count` points.
 #[allow(clippy::type_complexity)]
-pub fn flow_grid(
+pub(crate) fn flow_grid(
     tracks: &[Track],
     geometry: Geometry,
     opts: &BaselineOptions,

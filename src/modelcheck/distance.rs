@@ -145,7 +145,7 @@ pub fn chi_square(r: &[f64], s: &[f64]) -> Result<ChiSquare> {
 
 /// Count-weighted mean |difference| of two profiles over their common bins;
 /// `None` when no bin has data on both sides.
-pub fn profile_distance(a: &Profile, b: &Profile) -> Result<Option<f64>> {
+pub(crate) fn profile_distance(a: &Profile, b: &Profile) -> Result<Option<f64>> {
     if a.edges != b.edges {
         return Err(Error::param(
             "profile distance",
@@ -166,7 +166,7 @@ pub fn profile_distance(a: &Profile, b: &Profile) -> Result<Option<f64>> {
 /// Distance between two signatures of the same name and kind; `None` when
 /// they cannot be compared (an empty histogram, a profile without common
 /// bins, a non-finite scalar).
-pub fn signature_distance(a: &Signature, b: &Signature) -> Result<Option<f64>> {
+pub(crate) fn signature_distance(a: &Signature, b: &Signature) -> Result<Option<f64>> {
     match (&a.value, &b.value) {
         (SignatureValue::Histogram(x), SignatureValue::Histogram(y)) => {
             if x.total() <= 0.0 || y.total() <= 0.0 {
@@ -220,7 +220,7 @@ pub fn distances(a: &Signatures, b: &Signatures) -> Result<Vec<(String, f64)>> {
 pub const Z_CAP: f64 = 1000.0;
 
 /// Floor of the replicate spread, relative to the replicate mean.
-pub const SD_FLOOR_REL: f64 = 0.5;
+pub(crate) const SD_FLOOR_REL: f64 = 0.5;
 
 /// An observed distance judged against replicate distances.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -324,7 +324,7 @@ pub fn rank(
 
 impl DiscrepancyTable {
     /// z of every row, by signature name.
-    pub fn z_by_row(&self) -> std::collections::BTreeMap<String, f64> {
+    pub(crate) fn z_by_row(&self) -> std::collections::BTreeMap<String, f64> {
         self.rows
             .iter()
             .map(|r| (r.signature.clone(), r.stats.z))

@@ -20,7 +20,7 @@ use crate::plot::{histogram_plot, HistogramPlot};
 
 /// The JSON document (`model_check.json`).
 #[derive(Debug, Serialize)]
-pub struct ModelCheckJson<'a> {
+pub(crate) struct ModelCheckJson<'a> {
     /// In the order found; empty when the model already explains the data.
     pub effects: &'a [FoundEffect],
     pub verdict: Verdict,

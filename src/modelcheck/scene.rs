@@ -3,8 +3,6 @@
 //! processing (pulse split by the scenario's timing, per-pulse clustering)
 //! that the measurement goes through.
 
-use std::collections::BTreeMap;
-
 use super::signatures::SignatureConfig;
 use super::workflow::{EffectSetting, EffectSpec, ParamSpec, Recording, Simulator};
 use crate::cluster::{cluster_pulses, ClusterParams, Particle};
@@ -80,14 +78,14 @@ pub fn default_catalogue(base: &Scenario) -> Vec<EffectSpec> {
 /// Values of effect parameters that a catalogue entry does not search:
 /// the value at which that part of the effect is absent. Filled in by
 /// [`SceneSimulator::scenario_with`] when a setting leaves them out.
-pub const NEUTRAL_PARAMETERS: &[(&str, &str, f64)] = &[
+pub(crate) const NEUTRAL_PARAMETERS: &[(&str, &str, f64)] = &[
     ("clock_drift", "wander_ppm", 0.0),
     ("clock_drift", "wander_period_s", 1.0),
 ];
 
 /// `set` with the parameters it leaves out taken from
 /// [`NEUTRAL_PARAMETERS`].
-pub fn with_neutral_parameters(set: &EffectSetting) -> EffectSetting {
+pub(crate) fn with_neutral_parameters(set: &EffectSetting) -> EffectSetting {
     let mut out = set.clone();
     for &(effect, name, value) in NEUTRAL_PARAMETERS {
         if effect == set.name {
@@ -143,7 +141,7 @@ impl SceneSimulator {
 
     /// The scenario-only variant of this simulator (same catalogue, same
     /// latency refit) over another base scenario.
-    pub fn with_base(&self, base: Scenario) -> Result<Self> {
+    pub(crate) fn with_base(&self, base: Scenario) -> Result<Self> {
         let mut s = SceneSimulator::new(base)?;
         // The measurement's processing stays the same for every variant.
         s.cluster = self.cluster.clone();
@@ -162,7 +160,7 @@ impl SceneSimulator {
     }
 
     /// The scenario with `effects` switched on (validated).
-    pub fn scenario_with(&self, effects: &[EffectSetting]) -> Result<Scenario> {
+    pub(crate) fn scenario_with(&self, effects: &[EffectSetting]) -> Result<Scenario> {
         let mut sc = self.base.clone();
         for e in effects {
             let e = with_neutral_parameters(e);
@@ -347,12 +345,4 @@ pub fn median_event_latency(events: &EventChunk, timing: &PulseTiming) -> f64 {
     }
     let mid = l.len() / 2;
     *l.select_nth_unstable_by(mid, f64::total_cmp).1
-}
-
-/// Parameters as a plain map (for reports).
-pub fn parameters_of(effects: &[EffectSetting]) -> BTreeMap<String, BTreeMap<String, f64>> {
-    effects
-        .iter()
-        .map(|e| (e.name.clone(), e.parameters.clone()))
-        .collect()
 }

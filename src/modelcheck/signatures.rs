@@ -180,7 +180,7 @@ impl Histogram {
     }
 
     #[inline]
-    pub fn add_weighted(&mut self, v: f64, w: f64) {
+    pub(crate) fn add_weighted(&mut self, v: f64, w: f64) {
         if let Some(k) = self.bin_of(v) {
             self.counts[k] += w;
         }
@@ -199,7 +199,7 @@ impl Histogram {
     }
 
     /// Centre of the bin holding `v` (`v` itself for NaN).
-    pub fn bin_centre(&self, v: f64) -> f64 {
+    pub(crate) fn bin_centre(&self, v: f64) -> f64 {
         match self.bin_of(v) {
             Some(k) => 0.5 * (self.edges[k] + self.edges[k + 1]),
             None => v,
@@ -207,7 +207,7 @@ impl Histogram {
     }
 
     /// Same bins (edges and scale)?
-    pub fn same_bins(&self, other: &Histogram) -> bool {
+    pub(crate) fn same_bins(&self, other: &Histogram) -> bool {
         self.scale == other.scale && self.edges == other.edges
     }
 }
@@ -400,7 +400,7 @@ pub fn count_edges(max: f64) -> Vec<f64> {
 }
 
 /// Edges for intervals (µs): [0, 1), then 4 bins per decade up to 10 s.
-pub fn interval_edges() -> Vec<f64> {
+pub(crate) fn interval_edges() -> Vec<f64> {
     let mut e = vec![0.0];
     for k in 0..=28 {
         e.push(10f64.powf(k as f64 / 4.0));
@@ -575,7 +575,7 @@ pub fn compute(
 
 /// Time blocks of [`latency_drift`]: enough points for a slope, each block
 /// still holding thousands of events on a 100-pulse recording.
-pub const DRIFT_BLOCKS: usize = 8;
+pub(crate) const DRIFT_BLOCKS: usize = 8;
 
 /// Name of the clock-drift signature.
 pub const LATENCY_DRIFT: &str = "latency_drift";
@@ -600,7 +600,7 @@ pub const LATENCY_DRIFT: &str = "latency_drift";
 /// the 1 µs timestamp grid, which a median would snap to). The signature is
 /// the least-squares slope of block latency on block centre time; NaN (not
 /// compared) with fewer than three populated blocks.
-pub fn latency_drift(cfg: &SignatureConfig, events: &EventChunk) -> Result<Signature> {
+pub(crate) fn latency_drift(cfg: &SignatureConfig, events: &EventChunk) -> Result<Signature> {
     cfg.validate()?;
     let period = cfg.timing.period_us;
     let first = cfg.timing.first_pulse_us;

@@ -251,7 +251,7 @@ fn with_effect(model: &[EffectSetting], e: EffectSetting) -> Vec<EffectSetting> 
 
 /// Per-row yardstick: replicate mean, combined scale, largest member.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct RowScale {
+pub(crate) struct RowScale {
     pub replicate_mean: f64,
     pub replicate_sd: f64,
     /// Largest excess of an envelope member over the replicate mean.
@@ -274,7 +274,7 @@ impl RowScale {
 
 /// The yardstick of every signature row, and the reference signatures.
 #[derive(Debug, Clone)]
-pub struct Yardstick {
+pub(crate) struct Yardstick {
     pub rows: BTreeMap<String, RowScale>,
     /// Seed of every held-out model simulation (paired comparisons).
     pub reference_seed: u64,
@@ -415,7 +415,7 @@ fn envelope_members(
 
 /// Build the yardstick from the starting model: a reference, replicates
 /// and the envelope, all simulated once.
-pub fn yardstick(
+pub(crate) fn yardstick(
     sim: &SceneSimulator,
     cfg: &SignatureConfig,
     start: &[EffectSetting],
@@ -540,7 +540,7 @@ fn candidates(
 
 /// How many times the average pixel's event rate a hot pixel fires at
 /// least (see [`candidates`]).
-pub const HOT_PIXEL_FACTOR: f64 = 10.0;
+pub(crate) const HOT_PIXEL_FACTOR: f64 = 10.0;
 
 /// Fit one candidate on top of `model` to the fit block.
 #[allow(clippy::too_many_arguments)]

@@ -590,12 +590,12 @@ fn joint_refit(
 }
 
 /// See [`rivals`].
-pub const RIVAL_OVERLAP: f64 = 0.5;
+pub(crate) const RIVAL_OVERLAP: f64 = 0.5;
 
 /// "Clearly beats the runner-up": the winner's held-out gap must be below
 /// (1 − this) × the best rival's (and the lead at least one null spread),
 /// when that rival removes part of the gap at all.
-pub const RUNNER_UP_MARGIN: f64 = 0.25;
+pub(crate) const RUNNER_UP_MARGIN: f64 = 0.25;
 
 /// Sweeps over the found effects in [`joint_refit`].
 const JOINT_REFIT_SWEEPS: usize = 2;

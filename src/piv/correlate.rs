@@ -46,7 +46,7 @@ use rustfft::{Fft, FftPlanner};
 
 /// FFT plans for one window size, shareable across threads.
 #[derive(Clone)]
-pub struct CorrelationPlan {
+pub(crate) struct CorrelationPlan {
     pub w: usize,
     pub h: usize,
     fwd_w: Arc<dyn Fft<f32>>,
@@ -70,11 +70,11 @@ impl CorrelationPlan {
     }
 
     /// Length of a half spectrum ([`Spectrum`]): `(w/2 + 1) · h`.
-    pub fn half_len(&self) -> usize {
+    pub(crate) fn half_len(&self) -> usize {
         (self.w / 2 + 1) * self.h
     }
 
-    pub fn workspace(&self) -> Workspace {
+    pub(crate) fn workspace(&self) -> Workspace {
         let n = self.w * self.h;
         let scratch_len = [
             self.fwd_w.get_inplace_scratch_len(),
@@ -110,7 +110,7 @@ impl CorrelationPlan {
 /// Half spectrum (`kx ≤ w/2`, layout `[kx][ky]`) of one mean-removed real
 /// window, with the window's energy (sum of squares).
 #[derive(Clone, Debug)]
-pub struct Spectrum {
+pub(crate) struct Spectrum {
     pub data: Vec<Complex32>,
     pub energy: f64,
 }
@@ -125,7 +125,7 @@ impl Spectrum {
 }
 
 /// Per-thread buffers for accumulating a sum of correlation.
-pub struct Workspace {
+pub(crate) struct Workspace {
     plan: CorrelationPlan,
     z: Vec<Complex32>,
     /// Transposed spectrum (`w` rows of `h`).
@@ -219,7 +219,7 @@ fn lane_sum<const SQUARE: bool>(v: &[f32]) -> f64 {
 
 /// Mean removal in place; returns the energy (sum of squares) left.
 #[inline(always)]
-pub fn remove_mean(win: &mut [f32]) -> f64 {
+pub(crate) fn remove_mean(win: &mut [f32]) -> f64 {
     let n = win.len() as f64;
     let mean = (lane_sum::<false>(win) / n) as f32;
     for v in win.iter_mut() {
@@ -233,7 +233,7 @@ pub fn remove_mean(win: &mut [f32]) -> f64 {
 /// below the mean set to 0: [`clip_below_mean`]); returns its energy.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-pub fn cut_window(
+pub(crate) fn cut_window(
     img: &[f32],
     stride: usize,
     x0: usize,
@@ -254,7 +254,7 @@ pub fn cut_window(
 /// [`clip_below_mean`] (the reference for [`cut_window_lanes`]).
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-pub fn cut_window_plain(
+pub(crate) fn cut_window_plain(
     img: &[f32],
     stride: usize,
     x0: usize,
@@ -356,7 +356,7 @@ fn cut_window_lanes(
 /// way). Used in single-pass evaluations only (see
 /// `PivOptions::clip_background` for why not in multi-pass ones).
 #[inline(always)]
-pub fn clip_below_mean(win: &mut [f32]) -> f64 {
+pub(crate) fn clip_below_mean(win: &mut [f32]) -> f64 {
     // A select written as `max` (+0.0 turns a −0.0 from `max` into +0.0):
     // the `if` form compiled to masked stores (`vmaskmovps`), microcoded
     // and slow on AMD — a quarter of the single-pass node time.
@@ -367,10 +367,6 @@ pub fn clip_below_mean(win: &mut [f32]) -> f64 {
 }
 
 impl Workspace {
-    pub fn size(&self) -> (usize, usize) {
-        (self.plan.w, self.plan.h)
-    }
-
     /// Start a new sum of correlation.
     #[inline(always)]
     pub fn reset(&mut self) {
@@ -387,7 +383,7 @@ impl Workspace {
     /// row-major) with one complex FFT; `b = None` transforms `a` alone.
     /// The energies are the caller's (e.g. from [`cut_window`]).
     #[inline(always)]
-    pub fn transform_two(
+    pub(crate) fn transform_two(
         &mut self,
         a: &[f32],
         b: Option<&[f32]>,
@@ -458,7 +454,7 @@ impl Workspace {
     /// spectra: `acc += A*·B / sqrt(ea·eb)`. A window with no signal adds
     /// nothing.
     #[inline(always)]
-    pub fn accumulate(&mut self, a: &Spectrum, b: &Spectrum) {
+    pub(crate) fn accumulate(&mut self, a: &Spectrum, b: &Spectrum) {
         if !(a.energy > 0.0 && b.energy > 0.0) {
             return;
         }
@@ -482,7 +478,7 @@ impl Workspace {
     /// values, row-major, **mean already removed**, with energies `ea`, `eb`
     /// (sums of squares). A pair with no signal in either window adds nothing.
     #[inline(always)]
-    pub fn add_pair(&mut self, a: &[f32], b: &[f32], ea: f64, eb: f64) {
+    pub(crate) fn add_pair(&mut self, a: &[f32], b: &[f32], ea: f64, eb: f64) {
         if !(ea > 0.0 && eb > 0.0) {
             return;
         }
@@ -573,7 +569,8 @@ impl Workspace {
 /// The definition, computed directly (test oracle for the FFT path):
 /// normalised circular cross-correlation averaged over the given pairs, with
 /// mean removal done here.
-pub fn direct_correlation(pairs: &[(&[f32], &[f32])], w: usize, h: usize) -> Vec<f32> {
+#[cfg(test)]
+pub(crate) fn direct_correlation(pairs: &[(&[f32], &[f32])], w: usize, h: usize) -> Vec<f32> {
     let prepared: Vec<(Vec<f32>, Vec<f32>)> = pairs
         .iter()
         .map(|(a, b)| {
@@ -593,7 +590,12 @@ pub fn direct_correlation(pairs: &[(&[f32], &[f32])], w: usize, h: usize) -> Vec
 /// [`direct_correlation`] of windows used as given (already mean-removed,
 /// or clipped): `Σ a·b(·+d) / sqrt(Σa²·Σb²)`, averaged over the pairs with
 /// signal in both windows.
-pub fn direct_correlation_prepared(pairs: &[(&[f32], &[f32])], w: usize, h: usize) -> Vec<f32> {
+#[cfg(test)]
+pub(crate) fn direct_correlation_prepared(
+    pairs: &[(&[f32], &[f32])],
+    w: usize,
+    h: usize,
+) -> Vec<f32> {
     let mut out = vec![0.0f64; w * h];
     let mut used = 0usize;
     for (a, b) in pairs {
@@ -646,7 +648,7 @@ pub(crate) fn signed(i: usize, n: usize) -> i64 {
 /// are positive, parabolic fit otherwise (normalised correlations can be
 /// negative beside weak peaks).
 #[inline(always)]
-pub fn subpixel3(lm: f32, c: f32, rp: f32) -> f64 {
+pub(crate) fn subpixel3(lm: f32, c: f32, rp: f32) -> f64 {
     let (lm, c, rp) = (lm as f64, c as f64, rp as f64);
     if lm > 0.0 && c > 0.0 && rp > 0.0 {
         let (l0, l1, l2) = (lm.ln(), c.ln(), rp.ln());
@@ -671,7 +673,7 @@ pub fn subpixel3(lm: f32, c: f32, rp: f32) -> f64 {
 /// Highest peak of a circular correlation plane with a 3-point Gaussian
 /// sub-pixel estimate in x and y separately.
 #[inline(always)]
-pub fn find_peak(plane: &[f32], w: usize, h: usize) -> Peak {
+pub(crate) fn find_peak(plane: &[f32], w: usize, h: usize) -> Peak {
     // Maximum over 8 independent lanes (vectorises: the comparison form is
     // a plain `max` instruction), then the first chunk holding it, then its
     // first index: the same peak as a sequential scan, without its

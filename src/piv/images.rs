@@ -29,7 +29,8 @@ pub struct Frames {
 }
 
 /// Load the first frame of an image file (see [`load_frames`]).
-pub fn load_image(path: &Path) -> Result<Image> {
+#[cfg(test)]
+pub(crate) fn load_image(path: &Path) -> Result<Image> {
     let mut f = load_frames(path)?;
     // `load_frames` never returns an empty list.
     Ok(f.frames.swap_remove(0))
@@ -131,7 +132,7 @@ fn list_dir(dir: &Path, keep: &dyn Fn(&str) -> bool) -> Result<Vec<PathBuf>> {
 
 /// `name` matches `pattern`, where `*` stands for any run of characters
 /// and `?` for one character.
-pub fn wildcard_match(pattern: &str, name: &str) -> bool {
+pub(crate) fn wildcard_match(pattern: &str, name: &str) -> bool {
     let p: Vec<char> = pattern.chars().collect();
     let n: Vec<char> = name.chars().collect();
     let (mut i, mut j) = (0usize, 0usize);
@@ -159,7 +160,7 @@ pub fn wildcard_match(pattern: &str, name: &str) -> bool {
 
 /// Natural order of names: runs of digits compare as numbers (`frame2`
 /// before `frame10`), everything else character by character.
-pub fn natural_cmp(a: &str, b: &str) -> Ordering {
+pub(crate) fn natural_cmp(a: &str, b: &str) -> Ordering {
     let (a, b) = (a.as_bytes(), b.as_bytes());
     let (mut i, mut j) = (0usize, 0usize);
     while i < a.len() && j < b.len() {

@@ -29,14 +29,15 @@
 
 pub mod correlate;
 pub mod images;
-pub mod multipass;
+pub(crate) mod multipass;
 pub mod output;
 pub mod pseudo;
 pub mod synth;
 pub mod validate;
 
 pub use multipass::{node_grid, piv_frames, NodeGrid, PivOptions, VectorField};
-pub use pseudo::{FrameRing, PixelMode, PseudoImager, PseudoOptions};
+pub(crate) use pseudo::{FrameRing, PseudoImager};
+pub use pseudo::{PixelMode, PseudoOptions};
 
 use crate::error::{Error, Result};
 use crate::pulses::{PulseEvents, PulseTiming};

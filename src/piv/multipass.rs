@@ -184,7 +184,7 @@ pub fn node_grid(width: usize, height: usize, o: &PivOptions) -> Result<NodeGrid
 /// deformation (`−d/2`, `+d/2`) doubles instead of cancelling that error —
 /// a peak-locking-like bias of several hundredths of a pixel for 3 px
 /// particle images.
-pub fn bspline_coefficients(img: &Image) -> Image {
+pub(crate) fn bspline_coefficients(img: &Image) -> Image {
     let mut c = img.clone();
     let (w, h) = (img.width, img.height);
     c.data.par_chunks_mut(w.max(1)).for_each(prefilter_line);
@@ -308,7 +308,7 @@ fn bspline_weights(t: f32) -> [f32; 4] {
 /// ([`bspline_coefficients`]); coefficients mirrored at the edges, as the
 /// prefilter assumed.
 #[inline]
-pub fn sample_bspline(coef: &Image, x: f32, y: f32) -> f32 {
+pub(crate) fn sample_bspline(coef: &Image, x: f32, y: f32) -> f32 {
     // floor without a libm call; an exact negative integer lands one cell
     // lower with t = 1, which gives the same weights shifted by one tap.
     let xi = x as i64 - (x < 0.0) as i64;
@@ -356,7 +356,8 @@ pub fn sample_bspline(coef: &Image, x: f32, y: f32) -> f32 {
 /// Bilinear interpolation of a node field at pixel position (x, y),
 /// constant extrapolation beyond the outer nodes.
 #[inline]
-pub fn interp_field(g: &NodeGrid, f: &[f64], x: f64, y: f64) -> f64 {
+#[cfg(test)]
+pub(crate) fn interp_field(g: &NodeGrid, f: &[f64], x: f64, y: f64) -> f64 {
     let fi = ((x - g.x0) / g.dx).clamp(0.0, (g.nx - 1) as f64);
     let fj = ((y - g.y0) / g.dy).clamp(0.0, (g.ny - 1) as f64);
     let i0 = (fi.floor() as usize).min(g.nx.saturating_sub(2));
@@ -526,7 +527,7 @@ unsafe fn deform_row_fma(
 
 /// The frame pairs `(k, k + s)` of one evaluation of `frames` frames, for
 /// separations `s = 1 … max_sep`.
-pub fn frame_pairs(frames: usize, max_sep: usize) -> Vec<(usize, usize)> {
+pub(crate) fn frame_pairs(frames: usize, max_sep: usize) -> Vec<(usize, usize)> {
     (1..=max_sep.min(frames.saturating_sub(1)))
         .flat_map(|s| (0..frames - s).map(move |k| (k, k + s)))
         .collect()

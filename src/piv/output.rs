@@ -69,7 +69,7 @@ pub fn write_vectors_csv(path: &Path, f: &VectorField) -> Result<()> {
 }
 
 /// NPY v1.0 header for a C-order array (see [`crate::io::npy`]).
-pub fn npy_header(descr: &str, shape: &[usize]) -> Vec<u8> {
+pub(crate) fn npy_header(descr: &str, shape: &[usize]) -> Vec<u8> {
     crate::io::npy::array_header(descr, shape)
 }
 

@@ -64,7 +64,7 @@ impl PseudoOptions {
 }
 
 /// Normalised, truncated (±3σ) Gaussian kernel.
-pub fn gaussian_kernel(sigma: f64) -> Vec<f32> {
+pub(crate) fn gaussian_kernel(sigma: f64) -> Vec<f32> {
     if sigma <= 0.0 {
         return vec![1.0];
     }
@@ -115,7 +115,7 @@ pub fn blur(img: &mut Image, kernel: &[f32], tmp: &mut Vec<f32>) {
 /// thousand pixels of a megapixel sensor. Replicated edges are the
 /// virtual pixels beyond the border carrying the edge value, so a lit
 /// edge pixel spreads from all its virtual copies.
-pub fn blur_sparse(lit: &[(usize, f32)], kernel: &[f32], out: &mut Image) {
+pub(crate) fn blur_sparse(lit: &[(usize, f32)], kernel: &[f32], out: &mut Image) {
     let (w, h) = (out.width as i64, out.height as i64);
     out.data.iter_mut().for_each(|v| *v = 0.0);
     let r = (kernel.len() / 2) as i64;
@@ -144,7 +144,7 @@ pub fn blur_sparse(lit: &[(usize, f32)], kernel: &[f32], out: &mut Image) {
 }
 
 /// Builds pseudo-images of a fixed size, reusing its kernel and scratch.
-pub struct PseudoImager {
+pub(crate) struct PseudoImager {
     pub width: usize,
     pub height: usize,
     opts: PseudoOptions,
@@ -176,7 +176,7 @@ impl PseudoImager {
     /// the image are ignored. Sparse frames are blurred by splatting the
     /// kernel around the lit pixels ([`blur_sparse`]), dense ones with the
     /// separable [`blur`]; both give the same image.
-    pub fn render(&mut self, events: &EventChunk, out: &mut Image) {
+    pub(crate) fn render(&mut self, events: &EventChunk, out: &mut Image) {
         out.width = self.width;
         out.height = self.height;
         out.data.clear();
@@ -224,7 +224,7 @@ impl PseudoImager {
 /// processing ([`PivStream`](super::PivStream) with a batch) can hold on to
 /// them after they left the ring without copying; a buffer is recycled
 /// when the ring held its last reference.
-pub struct FrameRing {
+pub(crate) struct FrameRing {
     capacity: usize,
     frames: VecDeque<(i64, Arc<Image>)>,
     spare: Vec<Image>,
@@ -240,12 +240,12 @@ impl FrameRing {
     }
 
     /// A buffer to render the next frame into (recycled when possible).
-    pub fn take_buffer(&mut self) -> Image {
+    pub(crate) fn take_buffer(&mut self) -> Image {
         self.spare.pop().unwrap_or_else(|| Image::zeros(0, 0))
     }
 
     /// Keep the buffer of a frame for reuse if `f` was its last reference.
-    pub fn recycle(&mut self, f: Arc<Image>) {
+    pub(crate) fn recycle(&mut self, f: Arc<Image>) {
         if let Ok(img) = Arc::try_unwrap(f) {
             self.spare.push(img);
         }
@@ -262,40 +262,38 @@ impl FrameRing {
     }
 
     /// Forget all frames (e.g. after a gap in the pulse sequence).
-    pub fn clear(&mut self) {
+    pub(crate) fn clear(&mut self) {
         while let Some((_, f)) = self.frames.pop_front() {
             self.recycle(f);
         }
     }
 
-    pub fn is_full(&self) -> bool {
+    pub(crate) fn is_full(&self) -> bool {
         self.frames.len() == self.capacity
     }
 
+    #[cfg(test)]
     pub fn len(&self) -> usize {
         self.frames.len()
     }
 
-    pub fn is_empty(&self) -> bool {
-        self.frames.is_empty()
-    }
-
     /// Pulse index of the newest frame.
-    pub fn last_index(&self) -> Option<i64> {
+    pub(crate) fn last_index(&self) -> Option<i64> {
         self.frames.back().map(|f| f.0)
     }
 
     /// Pulse index of the oldest frame.
-    pub fn first_index(&self) -> Option<i64> {
+    pub(crate) fn first_index(&self) -> Option<i64> {
         self.frames.front().map(|f| f.0)
     }
 
+    #[cfg(test)]
     pub fn images(&self) -> Vec<&Image> {
         self.frames.iter().map(|f| &*f.1).collect()
     }
 
     /// The frames, shared (no copy): for evaluations run later.
-    pub fn shared_images(&self) -> Vec<Arc<Image>> {
+    pub(crate) fn shared_images(&self) -> Vec<Arc<Image>> {
         self.frames.iter().map(|f| Arc::clone(&f.1)).collect()
     }
 }

@@ -16,15 +16,15 @@
 /// Validity flags (bit set).
 pub mod flag {
     /// Valid: measured and passed the median test.
-    pub const VALID: u8 = 0;
+    pub(crate) const VALID: u8 = 0;
     /// Failed the normalised median test; value replaced.
-    pub const OUTLIER: u8 = 1;
+    pub(crate) const OUTLIER: u8 = 1;
     /// No usable correlation peak (empty windows, peak at the border).
-    pub const NO_PEAK: u8 = 2;
+    pub(crate) const NO_PEAK: u8 = 2;
     /// Node inside the mask: no value.
     pub const MASKED: u8 = 4;
     /// Value replaced by interpolation from neighbours.
-    pub const REPLACED: u8 = 8;
+    pub(crate) const REPLACED: u8 = 8;
 }
 
 /// Options of the normalised median test.
@@ -174,7 +174,7 @@ fn on_border(nx: usize, ny: usize, i: usize, j: usize) -> bool {
 /// flagged NO_PEAK or MASKED are skipped and not used as neighbours. Returns
 /// the number of new outliers. Nodes with fewer than 3 usable neighbours are
 /// left untested.
-pub fn normalized_median_test(
+pub(crate) fn normalized_median_test(
     u: &[f64],
     v: &[f64],
     flags: &mut [u8],
@@ -222,7 +222,13 @@ pub fn normalized_median_test(
 /// Replace OUTLIER and NO_PEAK vectors by the median of their valid
 /// neighbours, repeating so that holes fill from their rims inwards
 /// (bounded number of sweeps). Replaced nodes get `flag::REPLACED`.
-pub fn replace_invalid(u: &mut [f64], v: &mut [f64], flags: &mut [u8], nx: usize, ny: usize) {
+pub(crate) fn replace_invalid(
+    u: &mut [f64],
+    v: &mut [f64],
+    flags: &mut [u8],
+    nx: usize,
+    ny: usize,
+) {
     let invalid = flag::OUTLIER | flag::NO_PEAK;
     for _sweep in 0..(nx.max(ny)) {
         let mut changed = Vec::new();

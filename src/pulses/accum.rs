@@ -44,21 +44,21 @@ use crate::events::{EventChunk, ON};
 
 /// Largest (row, t) run size counted individually; larger runs share the
 /// last bin.
-pub const MAX_GROUP: usize = 64;
+pub(crate) const MAX_GROUP: usize = 64;
 /// Events sharing (row, timestamp) in a run at least this long are the
 /// arbiter-saturation signature.
-pub const LARGE_GROUP: usize = 4;
+pub(crate) const LARGE_GROUP: usize = 4;
 /// Largest side of the pixel-count map: the largest sensor side ebptv
 /// accepts ([`crate::io::guard::MAX_SENSOR_SIDE`]); 16 MB of u8 at most,
 /// whatever geometry a file states or coordinates damaged data holds.
-pub const MAX_MAP_SIDE: usize = crate::io::guard::MAX_SENSOR_SIDE as usize;
+pub(crate) const MAX_MAP_SIDE: usize = crate::io::guard::MAX_SENSOR_SIDE as usize;
 /// Interleaved run-size tables (breaks store-to-load chains).
 const GROUP_TABLES: usize = 4;
 
 /// Fold reference fixed at the end of the warm-up: fold bin of an event at
 /// `t` is `⌊frac((t − t_ref + ½) / p_ref) · nbins⌋`.
 #[derive(Debug, Clone, Copy)]
-pub struct Fold {
+pub(crate) struct Fold {
     pub t_ref: i64,
     pub p_ref: f64,
     pub inv_p: f64,
@@ -112,7 +112,7 @@ fn fixed_reciprocal(p: f64) -> u64 {
 
 /// One time block of the recording: its fold histogram and counters.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Block {
+pub(crate) struct Block {
     pub start: i64,
     pub end: i64,
     pub n: u64,
@@ -160,7 +160,7 @@ impl Block {
 /// consecutive closed (row, t) runs with equal `t`): everything the
 /// fold-dependent stage needs.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct TimeRun {
+pub(crate) struct TimeRun {
     pub t: i64,
     pub n: u64,
     /// Events of this run in (row, t) runs of ≥ 2.
@@ -180,7 +180,7 @@ const _: () = assert!(SUB_CHUNK.is_power_of_two());
 
 /// Per-event statistics of the stream (see the module doc).
 #[derive(Debug, Clone)]
-pub struct Accumulator {
+pub(crate) struct Accumulator {
     pub width: usize,
     pub height: usize,
     /// Pixel counts modulo 2⁸, row-major.
@@ -284,7 +284,7 @@ impl Accumulator {
     /// trace_len)` are counted per µs in `trace` (the rate figure). Done in
     /// the fold stage, so every event is seen, warm-up or not, at the cost
     /// of one predictable comparison per time run.
-    pub fn watch_start(&mut self, head_until: i64, trace_t0: i64, trace_len: usize) {
+    pub(crate) fn watch_start(&mut self, head_until: i64, trace_t0: i64, trace_len: usize) {
         self.head_until = head_until;
         self.trace_t0 = trace_t0;
         self.trace = vec![0; trace_len];
@@ -303,18 +303,19 @@ impl Accumulator {
     }
 
     /// Events before this time are listed in `head`.
-    pub fn head_until(&self) -> i64 {
+    pub(crate) fn head_until(&self) -> i64 {
         self.head_until
     }
 
     /// The fold, once set.
+    #[cfg(test)]
     pub fn fold(&self) -> Option<Fold> {
         self.fold
     }
 
     /// Fix the fold: the pending time runs (warm-up) enter their blocks
     /// now, in stream order, exactly as if the fold had been known all along.
-    pub fn set_fold(&mut self, f: Fold) {
+    pub(crate) fn set_fold(&mut self, f: Fold) {
         assert!(self.fold.is_none(), "the fold is set once");
         self.fold = Some(f);
         let pending = std::mem::take(&mut self.pending);
@@ -333,7 +334,7 @@ impl Accumulator {
 
     /// Add the events of `ev`: before the fold is set their time runs are
     /// kept in [`Accumulator::pending`]. Returns the chunk's time range.
-    pub fn push_events(&mut self, ev: &EventChunk) -> (i64, i64) {
+    pub(crate) fn push_events(&mut self, ev: &EventChunk) -> (i64, i64) {
         let n = ev.len();
         if n == 0 {
             return (i64::MAX, i64::MIN);
@@ -438,7 +439,7 @@ impl Accumulator {
     }
 
     /// Events per pixel, row-major `height × width`.
-    pub fn pixel_counts(&self) -> Vec<u32> {
+    pub(crate) fn pixel_counts(&self) -> Vec<u32> {
         let mut out: Vec<u32> = self.counts.iter().map(|&c| c as u32).collect();
         for &i in &self.overflow {
             out[i as usize] += 1 << 8;

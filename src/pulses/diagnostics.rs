@@ -28,7 +28,7 @@ pub struct LatencyStats {
 }
 
 /// Circular box smoothing with half-width `r`.
-pub fn smooth_circular(h: &[f64], r: usize) -> Vec<f64> {
+pub(crate) fn smooth_circular(h: &[f64], r: usize) -> Vec<f64> {
     let n = h.len();
     if n == 0 || r == 0 {
         return h.to_vec();
@@ -46,7 +46,7 @@ pub fn smooth_circular(h: &[f64], r: usize) -> Vec<f64> {
 
 /// Floor of the histogram: its 20th percentile (the random-event level; the
 /// burst fills far fewer than 80 % of the bins in a usable recording).
-pub fn floor_level(h: &[f64]) -> f64 {
+pub(crate) fn floor_level(h: &[f64]) -> f64 {
     let mut v = h.to_vec();
     if v.is_empty() {
         return 0.0;
@@ -57,7 +57,7 @@ pub fn floor_level(h: &[f64]) -> f64 {
 }
 
 /// Index (fractional) of the maximum of the smoothed histogram.
-pub fn peak_position(h: &[f64]) -> f64 {
+pub(crate) fn peak_position(h: &[f64]) -> f64 {
     let n = h.len();
     let s = smooth_circular(h, 1);
     let (k, _) = s
@@ -66,51 +66,6 @@ pub fn peak_position(h: &[f64]) -> f64 {
         .max_by(|a, b| a.1.total_cmp(b.1))
         .unwrap();
     k as f64 + super::timing::parabolic_offset(s[(k + n - 1) % n], s[k], s[(k + 1) % n])
-}
-
-/// Burst onset, in bins of `h` (circular, may be before bin 0 → wraps):
-/// the rising flank between 20 % and 60 % of the peak height above the floor
-/// is extrapolated linearly down to the floor. Walking back from the peak to
-/// the preceding minimum (Willert's approach) lands somewhere on the flat
-/// floor when noise is present; the flank fit stays within a few µs of the
-/// true onset for a steep rise.
-pub fn burst_onset(h: &[f64]) -> f64 {
-    let n = h.len();
-    let s = smooth_circular(h, 1);
-    let floor = floor_level(&s);
-    let (kp, &peak) = s
-        .iter()
-        .enumerate()
-        .max_by(|a, b| a.1.total_cmp(b.1))
-        .unwrap();
-    let amp = peak - floor;
-    if amp <= 0.0 {
-        return 0.0;
-    }
-    // Walk back from the peak: first index (going left) below each level.
-    let crossing = |frac: f64| -> f64 {
-        let level = floor + frac * amp;
-        let mut i = kp as isize;
-        for _ in 0..n {
-            let j = (i - 1).rem_euclid(n as isize) as usize;
-            let here = (i.rem_euclid(n as isize)) as usize;
-            if s[j] < level {
-                // interpolate between j (below) and here (above)
-                let f = (level - s[j]) / (s[here] - s[j]).max(1e-12);
-                return (i - 1) as f64 + f;
-            }
-            i -= 1;
-        }
-        kp as f64
-    };
-    let x20 = crossing(0.2);
-    let x60 = crossing(0.6);
-    let slope = 0.4 * amp / (x60 - x20).max(1e-6);
-    // Extrapolate to the floor; bins are centred at i + 0.5.
-    let onset = x20 - 0.2 * amp / slope + 0.5;
-    let x05 = crossing(0.05) + 0.5;
-    // Never before the point where the flank leaves the noise.
-    onset.max(x05 - 2.0)
 }
 
 /// Leading edge of the burst, in bins of `h` (circular; may be negative →
@@ -130,7 +85,7 @@ pub fn burst_onset(h: &[f64]) -> f64 {
 /// not a global percentile: a broad burst can fill most of the period.
 /// What remains is the sensor's minimum latency for the fastest events,
 /// which no event-only estimate can see ([`super::PulseOptions::onset_latency_us`]).
-pub fn leading_edge(h: &[f64], frac: f64) -> f64 {
+pub(crate) fn leading_edge(h: &[f64], frac: f64) -> f64 {
     let n = h.len();
     if n < 4 {
         return 0.0;
@@ -167,7 +122,7 @@ pub fn leading_edge(h: &[f64], frac: f64) -> f64 {
 }
 
 /// Latency statistics of a histogram whose bin 0 starts at the pulse start.
-pub fn latency_stats(h: &[f64]) -> LatencyStats {
+pub(crate) fn latency_stats(h: &[f64]) -> LatencyStats {
     let n = h.len();
     let total: f64 = h.iter().sum();
     if n == 0 || total <= 0.0 {
@@ -245,7 +200,7 @@ pub fn latency_stats(h: &[f64]) -> LatencyStats {
 
 /// Position (bins) of the lowest point of the heavily smoothed histogram:
 /// where the assignment window boundary goes.
-pub fn lowest_point(h: &[f64]) -> f64 {
+pub(crate) fn lowest_point(h: &[f64]) -> f64 {
     let n = h.len();
     let s = smooth_circular(h, (n / 20).max(2));
     let (k, _) = s
@@ -296,7 +251,7 @@ pub fn hot_pixels(
 
 /// Clusters of 8-connected pixels of one pseudo-image.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct ClusterCount {
+pub(crate) struct ClusterCount {
     pub clusters: u64,
     /// Sum of cluster areas (pixels).
     pub area: u64,
@@ -310,7 +265,7 @@ pub struct ClusterCount {
 /// to the right and in the next row (x−1, x, x+1) are found with one
 /// forward-only cursor into the next row, and joined by union–find. The
 /// hash-map version in the tests is the reference.
-pub fn count_clusters(xs: &[u16], ys: &[u16]) -> ClusterCount {
+pub(crate) fn count_clusters(xs: &[u16], ys: &[u16]) -> ClusterCount {
     let mut keys: Vec<u32> = xs
         .iter()
         .zip(ys)

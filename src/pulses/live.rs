@@ -32,7 +32,7 @@ use crate::io::{EventSource, Format, StreamInfo};
 const LIVE_BUFFER_BYTES: usize = 1 << 20;
 
 /// A RAW stream decoded from a `Read` that may grow (see the module doc).
-pub struct LiveRaw<D> {
+pub(crate) struct LiveRaw<D> {
     info: StreamInfo,
     reader: Box<dyn Read + Send>,
     decoder: D,
@@ -155,7 +155,7 @@ fn read_header(
 /// Open a live RAW stream from `reader` (`name` for messages, e.g. "-" or
 /// the path). `wait` is called while the header is incomplete and no bytes
 /// are readable; returning false gives up.
-pub fn open_reader(
+pub(crate) fn open_reader(
     mut reader: Box<dyn Read + Send>,
     name: &Path,
     chunk_events: usize,

@@ -15,7 +15,7 @@
 //!    From them a reference period `P_ref` is found: from the trigger train
 //!    when one is recorded, else from the event rate (1 µs bins → FFT
 //!    periodogram → harmonic sum picks the fundamental → a high harmonic
-//!    refines it → epoch folding polishes it; [`timing::estimate_period`]).
+//!    refines it → epoch folding polishes it; [`timing::estimate_period_from_counts`]).
 //!    The time runs then enter step 2's block histograms, exactly as if
 //!    the period had been known from the start (the event-rate series for
 //!    the estimate is built from the same runs: no event times are kept).
@@ -79,7 +79,7 @@ use serde::{Deserialize, Serialize};
 use crate::error::{Error, Result};
 use crate::events::{Chunk, Edge, EventChunk, Geometry};
 
-pub mod accum;
+pub(crate) mod accum;
 pub mod diagnostics;
 pub mod live;
 pub mod monitor;
@@ -93,9 +93,8 @@ mod split;
 pub use report::*;
 pub use split::*;
 
-pub use accum::{LARGE_GROUP, MAX_GROUP};
-
-pub use timing::{ChannelEdges, Periodicity};
+pub(crate) use timing::ChannelEdges;
+pub(crate) use timing::Periodicity;
 
 /// Where the pulse times came from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -171,19 +170,19 @@ pub struct PulseOptions {
 }
 
 /// Default search band without any frequency hint (Hz).
-pub const DEFAULT_SEARCH_HZ: (f64, f64) = (500.0, 50_000.0);
+pub(crate) const DEFAULT_SEARCH_HZ: (f64, f64) = (500.0, 50_000.0);
 /// Relative half-width of the search band around a nominal frequency.
-pub const NOMINAL_TOLERANCE: f64 = 0.02;
+pub(crate) const NOMINAL_TOLERANCE: f64 = 0.02;
 /// A time window counts as saturated when more than this fraction of its
 /// events sit in large (row, timestamp) groups *and* its burst fraction
 /// collapsed (below half the recording's median, or below 10 %).
-pub const SATURATION_GROUP_FRACTION: f64 = 0.10;
+pub(crate) const SATURATION_GROUP_FRACTION: f64 = 0.10;
 /// Without triggers, the pulse start is where the burst first exceeds its
 /// local floor by this fraction of its amplitude
 /// ([`diagnostics::leading_edge`]).
-pub const LEADING_EDGE_FRACTION: f64 = 0.002;
+pub(crate) const LEADING_EDGE_FRACTION: f64 = 0.002;
 /// Reorder window of [`split_pulses`] (µs).
-pub const REORDER_MARGIN_US: i64 = 1000;
+pub(crate) const REORDER_MARGIN_US: i64 = 1000;
 
 const WARMUP_MAX_EVENTS: usize = 2_000_000;
 /// Time runs (distinct timestamps, about) that end the warm-up: bounds its
@@ -200,22 +199,22 @@ const BLOCK_US_INITIAL: i64 = 2_000;
 /// Lowest pulse frequency handled (Hz): a longer period is no laser pulsing
 /// of a velocimetry recording (a camera's frame triggers, a damaged file),
 /// and it bounds the latency histogram (1 µs bins) to 50 000 bins.
-pub const MIN_PULSE_HZ: f64 = 20.0;
+pub(crate) const MIN_PULSE_HZ: f64 = 20.0;
 /// Bins of each block's fold histogram at most (bins are 1 µs up to this
 /// period, wider above): bounds the block histograms to 1024 × 8192 × 4 B.
 const MAX_FOLD_BINS: usize = 8192;
 /// Empty pulses [`Splitter`] hands over in a row at most (a gap of
 /// minutes at kHz rates): beyond, the clock jumped.
-pub const MAX_EMPTY_PULSES: i64 = 1_000_000;
+pub(crate) const MAX_EMPTY_PULSES: i64 = 1_000_000;
 /// Pulsed-light test: least contrast of the burst window (see
 /// [`PulsedVerdict`]).
-pub const MIN_PULSED_CONTRAST: f64 = 2.0;
+pub(crate) const MIN_PULSED_CONTRAST: f64 = 2.0;
 /// Pulsed-light test: least significance of the burst's excess over the
 /// random floor (standard deviations of the floor's Poisson count).
-pub const MIN_PULSED_Z: f64 = 5.0;
+pub(crate) const MIN_PULSED_Z: f64 = 5.0;
 /// Pulsed-light test: least share of events in time blocks that show the
 /// burst themselves.
-pub const MIN_LOCKED_SHARE: f64 = 0.5;
+pub(crate) const MIN_LOCKED_SHARE: f64 = 0.5;
 const MAX_BLOCKS: usize = 1024;
 const MAX_SLICES: usize = 16;
 
@@ -254,7 +253,7 @@ impl PulseOptions {
     }
 
     /// The frequency band searched when estimating from events (Hz).
-    pub fn search_band(&self) -> (f64, f64) {
+    pub(crate) fn search_band(&self) -> (f64, f64) {
         if let Some(r) = self.pulse_hz_range {
             r
         } else if let Some(f) = self.pulse_hz {
@@ -394,7 +393,7 @@ impl Analyzer {
     }
 
     /// Time span of the events fed so far (µs).
-    pub fn span_us(&self) -> i64 {
+    pub(crate) fn span_us(&self) -> i64 {
         self.acc.t_max.saturating_sub(self.acc.t_min).max(0)
     }
 

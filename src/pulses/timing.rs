@@ -14,7 +14,7 @@ use crate::error::{Error, Result};
 
 /// Rising and falling trigger edges of one channel, in stream order.
 #[derive(Debug, Clone, Default)]
-pub struct ChannelEdges {
+pub(crate) struct ChannelEdges {
     pub rising: Vec<i64>,
     pub falling: Vec<i64>,
 }
@@ -33,7 +33,7 @@ pub struct ChannelSummary {
 }
 
 /// Summarise every channel (sorted by channel id).
-pub fn summarize_channels(channels: &BTreeMap<u8, ChannelEdges>) -> Vec<ChannelSummary> {
+pub(crate) fn summarize_channels(channels: &BTreeMap<u8, ChannelEdges>) -> Vec<ChannelSummary> {
     channels
         .iter()
         .map(|(&channel, e)| {
@@ -69,12 +69,12 @@ pub fn summarize_channels(channels: &BTreeMap<u8, ChannelEdges>) -> Vec<ChannelS
 }
 
 /// True when a channel carries a usable pulse train.
-pub fn is_regular(s: &ChannelSummary) -> bool {
+pub(crate) fn is_regular(s: &ChannelSummary) -> bool {
     s.rising >= 4 && s.regularity >= 0.5
 }
 
 /// Human-readable list of what the trigger channels hold (error messages).
-pub fn describe_channels(summaries: &[ChannelSummary]) -> String {
+pub(crate) fn describe_channels(summaries: &[ChannelSummary]) -> String {
     if summaries.is_empty() {
         return "the recording holds no trigger events".into();
     }
@@ -127,7 +127,7 @@ pub struct TriggerFit {
 /// missing trigger leaves a gap instead of shifting the numbering, and a
 /// spurious edge (not near an integer number of periods after the last kept
 /// one) is dropped and counted.
-pub fn fit_trigger_train(channel: u8, edges: &ChannelEdges) -> Result<TriggerFit> {
+pub(crate) fn fit_trigger_train(channel: u8, edges: &ChannelEdges) -> Result<TriggerFit> {
     let rising = &edges.rising;
     if rising.len() < 3 {
         return Err(Error::analysis(format!(
@@ -248,7 +248,7 @@ fn line_fit(ns: &[i64], ts: &[i64], keep: &[bool]) -> (f64, f64, f64) {
 }
 
 /// Weighted least-squares line `y = a + b x`; returns (a, b, weighted rms).
-pub fn weighted_line_fit(x: &[f64], y: &[f64], w: &[f64]) -> (f64, f64, f64) {
+pub(crate) fn weighted_line_fit(x: &[f64], y: &[f64], w: &[f64]) -> (f64, f64, f64) {
     let sw: f64 = w.iter().sum();
     if sw <= 0.0 || x.is_empty() {
         return (0.0, 0.0, 0.0);
@@ -282,29 +282,10 @@ pub struct Periodicity {
 /// Minimum periodogram SNR of a genuine pulse train. Poisson noise alone
 /// gives an exponential power distribution: its maximum over ~1e5 bins is
 /// ~12 × the mean (~17 × the median); pulsed recordings reach thousands.
-pub const MIN_SNR: f64 = 60.0;
+pub(crate) const MIN_SNR: f64 = 60.0;
 
 const HARMONICS_IN_SUM: usize = 5;
 const MAX_REFINE_HARMONIC: usize = 16;
-
-/// Estimate the pulse period of events with times `times` (µs, any order)
-/// within `range_hz`. The events are binned at 1 µs, the power spectrum's
-/// harmonic sum picks the fundamental (a short burst has harmonics as strong
-/// as the fundamental, which a plain maximum would pick), a high harmonic
-/// refines it, and epoch folding (maximum variance of the folded series)
-/// polishes the period. Errors say what was found instead.
-pub fn estimate_period(times: &[i64], range_hz: (f64, f64)) -> Result<Periodicity> {
-    if times.len() < 100 {
-        return Err(too_few(times.len() as f64));
-    }
-    let t0 = *times.iter().min().unwrap();
-    let t1 = *times.iter().max().unwrap();
-    let mut counts = vec![0f32; (t1 - t0 + 1) as usize];
-    for &t in times {
-        counts[(t - t0) as usize] += 1.0;
-    }
-    estimate_period_from_counts(&counts, range_hz)
-}
 
 fn too_few(n: f64) -> Error {
     Error::analysis(format!(
@@ -312,10 +293,13 @@ fn too_few(n: f64) -> Error {
     ))
 }
 
-/// [`estimate_period`] of an event-rate series: `counts[i]` events in the
+/// The pulse period (periodogram, harmonic sum, epoch folding) of an event-rate series: `counts[i]` events in the
 /// µs `i` (the streaming pass builds it from its time runs, without
 /// keeping event times).
-pub fn estimate_period_from_counts(counts: &[f32], range_hz: (f64, f64)) -> Result<Periodicity> {
+pub(crate) fn estimate_period_from_counts(
+    counts: &[f32],
+    range_hz: (f64, f64),
+) -> Result<Periodicity> {
     let total: f64 = counts.iter().map(|&c| c as f64).sum();
     if total < 100.0 {
         return Err(too_few(total));
@@ -492,7 +476,7 @@ fn argmax_around(p: &[f64], k: usize, r: usize) -> (usize, f64) {
 
 /// Offset in (-0.5, 0.5) of the vertex of the parabola through three
 /// equally spaced samples around a maximum.
-pub fn parabolic_offset(a: f64, b: f64, c: f64) -> f64 {
+pub(crate) fn parabolic_offset(a: f64, b: f64, c: f64) -> f64 {
     let den = a - 2.0 * b + c;
     if den.abs() < 1e-300 {
         return 0.0;
@@ -501,7 +485,7 @@ pub fn parabolic_offset(a: f64, b: f64, c: f64) -> f64 {
 }
 
 /// Median of a slice (reorders it); `None` when empty.
-pub fn median_f64(v: &mut [f64]) -> Option<f64> {
+pub(crate) fn median_f64(v: &mut [f64]) -> Option<f64> {
     if v.is_empty() {
         return None;
     }
@@ -511,7 +495,7 @@ pub fn median_f64(v: &mut [f64]) -> Option<f64> {
 }
 
 /// Circular cross-correlation of histograms against a template, via FFT.
-pub struct CircularCorrelator {
+pub(crate) struct CircularCorrelator {
     n: usize,
     template_conj: Vec<Complex<f64>>,
     fwd: std::sync::Arc<dyn rustfft::Fft<f64>>,
@@ -543,7 +527,7 @@ impl CircularCorrelator {
 
     /// Shift `s` (bins, fractional, in [0, n)) such that `hist[j] ≈
     /// template[j - s]`, and the correlation peak's height.
-    pub fn shift_of(&self, hist: &[f64]) -> (f64, f64) {
+    pub(crate) fn shift_of(&self, hist: &[f64]) -> (f64, f64) {
         let n = self.n;
         let mean = hist.iter().sum::<f64>() / n as f64;
         let mut h: Vec<Complex<f64>> = hist.iter().map(|&v| Complex::new(v - mean, 0.0)).collect();

@@ -40,7 +40,7 @@ use crate::error::{Error, Result};
 use crate::events::{Chunk, Edge, Geometry, Trigger};
 use crate::{Anomalies, EventSource, Format, StreamInfo};
 
-pub const MAGIC: &[u8; 14] = b"#!AER-DAT4.0\r\n";
+pub(crate) const MAGIC: &[u8; 14] = b"#!AER-DAT4.0\r\n";
 /// Largest packet, compressed or decompressed, that the reader accepts.
 pub const MAX_PACKET_BYTES: usize = 256 << 20;
 /// Largest IOHeader accepted.
@@ -49,15 +49,20 @@ const MAX_HEADER_BYTES: u32 = 16 << 20;
 /// Packet compression of an AEDAT4 file.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Compression {
+    /// Packets stored as they are.
     None,
+    /// LZ4 frames.
     Lz4,
+    /// LZ4 frames at high compression (decoded the same way).
     Lz4High,
+    /// Zstandard frames.
     Zstd,
+    /// Zstandard frames at high compression (decoded the same way).
     ZstdHigh,
 }
 
 impl Compression {
-    pub fn from_code(c: i32) -> Option<Self> {
+    pub(crate) fn from_code(c: i32) -> Option<Self> {
         Some(match c {
             0 => Compression::None,
             1 => Compression::Lz4,
@@ -67,9 +72,11 @@ impl Compression {
             _ => return None,
         })
     }
+    /// The compression code the IOHeader stores.
     pub fn code(self) -> i32 {
         self as i32
     }
+    /// The name the IOHeader and summaries use.
     pub fn name(self) -> &'static str {
         match self {
             Compression::None => "none",
@@ -166,7 +173,7 @@ fn root(b: &[u8], base: usize, ident: &[u8; 4]) -> std::result::Result<Table, St
 
 /// One stream declared in the header's XML.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
-pub struct StreamDecl {
+pub(crate) struct StreamDecl {
     pub id: i32,
     pub type_identifier: String,
     pub name: String,
@@ -184,7 +191,7 @@ fn xml_attr_value(tag: &str, name: &str) -> Option<String> {
 /// Streams under `outInfo` in dv's XML: `<node name="outInfo">` /
 /// `<node name="ID">` / `<attr key="typeIdentifier">EVTS</attr>` and
 /// `<node name="info">` / `<attr key="sizeX">346</attr>`.
-pub fn parse_streams(xml: &str) -> Vec<StreamDecl> {
+pub(crate) fn parse_streams(xml: &str) -> Vec<StreamDecl> {
     let mut streams: Vec<StreamDecl> = Vec::new();
     let mut stack: Vec<String> = Vec::new();
     let mut rest = xml;
@@ -244,6 +251,7 @@ enum Kind {
     Other,
 }
 
+/// Reads an AEDAT4 (iniVation) file packet by packet as an [`EventSource`](crate::EventSource).
 pub struct Aedat4Reader {
     info: StreamInfo,
     reader: BufReader<File>,
@@ -262,6 +270,7 @@ pub struct Aedat4Reader {
 }
 
 impl Aedat4Reader {
+    /// Opens `path` and reads its IOHeader; `chunk_events` is the target chunk size.
     pub fn open(path: &Path, chunk_events: usize) -> Result<Self> {
         let file = File::open(path).map_err(|e| Error::io(path, e))?;
         let file_size = file.metadata().map_err(|e| Error::io(path, e))?.len();

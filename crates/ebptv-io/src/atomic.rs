@@ -90,6 +90,7 @@ pub fn rollback_and_exit(code: i32) -> ! {
     std::process::exit(code)
 }
 
+/// A file written under a temporary name and renamed onto its target only when complete, so a failed run never leaves a truncated output.
 pub struct AtomicFile {
     target: PathBuf,
     tmp: PathBuf,
@@ -97,6 +98,7 @@ pub struct AtomicFile {
 }
 
 impl AtomicFile {
+    /// Starts writing to a temporary file next to `target`.
     pub fn create(target: impl AsRef<Path>) -> Result<Self> {
         let target = target.as_ref().to_path_buf();
         let dir = match target.parent() {
@@ -126,6 +128,7 @@ impl AtomicFile {
         })
     }
 
+    /// The path the file gets when it is committed.
     pub fn target(&self) -> &Path {
         &self.target
     }

@@ -54,9 +54,13 @@ use crate::{EventSource, Format, StreamInfo};
 /// Unit of a CSV time column.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum TimeUnit {
+    /// Times in µs.
     Microseconds,
+    /// Times in s.
     Seconds,
+    /// Times in ms.
     Milliseconds,
+    /// Times in ns.
     Nanoseconds,
 }
 
@@ -70,6 +74,7 @@ impl TimeUnit {
             TimeUnit::Nanoseconds => -3,
         }
     }
+    /// The unit's name as written in headers and options.
     pub fn name(self) -> &'static str {
         match self {
             TimeUnit::Seconds => "s",
@@ -587,6 +592,7 @@ pub struct CsvReader {
 }
 
 impl CsvReader {
+    /// Opens a CSV event file; `unit` overrides the time unit read from the header or guessed from the values.
     pub fn open(path: &Path, chunk_events: usize, unit: Option<TimeUnit>) -> Result<Self> {
         let (mut lines, file_size) = LineReader::open(path)?;
         if file_size == Some(0) {
@@ -843,6 +849,7 @@ pub struct CsvWriter {
 }
 
 impl CsvWriter {
+    /// Creates a writer for `path`.
     pub fn create(path: &Path) -> Result<Self> {
         let mut events = AtomicFile::create(path)?;
         events

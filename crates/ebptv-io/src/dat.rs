@@ -24,7 +24,7 @@
 
 use std::fs::File;
 use std::io::{BufReader, Read, Seek, SeekFrom};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use crate::error::{Error, Result};
 use crate::events::{Chunk, Edge, Geometry, Trigger};
@@ -32,7 +32,7 @@ use crate::{raw_header, Anomalies, EventSource, Format, StreamInfo};
 
 /// Event type byte of a DAT file.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum DatEventType {
+pub(crate) enum DatEventType {
     /// 0x00: Event2d (x, y, p) — the type of most CD files.
     Event2d,
     /// 0x0C: CD event.
@@ -69,7 +69,7 @@ pub(crate) fn geometry_from_header(header: &[(String, String)]) -> Option<Geomet
     }
 }
 
-pub struct DatReader {
+pub(crate) struct DatReader {
     info: StreamInfo,
     reader: BufReader<File>,
     event_type: DatEventType,
@@ -169,10 +169,6 @@ impl DatReader {
             anomalies: Anomalies::default(),
             done: false,
         })
-    }
-
-    pub fn path(&self) -> &PathBuf {
-        &self.info.path
     }
 
     #[inline]

@@ -10,6 +10,7 @@ use std::path::{Path, PathBuf};
 /// Result alias used across the library.
 pub type Result<T, E = Error> = std::result::Result<T, E>;
 
+/// Every error of reading, writing or analysing event data; file errors name the file.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// An operating-system error while reading or writing a file.
@@ -17,33 +18,58 @@ pub enum Error {
     /// chains printed with `{:#}` do not repeat it.)
     #[error("{path}: {cause}")]
     Io {
+        /// The file concerned.
         path: PathBuf,
+        /// The operating-system error.
         cause: std::io::Error,
     },
 
     /// The file is of a known format but its content is malformed.
     #[error("{path}: {what} (at byte {offset})")]
     Corrupt {
+        /// The file concerned.
         path: PathBuf,
+        /// Byte offset of the malformed content.
         offset: u64,
+        /// What is wrong.
         what: String,
     },
 
     /// The file could not be recognised as any supported event format.
     #[error("{path}: not a recognised event file: {why}")]
-    UnknownFormat { path: PathBuf, why: String },
+    UnknownFormat {
+        /// The file concerned.
+        path: PathBuf,
+        /// Why no format matched.
+        why: String,
+    },
 
     /// The file holds no events (or nothing in the requested selection).
     #[error("{path}: {why}")]
-    Empty { path: PathBuf, why: String },
+    Empty {
+        /// The file concerned.
+        path: PathBuf,
+        /// What is missing.
+        why: String,
+    },
 
     /// A user-supplied parameter is out of its meaningful range.
     #[error("invalid parameter `{name}`: {why}")]
-    InvalidParameter { name: String, why: String },
+    InvalidParameter {
+        /// The parameter's name.
+        name: String,
+        /// What is wrong with its value.
+        why: String,
+    },
 
     /// A scenario / configuration file is malformed.
     #[error("{path}: {why}")]
-    Config { path: PathBuf, why: String },
+    Config {
+        /// The file concerned.
+        path: PathBuf,
+        /// What is wrong.
+        why: String,
+    },
 
     /// The data does not allow the requested analysis (e.g. no pulses found).
     #[error("{0}")]
@@ -51,6 +77,7 @@ pub enum Error {
 }
 
 impl Error {
+    /// An operating-system error on `path`.
     pub fn io(path: impl AsRef<Path>, source: std::io::Error) -> Self {
         Error::Io {
             path: path.as_ref().to_path_buf(),
@@ -58,6 +85,7 @@ impl Error {
         }
     }
 
+    /// Malformed content in `path` at byte `offset`.
     pub fn corrupt(path: impl AsRef<Path>, offset: u64, what: impl Into<String>) -> Self {
         Error::Corrupt {
             path: path.as_ref().to_path_buf(),
@@ -66,6 +94,7 @@ impl Error {
         }
     }
 
+    /// A parameter `name` out of its meaningful range.
     pub fn param(name: impl Into<String>, why: impl Into<String>) -> Self {
         Error::InvalidParameter {
             name: name.into(),
@@ -73,6 +102,7 @@ impl Error {
         }
     }
 
+    /// The data do not allow the requested analysis.
     pub fn analysis(why: impl Into<String>) -> Self {
         Error::Analysis(why.into())
     }

@@ -49,7 +49,7 @@ struct Decoder {
     y: u16,
 }
 
-pub struct EsReader {
+pub(crate) struct EsReader {
     info: StreamInfo,
     file: File,
     kind: EsType,

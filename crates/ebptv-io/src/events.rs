@@ -16,17 +16,22 @@ use serde::{Deserialize, Serialize};
 /// Sensor geometry in pixels.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Geometry {
+    /// Sensor width, pixels.
     pub width: u16,
+    /// Sensor height, pixels.
     pub height: u16,
 }
 
 impl Geometry {
+    /// A sensor of `width` × `height` pixels.
     pub fn new(width: u16, height: u16) -> Self {
         Geometry { width, height }
     }
+    /// Number of pixels.
     pub fn pixels(&self) -> usize {
         self.width as usize * self.height as usize
     }
+    /// True when pixel (`x`, `y`) lies on the sensor.
     pub fn contains(&self, x: u16, y: u16) -> bool {
         x < self.width && y < self.height
     }
@@ -34,6 +39,7 @@ impl Geometry {
 
 /// Polarity of a contrast-detection event: 1 = ON (brighter), 0 = OFF.
 pub const ON: u8 = 1;
+/// Polarity of an OFF (darker) event.
 pub const OFF: u8 = 0;
 
 /// A block of contrast-detection events, struct-of-arrays.
@@ -44,13 +50,16 @@ pub const OFF: u8 = 0;
 pub struct EventChunk {
     /// Raw sensor time, µs.
     pub t: Vec<i64>,
+    /// Columns, pixels.
     pub x: Vec<u16>,
+    /// Rows, pixels.
     pub y: Vec<u16>,
     /// 1 = ON, 0 = OFF.
     pub p: Vec<u8>,
 }
 
 impl EventChunk {
+    /// An empty chunk with room for `n` events.
     pub fn with_capacity(n: usize) -> Self {
         EventChunk {
             t: Vec::with_capacity(n),
@@ -59,6 +68,7 @@ impl EventChunk {
             p: Vec::with_capacity(n),
         }
     }
+    /// Appends one event.
     #[inline]
     pub fn push(&mut self, t: i64, x: u16, y: u16, p: u8) {
         self.t.push(t);
@@ -66,14 +76,17 @@ impl EventChunk {
         self.y.push(y);
         self.p.push(p);
     }
+    /// Number of events.
     #[inline]
     pub fn len(&self) -> usize {
         self.t.len()
     }
+    /// True when the chunk holds no events.
     #[inline]
     pub fn is_empty(&self) -> bool {
         self.t.is_empty()
     }
+    /// Empties the chunk, keeping its allocations.
     pub fn clear(&mut self) {
         self.t.clear();
         self.x.clear();
@@ -119,16 +132,22 @@ impl EventChunk {
 /// One event, array-of-structs form (tests, writers, small tools).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 pub struct Event {
+    /// Time, µs.
     pub t: i64,
+    /// Column, pixels.
     pub x: u16,
+    /// Row, pixels.
     pub y: u16,
+    /// Polarity: [`ON`] or [`OFF`].
     pub p: u8,
 }
 
 /// Edge of an external-trigger signal.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub enum Edge {
+    /// Low-to-high transition.
     Rising,
+    /// High-to-low transition.
     Falling,
 }
 
@@ -140,6 +159,7 @@ pub struct Trigger {
     pub t: i64,
     /// Trigger channel id (EVK2: main input 1; EVK4: 0).
     pub channel: u8,
+    /// Which transition the trigger input saw.
     pub edge: Edge,
 }
 
@@ -147,15 +167,19 @@ pub struct Trigger {
 /// from the same stretch of the file, each in file order.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Chunk {
+    /// The contrast events, in stream order.
     pub events: EventChunk,
+    /// The external trigger events, in stream order.
     pub triggers: Vec<Trigger>,
 }
 
 impl Chunk {
+    /// Empties the chunk, keeping its allocations.
     pub fn clear(&mut self) {
         self.events.clear();
         self.triggers.clear();
     }
+    /// True when the chunk holds neither events nor triggers.
     pub fn is_empty(&self) -> bool {
         self.events.is_empty() && self.triggers.is_empty()
     }

@@ -26,7 +26,7 @@ use crate::{Anomalies, Format};
 
 const MAX_TIME_BASE: u64 = ((1 << 28) - 1) << 6;
 /// Period of the 34-bit clock, µs.
-pub const TIME_LOOP_US: u64 = MAX_TIME_BASE + (1 << 6);
+pub(crate) const TIME_LOOP_US: u64 = MAX_TIME_BASE + (1 << 6);
 const LOOP_THRESHOLD: u64 = 10 << 6;
 
 /// Unwrap a 28-bit TIME_HIGH field into a full time base (shared by EVT 2.0
@@ -40,7 +40,7 @@ pub(crate) struct TimeBase34 {
 impl TimeBase34 {
     /// Returns true when a loop was counted.
     #[inline]
-    pub fn update(&mut self, field: u32) -> bool {
+    pub(crate) fn update(&mut self, field: u32) -> bool {
         let mut new_base = ((field as u64 & 0x0FFF_FFFF) << 6) + self.loops * TIME_LOOP_US;
         let looped = self.base > new_base && self.base - new_base >= MAX_TIME_BASE - LOOP_THRESHOLD;
         if looped {
@@ -57,10 +57,12 @@ impl TimeBase34 {
 pub struct Evt2Decoder {
     have_time_base: bool,
     time: TimeBase34,
+    /// Malformed or unexpected words met so far.
     pub anomalies: Anomalies,
 }
 
 impl Evt2Decoder {
+    /// A decoder at the start of a stream.
     pub fn new() -> Self {
         Self::default()
     }
@@ -204,7 +206,7 @@ impl WordDecoder for Evt2Decoder {
 
 /// EVT 2.0 writer (through [`AtomicFile`]: nothing appears at the target
 /// until [`crate::EventWriter::finish`]).
-pub struct Evt2Writer {
+pub(crate) struct Evt2Writer {
     raw: RawWordWriter<u32>,
 }
 

@@ -31,6 +31,7 @@ pub struct Evt21Decoder {
     legacy: bool,
     have_time_base: bool,
     time: TimeBase34,
+    /// Malformed or unexpected words met so far.
     pub anomalies: Anomalies,
 }
 

@@ -52,7 +52,7 @@ const TIME_HIGH_BITS: u32 = 12;
 /// Largest time base a TIME_HIGH can express, µs.
 const MAX_TIME_BASE: u64 = ((1 << 12) - 1) << 12;
 /// Period of the 24-bit clock, µs.
-pub const TIME_LOOP_US: u64 = MAX_TIME_BASE + (1 << 12);
+pub(crate) const TIME_LOOP_US: u64 = MAX_TIME_BASE + (1 << 12);
 /// Tolerance of the loop detection (reference decoder's value), µs.
 const LOOP_THRESHOLD: u64 = 10 << 12;
 
@@ -75,10 +75,12 @@ pub struct Evt3Decoder {
     /// (exposure-measurement events follow, not CD).
     row: u8,
     vector: VectorState,
+    /// Malformed or unexpected words met so far.
     pub anomalies: Anomalies,
 }
 
 impl Evt3Decoder {
+    /// A decoder at the start of a stream.
     pub fn new() -> Self {
         Self::default()
     }
@@ -572,6 +574,7 @@ const EVT3_TIME: TimeSplit = TimeSplit {
 };
 
 impl Evt3Writer {
+    /// Creates a writer for `path`, a RAW file of `geometry`.
     pub fn create(path: &Path, geometry: Geometry) -> Result<Self> {
         Ok(Evt3Writer {
             raw: RawWordWriter::create(path, "EVT3", EVT3_TIME, geometry)?,

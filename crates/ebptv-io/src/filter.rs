@@ -8,8 +8,11 @@ use crate::{Anomalies, EventSource, StreamInfo};
 /// Which polarities to keep.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum PolaritySelect {
+    /// ON events only.
     On,
+    /// OFF events only.
     Off,
+    /// Both polarities.
     #[default]
     Both,
 }
@@ -32,13 +35,18 @@ impl std::str::FromStr for PolaritySelect {
 /// Rectangular region of interest, pixel coordinates, half-open.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Roi {
+    /// Left column, pixels.
     pub x0: u16,
+    /// Top row, pixels.
     pub y0: u16,
+    /// Width, pixels.
     pub width: u16,
+    /// Height, pixels.
     pub height: u16,
 }
 
 impl Roi {
+    /// True when pixel (`x`, `y`) lies inside the region.
     #[inline]
     pub fn contains(&self, x: u16, y: u16) -> bool {
         x >= self.x0 && y >= self.y0 && (x - self.x0) < self.width && (y - self.y0) < self.height
@@ -85,17 +93,14 @@ pub struct Selection {
     pub from_us: Option<i64>,
     /// Keep events with `t < to_us`.
     pub to_us: Option<i64>,
+    /// Keep only events inside this region.
     pub roi: Option<Roi>,
+    /// Keep only events of this polarity.
     pub polarity: PolaritySelect,
 }
 
 impl Selection {
-    pub fn is_everything(&self) -> bool {
-        self.from_us.is_none()
-            && self.to_us.is_none()
-            && self.roi.is_none()
-            && self.polarity == PolaritySelect::Both
-    }
+    /// Checks that the time window and region are well formed.
     pub fn validate(&self) -> Result<()> {
         if let (Some(a), Some(b)) = (self.from_us, self.to_us) {
             if b <= a {
@@ -117,6 +122,7 @@ pub struct Filtered<S: EventSource> {
 }
 
 impl<S: EventSource> Filtered<S> {
+    /// Wraps `inner` so that it yields only the events `sel` selects; errors when `sel` is invalid.
     pub fn new(inner: S, sel: Selection) -> Result<Self> {
         sel.validate()?;
         Ok(Filtered { inner, sel })

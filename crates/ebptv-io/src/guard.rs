@@ -36,7 +36,7 @@ pub const TIME_JUMP_US: i64 = 5_000_000;
 pub const JUMP_PERSIST_US: i64 = 100_000;
 
 /// True for a geometry some sensor can have.
-pub fn plausible_geometry(g: Geometry) -> bool {
+pub(crate) fn plausible_geometry(g: Geometry) -> bool {
     g.width > 0 && g.height > 0 && g.width <= MAX_SENSOR_SIDE && g.height <= MAX_SENSOR_SIDE
 }
 
@@ -51,6 +51,7 @@ pub struct Checked {
 }
 
 impl Checked {
+    /// Wraps `inner`.
     pub fn new(inner: Box<dyn EventSource>) -> Self {
         let mut info = inner.info().clone();
         let mut warnings = Vec::new();
@@ -193,6 +194,7 @@ pub struct TimeGuard<S: EventSource> {
 }
 
 impl<S: EventSource> TimeGuard<S> {
+    /// Wraps `inner`.
     pub fn new(inner: S) -> Self {
         TimeGuard {
             inner,

@@ -57,6 +57,8 @@
 //! any source with a time range, an ROI and a polarity selection. Errors
 //! ([`Error`]) name the file and, for malformed content, the byte offset.
 
+#![warn(missing_docs)]
+
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
@@ -71,17 +73,26 @@ pub use events::{Chunk, Edge, Event, EventChunk, Geometry, Trigger};
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Format {
+    /// Prophesee RAW, EVT 2.0.
     Evt2,
+    /// Prophesee RAW, EVT 2.1.
     Evt21,
+    /// Prophesee RAW, EVT 3.0.
     Evt3,
+    /// Prophesee DAT.
     Dat,
+    /// Text, one event per line.
     Csv,
+    /// iniVation AEDAT4.
     Aedat4,
+    /// Event Stream (`.es`).
     Es,
+    /// NumPy structured array (`.npy`).
     Npy,
 }
 
 impl Format {
+    /// The format's name as shown to users.
     pub fn name(&self) -> &'static str {
         match self {
             Format::Evt2 => "EVT 2.0",
@@ -116,7 +127,9 @@ impl Format {
 /// the parsed header.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct StreamInfo {
+    /// The file the stream reads.
     pub path: PathBuf,
+    /// The file's encoding.
     pub format: Format,
     /// Sensor geometry; inferred (e.g. from `% system_ID`) when the header
     /// does not state it. `None` when nothing tells it (then the max x/y seen
@@ -171,6 +184,7 @@ impl Anomalies {
 
 /// A streaming source of events and triggers.
 pub trait EventSource: Send {
+    /// What is known about the stream before its first event.
     fn info(&self) -> &StreamInfo;
 
     /// Clear `chunk` and fill it with the next events and triggers.
@@ -279,6 +293,7 @@ pub fn open_for_analysis(path: impl AsRef<Path>) -> Result<Box<dyn EventSource>>
 
 /// A sink for events and triggers.
 pub trait EventWriter {
+    /// Appends the events and triggers of `chunk`.
     fn write_chunk(&mut self, chunk: &Chunk) -> Result<()>;
     /// Flush and move the file to its final name. Without this call the
     /// temporary file is removed (on drop) and nothing appears at the target.

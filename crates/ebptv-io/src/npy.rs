@@ -72,14 +72,23 @@ pub fn table_header(descr: &str, rows: usize, min_len: usize) -> Vec<u8> {
 /// A column of a structured table for [`write_npy_table`].
 #[derive(Debug, Clone, Copy)]
 pub enum NpyColumn<'a> {
+    /// `<f8` values.
     F64(&'a [f64]),
+    /// `<f4` values.
     F32(&'a [f32]),
+    /// `<i8` values.
     I64(&'a [i64]),
+    /// `<i4` values.
     I32(&'a [i32]),
+    /// `<u8` values.
     U64(&'a [u64]),
+    /// `<u4` values.
     U32(&'a [u32]),
+    /// `<u2` values.
     U16(&'a [u16]),
+    /// `|u1` values.
     U8(&'a [u8]),
+    /// `|b1` values.
     Bool(&'a [bool]),
 }
 
@@ -217,9 +226,13 @@ pub fn write_npy_table(path: impl AsRef<Path>, columns: &[(&str, NpyColumn)]) ->
 /// shape, and the byte offset of the data.
 #[derive(Debug, Clone, PartialEq)]
 pub struct NpyHeader {
+    /// The `descr` dtype string.
     pub descr: String,
+    /// Whether the array is stored in column-major order.
     pub fortran_order: bool,
+    /// The array's shape.
     pub shape: Vec<usize>,
+    /// Byte offset of the data after the header.
     pub data_offset: usize,
 }
 
@@ -323,6 +336,7 @@ pub struct NpyEventWriter {
 }
 
 impl NpyEventWriter {
+    /// Creates a writer for `path`.
     pub fn create(path: &Path) -> Result<Self> {
         Ok(NpyEventWriter {
             events: StreamingNpy::create(path, EVENT_DESCR)?,

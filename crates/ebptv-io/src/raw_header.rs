@@ -79,10 +79,13 @@ pub fn parse_percent_header(bytes: &[u8]) -> (Vec<(String, String)>, usize) {
 /// What a RAW header says (or implies) about the payload.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RawHeader {
+    /// The header's `% key value` lines, in file order.
     pub entries: Vec<(String, String)>,
+    /// Byte offset of the first payload word.
     pub payload_offset: u64,
     /// The encoding, when the header names or implies it.
     pub format: Option<Format>,
+    /// The sensor geometry, when the header states or implies it.
     pub geometry: Option<Geometry>,
     /// EVT 2.1 only: the two 32-bit halves of each 64-bit word are swapped
     /// (`endianness=legacy`, and the default of old `% evt 2.1` files).
@@ -246,7 +249,7 @@ pub(crate) fn stream_info(path: &Path, format: Format, header: &RawHeader) -> Re
 }
 
 /// Default size of the payload read buffer.
-pub const READ_BUFFER_BYTES: usize = 1 << 20;
+pub(crate) const READ_BUFFER_BYTES: usize = 1 << 20;
 
 /// Reads a RAW payload through one fixed-size buffer, handing out whole
 /// words (`word_bytes` = 2, 4 or 8) and carrying a partial word over to the
@@ -266,6 +269,7 @@ pub struct PayloadReader {
 }
 
 impl PayloadReader {
+    /// Opens a RAW file and reads its header.
     pub fn open(
         path: &Path,
         payload_offset: u64,
@@ -308,7 +312,7 @@ impl PayloadReader {
     /// Mark `n` bytes (a whole number of words) of the last `words()` slice
     /// consumed.
     #[inline]
-    pub fn consume(&mut self, n: usize) {
+    pub(crate) fn consume(&mut self, n: usize) {
         debug_assert!(n % self.word_bytes == 0 && self.start + n <= self.end);
         self.start += n;
         self.consumed += n as u64;
@@ -341,7 +345,7 @@ impl PayloadReader {
     }
 
     /// At end of file: the bytes left over that do not form a whole word.
-    pub fn trailing_partial_bytes(&self) -> u64 {
+    pub(crate) fn trailing_partial_bytes(&self) -> u64 {
         if self.eof {
             ((self.end - self.start) % self.word_bytes) as u64
         } else {
@@ -349,15 +353,12 @@ impl PayloadReader {
         }
     }
 
-    pub fn at_eof(&self) -> bool {
-        self.eof && self.end - self.start < self.word_bytes
-    }
-
     /// File offset of the next unconsumed byte.
-    pub fn file_offset(&self) -> u64 {
+    pub(crate) fn file_offset(&self) -> u64 {
         self.payload_offset + self.consumed
     }
 
+    /// The file being read.
     pub fn path(&self) -> &Path {
         &self.path
     }

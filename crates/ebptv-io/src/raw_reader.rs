@@ -22,7 +22,9 @@ pub trait WordDecoder: Send {
     /// Decode words from `bytes` (whole words only) into `out` until about
     /// `max_events` events are there; returns the bytes consumed.
     fn decode(&mut self, bytes: &[u8], out: &mut Chunk, max_events: usize) -> usize;
+    /// Malformed or unexpected words met so far.
     fn anomalies(&self) -> &Anomalies;
+    /// Mutable access to the anomaly counts.
     fn anomalies_mut(&mut self) -> &mut Anomalies;
 }
 

@@ -167,7 +167,11 @@ impl<W: RawWord> RawWordWriter<W> {
 
     /// Make `t >> low_bits` the decoder's time base, emitting the TIME_HIGH
     /// words `time_high_word(value)` needed (loops stepped through).
-    pub fn set_time_high(&mut self, t: i64, time_high_word: impl Fn(u32) -> W) -> Result<()> {
+    pub(crate) fn set_time_high(
+        &mut self,
+        t: i64,
+        time_high_word: impl Fn(u32) -> W,
+    ) -> Result<()> {
         let label = self.split.label;
         if t < 0 {
             return Err(Error::param(
@@ -198,7 +202,7 @@ impl<W: RawWord> RawWordWriter<W> {
     }
 
     /// Both encodings address x and y with 11 bits.
-    pub fn check_coordinates(&self, x: u16, y: u16) -> Result<()> {
+    pub(crate) fn check_coordinates(&self, x: u16, y: u16) -> Result<()> {
         if x >= 2048 || y >= 2048 {
             return Err(Error::param(
                 "events",
@@ -211,7 +215,7 @@ impl<W: RawWord> RawWordWriter<W> {
         Ok(())
     }
 
-    pub fn check_trigger_channel(&self, channel: u8) -> Result<()> {
+    pub(crate) fn check_trigger_channel(&self, channel: u8) -> Result<()> {
         if u32::from(channel) >= 1 << self.split.channel_bits {
             return Err(Error::param(
                 "triggers",

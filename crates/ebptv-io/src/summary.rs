@@ -23,18 +23,26 @@ const RING: usize = 256;
 /// Trigger counts of one channel.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
 pub struct TriggerCounts {
+    /// Trigger channel id.
     pub channel: u8,
+    /// Rising edges seen.
     pub rising: u64,
+    /// Falling edges seen.
     pub falling: u64,
+    /// Time of the first trigger, µs.
     pub first_t: i64,
+    /// Time of the last trigger, µs.
     pub last_t: i64,
 }
 
 /// What `ebptv info` reports about a stream.
 #[derive(Debug, Clone, Serialize)]
 pub struct Summary {
+    /// The file summarised.
     pub path: PathBuf,
+    /// Its encoding.
     pub format: Format,
+    /// The encoding's name as shown to users.
     pub format_name: String,
     /// Geometry stated (or inferred by the reader from the header).
     pub geometry: Option<Geometry>,
@@ -44,32 +52,45 @@ pub struct Summary {
     pub geometry_source: String,
     /// Smallest geometry holding every event seen: max x + 1, max y + 1.
     pub geometry_from_events: Option<Geometry>,
+    /// The file header's key/value entries.
     pub header: Vec<(String, String)>,
+    /// File size, bytes.
     pub file_bytes: Option<u64>,
+    /// Number of contrast events.
     pub events: u64,
+    /// Number of ON events.
     pub on_events: u64,
+    /// Number of OFF events.
     pub off_events: u64,
     /// ON / (ON + OFF); `None` without events.
     pub on_fraction: Option<f64>,
+    /// Trigger edge counts per channel.
     pub triggers: Vec<TriggerCounts>,
     /// Time of the first and last event in file order, µs.
     pub first_t_us: Option<i64>,
+    /// Time of the last event in file order, µs.
     pub last_t_us: Option<i64>,
     /// Smallest and largest event time, µs.
     pub min_t_us: Option<i64>,
+    /// Largest event time, µs.
     pub max_t_us: Option<i64>,
     /// max - min, µs.
     pub duration_us: Option<i64>,
     /// Events whose time is smaller than the previous event's.
     pub time_steps_back: u64,
+    /// Events per second over the duration.
     pub mean_rate_ev_per_s: Option<f64>,
+    /// Events per second in the busiest bin.
     pub peak_rate_ev_per_s: Option<f64>,
+    /// Width of the bins of the peak-rate estimate, µs.
     pub peak_bin_us: i64,
     /// Start time of the bin with the peak count, µs.
     pub peak_bin_start_us: Option<i64>,
     /// Events too late (in time) to be binned for the peak estimate.
     pub late_for_peak: u64,
+    /// Malformed or unexpected content met while decoding.
     pub anomalies: Anomalies,
+    /// Wall-clock time the decoding took, s.
     pub decode_seconds: f64,
     /// Events decoded per second of wall time, in millions.
     pub decode_rate_mev_per_s: f64,
@@ -129,6 +150,7 @@ impl SummaryBuilder {
         }
     }
 
+    /// Folds one chunk into the summary.
     pub fn add(&mut self, chunk: &Chunk) {
         let ev = &chunk.events;
         for i in 0..ev.len() {

@@ -173,7 +173,7 @@ mod x2 {
             F64x2(unsafe { _mm_loadu_pd(a.as_ptr()) })
         }
         #[inline(always)]
-        pub fn to_array(self) -> [f64; 2] {
+        pub(crate) fn to_array(self) -> [f64; 2] {
             let mut a = [0.0; 2];
             // SAFETY: SSE2, part of the x86_64 baseline; the pointer is to an owned array of the lane count.
             unsafe { _mm_storeu_pd(a.as_mut_ptr(), self.0) };
@@ -314,7 +314,7 @@ mod x2 {
             F64x2(a)
         }
         #[inline(always)]
-        pub fn to_array(self) -> [f64; 2] {
+        pub(crate) fn to_array(self) -> [f64; 2] {
             self.0
         }
         #[inline(always)]
@@ -691,7 +691,7 @@ pub fn cos_lanes<T: Lanes>(x: T) -> T {
 
 /// sin(x) per lane (see the module docs for the accuracy).
 #[inline(always)]
-pub fn sin_lanes<T: Lanes>(x: T) -> T {
+pub(crate) fn sin_lanes<T: Lanes>(x: T) -> T {
     // sin(mπ + r) = (−1)^m sin r.
     let (r, big) = reduce(x, false);
     sin_kernel(r).xor(big.low_bit_as_sign())

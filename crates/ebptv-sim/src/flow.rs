@@ -36,39 +36,66 @@ use ebptv_io::error::{Error, Result};
 /// A built velocity field.
 #[derive(Debug, Clone)]
 pub enum Flow {
+    /// The same velocity everywhere.
     Uniform {
+        /// x velocity (px/s).
         u: f64,
+        /// y velocity (px/s).
         v: f64,
     },
+    /// Lamb–Oseen vortex on a uniform background.
     LambOseen {
+        /// Core centre x (px).
         x0: f64,
+        /// Core centre y (px).
         y0: f64,
+        /// Circulation Γ (px²/s).
         gamma: f64,
+        /// Squared core radius (px²).
         rc2: f64,
         /// 1/rc2 (the lane formula multiplies).
         inv_rc2: f64,
+        /// Background x velocity (px/s).
         u: f64,
+        /// Background y velocity (px/s).
         v: f64,
     },
+    /// Plane Poiseuille channel along x.
     Poiseuille {
+        /// Centre-line velocity (px/s).
         u_max: f64,
+        /// Lower wall y (px).
         y0: f64,
+        /// Channel width (px).
         width: f64,
     },
+    /// Laminar boundary layer (Pohlhausen profile) along x.
     BoundaryLayer {
+        /// Free-stream velocity (px/s).
         u_inf: f64,
+        /// Layer thickness (px).
         delta: f64,
+        /// Wall position y (px).
         wall_y: f64,
     },
+    /// Random divergence-free Fourier modes on a mean shear flow.
     Turbulent(Box<Turbulent>),
+    /// Plane jet: two tanh shear layers.
     Jet {
+        /// Centre-line velocity (px/s).
         u_center: f64,
+        /// Co-flow velocity (px/s).
         u_coflow: f64,
+        /// Jet axis y (px).
         y_center: f64,
+        /// Half width (px).
         half_width: f64,
+        /// Shear-layer thickness (px).
         thickness: f64,
     },
+    /// Periodic vortex shedding behind an obstacle.
     Shedding(Shedding),
+    /// A user's steady field on a grid.
     Gridded(Box<Gridded>),
     /// Tests: the field evaluated by its plain formulas (libm), never in
     /// lanes: the reference the fast fields are advected against.
@@ -80,9 +107,13 @@ pub enum Flow {
 /// on a mean shear flow.
 #[derive(Debug, Clone)]
 pub struct Turbulent {
+    /// Mean x velocity at `y_ref` (px/s).
     pub u_mean: f64,
+    /// Mean y velocity (px/s).
     pub v_mean: f64,
+    /// Mean shear du/dy (1/s).
     pub shear: f64,
+    /// Reference y of the mean shear (px).
     pub y_ref: f64,
     /// (a k_x, a k_y, k_x, k_y, ω, φ) per mode.
     modes: Vec<[f64; 6]>,
@@ -122,6 +153,7 @@ impl<T: Lanes> Phases<T> {
 pub(crate) static FALLBACK_LANES: std::sync::atomic::AtomicU64 =
     std::sync::atomic::AtomicU64::new(0);
 
+/// Periodic vortex shedding behind an obstacle (built from [`FlowSpec::Shedding`](crate::scenario::FlowSpec::Shedding)).
 #[derive(Debug, Clone)]
 pub struct Shedding {
     u_inf: f64,
@@ -141,6 +173,7 @@ pub struct Shedding {
     inv_size: f64,
 }
 
+/// A steady field on a regular grid, bilinearly interpolated (built from [`FlowSpec::Gridded`](crate::scenario::FlowSpec::Gridded)).
 #[derive(Debug, Clone)]
 pub struct Gridded {
     xs: Vec<f64>,
@@ -155,6 +188,7 @@ pub struct Gridded {
 }
 
 impl Flow {
+    /// Builds the field a scenario describes; errors when the description is invalid or a grid file cannot be read.
     pub fn build(spec: &FlowSpec) -> Result<Flow> {
         Ok(match spec {
             FlowSpec::Uniform { u, v } => Flow::Uniform { u: *u, v: *v },
@@ -413,7 +447,7 @@ impl Flow {
     }
 
     /// Whether (x, y) is fluid (particles are seeded and recycled only there).
-    pub fn is_fluid(&self, _x: f64, y: f64) -> bool {
+    pub(crate) fn is_fluid(&self, _x: f64, y: f64) -> bool {
         match self {
             Flow::Poiseuille { y0, width, .. } => y >= *y0 && y <= y0 + width,
             Flow::BoundaryLayer { wall_y, .. } => y < *wall_y,
@@ -754,6 +788,7 @@ fn erf_plain(x: f64) -> f64 {
 }
 
 impl Gridded {
+    /// Reads a grid field from a CSV file `x,y,u,v`; `scale` multiplies u and v.
     pub fn load(path: &Path, scale: f64) -> Result<Gridded> {
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
         let mut lines = text

@@ -60,6 +60,8 @@
 //! switching one effect does not reshuffle the others). See
 //! [`scenario`] for the table of names and parameters.
 
+#![warn(missing_docs)]
+
 use serde::{Deserialize, Serialize};
 
 pub(crate) mod fastmath;
@@ -73,7 +75,7 @@ pub mod scenario;
 pub mod seeding;
 
 pub use flow::Flow;
-pub use record::{write_recording, RecordingSummary, TruthWriter};
+pub use record::{write_recording, RecordingSummary};
 pub use scenario::{Scenario, EFFECT_NAMES};
 
 use ebptv_io::error::{Error, Result};
@@ -83,15 +85,19 @@ use ebptv_io::{EventSource, Format, StreamInfo};
 /// Ground truth of one particle at one pulse (`truth_particles.csv`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct TruthSample {
+    /// Pulse index.
     pub pulse: i64,
     /// Pulse start time (µs).
     pub t_us: f64,
+    /// Particle id (stable while the particle lives).
     pub particle_id: u64,
     /// Particle-image centre at the pulse (px).
     pub x: f64,
+    /// Particle-image centre y at the pulse (px).
     pub y: f64,
     /// True velocity (px/s).
     pub u: f64,
+    /// True y velocity (px/s).
     pub v: f64,
 }
 
@@ -99,10 +105,13 @@ pub struct TruthSample {
 /// recordings stream through `Simulator` (an `EventSource`) instead.
 #[derive(Debug, Clone, Default)]
 pub struct SimOutput {
+    /// Geometry of the recording.
     pub geometry: Option<Geometry>,
     /// Events in readout order (time-ordered).
     pub events: EventChunk,
+    /// Trigger events (laser TTL), time-ordered.
     pub triggers: Vec<Trigger>,
+    /// Ground truth, one row per lit particle and pulse.
     pub truth: Vec<TruthSample>,
     /// True start time of every light pulse (µs).
     pub pulse_starts_us: Vec<f64>,
@@ -111,10 +120,15 @@ pub struct SimOutput {
 /// Counters of a simulation run (`summary.json`).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct SimStats {
+    /// Contrast events written.
     pub events: u64,
+    /// ON events written.
     pub on_events: u64,
+    /// OFF events written.
     pub off_events: u64,
+    /// Trigger events written.
     pub triggers: u64,
+    /// Light pulses simulated.
     pub pulses: u64,
     /// Particle slots in the slab (lit or not, ROI plus margin).
     pub particles: u64,
@@ -122,10 +136,12 @@ pub struct SimStats {
     pub truth_samples: u64,
     /// Requests lost in the readout (pixel still blocked).
     pub lost_in_readout: u64,
+    /// Simulated time (s).
     pub duration_s: f64,
 }
 
 impl SimStats {
+    /// Mean event rate over the simulated time (events/s).
     pub fn event_rate_ev_s(&self) -> f64 {
         self.events as f64 / self.duration_s
     }
@@ -353,7 +369,8 @@ pub fn sort_requests_reference(reqs: &mut [pixel::Arrival], t_begin: f64) {
 
 /// The simulator's request sort ([`KeyLayout`] keys through
 /// [`radix_sort_above`]) for requests inside `roi` (for tests).
-pub fn sort_requests(reqs: &mut [pixel::Arrival], t_begin: f64, roi: scenario::Roi) {
+#[cfg(test)]
+pub(crate) fn sort_requests(reqs: &mut [pixel::Arrival], t_begin: f64, roi: scenario::Roi) {
     let layout = KeyLayout::new(roi);
     let mut keys: Vec<u64> = reqs.iter().map(|a| layout.key(a, t_begin)).collect();
     sort_request_keys(&mut keys, &mut Vec::new(), layout);
@@ -631,6 +648,7 @@ pub struct Simulator {
 }
 
 impl Simulator {
+    /// A simulator of scenario `sc`; `seed` fixes every random draw.
     pub fn new(sc: &Scenario, seed: u64) -> Result<Simulator> {
         sc.validate()?;
         let flow = Flow::build(&sc.flow)?;
@@ -707,6 +725,7 @@ impl Simulator {
         })
     }
 
+    /// The scenario being simulated.
     pub fn scenario(&self) -> &Scenario {
         &self.front.sc
     }
@@ -719,6 +738,7 @@ impl Simulator {
         self
     }
 
+    /// The velocity field the particles follow.
     pub fn flow(&self) -> &Flow {
         &self.front.flow
     }
@@ -742,6 +762,7 @@ impl Simulator {
         &self.pulse_starts_us
     }
 
+    /// The counters so far.
     pub fn stats(&self) -> &SimStats {
         &self.stats
     }

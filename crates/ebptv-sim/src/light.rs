@@ -26,6 +26,7 @@ pub struct PulseShape {
 }
 
 impl PulseShape {
+    /// The shape of the pulses of `l`.
     pub fn new(l: &Light) -> PulseShape {
         let end = 0.5 * l.rise_us + l.pulse_width_us + 0.5 * l.fall_us;
         let n = 64;

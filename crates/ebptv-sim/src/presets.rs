@@ -38,10 +38,10 @@ pub const PRESETS: [(&str, &str); 9] = [
 pub const WATER_ENERGY: f64 = 1.6;
 /// Pulse energy giving ~1.3 events per particle per pulse (air: small
 /// droplets).
-pub const AIR_ENERGY: f64 = 1.0;
+pub(crate) const AIR_ENERGY: f64 = 1.0;
 
 /// The camera's effects as calibrated against the paper (EVK2-HD).
-pub fn camera_effects(s: &mut Scenario) {
+pub(crate) fn camera_effects(s: &mut Scenario) {
     s.pixel.threshold_mismatch = Some(ThresholdMismatch { sigma: 0.1 });
     s.pixel.refractory = Some(Refractory { period_us: 30.0 });
     s.pixel.intensity_latency = Some(IntensityLatency {

@@ -33,6 +33,7 @@ pub struct Refractory {
 }
 
 impl Refractory {
+    /// A refractory filter of `period_us` over `roi`.
     pub fn new(period_us: f64, roi: Roi) -> Self {
         Refractory {
             period_us,
@@ -42,7 +43,8 @@ impl Refractory {
     }
 
     /// Filter time-ordered requests in place.
-    pub fn apply(&mut self, reqs: &mut Vec<Arrival>) {
+    #[cfg(test)]
+    pub(crate) fn apply(&mut self, reqs: &mut Vec<Arrival>) {
         reqs.retain(|a| self.keep(a));
     }
 
@@ -67,7 +69,7 @@ impl Refractory {
     /// [`Self::keep`] for a request at time `t` of the pixel at (`dx`,
     /// `dy`) from the ROI's corner.
     #[inline(always)]
-    pub fn keep_at(&mut self, dx: usize, dy: usize, t: f64) -> bool {
+    pub(crate) fn keep_at(&mut self, dx: usize, dy: usize, t: f64) -> bool {
         let last = &mut self.last[dy * self.roi.width as usize + dx];
         if t - *last >= self.period_us {
             *last = t;
@@ -79,7 +81,7 @@ impl Refractory {
 
     /// Whether request `a` would pass now (no state change).
     #[inline]
-    pub fn would_keep(&self, a: &Arrival) -> bool {
+    pub(crate) fn would_keep(&self, a: &Arrival) -> bool {
         a.t - self.last[self.index(a)] >= self.period_us
     }
 
@@ -96,6 +98,7 @@ impl Refractory {
     }
 }
 
+/// Row-arbitrated readout that delays events when many rows request at once.
 pub struct Arbiter {
     params: ArbiterSaturation,
     roi_x: u16,
@@ -130,6 +133,7 @@ pub struct Arbiter {
 }
 
 impl Arbiter {
+    /// An arbiter with the given timings over `roi`.
     pub fn new(params: ArbiterSaturation, roi: Roi) -> Self {
         let words_per_row = (roi.width as usize).div_ceil(64);
         assert!(words_per_row <= 64, "ROI wider than 4096 px");
@@ -232,7 +236,7 @@ impl Arbiter {
     /// [`Self::offer`] for a request at time `t` of the pixel at (`dx`,
     /// `dy`) from the ROI's corner with polarity `p` (0 or 1).
     #[inline(always)]
-    pub fn offer_at(
+    pub(crate) fn offer_at(
         &mut self,
         t: f64,
         dx: usize,
@@ -369,6 +373,7 @@ pub struct RateLimiter {
 }
 
 impl RateLimiter {
+    /// A limiter allowing `max_rate_ev_s` events/s in windows of `window_us`.
     pub fn new(max_rate_ev_s: f64, window_us: f64) -> Self {
         RateLimiter {
             window_us,
@@ -378,7 +383,7 @@ impl RateLimiter {
         }
     }
 
-    pub fn apply(&mut self, ev: &mut EventChunk) {
+    pub(crate) fn apply(&mut self, ev: &mut EventChunk) {
         ev.retain(|t, _, _, _| {
             let w = (t as f64 / self.window_us).floor() as i64;
             if w != self.window {
@@ -452,7 +457,7 @@ pub(crate) fn prefetch_ptr<T>(p: *const T) {
 }
 
 /// Stamp requests without a readout bottleneck: each at its own time.
-pub fn stamp_ideal(reqs: &[Arrival], out: &mut EventChunk) {
+pub(crate) fn stamp_ideal(reqs: &[Arrival], out: &mut EventChunk) {
     for a in reqs {
         out.push(floor_i64(a.t), a.x, a.y, a.p);
     }

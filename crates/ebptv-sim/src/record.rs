@@ -33,7 +33,7 @@ use ebptv_io::{EventSource, Format};
 /// as the same three numbers come back; in other flows the cache misses,
 /// and once a probe of its hit rate has found that out it is bypassed
 /// for the tails ([`TailCache`]).
-pub struct TruthWriter {
+pub(crate) struct TruthWriter {
     file: AtomicFile,
     /// Rows formatted in place (`BATCH` bytes plus one row window), so a
     /// row costs no copy of its own; written out per `BATCH` bytes.
@@ -229,7 +229,7 @@ const ROW_WINDOW: usize = 256 + 8;
 const ROW_MASK: usize = 255;
 
 impl TruthWriter {
-    pub const HEADER: &'static str = "pulse,t_us,particle_id,x,y,u,v";
+    pub(crate) const HEADER: &'static str = "pulse,t_us,particle_id,x,y,u,v";
 
     pub fn create(path: impl AsRef<Path>) -> Result<TruthWriter> {
         let mut file = AtomicFile::create(path.as_ref())?;
@@ -252,7 +252,7 @@ impl TruthWriter {
     /// `slot + slots · generation`), so each slot's row tail has its own
     /// cache entry. Only speed depends on it; any value gives the same
     /// file.
-    pub fn set_particle_slots(&mut self, slots: u64) {
+    pub(crate) fn set_particle_slots(&mut self, slots: u64) {
         self.tails = TailCache::new(slots);
     }
 
@@ -324,7 +324,8 @@ impl TruthWriter {
 /// formatting (which was 40 % of the CPU time of a full-frame
 /// `ebptv simulate`); a row with a value near a rounding tie is written
 /// by the reference instead.
-pub fn truth_line(line: &mut Vec<u8>, r: &TruthSample) {
+#[cfg(test)]
+pub(crate) fn truth_line(line: &mut Vec<u8>, r: &TruthSample) {
     let mut window = [0u8; ROW_WINDOW];
     match truth_row_fast(&mut window, r) {
         Some(n) => line.extend_from_slice(&window[..n]),
@@ -335,6 +336,7 @@ pub fn truth_line(line: &mut Vec<u8>, r: &TruthSample) {
 /// Format `r` at the start of `w`: its length, or None when a value
 /// needs the exact formatter.
 #[inline]
+#[cfg(test)]
 fn truth_row_fast(w: &mut [u8; ROW_WINDOW], r: &TruthSample) -> Option<usize> {
     let mut p = 0;
     if r.pulse < 0 {
@@ -350,6 +352,7 @@ fn truth_row_fast(w: &mut [u8; ROW_WINDOW], r: &TruthSample) -> Option<usize> {
 /// The fields of `r` after `pulse,t_us,` from position `p` of `w` (see
 /// [`truth_row_fast`]): the row's length, or None.
 #[inline(always)]
+#[cfg(test)]
 fn truth_row_rest(w: &mut [u8; ROW_WINDOW], p: usize, r: &TruthSample) -> Option<usize> {
     let mut p = put_uint(w, p, r.particle_id);
     p = put_byte(w, p, b',');
@@ -546,14 +549,20 @@ pub fn truth_line_reference(line: &mut Vec<u8>, r: &TruthSample) {
 /// `summary.json`.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct RecordingSummary {
+    /// The scenario's name.
     pub scenario: String,
+    /// The seed of the run.
     pub seed: u64,
+    /// The recording written.
     pub recording: PathBuf,
+    /// Its encoding.
     pub format: Format,
     /// The run's counters, as top-level keys of the JSON.
     #[serde(flatten)]
     pub stats: SimStats,
+    /// Mean event rate (events/s).
     pub event_rate_ev_s: f64,
+    /// Mean events per lit particle and pulse.
     pub events_per_particle_per_pulse: f64,
 }
 
@@ -572,7 +581,7 @@ impl RecordingSummary {
 }
 
 /// File name of the recording for `format`.
-pub fn recording_name(format: Format) -> Result<&'static str> {
+pub(crate) fn recording_name(format: Format) -> Result<&'static str> {
     Ok(match format {
         Format::Evt3 | Format::Evt2 => "recording.raw",
         Format::Csv => "recording.csv",

@@ -40,14 +40,23 @@ pub struct Scenario {
     pub name: String,
     /// Recording length (s).
     pub duration_s: f64,
+    /// Sensor geometry and region of interest.
     pub sensor: Sensor,
+    /// The velocity field.
     pub flow: FlowSpec,
+    /// Particle seeding.
     pub seeding: Seeding,
+    /// The pulsed light sheet.
     pub light: Light,
+    /// Imaging optics.
     pub optics: Optics,
+    /// The event pixel.
     pub pixel: Pixel,
+    /// Readout effects.
     pub readout: Readout,
+    /// Noise sources.
     pub noise: Noise,
+    /// Trigger recording.
     pub triggers: Triggers,
 }
 
@@ -57,18 +66,24 @@ pub struct Scenario {
 pub struct Sensor {
     /// Full sensor size (px); the file geometry.
     pub width: u32,
+    /// Full sensor height (px).
     pub height: u32,
     /// Active region; `None` = full frame. Events only come from here, and
     /// the readout's load (and so its latency) scales with its row count.
     pub roi: Option<Roi>,
 }
 
+/// A rectangular region of the sensor (px).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Roi {
+    /// Left column.
     pub x: u32,
+    /// Top row.
     pub y: u32,
+    /// Width.
     pub width: u32,
+    /// Height.
     pub height: u32,
 }
 
@@ -77,33 +92,60 @@ pub struct Roi {
 #[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
 pub enum FlowSpec {
     /// u = (u, v) everywhere.
-    Uniform { u: f64, v: f64 },
+    Uniform {
+        /// x velocity (px/s).
+        u: f64,
+        /// y velocity (px/s).
+        v: f64,
+    },
     /// Lamb–Oseen vortex (steady core) at (x0, y0) on a uniform background.
     LambOseen {
+        /// Core centre x (px).
         x0: f64,
+        /// Core centre y (px).
         y0: f64,
         /// Circulation Γ (px²/s); positive = counter-clockwise in (x, y).
         circulation: f64,
         /// Core radius r_c (px): u_θ = Γ/(2πr)·(1 − exp(−r²/r_c²)).
         core_radius: f64,
+        /// Background x velocity (px/s).
         #[serde(default)]
         u: f64,
+        /// Background y velocity (px/s).
         #[serde(default)]
         v: f64,
     },
     /// Plane Poiseuille channel along x between walls y = y0 and y0 + width.
-    Poiseuille { u_max: f64, y0: f64, width: f64 },
+    Poiseuille {
+        /// Centre-line velocity (px/s).
+        u_max: f64,
+        /// Lower wall y (px).
+        y0: f64,
+        /// Channel width (px).
+        width: f64,
+    },
     /// Laminar boundary layer (Pohlhausen quartic profile) along x, wall at
     /// y = wall_y, fluid at y < wall_y (above the wall in the image).
-    BoundaryLayer { u_inf: f64, delta: f64, wall_y: f64 },
+    BoundaryLayer {
+        /// Free-stream velocity (px/s).
+        u_inf: f64,
+        /// Layer thickness (px).
+        delta: f64,
+        /// Wall position y (px).
+        wall_y: f64,
+    },
     /// Random divergence-free Fourier modes (stream function) on a mean
     /// shear flow u = u_mean + shear·(y − y_ref), v = v_mean. The modes are
     /// drawn from `seed`; their exact Reynolds stresses are known.
     Turbulent {
+        /// Mean x velocity at `y_ref` (px/s).
         u_mean: f64,
+        /// Mean y velocity (px/s).
         v_mean: f64,
+        /// Mean shear du/dy (1/s).
         #[serde(default)]
         shear: f64,
+        /// Reference y of the mean shear (px).
         #[serde(default)]
         y_ref: f64,
         /// sqrt((uu + vv)/2) of the fluctuations (px/s).
@@ -112,26 +154,38 @@ pub enum FlowSpec {
         length_scale: f64,
         /// Decorrelation time of the modes in the convected frame (s).
         time_scale_s: f64,
+        /// Number of Fourier modes.
         n_modes: u32,
+        /// Seed of the modes.
         seed: u64,
     },
     /// Plane jet-like shear layers: u = u_coflow + (u_center − u_coflow)·
     /// ½(1 + tanh((half_width − |y − y_center|)/thickness)).
     Jet {
+        /// Centre-line velocity (px/s).
         u_center: f64,
+        /// Co-flow velocity (px/s).
         u_coflow: f64,
+        /// Jet axis y (px).
         y_center: f64,
+        /// Half width (px).
         half_width: f64,
+        /// Shear-layer thickness (px).
         thickness: f64,
     },
     /// Periodic vortex shedding behind an obstacle of size `size` at
     /// (obstacle_x, y_center): f = St·u_inf/size, a wake deficit and a
     /// travelling wave of the stream function (divergence-free, exact).
     Shedding {
+        /// Free-stream velocity (px/s).
         u_inf: f64,
+        /// Obstacle x (px).
         obstacle_x: f64,
+        /// Wake centre line y (px).
         y_center: f64,
+        /// Obstacle size (px).
         size: f64,
+        /// Strouhal number St.
         strouhal: f64,
         /// Peak cross-stream velocity of the wave, as a fraction of u_inf.
         amplitude: f64,
@@ -143,6 +197,7 @@ pub enum FlowSpec {
     /// A user's steady field on a regular grid: CSV with header `x,y,u,v`
     /// (px, px/s), bilinear interpolation, edge values outside.
     Gridded {
+        /// The CSV file.
         path: PathBuf,
         /// Multiplies u and v (unit conversion).
         #[serde(default = "one")]
@@ -174,13 +229,17 @@ pub struct Seeding {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Light {
+    /// Pulse repetition rate (Hz).
     pub pulse_hz: f64,
     /// Width of the pulse between half-rise and half-fall (µs).
     pub pulse_width_us: f64,
+    /// Rise time (µs).
     pub rise_us: f64,
+    /// Fall time (µs).
     pub fall_us: f64,
     /// Peak-to-peak relative saw-tooth modulation of the laser power.
     pub sawtooth_depth: f64,
+    /// Frequency of the saw-tooth modulation (Hz).
     pub sawtooth_hz: f64,
     /// Signal of a median particle fully on one pixel, relative to the
     /// pixel's background (dimensionless; sets events per particle).
@@ -215,7 +274,7 @@ pub struct ClockDrift {
 
 impl ClockDrift {
     /// δ(τ) (µs) for laser time τ (µs since pulse 0).
-    pub fn offset_us(&self, tau_us: f64) -> f64 {
+    pub(crate) fn offset_us(&self, tau_us: f64) -> f64 {
         let p = self.wander_period_s * 1e6;
         let wander = self.wander_ppm * p / std::f64::consts::TAU
             * (1.0 - (std::f64::consts::TAU * tau_us / p).cos());
@@ -223,6 +282,7 @@ impl ClockDrift {
     }
 }
 
+/// Particle streaks during each pulse.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct PulseStreaks {
@@ -230,6 +290,7 @@ pub struct PulseStreaks {
     pub scale: f64,
 }
 
+/// Imaging optics.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Optics {
@@ -249,13 +310,19 @@ pub struct Pixel {
     pub tau_us: f64,
     /// Cap on ON events of one pixel per pulse.
     pub max_events_per_pulse: u32,
+    /// Per-pixel threshold scatter (fixed pattern); `None` = off.
     pub threshold_mismatch: Option<ThresholdMismatch>,
+    /// Refractory period after each event; `None` = off.
     pub refractory: Option<Refractory>,
+    /// Latency growing at low intensity; `None` = off.
     pub intensity_latency: Option<IntensityLatency>,
+    /// Random latency jitter; `None` = off.
     pub latency_jitter: Option<LatencyJitter>,
+    /// OFF events as the light decays; `None` = off.
     pub off_events: Option<OffEvents>,
 }
 
+/// Per-pixel threshold scatter.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ThresholdMismatch {
@@ -263,6 +330,7 @@ pub struct ThresholdMismatch {
     pub sigma: f64,
 }
 
+/// Refractory period.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Refractory {
@@ -270,6 +338,7 @@ pub struct Refractory {
     pub period_us: f64,
 }
 
+/// Intensity-dependent latency.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct IntensityLatency {
@@ -279,6 +348,7 @@ pub struct IntensityLatency {
     pub reference: f64,
 }
 
+/// Random latency jitter.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LatencyJitter {
@@ -286,6 +356,7 @@ pub struct LatencyJitter {
     pub spread_us: f64,
 }
 
+/// OFF events after each pulse.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct OffEvents {
@@ -295,13 +366,17 @@ pub struct OffEvents {
     pub tau_us: f64,
 }
 
+/// Readout effects.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Readout {
+    /// Row-arbiter saturation; `None` = off.
     pub arbiter_saturation: Option<ArbiterSaturation>,
+    /// Event-rate limiter; `None` = off.
     pub rate_limiter: Option<RateLimiter>,
 }
 
+/// Row-arbiter saturation.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ArbiterSaturation {
@@ -311,21 +386,27 @@ pub struct ArbiterSaturation {
     pub event_time_us: f64,
 }
 
+/// Event-rate limiter.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RateLimiter {
     /// Events per second allowed; the excess of each window is dropped.
     pub max_rate_ev_s: f64,
+    /// Window length (µs).
     pub window_us: f64,
 }
 
+/// Noise sources.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Noise {
+    /// Hot pixels; `None` = off.
     pub hot_pixels: Option<HotPixels>,
+    /// Background activity; `None` = off.
     pub background_noise: Option<BackgroundNoise>,
 }
 
+/// Hot pixels.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct HotPixels {
@@ -335,6 +416,7 @@ pub struct HotPixels {
     pub rate_hz: f64,
 }
 
+/// Background activity.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct BackgroundNoise {
@@ -346,7 +428,9 @@ pub struct BackgroundNoise {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Triggers {
+    /// Whether trigger events are recorded.
     pub enabled: bool,
+    /// Trigger channel id.
     pub channel: u8,
 }
 
@@ -482,6 +566,7 @@ macro_rules! effect_table {
     };
 }
 
+/// Names of the optional effects a scenario can switch on.
 pub const EFFECT_NAMES: [&str; 11] = [
     "hot_pixels",
     "background_noise",
@@ -542,13 +627,14 @@ impl Scenario {
         })
     }
 
+    /// The pulse period (µs).
     pub fn period_us(&self) -> f64 {
         1e6 / self.light.pulse_hz
     }
 
     /// Start of pulse `k` in camera time (µs): `first_pulse_us + k·period`,
     /// moved by the `clock_drift` effect when it is on.
-    pub fn pulse_start_us(&self, k: u64) -> f64 {
+    pub(crate) fn pulse_start_us(&self, k: u64) -> f64 {
         let tau = k as f64 * self.period_us();
         let drift = self.light.clock_drift.map_or(0.0, |c| c.offset_us(tau));
         self.light.first_pulse_us + tau + drift
@@ -887,6 +973,7 @@ impl Scenario {
         Ok(s)
     }
 
+    /// The scenario as TOML (the format scenario files use).
     pub fn to_toml_string(&self) -> Result<String> {
         toml::to_string_pretty(self)
             .map_err(|e| Error::analysis(format!("cannot serialise scenario: {e}")))

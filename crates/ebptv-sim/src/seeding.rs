@@ -48,14 +48,20 @@ type Group = F64x4;
 /// Longest RK4 sub-step (px of displacement).
 pub const SUBSTEP_PX: f64 = 4.0;
 
+/// One seeded particle.
 #[derive(Debug, Clone, Copy)]
 pub struct Particle {
+    /// x (px).
     pub x: f64,
+    /// y (px).
     pub y: f64,
     /// Out-of-plane position (sheet centre 0).
     pub z: f64,
+    /// Out-of-plane velocity (px/s).
     pub w: f64,
+    /// Brightness (relative).
     pub brightness: f64,
+    /// Particle id.
     pub id: u64,
     generation: u64,
     /// The field's velocity at `vel_at` (bits of x, y, t; x and t zero
@@ -108,26 +114,39 @@ impl Particle {
 /// The rectangle particles live in (px).
 #[derive(Debug, Clone, Copy)]
 pub struct Domain {
+    /// Left edge.
     pub x0: f64,
+    /// Right edge.
     pub x1: f64,
+    /// Top edge.
     pub y0: f64,
+    /// Bottom edge.
     pub y1: f64,
 }
 
 /// A particle at one pulse, as the renderer needs it.
 #[derive(Debug, Clone, Copy)]
 pub struct Snapshot {
+    /// Image centre x (px).
     pub x: f64,
+    /// Image centre y (px).
     pub y: f64,
+    /// x velocity (px/s).
     pub u: f64,
+    /// y velocity (px/s).
     pub v: f64,
+    /// Brightness at this pulse (relative).
     pub brightness: f64,
+    /// Particle id.
     pub id: u64,
 }
 
+/// The particles of a run and their advection.
 pub struct Particles {
+    /// The particles.
     pub particles: Vec<Particle>,
     rngs: Vec<Pcg64>,
+    /// The rectangle they live in.
     pub domain: Domain,
     sheet_half: f64,
     slab_half: f64,
@@ -136,6 +155,7 @@ pub struct Particles {
 }
 
 impl Particles {
+    /// Seeds the particles of scenario `sc` in `flow`; `seed` fixes the draws.
     pub fn seed(sc: &Scenario, flow: &Flow, seed: u64) -> Particles {
         let roi = sc.roi();
         let margin = 2.0 + 1.5 * sc.optics.particle_diameter_px;
@@ -189,10 +209,12 @@ impl Particles {
         ps
     }
 
+    /// Number of particles.
     pub fn len(&self) -> usize {
         self.particles.len()
     }
 
+    /// True when there are no particles.
     pub fn is_empty(&self) -> bool {
         self.particles.is_empty()
     }
@@ -236,7 +258,7 @@ impl Particles {
 
     /// Whether the particle is lit by the sheet.
     #[inline]
-    pub fn in_sheet(&self, p: &Particle) -> bool {
+    pub(crate) fn in_sheet(&self, p: &Particle) -> bool {
         p.z.abs() <= self.sheet_half
     }
 
@@ -257,7 +279,7 @@ impl Particles {
     /// time, the lists of an earlier call reused: a block's snapshots are
     /// ~1.5 MB at full frame, whose fresh pages cost more system time
     /// than the copy into them).
-    pub fn advance_and_snapshot_into(
+    pub(crate) fn advance_and_snapshot_into(
         &mut self,
         flow: &Flow,
         t0: f64,

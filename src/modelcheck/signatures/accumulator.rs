@@ -230,7 +230,7 @@ pub(super) const NO_TIME: i64 = i64::MIN;
 /// Ticks per busy window of `busy_window_slope`: long enough
 /// that the grants cut by the window's edges (about one per edge) are a
 /// small part of it, short enough for a few windows per burst.
-pub const BUSY_WINDOW_TICKS: usize = 8;
+pub(crate) const BUSY_WINDOW_TICKS: usize = 8;
 
 /// Upper end of the per-pixel count binning (the last bin is "≥ this").
 /// Fixed, never taken from the data, so every data set shares the bins.
@@ -290,6 +290,7 @@ impl SignatureAccumulator {
         })
     }
 
+    #[cfg(test)]
     pub fn config(&self) -> &SignatureConfig {
         &self.cfg
     }

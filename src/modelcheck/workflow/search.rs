@@ -16,7 +16,7 @@ pub fn minimise_1d(
 }
 
 /// [`minimise_1d`] on `[lo, hi]` ⊂ [0, 1].
-pub fn minimise_1d_in(
+pub(crate) fn minimise_1d_in(
     f: &mut dyn FnMut(f64) -> Result<f64>,
     lo: f64,
     hi: f64,

@@ -44,11 +44,15 @@ use ebptv_io::events::{OFF, ON};
 pub struct Arrival {
     /// Time the pixel requests readout (µs, fractional).
     pub t: f64,
+    /// Column (px).
     pub x: u16,
+    /// Row (px).
     pub y: u16,
+    /// Polarity (`ON` or `OFF`).
     pub p: u8,
 }
 
+/// The event pixels of a scenario: turns particle images at each pulse into pixel events.
 pub struct PixelModel {
     roi: Roi,
     light: Light,
@@ -65,6 +69,7 @@ pub struct PixelModel {
     mismatch: Option<(f64, u64)>,
     /// The smallest threshold any pixel can have (ON or OFF): signals
     /// below it cannot fire.
+    #[cfg(test)]
     c_floor: f64,
     /// [`f32_at_least`]`(c_floor)`: the same test on the f32 sums
     /// without converting each touched pixel's sum to f64.
@@ -92,6 +97,7 @@ pub struct PixelModel {
 }
 
 impl PixelModel {
+    /// The pixel model of scenario `sc`; `seed` fixes the fixed-pattern and per-event draws.
     pub fn new(sc: &Scenario, seed: u64) -> PixelModel {
         let roi = sc.roi();
         let n = roi.width as usize * roi.height as usize;
@@ -160,6 +166,7 @@ impl PixelModel {
             streak_nodes,
             background_rate: sc.noise.background_noise.map(|b| b.rate_hz),
             hot,
+            #[cfg(test)]
             c_floor,
             c_floor_f32: f32_at_least(c_floor),
             quad: QuadTable::new(&table),
@@ -366,7 +373,8 @@ impl PixelModel {
     /// The summed signal of every pixel the fast path gives a non-zero
     /// sum for one pulse, in ROI-index order: `(roi_index, signal)`
     /// (tests compare it with [`Self::pixel_signals_reference`]).
-    pub fn pixel_signals(&self, snaps: &[Snapshot]) -> Vec<(u32, f32)> {
+    #[cfg(test)]
+    pub(crate) fn pixel_signals(&self, snaps: &[Snapshot]) -> Vec<(u32, f32)> {
         let mut v = Vec::new();
         // (The least positive f32: every pixel with a non-zero sum.)
         self.render_signals(snaps, f32::from_bits(1), &mut v);
@@ -577,7 +585,8 @@ impl PixelModel {
     /// ([`Self::pixel_signals_reference`]), responses with libm's
     /// logarithms; pixels in ROI-index order, so the random draws pair up
     /// with the fast path's.
-    pub fn render_pulse_reference(
+    #[cfg(test)]
+    pub(crate) fn render_pulse_reference(
         &self,
         snaps: &[Snapshot],
         t_pulse_us: f64,
@@ -617,6 +626,7 @@ impl PixelModel {
     /// resolution).
     #[allow(clippy::too_many_arguments)]
     #[inline]
+    #[cfg(test)]
     fn respond<const EXACT: bool>(
         &self,
         idx: u32,
@@ -861,6 +871,7 @@ pub(crate) fn round_i64(v: f64) -> i64 {
 /// Where a pixel's events go: a list of arrivals (tests, the reference)
 /// or the simulator's request keys.
 pub trait ArrivalSink {
+    /// Receives one event.
     fn arrive(&mut self, a: Arrival);
     /// Events of pixel (x, y), all of polarity `p`, at `times` (in this
     /// order): what [`PixelModel::respond`] hands over, so a sink can do

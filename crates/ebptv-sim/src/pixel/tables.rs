@@ -387,6 +387,7 @@ impl LnTable {
         LnTable { nodes }
     }
 
+    /// Natural logarithm of `x` (x > 0).
     #[inline(always)]
     pub fn ln(&self, x: f64) -> f64 {
         let bits = x.to_bits();
@@ -400,13 +401,14 @@ impl LnTable {
 }
 
 /// The process-wide [`LnTable`].
-pub fn ln_table() -> &'static LnTable {
+pub(crate) fn ln_table() -> &'static LnTable {
     static TABLE: std::sync::OnceLock<LnTable> = std::sync::OnceLock::new();
     TABLE.get_or_init(LnTable::new)
 }
 
 /// [`LnTable::ln`] through the process-wide table.
-pub fn ln_fast(x: f64) -> f64 {
+#[cfg(test)]
+pub(crate) fn ln_fast(x: f64) -> f64 {
     ln_table().ln(x)
 }
 
@@ -451,6 +453,7 @@ impl ErfTable {
         ErfTable { nodes }
     }
 
+    /// The error function at `x`.
     #[inline(always)]
     pub fn eval(&self, x: f64) -> f64 {
         let ax = x.abs();
@@ -474,7 +477,7 @@ impl ErfTable {
 }
 
 /// The process-wide erf table (built once, 6 kB).
-pub fn erf_table() -> &'static ErfTable {
+pub(crate) fn erf_table() -> &'static ErfTable {
     static TABLE: std::sync::OnceLock<ErfTable> = std::sync::OnceLock::new();
     TABLE.get_or_init(ErfTable::new)
 }
