@@ -107,7 +107,7 @@ pub fn run(args: ConvertArgs) -> anyhow::Result<()> {
     let total = src.info().file_size;
     let mut src = Filtered::new(src, selection)?;
     let mut writer = io::create(&args.output, out_format, geometry)?;
-    let pb = super::info::progress_bar(total);
+    let pb = super::progress::file_bar(total, "converting");
     let mut chunk = Chunk::default();
     let (mut n_ev, mut n_tr) = (0u64, 0u64);
     while src.next_chunk(&mut chunk)? {

@@ -48,18 +48,6 @@ pub(crate) fn open_options(
     })
 }
 
-/// A byte-progress bar on stderr; indicatif hides it when stderr is not a terminal.
-pub(crate) fn progress_bar(total: Option<u64>) -> indicatif::ProgressBar {
-    let pb =
-        indicatif::ProgressBar::with_draw_target(total, indicatif::ProgressDrawTarget::stderr());
-    if let Ok(style) = indicatif::ProgressStyle::with_template(
-        "{spinner} [{elapsed_precise}] {wide_bar} {bytes}/{total_bytes} ({eta})",
-    ) {
-        pb.set_style(style);
-    }
-    pb
-}
-
 pub fn run(args: InfoArgs) -> anyhow::Result<()> {
     if args.peak_bin_us <= 0 {
         return Err(ebptv::Error::param(
