@@ -127,18 +127,6 @@ fn config_of(args: &TrackArgs) -> anyhow::Result<TrackConfig> {
     if args.hot_pixels.is_some() {
         c.run.hot_pixels = args.hot_pixels.clone();
     }
-    // The hot pixels' file goes into the set (the written params.toml
-    // then holds the pixels themselves).
-    if let Some(p) = c.run.hot_pixels.take() {
-        c.cluster
-            .hot_pixels
-            .extend(ebptv::track::read_hot_pixels(&p)?);
-    }
-    // Without the ghost test there is no flow to check new chains against.
-    if c.track.init.ghost_check_length == 0 {
-        c.track.init.ghost_check_init = false;
-        c.track.init.init_gap = false;
-    }
     Ok(c)
 }
 

@@ -145,7 +145,7 @@ pub struct InitParams {
     /// flow of the established tracks around them and dropped as ghosts
     /// (images of different particles that happen to line up) when their
     /// velocity disagrees. 0 = no ghost test; then set `ghost_check_init`
-    /// and `init_gap` off too (`ebptv track` does).
+    /// and `init_gap` off too (`track_to_dir` does).
     pub ghost_check_length: usize,
     /// Fewest detections of a track kept because it agrees with the local
     /// flow (below `min_length`; needs `ghost_check_length`); a value

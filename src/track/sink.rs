@@ -91,8 +91,15 @@ pub fn track_to_dir(
     on_progress: &(dyn Fn(TrackProgress<'_>) + Sync),
 ) -> Result<DirRun> {
     let mut config = config.clone();
+    // The hot pixels' file goes into the set (the written params.toml
+    // then holds the pixels themselves).
     if let Some(p) = config.run.hot_pixels.take() {
         config.cluster.hot_pixels.extend(read_hot_pixels(&p)?);
+    }
+    // Without the ghost test there is no flow to check new chains against.
+    if config.track.init.ghost_check_length == 0 {
+        config.track.init.ghost_check_init = false;
+        config.track.init.init_gap = false;
     }
     let TrackConfig {
         run,
