@@ -8,5 +8,6 @@ mod cli;
 mod grid_common;
 mod merge;
 mod shedding;
+mod shedding_dev;
 mod sim;
 mod welch;
