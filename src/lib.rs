@@ -84,6 +84,7 @@ pub mod grid;
 pub mod modelcheck;
 pub mod piv;
 pub mod plot;
+pub mod provenance;
 pub mod pulses;
 pub mod spectra;
 pub mod track;
