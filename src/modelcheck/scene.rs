@@ -222,7 +222,7 @@ pub fn timing_of(sc: &Scenario) -> PulseTiming {
 ///
 /// The events of a pulse are copied a run at a time (a run: consecutive
 /// events of one pulse), not one by one: the same pulses and events as
-/// [`pulses_of_reference`], which the tests compare it with.
+/// `pulses_of_reference` (`testkit` feature), which the tests compare it with.
 pub fn pulses_of(events: &EventChunk, timing: &PulseTiming) -> Result<Vec<PulseEvents>> {
     fn copy_run(pulses: &mut [PulseEvents], events: &EventChunk, a: usize, b: usize) {
         let p = &mut pulses.last_mut().expect("a run belongs to a pulse").events;
@@ -275,7 +275,9 @@ fn open_pulse(pulses: &mut Vec<PulseEvents>, k: i64, timing: &PulseTiming) -> Re
     Ok(())
 }
 
-/// [`pulses_of`] event by event: the reference it is tested against.
+/// [`pulses_of`] event by event: the reference it is tested against
+/// (with the `testkit` feature).
+#[cfg(any(test, feature = "testkit"))]
 pub fn pulses_of_reference(events: &EventChunk, timing: &PulseTiming) -> Result<Vec<PulseEvents>> {
     let mut pulses: Vec<PulseEvents> = Vec::new();
     for i in 0..events.len() {

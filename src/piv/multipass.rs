@@ -430,7 +430,7 @@ fn inside_mask(disp: &[(f32, f32)], sep: usize, w: usize, h: usize) -> Vec<bool>
 /// from the frame's B-spline coefficients, 0 where `inside` is false.
 /// Row-parallel; on x86-64 with AVX2+FMA each sample is a 4-lane
 /// computation ([`deform_row_fma`]), otherwise (and as the test oracle)
-/// [`deform_reference`].
+/// [`deform_plain`].
 fn deform(coef: &Image, disp: &[(f32, f32)], factor: f32, inside: &[bool]) -> Image {
     #[cfg(target_arch = "x86_64")]
     if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
@@ -443,11 +443,11 @@ fn deform(coef: &Image, disp: &[(f32, f32)], factor: f32, inside: &[bool]) -> Im
         });
         return out;
     }
-    deform_reference(coef, disp, factor, inside)
+    deform_plain(coef, disp, factor, inside)
 }
 
 /// [`deform`] the plain way: [`sample_bspline`] at every pixel.
-fn deform_reference(coef: &Image, disp: &[(f32, f32)], factor: f32, inside: &[bool]) -> Image {
+fn deform_plain(coef: &Image, disp: &[(f32, f32)], factor: f32, inside: &[bool]) -> Image {
     let (w, h) = (coef.width, coef.height);
     let mut out = Image::zeros(w, h);
     out.data.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
@@ -1258,7 +1258,7 @@ mod tests {
         let inside: Vec<bool> = (0..w * h).map(|_| rng.gen::<f32>() < 0.9).collect();
         for factor in [-0.5f32, 0.5, 1.5] {
             let fast = deform(&coef, &disp, factor, &inside);
-            let slow = deform_reference(&coef, &disp, factor, &inside);
+            let slow = deform_plain(&coef, &disp, factor, &inside);
             for i in 0..w * h {
                 let (a, b) = (fast.data[i], slow.data[i]);
                 assert!((a - b).abs() <= 2e-6 * (1.0 + b.abs()), "[{i}] {a} vs {b}");

@@ -21,11 +21,11 @@ const FORBIDDEN: f64 = 1e15;
 /// Most rows of a tracking step are alone in their component: none of
 /// their candidate columns is anyone else's candidate. Such a row takes
 /// its cheapest candidate when that beats its miss — exactly what
-/// [`assign_sparse_reference`] does for a one-row component (same
+/// `assign_sparse_general` does for a one-row component (same
 /// tie-break: the first of equal gains in edge order) — so they are solved
 /// in one pass over the edges, and only the edges of rows that share a
 /// column go through the component search and the Hungarian algorithm.
-/// The result is identical to [`assign_sparse_reference`] (tested).
+/// The result is identical to `assign_sparse_general` (tested).
 pub fn assign_sparse(
     n_cols: usize,
     edges: &[(usize, usize, f64)],
@@ -63,7 +63,7 @@ pub fn assign_sparse(
     if any_shared {
         let rest: Vec<(usize, usize, f64)> =
             edges.iter().copied().filter(|e| shared[e.0]).collect();
-        let solved = assign_sparse_reference(n_cols, &rest, miss_cost);
+        let solved = assign_sparse_general(n_cols, &rest, miss_cost);
         for (r, c) in solved.into_iter().enumerate() {
             if shared[r] {
                 result[r] = c;
@@ -73,11 +73,11 @@ pub fn assign_sparse(
     result
 }
 
-/// The plain form of [`assign_sparse`]: every connected component of the
-/// candidate graph solved on its own (one-row and one-column components by
-/// their best pair, the others by [`hungarian`]). The reference the fast
-/// path is tested against, and its solver for rows that share columns.
-pub fn assign_sparse_reference(
+/// [`assign_sparse`] for any candidate graph: every connected component
+/// solved on its own (one-row and one-column components by their best
+/// pair, the others by [`hungarian`]). The fast path's solver for rows
+/// that share columns, and the definition its tests compare it with.
+pub(crate) fn assign_sparse_general(
     n_cols: usize,
     edges: &[(usize, usize, f64)],
     miss_cost: &[f64],
@@ -347,7 +347,7 @@ mod tests {
                 .map(|_| rng.gen_range(1..6) as f64 * 0.25)
                 .collect();
             let fast = assign_sparse(n_cols, &edges, &miss);
-            assert_eq!(fast, assign_sparse_reference(n_cols, &edges, &miss));
+            assert_eq!(fast, assign_sparse_general(n_cols, &edges, &miss));
             let mut deg = vec![0; n_cols];
             edges.iter().for_each(|e| deg[e.1] += 1);
             lone_rows += (0..n_rows)

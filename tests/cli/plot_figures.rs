@@ -1,7 +1,6 @@
 //! Figures: the PNGs decode, have the requested size, show the data, and
-//! bad input is a clear error with nothing written.
-//!
-//! Set `EBPTV_PLOT_KEEP=/some/dir` to keep the figures for a visual check.
+//! bad input is a clear error with nothing written. (`ebptv demo` writes
+//! the same kinds of figure, for a visual check.)
 
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
@@ -16,13 +15,7 @@ struct Out {
 
 fn out_dir() -> Out {
     let tmp = tempfile::tempdir().unwrap();
-    let dir = match std::env::var_os("EBPTV_PLOT_KEEP") {
-        Some(d) => {
-            std::fs::create_dir_all(&d).unwrap();
-            PathBuf::from(d)
-        }
-        None => tmp.path().to_path_buf(),
-    };
+    let dir = tmp.path().to_path_buf();
     Out { _tmp: tmp, dir }
 }
 

@@ -41,8 +41,10 @@ use crate::events::{Chunk, Edge, EventChunk, Geometry, Trigger};
 use crate::raw_header::READ_BUFFER_BYTES;
 use crate::raw_reader::{RawReader, WordDecoder};
 #[cfg(test)]
+use crate::raw_writer::encode_chunk;
+#[cfg(test)]
 use crate::raw_writer::time_high_steps;
-use crate::raw_writer::{encode_chunk, RawEncoder, RawWordWriter, TimeSplit};
+use crate::raw_writer::{RawEncoder, RawWordWriter, TimeSplit};
 use crate::{Anomalies, Format, StreamInfo};
 
 /// Most events one EVT 3.0 word can produce (VECT_12).
@@ -641,7 +643,7 @@ impl Evt3Writer {
 
     /// The words of a time-ordered chunk, exactly those of
     /// [`encode_chunk`] through the [`RawEncoder`] methods (the
-    /// reference, [`Evt3Writer::write_chunk_reference`]), in one loop: the
+    /// reference, `write_chunk_reference` in the tests), in one loop: the
     /// state (current time, row, output) in locals, a run of same-(t, y, p)
     /// events with increasing x found in place (no copy of its x), runs of
     /// one or two events (most of them) as ADDR_X words directly; TIME_HIGH
@@ -711,7 +713,8 @@ impl Evt3Writer {
     /// [`crate::EventWriter::write_chunk`] through the plain
     /// [`encode_chunk`] loop (the reference the fast path is tested
     /// against).
-    pub fn write_chunk_reference(&mut self, chunk: &Chunk) -> Result<()> {
+    #[cfg(test)]
+    pub(crate) fn write_chunk_reference(&mut self, chunk: &Chunk) -> Result<()> {
         encode_chunk(self, chunk)
     }
 }

@@ -183,7 +183,7 @@ const BLOCK_US: f64 = 2000.0;
 /// = 9 min of carry-over, 2^38 for a 4096×4096 ROI), then y, x (relative
 /// to the ROI, in as few bits as its size needs), the group flag
 /// ([`GROUP_FLAG`]) and polarity. Requests are ordered by (time, y),
-/// equal ones in input order, as [`sort_requests_reference`] defines: a
+/// equal ones in input order, as `sort_requests_reference` (in the tests) defines: a
 /// stable sort of the keys on the bits above x ([`Self::x_shift`]) — in
 /// practice a radix sort on the time field (2 passes of 11 bits for a
 /// 2 ms block) and an insertion pass for rows within a nanosecond, see
@@ -348,7 +348,8 @@ impl pixel::ArrivalSink for KeySink {
 
 /// The plain definition of the request order (test reference): keys,
 /// stable comparison sort by (time in ns, y), decode.
-pub fn sort_requests_reference(reqs: &mut [pixel::Arrival], t_begin: f64) {
+#[cfg(test)]
+pub(crate) fn sort_requests_reference(reqs: &mut [pixel::Arrival], t_begin: f64) {
     let mut keys: Vec<u64> = reqs
         .iter()
         .map(|a| {

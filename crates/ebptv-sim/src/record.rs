@@ -304,7 +304,7 @@ impl TruthWriter {
                     // exact formatter (its row may be longer).
                     self.flush_batch()?;
                     let mut line = Vec::new();
-                    truth_line_reference(&mut line, r);
+                    truth_line_exact(&mut line, r);
                     self.file
                         .write_all(&line)
                         .map_err(|e| Error::io(self.file.target(), e))?;
@@ -320,7 +320,7 @@ impl TruthWriter {
 }
 
 /// One CSV row of the truth (with newline), byte for byte what
-/// [`truth_line_reference`] writes, without `core::fmt`'s exact float
+/// [`truth_line_exact`] writes, without `core::fmt`'s exact float
 /// formatting (which was 40 % of the CPU time of a full-frame
 /// `ebptv simulate`); a row with a value near a rounding tie is written
 /// by the reference instead.
@@ -329,7 +329,7 @@ pub(crate) fn truth_line(line: &mut Vec<u8>, r: &TruthSample) {
     let mut window = [0u8; ROW_WINDOW];
     match truth_row_fast(&mut window, r) {
         Some(n) => line.extend_from_slice(&window[..n]),
-        None => truth_line_reference(line, r),
+        None => truth_line_exact(line, r),
     }
 }
 
@@ -537,7 +537,7 @@ fn put_fixed<const D: usize>(w: &mut [u8; ROW_WINDOW], p: usize, v: f64) -> Opti
 }
 
 /// The plain definition of a truth row.
-pub fn truth_line_reference(line: &mut Vec<u8>, r: &TruthSample) {
+pub fn truth_line_exact(line: &mut Vec<u8>, r: &TruthSample) {
     use std::io::Write as _;
     let _ = writeln!(
         line,
@@ -741,7 +741,7 @@ mod tests {
             a.clear();
             b.clear();
             truth_line(&mut a, &r);
-            truth_line_reference(&mut b, &r);
+            truth_line_exact(&mut b, &r);
             assert_eq!(a, b);
         }
         // Every magnitude from 1e-5 to 1e12 (the digit-chunk boundaries
@@ -767,7 +767,7 @@ mod tests {
             a.clear();
             b.clear();
             truth_line(&mut a, &r);
-            truth_line_reference(&mut b, &r);
+            truth_line_exact(&mut b, &r);
             assert_eq!(a, b, "{r:?}");
         }
         // Values at rounding ties (the row falls back to the reference),
@@ -803,7 +803,7 @@ mod tests {
                 a.clear();
                 b.clear();
                 truth_line(&mut a, &r);
-                truth_line_reference(&mut b, &r);
+                truth_line_exact(&mut b, &r);
                 assert_eq!(a, b, "{v} in field {field}");
             }
         }
@@ -839,7 +839,7 @@ mod tests {
         w.finish().unwrap();
         let mut want = format!("{}\n", TruthWriter::HEADER).into_bytes();
         for r in &rows {
-            truth_line_reference(&mut want, r);
+            truth_line_exact(&mut want, r);
         }
         assert_eq!(std::fs::read(&path).unwrap(), want);
     }
@@ -862,7 +862,7 @@ mod tests {
             .collect();
         let mut want = format!("{}\n", TruthWriter::HEADER).into_bytes();
         for r in &rows {
-            truth_line_reference(&mut want, r);
+            truth_line_exact(&mut want, r);
         }
         assert!(want.len() > 2 * WRITEBACK_BATCHES as usize * BATCH);
         let dir = tempfile::tempdir().unwrap();
@@ -964,7 +964,7 @@ mod tests {
         }
         let mut want = format!("{}\n", TruthWriter::HEADER).into_bytes();
         for r in &rows {
-            truth_line_reference(&mut want, r);
+            truth_line_exact(&mut want, r);
         }
         let dir = tempfile::tempdir().unwrap();
         for given in [Some(slots), Some(7), Some(1), Some(1 << 40), None] {
@@ -1054,7 +1054,7 @@ mod tests {
                 w.write(part).unwrap();
             }
             for r in rows.iter() {
-                truth_line_reference(&mut want, r);
+                truth_line_exact(&mut want, r);
             }
             assert_eq!(w.tails.bypass > 0, bypassed);
         }
@@ -1104,7 +1104,7 @@ mod tests {
         w.finish().unwrap();
         let mut want = format!("{}\n", TruthWriter::HEADER).into_bytes();
         for r in &rows {
-            truth_line_reference(&mut want, r);
+            truth_line_exact(&mut want, r);
         }
         assert_eq!(std::fs::read(&path).unwrap(), want);
     }

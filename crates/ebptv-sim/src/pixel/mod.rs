@@ -55,6 +55,8 @@ pub struct Arrival {
 /// The event pixels of a scenario: turns particle images at each pulse into pixel events.
 pub struct PixelModel {
     roi: Roi,
+    /// The light sheet (the exact model of the tests reads its envelope).
+    #[cfg(test)]
     light: Light,
     shape: PulseShape,
     sigma_img: f64,
@@ -146,6 +148,7 @@ impl PixelModel {
             .map_or(0.0, |p| shape.end_us * 1e-6 * p.scale / 0.2);
         PixelModel {
             roi,
+            #[cfg(test)]
             light: sc.light,
             sigma_img: sc.optics.particle_diameter_px / 4.0,
             gain: sc.light.energy * shape.mean_level,
@@ -372,7 +375,7 @@ impl PixelModel {
 
     /// The summed signal of every pixel the fast path gives a non-zero
     /// sum for one pulse, in ROI-index order: `(roi_index, signal)`
-    /// (tests compare it with [`Self::pixel_signals_reference`]).
+    /// (tests compare it with `pixel_signals_reference` (in the tests)).
     #[cfg(test)]
     pub(crate) fn pixel_signals(&self, snaps: &[Snapshot]) -> Vec<(u32, f32)> {
         let mut v = Vec::new();
@@ -392,7 +395,8 @@ impl PixelModel {
 
     /// The summed signal of every pixel of the exact model
     /// ([`Self::contributions`], f64), in ROI-index order.
-    pub fn pixel_signals_reference(&self, snaps: &[Snapshot]) -> Vec<(u32, f64)> {
+    #[cfg(test)]
+    pub(crate) fn pixel_signals_reference(&self, snaps: &[Snapshot]) -> Vec<(u32, f64)> {
         let mut list: Vec<(u32, f64)> = Vec::new();
         self.contributions(snaps, |idx, sig| list.push((idx, sig)));
         list.sort_by_key(|a| a.0);

@@ -11,6 +11,7 @@ use super::*;
 impl PixelModel {
     /// Pixel-integrated Gaussian image of a particle at (x, y): calls
     /// `f(ix, iy, fraction)` for each ROI pixel it covers.
+    #[cfg(test)]
     #[inline]
     pub(super) fn footprint(&self, x: f64, y: f64, mut f: impl FnMut(u32, u32, f64)) {
         let erf = erf_table();
@@ -52,6 +53,7 @@ impl PixelModel {
     }
 
     /// Image positions of a particle during the pulse and their weights.
+    #[cfg(test)]
     pub(super) fn positions(&self, s: &Snapshot, out: &mut Vec<(f64, f64, f64)>) {
         out.clear();
         match self.streak_scale {
@@ -143,6 +145,7 @@ impl PixelModel {
 
     /// Signal contributions of one particle's image: `f(ix, iy, signal)`
     /// (sensor pixel coordinates inside the ROI).
+    #[cfg(test)]
     #[inline]
     pub(super) fn particle_contributions(
         &self,
@@ -683,6 +686,7 @@ impl PixelModel {
 
     /// Signal contributions of a pulse's particle images, particles taken
     /// in [`render_order`]: `f(roi_pixel_index, signal)`.
+    #[cfg(test)]
     pub(super) fn contributions(&self, snaps: &[Snapshot], mut f: impl FnMut(u32, f64)) {
         let w = self.roi.width;
         let mut pos = Vec::with_capacity(32);
