@@ -20,7 +20,7 @@ pub struct InfoArgs {
     #[arg(long)]
     pub time_unit: Option<String>,
     /// Bin width for the peak event rate, µs.
-    #[arg(long, default_value_t = 1000)]
+    #[arg(long, default_value_t = ebptv::io::summary::DEFAULT_PEAK_BIN_US)]
     pub peak_bin_us: i64,
 }
 
