@@ -30,6 +30,13 @@ __all__ = [
     "info",
     "track",
     "to_trackpy",
+    "simulate",
+    "grid",
+    "grid_state",
+    "grid_merge",
+    "grid_estimate",
+    "GRID_DEFAULTS",
+    "GRID_COLUMNS",
     "PARTICLES_COLUMNS",
     "TRACKS_COLUMNS",
 ]
@@ -41,6 +48,13 @@ Events = Dict[str, Any]
 PARTICLES_COLUMNS = ["pulse", "t_us", "x", "y", "n_events"]
 #: Columns of ``tracks.csv`` (µs, px, px/s).
 TRACKS_COLUMNS = ["track_id", "pulse", "t_us", "x", "y", "u", "v"]
+
+#: Columns of ``grid.csv`` (px, px/s, (px/s)²); rows ordered by y then x.
+GRID_COLUMNS = ["x", "y", "count", "u", "v", "uu", "vv", "uv"]
+#: The defaults of ``ebptv grid`` (read from the library): ``bin``,
+#: ``overlap``, ``origin``, ``weighting``, ``fit``, ``min_count``,
+#: ``noise_rms``.
+GRID_DEFAULTS: Dict[str, Any] = dict(_ebptv.GRID_DEFAULTS)
 
 #: Events per chunk of :func:`iter_events` (the library's reading chunk).
 DEFAULT_CHUNK = 1 << 20
@@ -181,3 +195,118 @@ def to_trackpy(tracks: pd.DataFrame) -> pd.DataFrame:
         c for c in ("t_us", "u", "v") if c in out.columns
     ]
     return out[cols].reset_index(drop=True)
+
+
+def grid_state(
+    tracks: pd.DataFrame,
+    bin: Optional[float] = None,
+    bin_h: Optional[float] = None,
+    overlap: Optional[float] = None,
+    origin: Optional[Tuple[float, float]] = None,
+    weighting: Optional[str] = None,
+    what: str = "tracks",
+) -> str:
+    """The grid accumulator of a tracks table (columns of ``tracks.csv``),
+    binned as ``ebptv grid`` bins a tracks file, as the text of a
+    ``grid_state.json`` (what ``ebptv grid --merge`` reads).
+
+    States of parts of a table (contiguous rows, or time slices) merge
+    with :func:`grid_merge` into the state of the whole, to rounding.
+    ``None`` takes the default of ``ebptv grid`` (:data:`GRID_DEFAULTS`):
+    16 px square bins, no overlap, origin at pixel corners, top-hat
+    weighting.
+    """
+    d = GRID_DEFAULTS
+    return _ebptv.grid_state(
+        np.ascontiguousarray(tracks["track_id"], dtype=np.uint64),
+        np.ascontiguousarray(tracks["t_us"], dtype=np.float64),
+        np.ascontiguousarray(tracks["x"], dtype=np.float64),
+        np.ascontiguousarray(tracks["y"], dtype=np.float64),
+        np.ascontiguousarray(tracks["u"], dtype=np.float64),
+        np.ascontiguousarray(tracks["v"], dtype=np.float64),
+        float(d["bin"] if bin is None else bin),
+        None if bin_h is None else float(bin_h),
+        float(d["overlap"] if overlap is None else overlap),
+        tuple(d["origin"] if origin is None else origin),
+        d["weighting"] if weighting is None else weighting,
+        what,
+    )
+
+
+def grid_merge(states: Sequence[str]) -> str:
+    """Grid states (:func:`grid_state`) merged in order, as
+    ``ebptv grid --merge`` merges ``grid_state.json`` files: bins must share
+    size, overlap, origin and weighting; the window grows to hold all."""
+    return _ebptv.grid_merge(list(states))
+
+
+def grid_estimate(
+    state: str,
+    fit: Optional[str] = None,
+    min_count: Optional[int] = None,
+    noise_rms: Optional[float] = None,
+) -> pd.DataFrame:
+    """The statistics of a grid state: the ``grid.csv`` columns
+    (``x, y, count, u, v, uu, vv, uv``; empty bins NaN) plus ``n_tracks``.
+    ``fit``: ``"none"`` (bin mean), ``"linear"`` or ``"quadratic"``; the
+    defaults are those of ``ebptv grid``. ``attrs`` holds ``nx`` and ``ny``."""
+    d = GRID_DEFAULTS
+    cols = _ebptv.grid_estimate(
+        state,
+        d["fit"] if fit is None else fit,
+        int(d["min_count"] if min_count is None else min_count),
+        float(d["noise_rms"] if noise_rms is None else noise_rms),
+    )
+    nx, ny = cols.pop("nx"), cols.pop("ny")
+    out = pd.DataFrame(cols, columns=GRID_COLUMNS + ["n_tracks"])
+    out.attrs["nx"], out.attrs["ny"] = nx, ny
+    return out
+
+
+def grid(
+    tracks: pd.DataFrame,
+    bin: Optional[float] = None,
+    bin_h: Optional[float] = None,
+    overlap: Optional[float] = None,
+    origin: Optional[Tuple[float, float]] = None,
+    weighting: Optional[str] = None,
+    fit: Optional[str] = None,
+    min_count: Optional[int] = None,
+    noise_rms: Optional[float] = None,
+) -> pd.DataFrame:
+    """Tracks binned onto an Eulerian grid: ``ebptv grid``'s ``grid.csv``
+    as a DataFrame (see :func:`grid_estimate`), the same options and
+    defaults (``None``: the CLI's default, :data:`GRID_DEFAULTS`).
+    ``tracks`` has the ``tracks.csv`` columns (from :func:`track`)."""
+    state = grid_state(tracks, bin, bin_h, overlap, origin, weighting)
+    return grid_estimate(state, fit, min_count, noise_rms)
+
+
+def simulate(
+    preset: str = "demo",
+    seconds: Optional[float] = None,
+    seed: int = 1,
+    out: Optional[PathLike] = None,
+) -> Dict[str, Any]:
+    """``ebptv simulate --preset PRESET [--seconds S] --seed SEED --out OUT``:
+    a simulated recording with its ground truth (``seconds``: ``None`` keeps
+    the preset's duration; ``out``: a new temporary directory when
+    ``None``).
+
+    Returns ``{"recording": path of the EVT 3.0 file, "events": its events
+    (:func:`read_events`), "truth": the true particle images per pulse
+    (``truth_particles.csv``) as a DataFrame, "summary": summary.json}``.
+    """
+    if out is None:
+        import tempfile
+
+        out = tempfile.mkdtemp(prefix=f"ebptv-{preset}-")
+    out = os.fspath(out)
+    summary = json.loads(_ebptv.simulate(out, preset, seconds, int(seed)))
+    recording = os.path.join(out, summary["recording"])
+    return {
+        "recording": recording,
+        "events": read_events(recording),
+        "truth": pd.read_csv(os.path.join(out, "truth_particles.csv")),
+        "summary": summary,
+    }

@@ -17,7 +17,7 @@ use ebptv::cluster::Particle;
 use ebptv::io::filter::{Filtered, PolaritySelect, Roi, Selection};
 use ebptv::io::{self, EventSource};
 use ebptv::track::{self as ptv, PtvSink, Track, TrackConfig, TrackInput};
-use ebptv::Chunk;
+use ebptv::{grid, Chunk};
 
 create_exception!(
     _ebptv,
@@ -201,9 +201,7 @@ impl EventChunks {
     fn __next__<'py>(&mut self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
         loop {
             let EventChunks { src, chunk } = self;
-            let more = py
-                .allow_threads(|| src.next_chunk(chunk))
-                .map_err(err)?;
+            let more = py.allow_threads(|| src.next_chunk(chunk)).map_err(err)?;
             if !more {
                 return Ok(None);
             }
@@ -227,15 +225,11 @@ fn info(py: Python<'_>, path: PathBuf) -> PyResult<String> {
         let opts = io::OpenOptions::default();
         let mut src = io::open_with(&path, &opts)?;
         let mut cancelled = Ok(());
-        let summary = io::summary::summarize(
-            &mut src,
-            io::summary::DEFAULT_PEAK_BIN_US,
-            |_| {
-                if cancelled.is_ok() {
-                    cancelled = stop.check();
-                }
-            },
-        )?;
+        let summary = io::summary::summarize(&mut src, io::summary::DEFAULT_PEAK_BIN_US, |_| {
+            if cancelled.is_ok() {
+                cancelled = stop.check();
+            }
+        })?;
         cancelled?;
         let verdict = ebptv::pulses::file_verdict(&path, &opts).map_err(|e| e.to_string());
         let v = ebptv::pulses::info_json(&summary, &verdict)?;
@@ -269,7 +263,10 @@ impl PtvSink for Collect {
 
 /// The options of `ebptv track`: a --params file, then the command-line
 /// options over it (the names of `ebptv track`'s options).
-fn track_config(params: Option<&Path>, options: Option<&Bound<'_, PyDict>>) -> PyResult<TrackConfig> {
+fn track_config(
+    params: Option<&Path>,
+    options: Option<&Bound<'_, PyDict>>,
+) -> PyResult<TrackConfig> {
     let mut c = match params {
         Some(p) => TrackConfig::read(p).map_err(err)?,
         None => TrackConfig::default(),
@@ -321,13 +318,34 @@ fn track_config(params: Option<&Path>, options: Option<&Bound<'_, PyDict>>) -> P
 /// Particles as columns (`particles.csv`).
 fn particle_columns<'py>(py: Python<'py>, ps: &[Particle]) -> PyResult<Bound<'py, PyDict>> {
     let d = PyDict::new(py);
-    d.set_item("pulse", ps.iter().map(|p| p.pulse).collect::<Vec<_>>().into_pyarray(py))?;
-    d.set_item("t_us", ps.iter().map(|p| p.t_us).collect::<Vec<_>>().into_pyarray(py))?;
-    d.set_item("x", ps.iter().map(|p| p.x).collect::<Vec<_>>().into_pyarray(py))?;
-    d.set_item("y", ps.iter().map(|p| p.y).collect::<Vec<_>>().into_pyarray(py))?;
+    d.set_item(
+        "pulse",
+        ps.iter()
+            .map(|p| p.pulse)
+            .collect::<Vec<_>>()
+            .into_pyarray(py),
+    )?;
+    d.set_item(
+        "t_us",
+        ps.iter()
+            .map(|p| p.t_us)
+            .collect::<Vec<_>>()
+            .into_pyarray(py),
+    )?;
+    d.set_item(
+        "x",
+        ps.iter().map(|p| p.x).collect::<Vec<_>>().into_pyarray(py),
+    )?;
+    d.set_item(
+        "y",
+        ps.iter().map(|p| p.y).collect::<Vec<_>>().into_pyarray(py),
+    )?;
     d.set_item(
         "n_events",
-        ps.iter().map(|p| p.n_events).collect::<Vec<_>>().into_pyarray(py),
+        ps.iter()
+            .map(|p| p.n_events)
+            .collect::<Vec<_>>()
+            .into_pyarray(py),
     )?;
     Ok(d)
 }
@@ -405,7 +423,10 @@ fn track<'py>(
                 n.as_slice()?,
             );
             let len = pulse.len();
-            if [t.len(), x.len(), y.len(), n.len()].iter().any(|&l| l != len) {
+            if [t.len(), x.len(), y.len(), n.len()]
+                .iter()
+                .any(|&l| l != len)
+            {
                 return Err(EbptvError::new_err(
                     "particles: the columns pulse, t_us, x, y, n_events differ in length",
                 ));
@@ -466,6 +487,208 @@ fn track<'py>(
     ))
 }
 
+fn from_name<T: serde::de::DeserializeOwned>(
+    what: &str,
+    name: &str,
+    expected: &str,
+) -> PyResult<T> {
+    serde_json::from_value(serde_json::Value::String(name.to_string()))
+        .map_err(|_| EbptvError::new_err(format!("{what}: `{name}`: expected {expected}")))
+}
+
+/// The defaults of `ebptv grid`, from the library.
+fn grid_defaults(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
+    let b = grid::BinOptions::default();
+    let e = grid::EstimateOptions::default();
+    let d = PyDict::new(py);
+    d.set_item("bin", b.bin)?;
+    d.set_item("overlap", b.overlap)?;
+    d.set_item("origin", b.origin)?;
+    d.set_item("weighting", to_name(&b.weighting))?;
+    d.set_item("fit", to_name(&e.fit))?;
+    d.set_item("min_count", grid::DEFAULT_MIN_COUNT)?;
+    d.set_item("noise_rms", e.noise_rms)?;
+    Ok(d)
+}
+
+fn to_name<T: serde::Serialize>(v: &T) -> String {
+    match serde_json::to_value(v) {
+        Ok(serde_json::Value::String(s)) => s,
+        _ => String::new(),
+    }
+}
+
+/// The grid accumulator (`grid_state.json` text) of track points, binned
+/// as `ebptv grid` bins a tracks file.
+#[pyfunction]
+#[pyo3(signature = (track_id, t_us, x, y, u, v, bin, bin_h, overlap, origin, weighting, what))]
+#[allow(clippy::too_many_arguments)]
+fn grid_state(
+    py: Python<'_>,
+    track_id: PyReadonlyArray1<'_, u64>,
+    t_us: PyReadonlyArray1<'_, f64>,
+    x: PyReadonlyArray1<'_, f64>,
+    y: PyReadonlyArray1<'_, f64>,
+    u: PyReadonlyArray1<'_, f64>,
+    v: PyReadonlyArray1<'_, f64>,
+    bin: f64,
+    bin_h: Option<f64>,
+    overlap: f64,
+    origin: (f64, f64),
+    weighting: &str,
+    what: &str,
+) -> PyResult<String> {
+    let opts = grid::BinOptions {
+        bin,
+        bin_h,
+        overlap,
+        origin,
+        weighting: from_name("weighting", weighting, "tophat or gaussian")?,
+    };
+    let (id, t, x, y, u, v) = (
+        track_id.as_slice()?,
+        t_us.as_slice()?,
+        x.as_slice()?,
+        y.as_slice()?,
+        u.as_slice()?,
+        v.as_slice()?,
+    );
+    let n = id.len();
+    if [t.len(), x.len(), y.len(), u.len(), v.len()]
+        .iter()
+        .any(|&l| l != n)
+    {
+        return Err(EbptvError::new_err(format!(
+            "{what}: the columns differ in length"
+        )));
+    }
+    let samples: Vec<grid::Sample> = (0..n)
+        .map(|i| grid::Sample {
+            x: x[i],
+            y: y[i],
+            u: u[i],
+            v: v[i],
+            t_us: t[i],
+            track_id: id[i],
+        })
+        .collect();
+    let mut stop = Interrupt::new();
+    let r = py.allow_threads(|| -> ebptv::Result<String> {
+        let mut cancelled = Ok(());
+        let acc = grid::accumulate(&samples, &opts, what, &mut |_| {
+            if cancelled.is_ok() {
+                cancelled = stop.check();
+            }
+        })?;
+        cancelled?;
+        grid::io::state_json(&acc).map_err(|e| ebptv::Error::analysis(e.to_string()))
+    });
+    stop.result(r)
+}
+
+fn load(text: &str, k: usize) -> ebptv::Result<grid::GridAccumulator> {
+    grid::io::state_from_json(text.as_bytes(), Path::new(&format!("state {k}")))
+}
+
+/// Grid states merged in order (`ebptv grid --merge`).
+#[pyfunction]
+fn grid_merge(py: Python<'_>, states: Vec<String>) -> PyResult<String> {
+    py.allow_threads(|| -> ebptv::Result<String> {
+        let mut acc: Option<grid::GridAccumulator> = None;
+        for (k, s) in states.iter().enumerate() {
+            let part = load(s, k)?;
+            match acc.as_mut() {
+                None => acc = Some(part),
+                Some(m) => m.merge(&part)?,
+            }
+        }
+        let acc = acc.ok_or_else(|| ebptv::Error::param("merge", "no grid states to merge"))?;
+        grid::io::state_json(&acc).map_err(|e| ebptv::Error::analysis(e.to_string()))
+    })
+    .map_err(err)
+}
+
+/// The statistics of a grid state as the columns of `grid.csv`.
+#[pyfunction]
+fn grid_estimate<'py>(
+    py: Python<'py>,
+    state: &str,
+    fit: &str,
+    min_count: u64,
+    noise_rms: f64,
+) -> PyResult<Bound<'py, PyDict>> {
+    let opt = grid::EstimateOptions {
+        fit: from_name("fit", fit, "none, linear or quadratic")?,
+        min_count,
+        noise_rms,
+    };
+    let g = py
+        .allow_threads(|| -> ebptv::Result<grid::GridStats> {
+            opt.validate()?;
+            grid::estimate(&load(state, 0)?, &opt)
+        })
+        .map_err(err)?;
+    let mut cols: [Vec<f64>; 7] = Default::default();
+    let mut count = Vec::with_capacity(g.bins.len());
+    let mut n_tracks = Vec::with_capacity(g.bins.len());
+    // Rows ordered by y then x, as in grid.csv.
+    for (iy, &y) in g.ys.iter().enumerate() {
+        for (ix, &x) in g.xs.iter().enumerate() {
+            let b = g.at(ix, iy);
+            for (c, val) in cols.iter_mut().zip([x, y, b.u, b.v, b.uu, b.vv, b.uv]) {
+                c.push(val);
+            }
+            count.push(b.count);
+            n_tracks.push(b.n_tracks);
+        }
+    }
+    let d = PyDict::new(py);
+    let [x, y, u, v, uu, vv, uv] = cols;
+    d.set_item("x", x.into_pyarray(py))?;
+    d.set_item("y", y.into_pyarray(py))?;
+    d.set_item("count", count.into_pyarray(py))?;
+    d.set_item("u", u.into_pyarray(py))?;
+    d.set_item("v", v.into_pyarray(py))?;
+    d.set_item("uu", uu.into_pyarray(py))?;
+    d.set_item("vv", vv.into_pyarray(py))?;
+    d.set_item("uv", uv.into_pyarray(py))?;
+    d.set_item("n_tracks", n_tracks.into_pyarray(py))?;
+    d.set_item("nx", g.spec.nx)?;
+    d.set_item("ny", g.spec.ny)?;
+    Ok(d)
+}
+
+/// `ebptv simulate --preset NAME --out OUT [--seconds S] --seed SEED`:
+/// writes the recording (EVT 3.0), the truth and the summary into `out`;
+/// returns the summary as JSON text.
+#[pyfunction]
+#[pyo3(signature = (out, preset, seconds=None, seed=1))]
+fn simulate(
+    py: Python<'_>,
+    out: PathBuf,
+    preset: &str,
+    seconds: Option<f64>,
+    seed: u64,
+) -> PyResult<String> {
+    let mut sc = ebptv::sim::presets::preset(preset).map_err(err)?;
+    if let Some(s) = seconds {
+        sc.duration_s = s;
+    }
+    let mut stop = Interrupt::new();
+    let r = py.allow_threads(|| -> ebptv::Result<String> {
+        sc.validate()?;
+        let mut cancelled = Ok(());
+        let summary = ebptv::sim::write_recording(&sc, seed, &out, io::Format::Evt3, |_, _| {
+            if cancelled.is_ok() {
+                cancelled = stop.check();
+            }
+        })?;
+        cancelled?;
+        serde_json::to_string(&summary).map_err(|e| ebptv::Error::analysis(e.to_string()))
+    });
+    stop.result(r)
+}
+
 #[pymodule]
 fn _ebptv(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("EbptvError", m.py().get_type::<EbptvError>())?;
@@ -473,5 +696,10 @@ fn _ebptv(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<EventChunks>()?;
     m.add_function(wrap_pyfunction!(info, m)?)?;
     m.add_function(wrap_pyfunction!(track, m)?)?;
+    m.add_function(wrap_pyfunction!(simulate, m)?)?;
+    m.add_function(wrap_pyfunction!(grid_state, m)?)?;
+    m.add_function(wrap_pyfunction!(grid_merge, m)?)?;
+    m.add_function(wrap_pyfunction!(grid_estimate, m)?)?;
+    m.add("GRID_DEFAULTS", grid_defaults(m.py())?)?;
     Ok(())
 }

@@ -261,3 +261,15 @@ def test_ctrl_c_stops_a_tracking_run(sim: Path) -> None:
     stopped = time.perf_counter() - t0
     timer.join()
     assert stopped < 0.7 * whole, (stopped, whole)
+
+
+def test_simulate_equals_ebptv_simulate(sim: Path, tmp_path: Path) -> None:
+    got = ebptv.simulate("demo", seconds=0.05, seed=3, out=tmp_path / "s")
+    raw = Path(got["recording"])
+    assert raw.read_bytes() == sim.read_bytes()
+    want_truth = pd.read_csv(sim.parent / "truth_particles.csv")
+    pd.testing.assert_frame_equal(got["truth"], want_truth)
+    assert len(got["events"]["t"]) == got["summary"]["events"] > 100_000
+    with pytest.raises(ebptv.EbptvError) as e:
+        ebptv.simulate("no-such-preset", out=tmp_path / "x")
+    assert str(e.value) == cli_error("simulate", "--preset", "no-such-preset", "--out", str(tmp_path / "y"))
