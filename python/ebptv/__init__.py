@@ -31,6 +31,7 @@ __all__ = [
     "track",
     "to_trackpy",
     "simulate",
+    "pulses",
     "grid",
     "grid_state",
     "grid_merge",
@@ -310,3 +311,34 @@ def simulate(
         "truth": pd.read_csv(os.path.join(out, "truth_particles.csv")),
         "summary": summary,
     }
+
+
+def pulses(
+    path: PathLike,
+    pulse_hz: Optional[float] = None,
+    pulse_hz_range: Optional[Tuple[float, float]] = None,
+    trigger_channel: Optional[int] = None,
+    ignore_triggers: bool = False,
+    onset_latency_us: Optional[float] = None,
+    force_pulses: bool = False,
+) -> Dict[str, Any]:
+    """``ebptv pulses``: the pulse timing and diagnostics of a recording.
+
+    Returns ``pulses.json`` as a dict, plus ``"starts_us"``: the start time
+    (µs) of every pulse, a numpy array. The options are those of
+    ``ebptv pulses`` (``pulse_hz``: nominal frequency when estimating from
+    the events, ±2 % searched; ``pulse_hz_range=(a, b)``; ``force_pulses``:
+    go on when the events show no bursts locked to pulses).
+    """
+    text, starts = _ebptv.pulses(
+        os.fspath(path),
+        pulse_hz,
+        tuple(pulse_hz_range) if pulse_hz_range is not None else None,
+        trigger_channel,
+        ignore_triggers,
+        onset_latency_us,
+        force_pulses,
+    )
+    report = json.loads(text)
+    report["starts_us"] = starts
+    return report

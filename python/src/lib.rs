@@ -689,6 +689,53 @@ fn simulate(
     stop.result(r)
 }
 
+/// `ebptv pulses`: the pulse analysis (pulses.json as JSON text) and the
+/// start time (µs) of every pulse.
+#[pyfunction]
+#[pyo3(signature = (path, pulse_hz=None, pulse_hz_range=None, trigger_channel=None, ignore_triggers=false, onset_latency_us=None, force_pulses=false))]
+#[allow(clippy::too_many_arguments)]
+fn pulses<'py>(
+    py: Python<'py>,
+    path: PathBuf,
+    pulse_hz: Option<f64>,
+    pulse_hz_range: Option<(f64, f64)>,
+    trigger_channel: Option<u8>,
+    ignore_triggers: bool,
+    onset_latency_us: Option<f64>,
+    force_pulses: bool,
+) -> PyResult<(String, Bound<'py, numpy::PyArray1<f64>>)> {
+    let opts = ebptv::pulses::PulseOptions {
+        pulse_hz,
+        pulse_hz_range,
+        trigger_channel,
+        ignore_triggers,
+        onset_latency_us,
+        require_pulsed: !force_pulses,
+    };
+    let mut stop = Interrupt::new();
+    let r = py.allow_threads(|| -> ebptv::Result<(String, Vec<f64>)> {
+        let mut src = io::guard::TimeGuard::new(io::open(&path)?);
+        let mut an = ebptv::pulses::Analyzer::new(opts, src.info().geometry)?;
+        let mut chunk = Chunk::default();
+        while src.next_chunk(&mut chunk)? {
+            an.push(&chunk)?;
+            stop.check()?;
+        }
+        let mut report = an.finish().map_err(|e| {
+            ebptv::Error::analysis(format!("{}: pulse analysis: {e}", path.display()))
+        })?;
+        (report.time_jumps, report.time_jump_events) = src.jumps();
+        let starts = (0..report.pulses as i64)
+            .map(|k| report.timing.pulse_start(k))
+            .collect();
+        let json =
+            serde_json::to_string(&report).map_err(|e| ebptv::Error::analysis(e.to_string()))?;
+        Ok((json, starts))
+    });
+    let (json, starts) = stop.result(r)?;
+    Ok((json, starts.into_pyarray(py)))
+}
+
 #[pymodule]
 fn _ebptv(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("EbptvError", m.py().get_type::<EbptvError>())?;
@@ -697,6 +744,7 @@ fn _ebptv(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(info, m)?)?;
     m.add_function(wrap_pyfunction!(track, m)?)?;
     m.add_function(wrap_pyfunction!(simulate, m)?)?;
+    m.add_function(wrap_pyfunction!(pulses, m)?)?;
     m.add_function(wrap_pyfunction!(grid_state, m)?)?;
     m.add_function(wrap_pyfunction!(grid_merge, m)?)?;
     m.add_function(wrap_pyfunction!(grid_estimate, m)?)?;

@@ -273,3 +273,20 @@ def test_simulate_equals_ebptv_simulate(sim: Path, tmp_path: Path) -> None:
     with pytest.raises(ebptv.EbptvError) as e:
         ebptv.simulate("no-such-preset", out=tmp_path / "x")
     assert str(e.value) == cli_error("simulate", "--preset", "no-such-preset", "--out", str(tmp_path / "y"))
+
+
+def test_pulses_equal_ebptv_pulses(sim: Path, tmp_path: Path) -> None:
+    cli_ok("pulses", str(sim), "--out", str(tmp_path / "p"))
+    want = json.loads((tmp_path / "p" / "pulses.json").read_text())
+    got = ebptv.pulses(sim)
+    starts = got.pop("starts_us")
+    assert got == want
+    assert len(starts) == want["pulses"] >= 250
+    np.testing.assert_allclose(np.diff(starts), want["period_us"], rtol=1e-12)
+
+
+def test_pulses_of_an_unpulsed_real_file_raise_as_the_cli(tmp_path: Path) -> None:
+    path = real("ncars_sample.dat")
+    with pytest.raises(ebptv.EbptvError) as e:
+        ebptv.pulses(path, pulse_hz=5000)
+    assert str(e.value) == cli_error("pulses", str(path), "--pulse-hz", "5000", "--out", str(tmp_path / "q"))
