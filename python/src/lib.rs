@@ -394,6 +394,15 @@ type TrackResult<'py> = (
     String,
 );
 
+/// Particle columns `pulse, t_us, x, y, n_events`.
+type ParticleArrays<'py> = (
+    PyReadonlyArray1<'py, i64>,
+    PyReadonlyArray1<'py, f64>,
+    PyReadonlyArray1<'py, f64>,
+    PyReadonlyArray1<'py, f64>,
+    PyReadonlyArray1<'py, u32>,
+);
+
 /// The run of `ebptv track` on a file (recording or particles.csv) or on
 /// particle columns, its results in memory.
 #[pyfunction]
@@ -401,13 +410,7 @@ type TrackResult<'py> = (
 fn track<'py>(
     py: Python<'py>,
     path: Option<PathBuf>,
-    particles: Option<(
-        PyReadonlyArray1<'py, i64>,
-        PyReadonlyArray1<'py, f64>,
-        PyReadonlyArray1<'py, f64>,
-        PyReadonlyArray1<'py, f64>,
-        PyReadonlyArray1<'py, u32>,
-    )>,
+    particles: Option<ParticleArrays<'py>>,
     params: Option<PathBuf>,
     options: Option<&Bound<'py, PyDict>>,
 ) -> PyResult<TrackResult<'py>> {
