@@ -10,8 +10,7 @@ use ebptv::grid::fields::{time_resolved, Frames};
 use ebptv::grid::noise::{velocity_noise, NoiseOptions};
 use ebptv::grid::profiles::{profile_at_x, wall_fit, WallOptions, WallSide};
 use ebptv::grid::{
-    self, estimate, io as gio, EstimateOptions, Fit, GridAccumulator, GridSpec, Lattice, Sample,
-    Weighting,
+    self, estimate, io as gio, EstimateOptions, Fit, GridAccumulator, Sample, Weighting,
 };
 use ebptv::io::atomic::AtomicFile;
 use ebptv::{Error, Result};
@@ -52,17 +51,18 @@ pub struct GridArgs {
     #[arg(long)]
     pub out: PathBuf,
     /// Bin width (px); also the height unless --bin-h is given.
-    #[arg(long, default_value_t = 16.0)]
+    #[arg(long, default_value_t = grid::BinOptions::default().bin)]
     pub bin: f64,
     /// Bin height (px), for rectangular bins (e.g. thin bins near a wall).
     #[arg(long)]
     pub bin_h: Option<f64>,
     /// Fraction of a bin shared with its neighbour, in [0, 1).
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = grid::BinOptions::default().overlap)]
     pub overlap: f64,
-    /// Lattice origin "x,y" (px); bins of runs to be merged must share it.
-    #[arg(long, default_value = "-0.5,-0.5", value_parser = parse_pair)]
-    pub origin: (f64, f64),
+    /// Lattice origin "x,y" (px); bins of runs to be merged must share it
+    /// [default: -0.5,-0.5, pixel corners].
+    #[arg(long, value_parser = parse_pair)]
+    pub origin: Option<(f64, f64)>,
     /// Estimator of the mean inside a bin.
     #[arg(long, value_enum, default_value_t = FitArg::None)]
     pub fit: FitArg,
@@ -70,7 +70,7 @@ pub struct GridArgs {
     #[arg(long, value_enum)]
     pub weighting: Option<WeightArg>,
     /// Bins with fewer samples are empty (NaN).
-    #[arg(long, default_value_t = 10)]
+    #[arg(long, default_value_t = grid::DEFAULT_MIN_COUNT)]
     pub min_count: u64,
     /// Velocity measurement noise rms (px/s) to subtract from uu and vv.
     #[arg(long, default_value_t = 0.0)]
@@ -194,26 +194,22 @@ pub fn run(a: GridArgs) -> anyhow::Result<()> {
             .tracks
             .as_ref()
             .context("give a tracks file, or --merge STATE...")?;
-        let lattice = Lattice::with_origin(
-            a.bin,
-            a.bin_h.unwrap_or(a.bin),
-            a.overlap,
-            a.origin.0,
-            a.origin.1,
-        )?;
+        let opts = grid::BinOptions {
+            bin: a.bin,
+            bin_h: a.bin_h,
+            overlap: a.overlap,
+            origin: a.origin.unwrap_or(grid::BinOptions::default().origin),
+            weighting,
+        };
+        opts.lattice()?; // a bad lattice before the (long) read
         samples = read_tracks_csv(tracks)?;
-        let (x0, x1, y0, y1) = grid::extent(&samples, &tracks.display().to_string())?;
-        let spec = GridSpec::covering(lattice, weighting, x0, x1, y0, y1)?;
-        let mut acc = GridAccumulator::new(spec);
         let bar = indicatif::ProgressBar::new(samples.len() as u64);
         if samples.len() < 1_000_000 {
             bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
         }
-        // Chunks of a few million keep the bar moving; each is binned on all cores.
-        for chunk in samples.chunks(1 << 22) {
-            acc.add_par(chunk);
-            bar.inc(chunk.len() as u64);
-        }
+        let acc = grid::accumulate(&samples, &opts, &tracks.display().to_string(), &mut |n| {
+            bar.inc(n as u64)
+        })?;
         bar.finish_and_clear();
         acc
     };

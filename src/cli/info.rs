@@ -20,7 +20,7 @@ pub struct InfoArgs {
     #[arg(long)]
     pub time_unit: Option<String>,
     /// Bin width for the peak event rate, µs.
-    #[arg(long, default_value_t = 1000)]
+    #[arg(long, default_value_t = ebptv::io::summary::DEFAULT_PEAK_BIN_US)]
     pub peak_bin_us: i64,
 }
 
@@ -65,14 +65,7 @@ pub fn run(args: InfoArgs) -> anyhow::Result<()> {
     src.bar().finish_and_clear();
     let verdict = pulsed_verdict(&args.file, &opts);
     let text = if args.json {
-        let mut v = serde_json::to_value(&summary)?;
-        if let Some(o) = v.as_object_mut() {
-            let j = match &verdict {
-                Ok(v) => serde_json::to_value(v)?,
-                Err(e) => serde_json::json!({ "pulsed": false, "reason": e }),
-            };
-            o.insert("pulsed".into(), j);
-        }
+        let v = ebptv::pulses::info_json(&summary, &verdict)?;
         serde_json::to_string_pretty(&v)? + "\n"
     } else {
         let mut t = render(&summary);
@@ -105,29 +98,12 @@ pub fn run(args: InfoArgs) -> anyhow::Result<()> {
     write_stdout(&text)
 }
 
-/// Events looked at for the pulsed-light verdict of `info` (a prefix of
-/// the recording bounds its cost).
-const VERDICT_EVENTS: u64 = 4_000_000;
-
-/// The pulsed-light test ([`ebptv::pulses::PulsedVerdict`]) on the first
-/// [`VERDICT_EVENTS`] events, triggers used when regular; an error when
-/// no period could be found at all.
+/// The pulsed-light verdict of `info`, an error as its message.
 fn pulsed_verdict(
     path: &std::path::Path,
     opts: &OpenOptions,
 ) -> Result<ebptv::pulses::PulsedVerdict, String> {
-    let run = || -> ebptv::Result<ebptv::pulses::PulsedVerdict> {
-        let mut src = ebptv::io::guard::TimeGuard::new(io::open_with(path, opts)?);
-        let mut an = ebptv::pulses::Analyzer::new(Default::default(), src.info().geometry)?;
-        let mut chunk = ebptv::Chunk::default();
-        let mut seen = 0u64;
-        while seen < VERDICT_EVENTS && src.next_chunk(&mut chunk)? {
-            seen += chunk.events.len() as u64;
-            an.push(&chunk)?;
-        }
-        Ok(an.finish()?.pulsed)
-    };
-    run().map_err(|e| e.to_string())
+    ebptv::pulses::file_verdict(path, opts).map_err(|e| e.to_string())
 }
 
 /// Print, treating a closed pipe (`ebptv info f | head`) as success.

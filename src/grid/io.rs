@@ -31,6 +31,15 @@ struct StateFile {
 
 /// Write the accumulator so that `ebptv grid --merge` can combine it with others.
 pub fn save_state(path: &Path, acc: &GridAccumulator) -> Result<()> {
+    let text = state_json(acc).map_err(|e| Error::io(path, e.into()))?;
+    let mut f = AtomicFile::create(path)?;
+    f.write_all(text.as_bytes())
+        .map_err(|e| Error::io(path, e))?;
+    f.commit()
+}
+
+/// The text of `grid_state.json` ([`save_state`]).
+pub fn state_json(acc: &GridAccumulator) -> serde_json::Result<String> {
     let st = StateFile {
         format: STATE_FORMAT.into(),
         version: STATE_VERSION,
@@ -45,15 +54,19 @@ pub fn save_state(path: &Path, acc: &GridAccumulator) -> Result<()> {
             .map(|(k, b)| (k, b.clone()))
             .collect(),
     };
-    let mut f = AtomicFile::create(path)?;
-    serde_json::to_writer(&mut f, &st).map_err(|e| Error::io(path, e.into()))?;
-    f.commit()
+    serde_json::to_string(&st)
 }
 
 /// Read a state written by [`save_state`].
 pub fn load_state(path: &Path) -> Result<GridAccumulator> {
     let text = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-    let st: StateFile = serde_json::from_slice(&text).map_err(|e| {
+    state_from_json(&text, path)
+}
+
+/// A state from the text of a `grid_state.json` (`path` names it in
+/// errors).
+pub fn state_from_json(text: &[u8], path: &Path) -> Result<GridAccumulator> {
+    let st: StateFile = serde_json::from_slice(text).map_err(|e| {
         Error::corrupt(
             path,
             0,

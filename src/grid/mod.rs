@@ -109,3 +109,72 @@ pub fn bin_samples(
     acc.add_all(samples);
     Ok(acc)
 }
+
+/// Bins with fewer samples are empty (NaN): the `--min-count` of
+/// `ebptv grid`.
+pub const DEFAULT_MIN_COUNT: u64 = 10;
+
+/// The lattice and weighting of `ebptv grid` (its options and defaults).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BinOptions {
+    /// Bin width (px).
+    pub bin: f64,
+    /// Bin height (px); `None`: square bins.
+    pub bin_h: Option<f64>,
+    /// Fraction of a bin shared with its neighbour, in [0, 1).
+    pub overlap: f64,
+    /// Lattice origin (px); bins of runs to be merged must share it.
+    pub origin: (f64, f64),
+    /// Sample weighting inside a bin.
+    pub weighting: Weighting,
+}
+
+impl Default for BinOptions {
+    fn default() -> Self {
+        BinOptions {
+            bin: 16.0,
+            bin_h: None,
+            overlap: 0.0,
+            origin: (-0.5, -0.5),
+            weighting: Weighting::TopHat,
+        }
+    }
+}
+
+impl BinOptions {
+    /// The lattice (an error on a bad bin size or overlap).
+    pub fn lattice(&self) -> Result<Lattice> {
+        Lattice::with_origin(
+            self.bin,
+            self.bin_h.unwrap_or(self.bin),
+            self.overlap,
+            self.origin.0,
+            self.origin.1,
+        )
+    }
+}
+
+/// Samples per step of [`accumulate`] (each step binned on all cores).
+const ACCUMULATE_STEP: usize = 1 << 22;
+
+/// What `ebptv grid` does with a tracks table: a window covering the
+/// samples (`what` names them in errors), every sample binned on all
+/// cores; `on_step(samples binned)` after each step of a few million.
+/// Accumulators of parts of a table merge ([`GridAccumulator::merge`], in
+/// order) into the accumulator of the whole, to rounding.
+pub fn accumulate(
+    samples: &[Sample],
+    opts: &BinOptions,
+    what: &str,
+    on_step: &mut dyn FnMut(usize),
+) -> Result<GridAccumulator> {
+    let lattice = opts.lattice()?;
+    let (x0, x1, y0, y1) = extent(samples, what)?;
+    let spec = GridSpec::covering(lattice, opts.weighting, x0, x1, y0, y1)?;
+    let mut acc = GridAccumulator::new(spec);
+    for chunk in samples.chunks(ACCUMULATE_STEP) {
+        acc.add_par(chunk);
+        on_step(chunk.len());
+    }
+    Ok(acc)
+}

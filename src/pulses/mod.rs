@@ -277,6 +277,48 @@ pub fn analyze(
     an.finish()
 }
 
+/// Events looked at for the pulsed-light verdict of `ebptv info` (a
+/// prefix of the recording bounds its cost).
+pub const VERDICT_EVENTS: u64 = 4_000_000;
+
+/// The pulsed-light test ([`PulsedVerdict`]) of `ebptv info` on the first
+/// [`VERDICT_EVENTS`] events of `path`, triggers used when regular; an
+/// error when no period could be found at all.
+pub fn file_verdict(
+    path: &std::path::Path,
+    opts: &crate::io::OpenOptions,
+) -> Result<PulsedVerdict> {
+    let mut src = crate::io::guard::TimeGuard::new(crate::io::open_with(path, opts)?);
+    let mut an = Analyzer::new(Default::default(), src.info().geometry)?;
+    let mut chunk = Chunk::default();
+    let mut seen = 0u64;
+    use crate::io::EventSource;
+    while seen < VERDICT_EVENTS && src.next_chunk(&mut chunk)? {
+        seen += chunk.events.len() as u64;
+        an.push(&chunk)?;
+    }
+    Ok(an.finish()?.pulsed)
+}
+
+/// What `ebptv info --json` prints: the recording's summary with its
+/// pulsed-light verdict under `pulsed` (`{"pulsed": false, "reason": …}`
+/// when no period was found).
+pub fn info_json(
+    summary: &crate::io::summary::Summary,
+    verdict: &std::result::Result<PulsedVerdict, String>,
+) -> Result<serde_json::Value> {
+    let json = |e: serde_json::Error| crate::Error::analysis(format!("info as JSON: {e}"));
+    let mut v = serde_json::to_value(summary).map_err(json)?;
+    if let Some(o) = v.as_object_mut() {
+        let j = match verdict {
+            Ok(v) => serde_json::to_value(v).map_err(json)?,
+            Err(e) => serde_json::json!({ "pulsed": false, "reason": e }),
+        };
+        o.insert("pulsed".into(), j);
+    }
+    Ok(v)
+}
+
 /// Chunks in flight between [`analyze_pipelined`]'s two threads.
 const PIPELINE_CHUNKS: usize = 3;
 

@@ -130,7 +130,10 @@ pub use io::{
 };
 pub use params::*;
 use predict::*;
-pub use sink::{read_hot_pixels, track_to_dir, DirRun, FileSink, TrackProgress, TrackStage};
+pub use sink::{
+    read_hot_pixels, resolve_config, stream_of, track_into, track_to_dir, DirRun, FileSink,
+    SinkRun, TrackInput, TrackProgress, TrackStage,
+};
 pub use slice::{SliceParams, SliceTracker};
 pub use state::*;
 pub use stream::{track_recording, PtvSink, PtvStream, TrackingRun};

@@ -90,9 +90,80 @@ pub fn track_to_dir(
     out: &Path,
     on_progress: &(dyn Fn(TrackProgress<'_>) + Sync),
 ) -> Result<DirRun> {
+    let config = resolve_config(config)?;
+    let stream = stream_of(&config)?;
+    create_output_dir(out)?;
+    // Written with the other outputs, once tracking succeeded.
+    let params_toml = config.to_toml()?;
+    let write_params = || AtomicFile::write_all_to(out.join("params.toml"), params_toml.as_bytes());
+    let mut sink = FileSink::create(out, &config.run)?;
+    let run = track_into(
+        TrackInput::of_path(input),
+        &config,
+        stream,
+        &mut sink,
+        on_progress,
+    )?;
+    on_progress(TrackProgress::Writing);
+    if let Some(pulses) = &run.pulses {
+        let json = serde_json::to_vec_pretty(pulses)
+            .map_err(|e| Error::analysis(format!("pulses.json: {e}")))?;
+        AtomicFile::write_all_to(out.join("pulses.json"), &json)?;
+    }
+    write_params()?;
+    let summary = sink.finish(
+        &run.stats,
+        run.geometry.map(|g| (g.width as f64, g.height as f64)),
+    )?;
+    Ok(DirRun {
+        summary,
+        pulses: run.pulses,
+        unassigned_events: run.unassigned_events,
+    })
+}
+
+/// What a tracking run reads: [`track_into`]'s input.
+#[derive(Debug)]
+pub enum TrackInput<'a> {
+    /// A recording in any supported event format.
+    Recording(&'a Path),
+    /// A `particles.csv` (linking only).
+    ParticlesCsv(&'a Path),
+    /// Particles in memory (linking only), in any order.
+    Particles(Vec<Particle>),
+}
+
+impl TrackInput<'_> {
+    /// A recording, or a `particles.csv` when the file's header has a
+    /// `pulse` column (what `ebptv track` decides).
+    pub fn of_path(path: &Path) -> TrackInput<'_> {
+        if is_particles_csv(path) {
+            TrackInput::ParticlesCsv(path)
+        } else {
+            TrackInput::Recording(path)
+        }
+    }
+}
+
+/// What [`track_into`] found besides the particles and tracks it handed
+/// to its sink.
+#[derive(Clone, Debug)]
+pub struct SinkRun {
+    /// The tracker's counters.
+    pub stats: TrackerStats,
+    /// The pulse analysis (`pulses.json`); `None` for particles.
+    pub pulses: Option<PulseReport>,
+    /// Events that fell outside every pulse window.
+    pub unassigned_events: u64,
+    /// The sensor's geometry when the recording states it.
+    pub geometry: Option<Geometry>,
+}
+
+/// The options as a run uses them: a `run.hot_pixels` file read into
+/// `cluster.hot_pixels`, and without the ghost test no check of new chains
+/// against the flow. [`track_to_dir`] writes this set to `params.toml`.
+pub fn resolve_config(config: &TrackConfig) -> Result<TrackConfig> {
     let mut config = config.clone();
-    // The hot pixels' file goes into the set (the written params.toml
-    // then holds the pixels themselves).
     if let Some(p) = config.run.hot_pixels.take() {
         config.cluster.hot_pixels.extend(read_hot_pixels(&p)?);
     }
@@ -101,6 +172,12 @@ pub fn track_to_dir(
         config.track.init.ghost_check_init = false;
         config.track.init.init_gap = false;
     }
+    Ok(config)
+}
+
+/// The tracker stream of a run set up with `config` (from
+/// [`resolve_config`]): its linker, prior and batch size.
+pub fn stream_of(config: &TrackConfig) -> Result<PtvStream> {
     let TrackConfig {
         run,
         cluster,
@@ -109,51 +186,78 @@ pub fn track_to_dir(
     if let Some([u, v]) = run.prior {
         tparams.prior = Some(super::FlowPrior::uniform(u, v));
     }
-    let mut stream = match run.linker {
-        Linker::Sequential => PtvStream::new(cluster, tparams, run.batch)?,
+    match run.linker {
+        Linker::Sequential => PtvStream::new(cluster, tparams, run.batch),
         Linker::Sliced => PtvStream::sliced(cluster, tparams, run.slicing(), run.batch)
-            .map_err(|e| Error::analysis(format!("run.slice_pulses / run.slice_overlap: {e}")))?,
-    };
-    create_output_dir(out)?;
-    // Written with the other outputs, once tracking succeeded.
-    let params_toml = config.to_toml()?;
-    let write_params = || AtomicFile::write_all_to(out.join("params.toml"), params_toml.as_bytes());
-    let mut sink = FileSink::create(out, &run)?;
-
-    if is_particles_csv(input) {
-        on_progress(TrackProgress::Stage {
-            stage: TrackStage::Tracking,
-            file_size: std::fs::metadata(input).ok().map(|m| m.len()),
-        });
-        let particles = read_particles_csv(input)?;
-        let mut order: Vec<usize> = (0..particles.len()).collect();
-        order.sort_by_key(|&i| particles[i].pulse);
-        let sorted: Vec<Particle> = order.iter().map(|&i| particles[i]).collect();
-        let mut s = 0;
-        while s < sorted.len() {
-            let mut e = s;
-            while e < sorted.len() && sorted[e].pulse == sorted[s].pulse {
-                e += 1;
-            }
-            stream.push_particles(sorted[s].pulse, sorted[s].t_us, &sorted[s..e], &mut sink)?;
-            let (particles, active_tracks) = stream.progress();
-            on_progress(TrackProgress::Pulse {
-                particles,
-                active_tracks,
-            });
-            s = e;
-        }
-        let stats = stream.finish(&mut sink)?;
-        on_progress(TrackProgress::Writing);
-        write_params()?;
-        let summary = sink.finish(&stats, None)?;
-        return Ok(DirRun {
-            summary,
-            pulses: None,
-            unassigned_events: 0,
-        });
+            .map_err(|e| Error::analysis(format!("run.slice_pulses / run.slice_overlap: {e}"))),
     }
+}
 
+/// The run of [`track_to_dir`] with its results handed to `sink` instead
+/// of files: `config` from [`resolve_config`], `stream` from
+/// [`stream_of`]. A sink that returns an error stops the run (a caller's
+/// way to cancel it).
+pub fn track_into(
+    input: TrackInput<'_>,
+    config: &TrackConfig,
+    mut stream: PtvStream,
+    sink: &mut dyn PtvSink,
+    on_progress: &(dyn Fn(TrackProgress<'_>) + Sync),
+) -> Result<SinkRun> {
+    let run = &config.run;
+    let particles = match input {
+        TrackInput::Recording(path) => {
+            return track_recording_into(path, run, stream, sink, on_progress)
+        }
+        TrackInput::ParticlesCsv(path) => {
+            on_progress(TrackProgress::Stage {
+                stage: TrackStage::Tracking,
+                file_size: std::fs::metadata(path).ok().map(|m| m.len()),
+            });
+            read_particles_csv(path)?
+        }
+        TrackInput::Particles(particles) => {
+            on_progress(TrackProgress::Stage {
+                stage: TrackStage::Tracking,
+                file_size: None,
+            });
+            particles
+        }
+    };
+    let mut order: Vec<usize> = (0..particles.len()).collect();
+    order.sort_by_key(|&i| particles[i].pulse);
+    let sorted: Vec<Particle> = order.iter().map(|&i| particles[i]).collect();
+    let mut s = 0;
+    while s < sorted.len() {
+        let mut e = s;
+        while e < sorted.len() && sorted[e].pulse == sorted[s].pulse {
+            e += 1;
+        }
+        stream.push_particles(sorted[s].pulse, sorted[s].t_us, &sorted[s..e], sink)?;
+        let (particles, active_tracks) = stream.progress();
+        on_progress(TrackProgress::Pulse {
+            particles,
+            active_tracks,
+        });
+        s = e;
+    }
+    let stats = stream.finish(sink)?;
+    Ok(SinkRun {
+        stats,
+        pulses: None,
+        unassigned_events: 0,
+        geometry: None,
+    })
+}
+
+/// [`track_into`] on a recording: pulse timing, then tracking.
+fn track_recording_into(
+    input: &Path,
+    run: &RunParams,
+    stream: PtvStream,
+    sink: &mut dyn PtvSink,
+    on_progress: &(dyn Fn(TrackProgress<'_>) + Sync),
+) -> Result<SinkRun> {
     let opts = PulseOptions {
         pulse_hz: run.pulse_hz,
         ignore_triggers: run.ignore_triggers,
@@ -186,26 +290,18 @@ pub fn track_to_dir(
             on_progress,
         }))
     };
-    let run_result = track_recording(&open, &opts, stream, &mut sink, &mut |s| {
+    let run_result = track_recording(&open, &opts, stream, sink, &mut |s| {
         let (particles, active_tracks) = s.progress();
         on_progress(TrackProgress::Pulse {
             particles,
             active_tracks,
         });
     })?;
-    on_progress(TrackProgress::Writing);
-    let json = serde_json::to_vec_pretty(&run_result.pulses)
-        .map_err(|e| Error::analysis(format!("pulses.json: {e}")))?;
-    AtomicFile::write_all_to(out.join("pulses.json"), &json)?;
-    write_params()?;
-    let summary = sink.finish(
-        &run_result.stats,
-        geometry.map(|g| (g.width as f64, g.height as f64)),
-    )?;
-    Ok(DirRun {
-        summary,
+    Ok(SinkRun {
+        stats: run_result.stats,
         pulses: Some(run_result.pulses),
         unassigned_events: run_result.unassigned_events,
+        geometry,
     })
 }
 

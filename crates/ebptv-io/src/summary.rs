@@ -286,6 +286,9 @@ pub fn geometry_source(info: &StreamInfo) -> &'static str {
     }
 }
 
+/// Bin width (µs) of the peak event rate that `ebptv info` reports.
+pub const DEFAULT_PEAK_BIN_US: i64 = 1000;
+
 /// Summarise a whole source in one pass; `progress(bytes_read)` is called
 /// after every chunk.
 pub fn summarize(

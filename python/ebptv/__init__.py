@@ -1,0 +1,344 @@
+"""ebptv from Python: event-based particle tracking velocimetry.
+
+Each function is one call into the Rust library behind the ``ebptv``
+command line; results come back as numpy arrays and pandas DataFrames with
+the columns of the command's files (README: file contracts). Errors raise
+:class:`EbptvError` with the message ``ebptv`` prints after ``error:``.
+Long calls release the GIL and stop on Ctrl-C (``KeyboardInterrupt``).
+
+>>> import ebptv
+>>> particles, tracks = ebptv.track("events.raw")          # doctest: +SKIP
+>>> ebptv.to_trackpy(tracks).head()                          # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from typing import Any, Dict, Iterator, Optional, Sequence, Tuple, Union
+
+import numpy as np
+import pandas as pd
+
+from . import _ebptv
+from ._ebptv import EbptvError
+
+__all__ = [
+    "EbptvError",
+    "read_events",
+    "iter_events",
+    "info",
+    "track",
+    "to_trackpy",
+    "simulate",
+    "pulses",
+    "grid",
+    "grid_state",
+    "grid_merge",
+    "grid_estimate",
+    "GRID_DEFAULTS",
+    "GRID_COLUMNS",
+    "PARTICLES_COLUMNS",
+    "TRACKS_COLUMNS",
+]
+
+PathLike = Union[str, "os.PathLike[str]"]
+Events = Dict[str, Any]
+
+#: Columns of ``particles.csv`` (µs, px).
+PARTICLES_COLUMNS = ["pulse", "t_us", "x", "y", "n_events"]
+#: Columns of ``tracks.csv`` (µs, px, px/s).
+TRACKS_COLUMNS = ["track_id", "pulse", "t_us", "x", "y", "u", "v"]
+
+#: Columns of ``grid.csv`` (px, px/s, (px/s)²); rows ordered by y then x.
+GRID_COLUMNS = ["x", "y", "count", "u", "v", "uu", "vv", "uv"]
+#: The defaults of ``ebptv grid`` (read from the library): ``bin``,
+#: ``overlap``, ``origin``, ``weighting``, ``fit``, ``min_count``,
+#: ``noise_rms``.
+GRID_DEFAULTS: Dict[str, Any] = dict(_ebptv.GRID_DEFAULTS)
+
+#: Events per chunk of :func:`iter_events` (the library's reading chunk).
+DEFAULT_CHUNK = 1 << 20
+
+
+def _selection(
+    t_range: Optional[Tuple[Optional[int], Optional[int]]],
+    roi: Union[None, str, Sequence[int]],
+    polarity: Optional[str],
+) -> Dict[str, Any]:
+    from_us, to_us = t_range if t_range is not None else (None, None)
+    if roi is not None and not isinstance(roi, str):
+        roi = ",".join(str(int(v)) for v in roi)
+    return {"from_us": from_us, "to_us": to_us, "roi": roi, "polarity": polarity}
+
+
+def read_events(
+    path: PathLike,
+    t_range: Optional[Tuple[Optional[int], Optional[int]]] = None,
+    roi: Union[None, str, Sequence[int]] = None,
+    polarity: Optional[str] = None,
+) -> Events:
+    """All events of a recording, as numpy columns.
+
+    Any format ``ebptv`` reads (RAW EVT 2.0/2.1/3.0, DAT, CSV, AEDAT4, ES).
+    The selection is that of ``ebptv convert``:
+
+    - ``t_range=(from_us, to_us)``: events with ``from_us <= t < to_us``
+      (µs of raw sensor time; either end may be ``None``);
+    - ``roi=(x0, y0, width, height)`` (or the string ``"x0,y0,w,h"``);
+    - ``polarity="on" | "off" | "both"`` (default both).
+
+    Returns ``{"t": int64 µs, "x": uint16, "y": uint16, "p": uint8 (1 = ON),
+    "triggers": {"t": int64, "channel": uint8, "rising": bool}}``; triggers
+    are kept inside the time range (region and polarity do not apply).
+    """
+    return _ebptv.read_events(os.fspath(path), **_selection(t_range, roi, polarity))
+
+
+def iter_events(
+    path: PathLike,
+    chunk: int = DEFAULT_CHUNK,
+    t_range: Optional[Tuple[Optional[int], Optional[int]]] = None,
+    roi: Union[None, str, Sequence[int]] = None,
+    polarity: Optional[str] = None,
+) -> Iterator[Events]:
+    """The events of :func:`read_events`, streamed: dicts of the same
+    columns holding about ``chunk`` events each (fewer after a selection),
+    so a recording larger than memory can be processed piece by piece."""
+    if chunk < 1:
+        raise ValueError(f"chunk = {chunk}: must be at least 1")
+    return iter(_ebptv.EventChunks(os.fspath(path), chunk, **_selection(t_range, roi, polarity)))
+
+
+def info(path: PathLike) -> Dict[str, Any]:
+    """What ``ebptv info --json`` prints for the recording: format,
+    geometry, counts, time span, rates, anomalies and the pulsed-light
+    verdict (``"pulsed"``)."""
+    return json.loads(_ebptv.info(os.fspath(path)))
+
+
+def track(
+    path_or_particles: Union[PathLike, pd.DataFrame],
+    *,
+    params: Optional[PathLike] = None,
+    max_disp: Optional[float] = None,
+    gap: Optional[int] = None,
+    min_length: Optional[int] = None,
+    radius: Optional[float] = None,
+    prior: Optional[Tuple[float, float]] = None,
+    pulse_hz: Optional[float] = None,
+    ignore_triggers: bool = False,
+    force_pulses: bool = False,
+    all_polarities: bool = False,
+    hot_pixels: Optional[PathLike] = None,
+    linker: Optional[str] = None,
+) -> Tuple[pd.DataFrame, pd.DataFrame]:
+    """The run of ``ebptv track`` in memory: ``(particles, tracks)``.
+
+    ``path_or_particles`` is a recording, a ``particles.csv`` (linking
+    only) or a DataFrame with the particles columns
+    (``pulse, t_us, x, y, n_events``). The options are those of
+    ``ebptv track`` with the same defaults (``None``: the library's
+    default; ``params``: a ``params.toml`` as for ``--params``, the other
+    options over it; ``linker``: ``"sequential"`` or ``"sliced"``).
+
+    ``particles`` has the ``particles.csv`` columns and ``tracks`` the
+    ``tracks.csv`` columns, row for row what ``ebptv track`` writes
+    (values unrounded: the files round x, y to 4 and u, v to 3 decimals).
+    ``tracks.attrs`` holds ``summary`` (summary.json), ``pulses``
+    (pulses.json; ``None`` for particles) and ``params`` (params.toml).
+    """
+    options = dict(
+        max_disp=max_disp,
+        gap=gap,
+        min_length=min_length,
+        radius=radius,
+        prior=tuple(prior) if prior is not None else None,
+        pulse_hz=pulse_hz,
+        ignore_triggers=ignore_triggers,
+        force_pulses=force_pulses,
+        all_polarities=all_polarities,
+        hot_pixels=os.fspath(hot_pixels) if hot_pixels is not None else None,
+        linker=linker,
+    )
+    params_path = os.fspath(params) if params is not None else None
+    if isinstance(path_or_particles, pd.DataFrame):
+        df = path_or_particles
+        missing = [c for c in PARTICLES_COLUMNS if c not in df.columns]
+        if missing:
+            raise EbptvError(f"particles: missing column(s) {', '.join(missing)}")
+        cols = (
+            np.ascontiguousarray(df["pulse"], dtype=np.int64),
+            np.ascontiguousarray(df["t_us"], dtype=np.float64),
+            np.ascontiguousarray(df["x"], dtype=np.float64),
+            np.ascontiguousarray(df["y"], dtype=np.float64),
+            np.ascontiguousarray(df["n_events"], dtype=np.uint32),
+        )
+        result = _ebptv.track(particles=cols, params=params_path, options=options)
+    else:
+        result = _ebptv.track(
+            path=os.fspath(path_or_particles), params=params_path, options=options
+        )
+    pcols, tcols, summary, pulses, toml = result
+    particles = pd.DataFrame(pcols, columns=PARTICLES_COLUMNS)
+    tracks = pd.DataFrame(tcols, columns=TRACKS_COLUMNS)
+    tracks.attrs["summary"] = json.loads(summary)
+    tracks.attrs["pulses"] = json.loads(pulses) if pulses is not None else None
+    tracks.attrs["params"] = toml
+    return particles, tracks
+
+
+def to_trackpy(tracks: pd.DataFrame) -> pd.DataFrame:
+    """Tracks with trackpy's column names: ``frame`` (the pulse),
+    ``particle`` (the track id), ``x``, ``y``, plus ``t_us``, ``u``, ``v``."""
+    out = tracks.rename(columns={"pulse": "frame", "track_id": "particle"})
+    cols = ["frame", "particle", "x", "y"] + [
+        c for c in ("t_us", "u", "v") if c in out.columns
+    ]
+    return out[cols].reset_index(drop=True)
+
+
+def grid_state(
+    tracks: pd.DataFrame,
+    bin: Optional[float] = None,
+    bin_h: Optional[float] = None,
+    overlap: Optional[float] = None,
+    origin: Optional[Tuple[float, float]] = None,
+    weighting: Optional[str] = None,
+    what: str = "tracks",
+) -> str:
+    """The grid accumulator of a tracks table (columns of ``tracks.csv``),
+    binned as ``ebptv grid`` bins a tracks file, as the text of a
+    ``grid_state.json`` (what ``ebptv grid --merge`` reads).
+
+    States of parts of a table (contiguous rows, or time slices) merge
+    with :func:`grid_merge` into the state of the whole, to rounding.
+    ``None`` takes the default of ``ebptv grid`` (:data:`GRID_DEFAULTS`):
+    16 px square bins, no overlap, origin at pixel corners, top-hat
+    weighting.
+    """
+    d = GRID_DEFAULTS
+    return _ebptv.grid_state(
+        np.ascontiguousarray(tracks["track_id"], dtype=np.uint64),
+        np.ascontiguousarray(tracks["t_us"], dtype=np.float64),
+        np.ascontiguousarray(tracks["x"], dtype=np.float64),
+        np.ascontiguousarray(tracks["y"], dtype=np.float64),
+        np.ascontiguousarray(tracks["u"], dtype=np.float64),
+        np.ascontiguousarray(tracks["v"], dtype=np.float64),
+        float(d["bin"] if bin is None else bin),
+        None if bin_h is None else float(bin_h),
+        float(d["overlap"] if overlap is None else overlap),
+        tuple(d["origin"] if origin is None else origin),
+        d["weighting"] if weighting is None else weighting,
+        what,
+    )
+
+
+def grid_merge(states: Sequence[str]) -> str:
+    """Grid states (:func:`grid_state`) merged in order, as
+    ``ebptv grid --merge`` merges ``grid_state.json`` files: bins must share
+    size, overlap, origin and weighting; the window grows to hold all."""
+    return _ebptv.grid_merge(list(states))
+
+
+def grid_estimate(
+    state: str,
+    fit: Optional[str] = None,
+    min_count: Optional[int] = None,
+    noise_rms: Optional[float] = None,
+) -> pd.DataFrame:
+    """The statistics of a grid state: the ``grid.csv`` columns
+    (``x, y, count, u, v, uu, vv, uv``; empty bins NaN) plus ``n_tracks``.
+    ``fit``: ``"none"`` (bin mean), ``"linear"`` or ``"quadratic"``; the
+    defaults are those of ``ebptv grid``. ``attrs`` holds ``nx`` and ``ny``."""
+    d = GRID_DEFAULTS
+    cols = _ebptv.grid_estimate(
+        state,
+        d["fit"] if fit is None else fit,
+        int(d["min_count"] if min_count is None else min_count),
+        float(d["noise_rms"] if noise_rms is None else noise_rms),
+    )
+    nx, ny = cols.pop("nx"), cols.pop("ny")
+    out = pd.DataFrame(cols, columns=GRID_COLUMNS + ["n_tracks"])
+    out.attrs["nx"], out.attrs["ny"] = nx, ny
+    return out
+
+
+def grid(
+    tracks: pd.DataFrame,
+    bin: Optional[float] = None,
+    bin_h: Optional[float] = None,
+    overlap: Optional[float] = None,
+    origin: Optional[Tuple[float, float]] = None,
+    weighting: Optional[str] = None,
+    fit: Optional[str] = None,
+    min_count: Optional[int] = None,
+    noise_rms: Optional[float] = None,
+) -> pd.DataFrame:
+    """Tracks binned onto an Eulerian grid: ``ebptv grid``'s ``grid.csv``
+    as a DataFrame (see :func:`grid_estimate`), the same options and
+    defaults (``None``: the CLI's default, :data:`GRID_DEFAULTS`).
+    ``tracks`` has the ``tracks.csv`` columns (from :func:`track`)."""
+    state = grid_state(tracks, bin, bin_h, overlap, origin, weighting)
+    return grid_estimate(state, fit, min_count, noise_rms)
+
+
+def simulate(
+    preset: str = "demo",
+    seconds: Optional[float] = None,
+    seed: int = 1,
+    out: Optional[PathLike] = None,
+) -> Dict[str, Any]:
+    """``ebptv simulate --preset PRESET [--seconds S] --seed SEED --out OUT``:
+    a simulated recording with its ground truth (``seconds``: ``None`` keeps
+    the preset's duration; ``out``: a new temporary directory when
+    ``None``).
+
+    Returns ``{"recording": path of the EVT 3.0 file, "events": its events
+    (:func:`read_events`), "truth": the true particle images per pulse
+    (``truth_particles.csv``) as a DataFrame, "summary": summary.json}``.
+    """
+    if out is None:
+        import tempfile
+
+        out = tempfile.mkdtemp(prefix=f"ebptv-{preset}-")
+    out = os.fspath(out)
+    summary = json.loads(_ebptv.simulate(out, preset, seconds, int(seed)))
+    recording = os.path.join(out, summary["recording"])
+    return {
+        "recording": recording,
+        "events": read_events(recording),
+        "truth": pd.read_csv(os.path.join(out, "truth_particles.csv")),
+        "summary": summary,
+    }
+
+
+def pulses(
+    path: PathLike,
+    pulse_hz: Optional[float] = None,
+    pulse_hz_range: Optional[Tuple[float, float]] = None,
+    trigger_channel: Optional[int] = None,
+    ignore_triggers: bool = False,
+    onset_latency_us: Optional[float] = None,
+    force_pulses: bool = False,
+) -> Dict[str, Any]:
+    """``ebptv pulses``: the pulse timing and diagnostics of a recording.
+
+    Returns ``pulses.json`` as a dict, plus ``"starts_us"``: the start time
+    (µs) of every pulse, a numpy array. The options are those of
+    ``ebptv pulses`` (``pulse_hz``: nominal frequency when estimating from
+    the events, ±2 % searched; ``pulse_hz_range=(a, b)``; ``force_pulses``:
+    go on when the events show no bursts locked to pulses).
+    """
+    text, starts = _ebptv.pulses(
+        os.fspath(path),
+        pulse_hz,
+        tuple(pulse_hz_range) if pulse_hz_range is not None else None,
+        trigger_channel,
+        ignore_triggers,
+        onset_latency_us,
+        force_pulses,
+    )
+    report = json.loads(text)
+    report["starts_us"] = starts
+    return report

@@ -1,0 +1,756 @@
+//! `ebptv._ebptv`: the library's stages for Python. Each function is one
+//! call into the `ebptv` crate; results come back as numpy arrays, JSON
+//! text and TOML text, which the `ebptv` package (python/ebptv) turns into
+//! dicts and pandas DataFrames. Long calls run without the GIL and look
+//! for Ctrl-C between pulses / chunks.
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use numpy::{IntoPyArray, PyReadonlyArray1};
+use pyo3::create_exception;
+use pyo3::exceptions::PyException;
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+
+use ebptv::cluster::Particle;
+use ebptv::io::filter::{Filtered, PolaritySelect, Roi, Selection};
+use ebptv::io::{self, EventSource};
+use ebptv::track::{self as ptv, PtvSink, Track, TrackConfig, TrackInput};
+use ebptv::{grid, Chunk};
+
+create_exception!(
+    _ebptv,
+    EbptvError,
+    PyException,
+    "An error of the ebptv library; the message is the one `ebptv` prints after `error:`."
+);
+
+/// The library's error as a Python exception with the same message.
+fn err(e: ebptv::Error) -> PyErr {
+    EbptvError::new_err(e.to_string())
+}
+
+/// How often a long call looks for Ctrl-C.
+const SIGNAL_CHECK: Duration = Duration::from_millis(100);
+
+/// Looks for a pending Python signal (Ctrl-C) at most every
+/// [`SIGNAL_CHECK`], taking the GIL briefly; keeps the exception.
+struct Interrupt {
+    last: Instant,
+    raised: Option<PyErr>,
+}
+
+impl Interrupt {
+    fn new() -> Self {
+        Interrupt {
+            last: Instant::now(),
+            raised: None,
+        }
+    }
+
+    /// An error (the run stops) when a signal handler raised.
+    fn check(&mut self) -> ebptv::Result<()> {
+        if self.raised.is_none() && self.last.elapsed() >= SIGNAL_CHECK {
+            self.last = Instant::now();
+            if let Err(e) = Python::with_gil(|py| py.check_signals()) {
+                self.raised = Some(e);
+            }
+        }
+        match self.raised {
+            Some(_) => Err(ebptv::Error::analysis("interrupted")),
+            None => Ok(()),
+        }
+    }
+
+    /// The raised exception in place of the library's error.
+    fn result<T>(self, r: ebptv::Result<T>) -> PyResult<T> {
+        match (self.raised, r) {
+            (Some(e), _) => Err(e),
+            (None, r) => r.map_err(err),
+        }
+    }
+}
+
+fn selection(
+    from_us: Option<i64>,
+    to_us: Option<i64>,
+    roi: Option<&str>,
+    polarity: Option<&str>,
+) -> ebptv::Result<Selection> {
+    Ok(Selection {
+        from_us,
+        to_us,
+        roi: roi.map(str::parse::<Roi>).transpose()?,
+        polarity: polarity
+            .map(str::parse::<PolaritySelect>)
+            .transpose()?
+            .unwrap_or_default(),
+    })
+}
+
+/// Columns of events and triggers, filled chunk by chunk.
+#[derive(Default)]
+struct Columns {
+    t: Vec<i64>,
+    x: Vec<u16>,
+    y: Vec<u16>,
+    p: Vec<u8>,
+    trigger_t: Vec<i64>,
+    trigger_channel: Vec<u8>,
+    trigger_rising: Vec<bool>,
+}
+
+impl Columns {
+    fn extend(&mut self, c: &Chunk) {
+        self.t.extend_from_slice(&c.events.t);
+        self.x.extend_from_slice(&c.events.x);
+        self.y.extend_from_slice(&c.events.y);
+        self.p.extend_from_slice(&c.events.p);
+        for tr in &c.triggers {
+            self.trigger_t.push(tr.t);
+            self.trigger_channel.push(tr.channel);
+            self.trigger_rising.push(tr.edge == ebptv::Edge::Rising);
+        }
+    }
+
+    fn into_dict(self, py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
+        let d = PyDict::new(py);
+        d.set_item("t", self.t.into_pyarray(py))?;
+        d.set_item("x", self.x.into_pyarray(py))?;
+        d.set_item("y", self.y.into_pyarray(py))?;
+        d.set_item("p", self.p.into_pyarray(py))?;
+        let tr = PyDict::new(py);
+        tr.set_item("t", self.trigger_t.into_pyarray(py))?;
+        tr.set_item("channel", self.trigger_channel.into_pyarray(py))?;
+        tr.set_item("rising", self.trigger_rising.into_pyarray(py))?;
+        d.set_item("triggers", tr)?;
+        Ok(d)
+    }
+}
+
+fn open_selected(
+    path: &Path,
+    chunk_events: Option<usize>,
+    sel: Selection,
+) -> ebptv::Result<Filtered<Box<dyn EventSource>>> {
+    let opts = io::OpenOptions {
+        chunk_events,
+        ..Default::default()
+    };
+    Filtered::new(io::open_with(path, &opts)?, sel)
+}
+
+/// All events of a recording (optionally a time range, region and
+/// polarity) as columns.
+#[pyfunction]
+#[pyo3(signature = (path, from_us=None, to_us=None, roi=None, polarity=None))]
+fn read_events<'py>(
+    py: Python<'py>,
+    path: PathBuf,
+    from_us: Option<i64>,
+    to_us: Option<i64>,
+    roi: Option<&str>,
+    polarity: Option<&str>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let sel = selection(from_us, to_us, roi, polarity).map_err(err)?;
+    let mut stop = Interrupt::new();
+    let r = py.allow_threads(|| -> ebptv::Result<Columns> {
+        let mut src = open_selected(&path, None, sel)?;
+        let mut cols = Columns::default();
+        let mut chunk = Chunk::default();
+        while src.next_chunk(&mut chunk)? {
+            cols.extend(&chunk);
+            stop.check()?;
+        }
+        Ok(cols)
+    });
+    stop.result(r)?.into_dict(py)
+}
+
+/// A recording read chunk by chunk (`ebptv.iter_events`).
+#[pyclass(unsendable)]
+struct EventChunks {
+    src: Filtered<Box<dyn EventSource>>,
+    chunk: Chunk,
+}
+
+#[pymethods]
+impl EventChunks {
+    #[new]
+    #[pyo3(signature = (path, chunk, from_us=None, to_us=None, roi=None, polarity=None))]
+    fn new(
+        path: PathBuf,
+        chunk: usize,
+        from_us: Option<i64>,
+        to_us: Option<i64>,
+        roi: Option<&str>,
+        polarity: Option<&str>,
+    ) -> PyResult<Self> {
+        let sel = selection(from_us, to_us, roi, polarity).map_err(err)?;
+        Ok(EventChunks {
+            src: open_selected(&path, Some(chunk), sel).map_err(err)?,
+            chunk: Chunk::default(),
+        })
+    }
+
+    fn __iter__(slf: PyRef<'_, Self>) -> PyRef<'_, Self> {
+        slf
+    }
+
+    fn __next__<'py>(&mut self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
+        loop {
+            let EventChunks { src, chunk } = self;
+            let more = py.allow_threads(|| src.next_chunk(chunk)).map_err(err)?;
+            if !more {
+                return Ok(None);
+            }
+            // A filter can leave a chunk empty: go on to the next.
+            if chunk.events.t.is_empty() && chunk.triggers.is_empty() {
+                py.check_signals()?;
+                continue;
+            }
+            let mut cols = Columns::default();
+            cols.extend(chunk);
+            return cols.into_dict(py).map(Some);
+        }
+    }
+}
+
+/// `ebptv info --json` as JSON text.
+#[pyfunction]
+fn info(py: Python<'_>, path: PathBuf) -> PyResult<String> {
+    let mut stop = Interrupt::new();
+    let r = py.allow_threads(|| -> ebptv::Result<String> {
+        let opts = io::OpenOptions::default();
+        let mut src = io::open_with(&path, &opts)?;
+        let mut cancelled = Ok(());
+        let summary = io::summary::summarize(&mut src, io::summary::DEFAULT_PEAK_BIN_US, |_| {
+            if cancelled.is_ok() {
+                cancelled = stop.check();
+            }
+        })?;
+        cancelled?;
+        let verdict = ebptv::pulses::file_verdict(&path, &opts).map_err(|e| e.to_string());
+        let v = ebptv::pulses::info_json(&summary, &verdict)?;
+        serde_json::to_string(&v).map_err(|e| ebptv::Error::analysis(e.to_string()))
+    });
+    stop.result(r)
+}
+
+/// Collects a run's particles and tracks, looking for Ctrl-C after each
+/// pulse.
+struct Collect {
+    particles: Vec<Particle>,
+    tracks: Vec<Track>,
+    stop: Interrupt,
+}
+
+impl PtvSink for Collect {
+    fn particles(&mut self, _pulse: i64, _t_us: f64, ps: &[Particle]) -> ebptv::Result<()> {
+        self.particles.extend_from_slice(ps);
+        self.stop.check()
+    }
+    fn tracks(&mut self, tracks: &[Track]) -> ebptv::Result<()> {
+        self.tracks.extend_from_slice(tracks);
+        Ok(())
+    }
+    fn take_tracks(&mut self, tracks: Vec<Track>) -> ebptv::Result<()> {
+        self.tracks.extend(tracks);
+        Ok(())
+    }
+}
+
+/// The options of `ebptv track`: a --params file, then the command-line
+/// options over it (the names of `ebptv track`'s options).
+fn track_config(
+    params: Option<&Path>,
+    options: Option<&Bound<'_, PyDict>>,
+) -> PyResult<TrackConfig> {
+    let mut c = match params {
+        Some(p) => TrackConfig::read(p).map_err(err)?,
+        None => TrackConfig::default(),
+    };
+    let Some(options) = options else {
+        return Ok(c);
+    };
+    for (k, v) in options.iter() {
+        let key: String = k.extract()?;
+        if v.is_none() {
+            continue;
+        }
+        match key.as_str() {
+            "max_disp" => c.track.max_disp = v.extract()?,
+            "gap" => c.track.max_gap = v.extract()?,
+            "min_length" => c.track.min_length = v.extract()?,
+            "radius" => c.cluster.radius = v.extract()?,
+            "prior" => c.run.prior = Some(v.extract::<[f64; 2]>()?),
+            "pulse_hz" => c.run.pulse_hz = Some(v.extract()?),
+            "ignore_triggers" => c.run.ignore_triggers |= v.extract::<bool>()?,
+            "force_pulses" => c.run.force_pulses |= v.extract::<bool>()?,
+            "all_polarities" => {
+                if v.extract::<bool>()? {
+                    c.cluster.on_only = false;
+                }
+            }
+            "hot_pixels" => c.run.hot_pixels = Some(v.extract::<PathBuf>()?),
+            "linker" => {
+                c.run.linker = match v.extract::<String>()?.as_str() {
+                    "sequential" => ptv::Linker::Sequential,
+                    "sliced" => ptv::Linker::Sliced,
+                    other => {
+                        return Err(EbptvError::new_err(format!(
+                            "linker: `{other}`: expected sequential or sliced"
+                        )))
+                    }
+                }
+            }
+            _ => {
+                return Err(pyo3::exceptions::PyTypeError::new_err(format!(
+                    "track() got an unexpected option `{key}`"
+                )))
+            }
+        }
+    }
+    Ok(c)
+}
+
+/// Particles as columns (`particles.csv`).
+fn particle_columns<'py>(py: Python<'py>, ps: &[Particle]) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item(
+        "pulse",
+        ps.iter()
+            .map(|p| p.pulse)
+            .collect::<Vec<_>>()
+            .into_pyarray(py),
+    )?;
+    d.set_item(
+        "t_us",
+        ps.iter()
+            .map(|p| p.t_us)
+            .collect::<Vec<_>>()
+            .into_pyarray(py),
+    )?;
+    d.set_item(
+        "x",
+        ps.iter().map(|p| p.x).collect::<Vec<_>>().into_pyarray(py),
+    )?;
+    d.set_item(
+        "y",
+        ps.iter().map(|p| p.y).collect::<Vec<_>>().into_pyarray(py),
+    )?;
+    d.set_item(
+        "n_events",
+        ps.iter()
+            .map(|p| p.n_events)
+            .collect::<Vec<_>>()
+            .into_pyarray(py),
+    )?;
+    Ok(d)
+}
+
+/// Track points as columns (`tracks.csv`).
+fn track_columns<'py>(py: Python<'py>, tracks: &[Track]) -> PyResult<Bound<'py, PyDict>> {
+    let n: usize = tracks.iter().map(|t| t.points.len()).sum();
+    let mut id = Vec::with_capacity(n);
+    let mut pulse = Vec::with_capacity(n);
+    let (mut t, mut x, mut y, mut u, mut v) = (
+        Vec::with_capacity(n),
+        Vec::with_capacity(n),
+        Vec::with_capacity(n),
+        Vec::with_capacity(n),
+        Vec::with_capacity(n),
+    );
+    for tr in tracks {
+        for p in &tr.points {
+            id.push(tr.id);
+            pulse.push(p.pulse);
+            t.push(p.t_us);
+            x.push(p.x);
+            y.push(p.y);
+            u.push(p.u);
+            v.push(p.v);
+        }
+    }
+    let d = PyDict::new(py);
+    d.set_item("track_id", id.into_pyarray(py))?;
+    d.set_item("pulse", pulse.into_pyarray(py))?;
+    d.set_item("t_us", t.into_pyarray(py))?;
+    d.set_item("x", x.into_pyarray(py))?;
+    d.set_item("y", y.into_pyarray(py))?;
+    d.set_item("u", u.into_pyarray(py))?;
+    d.set_item("v", v.into_pyarray(py))?;
+    Ok(d)
+}
+
+/// What [`track`] hands back: particles, tracks, summary.json,
+/// pulses.json (recordings only) and params.toml.
+type TrackResult<'py> = (
+    Bound<'py, PyDict>,
+    Bound<'py, PyDict>,
+    String,
+    Option<String>,
+    String,
+);
+
+/// Particle columns `pulse, t_us, x, y, n_events`.
+type ParticleArrays<'py> = (
+    PyReadonlyArray1<'py, i64>,
+    PyReadonlyArray1<'py, f64>,
+    PyReadonlyArray1<'py, f64>,
+    PyReadonlyArray1<'py, f64>,
+    PyReadonlyArray1<'py, u32>,
+);
+
+/// The run of `ebptv track` on a file (recording or particles.csv) or on
+/// particle columns, its results in memory.
+#[pyfunction]
+#[pyo3(signature = (path=None, particles=None, params=None, options=None))]
+fn track<'py>(
+    py: Python<'py>,
+    path: Option<PathBuf>,
+    particles: Option<ParticleArrays<'py>>,
+    params: Option<PathBuf>,
+    options: Option<&Bound<'py, PyDict>>,
+) -> PyResult<TrackResult<'py>> {
+    let config = track_config(params.as_deref(), options)?;
+    let input = match (&path, particles) {
+        (Some(p), None) => TrackInput::of_path(p),
+        (None, Some((pulse, t, x, y, n))) => {
+            let (pulse, t, x, y, n) = (
+                pulse.as_slice()?,
+                t.as_slice()?,
+                x.as_slice()?,
+                y.as_slice()?,
+                n.as_slice()?,
+            );
+            let len = pulse.len();
+            if [t.len(), x.len(), y.len(), n.len()]
+                .iter()
+                .any(|&l| l != len)
+            {
+                return Err(EbptvError::new_err(
+                    "particles: the columns pulse, t_us, x, y, n_events differ in length",
+                ));
+            }
+            TrackInput::Particles(
+                (0..len)
+                    .map(|i| Particle {
+                        pulse: pulse[i],
+                        t_us: t[i],
+                        x: x[i],
+                        y: y[i],
+                        n_events: n[i],
+                        n_pixels: 0,
+                        extent_x: 0.0,
+                        extent_y: 0.0,
+                        first_latency_us: 0.0,
+                    })
+                    .collect(),
+            )
+        }
+        _ => {
+            return Err(pyo3::exceptions::PyTypeError::new_err(
+                "track() takes a path or particle columns",
+            ))
+        }
+    };
+    let mut sink = Collect {
+        particles: Vec::new(),
+        tracks: Vec::new(),
+        stop: Interrupt::new(),
+    };
+    let r = py.allow_threads(|| -> ebptv::Result<_> {
+        let config = ptv::resolve_config(&config)?;
+        let stream = ptv::stream_of(&config)?;
+        let run = ptv::track_into(input, &config, stream, &mut sink, &|_| {})?;
+        let summary = ptv::Summary::new(&sink.tracks, &run.stats);
+        let json = |e: serde_json::Error| ebptv::Error::analysis(e.to_string());
+        let summary = serde_json::to_string(&summary).map_err(json)?;
+        let pulses = run
+            .pulses
+            .as_ref()
+            .map(|p| serde_json::to_string(p).map_err(json))
+            .transpose()?;
+        Ok((summary, pulses, config.to_toml()?))
+    });
+    let Collect {
+        particles,
+        tracks,
+        stop,
+    } = sink;
+    let (summary, pulses, toml) = stop.result(r)?;
+    Ok((
+        particle_columns(py, &particles)?,
+        track_columns(py, &tracks)?,
+        summary,
+        pulses,
+        toml,
+    ))
+}
+
+fn from_name<T: serde::de::DeserializeOwned>(
+    what: &str,
+    name: &str,
+    expected: &str,
+) -> PyResult<T> {
+    serde_json::from_value(serde_json::Value::String(name.to_string()))
+        .map_err(|_| EbptvError::new_err(format!("{what}: `{name}`: expected {expected}")))
+}
+
+/// The defaults of `ebptv grid`, from the library.
+fn grid_defaults(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
+    let b = grid::BinOptions::default();
+    let e = grid::EstimateOptions::default();
+    let d = PyDict::new(py);
+    d.set_item("bin", b.bin)?;
+    d.set_item("overlap", b.overlap)?;
+    d.set_item("origin", b.origin)?;
+    d.set_item("weighting", to_name(&b.weighting))?;
+    d.set_item("fit", to_name(&e.fit))?;
+    d.set_item("min_count", grid::DEFAULT_MIN_COUNT)?;
+    d.set_item("noise_rms", e.noise_rms)?;
+    Ok(d)
+}
+
+fn to_name<T: serde::Serialize>(v: &T) -> String {
+    match serde_json::to_value(v) {
+        Ok(serde_json::Value::String(s)) => s,
+        _ => String::new(),
+    }
+}
+
+/// The grid accumulator (`grid_state.json` text) of track points, binned
+/// as `ebptv grid` bins a tracks file.
+#[pyfunction]
+#[pyo3(signature = (track_id, t_us, x, y, u, v, bin, bin_h, overlap, origin, weighting, what))]
+#[allow(clippy::too_many_arguments)]
+fn grid_state(
+    py: Python<'_>,
+    track_id: PyReadonlyArray1<'_, u64>,
+    t_us: PyReadonlyArray1<'_, f64>,
+    x: PyReadonlyArray1<'_, f64>,
+    y: PyReadonlyArray1<'_, f64>,
+    u: PyReadonlyArray1<'_, f64>,
+    v: PyReadonlyArray1<'_, f64>,
+    bin: f64,
+    bin_h: Option<f64>,
+    overlap: f64,
+    origin: (f64, f64),
+    weighting: &str,
+    what: &str,
+) -> PyResult<String> {
+    let opts = grid::BinOptions {
+        bin,
+        bin_h,
+        overlap,
+        origin,
+        weighting: from_name("weighting", weighting, "tophat or gaussian")?,
+    };
+    let (id, t, x, y, u, v) = (
+        track_id.as_slice()?,
+        t_us.as_slice()?,
+        x.as_slice()?,
+        y.as_slice()?,
+        u.as_slice()?,
+        v.as_slice()?,
+    );
+    let n = id.len();
+    if [t.len(), x.len(), y.len(), u.len(), v.len()]
+        .iter()
+        .any(|&l| l != n)
+    {
+        return Err(EbptvError::new_err(format!(
+            "{what}: the columns differ in length"
+        )));
+    }
+    let samples: Vec<grid::Sample> = (0..n)
+        .map(|i| grid::Sample {
+            x: x[i],
+            y: y[i],
+            u: u[i],
+            v: v[i],
+            t_us: t[i],
+            track_id: id[i],
+        })
+        .collect();
+    let mut stop = Interrupt::new();
+    let r = py.allow_threads(|| -> ebptv::Result<String> {
+        let mut cancelled = Ok(());
+        let acc = grid::accumulate(&samples, &opts, what, &mut |_| {
+            if cancelled.is_ok() {
+                cancelled = stop.check();
+            }
+        })?;
+        cancelled?;
+        grid::io::state_json(&acc).map_err(|e| ebptv::Error::analysis(e.to_string()))
+    });
+    stop.result(r)
+}
+
+fn load(text: &str, k: usize) -> ebptv::Result<grid::GridAccumulator> {
+    grid::io::state_from_json(text.as_bytes(), Path::new(&format!("state {k}")))
+}
+
+/// Grid states merged in order (`ebptv grid --merge`).
+#[pyfunction]
+fn grid_merge(py: Python<'_>, states: Vec<String>) -> PyResult<String> {
+    py.allow_threads(|| -> ebptv::Result<String> {
+        let mut acc: Option<grid::GridAccumulator> = None;
+        for (k, s) in states.iter().enumerate() {
+            let part = load(s, k)?;
+            match acc.as_mut() {
+                None => acc = Some(part),
+                Some(m) => m.merge(&part)?,
+            }
+        }
+        let acc = acc.ok_or_else(|| ebptv::Error::param("merge", "no grid states to merge"))?;
+        grid::io::state_json(&acc).map_err(|e| ebptv::Error::analysis(e.to_string()))
+    })
+    .map_err(err)
+}
+
+/// The statistics of a grid state as the columns of `grid.csv`.
+#[pyfunction]
+fn grid_estimate<'py>(
+    py: Python<'py>,
+    state: &str,
+    fit: &str,
+    min_count: u64,
+    noise_rms: f64,
+) -> PyResult<Bound<'py, PyDict>> {
+    let opt = grid::EstimateOptions {
+        fit: from_name("fit", fit, "none, linear or quadratic")?,
+        min_count,
+        noise_rms,
+    };
+    let g = py
+        .allow_threads(|| -> ebptv::Result<grid::GridStats> {
+            opt.validate()?;
+            grid::estimate(&load(state, 0)?, &opt)
+        })
+        .map_err(err)?;
+    let mut cols: [Vec<f64>; 7] = Default::default();
+    let mut count = Vec::with_capacity(g.bins.len());
+    let mut n_tracks = Vec::with_capacity(g.bins.len());
+    // Rows ordered by y then x, as in grid.csv.
+    for (iy, &y) in g.ys.iter().enumerate() {
+        for (ix, &x) in g.xs.iter().enumerate() {
+            let b = g.at(ix, iy);
+            for (c, val) in cols.iter_mut().zip([x, y, b.u, b.v, b.uu, b.vv, b.uv]) {
+                c.push(val);
+            }
+            count.push(b.count);
+            n_tracks.push(b.n_tracks);
+        }
+    }
+    let d = PyDict::new(py);
+    let [x, y, u, v, uu, vv, uv] = cols;
+    d.set_item("x", x.into_pyarray(py))?;
+    d.set_item("y", y.into_pyarray(py))?;
+    d.set_item("count", count.into_pyarray(py))?;
+    d.set_item("u", u.into_pyarray(py))?;
+    d.set_item("v", v.into_pyarray(py))?;
+    d.set_item("uu", uu.into_pyarray(py))?;
+    d.set_item("vv", vv.into_pyarray(py))?;
+    d.set_item("uv", uv.into_pyarray(py))?;
+    d.set_item("n_tracks", n_tracks.into_pyarray(py))?;
+    d.set_item("nx", g.spec.nx)?;
+    d.set_item("ny", g.spec.ny)?;
+    Ok(d)
+}
+
+/// `ebptv simulate --preset NAME --out OUT [--seconds S] --seed SEED`:
+/// writes the recording (EVT 3.0), the truth and the summary into `out`;
+/// returns the summary as JSON text.
+#[pyfunction]
+#[pyo3(signature = (out, preset, seconds=None, seed=1))]
+fn simulate(
+    py: Python<'_>,
+    out: PathBuf,
+    preset: &str,
+    seconds: Option<f64>,
+    seed: u64,
+) -> PyResult<String> {
+    let mut sc = ebptv::sim::presets::preset(preset).map_err(err)?;
+    if let Some(s) = seconds {
+        sc.duration_s = s;
+    }
+    let mut stop = Interrupt::new();
+    let r = py.allow_threads(|| -> ebptv::Result<String> {
+        sc.validate()?;
+        let mut cancelled = Ok(());
+        let summary = ebptv::sim::write_recording(&sc, seed, &out, io::Format::Evt3, |_, _| {
+            if cancelled.is_ok() {
+                cancelled = stop.check();
+            }
+        })?;
+        cancelled?;
+        serde_json::to_string(&summary).map_err(|e| ebptv::Error::analysis(e.to_string()))
+    });
+    stop.result(r)
+}
+
+/// `ebptv pulses`: the pulse analysis (pulses.json as JSON text) and the
+/// start time (µs) of every pulse.
+#[pyfunction]
+#[pyo3(signature = (path, pulse_hz=None, pulse_hz_range=None, trigger_channel=None, ignore_triggers=false, onset_latency_us=None, force_pulses=false))]
+#[allow(clippy::too_many_arguments)]
+fn pulses<'py>(
+    py: Python<'py>,
+    path: PathBuf,
+    pulse_hz: Option<f64>,
+    pulse_hz_range: Option<(f64, f64)>,
+    trigger_channel: Option<u8>,
+    ignore_triggers: bool,
+    onset_latency_us: Option<f64>,
+    force_pulses: bool,
+) -> PyResult<(String, Bound<'py, numpy::PyArray1<f64>>)> {
+    let opts = ebptv::pulses::PulseOptions {
+        pulse_hz,
+        pulse_hz_range,
+        trigger_channel,
+        ignore_triggers,
+        onset_latency_us,
+        require_pulsed: !force_pulses,
+    };
+    let mut stop = Interrupt::new();
+    let r = py.allow_threads(|| -> ebptv::Result<(String, Vec<f64>)> {
+        let mut src = io::guard::TimeGuard::new(io::open(&path)?);
+        let mut an = ebptv::pulses::Analyzer::new(opts, src.info().geometry)?;
+        let mut chunk = Chunk::default();
+        while src.next_chunk(&mut chunk)? {
+            an.push(&chunk)?;
+            stop.check()?;
+        }
+        let mut report = an.finish().map_err(|e| {
+            ebptv::Error::analysis(format!("{}: pulse analysis: {e}", path.display()))
+        })?;
+        (report.time_jumps, report.time_jump_events) = src.jumps();
+        let starts = (0..report.pulses as i64)
+            .map(|k| report.timing.pulse_start(k))
+            .collect();
+        let json =
+            serde_json::to_string(&report).map_err(|e| ebptv::Error::analysis(e.to_string()))?;
+        Ok((json, starts))
+    });
+    let (json, starts) = stop.result(r)?;
+    Ok((json, starts.into_pyarray(py)))
+}
+
+#[pymodule]
+fn _ebptv(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("EbptvError", m.py().get_type::<EbptvError>())?;
+    m.add_function(wrap_pyfunction!(read_events, m)?)?;
+    m.add_class::<EventChunks>()?;
+    m.add_function(wrap_pyfunction!(info, m)?)?;
+    m.add_function(wrap_pyfunction!(track, m)?)?;
+    m.add_function(wrap_pyfunction!(simulate, m)?)?;
+    m.add_function(wrap_pyfunction!(pulses, m)?)?;
+    m.add_function(wrap_pyfunction!(grid_state, m)?)?;
+    m.add_function(wrap_pyfunction!(grid_merge, m)?)?;
+    m.add_function(wrap_pyfunction!(grid_estimate, m)?)?;
+    m.add("GRID_DEFAULTS", grid_defaults(m.py())?)?;
+    Ok(())
+}

@@ -1,0 +1,292 @@
+"""The Python package against the command line: the same runs give the
+same results, and bad input the same error message."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import ebptv
+
+ROOT = Path(__file__).resolve().parents[2]
+BIN = os.environ.get("EBPTV_BIN", str(ROOT / "target" / "release" / "ebptv"))
+# Real camera files, present where the shared data is (as in the Rust tests).
+REAL = ROOT.parent / "shared" / "data" / "real"
+REAL_FILES = [
+    "evt3_sample.raw",
+    "evt2_sample.raw",
+    "faery_evt2.raw",
+    "ncars_sample.dat",
+    "davis346_test.aedat4",
+    "atis_dvs.es",
+]
+
+
+def real(name: str) -> Path:
+    p = REAL / name
+    if not p.is_file():
+        pytest.skip(f"{p} not found")
+    return p
+
+
+def cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([BIN, *args], capture_output=True, text=True)
+
+
+def cli_ok(*args: str) -> str:
+    r = cli(*args)
+    assert r.returncode == 0, r.stderr
+    return r.stdout
+
+
+def cli_error(*args: str) -> str:
+    """The message `ebptv` prints after `error: ` (to the end of stderr)."""
+    r = cli(*args)
+    assert r.returncode != 0
+    at = r.stderr.rfind("error: ")
+    assert at >= 0, r.stderr
+    return r.stderr[at + len("error: ") :].rstrip("\n")
+
+
+@pytest.fixture(scope="session")
+def sim(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A simulated recording (the demo scene, 0.05 s, 250 pulses)."""
+    out = tmp_path_factory.mktemp("sim")
+    cli_ok("simulate", "--preset", "demo", "--seconds", "0.05", "--seed", "3", "--out", str(out))
+    return out / "recording.raw"
+
+
+@pytest.fixture(scope="session")
+def sim_run(sim: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("track")
+    cli_ok("track", str(sim), "--out", str(out))
+    return out
+
+
+# Timing of the reading pass, not a property of the file.
+VOLATILE = {"decode_rate_mev_per_s", "decode_seconds"}
+
+
+def info_cli(path: Path) -> dict:
+    d = json.loads(cli_ok("info", "--json", str(path)))
+    return {k: v for k, v in d.items() if k not in VOLATILE}
+
+
+@pytest.mark.parametrize("name", REAL_FILES)
+def test_info_and_events_of_real_files_match_the_cli(name: str) -> None:
+    path = real(name)
+    got = {k: v for k, v in ebptv.info(path).items() if k not in VOLATILE}
+    want = info_cli(path)
+    assert got == want
+    ev = ebptv.read_events(path)
+    assert len(ev["t"]) == want["events"]
+    assert int((ev["p"] == 1).sum()) == want["on_events"]
+    if len(ev["t"]):
+        assert int(ev["t"].min()) == want["min_t_us"]
+        assert int(ev["t"].max()) == want["max_t_us"]
+
+
+def test_info_of_a_simulated_recording_matches_the_cli(sim: Path) -> None:
+    got = {k: v for k, v in ebptv.info(sim).items() if k not in VOLATILE}
+    assert got == info_cli(sim)
+    assert got["pulsed"]["pulsed"] is True
+
+
+def read_csv_events(path: Path) -> pd.DataFrame:
+    return pd.read_csv(path, comment="#")
+
+
+@pytest.mark.parametrize(
+    "name,t_range,roi,polarity",
+    [
+        ("evt3_sample.raw", (None, None), None, None),
+        ("evt3_sample.raw", None, (100, 50, 300, 200), "off"),
+        ("atis_dvs.es", None, "10,20,100,80", "on"),
+    ],
+)
+def test_selections_equal_ebptv_convert(
+    name: str, t_range, roi, polarity, tmp_path: Path
+) -> None:
+    path = real(name)
+    full = ebptv.read_events(path)
+    if t_range is None:
+        # The middle third of the recording.
+        t0, t1 = int(full["t"].min()), int(full["t"].max())
+        t_range = (t0 + (t1 - t0) // 3, t0 + 2 * (t1 - t0) // 3)
+    args = ["convert", str(path), str(tmp_path / "sel.csv")]
+    if t_range[0] is not None:
+        args += ["--from-us", str(t_range[0])]
+    if t_range[1] is not None:
+        args += ["--to-us", str(t_range[1])]
+    if roi is not None:
+        args += ["--roi", roi if isinstance(roi, str) else ",".join(map(str, roi))]
+    if polarity is not None:
+        args += ["--polarity", polarity]
+    cli_ok(*args)
+    want = read_csv_events(tmp_path / "sel.csv")
+    got = ebptv.read_events(path, t_range=t_range, roi=roi, polarity=polarity)
+    assert len(got["t"]) == len(want) > 0
+    for col in ("t", "x", "y", "p"):
+        np.testing.assert_array_equal(got[col], want[col].to_numpy())
+
+
+def test_iter_events_streams_what_read_events_reads(sim: Path) -> None:
+    whole = ebptv.read_events(sim)
+    chunks = list(ebptv.iter_events(sim, chunk=100_000))
+    assert len(chunks) >= 10
+    for col in ("t", "x", "y", "p"):
+        np.testing.assert_array_equal(np.concatenate([c[col] for c in chunks]), whole[col])
+    trig = np.concatenate([c["triggers"]["t"] for c in chunks])
+    np.testing.assert_array_equal(trig, whole["triggers"]["t"])
+    assert len(trig) > 0, "the simulated recording has trigger words"
+
+
+def assert_same_tables(got: pd.DataFrame, csv: Path, decimals: dict) -> None:
+    want = pd.read_csv(csv)
+    assert list(got.columns) == list(want.columns)
+    assert len(got) == len(want)
+    for col in want.columns:
+        d = decimals.get(col)
+        if d is None:
+            np.testing.assert_array_equal(got[col].to_numpy(), want[col].to_numpy(), err_msg=col)
+        else:
+            np.testing.assert_allclose(
+                got[col].to_numpy(), want[col].to_numpy(), rtol=0, atol=0.51 * 10.0**-d,
+                err_msg=col,
+            )
+
+
+PARTICLE_DECIMALS = {"x": 4, "y": 4, "t_us": 6}
+TRACK_DECIMALS = {"x": 4, "y": 4, "u": 3, "v": 3, "t_us": 6}
+
+
+def test_track_equals_the_cli_files(sim: Path, sim_run: Path) -> None:
+    particles, tracks = ebptv.track(sim)
+    assert_same_tables(particles, sim_run / "particles.csv", PARTICLE_DECIMALS)
+    assert_same_tables(tracks, sim_run / "tracks.csv", TRACK_DECIMALS)
+    summary = json.loads((sim_run / "summary.json").read_text())
+    assert tracks.attrs["summary"] == summary
+    assert tracks.attrs["summary"]["tracks"] == tracks["track_id"].nunique() > 100
+    pulses = json.loads((sim_run / "pulses.json").read_text())
+    assert tracks.attrs["pulses"] == pulses
+    assert tracks.attrs["params"] == (sim_run / "params.toml").read_text()
+
+
+def test_track_options_equal_the_cli_options(sim: Path, tmp_path: Path) -> None:
+    cli_ok("track", str(sim), "--out", str(tmp_path), "--max-disp", "6", "--min-length", "8",
+           "--gap", "0", "--all-polarities")
+    _, tracks = ebptv.track(sim, max_disp=6, min_length=8, gap=0, all_polarities=True)
+    assert_same_tables(tracks, tmp_path / "tracks.csv", TRACK_DECIMALS)
+    assert tracks.attrs["params"] == (tmp_path / "params.toml").read_text()
+
+
+def test_track_from_particles_equals_the_cli_on_particles_csv(
+    sim_run: Path, tmp_path: Path
+) -> None:
+    csv = sim_run / "particles.csv"
+    cli_ok("track", str(csv), "--out", str(tmp_path))
+    _, from_file = ebptv.track(csv)
+    _, from_frame = ebptv.track(pd.read_csv(csv))
+    assert_same_tables(from_file, tmp_path / "tracks.csv", TRACK_DECIMALS)
+    pd.testing.assert_frame_equal(from_file, from_frame)
+    assert from_frame.attrs["pulses"] is None
+
+
+def test_to_trackpy_names_the_columns_as_trackpy(sim: Path) -> None:
+    _, tracks = ebptv.track(sim)
+    tp = ebptv.to_trackpy(tracks)
+    assert list(tp.columns[:4]) == ["frame", "particle", "x", "y"]
+    np.testing.assert_array_equal(tp["frame"], tracks["pulse"])
+    np.testing.assert_array_equal(tp["particle"], tracks["track_id"])
+
+
+def test_bad_input_raises_the_cli_message(tmp_path: Path) -> None:
+    missing = tmp_path / "missing.raw"
+    with pytest.raises(ebptv.EbptvError) as e:
+        ebptv.read_events(missing)
+    assert str(e.value) == cli_error("info", str(missing))
+    with pytest.raises(ebptv.EbptvError) as e:
+        ebptv.info(missing)
+    assert str(e.value) == cli_error("info", str(missing))
+    garbage = tmp_path / "garbage.raw"
+    garbage.write_bytes(b"\x00\x01not an event file" * 10)
+    with pytest.raises(ebptv.EbptvError) as e:
+        ebptv.track(garbage)
+    assert str(e.value) == cli_error("track", str(garbage), "--out", str(tmp_path / "o"))
+    with pytest.raises(ebptv.EbptvError) as e:
+        ebptv.read_events(missing, roi=(1, 2, 0, 4))
+    assert str(e.value) == cli_error("convert", str(missing), str(tmp_path / "o.csv"), "--roi", "1,2,0,4")
+    with pytest.raises(ebptv.EbptvError) as e:
+        ebptv.read_events(missing, polarity="up")
+    assert "expected on, off or both" in str(e.value)
+
+
+def test_an_unpulsed_real_recording_is_refused_as_by_the_cli(tmp_path: Path) -> None:
+    path = real("evt3_sample.raw")
+    with pytest.raises(ebptv.EbptvError) as e:
+        ebptv.track(path)
+    assert str(e.value) == cli_error("track", str(path), "--out", str(tmp_path / "o"))
+
+
+def test_bad_options_raise(sim: Path, tmp_path: Path) -> None:
+    with pytest.raises(ebptv.EbptvError) as e:
+        ebptv.track(sim, linker="parallel")
+    assert "linker" in str(e.value)
+    bad = tmp_path / "p.toml"
+    bad.write_text("[track]\nmax_dsip = 3.0\n")
+    with pytest.raises(ebptv.EbptvError) as e:
+        ebptv.track(sim, params=bad)
+    assert str(e.value) == cli_error("track", str(sim), "--out", str(tmp_path / "o"), "--params", str(bad))
+
+
+def test_ctrl_c_stops_a_tracking_run(sim: Path) -> None:
+    import _thread
+    import threading
+    import time
+
+    t0 = time.perf_counter()
+    ebptv.track(sim)
+    whole = time.perf_counter() - t0
+    timer = threading.Timer(0.1 * whole, _thread.interrupt_main)
+    t0 = time.perf_counter()
+    timer.start()
+    with pytest.raises(KeyboardInterrupt):
+        ebptv.track(sim)
+    stopped = time.perf_counter() - t0
+    timer.join()
+    assert stopped < 0.7 * whole, (stopped, whole)
+
+
+def test_simulate_equals_ebptv_simulate(sim: Path, tmp_path: Path) -> None:
+    got = ebptv.simulate("demo", seconds=0.05, seed=3, out=tmp_path / "s")
+    raw = Path(got["recording"])
+    assert raw.read_bytes() == sim.read_bytes()
+    want_truth = pd.read_csv(sim.parent / "truth_particles.csv")
+    pd.testing.assert_frame_equal(got["truth"], want_truth)
+    assert len(got["events"]["t"]) == got["summary"]["events"] > 100_000
+    with pytest.raises(ebptv.EbptvError) as e:
+        ebptv.simulate("no-such-preset", out=tmp_path / "x")
+    assert str(e.value) == cli_error("simulate", "--preset", "no-such-preset", "--out", str(tmp_path / "y"))
+
+
+def test_pulses_equal_ebptv_pulses(sim: Path, tmp_path: Path) -> None:
+    cli_ok("pulses", str(sim), "--out", str(tmp_path / "p"))
+    want = json.loads((tmp_path / "p" / "pulses.json").read_text())
+    got = ebptv.pulses(sim)
+    starts = got.pop("starts_us")
+    assert got == want
+    assert len(starts) == want["pulses"] >= 250
+    np.testing.assert_allclose(np.diff(starts), want["period_us"], rtol=1e-12)
+
+
+def test_pulses_of_an_unpulsed_real_file_raise_as_the_cli(tmp_path: Path) -> None:
+    path = real("ncars_sample.dat")
+    with pytest.raises(ebptv.EbptvError) as e:
+        ebptv.pulses(path, pulse_hz=5000)
+    assert str(e.value) == cli_error("pulses", str(path), "--pulse-hz", "5000", "--out", str(tmp_path / "q"))
