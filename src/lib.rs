@@ -86,6 +86,7 @@ pub mod piv;
 pub mod plot;
 pub mod pulses;
 pub mod spectra;
+pub mod table;
 pub mod track;
 
 pub use error::{Error, Result};
