@@ -26,7 +26,7 @@ fn measure<R>(name: &str, rows: &[R], cols: &'static [Col<R>], out: &Path) {
         ("uncompressed", Compression::UNCOMPRESSED),
         ("snappy", Compression::SNAPPY),
         ("zstd(1)", Compression::ZSTD(ZstdLevel::try_new(1).unwrap())),
-        ("zstd(3)", Compression::ZSTD(ZstdLevel::default())),
+        ("zstd(3)", Compression::ZSTD(ZstdLevel::try_new(3).unwrap())),
     ];
     for (label, c) in codecs {
         let path = out.join(format!("{name}.{label}.parquet"));

@@ -103,7 +103,7 @@ pub fn run(args: DemoArgs, tables: Option<TableFormat>) -> anyhow::Result<()> {
         sim_cmd.push("--seconds".into());
         sim_cmd.push(sec.to_string());
     }
-    sim_cmd.extend(s(&["--out", &p(&sim)]));
+    sim_cmd.extend(["--out".to_string(), p(&sim)]);
     step(&sim_cmd)?;
     step(&s(&["ebptv", "track", &p(&rec), "--out", &p(&ptv)]))?;
     step(&s(&[
