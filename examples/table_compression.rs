@@ -50,7 +50,9 @@ fn measure<R>(name: &str, rows: &[R], cols: &'static [Col<R>], out: &Path) {
 }
 
 fn main() {
-    let dir = std::env::args().nth(1).expect("usage: table_compression RUN_DIR");
+    let dir = std::env::args()
+        .nth(1)
+        .expect("usage: table_compression RUN_DIR");
     let dir = Path::new(&dir);
     let out = tempfile::tempdir_in(dir).unwrap();
     let tracks = read_tracks(&find(dir, "tracks")).unwrap();

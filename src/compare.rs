@@ -44,8 +44,8 @@ impl Table {
 pub fn read_table(path: &Path, required: &[&str]) -> Result<Table> {
     use crate::table::{column_names, read_columns, TableFormat};
     if TableFormat::sniff(path)? != TableFormat::Csv {
-        let names = column_names(path)
-            .ok_or_else(|| Error::corrupt(path, 0, "not a readable table"))?;
+        let names =
+            column_names(path).ok_or_else(|| Error::corrupt(path, 0, "not a readable table"))?;
         let refs: Vec<&str> = names.iter().map(|s| s.as_str()).collect();
         for r in required {
             if !names.iter().any(|n| n == r) {

@@ -174,11 +174,12 @@ pub const PARQUET_COMPRESSION: Compression = Compression::SNAPPY;
 
 fn parquet_err(path: &Path, e: parquet::errors::ParquetError) -> Error {
     match e {
-        parquet::errors::ParquetError::External(inner) => match inner.downcast::<std::io::Error>()
-        {
-            Ok(io) => Error::io(path, *io),
-            Err(other) => Error::io(path, std::io::Error::other(other.to_string())),
-        },
+        parquet::errors::ParquetError::External(inner) => {
+            match inner.downcast::<std::io::Error>() {
+                Ok(io) => Error::io(path, *io),
+                Err(other) => Error::io(path, std::io::Error::other(other.to_string())),
+            }
+        }
         e => Error::io(path, std::io::Error::other(e.to_string())),
     }
 }
@@ -329,7 +330,9 @@ impl<R> TableWriter<R> {
                 }
                 rg.close().map_err(pe)?;
             }
-            Sink::Npy { file, rows, buf, .. } => {
+            Sink::Npy {
+                file, rows, buf, ..
+            } => {
                 buf.clear();
                 buf.reserve(self.batch.rows * 8 * self.batch.values.len());
                 for i in 0..self.batch.rows {
@@ -404,7 +407,12 @@ pub fn column_names(path: &Path) -> Option<Vec<String>> {
             let mut f = std::fs::File::open(path).ok()?;
             let n = f.read(&mut head).ok()?;
             let h = crate::io::npy::parse_npy_header(&head[..n])?;
-            Some(parse_npy_fields(&h.descr)?.into_iter().map(|f| f.0).collect())
+            Some(
+                parse_npy_fields(&h.descr)?
+                    .into_iter()
+                    .map(|f| f.0)
+                    .collect(),
+            )
         }
         TableFormat::Csv => {
             let f = std::fs::File::open(path).ok()?;
@@ -433,7 +441,9 @@ fn parse_npy_fields(descr: &str) -> Option<Vec<(String, String)>> {
             continue;
         }
         let part = part.strip_prefix('(')?;
-        let mut it = part.split(',').map(|s| s.trim().trim_matches('\'').trim_matches('"'));
+        let mut it = part
+            .split(',')
+            .map(|s| s.trim().trim_matches('\'').trim_matches('"'));
         let name = it.next()?.to_string();
         let ty = it.next()?.to_string();
         if it.next().is_some_and(|s| !s.is_empty()) {
@@ -491,7 +501,11 @@ fn read_parquet_columns(path: &Path, names: &[&str]) -> Result<Vec<Vec<f64>>> {
         .collect();
     let mut idx = Vec::with_capacity(names.len());
     for n in names {
-        match schema.columns().iter().position(|c| c.name() == *n && c.max_rep_level() == 0) {
+        match schema
+            .columns()
+            .iter()
+            .position(|c| c.name() == *n && c.max_rep_level() == 0)
+        {
             Some(i) => idx.push(i),
             None => return Err(missing(path, names, &have)),
         }
@@ -663,7 +677,11 @@ pub fn parquet_metadata(path: &Path) -> Result<Vec<(String, Option<String>)>> {
     Ok(r.metadata()
         .file_metadata()
         .key_value_metadata()
-        .map(|kv| kv.iter().map(|k| (k.key.clone(), k.value.clone())).collect())
+        .map(|kv| {
+            kv.iter()
+                .map(|k| (k.key.clone(), k.value.clone()))
+                .collect()
+        })
         .unwrap_or_default())
 }
 
@@ -711,8 +729,9 @@ mod tests {
             let e = read_columns(&p, &["id", "y"]).unwrap_err().to_string();
             assert!(e.contains("missing column(s) y") && e.contains("t."), "{e}");
         }
-        let r = SerializedFileReader::new(std::fs::File::open(dir.path().join("t.parquet")).unwrap())
-            .unwrap();
+        let r =
+            SerializedFileReader::new(std::fs::File::open(dir.path().join("t.parquet")).unwrap())
+                .unwrap();
         assert_eq!(r.metadata().num_row_groups(), 3);
     }
 
@@ -726,7 +745,10 @@ mod tests {
         w.add_metadata("second", "2");
         w.finish().unwrap();
         let kv = parquet_metadata(&p).unwrap();
-        assert!(kv.contains(&("ebptv.test".into(), Some("{\"a\": 1}".into()))), "{kv:?}");
+        assert!(
+            kv.contains(&("ebptv.test".into(), Some("{\"a\": 1}".into()))),
+            "{kv:?}"
+        );
         assert!(kv.contains(&("second".into(), Some("2".into()))), "{kv:?}");
     }
 

@@ -622,7 +622,10 @@ mod tests {
                     // CSV keeps 4 decimals of positions, 3 of velocities.
                     assert_eq!(p.pulse, q.pulse);
                     assert!((p.x - q.x).abs() < 2e-4 && (p.y - q.y).abs() < 2e-4);
-                    assert!((p.u - q.u).abs() < 1.0 && (p.v - q.v).abs() < 1.0, "{p:?} {q:?}");
+                    assert!(
+                        (p.u - q.u).abs() < 1.0 && (p.v - q.v).abs() < 1.0,
+                        "{p:?} {q:?}"
+                    );
                 }
             }
         }

@@ -272,7 +272,11 @@ fn params_file_round_trip_override_and_unknown_keys() {
         String::from_utf8_lossy(&st.stderr)
     );
     for f in ["tracks.parquet", "particles.parquet", "params.toml"] {
-        assert_eq!(std::fs::read(a.join(f)).unwrap(), std::fs::read(b.join(f)).unwrap(), "{f}");
+        assert_eq!(
+            std::fs::read(a.join(f)).unwrap(),
+            std::fs::read(b.join(f)).unwrap(),
+            "{f}"
+        );
     }
     let strip = |p: std::path::PathBuf| -> serde_json::Value {
         let mut v: serde_json::Value = serde_json::from_str(&read(p)).unwrap();

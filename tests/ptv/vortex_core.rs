@@ -235,7 +235,12 @@ fn ptvdev_vortex_meets_the_goals() {
     let out = tempfile::tempdir().unwrap();
     // The scorers read CSV.
     ebptv(
-        &["--table-format", "csv", "track", &format!("{dir}/events.raw")],
+        &[
+            "--table-format",
+            "csv",
+            "track",
+            &format!("{dir}/events.raw"),
+        ],
         out.path(),
     );
     let py = |args: &[&str]| {
