@@ -27,7 +27,7 @@ pub mod track;
 )]
 pub struct Cli {
     /// Format of the row tables the command writes (particles, tracks):
-    /// parquet (default), csv or npy. Given before the command, e.g.
+    /// parquet (default), csv or npy. Placed right after `ebptv`, e.g.
     /// `ebptv --table-format csv track …`.
     #[arg(long, value_enum)]
     pub table_format: Option<ebptv::table::TableFormat>,

@@ -94,8 +94,8 @@ fn links_a_particles_csv() {
             "params.toml",
             "particles.parquet",
             "summary.json",
-            "tracks.parquet",
             "tracks.npy",
+            "tracks.parquet",
             "tracks.png"
         ]
     );
