@@ -39,8 +39,36 @@ impl Table {
     }
 }
 
-/// Read a numeric CSV with a header line, requiring `required` columns.
+/// Read a numeric table (Parquet, `.npy`, or CSV with a header line),
+/// requiring `required` columns.
 pub fn read_table(path: &Path, required: &[&str]) -> Result<Table> {
+    use crate::table::{column_names, read_columns, TableFormat};
+    if TableFormat::sniff(path)? != TableFormat::Csv {
+        let names =
+            column_names(path).ok_or_else(|| Error::corrupt(path, 0, "not a readable table"))?;
+        let refs: Vec<&str> = names.iter().map(|s| s.as_str()).collect();
+        for r in required {
+            if !names.iter().any(|n| n == r) {
+                return Err(Error::corrupt(
+                    path,
+                    0,
+                    format!(
+                        "missing column `{r}` (columns: {}; expected {})",
+                        names.join(","),
+                        required.join(",")
+                    ),
+                ));
+            }
+        }
+        let cols = read_columns(path, &refs)?;
+        if cols.first().is_none_or(|c| c.is_empty()) {
+            return Err(Error::Empty {
+                path: path.to_path_buf(),
+                why: "no data rows".into(),
+            });
+        }
+        return Ok(Table { names, cols });
+    }
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
     let mut lines = text
         .lines()

@@ -3,7 +3,7 @@
 //! The demo, the accuracy tests and the benchmarks all need the same
 //! question answered: *how close is what ebptv wrote to what really
 //! happened?* This module reads the files the stages write
-//! (`pulses.json`, `particles.csv`, `tracks.csv`, `grid.csv`,
+//! (`pulses.json`, the particles and tracks tables in any format, `grid.csv`,
 //! `piv_mean.csv`) and the truth the simulator writes
 //! (`truth_particles.csv`: `pulse,t_us,particle_id,x,y,u,v`), and scores
 //! them. It works on files on purpose: what is scored is exactly what a
@@ -158,7 +158,7 @@ fn match_detections(
     out
 }
 
-/// Detection scores of `particles.csv`.
+/// Detection scores of a particles table (any format).
 #[derive(Debug, Clone, Serialize)]
 pub struct DetectionScore {
     pub detections: usize,
@@ -200,7 +200,7 @@ pub fn score_particles(particles_csv: &Path, truth: &Truth, radius: f64) -> Resu
     })
 }
 
-/// Link and velocity scores of `tracks.csv`.
+/// Link and velocity scores of a tracks table (any format).
 #[derive(Debug, Clone, Serialize)]
 pub struct TrackScore {
     pub tracks: usize,

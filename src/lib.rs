@@ -87,6 +87,7 @@ pub mod plot;
 pub mod provenance;
 pub mod pulses;
 pub mod spectra;
+pub mod table;
 pub mod track;
 
 pub use error::{Error, Result};

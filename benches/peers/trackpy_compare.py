@@ -162,7 +162,7 @@ def run_ebptv(exe, particles_csv, search_range, memory):
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
         subprocess.run(
-            [exe, "track", particles_csv, "--out", out, "--max-disp", str(search_range), "--gap", str(memory)],
+            [exe, "--table-format", "csv", "track", particles_csv, "--out", out, "--max-disp", str(search_range), "--gap", str(memory)],
             check=True,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,

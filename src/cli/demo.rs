@@ -14,6 +14,7 @@ use serde_json::json;
 use ebptv::evaluate::{self, Truth};
 use ebptv::io::atomic::AtomicFile;
 use ebptv::sim::scenario::Scenario;
+use ebptv::table::TableFormat;
 
 #[derive(Args, Debug)]
 pub struct DemoArgs {
@@ -52,7 +53,8 @@ fn p(path: &Path) -> String {
     path.display().to_string()
 }
 
-pub fn run(args: DemoArgs) -> anyhow::Result<()> {
+/// `tables`: the top-level `--table-format`, passed on to every step.
+pub fn run(args: DemoArgs, tables: Option<TableFormat>) -> anyhow::Result<()> {
     // The scene is read (and validated) before any step runs, so a bad
     // scenario file fails at once with its name, not after a simulation.
     let (scene_name, scene_source) = match &args.config {
@@ -78,7 +80,20 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         out.join("compare"),
     );
     let rec = sim.join("recording.raw");
-    let s = |v: &[&str]| v.iter().map(|x| x.to_string()).collect::<Vec<_>>();
+    let format = tables.unwrap_or_default();
+    let (tracks, particles) = (
+        ptv.join(format.file_name("tracks")),
+        ptv.join(format.file_name("particles")),
+    );
+    // `ebptv [--table-format F] CMD …`
+    let s = |v: &[&str]| {
+        let mut line = vec![v[0].to_string()];
+        if let Some(f) = tables {
+            line.extend(["--table-format".to_string(), f.ext().to_string()]);
+        }
+        line.extend(v[1..].iter().map(|x| x.to_string()));
+        line
+    };
 
     let mut sim_cmd = s(&["ebptv", "simulate"]);
     sim_cmd.extend(scene_source);
@@ -88,13 +103,13 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         sim_cmd.push("--seconds".into());
         sim_cmd.push(sec.to_string());
     }
-    sim_cmd.extend(s(&["--out", &p(&sim)]));
+    sim_cmd.extend(["--out".to_string(), p(&sim)]);
     step(&sim_cmd)?;
     step(&s(&["ebptv", "track", &p(&rec), "--out", &p(&ptv)]))?;
     step(&s(&[
         "ebptv",
         "grid",
-        &p(&ptv.join("tracks.csv")),
+        &p(&tracks),
         "--bin",
         "16",
         "--fit",
@@ -116,7 +131,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
     step(&s(&[
         "ebptv",
         "spectra",
-        &p(&ptv.join("tracks.csv")),
+        &p(&tracks),
         "--point",
         &point,
         "--nperseg",
@@ -159,8 +174,8 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
     let est_period = pulses["period_us"].as_f64().unwrap_or(f64::NAN);
     let est_first = pulses["first_pulse_us"].as_f64().unwrap_or(f64::NAN);
     let radius = 1.0;
-    let det = evaluate::score_particles(&ptv.join("particles.csv"), &truth, radius)?;
-    let trk = evaluate::score_tracks(&ptv.join("tracks.csv"), &truth, period, radius)?;
+    let det = evaluate::score_particles(&particles, &truth, radius)?;
+    let trk = evaluate::score_tracks(&tracks, &truth, period, radius)?;
     let grid_score = evaluate::score_mean_field(&grid.join("grid.csv"), &truth, 16.0, 16.0, 20)?;
     let piv_score = evaluate::score_mean_field(&piv.join("piv_mean.csv"), &truth, 32.0, 32.0, 20)?;
     let comparison: serde_json::Value = serde_json::from_str(

@@ -41,7 +41,8 @@ pub enum SideArg {
 
 #[derive(Args, Debug)]
 pub struct GridArgs {
-    /// tracks.csv (`track_id,pulse,t_us,x,y,u,v`, px, px/s), rows grouped by track.
+    /// A tracks table of `ebptv track` (tracks.parquet, .csv or .npy:
+    /// `track_id,pulse,t_us,x,y,u,v`, px, px/s).
     pub tracks: Option<PathBuf>,
     /// Merge grid states (grid_state.json files or directories holding one)
     /// instead of binning tracks; fit/min-count/noise options apply.
@@ -117,11 +118,11 @@ pub fn parse_pair(s: &str) -> std::result::Result<(f64, f64), String> {
     Ok((a, b))
 }
 
-/// `tracks.csv` as samples (through the tracker's reader, which groups rows
-/// by track — what the per-track standard errors want); an error when the
-/// file holds no track point.
-pub fn read_tracks_csv(path: &Path) -> Result<Vec<Sample>> {
-    let tracks = ebptv::track::io::read_tracks_csv(path)?;
+/// A tracks table (any format) as samples (through the tracker's reader,
+/// which groups rows by track — what the per-track standard errors want);
+/// an error when the file holds no track point.
+pub fn read_track_samples(path: &Path) -> Result<Vec<Sample>> {
+    let tracks = ebptv::track::io::read_tracks(path)?;
     let samples: Vec<Sample> = tracks
         .iter()
         .flat_map(|t| {
@@ -202,7 +203,7 @@ pub fn run(a: GridArgs) -> anyhow::Result<()> {
             weighting,
         };
         opts.lattice()?; // a bad lattice before the (long) read
-        samples = read_tracks_csv(tracks)?;
+        samples = read_track_samples(tracks)?;
         let bar = indicatif::ProgressBar::new(samples.len() as u64);
         if samples.len() < 1_000_000 {
             bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());

@@ -23,9 +23,14 @@ pub mod track;
     name = "ebptv",
     version,
     about = "Event-based particle tracking velocimetry for pulsed illumination",
-    after_help = "Start with `ebptv demo --out demo` (no data needed). On a recording: `ebptv info FILE`, then `ebptv pulses FILE --out DIR`, then `ebptv track FILE --out DIR`, then `ebptv grid` or `ebptv spectra` on its tracks.csv.\n\nExamples:\n  ebptv demo --out demo\n  ebptv info recording.raw\n  ebptv track recording.raw --out run1\n  ebptv grid run1/tracks.csv --out run1/grid"
+    after_help = "Start with `ebptv demo --out demo` (no data needed). On a recording: `ebptv info FILE`, then `ebptv pulses FILE --out DIR`, then `ebptv track FILE --out DIR`, then `ebptv grid` or `ebptv spectra` on its tracks table (tracks.parquet; `ebptv --table-format csv track …` writes CSV).\n\nExamples:\n  ebptv demo --out demo\n  ebptv info recording.raw\n  ebptv track recording.raw --out run1\n  ebptv grid run1/tracks.parquet --out run1/grid"
 )]
 pub struct Cli {
+    /// Format of the row tables the command writes (particles, tracks):
+    /// parquet (default), csv or npy. Placed right after `ebptv`, e.g.
+    /// `ebptv --table-format csv track …`.
+    #[arg(long, value_enum)]
+    pub table_format: Option<ebptv::table::TableFormat>,
     #[command(subcommand)]
     pub command: Command,
 }
@@ -62,20 +67,20 @@ pub enum Command {
         after_help = "Use it during an experiment, on a file the camera is still writing, to see the pulse rate and saturation live.\n\nExamples:\n  ebptv monitor recording.raw --follow\n  ebptv monitor recording.raw --follow --idle-timeout-s 10"
     )]
     Monitor(monitor::MonitorArgs),
-    /// Particle tracking: a recording (or a particles.csv) → particles.csv,
-    /// tracks.csv, summary.json, tracks.png.
+    /// Particle tracking: a recording (or a particles table) → particles and
+    /// tracks tables (Parquet), summary.json, tracks.png.
     #[command(
-        after_help = "The main measurement: run it on a recording after `ebptv info` and `ebptv pulses`, then bin the tracks with `ebptv grid`.\n\nExamples:\n  ebptv track recording.raw --out run1\n  ebptv track recording.raw --pulse-hz 5000 --max-disp 12 --out run1\n  ebptv track recording.raw --params run1/params.toml --out run2"
+        after_help = "The main measurement: run it on a recording after `ebptv info` and `ebptv pulses`, then bin the tracks with `ebptv grid`. Its tables are Parquet; `ebptv --table-format csv track …` writes CSV instead (npy: NumPy arrays).\n\nExamples:\n  ebptv track recording.raw --out run1\n  ebptv track recording.raw --pulse-hz 5000 --max-disp 12 --out run1\n  ebptv track recording.raw --params run1/params.toml --out run2"
     )]
     Track(track::TrackArgs),
     /// Bin tracks onto an Eulerian grid (means, stresses, errors), or merge grid states.
     #[command(
-        after_help = "Use it on the tracks of `ebptv track` for mean velocity, Reynolds stresses and their errors on a regular grid.\n\nExamples:\n  ebptv grid run1/tracks.csv --bin 16 --out run1/grid\n  ebptv grid --merge run1/grid run2/grid --out all"
+        after_help = "Use it on the tracks of `ebptv track` for mean velocity, Reynolds stresses and their errors on a regular grid.\n\nExamples:\n  ebptv grid run1/tracks.parquet --bin 16 --out run1/grid\n  ebptv grid --merge run1/grid run2/grid --out all"
     )]
     Grid(grid::GridArgs),
     /// Velocity spectra at points or along a line from tracks (Welch PSD, peak, noise floor).
     #[command(
-        after_help = "Use it on the tracks of `ebptv track` to find a frequency in the flow (vortex shedding, pulsation) at chosen points or along a line.\n\nExamples:\n  ebptv spectra run1/tracks.csv --point 400,180 --out run1/spectra\n  ebptv spectra run1/tracks.csv --line 300,100,300,260 --component v --out run1/line"
+        after_help = "Use it on the tracks of `ebptv track` to find a frequency in the flow (vortex shedding, pulsation) at chosen points or along a line.\n\nExamples:\n  ebptv spectra run1/tracks.parquet --point 400,180 --out run1/spectra\n  ebptv spectra run1/tracks.parquet --line 300,100,300,260 --component v --out run1/line"
     )]
     Spectra(spectra::SpectraArgs),
     /// Multi-frame correlation PIV on pulsed pseudo-images of a recording.
@@ -132,14 +137,15 @@ pub fn print_warnings(src: &dyn ebptv::io::EventSource) {
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
+    let tables = cli.table_format;
     match cli.command {
-        Command::Demo(a) => demo::run(a),
+        Command::Demo(a) => demo::run(a, tables),
         Command::Info(a) => info::run(a),
         Command::Convert(a) => convert::run(a),
         Command::Simulate(a) => simulate::run(a),
         Command::Pulses(a) => pulses::run(a),
         Command::Monitor(a) => monitor::run(a),
-        Command::Track(a) => track::run(a),
+        Command::Track(a) => track::run(a, tables),
         Command::Grid(a) => grid::run(a),
         Command::Spectra(a) => spectra::run(a),
         Command::Piv(a) => piv::run(a),

@@ -12,7 +12,7 @@ use ebptv::spectra::{
     line_points, point_spectra, PointSpectrum, SpectraOptions, WelchOptions, PEAK_FALSE_ALARM,
 };
 
-use super::grid::{parse_pair, read_tracks_csv};
+use super::grid::{parse_pair, read_track_samples};
 
 #[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
 pub enum Component {
@@ -23,7 +23,8 @@ pub enum Component {
 
 #[derive(Args, Debug)]
 pub struct SpectraArgs {
-    /// tracks.csv (`track_id,pulse,t_us,x,y,u,v`), rows grouped by track.
+    /// A tracks table of `ebptv track` (tracks.parquet, .csv or .npy:
+    /// `track_id,pulse,t_us,x,y,u,v`).
     pub tracks: PathBuf,
     /// Point "x,y" (px); repeat for several. The first gives `peak_hz`.
     #[arg(long, value_parser = parse_pair)]
@@ -118,7 +119,7 @@ pub fn run(a: SpectraArgs) -> anyhow::Result<()> {
         min_count: a.min_count,
     };
     ebptv::io::atomic::create_output_dir(&a.out)?;
-    let samples = read_tracks_csv(&a.tracks)?;
+    let samples = read_track_samples(&a.tracks)?;
 
     let mut summary = json!({});
     if !a.point.is_empty() {

@@ -1,4 +1,4 @@
-//! `ebptv track`: recording (or particles.csv) → particles → tracks.
+//! `ebptv track`: recording (or a particles table) → particles → tracks.
 
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -8,12 +8,13 @@ use std::time::{Duration, Instant};
 use clap::Args;
 use indicatif::ProgressBar;
 
+use ebptv::table::TableFormat;
 use ebptv::track::{track_to_dir, TrackConfig, TrackProgress, TrackStage};
 
 #[derive(Args, Debug)]
 pub struct TrackArgs {
-    /// A recording (any supported event format) or a `particles.csv`
-    /// (`pulse,t_us,x,y,n_events`: linking only).
+    /// A recording (any supported event format) or a particles table
+    /// (Parquet, CSV or .npy with `pulse,t_us,x,y,n_events`: linking only).
     pub input: PathBuf,
     /// Output directory (created if missing). It also receives
     /// `params.toml`, every option of the run, for --params.
@@ -65,7 +66,7 @@ pub struct TrackArgs {
     pub grid: Option<String>,
     /// Read every option of the run from a TOML file: the tracker's parts
     /// ([track.gates], [track.init], [track.stitch], [track.fit]), the
-    /// clustering ([cluster]) and run options such as tracks.npy output,
+    /// clustering ([cluster]) and run options such as the table format,
     /// the plot window, batching and the sliced linker ([run]). Keys left
     /// out take their defaults; options given here override the file. A
     /// run's OUT/params.toml is such a file.
@@ -73,21 +74,27 @@ pub struct TrackArgs {
     pub params: Option<PathBuf>,
 }
 
-pub fn run(args: TrackArgs) -> anyhow::Result<()> {
+/// `tables`: the top-level `--table-format` (over the params file's).
+pub fn run(args: TrackArgs, tables: Option<TableFormat>) -> anyhow::Result<()> {
+    let mut config = config_of(&args)?;
+    if let Some(f) = tables {
+        config.run.table_format = f;
+    }
     let grid = args.grid.clone();
     let out = args.out.clone();
     // Check the grid options before the (long) tracking run.
     let grid_cli = grid
         .map(|g| {
             let mut argv = vec!["ebptv".to_string(), "grid".into()];
-            argv.push(out.join("tracks.csv").display().to_string());
+            let tracks = out.join(config.run.table_format.file_name("tracks"));
+            argv.push(tracks.display().to_string());
             argv.extend(["--out".into(), out.join("grid").display().to_string()]);
             argv.extend(g.split_whitespace().map(String::from));
             <super::Cli as clap::Parser>::try_parse_from(&argv)
                 .map_err(|e| anyhow::anyhow!("--grid \"{g}\": {e}"))
         })
         .transpose()?;
-    run_tracking(args)?;
+    run_tracking(args, &config)?;
     match grid_cli {
         Some(cli) => super::run(cli),
         None => Ok(()),
@@ -130,8 +137,7 @@ fn config_of(args: &TrackArgs) -> anyhow::Result<TrackConfig> {
     Ok(c)
 }
 
-fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
-    let config = config_of(&args)?;
+fn run_tracking(args: TrackArgs, config: &TrackConfig) -> anyhow::Result<()> {
     let size = std::fs::metadata(&args.input).ok().map(|m| m.len());
     let bar = super::progress::file_bar(size, "pulse timing");
     let reading = Mutex::new(ReadRate::default());
@@ -175,7 +181,7 @@ fn run_tracking(args: TrackArgs) -> anyhow::Result<()> {
         TrackProgress::Writing => bar.finish_and_clear(),
         _ => {}
     };
-    let result = track_to_dir(&args.input, &config, &args.out, &on_progress);
+    let result = track_to_dir(&args.input, config, &args.out, &on_progress);
     // A note for the terminal, not for logs: shown only where the bar is.
     let on_terminal = !bar.is_hidden();
     bar.finish_and_clear();

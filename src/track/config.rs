@@ -47,8 +47,11 @@ pub struct RunParams {
     /// Pulses shown in `tracks.png`, from the first pulse: a short window
     /// keeps single tracks visible at high seeding densities.
     pub plot_pulses: i64,
-    /// Also write `tracks.npy` (the `tracks.csv` columns as a structured
-    /// array).
+    /// The format of the `particles` and `tracks` tables: `parquet`,
+    /// `csv` or `npy` (`ebptv --table-format`).
+    pub table_format: crate::table::TableFormat,
+    /// Also write `tracks.npy` (the `tracks` columns as a structured
+    /// array) next to the tables.
     pub npy: bool,
     /// Pulses clustered per parallel batch.
     pub batch: usize,
@@ -83,6 +86,7 @@ impl Default for RunParams {
             prior: None,
             hot_pixels: None,
             plot_pulses: 20,
+            table_format: crate::table::TableFormat::Parquet,
             npy: false,
             batch: 64,
             linker: Linker::Sequential,

@@ -1,8 +1,10 @@
-//! Files of the PTV stage: `particles.csv`, `tracks.csv`, `summary.json`.
+//! Files of the PTV stage: the `particles` and `tracks` tables (Parquet by
+//! default, or CSV / `.npy`: [`TableFormat`]) and `summary.json`.
 //!
-//! Writers go through [`AtomicFile`]; readers check the header (columns by
+//! Writers go through [`AtomicFile`]; readers take any of the three
+//! formats (sniffed from the file's first bytes), check the columns (by
 //! name, any order, extra columns ignored) and every value, and report the
-//! file and line of the first problem.
+//! file and line (CSV) or row of the first problem.
 
 use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader, Write};
@@ -15,11 +17,125 @@ use crate::cluster::Particle;
 use crate::decimal::{push_fixed, push_int, RevDigits};
 use crate::error::{Error, Result};
 use crate::io::atomic::AtomicFile;
+use crate::table::{Col, TableFormat, TableWriter};
 
 /// Columns of `particles.csv`.
 pub const PARTICLES_HEADER: &str = "pulse,t_us,x,y,n_events";
 /// Columns of `tracks.csv`.
 pub const TRACKS_HEADER: &str = "track_id,pulse,t_us,x,y,u,v";
+
+/// The columns of the `particles` table in Parquet and `.npy` (the
+/// `particles.csv` columns; µs, px).
+pub static PARTICLE_COLUMNS: [Col<Particle>; 5] = [
+    Col::i64("pulse", |p| p.pulse),
+    Col::f64("t_us", |p| p.t_us),
+    Col::f64("x", |p| p.x),
+    Col::f64("y", |p| p.y),
+    Col::i64("n_events", |p| p.n_events as i64),
+];
+
+/// One row of the `tracks` table: a point and the id of its track.
+#[derive(Debug, Clone, Copy)]
+pub struct TrackRow {
+    pub id: u64,
+    pub p: TrackPoint,
+}
+
+/// The columns of the `tracks` table in Parquet and `.npy` (the
+/// `tracks.csv` columns; µs, px, px/s).
+pub static TRACK_COLUMNS: [Col<TrackRow>; 7] = [
+    Col::i64("track_id", |r| r.id as i64),
+    Col::i64("pulse", |r| r.p.pulse),
+    Col::f64("t_us", |r| r.p.t_us),
+    Col::f64("x", |r| r.p.x),
+    Col::f64("y", |r| r.p.y),
+    Col::f64("u", |r| r.p.u),
+    Col::f64("v", |r| r.p.v),
+];
+
+/// Streaming writer of the `particles` table in any [`TableFormat`].
+pub enum ParticlesWriter {
+    Csv(ParticlesCsvWriter),
+    Table(TableWriter<Particle>),
+}
+
+impl ParticlesWriter {
+    /// `dir/particles.<ext>`.
+    pub fn create(dir: &Path, format: TableFormat) -> Result<Self> {
+        let path = dir.join(format.file_name("particles"));
+        Ok(match format {
+            TableFormat::Csv => ParticlesWriter::Csv(ParticlesCsvWriter::create(&path)?),
+            TableFormat::Parquet => {
+                ParticlesWriter::Table(TableWriter::parquet(&path, &PARTICLE_COLUMNS)?)
+            }
+            TableFormat::Npy => ParticlesWriter::Table(TableWriter::npy(&path, &PARTICLE_COLUMNS)?),
+        })
+    }
+    pub fn write(&mut self, particles: &[Particle]) -> Result<()> {
+        match self {
+            ParticlesWriter::Csv(w) => w.write(particles),
+            ParticlesWriter::Table(w) => w.write(particles),
+        }
+    }
+    /// Records `key = value` in the file's metadata (Parquet only; CSV and
+    /// `.npy` have no place for it).
+    pub fn add_metadata(&mut self, key: &str, value: &str) {
+        if let ParticlesWriter::Table(w) = self {
+            w.add_metadata(key, value);
+        }
+    }
+    pub fn finish(self) -> Result<()> {
+        match self {
+            ParticlesWriter::Csv(w) => w.finish(),
+            ParticlesWriter::Table(w) => w.finish(),
+        }
+    }
+}
+
+/// Streaming writer of the `tracks` table in any [`TableFormat`].
+pub enum TracksWriter {
+    Csv(TracksCsvWriter),
+    Table(TableWriter<TrackRow>),
+}
+
+impl TracksWriter {
+    /// `dir/tracks.<ext>`.
+    pub fn create(dir: &Path, format: TableFormat) -> Result<Self> {
+        let path = dir.join(format.file_name("tracks"));
+        Ok(match format {
+            TableFormat::Csv => TracksWriter::Csv(TracksCsvWriter::create(&path)?),
+            TableFormat::Parquet => {
+                TracksWriter::Table(TableWriter::parquet(&path, &TRACK_COLUMNS)?)
+            }
+            TableFormat::Npy => TracksWriter::Table(TableWriter::npy(&path, &TRACK_COLUMNS)?),
+        })
+    }
+    pub fn write(&mut self, tracks: &[Track]) -> Result<()> {
+        match self {
+            TracksWriter::Csv(w) => w.write(tracks),
+            TracksWriter::Table(w) => {
+                for t in tracks {
+                    for &p in &t.points {
+                        w.push(&TrackRow { id: t.id, p })?;
+                    }
+                }
+                Ok(())
+            }
+        }
+    }
+    /// Records `key = value` in the file's metadata (Parquet only).
+    pub fn add_metadata(&mut self, key: &str, value: &str) {
+        if let TracksWriter::Table(w) = self {
+            w.add_metadata(key, value);
+        }
+    }
+    pub fn finish(self) -> Result<()> {
+        match self {
+            TracksWriter::Csv(w) => w.finish(),
+            TracksWriter::Table(w) => w.finish(),
+        }
+    }
+}
 
 fn werr(path: &Path, e: std::io::Error) -> Error {
     Error::io(path, e)
@@ -377,18 +493,38 @@ pub fn write_tracks_csv(path: &Path, tracks: &[Track]) -> Result<()> {
     w.finish()
 }
 
-/// A header-checked CSV reader yielding the requested columns as f64.
+/// A column-checked reader of a table in any [`TableFormat`], yielding the
+/// requested columns as f64, row by row. CSV is read line by line;
+/// Parquet and `.npy` columns are read whole.
 struct CsvColumns<'a> {
     path: &'a Path,
-    lines: std::io::Lines<BufReader<std::fs::File>>,
-    idx: Vec<usize>,
+    src: RowSource,
     names: &'a [&'a str],
+    /// The line (CSV) or row (Parquet, `.npy`) of the last row read.
     line_no: u64,
     buf: Vec<f64>,
 }
 
+enum RowSource {
+    Csv {
+        lines: std::io::Lines<BufReader<std::fs::File>>,
+        idx: Vec<usize>,
+    },
+    Columns(Vec<Vec<f64>>),
+}
+
 impl<'a> CsvColumns<'a> {
     fn open(path: &'a Path, names: &'a [&'a str]) -> Result<Self> {
+        if TableFormat::sniff(path)? != TableFormat::Csv {
+            let cols = crate::table::read_columns(path, names)?;
+            return Ok(CsvColumns {
+                path,
+                src: RowSource::Columns(cols),
+                names,
+                line_no: 0,
+                buf: Vec::new(),
+            });
+        }
         let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
         let mut lines = BufReader::new(file).lines();
         let header = match lines.next() {
@@ -429,18 +565,48 @@ impl<'a> CsvColumns<'a> {
         }
         Ok(CsvColumns {
             path,
-            lines,
-            idx,
+            src: RowSource::Csv { lines, idx },
             names,
             line_no: 1,
             buf: Vec::new(),
         })
     }
 
+    /// `line N` (CSV) or `row N` (Parquet, `.npy`, counted from 1).
+    fn at(&self) -> String {
+        match self.src {
+            RowSource::Csv { .. } => format!("line {}", self.line_no),
+            RowSource::Columns(_) => format!("row {}", self.line_no),
+        }
+    }
+
     /// Next data row's values (skips blank lines), or `None` at the end.
     fn next_row(&mut self) -> Result<Option<&[f64]>> {
+        let (lines, idx) = match &mut self.src {
+            RowSource::Csv { lines, idx } => (lines, idx),
+            RowSource::Columns(cols) => {
+                let i = self.line_no as usize;
+                if cols.first().is_none_or(|c| i >= c.len()) {
+                    return Ok(None);
+                }
+                self.line_no += 1;
+                self.buf.clear();
+                self.buf.extend(cols.iter().map(|c| c[i]));
+                if let Some(k) = self.buf.iter().position(|v| !v.is_finite()) {
+                    return Err(Error::corrupt(
+                        self.path,
+                        0,
+                        format!(
+                            "row {}: `{}` is {}, not a finite number",
+                            self.line_no, self.names[k], self.buf[k]
+                        ),
+                    ));
+                }
+                return Ok(Some(&self.buf));
+            }
+        };
         loop {
-            let Some(line) = self.lines.next() else {
+            let Some(line) = lines.next() else {
                 return Ok(None);
             };
             self.line_no += 1;
@@ -450,7 +616,7 @@ impl<'a> CsvColumns<'a> {
             }
             let fields: Vec<&str> = line.split(',').collect();
             self.buf.clear();
-            for (k, &i) in self.idx.iter().enumerate() {
+            for (k, &i) in idx.iter().enumerate() {
                 let raw = fields.get(i).map(|s| s.trim()).ok_or_else(|| {
                     Error::corrupt(
                         self.path,
@@ -493,8 +659,9 @@ impl<'a> CsvColumns<'a> {
                 self.path,
                 0,
                 format!(
-                    "line {}: `{}` = {v} is not an integer",
-                    self.line_no, self.names[col]
+                    "{}: `{}` = {v} is not an integer",
+                    self.at(),
+                    self.names[col]
                 ),
             ));
         }
@@ -502,9 +669,10 @@ impl<'a> CsvColumns<'a> {
     }
 }
 
-/// Read `particles.csv`. Columns by name (extra columns ignored); missing
-/// columns, unparsable values or NaN/inf are errors naming the line.
-pub fn read_particles_csv(path: &Path) -> Result<Vec<Particle>> {
+/// Read a `particles` table (Parquet, CSV or `.npy`). Columns by name
+/// (extra columns ignored); missing columns, unparsable values or NaN/inf
+/// are errors naming the line or row.
+pub fn read_particles(path: &Path) -> Result<Vec<Particle>> {
     let names = ["pulse", "t_us", "x", "y", "n_events"];
     let mut r = CsvColumns::open(path, &names)?;
     let mut out = Vec::new();
@@ -516,7 +684,7 @@ pub fn read_particles_csv(path: &Path) -> Result<Vec<Particle>> {
             return Err(Error::corrupt(
                 path,
                 0,
-                format!("line {}: n_events = {n_events} out of range", r.line_no),
+                format!("{}: n_events = {n_events} out of range", r.at()),
             ));
         }
         out.push(Particle {
@@ -534,10 +702,20 @@ pub fn read_particles_csv(path: &Path) -> Result<Vec<Particle>> {
     Ok(out)
 }
 
-/// Read `tracks.csv` into tracks (rows grouped by `track_id`, points sorted
-/// by pulse). Accelerations are not in the file and come back as 0; points
-/// are not marked interpolated.
+/// Read a `particles` table of any format ([`read_particles`]).
+pub fn read_particles_csv(path: &Path) -> Result<Vec<Particle>> {
+    read_particles(path)
+}
+
+/// Read a `tracks` table of any format ([`read_tracks`]).
 pub fn read_tracks_csv(path: &Path) -> Result<Vec<Track>> {
+    read_tracks(path)
+}
+
+/// Read a `tracks` table (Parquet, CSV or `.npy`) into tracks (rows
+/// grouped by `track_id`, points sorted by pulse). Accelerations are not
+/// in the file and come back as 0; points are not marked interpolated.
+pub fn read_tracks(path: &Path) -> Result<Vec<Track>> {
     let names = ["track_id", "pulse", "t_us", "x", "y", "u", "v"];
     let mut r = CsvColumns::open(path, &names)?;
     let mut by_id: BTreeMap<u64, Vec<TrackPoint>> = BTreeMap::new();
@@ -548,7 +726,7 @@ pub fn read_tracks_csv(path: &Path) -> Result<Vec<Track>> {
             return Err(Error::corrupt(
                 path,
                 0,
-                format!("line {}: negative track_id {id}", r.line_no),
+                format!("{}: negative track_id {id}", r.at()),
             ));
         }
         let pulse = r.int(row[1], 1)?;

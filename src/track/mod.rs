@@ -125,8 +125,10 @@ use assign::*;
 pub use config::{Linker, RunParams, TrackConfig};
 pub use finalise::*;
 pub use io::{
-    read_particles_csv, read_tracks_csv, write_particles_csv, write_summary_json, write_tracks_csv,
-    write_tracks_npy, ParticlesCsvWriter, Summary, SummaryAcc, TracksCsvWriter, TracksNpyWriter,
+    read_particles, read_particles_csv, read_tracks, read_tracks_csv, write_particles_csv,
+    write_summary_json, write_tracks_csv, write_tracks_npy, ParticlesCsvWriter, ParticlesWriter,
+    Summary, SummaryAcc, TrackRow, TracksCsvWriter, TracksNpyWriter, TracksWriter,
+    PARTICLE_COLUMNS, TRACK_COLUMNS,
 };
 pub use params::*;
 use predict::*;

@@ -1,6 +1,7 @@
-//! A recording (or a `particles.csv`) into an output directory:
-//! [`track_to_dir`] runs pulses → particles → tracks and writes
-//! `particles.csv`, `tracks.csv`, `tracks.npy` (when `run.npy`),
+//! A recording (or a `particles` table) into an output directory:
+//! [`track_to_dir`] runs pulses → particles → tracks and writes the
+//! `particles` and `tracks` tables (`.parquet`, `.csv` or `.npy`:
+//! `run.table_format`), `tracks.npy` (when `run.npy`),
 //! `pulses.json` (from a recording), `summary.json`, `tracks.png` and
 //! `params.toml`; [`FileSink`] is the [`PtvSink`] behind it, for a caller
 //! that drives its own [`PtvStream`].
@@ -11,7 +12,6 @@
 //! the end, atomically; a run that fails leaves none behind.
 
 use std::collections::HashSet;
-use std::io::BufRead;
 use std::path::Path;
 
 use crate::cluster::Particle;
@@ -22,10 +22,11 @@ use crate::pulses::{PulseOptions, PulseReport};
 use crate::Geometry;
 
 use super::{
-    read_particles_csv, track_recording, write_summary_json, Linker, ParticlesCsvWriter, PtvSink,
-    PtvStream, RunParams, Summary, SummaryAcc, Track, TrackConfig, TrackerStats, TracksCsvWriter,
-    TracksNpyWriter,
+    read_particles, track_recording, write_summary_json, Linker, ParticlesWriter, PtvSink,
+    PtvStream, RunParams, Summary, SummaryAcc, Track, TrackConfig, TrackerStats, TracksNpyWriter,
+    TracksWriter,
 };
+use crate::table::TableFormat;
 
 /// Which pass over the input a [`TrackProgress`] report is about.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -70,7 +71,7 @@ pub enum TrackProgress<'a> {
 pub struct DirRun {
     /// The run's `summary.json`.
     pub summary: Summary,
-    /// The pulse analysis (`pulses.json`); `None` for a `particles.csv`
+    /// The pulse analysis (`pulses.json`); `None` for a `particles` table
     /// input.
     pub pulses: Option<PulseReport>,
     /// Events that fell outside every pulse window.
@@ -78,7 +79,7 @@ pub struct DirRun {
 }
 
 /// Track `input` (a recording in any supported event format, or a
-/// `particles.csv`: then linking only) with `config` and write the outputs
+/// `particles` table in any [`TableFormat`]: then linking only) with `config` and write the outputs
 /// into `out` (created if missing). `on_progress` receives
 /// [`TrackProgress`] reports, from the reading threads too.
 ///
@@ -127,18 +128,18 @@ pub fn track_to_dir(
 pub enum TrackInput<'a> {
     /// A recording in any supported event format.
     Recording(&'a Path),
-    /// A `particles.csv` (linking only).
-    ParticlesCsv(&'a Path),
+    /// A particles table, Parquet, CSV or .npy (linking only).
+    ParticlesTable(&'a Path),
     /// Particles in memory (linking only), in any order.
     Particles(Vec<Particle>),
 }
 
 impl TrackInput<'_> {
-    /// A recording, or a `particles.csv` when the file's header has a
+    /// A recording, or a particles table (any format) when it has a
     /// `pulse` column (what `ebptv track` decides).
     pub fn of_path(path: &Path) -> TrackInput<'_> {
-        if is_particles_csv(path) {
-            TrackInput::ParticlesCsv(path)
+        if is_particles_table(path) {
+            TrackInput::ParticlesTable(path)
         } else {
             TrackInput::Recording(path)
         }
@@ -209,12 +210,12 @@ pub fn track_into(
         TrackInput::Recording(path) => {
             return track_recording_into(path, run, stream, sink, on_progress)
         }
-        TrackInput::ParticlesCsv(path) => {
+        TrackInput::ParticlesTable(path) => {
             on_progress(TrackProgress::Stage {
                 stage: TrackStage::Tracking,
                 file_size: std::fs::metadata(path).ok().map(|m| m.len()),
             });
-            read_particles_csv(path)?
+            read_particles(path)?
         }
         TrackInput::Particles(particles) => {
             on_progress(TrackProgress::Stage {
@@ -332,19 +333,11 @@ pub fn read_hot_pixels(path: &Path) -> Result<HashSet<(u16, u16)>> {
     Ok(set)
 }
 
-/// True when the file's first line looks like a particles.csv header (has
-/// a `pulse` column; event CSVs do not). Missing columns are then reported
-/// by the particles.csv reader.
-fn is_particles_csv(path: &Path) -> bool {
-    let Ok(f) = std::fs::File::open(path) else {
-        return false;
-    };
-    let mut line = String::new();
-    if std::io::BufReader::new(f).read_line(&mut line).is_err() {
-        return false;
-    }
-    let cols: Vec<&str> = line.trim().split(',').map(|c| c.trim()).collect();
-    cols.contains(&"pulse")
+/// True when the file is a table (Parquet, `.npy` or CSV) with a `pulse`
+/// column: a particles table (event files have no such column). Missing
+/// columns are then reported by the particles reader.
+fn is_particles_table(path: &Path) -> bool {
+    crate::table::column_names(path).is_some_and(|c| c.iter().any(|c| c == "pulse"))
 }
 
 /// An [`EventSource`] that reports its reading to the progress callback.
@@ -399,8 +392,8 @@ enum Output {
 /// The outputs of one run, on their own thread ([`FileSink`] feeds it):
 /// the CSV/NPY writers, the summary and the figure's polylines.
 struct Writer {
-    particles_out: ParticlesCsvWriter,
-    tracks_out: TracksCsvWriter,
+    particles_out: ParticlesWriter,
+    tracks_out: TracksWriter,
     npy_out: Option<TracksNpyWriter>,
     summary: SummaryAcc,
     first_pulse: Option<i64>,
@@ -412,11 +405,12 @@ struct Writer {
 }
 
 impl Writer {
-    fn create(out: &Path, npy: bool, plot_pulses: i64) -> Result<Self> {
+    fn create(out: &Path, format: TableFormat, npy: bool, plot_pulses: i64) -> Result<Self> {
         Ok(Writer {
-            particles_out: ParticlesCsvWriter::create(&out.join("particles.csv"))?,
-            tracks_out: TracksCsvWriter::create(&out.join("tracks.csv"))?,
-            npy_out: npy
+            particles_out: ParticlesWriter::create(out, format)?,
+            tracks_out: TracksWriter::create(out, format)?,
+            // tracks.npy is the tracks table itself in the npy format.
+            npy_out: (npy && format != TableFormat::Npy)
                 .then(|| TracksNpyWriter::create(&out.join("tracks.npy")))
                 .transpose()?,
             summary: SummaryAcc::default(),
@@ -534,8 +528,9 @@ impl Writer {
 /// ~40 MB at most waiting).
 const MESSAGE_POINTS: usize = 4096;
 
-/// A [`PtvSink`] that writes a run's files into a directory:
-/// `particles.csv`, `tracks.csv`, `tracks.npy` (when `run.npy`), and at
+/// A [`PtvSink`] that writes a run's files into a directory: the
+/// `particles` and `tracks` tables in `run.table_format`, `tracks.npy`
+/// (when `run.npy`), and at
 /// [`FileSink::finish`] `summary.json` and `tracks.png`. Results go to a
 /// writer thread through a bounded channel, so a slow disk holds the
 /// tracker back instead of filling memory. Dropped without `finish` (an
@@ -548,9 +543,9 @@ pub struct FileSink {
 
 impl FileSink {
     /// Starts the writer for the outputs in `out` (which must exist), with
-    /// the `npy` and `plot_pulses` options of `run`.
+    /// the `table_format`, `npy` and `plot_pulses` options of `run`.
     pub fn create(out: &Path, run: &RunParams) -> Result<Self> {
-        let writer = Writer::create(out, run.npy, run.plot_pulses)?;
+        let writer = Writer::create(out, run.table_format, run.npy, run.plot_pulses)?;
         let (tx, rx) = std::sync::mpsc::sync_channel(128);
         let handle = std::thread::Builder::new()
             .name("ebptv-track-writer".into())
@@ -685,8 +680,8 @@ mod tests {
         assert_eq!(run.summary.particles, 24);
         assert_eq!(run.summary.tracks, 2);
         for f in [
-            "particles.csv",
-            "tracks.csv",
+            "particles.parquet",
+            "tracks.parquet",
             "summary.json",
             "tracks.png",
             "params.toml",
@@ -694,8 +689,42 @@ mod tests {
             assert!(out.join(f).is_file(), "{f} missing");
         }
         assert!(!out.join("tracks.npy").exists());
-        let tracks = super::super::read_tracks_csv(&out.join("tracks.csv")).unwrap();
+        let tracks = super::super::read_tracks(&out.join("tracks.parquet")).unwrap();
         assert_eq!(tracks.len(), 2);
+
+        // The run's particles table, in each format, relinks to the same
+        // tracks, written in each format.
+        for fmt in [TableFormat::Csv, TableFormat::Npy, TableFormat::Parquet] {
+            let mut config = TrackConfig::default();
+            config.run.table_format = fmt;
+            let again = dir.path().join(format!("again_{}", fmt.ext()));
+            track_to_dir(&out.join("particles.parquet"), &config, &again, &|_| {}).unwrap();
+            let relinked = dir.path().join(format!("relinked_{}", fmt.ext()));
+            track_to_dir(
+                &again.join(fmt.file_name("particles")),
+                &TrackConfig::default(),
+                &relinked,
+                &|_| {},
+            )
+            .unwrap();
+            assert!(!again.join("tracks.parquet").exists() || fmt == TableFormat::Parquet);
+            let a = super::super::read_tracks(&again.join(fmt.file_name("tracks"))).unwrap();
+            let b = super::super::read_tracks(&relinked.join("tracks.parquet")).unwrap();
+            assert_eq!(a.len(), 2, "{fmt:?}");
+            for (a, b) in a.iter().zip(&b).chain(a.iter().zip(&tracks)) {
+                assert_eq!(a.id, b.id);
+                assert_eq!(a.points.len(), b.points.len());
+                for (p, q) in a.points.iter().zip(&b.points) {
+                    // CSV keeps 4 decimals of positions, 3 of velocities.
+                    assert_eq!(p.pulse, q.pulse);
+                    assert!((p.x - q.x).abs() < 2e-4 && (p.y - q.y).abs() < 2e-4);
+                    assert!(
+                        (p.u - q.u).abs() < 1.0 && (p.v - q.v).abs() < 1.0,
+                        "{p:?} {q:?}"
+                    );
+                }
+            }
+        }
     }
 
     #[test]

@@ -40,7 +40,7 @@ fn demo_runs_every_stage_and_scores_against_truth() {
     assert!(f("/piv/rms_error_of_max_speed") < 0.04, "{report}");
     for step in [
         "sim/recording.raw",
-        "ptv/tracks.csv",
+        "ptv/tracks.parquet",
         "grid/grid.csv",
         "piv/piv_mean.csv",
         "compare/compare.json",

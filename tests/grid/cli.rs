@@ -355,7 +355,7 @@ fn track_with_grid_in_one_go() {
     assert!(!ok);
     assert!(err.contains("--grid") && err.contains("--bogus"), "{err}");
     assert!(
-        !bad.join("tracks.csv").exists(),
+        !bad.join("tracks.parquet").exists(),
         "tracked despite bad --grid"
     );
 }

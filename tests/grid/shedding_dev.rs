@@ -43,7 +43,7 @@ fn independent_wake_shedding_frequency_is_found_and_significant() {
         .arg(&ptv));
     run(Command::new(bin)
         .arg("spectra")
-        .arg(ptv.join("tracks.csv"))
+        .arg(ptv.join("tracks.parquet"))
         .args(["--point", &format!("{x},{yc}"), "--no-plots", "--out"])
         .arg(&spec));
     let s: serde_json::Value =

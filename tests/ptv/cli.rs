@@ -43,14 +43,14 @@ fn links_a_particles_csv() {
             .arg("--params")
             .arg(&params),
     );
-    let tracks = ebptv::track::read_tracks_csv(&out.join("tracks.csv")).unwrap();
+    let tracks = ebptv::track::read_tracks(&out.join("tracks.parquet")).unwrap();
     assert!(tracks.len() > 50, "{} tracks", tracks.len());
     for t in &tracks {
         // min_length 5, or 4 for tracks that agree with the local flow.
         assert!(t.points.len() >= 4);
         assert!(t.points.windows(2).all(|w| w[1].pulse == w[0].pulse + 1));
     }
-    let back = ebptv::track::read_particles_csv(&out.join("particles.csv")).unwrap();
+    let back = ebptv::track::read_particles(&out.join("particles.parquet")).unwrap();
     assert_eq!(back.len(), particles.len());
     let summary: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
@@ -92,10 +92,10 @@ fn links_a_particles_csv() {
         names,
         [
             "params.toml",
-            "particles.csv",
+            "particles.parquet",
             "summary.json",
-            "tracks.csv",
             "tracks.npy",
+            "tracks.parquet",
             "tracks.png"
         ]
     );
@@ -119,7 +119,7 @@ fn bad_input_gives_clear_errors_and_no_outputs() {
         !st.status.success() && err.contains("missing column(s) y"),
         "{err}"
     );
-    assert!(!out.join("tracks.csv").exists() && !out.join("particles.csv").exists());
+    assert!(!out.join("tracks.parquet").exists() && !out.join("particles.parquet").exists());
 
     std::fs::write(
         &input,
@@ -184,7 +184,7 @@ fn sliced_and_sequential_linkers_agree() {
         );
         let summary: serde_json::Value =
             serde_json::from_slice(&std::fs::read(out.join("summary.json")).unwrap()).unwrap();
-        let tracks = ebptv::track::read_tracks_csv(&out.join("tracks.csv")).unwrap();
+        let tracks = ebptv::track::read_tracks(&out.join("tracks.parquet")).unwrap();
         (tracks, summary)
     };
     let params = |name: &str, text: &str| {
@@ -271,8 +271,12 @@ fn params_file_round_trip_override_and_unknown_keys() {
         "{}",
         String::from_utf8_lossy(&st.stderr)
     );
-    for f in ["tracks.csv", "particles.csv", "params.toml"] {
-        assert_eq!(read(a.join(f)), read(b.join(f)), "{f}");
+    for f in ["tracks.parquet", "particles.parquet", "params.toml"] {
+        assert_eq!(
+            std::fs::read(a.join(f)).unwrap(),
+            std::fs::read(b.join(f)).unwrap(),
+            "{f}"
+        );
     }
     let strip = |p: std::path::PathBuf| -> serde_json::Value {
         let mut v: serde_json::Value = serde_json::from_str(&read(p)).unwrap();
@@ -292,8 +296,8 @@ fn params_file_round_trip_override_and_unknown_keys() {
     let written = read(c.join("params.toml"));
     assert!(written.contains("min_length = 9"), "{written}");
     assert!(written.contains("max_disp = 8.0"), "{written}");
-    let tracks = ebptv::track::read_tracks_csv(&c.join("tracks.csv")).unwrap();
-    let before = ebptv::track::read_tracks_csv(&a.join("tracks.csv")).unwrap();
+    let tracks = ebptv::track::read_tracks(&c.join("tracks.parquet")).unwrap();
+    let before = ebptv::track::read_tracks(&a.join("tracks.parquet")).unwrap();
     assert!(
         !tracks.is_empty() && tracks.len() < before.len(),
         "{} vs {} tracks",
@@ -310,5 +314,5 @@ fn params_file_round_trip_override_and_unknown_keys() {
         err.contains("bad.toml") && err.contains("search_sigma"),
         "{err}"
     );
-    assert!(!d.join("tracks.csv").exists());
+    assert!(!d.join("tracks.parquet").exists());
 }

@@ -111,7 +111,7 @@ fn fast_vortex_core_is_tracked() {
     let rec = sim.join("recording.raw");
     ebptv(&["track", rec.to_str().unwrap()], &ptv);
     let truth = sim.join("truth_particles.csv");
-    let tracks = ptv.join("tracks.csv");
+    let tracks = ptv.join("tracks.parquet");
 
     // Inside the core radius (60 px): with the line-only young predictor
     // 0.12 of the truth samples had a track point within 1 px, with the
@@ -233,7 +233,16 @@ fn ptvdev_vortex_meets_the_goals() {
         std::env::var("PTVDEV_DIR").unwrap_or_else(|_| format!("{root}/data/dev/ptvdev_vortex"));
     let eval = std::env::var("PTVDEV_EVAL").unwrap_or_else(|_| format!("{root}/eval"));
     let out = tempfile::tempdir().unwrap();
-    ebptv(&["track", &format!("{dir}/events.raw")], out.path());
+    // The scorers read CSV.
+    ebptv(
+        &[
+            "--table-format",
+            "csv",
+            "track",
+            &format!("{dir}/events.raw"),
+        ],
+        out.path(),
+    );
     let py = |args: &[&str]| {
         let o = Command::new("python3").args(args).output().unwrap();
         let text = String::from_utf8_lossy(&o.stdout).to_string();
