@@ -126,6 +126,8 @@ pub struct TracksCsvWriter {
     file: AtomicFile,
     line: Vec<u8>,
     t_text: TimeTextCache,
+    /// Physical columns after the pixel ones, when calibrated.
+    calib: Option<crate::calib::Calibration>,
 }
 
 /// `t_us` as text (`{}`, the shortest round-trip form), cached per pulse:
@@ -190,18 +192,32 @@ impl TimeTextCache {
 
 impl TracksCsvWriter {
     pub fn create(path: &Path) -> Result<Self> {
+        Self::create_calibrated(path, None)
+    }
+
+    /// A writer whose rows end with the physical columns of `calib`
+    /// ([`crate::calib::Calibration::point_columns`]) when one is given.
+    pub fn create_calibrated(
+        path: &Path,
+        calib: Option<crate::calib::Calibration>,
+    ) -> Result<Self> {
         let mut file = AtomicFile::create(path)?;
-        writeln!(file, "{TRACKS_HEADER}").map_err(|e| werr(path, e))?;
+        let extra = match calib {
+            Some(_) => crate::calib::header_suffix(crate::calib::Calibration::point_columns()),
+            None => String::new(),
+        };
+        writeln!(file, "{TRACKS_HEADER}{extra}").map_err(|e| werr(path, e))?;
         Ok(TracksCsvWriter {
             file,
             line: Vec::with_capacity(BLOCK_CAPACITY),
             t_text: TimeTextCache::new(),
+            calib,
         })
     }
     pub fn write(&mut self, tracks: &[Track]) -> Result<()> {
         for t in tracks {
             for p in &t.points {
-                if self.push_row(t.id, p) {
+                if self.calib.is_none() && self.push_row(t.id, p) {
                     continue;
                 }
                 push_int(&mut self.line, t.id as i64);
@@ -217,6 +233,9 @@ impl TracksCsvWriter {
                 push_fixed(&mut self.line, p.u, 3);
                 self.line.push(b',');
                 push_fixed(&mut self.line, p.v, 3);
+                if let Some(c) = &self.calib {
+                    crate::calib::push_values(&mut self.line, &c.point_values(p.x, p.y, p.u, p.v));
+                }
                 self.line.push(b'\n');
             }
             write_block(&mut self.file, &mut self.line, WRITE_BLOCK)?;

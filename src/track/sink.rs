@@ -96,6 +96,17 @@ pub fn track_to_dir(
     if let Some(p) = config.run.hot_pixels.take() {
         config.cluster.hot_pixels.extend(read_hot_pixels(&p)?);
     }
+    // The calibration and the mask (the image of run.mask joined with the
+    // calibration file's polygons or image): masked events are ignored,
+    // masked regions never stitched across.
+    let (calib, mask) = crate::calib::load(
+        config.run.calibration.as_deref(),
+        config.run.mask.as_deref(),
+    )?;
+    if let Some(m) = &mask {
+        config.cluster.mask = Some(m.clone());
+        config.track.mask = Some(m.clone());
+    }
     // Without the ghost test there is no flow to check new chains against.
     if config.track.init.ghost_check_length == 0 {
         config.track.init.ghost_check_init = false;
@@ -118,7 +129,15 @@ pub fn track_to_dir(
     // Written with the other outputs, once tracking succeeded.
     let params_toml = config.to_toml()?;
     let write_params = || AtomicFile::write_all_to(out.join("params.toml"), params_toml.as_bytes());
-    let mut sink = FileSink::create(out, &run)?;
+    let mut sink = FileSink::create_calibrated(out, &run, calib)?;
+    // The run's mask travels with its tracks (`ebptv grid` reads it).
+    let write_params = || -> Result<()> {
+        write_params()?;
+        match &mask {
+            Some(m) => m.write_png(&out.join("mask.png")),
+            None => Ok(()),
+        }
+    };
 
     if is_particles_csv(input) {
         on_progress(TrackProgress::Stage {
@@ -167,6 +186,18 @@ pub fn track_to_dir(
         }
         src.info().geometry
     };
+    if let (Some(p), Some(g)) = (&run.mask, geometry) {
+        let (w, h) = crate::calib::PixelMask::from_png(p)?.size();
+        if (w, h) != (g.width as u32, g.height as u32) {
+            return Err(Error::Config {
+                path: p.clone(),
+                why: format!(
+                    "mask of {w} x {h} pixels, the sensor has {} x {}",
+                    g.width, g.height
+                ),
+            });
+        }
+    }
     // The recording is read twice: pulse timing, then tracking.
     let passes = std::sync::atomic::AtomicUsize::new(0);
     let open = || -> Result<Box<dyn EventSource + '_>> {
@@ -316,10 +347,15 @@ struct Writer {
 }
 
 impl Writer {
-    fn create(out: &Path, npy: bool, plot_pulses: i64) -> Result<Self> {
+    fn create(
+        out: &Path,
+        npy: bool,
+        plot_pulses: i64,
+        calib: Option<crate::calib::Calibration>,
+    ) -> Result<Self> {
         Ok(Writer {
             particles_out: ParticlesCsvWriter::create(&out.join("particles.csv"))?,
-            tracks_out: TracksCsvWriter::create(&out.join("tracks.csv"))?,
+            tracks_out: TracksCsvWriter::create_calibrated(&out.join("tracks.csv"), calib)?,
             npy_out: npy
                 .then(|| TracksNpyWriter::create(&out.join("tracks.npy")))
                 .transpose()?,
@@ -454,7 +490,17 @@ impl FileSink {
     /// Starts the writer for the outputs in `out` (which must exist), with
     /// the `npy` and `plot_pulses` options of `run`.
     pub fn create(out: &Path, run: &RunParams) -> Result<Self> {
-        let writer = Writer::create(out, run.npy, run.plot_pulses)?;
+        Self::create_calibrated(out, run, None)
+    }
+
+    /// [`FileSink::create`] whose `tracks.csv` also has the physical
+    /// columns of `calib`.
+    pub fn create_calibrated(
+        out: &Path,
+        run: &RunParams,
+        calib: Option<crate::calib::Calibration>,
+    ) -> Result<Self> {
+        let writer = Writer::create(out, run.npy, run.plot_pulses, calib)?;
         let (tx, rx) = std::sync::mpsc::sync_channel(128);
         let handle = std::thread::Builder::new()
             .name("ebptv-track-writer".into())
