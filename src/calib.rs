@@ -289,7 +289,8 @@ pub fn format_value(v: f64) -> String {
         return "nan".into();
     }
     let rounded: f64 = format!("{v:.6e}").parse().unwrap_or(v);
-    format!("{rounded}")
+    // + 0.0: a flipped zero is written `0`, not `-0`.
+    format!("{}", rounded + 0.0)
 }
 
 /// Appends `,v` for each value ([`format_value`]).
