@@ -27,6 +27,11 @@ pub struct CompareArgs {
 }
 
 pub fn run(a: CompareArgs) -> anyhow::Result<()> {
+    let calib = a
+        .calibration
+        .as_deref()
+        .map(ebptv::calib::Calibration::from_file)
+        .transpose()?;
     let ptv = read_table(&a.ptv, &["x", "y", "count", "u", "v", "uu", "vv", "uv"])?;
     let piv = read_table(&a.piv, &["x", "y", "u", "v", "uu", "vv", "uv", "valid"])?;
     let c = compare(&ptv, &piv, a.min_count)?;
@@ -41,11 +46,6 @@ pub fn run(a: CompareArgs) -> anyhow::Result<()> {
     for (q, s) in &c.quantities {
         json[q] = serde_json::to_value(s)?;
     }
-    let calib = a
-        .calibration
-        .as_deref()
-        .map(ebptv::calib::Calibration::from_file)
-        .transpose()?;
     // Factor of a quantity from px/s or (px/s)² to m/s or m²/s² (signed:
     // v and uv change sign with an upward y axis).
     let factor = |q: &str| -> f64 {

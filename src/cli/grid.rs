@@ -183,6 +183,20 @@ pub fn run(a: GridArgs) -> anyhow::Result<()> {
         noise_rms: a.noise_rms,
     };
     opt.validate()?;
+    // The mask: --mask, else the tracking run's mask.png beside the tracks.
+    let run_mask = a
+        .tracks
+        .as_ref()
+        .and_then(|t| t.parent())
+        .map(|d| d.join("mask.png"))
+        .filter(|p| a.mask.is_none() && p.is_file());
+    if let Some(p) = &run_mask {
+        eprintln!("grid: masked by {}", p.display());
+    }
+    let (calib, mask) = ebptv::calib::load(
+        a.calibration.as_deref(),
+        a.mask.as_deref().or(run_mask.as_deref()),
+    )?;
     ebptv::io::atomic::create_output_dir(&a.out)?;
 
     let mut samples: Vec<Sample> = Vec::new();
@@ -228,20 +242,6 @@ pub fn run(a: GridArgs) -> anyhow::Result<()> {
         acc
     };
 
-    // The mask: --mask, else the tracking run's mask.png beside the tracks.
-    let run_mask = a
-        .tracks
-        .as_ref()
-        .and_then(|t| t.parent())
-        .map(|d| d.join("mask.png"))
-        .filter(|p| a.mask.is_none() && p.is_file());
-    if let Some(p) = &run_mask {
-        eprintln!("grid: masked by {}", p.display());
-    }
-    let (calib, mask) = ebptv::calib::load(
-        a.calibration.as_deref(),
-        a.mask.as_deref().or(run_mask.as_deref()),
-    )?;
     let mut g = estimate(&acc, &opt)?;
     let masked_bins = mask.as_ref().map(|m| g.apply_mask(m));
     gio::save_state(&a.out.join("grid_state.json"), &acc)?;

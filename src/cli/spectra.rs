@@ -122,13 +122,13 @@ pub fn run(a: SpectraArgs) -> anyhow::Result<()> {
         moving_average: a.moving_average,
         min_count: a.min_count,
     };
-    ebptv::io::atomic::create_output_dir(&a.out)?;
-    let samples = read_tracks_csv(&a.tracks)?;
     let calib = a
         .calibration
         .as_deref()
         .map(ebptv::calib::Calibration::from_file)
         .transpose()?;
+    ebptv::io::atomic::create_output_dir(&a.out)?;
+    let samples = read_tracks_csv(&a.tracks)?;
     // (px/s)² → (m/s)².
     let k2 = calib
         .as_ref()

@@ -320,3 +320,62 @@ fn the_automatic_mask_finds_the_hot_pixels() {
     }
     assert!(m.count() <= hot.len() + 5, "{} pixels masked", m.count());
 }
+
+/// A bad calibration or mask stops a command before it writes anything,
+/// with an error naming the file and the key.
+#[test]
+fn bad_calibration_files_are_named_with_their_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let tracks = d.join("tracks.csv");
+    std::fs::write(
+        &tracks,
+        "track_id,pulse,t_us,x,y,u,v\n0,0,0,1,1,10,0\n0,1,200,3,1,10,0\n",
+    )
+    .unwrap();
+    let png = d.join("not_a.png");
+    std::fs::write(&png, "just text").unwrap();
+    for (name, text, want) in [
+        ("neg.toml", "px_per_mm = -3\n", "px_per_mm"),
+        ("typo.toml", "px_per_mm = 3\norigin = [1, 2]\n", "origin"),
+        ("none.toml", "y_axis = \"up\"\n", "px_per_mm"),
+        (
+            "same.toml",
+            "[reference]\na_px = [5, 5]\nb_px = [5, 5]\ndistance_mm = 2\n",
+            "reference.a_px",
+        ),
+        (
+            "img.toml",
+            "px_per_mm = 3\n[mask]\nimage = \"not_a.png\"\n",
+            "mask.image",
+        ),
+    ] {
+        let c = d.join(name);
+        std::fs::write(&c, text).unwrap();
+        let out = d.join(format!("out_{name}"));
+        let o = Command::new(env!("CARGO_BIN_EXE_ebptv"))
+            .args(["grid", tracks.to_str().unwrap(), "--calibration"])
+            .arg(&c)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "{name}");
+        assert!(err.contains(name) && err.contains(want), "{name}: {err}");
+        assert!(!out.join("grid.csv").exists(), "{name}");
+    }
+    let o = Command::new(env!("CARGO_BIN_EXE_ebptv"))
+        .args(["grid", tracks.to_str().unwrap(), "--mask"])
+        .arg(&png)
+        .arg("--out")
+        .arg(d.join("out_png"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("not_a.png") && err.contains("PNG"),
+        "{err}"
+    );
+    assert!(!d.join("out_png/grid.csv").exists());
+}
