@@ -344,6 +344,8 @@ struct Writer {
     plot_speeds: Vec<f64>,
     width: f64,
     height: f64,
+    /// px/s → m/s for the figure's colour scale, when calibrated.
+    speed_to_m_s: Option<f64>,
 }
 
 impl Writer {
@@ -353,7 +355,9 @@ impl Writer {
         plot_pulses: i64,
         calib: Option<crate::calib::Calibration>,
     ) -> Result<Self> {
+        let speed_to_m_s = calib.as_ref().map(|c| c.velocity_px_s_to_m_s(1.0, 0.0).0);
         Ok(Writer {
+            speed_to_m_s,
             particles_out: ParticlesCsvWriter::create(&out.join("particles.csv"))?,
             tracks_out: TracksCsvWriter::create_calibrated(&out.join("tracks.csv"), calib)?,
             npy_out: npy
@@ -430,8 +434,13 @@ impl Writer {
             plot_speeds,
             width: seen_width,
             height: seen_height,
+            speed_to_m_s,
             ..
         } = self;
+        let (plot_speeds, speed_label) = match speed_to_m_s {
+            Some(k) => (plot_speeds.iter().map(|v| v * k).collect(), "speed (m/s)"),
+            None => (plot_speeds, "speed (px/s)"),
+        };
         let (width, height) = size.unwrap_or((seen_width.max(1.0), seen_height.max(1.0)));
         std::thread::scope(|scope| -> Result<()> {
             let particles = scope.spawn(move || particles_out.finish());
@@ -450,7 +459,7 @@ impl Writer {
                         height,
                         lines: &plot_lines,
                         values: &plot_speeds,
-                        colorbar_label: "speed (px/s)",
+                        colorbar_label: speed_label,
                     },
                 )
             });
