@@ -58,7 +58,13 @@ fn main() {
     let tracks = read_tracks(&find(dir, "tracks")).unwrap();
     let rows: Vec<TrackRow> = tracks
         .iter()
-        .flat_map(|t| t.points.iter().map(|&p| TrackRow { id: t.id, p }))
+        .flat_map(|t| {
+            t.points.iter().map(|&p| TrackRow {
+                id: t.id,
+                p,
+                phys: [f64::NAN; 4],
+            })
+        })
         .collect();
     measure("tracks", &rows, &TRACK_COLUMNS, out.path());
     let particles = read_particles(&find(dir, "particles")).unwrap();

@@ -80,6 +80,11 @@ pub struct ClusterParams {
     /// Pixels whose events are ignored, as `(x, y)` (written sorted).
     #[serde(serialize_with = "sorted_pixels")]
     pub hot_pixels: HashSet<(u16, u16)>,
+    /// Regions that are not flow, whose events are ignored like those of
+    /// hot pixels (`ebptv track --mask`, `run.mask`; not part of the
+    /// `[cluster]` table).
+    #[serde(skip)]
+    pub mask: Option<std::sync::Arc<crate::calib::PixelMask>>,
     /// Clusters spanning at least this many pixels along x or y are split
     /// in two along their principal axis ([`split_wide_clusters`]); 0 = never.
     /// One particle image of 1–1.5 px puts its 1–4 events on at most 2
@@ -129,6 +134,7 @@ impl Default for ClusterParams {
             min_events: 1,
             max_events: 64,
             hot_pixels: HashSet::new(),
+            mask: None,
             split_extent: default_split_extent(),
             neighbour_search: NeighbourSearch::default(),
         }
@@ -257,6 +263,11 @@ fn selected_events(
         if use_mask && params.hot_pixels.contains(&(ev.x[i], ev.y[i])) {
             continue;
         }
+        if let Some(m) = &params.mask {
+            if m.is_masked_px(ev.x[i] as u32, ev.y[i] as u32) {
+                continue;
+            }
+        }
         let (x, y) = (ev.x[i] as u32, ev.y[i] as u32);
         x_lo = x_lo.min(x);
         x_hi = x_hi.max(x);
@@ -330,6 +341,11 @@ pub(crate) fn pulse_pixels_reference(
         }
         if use_mask && params.hot_pixels.contains(&(ev.x[i], ev.y[i])) {
             continue;
+        }
+        if let Some(m) = &params.mask {
+            if m.is_masked_px(ev.x[i] as u32, ev.y[i] as u32) {
+                continue;
+            }
         }
         keyed.push((((ev.y[i] as u32) << 16) | ev.x[i] as u32, ev.t[i]));
     }

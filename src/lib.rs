@@ -77,6 +77,7 @@ pub use ebptv_io as io;
 pub use ebptv_io::{error, events};
 pub use ebptv_sim as sim;
 
+pub mod calib;
 pub mod cluster;
 pub mod compare;
 pub mod evaluate;

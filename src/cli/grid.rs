@@ -100,6 +100,16 @@ pub struct GridArgs {
     /// Skip the PNG maps.
     #[arg(long)]
     pub no_plots: bool,
+    /// A `calib.toml`: grid.csv gains `X_mm,Y_mm,U_m_s,V_m_s,uu_m2_s2,
+    /// vv_m2_s2,uv_m2_s2` after the pixel columns, the maps are in m/s,
+    /// and its [mask] applies as --mask does.
+    #[arg(long)]
+    pub calibration: Option<PathBuf>,
+    /// Mask image (PNG, non-zero = not flow): bins more than half masked
+    /// are empty (NaN). Without it, the `mask.png` that `ebptv track
+    /// --mask` left beside the tracks file is used.
+    #[arg(long)]
+    pub mask: Option<PathBuf>,
 }
 
 pub fn parse_pair(s: &str) -> std::result::Result<(f64, f64), String> {
@@ -174,6 +184,20 @@ pub fn run(a: GridArgs) -> anyhow::Result<()> {
         noise_rms: a.noise_rms,
     };
     opt.validate()?;
+    // The mask: --mask, else the tracking run's mask.png beside the tracks.
+    let run_mask = a
+        .tracks
+        .as_ref()
+        .and_then(|t| t.parent())
+        .map(|d| d.join("mask.png"))
+        .filter(|p| a.mask.is_none() && p.is_file());
+    if let Some(p) = &run_mask {
+        eprintln!("grid: masked by {}", p.display());
+    }
+    let (calib, mask) = ebptv::calib::load(
+        a.calibration.as_deref(),
+        a.mask.as_deref().or(run_mask.as_deref()),
+    )?;
     ebptv::io::atomic::create_output_dir(&a.out)?;
 
     let mut samples: Vec<Sample> = Vec::new();
@@ -215,13 +239,14 @@ pub fn run(a: GridArgs) -> anyhow::Result<()> {
         acc
     };
 
-    let g = estimate(&acc, &opt)?;
+    let mut g = estimate(&acc, &opt)?;
+    let masked_bins = mask.as_ref().map(|m| g.apply_mask(m));
     gio::save_state(&a.out.join("grid_state.json"), &acc)?;
-    gio::write_grid_csv(&a.out.join("grid.csv"), &g)?;
+    gio::write_grid_csv_calibrated(&a.out.join("grid.csv"), &g, calib.as_ref())?;
     gio::write_extra_csv(&a.out.join("grid_extra.csv"), &g)?;
     gio::write_grid_npy(&a.out, &g)?;
     if !a.no_plots {
-        gio::write_maps(&a.out, &g)?;
+        gio::write_maps_calibrated(&a.out, &g, calib.as_ref())?;
     }
 
     let valid = g.bins.iter().filter(|b| b.u.is_finite()).count();
@@ -239,6 +264,12 @@ pub fn run(a: GridArgs) -> anyhow::Result<()> {
         "binned_samples": acc.total_count(), "rejected_samples": acc.rejected, "max_mean_speed": max_speed,
     });
 
+    if let Some(n) = masked_bins {
+        summary["masked_bins"] = json!(n);
+    }
+    if let Some(c) = &calib {
+        summary["px_per_mm"] = json!(c.px_per_mm);
+    }
     // Per-sample velocity noise (pairs of samples at one pulse) and the
     // dynamic velocity range; needs the samples, so not after a merge.
     if !samples.is_empty() {
@@ -266,7 +297,8 @@ pub fn run(a: GridArgs) -> anyhow::Result<()> {
             Some(side) => {
                 let scale = a
                     .px_per_mm
-                    .context("--wall needs --px-per-mm for wall units")?;
+                    .or(calib.as_ref().map(|c| c.px_per_mm))
+                    .context("--wall needs --px-per-mm (or --calibration) for wall units")?;
                 let side = if side == SideArg::Top {
                     WallSide::Top
                 } else {
@@ -295,7 +327,9 @@ pub fn run(a: GridArgs) -> anyhow::Result<()> {
                 "{},{},{},{},{},{},{}",
                 p.y, p.count, p.u, p.v, p.uu, p.vv, p.uv
             ));
-            if let (Some(w), Some(scale)) = (&wall, a.px_per_mm) {
+            if let (Some(w), Some(scale)) =
+                (&wall, a.px_per_mm.or(calib.as_ref().map(|c| c.px_per_mm)))
+            {
                 let (yp, up, uup) = w.inner(p, scale);
                 s.push_str(&format!(",{yp},{up},{uup}"));
             }

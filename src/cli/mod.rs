@@ -59,7 +59,7 @@ pub enum Command {
     Simulate(simulate::SimulateArgs),
     /// Pulse timing (triggers or estimated), latency and saturation diagnostics → pulses.json + figures.
     #[command(
-        after_help = "Use it to check the laser timing of a recording (trigger words or the pulse rate estimated from the events): the tracker relies on it.\n\nExamples:\n  ebptv pulses recording.raw --out pulses\n  ebptv pulses recording.raw --pulse-hz 5000 --ignore-triggers --out pulses"
+        after_help = "Use it to check the laser timing of a recording (trigger words or the pulse rate estimated from the events): the tracker relies on it.\n\nExamples:\n  ebptv pulses recording.raw --out pulses\n  ebptv pulses recording.raw --pulse-hz 5000 --ignore-triggers --out pulses\n  ebptv pulses recording.raw --write-mask mask.png --out pulses"
     )]
     Pulses(pulses::PulsesArgs),
     /// Live pulse diagnostics of a recording being written (--follow; Ctrl-C stops).
@@ -70,12 +70,12 @@ pub enum Command {
     /// Particle tracking: a recording (or a particles table) → particles and
     /// tracks tables (Parquet), summary.json, tracks.png.
     #[command(
-        after_help = "The main measurement: run it on a recording after `ebptv info` and `ebptv pulses`, then bin the tracks with `ebptv grid`. Its tables are Parquet; `ebptv --table-format csv track …` writes CSV instead (npy: NumPy arrays).\n\nExamples:\n  ebptv track recording.raw --out run1\n  ebptv track recording.raw --pulse-hz 5000 --max-disp 12 --out run1\n  ebptv track recording.raw --params run1/params.toml --out run2"
+        after_help = "The main measurement: run it on a recording after `ebptv info` and `ebptv pulses`, then bin the tracks with `ebptv grid`. Its tables are Parquet; `ebptv --table-format csv track …` writes CSV instead (npy: NumPy arrays).\n\nExamples:\n  ebptv track recording.raw --out run1\n  ebptv track recording.raw --pulse-hz 5000 --max-disp 12 --out run1\n  ebptv track recording.raw --params run1/params.toml --out run2\n  ebptv track recording.raw --calibration calib.toml --mask mask.png --out run1"
     )]
     Track(track::TrackArgs),
     /// Bin tracks onto an Eulerian grid (means, stresses, errors), or merge grid states.
     #[command(
-        after_help = "Use it on the tracks of `ebptv track` for mean velocity, Reynolds stresses and their errors on a regular grid.\n\nExamples:\n  ebptv grid run1/tracks.parquet --bin 16 --out run1/grid\n  ebptv grid --merge run1/grid run2/grid --out all"
+        after_help = "Use it on the tracks of `ebptv track` for mean velocity, Reynolds stresses and their errors on a regular grid.\n\nExamples:\n  ebptv grid run1/tracks.parquet --bin 16 --out run1/grid\n  ebptv grid --merge run1/grid run2/grid --out all\n  ebptv grid run1/tracks.parquet --calibration calib.toml --out run1/grid"
     )]
     Grid(grid::GridArgs),
     /// Velocity spectra at points or along a line from tracks (Welch PSD, peak, noise floor).

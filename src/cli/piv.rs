@@ -3,7 +3,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
 use clap::Args;
-use ebptv::piv::output::{write_mean_csv, NpyStack};
+use ebptv::piv::output::{write_mean_csv_calibrated, NpyStack};
 use ebptv::piv::{PivOptions, PivStream, PixelMode, PseudoOptions, StreamOptions};
 use ebptv::plot::{heatmap, Heatmap};
 use ebptv::pulses::{analyze, split_pulses, PulseOptions};
@@ -81,6 +81,16 @@ pub struct PivArgs {
     /// `ebptv pulses`).
     #[arg(long)]
     pub force_pulses: bool,
+    /// A `calib.toml`: piv_mean.csv gains `X_mm,Y_mm,U_m_s,V_m_s,uu_m2_s2,
+    /// vv_m2_s2,uv_m2_s2` after the pixel columns, the maps are in m/s,
+    /// and its [mask] applies as --mask does.
+    #[arg(long)]
+    pub calibration: Option<PathBuf>,
+    /// Mask image (PNG of the sensor's size, non-zero = not flow): masked
+    /// pixels carry no signal and windows more than half masked give no
+    /// vector (NaN, flag 4).
+    #[arg(long)]
+    pub mask: Option<PathBuf>,
     /// Output folder: piv_mean.csv, piv_steps.csv and the per-step fields
     /// piv_u.npy, piv_v.npy, piv_flag.npy.
     #[arg(long)]
@@ -105,7 +115,27 @@ pub fn run(a: PivArgs) -> anyhow::Result<()> {
             ..Default::default()
         },
     )?;
-    let piv = a.correlation.options();
+    let (calib, mask) = ebptv::calib::load(a.calibration.as_deref(), a.mask.as_deref())?;
+    let mut piv = a.correlation.options();
+    if let Some(m) = &mask {
+        if let Some(p) = &a.mask {
+            let (mw, mh) = ebptv::calib::PixelMask::from_png(p)?.size();
+            anyhow::ensure!(
+                (mw, mh) == (geom.width as u32, geom.height as u32),
+                "{}: mask of {mw} x {mh} pixels, the sensor has {} x {}",
+                p.display(),
+                geom.width,
+                geom.height
+            );
+        }
+        let (w, h) = (geom.width as u32, geom.height as u32);
+        piv.mask = Some(
+            (0..h)
+                .flat_map(|y| (0..w).map(move |x| (x, y)))
+                .map(|(x, y)| m.is_masked_px(x, y))
+                .collect(),
+        );
+    }
     let opts = StreamOptions {
         piv,
         pseudo: PseudoOptions {
@@ -169,18 +199,27 @@ pub fn run(a: PivArgs) -> anyhow::Result<()> {
     }
     ebptv::io::atomic::AtomicFile::write_all_to(a.out.join("piv_steps.csv"), t.as_bytes())?;
     let rows = stream.stats.rows();
-    write_mean_csv(&a.out.join("piv_mean.csv"), &rows)?;
+    write_mean_csv_calibrated(&a.out.join("piv_mean.csv"), &rows, calib.as_ref())?;
     let xr = (g.x(0), g.x(g.nx - 1));
     let yr = (g.y(0), g.y(g.ny - 1));
+    // With a calibration the maps are in m/s (and m²/s²).
+    let phys = |r: &ebptv::piv::MeanRow| match &calib {
+        Some(c) => {
+            let (u, v) = c.velocity_px_s_to_m_s(r.u, r.v);
+            let (uu, _, _) = c.stress_px2_s2_to_m2_s2(r.uu, r.vv, r.uv);
+            (u, v, uu)
+        }
+        None => (r.u, r.v, r.uu),
+    };
+    let (lu, lv, luu) = if calib.is_some() {
+        ("u (m/s)", "v (m/s)", "u'u' ((m/s)^2)")
+    } else {
+        ("u (px/s)", "v (px/s)", "u'u' ((px/s)^2)")
+    };
     let maps: [(&str, &str, bool, Vec<f64>); 4] = [
-        ("u", "u (px/s)", true, rows.iter().map(|r| r.u).collect()),
-        ("v", "v (px/s)", true, rows.iter().map(|r| r.v).collect()),
-        (
-            "uu",
-            "u'u' ((px/s)^2)",
-            false,
-            rows.iter().map(|r| r.uu).collect(),
-        ),
+        ("u", lu, true, rows.iter().map(|r| phys(r).0).collect()),
+        ("v", lv, true, rows.iter().map(|r| phys(r).1).collect()),
+        ("uu", luu, false, rows.iter().map(|r| phys(r).2).collect()),
         (
             "valid",
             "valid fraction",
@@ -202,6 +241,13 @@ pub fn run(a: PivArgs) -> anyhow::Result<()> {
                 diverging: *div,
             },
         )?;
+    }
+    if mask.is_some() {
+        let masked = rows
+            .iter()
+            .filter(|r| r.valid == 0.0 && r.u.is_nan())
+            .count();
+        eprintln!("{masked} of {} nodes masked or without a vector", g.len());
     }
     eprintln!("{} PIV fields, {} nodes each", times.len(), g.len());
     Ok(())

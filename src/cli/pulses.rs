@@ -37,6 +37,12 @@ pub struct PulsesArgs {
     /// Output directory.
     #[arg(long)]
     pub out: PathBuf,
+    /// Also write a mask of the static pixels (PNG, 255 = masked; a second
+    /// pass over the file): pixels with events in more than half of the
+    /// pulses (walls, model edges, reflections lit by every pulse) and the
+    /// hot pixels. Pass it to `ebptv track --mask`.
+    #[arg(long)]
+    pub write_mask: Option<PathBuf>,
 }
 
 pub fn parse_range(s: &str) -> Result<(f64, f64), String> {
@@ -115,6 +121,17 @@ pub fn run(args: PulsesArgs) -> anyhow::Result<()> {
         );
     }
     ebptv::io::atomic::create_output_dir(&args.out)?;
+    if let Some(path) = &args.write_mask {
+        anyhow::ensure!(
+            args.file.as_os_str() != "-",
+            "--write-mask reads the recording twice: give a file, not stdin"
+        );
+        let mut again = ebptv::io::open(&args.file)?;
+        let opts = ebptv::pulses::static_mask::StaticMaskOptions::default();
+        let mask = ebptv::pulses::static_mask::static_mask(&mut *again, &report, &opts)?;
+        mask.write_png(path)?;
+        eprintln!("mask: {} static pixels → {}", mask.count(), path.display());
+    }
     write_outputs(&report, &args.out)?;
     print_summary(&report);
     Ok(())

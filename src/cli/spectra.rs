@@ -69,6 +69,11 @@ pub struct SpectraArgs {
     /// Minimum samples per bin for the maximum mean speed.
     #[arg(long, default_value_t = 10)]
     pub min_count: u64,
+    /// A `calib.toml`: spectra.csv gains `psd_u_K_m2_s,psd_v_K_m2_s`
+    /// ((m/s)²/Hz) after the pixel columns, spectrum.json the points in mm
+    /// and m/s, and the spectra figures are in (m/s)²/Hz.
+    #[arg(long)]
+    pub calibration: Option<PathBuf>,
     /// Write the CSV and JSON outputs only, no PNG figures.
     #[arg(long)]
     pub no_plots: bool,
@@ -118,8 +123,17 @@ pub fn run(a: SpectraArgs) -> anyhow::Result<()> {
         moving_average: a.moving_average,
         min_count: a.min_count,
     };
+    let calib = a
+        .calibration
+        .as_deref()
+        .map(ebptv::calib::Calibration::from_file)
+        .transpose()?;
     ebptv::io::atomic::create_output_dir(&a.out)?;
     let samples = read_track_samples(&a.tracks)?;
+    // (px/s)² → (m/s)².
+    let k2 = calib
+        .as_ref()
+        .map_or(1.0, |c| c.velocity_px_s_to_m_s(1.0, 0.0).0.powi(2));
 
     let mut summary = json!({});
     if !a.point.is_empty() {
@@ -134,15 +148,39 @@ pub fn run(a: SpectraArgs) -> anyhow::Result<()> {
             "noise_rms": r.noise_rms, "max_speed": r.max_speed, "dynamic_range": r.dynamic_range,
             "points": r.points.iter().map(point_json).collect::<Vec<_>>(),
         });
+        if let Some(c) = &calib {
+            summary["px_per_mm"] = json!(c.px_per_mm);
+            for (j, p) in r.points.iter().enumerate() {
+                let (xm, ym) = c.px_to_mm(p.bin_x, p.bin_y);
+                let (um, vm) = c.velocity_px_s_to_m_s(p.mean_u, p.mean_v);
+                let pj = &mut summary["points"][j];
+                pj["bin_X_mm"] = json!(xm);
+                pj["bin_Y_mm"] = json!(ym);
+                pj["mean_U_m_s"] = json!(um);
+                pj["mean_V_m_s"] = json!(vm);
+                pj["rms_u_m_s"] = json!(p.rms_u * k2.sqrt());
+                pj["rms_v_m_s"] = json!(p.rms_v * k2.sqrt());
+            }
+        }
         let mut s = String::from("f_hz");
         for k in 0..r.points.len() {
             s.push_str(&format!(",psd_u_{k},psd_v_{k}"));
+        }
+        if calib.is_some() {
+            for k in 0..r.points.len() {
+                s.push_str(&format!(",psd_u_{k}_m2_s,psd_v_{k}_m2_s"));
+            }
         }
         s.push('\n');
         for i in 0..first.psd_u.f_hz.len() {
             s.push_str(&format!("{}", first.psd_u.f_hz[i]));
             for p in &r.points {
                 s.push_str(&format!(",{},{}", p.psd_u.psd[i], p.psd_v.psd[i]));
+            }
+            if calib.is_some() {
+                for p in &r.points {
+                    s.push_str(&format!(",{},{}", p.psd_u.psd[i] * k2, p.psd_v.psd[i] * k2));
+                }
             }
             s.push('\n');
         }
@@ -168,21 +206,27 @@ pub fn run(a: SpectraArgs) -> anyhow::Result<()> {
                         )
                     })
                     .unwrap_or_default();
+                let psd_u: Vec<f64> = p.psd_u.psd[1..].iter().map(|v| v * k2).collect();
+                let psd_v: Vec<f64> = p.psd_v.psd[1..].iter().map(|v| v * k2).collect();
                 let plot = LinePlot {
                     title: &title,
                     x_label: "f (Hz)",
-                    y_label: "PSD ((px/s)^2/Hz)",
+                    y_label: if calib.is_some() {
+                        "PSD ((m/s)^2/Hz)"
+                    } else {
+                        "PSD ((px/s)^2/Hz)"
+                    },
                     series: vec![
                         Series {
                             label: "u",
                             x: f,
-                            y: &p.psd_u.psd[1..],
+                            y: &psd_u,
                             style: SeriesStyle::Line,
                         },
                         Series {
                             label: "v",
                             x: f,
-                            y: &p.psd_v.psd[1..],
+                            y: &psd_v,
                             style: SeriesStyle::Line,
                         },
                     ],

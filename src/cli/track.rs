@@ -53,12 +53,16 @@ pub struct TrackArgs {
     /// `ebptv pulses`).
     #[arg(long)]
     pub force_pulses: bool,
-    /// Use OFF events too (default: ON events only).
+    /// A `calib.toml` (scale, origin, y axis, optional [mask]):
+    /// tracks.csv gains `X_mm,Y_mm,U_m_s,V_m_s` after the pixel columns.
     #[arg(long)]
-    pub all_polarities: bool,
-    /// File of pixels to ignore (hot or stuck pixels), one `x,y` per line.
+    pub calibration: Option<PathBuf>,
+    /// Pixels that are not flow: a PNG of the sensor's size (non-zero =
+    /// masked; walls, models, reflections: no track is stitched across
+    /// them) or a list of hot pixels, one `x,y` per line. Their events are
+    /// ignored. (OFF events too: `[cluster] on_only = false` in --params.)
     #[arg(long)]
-    pub hot_pixels: Option<PathBuf>,
+    pub mask: Option<PathBuf>,
     /// Also bin the tracks onto a grid in one go, into OUT/grid: the options
     /// of `ebptv grid` as one string, e.g. --grid "--bin 16 --fit linear"
     /// (an empty string takes grid's defaults).
@@ -128,13 +132,26 @@ fn config_of(args: &TrackArgs) -> anyhow::Result<TrackConfig> {
     }
     c.run.ignore_triggers |= args.ignore_triggers;
     c.run.force_pulses |= args.force_pulses;
-    if args.all_polarities {
-        c.cluster.on_only = false;
+    if args.calibration.is_some() {
+        c.run.calibration = args.calibration.clone();
     }
-    if args.hot_pixels.is_some() {
-        c.run.hot_pixels = args.hot_pixels.clone();
+    if let Some(m) = &args.mask {
+        if is_png(m)? {
+            c.run.mask = Some(m.clone());
+        } else {
+            c.run.hot_pixels = Some(m.clone());
+        }
     }
     Ok(c)
+}
+
+/// Whether `path` starts with the PNG signature.
+fn is_png(path: &std::path::Path) -> anyhow::Result<bool> {
+    use std::io::Read;
+    let mut head = [0u8; 8];
+    let mut f = std::fs::File::open(path).map_err(|e| ebptv::Error::io(path, e))?;
+    let n = f.read(&mut head).map_err(|e| ebptv::Error::io(path, e))?;
+    Ok(n == 8 && head == *b"\x89PNG\r\n\x1a\n")
 }
 
 fn run_tracking(args: TrackArgs, config: &TrackConfig) -> anyhow::Result<()> {

@@ -160,6 +160,22 @@ impl GridStats {
     pub fn at(&self, ix: usize, iy: usize) -> &BinStats {
         &self.bins[iy * self.spec.nx + ix]
     }
+    /// Empties (NaN statistics, as a bin below `min_count`) every bin more
+    /// than half of whose pixels are masked: a wall is no flow, not a flow
+    /// at rest. Returns the number of bins emptied.
+    pub fn apply_mask(&mut self, mask: &crate::calib::PixelMask) -> usize {
+        let (hw, hh) = (self.spec.lattice.bin_w / 2.0, self.spec.lattice.bin_h / 2.0);
+        let nx = self.spec.nx;
+        let mut masked = 0;
+        for (k, b) in self.bins.iter_mut().enumerate() {
+            let (x, y) = (self.xs[k % nx], self.ys[k / nx]);
+            if mask.masked_fraction(x - hw, x + hw, y - hh, y + hh) > 0.5 {
+                *b = BinStats::empty(b.count, b.n_tracks);
+                masked += 1;
+            }
+        }
+        masked
+    }
     /// One quantity as a row-major map.
     pub fn map(&self, f: impl Fn(&BinStats) -> f64) -> Vec<f64> {
         self.bins.iter().map(f).collect()

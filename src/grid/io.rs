@@ -12,6 +12,7 @@ use serde::{Deserialize, Serialize};
 use super::accumulate::{BinAcc, GridAccumulator};
 use super::estimate::GridStats;
 use super::spec::GridSpec;
+use crate::calib::Calibration;
 use crate::error::{Error, Result};
 use crate::io::atomic::AtomicFile;
 
@@ -128,13 +129,28 @@ fn num(x: f64) -> String {
 /// `grid.csv`: exactly `x,y,count,u,v,uu,vv,uv` (px, px/s, (px/s)²), one
 /// row per bin, rows ordered by y then x; empty bins have `nan` statistics.
 pub fn write_grid_csv(path: &Path, g: &GridStats) -> Result<()> {
+    write_grid_csv_calibrated(path, g, None)
+}
+
+/// [`write_grid_csv`], with the physical columns of `calib` after the
+/// pixel ones when given ([`Calibration::field_columns`]:
+/// `X_mm,Y_mm,U_m_s,V_m_s,uu_m2_s2,vv_m2_s2,uv_m2_s2`).
+pub fn write_grid_csv_calibrated(
+    path: &Path,
+    g: &GridStats,
+    calib: Option<&Calibration>,
+) -> Result<()> {
     let mut f = AtomicFile::create(path)?;
-    let mut s = String::from("x,y,count,u,v,uu,vv,uv\n");
+    let mut s = String::from("x,y,count,u,v,uu,vv,uv");
+    if calib.is_some() {
+        s.push_str(&crate::calib::header_suffix(Calibration::field_columns()));
+    }
+    s.push('\n');
     for (iy, &y) in g.ys.iter().enumerate() {
         for (ix, &x) in g.xs.iter().enumerate() {
             let b = g.at(ix, iy);
             s.push_str(&format!(
-                "{},{},{},{},{},{},{},{}\n",
+                "{},{},{},{},{},{},{},{}",
                 x,
                 y,
                 b.count,
@@ -144,6 +160,14 @@ pub fn write_grid_csv(path: &Path, g: &GridStats) -> Result<()> {
                 num(b.vv),
                 num(b.uv)
             ));
+            if let Some(c) = calib {
+                let vals = c.field_values(x, y, b.u, b.v, b.uu, b.vv, b.uv);
+                for v in vals {
+                    s.push(',');
+                    s.push_str(&num(v));
+                }
+            }
+            s.push('\n');
         }
     }
     f.write_all(s.as_bytes()).map_err(|e| Error::io(path, e))?;
@@ -250,15 +274,38 @@ pub fn write_fields_npy(
 
 /// PNG maps of count, u, v, uu, vv, uv into `dir` (`map_<q>.png`).
 pub fn write_maps(dir: &Path, g: &GridStats) -> Result<()> {
+    write_maps_calibrated(dir, g, None)
+}
+
+/// [`write_maps`]; with `calib` the colour scales are in m/s and m²/s².
+pub fn write_maps_calibrated(dir: &Path, g: &GridStats, calib: Option<&Calibration>) -> Result<()> {
     let x_range = (g.xs[0], *g.xs.last().unwrap());
     let y_range = (g.ys[0], *g.ys.last().unwrap());
-    let maps: [(&str, &str, bool, Vec<f64>); 6] = [
-        ("count", "samples per bin", false, g.map(|b| b.count as f64)),
-        ("u", "u (px/s)", false, g.map(|b| b.u)),
-        ("v", "v (px/s)", true, g.map(|b| b.v)),
-        ("uu", "<u'u'> (px/s)^2", false, g.map(|b| b.uu)),
-        ("vv", "<v'v'> (px/s)^2", false, g.map(|b| b.vv)),
-        ("uv", "<u'v'> (px/s)^2", true, g.map(|b| b.uv)),
+    let (k1, k2, ky) = match calib {
+        Some(c) => {
+            let k = 1.0 / (c.px_per_mm * 1000.0);
+            let (_, sy) = c.velocity_px_s_to_m_s(0.0, 1.0);
+            (k, k * k, sy.signum())
+        }
+        None => (1.0, 1.0, 1.0),
+    };
+    let (lv, ls) = if calib.is_some() {
+        (" (m/s)", " (m/s)^2")
+    } else {
+        (" (px/s)", " (px/s)^2")
+    };
+    let maps: [(&str, String, bool, Vec<f64>); 6] = [
+        (
+            "count",
+            "samples per bin".into(),
+            false,
+            g.map(|b| b.count as f64),
+        ),
+        ("u", format!("u{lv}"), false, g.map(|b| b.u * k1)),
+        ("v", format!("v{lv}"), true, g.map(|b| b.v * k1 * ky)),
+        ("uu", format!("<u'u'>{ls}"), false, g.map(|b| b.uu * k2)),
+        ("vv", format!("<v'v'>{ls}"), false, g.map(|b| b.vv * k2)),
+        ("uv", format!("<u'v'>{ls}"), true, g.map(|b| b.uv * k2 * ky)),
     ];
     for (name, label, diverging, values) in maps.iter() {
         let title = format!("grid: {name}");

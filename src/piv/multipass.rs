@@ -905,12 +905,24 @@ pub fn piv_frames(frames: &[&Image], o: &PivOptions) -> Result<VectorField> {
             ),
         ));
     }
+    // A node is masked when more than half of its (final) window is:
+    // such a window holds too little flow for a vector.
     let masked: Vec<bool> = (0..grid.len())
         .map(|k| match &o.mask {
             Some(m) => {
-                let x = grid.x(k % grid.nx).round() as usize;
-                let y = grid.y(k / grid.nx).round() as usize;
-                m[y.min(height - 1) * width + x.min(width - 1)]
+                let (w, h) = (o.window_w as f64, o.window_h as f64);
+                let x0 = (grid.x(k % grid.nx) - (w - 1.0) / 2.0).round().max(0.0) as usize;
+                let y0 = (grid.y(k / grid.nx) - (h - 1.0) / 2.0).round().max(0.0) as usize;
+                let (x1, y1) = ((x0 + o.window_w).min(width), (y0 + o.window_h).min(height));
+                let n = (y0..y1)
+                    .map(|y| {
+                        m[y * width + x0..y * width + x1]
+                            .iter()
+                            .filter(|&&b| b)
+                            .count()
+                    })
+                    .sum::<usize>();
+                2 * n > o.window_w * o.window_h
             }
             None => false,
         })

@@ -25,11 +25,26 @@ fn fmt(v: f64) -> String {
 
 /// `piv_mean.csv`: `x,y,u,v,uu,vv,uv,valid` (px, px/s, (px/s)², fraction).
 pub fn write_mean_csv(path: &Path, rows: &[MeanRow]) -> Result<()> {
+    write_mean_csv_calibrated(path, rows, None)
+}
+
+/// [`write_mean_csv`], with the physical columns of `calib` after the
+/// pixel ones when given (`X_mm,Y_mm,U_m_s,V_m_s,uu_m2_s2,vv_m2_s2,
+/// uv_m2_s2`, [`crate::calib::Calibration::field_columns`]).
+pub fn write_mean_csv_calibrated(
+    path: &Path,
+    rows: &[MeanRow],
+    calib: Option<&crate::calib::Calibration>,
+) -> Result<()> {
     let mut f = AtomicFile::create(path)?;
     let io = |e| Error::io(path, e);
-    writeln!(f, "x,y,u,v,uu,vv,uv,valid").map_err(io)?;
+    let extra = match calib {
+        Some(_) => crate::calib::header_suffix(crate::calib::Calibration::field_columns()),
+        None => String::new(),
+    };
+    writeln!(f, "x,y,u,v,uu,vv,uv,valid{extra}").map_err(io)?;
     for r in rows {
-        writeln!(
+        write!(
             f,
             "{},{},{},{},{},{},{},{}",
             r.x,
@@ -42,6 +57,12 @@ pub fn write_mean_csv(path: &Path, rows: &[MeanRow]) -> Result<()> {
             r.valid
         )
         .map_err(io)?;
+        if let Some(c) = calib {
+            for v in c.field_values(r.x, r.y, r.u, r.v, r.uu, r.vv, r.uv) {
+                write!(f, ",{}", fmt(v)).map_err(io)?;
+            }
+        }
+        writeln!(f).map_err(io)?;
     }
     f.commit()
 }

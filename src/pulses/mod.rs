@@ -83,6 +83,7 @@ pub(crate) mod accum;
 pub mod diagnostics;
 pub mod live;
 pub mod monitor;
+pub mod static_mask;
 pub mod timing;
 
 use accum::{Accumulator, Block, Fold};

@@ -325,6 +325,13 @@ impl Tracker {
                 if (end.x - start.x).powi(2) + (end.y - start.y).powi(2) > reach * reach {
                     continue;
                 }
+                // Never across a region that is not flow (a wall, a model).
+                if p.mask
+                    .as_ref()
+                    .is_some_and(|m| m.crosses((end.x, end.y), (start.x, start.y)))
+                {
+                    continue;
+                }
                 let fwd = match fwd_at.iter().find(|e| e.0 == start.pulse) {
                     Some(e) => e.1,
                     None => {

@@ -44,6 +44,14 @@ pub struct RunParams {
     /// File of pixels to ignore, one `x,y` per line (added to
     /// `cluster.hot_pixels`).
     pub hot_pixels: Option<PathBuf>,
+    /// A `calib.toml` ([`crate::calib::Calibration`]): `tracks.csv` gains
+    /// the physical columns `X_mm,Y_mm,U_m_s,V_m_s` and its `[mask]`
+    /// applies as `mask` does.
+    pub calibration: Option<PathBuf>,
+    /// A mask image (PNG, non-zero = not flow, the sensor's size): its
+    /// events are ignored, no track is stitched across it, and it is
+    /// copied to `OUT/mask.png` for `ebptv grid`.
+    pub mask: Option<PathBuf>,
     /// Pulses shown in `tracks.png`, from the first pulse: a short window
     /// keeps single tracks visible at high seeding densities.
     pub plot_pulses: i64,
@@ -85,6 +93,8 @@ impl Default for RunParams {
             force_pulses: false,
             prior: None,
             hot_pixels: None,
+            calibration: None,
+            mask: None,
             plot_pulses: 20,
             table_format: crate::table::TableFormat::Parquet,
             npy: false,

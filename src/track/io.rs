@@ -39,6 +39,9 @@ pub static PARTICLE_COLUMNS: [Col<Particle>; 5] = [
 pub struct TrackRow {
     pub id: u64,
     pub p: TrackPoint,
+    /// `X_mm, Y_mm, U_m_s, V_m_s` when the run is calibrated (read only by
+    /// [`TRACK_COLUMNS_CALIBRATED`]).
+    pub phys: [f64; 4],
 }
 
 /// The columns of the `tracks` table in Parquet and `.npy` (the
@@ -51,6 +54,22 @@ pub static TRACK_COLUMNS: [Col<TrackRow>; 7] = [
     Col::f64("y", |r| r.p.y),
     Col::f64("u", |r| r.p.u),
     Col::f64("v", |r| r.p.v),
+];
+
+/// [`TRACK_COLUMNS`] followed by the physical columns of a calibrated run
+/// ([`crate::calib::Calibration::point_columns`]: mm, m/s).
+pub static TRACK_COLUMNS_CALIBRATED: [Col<TrackRow>; 11] = [
+    Col::i64("track_id", |r| r.id as i64),
+    Col::i64("pulse", |r| r.p.pulse),
+    Col::f64("t_us", |r| r.p.t_us),
+    Col::f64("x", |r| r.p.x),
+    Col::f64("y", |r| r.p.y),
+    Col::f64("u", |r| r.p.u),
+    Col::f64("v", |r| r.p.v),
+    Col::f64("X_mm", |r| r.phys[0]),
+    Col::f64("Y_mm", |r| r.phys[1]),
+    Col::f64("U_m_s", |r| r.phys[2]),
+    Col::f64("V_m_s", |r| r.phys[3]),
 ];
 
 /// Streaming writer of the `particles` table in any [`TableFormat`].
@@ -95,28 +114,47 @@ impl ParticlesWriter {
 /// Streaming writer of the `tracks` table in any [`TableFormat`].
 pub enum TracksWriter {
     Csv(TracksCsvWriter),
-    Table(TableWriter<TrackRow>),
+    Table(TableWriter<TrackRow>, Option<crate::calib::Calibration>),
 }
 
 impl TracksWriter {
     /// `dir/tracks.<ext>`.
     pub fn create(dir: &Path, format: TableFormat) -> Result<Self> {
+        Self::create_calibrated(dir, format, None)
+    }
+
+    /// `dir/tracks.<ext>`, whose rows end with the physical columns of
+    /// `calib` when one is given.
+    pub fn create_calibrated(
+        dir: &Path,
+        format: TableFormat,
+        calib: Option<crate::calib::Calibration>,
+    ) -> Result<Self> {
         let path = dir.join(format.file_name("tracks"));
+        let cols: &'static [Col<TrackRow>] = if calib.is_some() {
+            &TRACK_COLUMNS_CALIBRATED
+        } else {
+            &TRACK_COLUMNS
+        };
         Ok(match format {
-            TableFormat::Csv => TracksWriter::Csv(TracksCsvWriter::create(&path)?),
-            TableFormat::Parquet => {
-                TracksWriter::Table(TableWriter::parquet(&path, &TRACK_COLUMNS)?)
+            TableFormat::Csv => {
+                TracksWriter::Csv(TracksCsvWriter::create_calibrated(&path, calib)?)
             }
-            TableFormat::Npy => TracksWriter::Table(TableWriter::npy(&path, &TRACK_COLUMNS)?),
+            TableFormat::Parquet => TracksWriter::Table(TableWriter::parquet(&path, cols)?, calib),
+            TableFormat::Npy => TracksWriter::Table(TableWriter::npy(&path, cols)?, calib),
         })
     }
+
     pub fn write(&mut self, tracks: &[Track]) -> Result<()> {
         match self {
             TracksWriter::Csv(w) => w.write(tracks),
-            TracksWriter::Table(w) => {
+            TracksWriter::Table(w, calib) => {
                 for t in tracks {
                     for &p in &t.points {
-                        w.push(&TrackRow { id: t.id, p })?;
+                        let phys = calib
+                            .as_ref()
+                            .map_or([f64::NAN; 4], |c| c.point_values(p.x, p.y, p.u, p.v));
+                        w.push(&TrackRow { id: t.id, p, phys })?;
                     }
                 }
                 Ok(())
@@ -125,14 +163,14 @@ impl TracksWriter {
     }
     /// Records `key = value` in the file's metadata (Parquet only).
     pub fn add_metadata(&mut self, key: &str, value: &str) {
-        if let TracksWriter::Table(w) = self {
+        if let TracksWriter::Table(w, _) = self {
             w.add_metadata(key, value);
         }
     }
     pub fn finish(self) -> Result<()> {
         match self {
             TracksWriter::Csv(w) => w.finish(),
-            TracksWriter::Table(w) => w.finish(),
+            TracksWriter::Table(w, _) => w.finish(),
         }
     }
 }
@@ -242,6 +280,8 @@ pub struct TracksCsvWriter {
     file: AtomicFile,
     line: Vec<u8>,
     t_text: TimeTextCache,
+    /// Physical columns after the pixel ones, when calibrated.
+    calib: Option<crate::calib::Calibration>,
 }
 
 /// `t_us` as text (`{}`, the shortest round-trip form), cached per pulse:
@@ -306,18 +346,32 @@ impl TimeTextCache {
 
 impl TracksCsvWriter {
     pub fn create(path: &Path) -> Result<Self> {
+        Self::create_calibrated(path, None)
+    }
+
+    /// A writer whose rows end with the physical columns of `calib`
+    /// ([`crate::calib::Calibration::point_columns`]) when one is given.
+    pub fn create_calibrated(
+        path: &Path,
+        calib: Option<crate::calib::Calibration>,
+    ) -> Result<Self> {
         let mut file = AtomicFile::create(path)?;
-        writeln!(file, "{TRACKS_HEADER}").map_err(|e| werr(path, e))?;
+        let extra = match calib {
+            Some(_) => crate::calib::header_suffix(crate::calib::Calibration::point_columns()),
+            None => String::new(),
+        };
+        writeln!(file, "{TRACKS_HEADER}{extra}").map_err(|e| werr(path, e))?;
         Ok(TracksCsvWriter {
             file,
             line: Vec::with_capacity(BLOCK_CAPACITY),
             t_text: TimeTextCache::new(),
+            calib,
         })
     }
     pub fn write(&mut self, tracks: &[Track]) -> Result<()> {
         for t in tracks {
             for p in &t.points {
-                if self.push_row(t.id, p) {
+                if self.calib.is_none() && self.push_row(t.id, p) {
                     continue;
                 }
                 push_int(&mut self.line, t.id as i64);
@@ -333,6 +387,9 @@ impl TracksCsvWriter {
                 push_fixed(&mut self.line, p.u, 3);
                 self.line.push(b',');
                 push_fixed(&mut self.line, p.v, 3);
+                if let Some(c) = &self.calib {
+                    crate::calib::push_values(&mut self.line, &c.point_values(p.x, p.y, p.u, p.v));
+                }
                 self.line.push(b'\n');
             }
             write_block(&mut self.file, &mut self.line, WRITE_BLOCK)?;

@@ -301,6 +301,33 @@ mod tests {
     }
 
     #[test]
+    fn no_stitch_across_a_masked_region() {
+        let mut ps = Vec::new();
+        for k in 0..30 {
+            if (10..13).contains(&k) {
+                continue; // the particle is behind a masked strut
+            }
+            ps.push(particle(k, 5.0 + 3.0 * k as f64, 20.0 + 0.1 * k as f64));
+        }
+        // x = 35 + 3·k for k = 10, 11, 12: columns 36..43 masked.
+        let mut strut = crate::calib::PixelMask::new(100, 40);
+        for y in 0..40 {
+            for x in 36..44 {
+                strut.set(x, y);
+            }
+        }
+        let p = TrackParams {
+            mask: Some(std::sync::Arc::new(strut)),
+            ..Default::default()
+        };
+        let (tracks, _, stats) = link_linked(&ps, &p).unwrap();
+        assert_eq!(stats.tracks_stitched, 0);
+        assert_eq!(tracks.len(), 2);
+        assert_eq!(tracks[0].track.points.len(), 10);
+        assert_eq!(tracks[1].track.points.len(), 17);
+    }
+
+    #[test]
     fn bad_parameters_and_input() {
         let p = TrackParams {
             max_disp: 0.0,

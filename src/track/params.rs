@@ -62,6 +62,11 @@ pub struct TrackParams {
     /// (`ebptv track --prior U,V`; not part of a TOML file).
     #[serde(skip)]
     pub prior: Option<FlowPrior>,
+    /// Regions that are not flow (walls, models, reflections): an ended
+    /// track is not stitched to a new one across them (`ebptv track
+    /// --mask`, `run.mask`; not part of the `[track]` table).
+    #[serde(skip)]
+    pub mask: Option<std::sync::Arc<crate::calib::PixelMask>>,
     /// Prediction and gating of running tracks.
     pub gates: GateParams,
     /// Starting tracks and the ghost test.
@@ -229,6 +234,7 @@ impl Default for TrackParams {
             min_length: 5,
             turn_model: true,
             prior: None,
+            mask: None,
             gates: GateParams::default(),
             init: InitParams::default(),
             stitch: StitchParams::default(),

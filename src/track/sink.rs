@@ -97,7 +97,13 @@ pub fn track_to_dir(
     // Written with the other outputs, once tracking succeeded.
     let params_toml = config.to_toml()?;
     let write_params = || AtomicFile::write_all_to(out.join("params.toml"), params_toml.as_bytes());
-    let mut sink = FileSink::create(out, &config.run)?;
+    let calib = config
+        .run
+        .calibration
+        .as_deref()
+        .map(crate::calib::Calibration::from_file)
+        .transpose()?;
+    let mut sink = FileSink::create_calibrated(out, &config.run, calib)?;
     let run = track_into(
         TrackInput::of_path(input),
         &config,
@@ -112,6 +118,10 @@ pub fn track_to_dir(
         AtomicFile::write_all_to(out.join("pulses.json"), &json)?;
     }
     write_params()?;
+    // The run's mask travels with its tracks (`ebptv grid` reads it).
+    if let Some(m) = &config.cluster.mask {
+        m.write_png(&out.join("mask.png"))?;
+    }
     let summary = sink.finish(
         &run.stats,
         run.geometry.map(|g| (g.width as f64, g.height as f64)),
@@ -167,6 +177,17 @@ pub fn resolve_config(config: &TrackConfig) -> Result<TrackConfig> {
     let mut config = config.clone();
     if let Some(p) = config.run.hot_pixels.take() {
         config.cluster.hot_pixels.extend(read_hot_pixels(&p)?);
+    }
+    // The calibration and the mask (the image of run.mask joined with the
+    // calibration file's polygons or image): masked events are ignored,
+    // masked regions never stitched across.
+    let (_, mask) = crate::calib::load(
+        config.run.calibration.as_deref(),
+        config.run.mask.as_deref(),
+    )?;
+    if let Some(m) = &mask {
+        config.cluster.mask = Some(m.clone());
+        config.track.mask = Some(m.clone());
     }
     // Without the ghost test there is no flow to check new chains against.
     if config.track.init.ghost_check_length == 0 {
@@ -272,6 +293,18 @@ fn track_recording_into(
         }
         src.info().geometry
     };
+    if let (Some(p), Some(g)) = (&run.mask, geometry) {
+        let (w, h) = crate::calib::PixelMask::from_png(p)?.size();
+        if (w, h) != (g.width as u32, g.height as u32) {
+            return Err(Error::Config {
+                path: p.clone(),
+                why: format!(
+                    "mask of {w} x {h} pixels, the sensor has {} x {}",
+                    g.width, g.height
+                ),
+            });
+        }
+    }
     // The recording is read twice: pulse timing, then tracking.
     let passes = std::sync::atomic::AtomicUsize::new(0);
     let open = || -> Result<Box<dyn EventSource + '_>> {
@@ -402,13 +435,23 @@ struct Writer {
     plot_speeds: Vec<f64>,
     width: f64,
     height: f64,
+    /// px/s → m/s for the figure's colour scale, when calibrated.
+    speed_to_m_s: Option<f64>,
 }
 
 impl Writer {
-    fn create(out: &Path, format: TableFormat, npy: bool, plot_pulses: i64) -> Result<Self> {
+    fn create(
+        out: &Path,
+        format: TableFormat,
+        npy: bool,
+        plot_pulses: i64,
+        calib: Option<crate::calib::Calibration>,
+    ) -> Result<Self> {
+        let speed_to_m_s = calib.as_ref().map(|c| c.velocity_px_s_to_m_s(1.0, 0.0).0);
         Ok(Writer {
+            speed_to_m_s,
             particles_out: ParticlesWriter::create(out, format)?,
-            tracks_out: TracksWriter::create(out, format)?,
+            tracks_out: TracksWriter::create_calibrated(out, format, calib)?,
             // tracks.npy is the tracks table itself in the npy format.
             npy_out: (npy && format != TableFormat::Npy)
                 .then(|| TracksNpyWriter::create(&out.join("tracks.npy")))
@@ -484,8 +527,13 @@ impl Writer {
             plot_speeds,
             width: seen_width,
             height: seen_height,
+            speed_to_m_s,
             ..
         } = self;
+        let (plot_speeds, speed_label) = match speed_to_m_s {
+            Some(k) => (plot_speeds.iter().map(|v| v * k).collect(), "speed (m/s)"),
+            None => (plot_speeds, "speed (px/s)"),
+        };
         let (width, height) = size.unwrap_or((seen_width.max(1.0), seen_height.max(1.0)));
         std::thread::scope(|scope| -> Result<()> {
             let particles = scope.spawn(move || particles_out.finish());
@@ -504,7 +552,7 @@ impl Writer {
                         height,
                         lines: &plot_lines,
                         values: &plot_speeds,
-                        colorbar_label: "speed (px/s)",
+                        colorbar_label: speed_label,
                     },
                 )
             });
@@ -545,7 +593,17 @@ impl FileSink {
     /// Starts the writer for the outputs in `out` (which must exist), with
     /// the `table_format`, `npy` and `plot_pulses` options of `run`.
     pub fn create(out: &Path, run: &RunParams) -> Result<Self> {
-        let writer = Writer::create(out, run.table_format, run.npy, run.plot_pulses)?;
+        Self::create_calibrated(out, run, None)
+    }
+
+    /// [`FileSink::create`] whose tracks table also has the physical
+    /// columns of `calib`.
+    pub fn create_calibrated(
+        out: &Path,
+        run: &RunParams,
+        calib: Option<crate::calib::Calibration>,
+    ) -> Result<Self> {
+        let writer = Writer::create(out, run.table_format, run.npy, run.plot_pulses, calib)?;
         let (tx, rx) = std::sync::mpsc::sync_channel(128);
         let handle = std::thread::Builder::new()
             .name("ebptv-track-writer".into())

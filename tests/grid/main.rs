@@ -1,6 +1,7 @@
 //! Integration tests of the grid area, one binary (modules by concern).
 
 mod accuracy;
+mod calib_mask;
 #[path = "../chain_common/mod.rs"]
 mod chain_common;
 mod cli;

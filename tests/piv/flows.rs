@@ -339,8 +339,13 @@ fn masked_nodes_are_flagged_and_empty() {
     for k in 0..f.grid.len() {
         let x = f.grid.x(k % f.grid.nx);
         if x < 40.0 {
+            // Windows more than half masked (x = 31.5: 24 of 32 columns).
             assert_eq!(f.flags[k], ebptv::piv::validate::flag::MASKED);
             assert!(f.u[k].is_nan());
+        } else if x < 48.0 {
+            // A quarter masked (x = 47.5): a vector.
+            assert_ne!(f.flags[k], ebptv::piv::validate::flag::MASKED, "node {k}");
+            assert!(f.u[k].is_finite(), "node {k}");
         } else if x > 72.0 {
             assert!(
                 is_valid(f.flags[k]) && (f.u[k] - 1.5).abs() < 0.1,

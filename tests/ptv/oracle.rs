@@ -140,6 +140,7 @@ proptest! {
             min_events,
             max_events: 12,
             hot_pixels: hot.into_iter().collect(),
+            mask: None,
             split_extent: 0, // the partition oracle; splitting has its own below
             // cluster_pulse below runs either neighbour search
             neighbour_search: if kd_tree { NeighbourSearch::KdTree } else { NeighbourSearch::RowSweep },
