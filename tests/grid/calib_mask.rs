@@ -95,8 +95,10 @@ fn masked_channel_walls_keep_the_interior_profile_and_give_no_vectors() {
     .unwrap();
     let p = |x: &Path| x.display().to_string();
     let (plain, masked) = (d.join("plain"), d.join("masked"));
-    ebptv(&["track", &rec, "--out", &p(&plain)]);
+    ebptv(&["--table-format", "csv", "track", &rec, "--out", &p(&plain)]);
     ebptv(&[
+        "--table-format",
+        "csv",
         "track",
         &rec,
         "--calibration",
@@ -254,7 +256,7 @@ fn uniform_flow_in_metres_per_second() {
     )
     .unwrap();
     let run = d.join("run");
-    ebptv(&["track", &rec, "--out", &p(&run)]);
+    ebptv(&["--table-format", "csv", "track", &rec, "--out", &p(&run)]);
     for c in ["scale", "points"] {
         ebptv(&[
             "grid",
