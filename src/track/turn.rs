@@ -182,8 +182,11 @@ fn solve2<const P: usize>(
     Some((x, y))
 }
 
+/// Basis values `(g₁, g₂)` of up to 64 samples.
+type Bases = [(C, C); 64];
+
 /// The basis `(g₁, g₂)` at rate `w` of each of the (at most 64) times `s`.
-fn bases(s: &[f64], w: f64) -> [(C, C); 64] {
+fn bases(s: &[f64], w: f64) -> Bases {
     let mut out = [(C::ZERO, C::ZERO); 64];
     for (o, &t) in out.iter_mut().zip(s) {
         *o = basis(w, t);
@@ -298,7 +301,7 @@ fn turn_rate(s: &[f64], xs: &[f64], ys: &[f64]) -> Option<f64> {
 /// again (the same numbers, not recomputed).
 struct Rate {
     w: f64,
-    checked: Option<([(C, C); 64], f64, f64)>,
+    checked: Option<(Bases, f64, f64)>,
 }
 
 /// [`turn_rate`] with what it computed on the way ([`Rate`]).
