@@ -146,7 +146,7 @@ pub(crate) fn fit_adaptive_with(
     // only the chosen one is evaluated in full. A vector of the candidates
     // there are, not an array of MAX_CANDIDATES: zeroing that array (6 KB)
     // cost more than the rest of the call; the thread's own vector, reused
-    // from call to call (an allocation per call cost ~10 % of it).
+    // from call to call (no allocation per call).
     let mut cands = CANDIDATES.take();
     cands.clear();
     let mut nc = 0;
