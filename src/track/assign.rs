@@ -46,6 +46,11 @@ impl Tracker {
         let sol = lap::assign_sparse(dets.len(), &sc.edges, &sc.miss);
         let flow_on = self.params.init.ghost_check_length > 0;
         for (ti, c) in sol.into_iter().enumerate() {
+            // The tracks' tails were evicted by the assignment: fetch the
+            // last detection (read here) and the slot it is appended to.
+            if let Some(ahead) = self.active.get(ti + PREFETCH_AHEAD) {
+                prefetch_window(&ahead.dets, 1);
+            }
             let Some(c) = c else {
                 links.hungry.push(self.active[ti].uid);
                 continue;

@@ -216,8 +216,6 @@ impl Tracker {
             if idx.is_empty() {
                 continue;
             }
-            sc.grid
-                .rebuild(idx.iter().map(|&i| (frame.dets[i].x, frame.dets[i].y)));
             sc.edges.clear();
             for (row, &ti) in open.iter().enumerate() {
                 let dets = &tracks[ti].dets;
@@ -274,10 +272,16 @@ impl Tracker {
                     }
                 };
                 let (r, _) = self.search_radius(f.leverage, first - frame.pulse);
+                // The frame's grid over all its particles, the used ones
+                // passed over: the candidates (in particle order) and
+                // distances a grid over the unused ones gives, without
+                // building one per frame and pulse.
                 sc.near.clear();
-                sc.grid.within(f.x, f.y, r, &mut sc.near);
+                frame.grid.within(f.x, f.y, r, &mut sc.near);
                 for &(j, d2) in &sc.near {
-                    sc.edges.push((row, idx[j as usize], d2 / (r * r)));
+                    if !frame.used[j as usize] {
+                        sc.edges.push((row, j as usize, d2 / (r * r)));
+                    }
                 }
             }
             if sc.edges.is_empty() {

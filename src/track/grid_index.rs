@@ -220,4 +220,44 @@ mod tests {
             }
         }
     }
+
+    #[test]
+    fn masked_queries_equal_a_grid_of_the_unmasked_points() {
+        // The backward extension searches a frame's grid over all its
+        // particles, skipping the used ones, for what a grid over the
+        // unused ones gives (their indices mapped back).
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(9);
+        let (mut all, mut rest) = (GridIndex::default(), GridIndex::default());
+        let (mut a, mut b) = (Vec::new(), Vec::new());
+        for _ in 0..50 {
+            let n = rng.gen_range(1..400);
+            let pts: Vec<(f64, f64)> = (0..n)
+                .map(|_| (rng.gen_range(0.0..300.0), rng.gen_range(0.0..200.0)))
+                .collect();
+            let used: Vec<bool> = (0..n).map(|_| rng.gen_bool(0.8)).collect();
+            let idx: Vec<usize> = (0..n).filter(|&i| !used[i]).collect();
+            all.rebuild(pts.iter().copied());
+            rest.rebuild(idx.iter().map(|&i| pts[i]));
+            for _ in 0..40 {
+                let (x, y, r) = (
+                    rng.gen_range(-10.0..310.0),
+                    rng.gen_range(-10.0..210.0),
+                    rng.gen_range(0.0..40.0),
+                );
+                a.clear();
+                b.clear();
+                all.within(x, y, r, &mut a);
+                rest.within(x, y, r, &mut b);
+                a.retain(|&(j, _)| !used[j as usize]);
+                let b: Vec<(u32, f64)> = b
+                    .iter()
+                    .map(|&(j, d2)| (idx[j as usize] as u32, d2))
+                    .collect();
+                assert_eq!(a.len(), b.len());
+                for (p, q) in a.iter().zip(&b) {
+                    assert_eq!((p.0, p.1.to_bits()), (q.0, q.1.to_bits()));
+                }
+            }
+        }
+    }
 }

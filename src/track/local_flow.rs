@@ -136,15 +136,25 @@ pub struct FlowSample {
 pub struct LocalFlow {
     grid: CellGrid<FlowCell>,
     decay: f64,
+    /// `decay.powi(k)` for the recent `k` (a table lookup instead of the
+    /// call, the same numbers).
+    decay_pow: [f64; DECAY_TABLE],
 }
+
+/// Ages (pulses) whose decay factor is tabulated.
+const DECAY_TABLE: usize = 64;
 
 impl LocalFlow {
     /// A grid of `cell` px cells forgetting with a time constant of
     /// `memory` pulses.
     pub fn new(cell: f64, memory: f64) -> Self {
+        let decay = (-1.0 / memory).exp();
         LocalFlow {
             grid: CellGrid::new(cell),
-            decay: (-1.0 / memory).exp(),
+            decay,
+            // `black_box`: the runtime `powi` the lookup replaces, not a
+            // constant-folded expansion that may round differently.
+            decay_pow: std::array::from_fn(|k| decay.powi(std::hint::black_box(k as i32))),
         }
     }
 
@@ -158,10 +168,10 @@ impl LocalFlow {
         let Some((ix, iy)) = self.grid.index(x, y) else {
             return;
         };
-        let decay = self.decay;
+        let (decay, pow) = (self.decay, &self.decay_pow);
         let c = self.grid.cell_mut(ix, iy);
         if c.pulse != pulse {
-            let f = decay.powi((pulse - c.pulse).clamp(0, 10_000) as i32);
+            let f = decay_factor(decay, pow, pulse - c.pulse);
             c.w *= f;
             c.su *= f;
             c.sv *= f;
@@ -183,7 +193,7 @@ impl LocalFlow {
             if c.w == 0.0 {
                 continue;
             }
-            let f = self.decay.powi((pulse - c.pulse).clamp(0, 10_000) as i32);
+            let f = decay_factor(self.decay, &self.decay_pow, pulse - c.pulse);
             w += f * c.w;
             su += f * c.su;
             sv += f * c.sv;
@@ -199,6 +209,17 @@ impl LocalFlow {
             spread2: ((sq / w - u * u - v * v) / 2.0).max(0.0),
             weight: w,
         })
+    }
+}
+
+/// `decay` to the power of the age (clamped to 0..=10 000 pulses), from
+/// the table `pow` where it holds the age.
+#[inline]
+fn decay_factor(decay: f64, pow: &[f64; DECAY_TABLE], age: i64) -> f64 {
+    let k = age.clamp(0, 10_000) as usize;
+    match pow.get(k) {
+        Some(&f) => f,
+        None => decay.powi(k as i32),
     }
 }
 
@@ -282,6 +303,20 @@ mod tests {
             }
         }
         f
+    }
+
+    #[test]
+    fn tabulated_decay_is_the_power_bit_for_bit() {
+        for memory in [8.0, 3.0, 1e-3, 1e6] {
+            let f = LocalFlow::new(16.0, memory);
+            for age in -3..300i64 {
+                let want = f
+                    .decay
+                    .powi(std::hint::black_box(age.clamp(0, 10_000) as i32));
+                let got = decay_factor(f.decay, &f.decay_pow, age);
+                assert_eq!(got.to_bits(), want.to_bits(), "memory {memory}, age {age}");
+            }
+        }
     }
 
     #[test]

@@ -162,13 +162,17 @@ impl Tracker {
         let w = p.gates.predict_window.min(n).min(64);
         let win = &track.dets[n - w..];
         let last = track.last();
-        let (mut tau, mut xs, mut ys) = ([0.0; 64], [0.0; 64], [0.0; 64]);
-        for (i, d) in win.iter().enumerate() {
-            tau[i] = (d.pulse - last.pulse) as f64;
-            xs[i] = d.x;
-            ys[i] = d.y;
-        }
-        let (tau, xs, ys) = (&tau[..w], &xs[..w], &ys[..w]);
+        // The window as time, x and y columns (filled only where a model
+        // reads them: most mature tracks stop at the screen below).
+        let columns = || {
+            let (mut tau, mut xs, mut ys) = ([0.0; 64], [0.0; 64], [0.0; 64]);
+            for (i, d) in win.iter().enumerate() {
+                tau[i] = (d.pulse - last.pulse) as f64;
+                xs[i] = d.x;
+                ys[i] = d.y;
+            }
+            (tau, xs, ys)
+        };
         let at = (pulse - last.pulse) as f64;
         let order = self.predict_order(n);
         let (x, y, lev) = if order >= 2 {
@@ -198,13 +202,15 @@ impl Tracker {
             if !(turned * turned > PREDICT_TURN_Z * PREDICT_TURN_Z * var) {
                 return None;
             }
-            let f = turn::turn_eval(tau, xs, ys, at, true)?;
+            let (tau, xs, ys) = columns();
+            let f = turn::turn_eval(&tau[..w], &xs[..w], &ys[..w], at, true)?;
             (f.x, f.y, f.leverage)
         } else {
+            let (tau, xs, ys) = columns();
             young_prediction(
-                tau,
-                xs,
-                ys,
+                &tau[..w],
+                &xs[..w],
+                &ys[..w],
                 at,
                 self.position_sigma(),
                 p.gates.young_turn_sigma,

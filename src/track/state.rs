@@ -443,16 +443,20 @@ impl Tracker {
             self.repair(pulse - self.params.gates.repair_lag as i64);
         }
         let kept_frames = INIT_FRAMES + self.params.init.init_gap as usize;
+        // A frame's grid goes back to the scratch for reuse when the frame
+        // is dropped (the backward extension searches the older frames'
+        // grids).
         while self.frames.len() > kept_frames {
             let mut old = self.frames.pop_front().expect("more frames than kept");
-            // The grid goes back to the scratch for reuse.
-            self.scratch.grid = std::mem::take(&mut old.grid);
             if self.params.init.back_extend > 0 {
                 self.back_frames.push_back(old);
+            } else {
+                self.scratch.grid = std::mem::take(&mut old.grid);
             }
         }
         while self.back_frames.len() > self.params.init.back_extend {
-            self.back_frames.pop_front();
+            let mut old = self.back_frames.pop_front().expect("more frames than kept");
+            self.scratch.grid = std::mem::take(&mut old.grid);
         }
         self.initialise();
 

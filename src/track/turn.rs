@@ -146,6 +146,54 @@ fn solve<const P: usize>(mut g: [[C; P]; P], mut b: [C; P]) -> Option<[C; P]> {
     Some(x)
 }
 
+/// [`solve`] for two right-hand sides with one elimination (the fits
+/// need the coefficients and the leverage from the same matrix); each
+/// solution is that of [`solve`], bit for bit (the same operations), and
+/// `None` in the same cases (singularity depends on `g` alone).
+fn solve2<const P: usize>(
+    mut g: [[C; P]; P],
+    mut b: [C; P],
+    mut e: [C; P],
+) -> Option<([C; P], [C; P])> {
+    for k in 0..P {
+        let piv = g[k][k];
+        if !(piv.re.abs() > 1e-12) {
+            return None;
+        }
+        for r in k + 1..P {
+            let f = g[r][k].div(piv);
+            for c in k..P {
+                g[r][c] = g[r][c] - f * g[k][c];
+            }
+            b[r] = b[r] - f * b[k];
+            e[r] = e[r] - f * e[k];
+        }
+    }
+    let (mut x, mut y) = ([C::ZERO; P], [C::ZERO; P]);
+    for k in (0..P).rev() {
+        let (mut s, mut t) = (b[k], e[k]);
+        for c in k + 1..P {
+            s = s - g[k][c] * x[c];
+            t = t - g[k][c] * y[c];
+        }
+        x[k] = s.div(g[k][k]);
+        y[k] = t.div(g[k][k]);
+    }
+    Some((x, y))
+}
+
+/// Basis values `(g₁, g₂)` of up to 64 samples.
+type Bases = [(C, C); 64];
+
+/// The basis `(g₁, g₂)` at rate `w` of each of the (at most 64) times `s`.
+fn bases(s: &[f64], w: f64) -> Bases {
+    let mut out = [(C::ZERO, C::ZERO); 64];
+    for (o, &t) in out.iter_mut().zip(s) {
+        *o = basis(w, t);
+    }
+    out
+}
+
 /// A turning-path fit evaluated at one time.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TurnFit {
@@ -167,12 +215,38 @@ pub struct TurnFit {
 }
 
 /// The least-squares coefficients `(z₀, V, A)` (`A = 0` for `P = 2`) at a
-/// given ω and the leverage at `s = 0`.
-fn coeffs<const P: usize>(s: &[f64], xs: &[f64], ys: &[f64], w: f64) -> Option<([C; 3], f64)> {
+/// given ω and, with `leverage`, the leverage at `s = 0` (NaN without).
+fn coeffs<const P: usize>(
+    s: &[f64],
+    xs: &[f64],
+    ys: &[f64],
+    w: f64,
+    leverage: bool,
+) -> Option<([C; 3], f64)> {
+    coeffs_from::<P>(s.iter().map(|&t| basis(w, t)), xs, ys, leverage)
+}
+
+/// [`coeffs`] from the samples' basis values `bs` (see [`bases`]).
+fn coeffs_of<const P: usize>(
+    bs: &[(C, C)],
+    xs: &[f64],
+    ys: &[f64],
+    leverage: bool,
+) -> Option<([C; 3], f64)> {
+    coeffs_from::<P>(bs.iter().copied(), xs, ys, leverage)
+}
+
+/// [`coeffs`] from the basis values of the samples in order.
+#[inline(always)]
+fn coeffs_from<const P: usize>(
+    bs: impl Iterator<Item = (C, C)>,
+    xs: &[f64],
+    ys: &[f64],
+    leverage: bool,
+) -> Option<([C; 3], f64)> {
     let mut g = [[C::ZERO; P]; P];
     let mut b = [C::ZERO; P];
-    for i in 0..s.len() {
-        let (g1, g2) = basis(w, s[i]);
+    for (i, (g1, g2)) in bs.enumerate() {
         let phi = [C::new(1.0, 0.0), g1, g2];
         let z = C::new(xs[i], ys[i]);
         for a in 0..P {
@@ -184,32 +258,31 @@ fn coeffs<const P: usize>(s: &[f64], xs: &[f64], ys: &[f64], w: f64) -> Option<(
         }
     }
     // φ(0) = (1, 0, 0): the leverage is (G⁻¹)₀₀.
-    let mut e0 = [C::ZERO; P];
-    e0[0] = C::new(1.0, 0.0);
-    let lev = solve(g, e0)?[0].re;
-    let c = solve(g, b)?;
+    let (c, lev) = if leverage {
+        let mut e0 = [C::ZERO; P];
+        e0[0] = C::new(1.0, 0.0);
+        let (c, l) = solve2(g, b, e0)?;
+        (c, l[0].re)
+    } else {
+        (solve(g, b)?, f64::NAN)
+    };
     let mut out = [C::ZERO; 3];
     out[..P].copy_from_slice(&c);
     Some((out, lev))
 }
 
-/// The least-squares fit at a given ω, evaluated at `s = 0`: position,
-/// velocity, acceleration coefficient and leverage.
-fn fit_at<const P: usize>(s: &[f64], xs: &[f64], ys: &[f64], w: f64) -> Option<(C, C, C, f64)> {
-    let (c, lev) = coeffs::<P>(s, xs, ys, w)?;
-    Some((c[0], c[1], c[2], lev))
-}
-
 /// Residual sum of squares (both axes) of the six-coefficient fit at ω.
 fn rss_at(s: &[f64], xs: &[f64], ys: &[f64], w: f64) -> Option<f64> {
-    let (c, _) = coeffs::<3>(s, xs, ys, w)?;
+    rss_of(&bases(s, w)[..s.len().min(64)], xs, ys)
+}
+
+/// [`rss_at`] from the samples' basis values `bs` (see [`bases`]).
+fn rss_of(bs: &[(C, C)], xs: &[f64], ys: &[f64]) -> Option<f64> {
+    let (c, _) = coeffs_of::<3>(bs, xs, ys, false)?;
     Some(
-        s.iter()
+        bs.iter()
             .zip(xs.iter().zip(ys))
-            .map(|(&t, (&x, &y))| {
-                let (g1, g2) = basis(w, t);
-                (C::new(x, y) - (c[0] + c[1] * g1 + c[2] * g2)).norm2()
-            })
+            .map(|(&(g1, g2), (&x, &y))| (C::new(x, y) - (c[0] + c[1] * g1 + c[2] * g2)).norm2())
             .sum(),
     )
 }
@@ -217,19 +290,45 @@ fn rss_at(s: &[f64], xs: &[f64], ys: &[f64], w: f64) -> Option<f64> {
 /// The fixed point for ω of the six-coefficient fit (times `s` from any
 /// origin near the samples); 0 when the path is too slow to have a
 /// heading.
+#[cfg(test)]
 fn turn_rate(s: &[f64], xs: &[f64], ys: &[f64]) -> Option<f64> {
+    turn_rate_full(s, xs, ys).map(|r| r.w)
+}
+
+/// What [`turn_rate_full`] computed on the way: the rate, and (when it
+/// checked the rate, ≥ 7 samples) the basis values at it and the residual
+/// sums of squares at it and at ω = 0, for the callers that need them
+/// again (the same numbers, not recomputed).
+struct Rate {
+    w: f64,
+    checked: Option<(Bases, f64, f64)>,
+}
+
+/// [`turn_rate`] with what it computed on the way ([`Rate`]).
+fn turn_rate_full(s: &[f64], xs: &[f64], ys: &[f64]) -> Option<Rate> {
     // Up to 6 samples the six coefficients leave too few residuals to
     // check a rate by: a few steps from the quadratic's own rate, no
     // further (more follow the noise; the young tracks' choice between
     // the line and the turning path decides whether it is used).
+    let n = s.len().min(64);
     let few = s.len() < 7;
     let iterations = if few { YOUNG_ITERATIONS } else { ITERATIONS };
-    let mut w = 0.0;
+    // The basis at ω = 0 serves the first step and the final check.
+    let b0 = bases(s, 0.0);
+    let mut w = 0.0f64;
     for _ in 0..iterations {
-        let (_, v, a, _) = fit_at::<3>(s, xs, ys, w)?;
+        let (c, _) = if w.to_bits() == 0 {
+            coeffs_of::<3>(&b0[..n], xs, ys, false)?
+        } else {
+            coeffs::<3>(s, xs, ys, w, false)?
+        };
+        let (v, a) = (c[1], c[2]);
         let sp2 = v.norm2();
         if sp2 < MIN_SPEED * MIN_SPEED {
-            return Some(0.0);
+            return Some(Rate {
+                w: 0.0,
+                checked: None,
+            });
         }
         let next = (w + (a * v.conj()).im / sp2).clamp(-MAX_TURN, MAX_TURN);
         let converged = (next - w).abs() < 1e-5;
@@ -238,10 +337,25 @@ fn turn_rate(s: &[f64], xs: &[f64], ys: &[f64]) -> Option<f64> {
             break;
         }
     }
+    if few {
+        return Some(Rate { w, checked: None });
+    }
     // A rate that fits worse than the quadratic (noise taken for a turn,
     // an iteration run off) is no turn.
-    let ok = few || rss_at(s, xs, ys, w)? <= rss_at(s, xs, ys, 0.0)?;
-    Some(if ok { w } else { 0.0 })
+    let bw = bases(s, w);
+    let rw = rss_of(&bw[..n], xs, ys)?;
+    let r0 = rss_of(&b0[..n], xs, ys)?;
+    Some(if rw <= r0 {
+        Rate {
+            w,
+            checked: Some((bw, rw, r0)),
+        }
+    } else {
+        Rate {
+            w: 0.0,
+            checked: Some((b0, r0, r0)),
+        }
+    })
 }
 
 /// How much better (drop of the residual sum of squares, both axes, px²)
@@ -250,9 +364,11 @@ fn turn_rate(s: &[f64], xs: &[f64], ys: &[f64]) -> Option<f64> {
 pub fn turn_rss_gain(tau: &[f64], xs: &[f64], ys: &[f64]) -> Option<f64> {
     let (buf, n) = centred(tau)?;
     let s = &buf[..n];
-    let w = turn_rate(s, xs, ys)?;
-    let q = rss_at(s, xs, ys, 0.0)?;
-    let t = rss_at(s, xs, ys, w)?;
+    let r = turn_rate_full(s, xs, ys)?;
+    let (q, t) = match r.checked {
+        Some((_, rw, r0)) => (r0, rw),
+        None => (rss_at(s, xs, ys, 0.0)?, rss_at(s, xs, ys, r.w)?),
+    };
     Some((q - t).max(0.0))
 }
 
@@ -262,6 +378,18 @@ pub fn turn_rss_gain(tau: &[f64], xs: &[f64], ys: &[f64]) -> Option<f64> {
 /// quadratic's count); otherwise it is constant (four, with ω found from
 /// a fit with acceleration first) — for few samples.
 pub fn turn_eval(tau: &[f64], xs: &[f64], ys: &[f64], at: f64, accel: bool) -> Option<TurnFit> {
+    turn_eval_rss(tau, xs, ys, at, accel).map(|(f, _)| f)
+}
+
+/// [`turn_eval`], and the residual sums of squares at the fitted ω and
+/// at ω = 0 where the rate was checked by them (≥ 7 samples).
+fn turn_eval_rss(
+    tau: &[f64],
+    xs: &[f64],
+    ys: &[f64],
+    at: f64,
+    accel: bool,
+) -> Option<(TurnFit, Option<(f64, f64)>)> {
     let n = tau.len();
     if n < 4 || xs.len() < n || ys.len() < n {
         return None;
@@ -272,15 +400,22 @@ pub fn turn_eval(tau: &[f64], xs: &[f64], ys: &[f64], at: f64, accel: bool) -> O
         s[i] = tau[i] - at;
     }
     let s = &s[..n];
-    let w = turn_rate(s, xs, ys)?;
-    let (z0, v, a, lev) = if accel {
-        fit_at::<3>(s, xs, ys, w)?
-    } else {
-        fit_at::<2>(s, xs, ys, w)?
+    let r = turn_rate_full(s, xs, ys)?;
+    let w = r.w;
+    // The basis at ω as the rate's check computed it, or anew.
+    let bw = match &r.checked {
+        Some((bw, _, _)) => *bw,
+        None => bases(s, w),
     };
+    let (c, lev) = if accel {
+        coeffs_of::<3>(&bw[..n], xs, ys, true)?
+    } else {
+        coeffs_of::<2>(&bw[..n], xs, ys, true)?
+    };
+    let (z0, v, a) = (c[0], c[1], c[2]);
     // d/ds [(V + A s) e^{iωs}] at s = 0.
     let acc = a + C::new(0.0, w) * v;
-    Some(TurnFit {
+    let fit = TurnFit {
         x: z0.re,
         y: z0.im,
         u: v.re,
@@ -289,22 +424,27 @@ pub fn turn_eval(tau: &[f64], xs: &[f64], ys: &[f64], at: f64, accel: bool) -> O
         ay: acc.im,
         leverage: lev,
         omega: w,
-    })
+    };
+    Some((fit, r.checked.map(|(_, rw, r0)| (rw, r0))))
 }
 
 /// [`turn_eval`] with speed change, and the drop of the residual sum of
 /// squares (px², both axes) from the quadratic in time to it: how much
 /// the samples say the path turns beyond what a quadratic follows.
 pub fn turn_eval_with_gain(tau: &[f64], xs: &[f64], ys: &[f64], at: f64) -> Option<(TurnFit, f64)> {
-    let f = turn_eval(tau, xs, ys, at, true)?;
-    let n = tau.len().min(64);
-    let mut s = [0.0; 64];
-    for i in 0..n {
-        s[i] = tau[i] - at;
-    }
-    let s = &s[..n];
-    let q = rss_at(s, xs, ys, 0.0)?;
-    let t = rss_at(s, xs, ys, f.omega)?;
+    let (f, rss) = turn_eval_rss(tau, xs, ys, at, true)?;
+    let (q, t) = match rss {
+        Some((rw, r0)) => (r0, rw),
+        None => {
+            let n = tau.len().min(64);
+            let mut s = [0.0; 64];
+            for i in 0..n {
+                s[i] = tau[i] - at;
+            }
+            let s = &s[..n];
+            (rss_at(s, xs, ys, 0.0)?, rss_at(s, xs, ys, f.omega)?)
+        }
+    };
     Some((f, (q - t).max(0.0)))
 }
 
@@ -313,8 +453,11 @@ pub fn turn_eval_with_gain(tau: &[f64], xs: &[f64], ys: &[f64], at: f64) -> Opti
 pub fn turn_rss(tau: &[f64], xs: &[f64], ys: &[f64]) -> Option<f64> {
     let (buf, n) = centred(tau)?;
     let s = &buf[..n];
-    let w = turn_rate(s, xs, ys)?;
-    rss_at(s, xs, ys, w)
+    let r = turn_rate_full(s, xs, ys)?;
+    match r.checked {
+        Some((_, rw, _)) => Some(rw),
+        None => rss_at(s, xs, ys, r.w),
+    }
 }
 
 /// The first (at most 64) sample times relative to their mid-range, and
@@ -464,5 +607,91 @@ mod tests {
             (1.0..2.0).contains(&ratio),
             "variance / stated leverage = {ratio}"
         );
+    }
+
+    #[test]
+    fn the_joint_solve_equals_two_plain_solves_bit_for_bit() {
+        let (tau, xs, ys) = arc(20.0, 0.15, 0.1, 12);
+        for (n, w) in [(12, 0.15), (7, -0.4), (5, 1e-4), (12, 0.0)] {
+            let s: Vec<f64> = tau[..n].iter().map(|t| t - tau[n - 1]).collect();
+            let bs = bases(&s, w);
+            let mut g = [[C::ZERO; 3]; 3];
+            let mut b = [C::ZERO; 3];
+            for i in 0..n {
+                let (g1, g2) = bs[i];
+                assert_eq!((g1, g2), basis(w, s[i]));
+                let phi = [C::new(1.0, 0.0), g1, g2];
+                for a in 0..3 {
+                    for c in 0..3 {
+                        g[a][c] = g[a][c] + phi[a].conj() * phi[c];
+                    }
+                    b[a] = b[a] + phi[a].conj() * C::new(xs[i], ys[i]);
+                }
+            }
+            let mut e0 = [C::ZERO; 3];
+            e0[0] = C::new(1.0, 0.0);
+            let (x, y) = solve2(g, b, e0).unwrap();
+            assert_eq!(x, solve(g, b).unwrap());
+            assert_eq!(y, solve(g, e0).unwrap());
+            let (c, lev) = coeffs::<3>(&s, &xs[..n], &ys[..n], w, true).unwrap();
+            assert_eq!(&c[..], &x[..]);
+            assert_eq!(lev.to_bits(), y[0].re.to_bits());
+        }
+        // Singular: both ways refuse.
+        let g = [[C::ZERO; 2]; 2];
+        assert!(
+            solve2(g, [C::ZERO; 2], [C::ZERO; 2]).is_none() && solve(g, [C::ZERO; 2]).is_none()
+        );
+    }
+
+    #[test]
+    fn reused_rate_checks_equal_the_fits_recomputed() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(5);
+        for (k, (r, w, up)) in [(20.0, 0.15, 0.0), (8.0, -0.4, 0.2), (1e3, 1e-5, 0.0)]
+            .into_iter()
+            .enumerate()
+        {
+            let (tau, xs, ys) = arc(r, w, up, 13);
+            for n in [5, 7, 11, 13] {
+                let nx: Vec<f64> = xs[..n].iter().map(|x| x + 0.3 * rng.gen::<f64>()).collect();
+                let ny: Vec<f64> = ys[..n].iter().map(|y| y + 0.3 * rng.gen::<f64>()).collect();
+                let at = tau[n - 1] + 1.0 + k as f64;
+                let s: Vec<f64> = tau[..n].iter().map(|t| t - at).collect();
+                let omega = turn_rate(&s, &nx, &ny).unwrap();
+                for accel in [true, false] {
+                    let f = turn_eval(&tau[..n], &nx, &ny, at, accel).unwrap();
+                    let (c, lev) = if accel {
+                        coeffs::<3>(&s, &nx, &ny, omega, true).unwrap()
+                    } else {
+                        coeffs::<2>(&s, &nx, &ny, omega, true).unwrap()
+                    };
+                    assert_eq!(f.omega.to_bits(), omega.to_bits());
+                    assert_eq!((f.x, f.y, f.u, f.v), (c[0].re, c[0].im, c[1].re, c[1].im));
+                    assert_eq!(f.leverage.to_bits(), lev.to_bits());
+                }
+                let (f, gain) = turn_eval_with_gain(&tau[..n], &nx, &ny, at).unwrap();
+                let q = rss_at(&s, &nx, &ny, 0.0).unwrap();
+                let t = rss_at(&s, &nx, &ny, f.omega).unwrap();
+                assert_eq!(gain.to_bits(), (q - t).max(0.0).to_bits());
+                if n >= 7 {
+                    let c: Vec<f64> = tau[..n]
+                        .iter()
+                        .map(|t| t - 0.5 * (tau[0] + tau[n - 1]))
+                        .collect();
+                    let wc = turn_rate(&c, &nx, &ny).unwrap();
+                    let (q, t) = (
+                        rss_at(&c, &nx, &ny, 0.0).unwrap(),
+                        rss_at(&c, &nx, &ny, wc).unwrap(),
+                    );
+                    let g = turn_rss_gain(&tau[..n], &nx, &ny).unwrap();
+                    assert_eq!(g.to_bits(), (q - t).max(0.0).to_bits());
+                    assert_eq!(
+                        turn_rss(&tau[..n], &nx, &ny).unwrap().to_bits(),
+                        t.to_bits()
+                    );
+                }
+            }
+        }
     }
 }

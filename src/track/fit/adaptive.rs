@@ -77,6 +77,12 @@ impl WindowRule {
 /// Candidate windows of one sample at most (min 2, step 2 up to 64).
 pub(super) const MAX_CANDIDATES: usize = 32;
 
+thread_local! {
+    /// [`fit_adaptive_with`]'s candidates (kept between calls).
+    static CANDIDATES: std::cell::Cell<Vec<(Sums, usize, f64, f64)>> =
+        const { std::cell::Cell::new(Vec::new()) };
+}
+
 /// Fit the samples `(tau, xs, ys)` (sorted by τ) around index `centre`
 /// and evaluate at `at`, with the window of `min_window, min_window + 2, …,
 /// max_window` samples (each as centred on `centre` as the ends allow, so
@@ -139,9 +145,10 @@ pub(crate) fn fit_adaptive_with(
     // (sums, window, velocity variance factor, bias factor) per candidate;
     // only the chosen one is evaluated in full. A vector of the candidates
     // there are, not an array of MAX_CANDIDATES: zeroing that array (6 KB)
-    // cost more than the rest of the call.
-    let mut cands: Vec<(Sums, usize, f64, f64)> =
-        Vec::with_capacity(((wmax - wmin) / 2 + 2).min(MAX_CANDIDATES));
+    // cost more than the rest of the call; the thread's own vector, reused
+    // from call to call (no allocation per call).
+    let mut cands = CANDIDATES.take();
+    cands.clear();
     let mut nc = 0;
     let mut w = wmin;
     loop {
@@ -184,7 +191,9 @@ pub(crate) fn fit_adaptive_with(
     for k in 0..nc {
         if let Some((v, b)) = cands[k].0.velocity_variance_and_bias(rule.order, ridge) {
             (cands[k].2, cands[k].3) = (v, b);
-            cands[ok] = cands[k];
+            if ok != k {
+                cands[ok] = cands[k];
+            }
             ok += 1;
         }
     }
@@ -193,25 +202,27 @@ pub(crate) fn fit_adaptive_with(
     let best = cands[..nc]
         .iter()
         .map(|c| (rule.bias_weight * c3sq * c.3 * c.3 + 2.0 * s2 * c.2, c))
-        .min_by(|a, b| a.0.total_cmp(&b.0).then(b.1 .1.cmp(&a.1 .1)))?
-        .1;
-    let fit = best.0.solve_with_prior(rule.order, ridge)?;
+        .min_by(|a, b| a.0.total_cmp(&b.0).then(b.1 .1.cmp(&a.1 .1)))
+        .map(|(_, c)| (c.0.solve_with_prior(rule.order, ridge), c.1));
+    CANDIDATES.set(cands);
+    let (fit, best_w) = best?;
+    let fit = fit?;
     if ridge > 0.0 && !residual {
         let fit = FitState {
             rms_residual: f64::NAN,
             ..fit
         };
-        return Some((fit, best.1));
+        return Some((fit, best_w));
     }
     if ridge > 0.0 {
-        let start = centre.saturating_sub(best.1 / 2).min(n - best.1);
-        let w = start..start + best.1;
+        let start = centre.saturating_sub(best_w / 2).min(n - best_w);
+        let w = start..start + best_w;
         return Some((
             with_direct_residual(fit, tau, xs, ys, w, at, rule.order),
-            best.1,
+            best_w,
         ));
     }
-    Some((fit, best.1))
+    Some((fit, best_w))
 }
 
 /// `f` with its residual rms taken from the residuals themselves: with the
