@@ -16,7 +16,8 @@ fn main() {
     // its temporaries and the output folders it created are removed.
     ebptv::io::atomic::track_run();
     cli::install_interrupt_handler();
-    if let Err(e) = cli::run(args) {
+    let command_line: Vec<String> = std::env::args().collect();
+    if let Err(e) = cli::run(args, &command_line) {
         ebptv::io::atomic::rollback();
         eprintln!("error: {e:#}");
         std::process::exit(1);

@@ -220,11 +220,19 @@ impl Provenance {
         if let Some(p) = &self.pulse_source {
             s.push_str(&format!("pulse source       {p}\n"));
         }
-        if let Some(p) = &self.parameters {
-            let n = p.as_object().map_or(0, |o| o.len());
-            s.push_str(&format!(
-                "parameters         {n} groups recorded (every default included)\n"
-            ));
+        match &self.parameters {
+            Some(serde_json::Value::Object(o)) => {
+                let groups: Vec<&str> = o.keys().map(String::as_str).collect();
+                s.push_str(&format!(
+                    "parameters         [{}] (every default included; `ebptv info --json DIR` lists them)\n",
+                    groups.join("], [")
+                ));
+            }
+            Some(serde_json::Value::String(p)) => {
+                s.push_str(&format!("parameters         {p}\n"));
+            }
+            Some(_) => s.push_str("parameters         recorded\n"),
+            None => {}
         }
         s
     }

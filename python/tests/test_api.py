@@ -171,6 +171,8 @@ def test_track_equals_the_cli_files(sim: Path, sim_run: Path) -> None:
     assert_same_tables(particles, sim_run / "particles.csv", PARTICLE_DECIMALS)
     assert_same_tables(tracks, sim_run / "tracks.csv", TRACK_DECIMALS)
     summary = json.loads((sim_run / "summary.json").read_text())
+    # The CLI's summary also records how the run was made.
+    assert summary.pop("provenance")["command_line"][1] == "track"
     assert tracks.attrs["summary"] == summary
     assert tracks.attrs["summary"]["tracks"] == tracks["track_id"].nunique() > 100
     pulses = json.loads((sim_run / "pulses.json").read_text())

@@ -40,7 +40,7 @@ fn step(line: &[String]) -> anyhow::Result<()> {
     eprintln!("\n$ {}", line.join(" "));
     let cli = super::Cli::try_parse_from(line)
         .with_context(|| format!("demo step `{}`", line.join(" ")))?;
-    super::run(cli).with_context(|| format!("demo step `{}` failed", line[1]))
+    super::run(cli, line).with_context(|| format!("demo step `{}` failed", line[1]))
 }
 
 /// Largest power of two ≤ half the pulse count, between 16 and 128.

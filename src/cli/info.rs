@@ -8,7 +8,9 @@ use ebptv::io::{self, EventSource, Format, OpenOptions};
 
 #[derive(Args, Debug)]
 pub struct InfoArgs {
-    /// Event file (RAW EVT 2.0/2.1/3.0, DAT, CSV, AEDAT4, ES).
+    /// Event file (RAW EVT 2.0/2.1/3.0, DAT, CSV, AEDAT4, ES), or an ebptv
+    /// output folder: then how its outputs were made (version, command
+    /// line, parameters, input fingerprint, pulse source, date).
     pub file: PathBuf,
     /// Print JSON instead of a table.
     #[arg(long)]
@@ -49,6 +51,23 @@ pub(crate) fn open_options(
 }
 
 pub fn run(args: InfoArgs) -> anyhow::Result<()> {
+    // An output folder: how its outputs were made.
+    if args.file.is_dir() {
+        return match ebptv::provenance::Provenance::read_from_dir(&args.file)? {
+            Some(p) if args.json => {
+                println!("{}", serde_json::to_string_pretty(&p)?);
+                Ok(())
+            }
+            Some(p) => {
+                print!("{}", p.describe());
+                Ok(())
+            }
+            None => Err(anyhow::anyhow!(
+                "{}: a folder without a provenance record (no provenance.json, no JSON output with a \"provenance\" key); give an event file or an ebptv output folder",
+                args.file.display()
+            )),
+        };
+    }
     if args.peak_bin_us <= 0 {
         return Err(ebptv::Error::param(
             "peak-bin-us",

@@ -13,6 +13,7 @@ pub mod monitor;
 pub mod piv;
 pub mod piv_images;
 pub mod progress;
+pub mod provenance;
 pub mod pulses;
 pub mod simulate;
 pub mod spectra;
@@ -136,7 +137,10 @@ pub fn print_warnings(src: &dyn ebptv::io::EventSource) {
     }
 }
 
-pub fn run(cli: Cli) -> anyhow::Result<()> {
+/// Run a parsed command line; `command_line` is what was typed (recorded
+/// with the outputs, `ebptv::provenance`).
+pub fn run(cli: Cli, command_line: &[String]) -> anyhow::Result<()> {
+    let plan = provenance::plan(&cli.command);
     let tables = cli.table_format;
     match cli.command {
         Command::Demo(a) => demo::run(a, tables),
@@ -145,12 +149,16 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Simulate(a) => simulate::run(a),
         Command::Pulses(a) => pulses::run(a),
         Command::Monitor(a) => monitor::run(a),
-        Command::Track(a) => track::run(a, tables),
+        Command::Track(a) => track::run(a, tables, command_line),
         Command::Grid(a) => grid::run(a),
         Command::Spectra(a) => spectra::run(a),
         Command::Piv(a) => piv::run(a),
         Command::PivImages(a) => piv_images::run(a),
         Command::Compare(a) => compare::run(a),
         Command::ModelCheck(a) => model_check::run(a),
+    }?;
+    match plan {
+        Some(p) => p.record(command_line),
+        None => Ok(()),
     }
 }

@@ -9,7 +9,7 @@ use clap::Args;
 use indicatif::ProgressBar;
 
 use ebptv::table::TableFormat;
-use ebptv::track::{track_to_dir, TrackConfig, TrackProgress, TrackStage};
+use ebptv::track::{track_to_dir_with, TrackConfig, TrackProgress, TrackStage};
 
 #[derive(Args, Debug)]
 pub struct TrackArgs {
@@ -79,7 +79,11 @@ pub struct TrackArgs {
 }
 
 /// `tables`: the top-level `--table-format` (over the params file's).
-pub fn run(args: TrackArgs, tables: Option<TableFormat>) -> anyhow::Result<()> {
+pub fn run(
+    args: TrackArgs,
+    tables: Option<TableFormat>,
+    command_line: &[String],
+) -> anyhow::Result<()> {
     let mut config = config_of(&args)?;
     if let Some(f) = tables {
         config.run.table_format = f;
@@ -95,12 +99,13 @@ pub fn run(args: TrackArgs, tables: Option<TableFormat>) -> anyhow::Result<()> {
             argv.extend(["--out".into(), out.join("grid").display().to_string()]);
             argv.extend(g.split_whitespace().map(String::from));
             <super::Cli as clap::Parser>::try_parse_from(&argv)
+                .map(|cli| (cli, argv))
                 .map_err(|e| anyhow::anyhow!("--grid \"{g}\": {e}"))
         })
         .transpose()?;
-    run_tracking(args, &config)?;
+    run_tracking(args, &config, command_line)?;
     match grid_cli {
-        Some(cli) => super::run(cli),
+        Some((cli, argv)) => super::run(cli, &argv),
         None => Ok(()),
     }
 }
@@ -154,7 +159,11 @@ fn is_png(path: &std::path::Path) -> anyhow::Result<bool> {
     Ok(n == 8 && head == *b"\x89PNG\r\n\x1a\n")
 }
 
-fn run_tracking(args: TrackArgs, config: &TrackConfig) -> anyhow::Result<()> {
+fn run_tracking(
+    args: TrackArgs,
+    config: &TrackConfig,
+    command_line: &[String],
+) -> anyhow::Result<()> {
     let size = std::fs::metadata(&args.input).ok().map(|m| m.len());
     let bar = super::progress::file_bar(size, "pulse timing");
     let reading = Mutex::new(ReadRate::default());
@@ -198,7 +207,7 @@ fn run_tracking(args: TrackArgs, config: &TrackConfig) -> anyhow::Result<()> {
         TrackProgress::Writing => bar.finish_and_clear(),
         _ => {}
     };
-    let result = track_to_dir(&args.input, config, &args.out, &on_progress);
+    let result = track_to_dir_with(&args.input, config, &args.out, &on_progress, command_line);
     // A note for the terminal, not for logs: shown only where the bar is.
     let on_terminal = !bar.is_hidden();
     bar.finish_and_clear();

@@ -824,6 +824,9 @@ pub struct Summary {
     pub length_histogram: Vec<(u64, u64, u64)>,
     pub mean_speed_px_s: f64,
     pub tracker: TrackerStats,
+    /// How the run was made ([`crate::provenance`]), when recorded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub provenance: Option<serde_json::Value>,
 }
 
 /// Accumulates what [`Summary`] needs while tracks stream past.
@@ -887,6 +890,7 @@ impl Summary {
                 0.0
             },
             tracker: stats.clone(),
+            provenance: None,
         }
     }
 }

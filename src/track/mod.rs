@@ -133,8 +133,8 @@ pub use io::{
 pub use params::*;
 use predict::*;
 pub use sink::{
-    read_hot_pixels, resolve_config, stream_of, track_into, track_to_dir, DirRun, FileSink,
-    SinkRun, TrackInput, TrackProgress, TrackStage,
+    read_hot_pixels, resolve_config, stream_of, track_into, track_to_dir, track_to_dir_with,
+    DirRun, FileSink, SinkRun, TrackInput, TrackProgress, TrackStage,
 };
 pub use slice::{SliceParams, SliceTracker};
 pub use state::*;

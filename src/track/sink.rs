@@ -91,6 +91,26 @@ pub fn track_to_dir(
     out: &Path,
     on_progress: &(dyn Fn(TrackProgress<'_>) + Sync),
 ) -> Result<DirRun> {
+    track_to_dir_with(input, config, out, on_progress, &[])
+}
+
+/// [`track_to_dir`] whose outputs record `command_line` (what the user
+/// typed; empty for a library call) in their provenance
+/// ([`crate::provenance`]): `provenance.json`, the `"provenance"` key of
+/// `summary.json` and the Parquet tables' metadata, with the run's full
+/// parameters, the input's fingerprint and the pulse source.
+pub fn track_to_dir_with(
+    input: &Path,
+    config: &TrackConfig,
+    out: &Path,
+    on_progress: &(dyn Fn(TrackProgress<'_>) + Sync),
+    command_line: &[String],
+) -> Result<DirRun> {
+    let mut prov =
+        crate::provenance::Provenance::new(command_line.iter().cloned()).with_parameters(config)?;
+    if input.is_file() {
+        prov = prov.with_input(input)?;
+    }
     let config = resolve_config(config)?;
     let stream = stream_of(&config)?;
     create_output_dir(out)?;
@@ -122,6 +142,12 @@ pub fn track_to_dir(
     if let Some(m) = &config.cluster.mask {
         m.write_png(&out.join("mask.png"))?;
     }
+    prov = prov.with_pulse_source(match &run.pulses {
+        Some(p) => format!("{:?}", p.timing.source).to_lowercase(),
+        None => "particles table".into(),
+    });
+    prov.write_to_dir(out)?;
+    sink.provenance = Some(prov);
     let summary = sink.finish(
         &run.stats,
         run.geometry.map(|g| (g.width as f64, g.height as f64)),
@@ -512,8 +538,23 @@ impl Writer {
 
     /// Commits the files, writes summary.json and tracks.png (`size`: the
     /// sensor's, else the extent of the particles).
-    fn finish(self, stats: &TrackerStats, out: &Path, size: Option<(f64, f64)>) -> Result<Summary> {
-        let summary = self.summary.summary(stats);
+    fn finish(
+        mut self,
+        stats: &TrackerStats,
+        out: &Path,
+        size: Option<(f64, f64)>,
+        provenance: Option<&crate::provenance::Provenance>,
+    ) -> Result<Summary> {
+        let mut summary = self.summary.summary(stats);
+        if let Some(p) = provenance {
+            let json = p.to_json();
+            let text = json.to_string();
+            self.particles_out
+                .add_metadata(crate::provenance::PARQUET_KEY, &text);
+            self.tracks_out
+                .add_metadata(crate::provenance::PARQUET_KEY, &text);
+            summary.provenance = Some(json);
+        }
         // The big files' commits wait for the disk (their sync) and the
         // figure is CPU work: nothing else runs at this point, so they run
         // side by side instead of one after another.
@@ -585,6 +626,8 @@ const MESSAGE_POINTS: usize = 4096;
 /// error on the way), it writes no file.
 pub struct FileSink {
     out: std::path::PathBuf,
+    /// Recorded in `summary.json` and the Parquet tables when set.
+    pub provenance: Option<crate::provenance::Provenance>,
     tx: Option<std::sync::mpsc::SyncSender<Output>>,
     writer: Option<std::thread::JoinHandle<Result<Writer>>>,
 }
@@ -611,6 +654,7 @@ impl FileSink {
             .map_err(|e| Error::analysis(format!("starting the output writer thread: {e}")))?;
         Ok(FileSink {
             out: out.to_path_buf(),
+            provenance: None,
             tx: Some(tx),
             writer: Some(handle),
         })
@@ -646,7 +690,7 @@ impl FileSink {
     pub fn finish(mut self, stats: &TrackerStats, size: Option<(f64, f64)>) -> Result<Summary> {
         self.tx = None; // closes the channel: the writer drains it and returns
         let writer = self.join()?;
-        writer.finish(stats, &self.out, size)
+        writer.finish(stats, &self.out, size, self.provenance.as_ref())
     }
 }
 
