@@ -787,9 +787,19 @@ mod tests {
             "summary.json",
             "tracks.png",
             "params.toml",
+            "provenance.json",
         ] {
             assert!(out.join(f).is_file(), "{f} missing");
         }
+        // A library call records an empty command line, the parameters,
+        // the input and the pulse source.
+        let prov = crate::provenance::Provenance::read_from_dir(&out)
+            .unwrap()
+            .unwrap();
+        assert!(prov.command_line.is_empty());
+        assert_eq!(prov.pulse_source.as_deref(), Some("particles table"));
+        assert_eq!(prov.inputs.len(), 1);
+        assert!(prov.parameters.unwrap().get("track").is_some());
         assert!(!out.join("tracks.npy").exists());
         let tracks = super::super::read_tracks(&out.join("tracks.parquet")).unwrap();
         assert_eq!(tracks.len(), 2);

@@ -93,6 +93,7 @@ fn links_a_particles_csv() {
         [
             "params.toml",
             "particles.parquet",
+            "provenance.json",
             "summary.json",
             "tracks.npy",
             "tracks.parquet",
