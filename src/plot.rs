@@ -72,6 +72,10 @@ pub struct Heatmap<'a> {
     pub colorbar_label: &'a str,
     /// Symmetric colour scale around zero (differences, uv, v).
     pub diverging: bool,
+    /// Label the axes in mm through this calibration (the ranges stay in
+    /// px: the ticks sit at round pixel positions, labelled with their
+    /// position in mm); `None`: in px.
+    pub axes_mm: Option<&'a crate::calib::Calibration>,
 }
 
 /// Draw a heatmap, image size chosen from the aspect ratio of the ranges.
@@ -594,11 +598,25 @@ fn render_heatmap_impl(
             .disable_y_mesh()
             .x_labels(10)
             .y_labels(8)
-            .x_label_formatter(&|v| fmt_tick(*v))
-            .y_label_formatter(&|v| fmt_tick(-*v))
+            .x_label_formatter(&|v| match map.axes_mm {
+                Some(c) => fmt_tick(c.px_to_mm(*v, 0.0).0),
+                None => fmt_tick(*v),
+            })
+            .y_label_formatter(&|v| match map.axes_mm {
+                Some(c) => fmt_tick(c.px_to_mm(0.0, -*v).1),
+                None => fmt_tick(-*v),
+            })
             .label_style(text_style(14))
-            .x_desc("x (px)")
-            .y_desc("y (px)")
+            .x_desc(if map.axes_mm.is_some() {
+                "x (mm)"
+            } else {
+                "x (px)"
+            })
+            .y_desc(if map.axes_mm.is_some() {
+                "y (mm)"
+            } else {
+                "y (px)"
+            })
             .axis_desc_style(text_style(16))
             .draw()
             .map_err(render_err)?;
@@ -1027,6 +1045,7 @@ mod tests {
             y_range: (0.0, 2.0),
             colorbar_label: "v",
             diverging: false,
+            axes_mm: None,
         };
         let size = (800, 500);
         let (buf, (px, py)) = render_heatmap(&map, size).unwrap();
@@ -1042,6 +1061,45 @@ mod tests {
     }
 
     #[test]
+    fn calibrated_axes_label_in_mm_and_leave_the_cells() {
+        let values = [0.0, 1.0, 2.0, 3.0];
+        let calib = crate::calib::Calibration::from_toml(
+            "px_per_mm = 10.0\norigin_px = [50.0, 20.0]\ny_axis = \"up\"\n",
+            std::path::Path::new("c.toml"),
+        )
+        .unwrap();
+        let mut map = Heatmap {
+            title: "t",
+            values: &values,
+            nx: 2,
+            ny: 2,
+            x_range: (0.0, 400.0),
+            y_range: (0.0, 200.0),
+            colorbar_label: "v",
+            diverging: false,
+            axes_mm: None,
+        };
+        let size = (800, 500);
+        let (px_buf, rect) = render_heatmap(&map, size).unwrap();
+        map.axes_mm = Some(&calib);
+        let (mm_buf, mm_rect) = render_heatmap(&map, size).unwrap();
+        // The same cells in the same place; the tick labels and axis titles
+        // (outside the plotting area) differ.
+        assert_eq!(rect, mm_rect);
+        let inside = |buf: &[u8]| {
+            let mut v = Vec::new();
+            for y in rect.1.clone() {
+                for x in rect.0.clone() {
+                    v.push(pixel(buf, size.0, x, y));
+                }
+            }
+            v
+        };
+        assert_eq!(inside(&px_buf), inside(&mm_buf));
+        assert_ne!(px_buf, mm_buf);
+    }
+
+    #[test]
     fn diverging_is_symmetric_around_zero() {
         let values = [-1.0, 0.0, 3.0];
         let map = Heatmap {
@@ -1053,6 +1111,7 @@ mod tests {
             y_range: (0.0, 1.0),
             colorbar_label: "dv",
             diverging: true,
+            axes_mm: None,
         };
         let size = (800, 400);
         let (buf, (px, py)) = render_heatmap(&map, size).unwrap();
@@ -1100,6 +1159,7 @@ mod tests {
                 y_range: (0.0, 1.0),
                 colorbar_label: "v",
                 diverging: false,
+                axes_mm: None,
             };
             let size = (800u32, 400u32);
             let (buf, _) = render_heatmap(&map, size).unwrap();

@@ -104,6 +104,7 @@ pub fn run(a: CompareArgs) -> anyhow::Result<()> {
                 y_range: yr,
                 colorbar_label: if q.len() == 1 { lv } else { ls },
                 diverging: true,
+                axes_mm: calib.as_ref(),
             },
         )?;
     }

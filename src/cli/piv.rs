@@ -239,6 +239,7 @@ pub fn run(a: PivArgs) -> anyhow::Result<()> {
                 y_range: yr,
                 colorbar_label: label,
                 diverging: *div,
+                axes_mm: calib.as_ref(),
             },
         )?;
     }

@@ -297,6 +297,7 @@ pub fn write_outputs(r: &PulseReport, out: &Path) -> anyhow::Result<()> {
             y_range: (0.0, h as f64),
             colorbar_label: "events/(pixel·s)",
             diverging: false,
+            axes_mm: None,
         },
     )?;
     Ok(())

@@ -304,6 +304,7 @@ pub fn run(a: SpectraArgs) -> anyhow::Result<()> {
                     y_range: (f[1], f[nf - 1]),
                     colorbar_label: "f*E(f) ((px/s)^2)",
                     diverging: false,
+                    axes_mm: None,
                 },
             )?;
         }

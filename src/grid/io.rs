@@ -320,6 +320,7 @@ pub fn write_maps_calibrated(dir: &Path, g: &GridStats, calib: Option<&Calibrati
                 y_range,
                 colorbar_label: label,
                 diverging: *diverging,
+                axes_mm: calib,
             },
         )?;
     }

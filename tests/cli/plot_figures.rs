@@ -76,6 +76,7 @@ fn heatmap_png_decodes_with_requested_size_and_many_colours() {
         y_range: (0.0, 360.0),
         colorbar_label: "events",
         diverging: false,
+        axes_mm: None,
     };
     plot::heatmap_sized(&path, &map, (1000, 600)).unwrap();
     let (w, h, px) = decode(&path);
@@ -116,6 +117,7 @@ fn diverging_heatmap_and_all_nan_map_render() {
             y_range: (0.0, 300.0),
             colorbar_label: "du (px/s)",
             diverging: true,
+            axes_mm: None,
         },
     )
     .unwrap();
@@ -138,6 +140,7 @@ fn diverging_heatmap_and_all_nan_map_render() {
             y_range: (0.0, 3.0),
             colorbar_label: "",
             diverging: false,
+            axes_mm: None,
         },
     )
     .unwrap();
@@ -163,6 +166,7 @@ fn heatmap_rejects_bad_input_without_writing() {
         y_range: (0.0, 1.0),
         colorbar_label: "",
         diverging: false,
+        axes_mm: None,
     };
     let leak: &'static [f64] = Box::leak(v.into_boxed_slice());
     let e = plot::heatmap(&path, &base(leak)).unwrap_err();
