@@ -292,3 +292,62 @@ def test_pulses_of_an_unpulsed_real_file_raise_as_the_cli(tmp_path: Path) -> Non
     with pytest.raises(ebptv.EbptvError) as e:
         ebptv.pulses(path, pulse_hz=5000)
     assert str(e.value) == cli_error("pulses", str(path), "--pulse-hz", "5000", "--out", str(tmp_path / "q"))
+
+
+def without_provenance(path: Path) -> dict:
+    d = json.loads(path.read_text())
+    d.pop("provenance", None)
+    return d
+
+
+def test_spectra_equal_ebptv_spectra(sim_run: Path, tmp_path: Path) -> None:
+    tracks = sim_run / "tracks.parquet"
+    out = tmp_path / "spectra"
+    cli_ok(
+        "spectra", str(tracks), "--point", "100,100", "--point", "200,150",
+        "--line", "50,50,300,200", "--line-points", "6", "--component", "sum",
+        "--nperseg", "64", "--no-plots", "--out", str(out),
+    )
+    got = ebptv.spectra(
+        tracks, points=[(100, 100), (200, 150)], line=(50, 50, 300, 200),
+        line_points=6, component="sum", nperseg=64,
+    )
+    spectra, line = got.pop("psd"), got.pop("premultiplied_line")
+    assert got == without_provenance(out / "spectrum.json")
+    assert got["frames"] > 0 and len(got["points"]) == 2 and len(got["line"]["points"]) == 6
+    pd.testing.assert_frame_equal(spectra, pd.read_csv(out / "spectra.csv"))
+    pd.testing.assert_frame_equal(line, pd.read_csv(out / "premultiplied_line.csv"))
+    assert len(spectra) == 33 and len(line) == 6 * 33
+
+
+def test_spectra_defaults_are_the_cli_defaults(sim_run: Path, tmp_path: Path) -> None:
+    tracks = sim_run / "tracks.parquet"
+    out = tmp_path / "spectra"
+    # 250 frames: the default segment (256 frames) is too long for it.
+    message = cli_error("spectra", str(tracks), "--point", "150,120", "--out", str(out))
+    with pytest.raises(ebptv.EbptvError) as e:
+        ebptv.spectra(tracks, points=[(150, 120)])
+    assert str(e.value) == message and "(256)" in message
+    cli_ok("spectra", str(tracks), "--point", "150,120", "--nperseg", "128", "--no-plots",
+           "--out", str(out))
+    got = ebptv.spectra(tracks, points=[(150, 120)], nperseg=128)
+    assert got.pop("premultiplied_line") is None
+    pd.testing.assert_frame_equal(got.pop("psd"), pd.read_csv(out / "spectra.csv"))
+    assert got == without_provenance(out / "spectrum.json")
+    assert ebptv.SPECTRA_DEFAULTS["nperseg"] == 256 and ebptv.SPECTRA_DEFAULTS["bin"] == 16
+
+
+def test_spectra_bad_input_raises_the_cli_message(sim_run: Path, tmp_path: Path) -> None:
+    missing = tmp_path / "missing.parquet"
+    for args, kwargs, path in [
+        ([], {}, sim_run / "tracks.parquet"),
+        (["--point", "1,1"], {"points": [(1, 1)]}, missing),
+        (["--line", "0,0,9,9", "--line-points", "1"], {"line": (0, 0, 9, 9), "line_points": 1},
+         sim_run / "tracks.parquet"),
+        (["--point", "1,1", "--bin", "0"], {"points": [(1, 1)], "bin": 0},
+         sim_run / "tracks.parquet"),
+    ]:
+        message = cli_error("spectra", str(path), *args, "--out", str(tmp_path / "o"))
+        with pytest.raises(ebptv.EbptvError) as e:
+            ebptv.spectra(path, **kwargs)
+        assert str(e.value) == message
