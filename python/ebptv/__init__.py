@@ -40,6 +40,7 @@ __all__ = [
     "GRID_DEFAULTS",
     "spectra",
     "SPECTRA_DEFAULTS",
+    "model_check",
     "GRID_COLUMNS",
     "PARTICLES_COLUMNS",
     "TRACKS_COLUMNS",
@@ -408,4 +409,53 @@ def spectra(
     report["premultiplied_line"] = (
         pd.read_csv(io.StringIO(line_csv)) if line_csv is not None else None
     )
+    return report
+
+
+def model_check(
+    path: PathLike,
+    out: Optional[PathLike] = None,
+    model: Optional[PathLike] = None,
+    seed: Optional[int] = None,
+    replicates: Optional[int] = None,
+    evaluations: Optional[int] = None,
+    max_effects: Optional[int] = None,
+    block_pulses: Optional[int] = None,
+    profile_fit: Optional[bool] = None,
+    paired_judgement: Optional[bool] = None,
+) -> Dict[str, Any]:
+    """``ebptv model-check PATH --out OUT``: the measured recording against
+    the simulator; the missing effects, fitted, with the gap before and
+    after (docs/readme/modelcheck.md).
+
+    ``model``: a starting scenario TOML (default: a standard sensor
+    calibrated to the measurement). The other options are those of
+    ``ebptv model-check``; ``None`` takes its default (seed 1, 5
+    replicates, 12 evaluations, 3 effects, 100 block pulses, profile fit
+    and paired judgement off). ``out``: the folder of ``model_check.json``,
+    ``model.toml``, ``report.md`` and the figures (a new temporary
+    directory when ``None``).
+
+    Returns ``model_check.json`` as a dict, plus ``"out"``: the folder.
+    """
+    if out is None:
+        import tempfile
+
+        out = tempfile.mkdtemp(prefix="ebptv-model-check-")
+    out = os.fspath(out)
+    report = json.loads(
+        _ebptv.model_check(
+            os.fspath(path),
+            out,
+            os.fspath(model) if model is not None else None,
+            seed,
+            replicates,
+            evaluations,
+            max_effects,
+            block_pulses,
+            profile_fit,
+            paired_judgement,
+        )
+    )
+    report["out"] = out
     return report

@@ -814,6 +814,45 @@ fn spectra(
     r.map_err(err)
 }
 
+/// `ebptv model-check`: the check of a measured recording against the
+/// simulator, outputs written into `out`; model_check.json as JSON text.
+/// `None` options take the CLI's defaults.
+#[pyfunction]
+#[pyo3(signature = (path, out, model=None, seed=None, replicates=None, evaluations=None, max_effects=None, block_pulses=None, profile_fit=None, paired_judgement=None))]
+#[allow(clippy::too_many_arguments)]
+fn model_check(
+    py: Python<'_>,
+    path: PathBuf,
+    out: PathBuf,
+    model: Option<PathBuf>,
+    seed: Option<u64>,
+    replicates: Option<usize>,
+    evaluations: Option<usize>,
+    max_effects: Option<usize>,
+    block_pulses: Option<u64>,
+    profile_fit: Option<bool>,
+    paired_judgement: Option<bool>,
+) -> PyResult<String> {
+    use ebptv::modelcheck::check::{check_recording, ModelCheckOptions};
+    let d = ModelCheckOptions::default();
+    let opts = ModelCheckOptions {
+        model,
+        seed: seed.unwrap_or(d.seed),
+        replicates: replicates.unwrap_or(d.replicates),
+        evaluations: evaluations.unwrap_or(d.evaluations),
+        max_effects: max_effects.unwrap_or(d.max_effects),
+        block_pulses: block_pulses.unwrap_or(d.block_pulses),
+        profile_fit: profile_fit.unwrap_or(d.profile_fit),
+        paired_judgement: paired_judgement.unwrap_or(d.paired_judgement),
+    };
+    py.allow_threads(|| -> ebptv::Result<String> {
+        check_recording(&path, &out, &opts)?;
+        let json = out.join("model_check.json");
+        std::fs::read_to_string(&json).map_err(|e| ebptv::Error::io(&json, e))
+    })
+    .map_err(err)
+}
+
 #[pymodule]
 fn _ebptv(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("EbptvError", m.py().get_type::<EbptvError>())?;
@@ -828,6 +867,7 @@ fn _ebptv(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(grid_estimate, m)?)?;
     m.add("GRID_DEFAULTS", grid_defaults(m.py())?)?;
     m.add_function(wrap_pyfunction!(spectra, m)?)?;
+    m.add_function(wrap_pyfunction!(model_check, m)?)?;
     m.add("SPECTRA_DEFAULTS", spectra_defaults(m.py())?)?;
     Ok(())
 }

@@ -351,3 +351,33 @@ def test_spectra_bad_input_raises_the_cli_message(sim_run: Path, tmp_path: Path)
         with pytest.raises(ebptv.EbptvError) as e:
             ebptv.spectra(path, **kwargs)
         assert str(e.value) == message
+
+
+MODEL_CHECK_SMALL = dict(replicates=2, evaluations=3, max_effects=1, block_pulses=20)
+
+
+def test_model_check_equals_ebptv_model_check(sim: Path, tmp_path: Path) -> None:
+    args = [f"--{k.replace('_', '-')}={v}" for k, v in MODEL_CHECK_SMALL.items()]
+    cli_ok("model-check", str(sim), *args, "--out", str(tmp_path / "cli"))
+    got = ebptv.model_check(sim, out=tmp_path / "py", **MODEL_CHECK_SMALL)
+    assert got.pop("out") == str(tmp_path / "py")
+    # The notes name the output folder (the flow baseline's file).
+    want = json.loads(
+        (tmp_path / "cli" / "model_check.json").read_text().replace(str(tmp_path / "cli"), "OUT")
+    )
+    want.pop("provenance", None)
+    got = json.loads(json.dumps(got).replace(str(tmp_path / "py"), "OUT"))
+    assert got == want
+    assert got["verdict"] in ("consistent", "explained", "unexplained") and got["notes"]
+    assert (tmp_path / "py" / "model.toml").is_file()
+
+
+def test_model_check_bad_input_raises_the_cli_message(sim: Path, tmp_path: Path) -> None:
+    for path, kwargs, args in [
+        (sim, {"block_pulses": 5}, ["--block-pulses", "5"]),
+        (tmp_path / "missing.raw", {}, []),
+    ]:
+        message = cli_error("model-check", str(path), *args, "--out", str(tmp_path / "o"))
+        with pytest.raises(ebptv.EbptvError) as e:
+            ebptv.model_check(path, out=tmp_path / "p", **kwargs)
+        assert str(e.value) == message
