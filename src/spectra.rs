@@ -27,6 +27,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
 
+mod run;
+pub use run::{run_on_samples, run_on_tracks, Component, LineSpectra, RunOptions, SpectraRun};
+
 /// Parameters of Welch's method.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct WelchOptions {

@@ -13,6 +13,7 @@ Long calls release the GIL and stop on Ctrl-C (``KeyboardInterrupt``).
 
 from __future__ import annotations
 
+import io
 import json
 import os
 from typing import Any, Dict, Iterator, Optional, Sequence, Tuple, Union
@@ -37,6 +38,9 @@ __all__ = [
     "grid_merge",
     "grid_estimate",
     "GRID_DEFAULTS",
+    "spectra",
+    "SPECTRA_DEFAULTS",
+    "model_check",
     "GRID_COLUMNS",
     "PARTICLES_COLUMNS",
     "TRACKS_COLUMNS",
@@ -341,4 +345,117 @@ def pulses(
     )
     report = json.loads(text)
     report["starts_us"] = starts
+    return report
+
+
+#: The defaults of ``ebptv spectra`` (read from the library):
+#: ``line_points``, ``component``, ``bin``, ``every``, ``nperseg``,
+#: ``seg_overlap``, ``f_min``, ``f_max`` (infinite: the Nyquist
+#: frequency), ``min_count``.
+SPECTRA_DEFAULTS: Dict[str, Any] = dict(_ebptv.SPECTRA_DEFAULTS)
+
+
+def spectra(
+    tracks: PathLike,
+    points: Sequence[Tuple[float, float]] = (),
+    line: Optional[Tuple[float, float, float, float]] = None,
+    line_points: Optional[int] = None,
+    component: Optional[str] = None,
+    bin: Optional[float] = None,
+    bin_h: Optional[float] = None,
+    every: Optional[int] = None,
+    nperseg: Optional[int] = None,
+    seg_overlap: Optional[float] = None,
+    f_min: Optional[float] = None,
+    f_max: Optional[float] = None,
+    moving_average: Optional[int] = None,
+    min_count: Optional[int] = None,
+    calibration: Optional[PathLike] = None,
+) -> Dict[str, Any]:
+    """``ebptv spectra``: velocity spectra (Welch PSD, significant peak,
+    noise floor) at points and along a line, from a tracks table
+    (``tracks.parquet``, ``.csv`` or ``.npy`` of :func:`track`'s run).
+
+    ``points``: ``[(x, y), ...]`` (px; the first gives ``peak_hz``);
+    ``line=(x0, y0, x1, y1)`` (px) with ``line_points`` points for the
+    pre-multiplied spectra of ``component`` (``"u"``, ``"v"``, ``"sum"``).
+    The other options are those of ``ebptv spectra``; ``None`` takes its
+    default (:data:`SPECTRA_DEFAULTS`); ``calibration``: a ``calib.toml``.
+
+    Returns ``spectrum.json`` as a dict, plus ``"psd"`` (the
+    ``spectra.csv`` table, ``None`` without points) and
+    ``"premultiplied_line"`` (the ``premultiplied_line.csv`` table,
+    ``None`` without a line) as DataFrames.
+    """
+    text, spectra_csv, line_csv = _ebptv.spectra(
+        os.fspath(tracks),
+        [(float(x), float(y)) for x, y in points],
+        tuple(float(v) for v in line) if line is not None else None,
+        line_points,
+        component,
+        bin,
+        bin_h,
+        every,
+        nperseg,
+        seg_overlap,
+        f_min,
+        f_max,
+        moving_average,
+        min_count,
+        os.fspath(calibration) if calibration is not None else None,
+    )
+    report = json.loads(text)
+    report["psd"] = pd.read_csv(io.StringIO(spectra_csv)) if spectra_csv is not None else None
+    report["premultiplied_line"] = (
+        pd.read_csv(io.StringIO(line_csv)) if line_csv is not None else None
+    )
+    return report
+
+
+def model_check(
+    path: PathLike,
+    out: Optional[PathLike] = None,
+    model: Optional[PathLike] = None,
+    seed: Optional[int] = None,
+    replicates: Optional[int] = None,
+    evaluations: Optional[int] = None,
+    max_effects: Optional[int] = None,
+    block_pulses: Optional[int] = None,
+    profile_fit: Optional[bool] = None,
+    paired_judgement: Optional[bool] = None,
+) -> Dict[str, Any]:
+    """``ebptv model-check PATH --out OUT``: the measured recording against
+    the simulator; the missing effects, fitted, with the gap before and
+    after (docs/readme/modelcheck.md).
+
+    ``model``: a starting scenario TOML (default: a standard sensor
+    calibrated to the measurement). The other options are those of
+    ``ebptv model-check``; ``None`` takes its default (seed 1, 5
+    replicates, 12 evaluations, 3 effects, 100 block pulses, profile fit
+    and paired judgement off). ``out``: the folder of ``model_check.json``,
+    ``model.toml``, ``report.md`` and the figures (a new temporary
+    directory when ``None``).
+
+    Returns ``model_check.json`` as a dict, plus ``"out"``: the folder.
+    """
+    if out is None:
+        import tempfile
+
+        out = tempfile.mkdtemp(prefix="ebptv-model-check-")
+    out = os.fspath(out)
+    report = json.loads(
+        _ebptv.model_check(
+            os.fspath(path),
+            out,
+            os.fspath(model) if model is not None else None,
+            seed,
+            replicates,
+            evaluations,
+            max_effects,
+            block_pulses,
+            profile_fit,
+            paired_judgement,
+        )
+    )
+    report["out"] = out
     return report

@@ -739,6 +739,120 @@ fn pulses<'py>(
     Ok((json, starts.into_pyarray(py)))
 }
 
+/// The defaults of `ebptv spectra`, from the library.
+fn spectra_defaults(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
+    let o = ebptv::spectra::RunOptions::default();
+    let d = PyDict::new(py);
+    d.set_item("line_points", o.line_points)?;
+    d.set_item("component", o.component.name())?;
+    d.set_item("bin", o.bin)?;
+    d.set_item("every", o.every)?;
+    d.set_item("nperseg", o.nperseg)?;
+    d.set_item("seg_overlap", o.seg_overlap)?;
+    d.set_item("f_min", o.f_min)?;
+    d.set_item("f_max", o.f_max)?;
+    d.set_item("min_count", o.min_count)?;
+    Ok(d)
+}
+
+/// `ebptv spectra` on a tracks table: spectrum.json (JSON text),
+/// spectra.csv and premultiplied_line.csv (text; `None` without points /
+/// line). `None` options take the CLI's defaults.
+#[pyfunction]
+#[pyo3(signature = (tracks, points, line=None, line_points=None, component=None, bin=None, bin_h=None, every=None, nperseg=None, seg_overlap=None, f_min=None, f_max=None, moving_average=None, min_count=None, calibration=None))]
+#[allow(clippy::too_many_arguments)]
+fn spectra(
+    py: Python<'_>,
+    tracks: PathBuf,
+    points: Vec<(f64, f64)>,
+    line: Option<(f64, f64, f64, f64)>,
+    line_points: Option<usize>,
+    component: Option<String>,
+    bin: Option<f64>,
+    bin_h: Option<f64>,
+    every: Option<usize>,
+    nperseg: Option<usize>,
+    seg_overlap: Option<f64>,
+    f_min: Option<f64>,
+    f_max: Option<f64>,
+    moving_average: Option<usize>,
+    min_count: Option<u64>,
+    calibration: Option<PathBuf>,
+) -> PyResult<(String, Option<String>, Option<String>)> {
+    let d = ebptv::spectra::RunOptions::default();
+    let r = py.allow_threads(|| -> ebptv::Result<_> {
+        let mut opt = ebptv::spectra::RunOptions {
+            points,
+            line,
+            line_points: line_points.unwrap_or(d.line_points),
+            component: component
+                .as_deref()
+                .map(str::parse)
+                .transpose()?
+                .unwrap_or(d.component),
+            bin: bin.unwrap_or(d.bin),
+            bin_h,
+            every: every.unwrap_or(d.every),
+            nperseg: nperseg.unwrap_or(d.nperseg),
+            seg_overlap: seg_overlap.unwrap_or(d.seg_overlap),
+            f_min: f_min.unwrap_or(d.f_min),
+            f_max: f_max.unwrap_or(d.f_max),
+            moving_average,
+            min_count: min_count.unwrap_or(d.min_count),
+            calibration: None,
+        };
+        opt.validate()?;
+        opt.calibration = calibration
+            .as_deref()
+            .map(ebptv::calib::Calibration::from_file)
+            .transpose()?;
+        let run = ebptv::spectra::run_on_tracks(&tracks, &opt)?;
+        let json = serde_json::to_string(&run.summary)
+            .map_err(|e| ebptv::Error::analysis(e.to_string()))?;
+        Ok((json, run.spectra_csv, run.line_csv))
+    });
+    r.map_err(err)
+}
+
+/// `ebptv model-check`: the check of a measured recording against the
+/// simulator, outputs written into `out`; model_check.json as JSON text.
+/// `None` options take the CLI's defaults.
+#[pyfunction]
+#[pyo3(signature = (path, out, model=None, seed=None, replicates=None, evaluations=None, max_effects=None, block_pulses=None, profile_fit=None, paired_judgement=None))]
+#[allow(clippy::too_many_arguments)]
+fn model_check(
+    py: Python<'_>,
+    path: PathBuf,
+    out: PathBuf,
+    model: Option<PathBuf>,
+    seed: Option<u64>,
+    replicates: Option<usize>,
+    evaluations: Option<usize>,
+    max_effects: Option<usize>,
+    block_pulses: Option<u64>,
+    profile_fit: Option<bool>,
+    paired_judgement: Option<bool>,
+) -> PyResult<String> {
+    use ebptv::modelcheck::check::{check_recording, ModelCheckOptions};
+    let d = ModelCheckOptions::default();
+    let opts = ModelCheckOptions {
+        model,
+        seed: seed.unwrap_or(d.seed),
+        replicates: replicates.unwrap_or(d.replicates),
+        evaluations: evaluations.unwrap_or(d.evaluations),
+        max_effects: max_effects.unwrap_or(d.max_effects),
+        block_pulses: block_pulses.unwrap_or(d.block_pulses),
+        profile_fit: profile_fit.unwrap_or(d.profile_fit),
+        paired_judgement: paired_judgement.unwrap_or(d.paired_judgement),
+    };
+    py.allow_threads(|| -> ebptv::Result<String> {
+        check_recording(&path, &out, &opts)?;
+        let json = out.join("model_check.json");
+        std::fs::read_to_string(&json).map_err(|e| ebptv::Error::io(&json, e))
+    })
+    .map_err(err)
+}
+
 #[pymodule]
 fn _ebptv(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("EbptvError", m.py().get_type::<EbptvError>())?;
@@ -752,5 +866,8 @@ fn _ebptv(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(grid_merge, m)?)?;
     m.add_function(wrap_pyfunction!(grid_estimate, m)?)?;
     m.add("GRID_DEFAULTS", grid_defaults(m.py())?)?;
+    m.add_function(wrap_pyfunction!(spectra, m)?)?;
+    m.add_function(wrap_pyfunction!(model_check, m)?)?;
+    m.add("SPECTRA_DEFAULTS", spectra_defaults(m.py())?)?;
     Ok(())
 }

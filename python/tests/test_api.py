@@ -305,3 +305,92 @@ def test_pulses_of_an_unpulsed_real_file_raise_as_the_cli(tmp_path: Path) -> Non
     with pytest.raises(ebptv.EbptvError) as e:
         ebptv.pulses(path, pulse_hz=5000)
     assert str(e.value) == cli_error("pulses", str(path), "--pulse-hz", "5000", "--out", str(tmp_path / "q"))
+
+
+def without_provenance(path: Path) -> dict:
+    d = json.loads(path.read_text())
+    d.pop("provenance", None)
+    return d
+
+
+def test_spectra_equal_ebptv_spectra(sim_run: Path, tmp_path: Path) -> None:
+    tracks = sim_run / "tracks.parquet"
+    out = tmp_path / "spectra"
+    cli_ok(
+        "spectra", str(tracks), "--point", "100,100", "--point", "200,150",
+        "--line", "50,50,300,200", "--line-points", "6", "--component", "sum",
+        "--nperseg", "64", "--no-plots", "--out", str(out),
+    )
+    got = ebptv.spectra(
+        tracks, points=[(100, 100), (200, 150)], line=(50, 50, 300, 200),
+        line_points=6, component="sum", nperseg=64,
+    )
+    spectra, line = got.pop("psd"), got.pop("premultiplied_line")
+    assert got == without_provenance(out / "spectrum.json")
+    assert got["frames"] > 0 and len(got["points"]) == 2 and len(got["line"]["points"]) == 6
+    pd.testing.assert_frame_equal(spectra, pd.read_csv(out / "spectra.csv"))
+    pd.testing.assert_frame_equal(line, pd.read_csv(out / "premultiplied_line.csv"))
+    assert len(spectra) == 33 and len(line) == 6 * 33
+
+
+def test_spectra_defaults_are_the_cli_defaults(sim_run: Path, tmp_path: Path) -> None:
+    tracks = sim_run / "tracks.parquet"
+    out = tmp_path / "spectra"
+    # 250 frames: the default segment (256 frames) is too long for it.
+    message = cli_error("spectra", str(tracks), "--point", "150,120", "--out", str(out))
+    with pytest.raises(ebptv.EbptvError) as e:
+        ebptv.spectra(tracks, points=[(150, 120)])
+    assert str(e.value) == message and "(256)" in message
+    cli_ok("spectra", str(tracks), "--point", "150,120", "--nperseg", "128", "--no-plots",
+           "--out", str(out))
+    got = ebptv.spectra(tracks, points=[(150, 120)], nperseg=128)
+    assert got.pop("premultiplied_line") is None
+    pd.testing.assert_frame_equal(got.pop("psd"), pd.read_csv(out / "spectra.csv"))
+    assert got == without_provenance(out / "spectrum.json")
+    assert ebptv.SPECTRA_DEFAULTS["nperseg"] == 256 and ebptv.SPECTRA_DEFAULTS["bin"] == 16
+
+
+def test_spectra_bad_input_raises_the_cli_message(sim_run: Path, tmp_path: Path) -> None:
+    missing = tmp_path / "missing.parquet"
+    for args, kwargs, path in [
+        ([], {}, sim_run / "tracks.parquet"),
+        (["--point", "1,1"], {"points": [(1, 1)]}, missing),
+        (["--line", "0,0,9,9", "--line-points", "1"], {"line": (0, 0, 9, 9), "line_points": 1},
+         sim_run / "tracks.parquet"),
+        (["--point", "1,1", "--bin", "0"], {"points": [(1, 1)], "bin": 0},
+         sim_run / "tracks.parquet"),
+    ]:
+        message = cli_error("spectra", str(path), *args, "--out", str(tmp_path / "o"))
+        with pytest.raises(ebptv.EbptvError) as e:
+            ebptv.spectra(path, **kwargs)
+        assert str(e.value) == message
+
+
+MODEL_CHECK_SMALL = dict(replicates=2, evaluations=3, max_effects=1, block_pulses=20)
+
+
+def test_model_check_equals_ebptv_model_check(sim: Path, tmp_path: Path) -> None:
+    args = [f"--{k.replace('_', '-')}={v}" for k, v in MODEL_CHECK_SMALL.items()]
+    cli_ok("model-check", str(sim), *args, "--out", str(tmp_path / "cli"))
+    got = ebptv.model_check(sim, out=tmp_path / "py", **MODEL_CHECK_SMALL)
+    assert got.pop("out") == str(tmp_path / "py")
+    # The notes name the output folder (the flow baseline's file).
+    want = json.loads(
+        (tmp_path / "cli" / "model_check.json").read_text().replace(str(tmp_path / "cli"), "OUT")
+    )
+    want.pop("provenance", None)
+    got = json.loads(json.dumps(got).replace(str(tmp_path / "py"), "OUT"))
+    assert got == want
+    assert got["verdict"] in ("consistent", "explained", "unexplained") and got["notes"]
+    assert (tmp_path / "py" / "model.toml").is_file()
+
+
+def test_model_check_bad_input_raises_the_cli_message(sim: Path, tmp_path: Path) -> None:
+    for path, kwargs, args in [
+        (sim, {"block_pulses": 5}, ["--block-pulses", "5"]),
+        (tmp_path / "missing.raw", {}, []),
+    ]:
+        message = cli_error("model-check", str(path), *args, "--out", str(tmp_path / "o"))
+        with pytest.raises(ebptv.EbptvError) as e:
+            ebptv.model_check(path, out=tmp_path / "p", **kwargs)
+        assert str(e.value) == message

@@ -13,7 +13,6 @@ use ebptv::grid::{
     self, estimate, io as gio, EstimateOptions, Fit, GridAccumulator, Sample, Weighting,
 };
 use ebptv::io::atomic::AtomicFile;
-use ebptv::{Error, Result};
 
 #[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
 pub enum FitArg {
@@ -131,24 +130,7 @@ pub fn parse_pair(s: &str) -> std::result::Result<(f64, f64), String> {
 /// A tracks table (any format) as samples (through the tracker's reader,
 /// which groups rows by track — what the per-track standard errors want);
 /// an error when the file holds no track point.
-pub fn read_track_samples(path: &Path) -> Result<Vec<Sample>> {
-    let tracks = ebptv::track::io::read_tracks(path)?;
-    let samples: Vec<Sample> = tracks
-        .iter()
-        .flat_map(|t| {
-            t.points
-                .iter()
-                .map(move |p| Sample::from_track_point(t.id, p))
-        })
-        .collect();
-    if samples.is_empty() {
-        return Err(Error::Empty {
-            path: path.into(),
-            why: "tracks file has a header but no track points".into(),
-        });
-    }
-    Ok(samples)
-}
+pub use ebptv::grid::read_track_samples;
 
 fn state_path(p: &Path) -> PathBuf {
     if p.is_dir() {

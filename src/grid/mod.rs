@@ -71,6 +71,27 @@ impl Sample {
     }
 }
 
+/// The samples of a tracks table (tracks.parquet, .csv or .npy); an
+/// error when it holds no track point.
+pub fn read_track_samples(path: &std::path::Path) -> Result<Vec<Sample>> {
+    let tracks = crate::track::io::read_tracks(path)?;
+    let samples: Vec<Sample> = tracks
+        .iter()
+        .flat_map(|t| {
+            t.points
+                .iter()
+                .map(move |p| Sample::from_track_point(t.id, p))
+        })
+        .collect();
+    if samples.is_empty() {
+        return Err(Error::Empty {
+            path: path.into(),
+            why: "tracks file has a header but no track points".into(),
+        });
+    }
+    Ok(samples)
+}
+
 /// Bounding box `(x_min, x_max, y_min, y_max)` of the finite samples;
 /// an error naming `what` when there are none.
 pub fn extent(samples: &[Sample], what: &str) -> Result<(f64, f64, f64, f64)> {

@@ -19,9 +19,11 @@
 //!   measurement (the default without a starting model): a yardstick per
 //!   signature that tolerates what a well-behaved sensor may show, and the
 //!   acceptance rule (half the gap, a clear lead over every rival);
+//! - [`check`]: the whole run of `ebptv model-check` on a recording;
 //! - [`report`]: `model_check.json`, the fitted scenario, Markdown + PNG.
 
 pub mod baseline;
+pub mod check;
 pub mod distance;
 pub mod report;
 pub mod scene;

@@ -1,0 +1,256 @@
+//! The whole `ebptv model-check` run: read the measured recording, build
+//! the starting model, fit on one half and judge on the other, write
+//! `model_check.json`, `model.toml` and the figures into the output folder.
+
+use std::path::Path;
+
+use crate::cluster::ClusterParams;
+use crate::error::{Error, Result};
+use crate::events::{Chunk, Edge, EventChunk, Geometry};
+use crate::modelcheck::baseline::{baseline_from_measurement, BaselineOptions};
+use crate::modelcheck::report::write_outputs;
+use crate::modelcheck::scene::{
+    active_effects, median_event_latency, particles_of, timing_of, SceneSimulator,
+};
+use crate::modelcheck::signatures::{burst_window, quiet_complement};
+use crate::modelcheck::standard::{
+    check as standard_check, standard_effects, StandardOptions, StandardSensor,
+};
+use crate::modelcheck::workflow::{
+    run as run_check, signatures_of, ModelCheckResult, Recording, WorkflowOptions,
+};
+use crate::sim::scenario::Scenario;
+
+/// Fewest pulses per fit / held-out block: fewer hold too few events per
+/// pixel for the signatures.
+pub const MIN_BLOCK_PULSES: u64 = 20;
+
+/// Options of [`check_recording`]; the defaults are those of
+/// `ebptv model-check`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelCheckOptions {
+    /// Starting model (scenario TOML); `None`: the standard sensor
+    /// calibrated to the measurement.
+    pub model: Option<std::path::PathBuf>,
+    /// Base seed of every simulation.
+    pub seed: u64,
+    /// Replicate simulations per assessment.
+    pub replicates: usize,
+    /// Objective evaluations per parameter and fit stage.
+    pub evaluations: usize,
+    /// Most effects to add.
+    pub max_effects: usize,
+    /// Pulses per fit and per held-out block (at most half the recording).
+    pub block_pulses: u64,
+    /// Two-parameter fits from a profile along the first parameter.
+    pub profile_fit: bool,
+    /// Paired judgement of the held-out gaps.
+    pub paired_judgement: bool,
+}
+
+impl Default for ModelCheckOptions {
+    fn default() -> Self {
+        ModelCheckOptions {
+            model: None,
+            seed: 1,
+            replicates: 5,
+            evaluations: 12,
+            max_effects: 3,
+            block_pulses: 100,
+            profile_fit: false,
+            paired_judgement: false,
+        }
+    }
+}
+
+/// What [`check_recording`] found (also written to `model_check.json`).
+#[derive(Debug, Clone)]
+pub struct ModelCheckRun {
+    pub result: ModelCheckResult,
+    pub notes: Vec<String>,
+}
+
+/// `ebptv model-check MEASURED --out OUT`: the check of a measured
+/// recording against the simulator, its outputs written into `out`.
+pub fn check_recording(
+    measured: &Path,
+    out: &Path,
+    a: &ModelCheckOptions,
+) -> Result<ModelCheckRun> {
+    if a.block_pulses < MIN_BLOCK_PULSES {
+        return Err(Error::param(
+            "block-pulses",
+            format!(
+                "{}: must be at least {MIN_BLOCK_PULSES} (fewer pulses hold too few events for the signatures)",
+                a.block_pulses
+            ),
+        ));
+    }
+    let mut src = crate::io::open(measured)?;
+    let geometry_hint = src.info().geometry;
+    let mut events = EventChunk::default();
+    let mut rising = Vec::new();
+    let mut chunk = Chunk::default();
+    while src.next_chunk(&mut chunk)? {
+        events.extend_from(&chunk.events);
+        rising.extend(
+            chunk
+                .triggers
+                .iter()
+                .filter(|t| t.edge == Edge::Rising)
+                .map(|t| t.t),
+        );
+    }
+    if events.len() < 1000 {
+        return Err(Error::analysis(format!(
+            "{}: only {} events, too few for a model check",
+            measured.display(),
+            events.len()
+        )));
+    }
+    let t0 = *events.t.iter().min().unwrap_or(&0);
+    let t1 = *events.t.iter().max().unwrap_or(&0);
+    let geometry = geometry_hint.unwrap_or_else(|| {
+        let w = events.x.iter().max().copied().unwrap_or(0) + 1;
+        let h = events.y.iter().max().copied().unwrap_or(0) + 1;
+        Geometry::new(w, h)
+    });
+
+    let mut notes = Vec::new();
+    let scenario = match &a.model {
+        Some(p) => {
+            notes.push(format!("starting model: {}", p.display()));
+            Scenario::from_toml_file(p)?
+        }
+        None => {
+            crate::io::atomic::create_output_dir(out)?;
+            let b = baseline_from_measurement(
+                &events,
+                &rising,
+                geometry,
+                // Absolute: the fitted model.toml names it, and a relative
+                // path there would be read relative to that file.
+                &std::fs::canonicalize(out)
+                    .map_err(|e| Error::io(out, e))?
+                    .join("flow_baseline.csv"),
+                &BaselineOptions {
+                    seed: a.seed,
+                    ..BaselineOptions::default()
+                },
+            )?;
+            notes.extend(b.notes);
+            b.scenario
+        }
+    };
+    // Fit on the first half, judge on the second; the simulator makes
+    // recordings as long as one half.
+    let timing = timing_of(&scenario);
+    let half_pulses = (((t1 - t0) as f64 / 2.0) / timing.period_us).floor();
+    if half_pulses < 20.0 {
+        return Err(Error::analysis(format!(
+            "{}: recording shorter than 40 pulses",
+            measured.display()
+        )));
+    }
+    let split = timing.first_pulse_us
+        + (timing.assign(t0).unwrap_or(0) as f64 + half_pulses) * timing.period_us;
+    // Every objective evaluation simulates one block: its length is what
+    // the search costs, so it is capped (`--block-pulses`).
+    let block_pulses = half_pulses.min(a.block_pulses as f64);
+    let block_us = block_pulses * timing.period_us;
+    let mut fit_ev = events.clone();
+    fit_ev.retain(|t, _, _, _| (t as f64) >= split - block_us && (t as f64) < split);
+    let mut hold_ev = events;
+    hold_ev.retain(|t, _, _, _| (t as f64) >= split && (t as f64) < split + block_us);
+    notes.push(format!(
+        "fit on {block_pulses} pulses before t = {split:.0} us, judged on the {block_pulses} after"
+    ));
+    let mut sc = scenario.clone();
+    sc.duration_s = (block_us + timing.first_pulse_us) * 1e-6;
+    let standard = a.model.is_none();
+    let mut start_model = active_effects(&sc);
+    let mut sim = SceneSimulator::new(sc.without_effects())?;
+    // Against the standard sensor: the measured rate scales its noise, and
+    // every simulation is moved to the measured median latency.
+    let event_rate_hz = fit_ev.len() as f64 / (block_us * 1e-6);
+    let pixels = geometry.width as f64 * geometry.height as f64;
+    if standard {
+        let median = median_event_latency(&fit_ev, &timing);
+        sim = sim.with_latency_median(Some(median));
+        start_model = standard_effects(&StandardSensor::default(), event_rate_hz, pixels);
+        notes.push(format!(
+            "standard sensor: latency spread {:.0} us, background noise {:.1} % of events; median latency {:.1} us refitted with every simulation",
+            StandardSensor::default().latency_spread_us,
+            100.0 * StandardSensor::default().noise_fraction,
+            median
+        ));
+    }
+    let cluster = ClusterParams {
+        radius: ClusterParams::radius_for_image_diameter(sc.optics.particle_diameter_px),
+        ..ClusterParams::default()
+    };
+    let recording = |ev: EventChunk| -> Result<Recording> {
+        let particles = particles_of(&ev, &timing, &cluster)?;
+        Ok(Recording {
+            events: ev,
+            particles,
+            tracks: None,
+        })
+    };
+    let fit = recording(fit_ev)?;
+    let hold = recording(hold_ev)?;
+    let mut cfg = sim.signature_config();
+    let lat = signatures_of(&cfg, &fit)?;
+    let lat = lat
+        .histogram("latency")
+        .ok_or_else(|| Error::analysis("latency signature"))?;
+    cfg.burst_window_us = Some(if standard {
+        // Off-burst = the quietest quarter of the period: background and
+        // hot pixels, not the tails of the latency distribution.
+        quiet_complement(lat, 0.25)?
+    } else {
+        burst_window(lat, 0.95)?
+    });
+
+    let opts = WorkflowOptions {
+        replicates: a.replicates,
+        max_evaluations: a.evaluations,
+        max_effects: a.max_effects,
+        seed: a.seed,
+        profile_fit: a.profile_fit,
+        paired_judgement: a.paired_judgement,
+        ..WorkflowOptions::default()
+    };
+    let result = if standard {
+        let sopts = StandardOptions {
+            replicates: a.replicates,
+            evaluations: a.evaluations,
+            max_effects: a.max_effects,
+            seed: a.seed,
+            ..StandardOptions::default()
+        };
+        standard_check(
+            &sim,
+            &cfg,
+            &fit,
+            &hold,
+            &start_model,
+            event_rate_hz,
+            pixels,
+            &sopts,
+        )?
+    } else {
+        run_check(&sim, &cfg, &fit, &hold, &start_model, &opts)?
+    };
+    write_outputs(
+        out,
+        &sim,
+        &cfg,
+        &hold,
+        &start_model,
+        &result,
+        &notes,
+        a.seed ^ 0xA5A5,
+    )?;
+    Ok(ModelCheckRun { result, notes })
+}
