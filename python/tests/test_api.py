@@ -314,7 +314,7 @@ def without_provenance(path: Path) -> dict:
 
 
 def test_spectra_equal_ebptv_spectra(sim_run: Path, tmp_path: Path) -> None:
-    tracks = sim_run / "tracks.parquet"
+    tracks = sim_run / "tracks.csv"
     out = tmp_path / "spectra"
     cli_ok(
         "spectra", str(tracks), "--point", "100,100", "--point", "200,150",
@@ -334,7 +334,7 @@ def test_spectra_equal_ebptv_spectra(sim_run: Path, tmp_path: Path) -> None:
 
 
 def test_spectra_defaults_are_the_cli_defaults(sim_run: Path, tmp_path: Path) -> None:
-    tracks = sim_run / "tracks.parquet"
+    tracks = sim_run / "tracks.csv"
     out = tmp_path / "spectra"
     # 250 frames: the default segment (256 frames) is too long for it.
     message = cli_error("spectra", str(tracks), "--point", "150,120", "--out", str(out))
@@ -353,12 +353,12 @@ def test_spectra_defaults_are_the_cli_defaults(sim_run: Path, tmp_path: Path) ->
 def test_spectra_bad_input_raises_the_cli_message(sim_run: Path, tmp_path: Path) -> None:
     missing = tmp_path / "missing.parquet"
     for args, kwargs, path in [
-        ([], {}, sim_run / "tracks.parquet"),
+        ([], {}, sim_run / "tracks.csv"),
         (["--point", "1,1"], {"points": [(1, 1)]}, missing),
         (["--line", "0,0,9,9", "--line-points", "1"], {"line": (0, 0, 9, 9), "line_points": 1},
-         sim_run / "tracks.parquet"),
+         sim_run / "tracks.csv"),
         (["--point", "1,1", "--bin", "0"], {"points": [(1, 1)], "bin": 0},
-         sim_run / "tracks.parquet"),
+         sim_run / "tracks.csv"),
     ]:
         message = cli_error("spectra", str(path), *args, "--out", str(tmp_path / "o"))
         with pytest.raises(ebptv.EbptvError) as e:
