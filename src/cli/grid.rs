@@ -41,8 +41,11 @@ pub enum SideArg {
 #[derive(Args, Debug)]
 pub struct GridArgs {
     /// A tracks table of `ebptv track` (tracks.parquet, .csv or .npy:
-    /// `track_id,pulse,t_us,x,y,u,v`, px, px/s).
-    pub tracks: Option<PathBuf>,
+    /// `track_id,pulse,t_us,x,y,u,v`, px, px/s). A shell pattern such as
+    /// `run1/tracks.*` may also name the run's figure (tracks.png): PNG
+    /// files among the paths are skipped.
+    #[arg(num_args = 0..)]
+    pub tracks: Vec<PathBuf>,
     /// Merge grid states (grid_state.json files or directories holding one)
     /// instead of binning tracks; fit/min-count/noise options apply.
     #[arg(long, num_args = 1.., conflicts_with = "tracks")]
@@ -127,6 +130,41 @@ pub fn parse_pair(s: &str) -> std::result::Result<(f64, f64), String> {
     Ok((a, b))
 }
 
+/// The one tracks table among `paths`: figures (PNG files, as a pattern
+/// like `run1/tracks.*` also names `tracks.png`) are skipped; more than
+/// one table is an error (several runs combine through `--merge`).
+fn tracks_table(paths: Vec<PathBuf>) -> anyhow::Result<Vec<PathBuf>> {
+    if paths.len() <= 1 {
+        return Ok(paths);
+    }
+    let is_png = |p: &Path| -> bool {
+        let mut head = [0u8; 8];
+        std::fs::File::open(p)
+            .and_then(|mut f| std::io::Read::read_exact(&mut f, &mut head))
+            .is_ok()
+            && head == *b"\x89PNG\r\n\x1a\n"
+    };
+    let (figures, tables): (Vec<PathBuf>, Vec<PathBuf>) =
+        paths.into_iter().partition(|p| is_png(p));
+    for f in &figures {
+        eprintln!(
+            "grid: skipping {} (a figure, not a tracks table)",
+            f.display()
+        );
+    }
+    anyhow::ensure!(
+        tables.len() <= 1,
+        "{} tracks tables given ({}): give one, or bin each and combine their grid states with --merge",
+        tables.len(),
+        tables
+            .iter()
+            .map(|p| p.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    Ok(tables)
+}
+
 /// A tracks table (any format) as samples (through the tracker's reader,
 /// which groups rows by track — what the per-track standard errors want);
 /// an error when the file holds no track point.
@@ -140,7 +178,8 @@ fn state_path(p: &Path) -> PathBuf {
     }
 }
 
-pub fn run(a: GridArgs) -> anyhow::Result<()> {
+pub fn run(mut a: GridArgs) -> anyhow::Result<()> {
+    a.tracks = tracks_table(std::mem::take(&mut a.tracks))?;
     let (weighting, fit) = match (a.fit, a.weighting) {
         (FitArg::Gaussian, Some(WeightArg::Tophat)) => {
             anyhow::bail!("--fit gaussian contradicts --weighting tophat")
@@ -169,7 +208,7 @@ pub fn run(a: GridArgs) -> anyhow::Result<()> {
     // The mask: --mask, else the tracking run's mask.png beside the tracks.
     let run_mask = a
         .tracks
-        .as_ref()
+        .first()
         .and_then(|t| t.parent())
         .map(|d| d.join("mask.png"))
         .filter(|p| a.mask.is_none() && p.is_file());
@@ -199,7 +238,7 @@ pub fn run(a: GridArgs) -> anyhow::Result<()> {
     } else {
         let tracks = a
             .tracks
-            .as_ref()
+            .first()
             .context("give a tracks file, or --merge STATE...")?;
         let opts = grid::BinOptions {
             bin: a.bin,

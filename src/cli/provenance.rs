@@ -30,12 +30,7 @@ pub fn plan(cmd: &Command) -> Option<Plan> {
         })
     };
     match cmd {
-        Command::Grid(a) => p(
-            &a.out,
-            a.tracks.iter().cloned().collect(),
-            &["grid.json"],
-            format!("{a:?}"),
-        ),
+        Command::Grid(a) => p(&a.out, a.tracks.to_vec(), &["grid.json"], format!("{a:?}")),
         Command::Spectra(a) => p(
             &a.out,
             vec![a.tracks.clone()],

@@ -359,3 +359,62 @@ fn track_with_grid_in_one_go() {
         "tracked despite bad --grid"
     );
 }
+
+/// `ebptv grid run/tracks.*`: the shell pattern also names the run's
+/// figure, which is skipped (same grid as the table alone); two tables are
+/// an error that names both and writes nothing.
+#[test]
+fn grid_takes_the_table_of_a_pattern_and_refuses_two_tables() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let f = Shear {
+        u0: 300.0,
+        shear: 2.0,
+        su: 40.0,
+        sv: 25.0,
+        rho: -0.4,
+    };
+    let s = f.tracks(200.0, 120.0, 2000, 10, 100.0, 0.8, 5);
+    let tracks = d.join("tracks.csv");
+    write_tracks(&tracks, &s);
+    // A real PNG beside it, as `ebptv track` leaves one.
+    let png = d.join("tracks.png");
+    ebptv::plot::heatmap(
+        &png,
+        &ebptv::plot::Heatmap {
+            title: "t",
+            values: &[0.0, 1.0],
+            nx: 2,
+            ny: 1,
+            x_range: (0.0, 2.0),
+            y_range: (0.0, 1.0),
+            colorbar_label: "v",
+            diverging: false,
+            axes_mm: None,
+        },
+    )
+    .unwrap();
+    let p = |x: &Path| x.display().to_string();
+    let (ok, err) = ebptv(&["grid", &p(&tracks), "--out", &p(&d.join("one"))]);
+    assert!(ok, "{err}");
+    let (ok, err) = ebptv(&["grid", &p(&tracks), &p(&png), "--out", &p(&d.join("both"))]);
+    assert!(ok, "{err}");
+    assert!(
+        err.contains("skipping") && err.contains("tracks.png"),
+        "{err}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(d.join("one/grid.csv")).unwrap(),
+        std::fs::read_to_string(d.join("both/grid.csv")).unwrap()
+    );
+    let other = d.join("other.csv");
+    write_tracks(&other, &s);
+    let out = d.join("two");
+    let (ok, err) = ebptv(&["grid", &p(&tracks), &p(&other), "--out", &p(&out)]);
+    assert!(!ok);
+    assert!(
+        err.contains("2 tracks tables") && err.contains("other.csv") && err.contains("--merge"),
+        "{err}"
+    );
+    assert!(!out.exists());
+}
