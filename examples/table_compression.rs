@@ -66,7 +66,7 @@ fn main() {
             })
         })
         .collect();
-    measure("tracks", &rows, &TRACK_COLUMNS, out.path());
+    measure("tracks", &rows, TRACK_COLUMNS, out.path());
     let particles = read_particles(&find(dir, "particles")).unwrap();
     measure("particles", &particles, &PARTICLE_COLUMNS, out.path());
 }

@@ -5,7 +5,7 @@ A grid accumulator (:func:`ebptv.grid_state`) holds sums, not means, so the
 accumulators of the parts of a tracks table merge (:func:`ebptv.grid_merge`,
 in order) into the accumulator of the whole, to rounding: means,
 Reynolds stresses, counts and per-track counts (a track cut between two
-adjacent parts is joined again). The helpers here build that as a Dask
+adjacent parts is joined again). The functions here build that as a Dask
 graph: one task per partition (or per recording), then an ordered tree of
 merges, then one estimate.
 

@@ -54,7 +54,7 @@ def cli_error(*args: str) -> str:
     return r.stderr[at + len("error: ") :].rstrip("\n")
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def sim(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A simulated recording (the demo scene, 0.05 s, 250 pulses)."""
     out = tmp_path_factory.mktemp("sim")
@@ -62,7 +62,7 @@ def sim(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out / "recording.raw"
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def sim_run(sim: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("track")
     # CSV tables: the comparisons below read them with pandas.read_csv.

@@ -45,19 +45,12 @@ pub struct TrackRow {
 }
 
 /// The columns of the `tracks` table in Parquet and `.npy` (the
-/// `tracks.csv` columns; µs, px, px/s).
-pub static TRACK_COLUMNS: [Col<TrackRow>; 7] = [
-    Col::i64("track_id", |r| r.id as i64),
-    Col::i64("pulse", |r| r.p.pulse),
-    Col::f64("t_us", |r| r.p.t_us),
-    Col::f64("x", |r| r.p.x),
-    Col::f64("y", |r| r.p.y),
-    Col::f64("u", |r| r.p.u),
-    Col::f64("v", |r| r.p.v),
-];
+/// `tracks.csv` columns; µs, px, px/s): the first seven of
+/// [`TRACK_COLUMNS_CALIBRATED`].
+pub static TRACK_COLUMNS: &[Col<TrackRow>] = TRACK_COLUMNS_CALIBRATED.split_at(7).0;
 
-/// [`TRACK_COLUMNS`] followed by the physical columns of a calibrated run
-/// ([`crate::calib::Calibration::point_columns`]: mm, m/s).
+/// The `tracks` columns followed by the physical columns of a calibrated
+/// run ([`crate::calib::Calibration::point_columns`]: mm, m/s).
 pub static TRACK_COLUMNS_CALIBRATED: [Col<TrackRow>; 11] = [
     Col::i64("track_id", |r| r.id as i64),
     Col::i64("pulse", |r| r.p.pulse),
@@ -134,7 +127,7 @@ impl TracksWriter {
         let cols: &'static [Col<TrackRow>] = if calib.is_some() {
             &TRACK_COLUMNS_CALIBRATED
         } else {
-            &TRACK_COLUMNS
+            TRACK_COLUMNS
         };
         Ok(match format {
             TableFormat::Csv => {

@@ -46,17 +46,22 @@ fn read_csv(path: &Path) -> (String, Vec<Vec<f64>>) {
     (header, rows)
 }
 
-#[test]
-fn grid_command_writes_the_contract_and_merges_to_the_single_run() {
-    let dir = tempfile::tempdir().unwrap();
-    let d = dir.path();
-    let f = Shear {
+/// The sheared flow the command-line cases bin.
+fn shear_flow() -> Shear {
+    Shear {
         u0: 300.0,
         shear: 2.0,
         su: 40.0,
         sv: 25.0,
         rho: -0.4,
-    };
+    }
+}
+
+#[test]
+fn grid_command_writes_the_contract_and_merges_to_the_single_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let f = shear_flow();
     let s = f.tracks(200.0, 120.0, 6000, 10, 100.0, 0.8, 21);
     write_tracks(&d.join("all.csv"), &s);
     write_tracks(&d.join("a.csv"), &s[..25_003]);
@@ -367,13 +372,7 @@ fn track_with_grid_in_one_go() {
 fn grid_takes_the_table_of_a_pattern_and_refuses_two_tables() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let f = Shear {
-        u0: 300.0,
-        shear: 2.0,
-        su: 40.0,
-        sv: 25.0,
-        rho: -0.4,
-    };
+    let f = shear_flow();
     let s = f.tracks(200.0, 120.0, 2000, 10, 100.0, 0.8, 5);
     let tracks = d.join("tracks.csv");
     write_tracks(&tracks, &s);
