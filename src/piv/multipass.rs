@@ -433,7 +433,7 @@ fn inside_mask(disp: &[(f32, f32)], sep: usize, w: usize, h: usize) -> Vec<bool>
 /// [`deform_plain`].
 fn deform(coef: &Image, disp: &[(f32, f32)], factor: f32, inside: &[bool]) -> Image {
     #[cfg(target_arch = "x86_64")]
-    if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
+    if ebptv_sim::simd::avx2_fma() {
         let w = coef.width;
         let mut out = Image::zeros(w, coef.height);
         out.data.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
@@ -813,7 +813,7 @@ fn run_pass(
     let chain = chain_frames(pairs);
     let nf = chain.as_ref().map_or(0, |c| c.len());
     #[cfg(target_arch = "x86_64")]
-    let avx2 = is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma");
+    let avx2 = ebptv_sim::simd::avx2_fma();
     let results: Vec<(f64, f64, f32, u8)> = (0..grid.len())
         .into_par_iter()
         .map_init(
@@ -1236,7 +1236,7 @@ mod tests {
                     .fold(0.0f32, f32::max);
                 assert!(err < 1e-5, "chain vs pairs {ww}x{wh}: {err}");
                 #[cfg(target_arch = "x86_64")]
-                if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
+                if ebptv_sim::simd::avx2_fma() {
                     // SAFETY: the CPU has AVX2 and FMA (checked).
                     let wide =
                         unsafe { measure_node_avx2(&mut t, &pairs, Some(&chain), xs, ys, ww, wh) };

@@ -7,9 +7,10 @@
 //! profile (67 % of the CPU in `__cos_fma`). These are plain `#[inline]`
 //! f64 arithmetic: Cody–Waite range reduction and a Taylor polynomial
 //! evaluated by Horner's rule, with the selects done on bits. Each kernel
-//! is written once over [`Lanes`] and runs on one f64 or on two at once
-//! ([`F64x2`], an SSE2 register: part of the x86_64 baseline, so no
-//! feature detection). The compiler did not vectorise a loop of the scalar
+//! is written once over [`Lanes`] and runs on one f64, on two at once
+//! ([`crate::simd::F64x2`], an SSE2 register: part of the x86_64
+//! baseline, so no feature detection) or on the AVX2 lanes of
+//! [`crate::simd`]. The compiler did not vectorise a loop of the scalar
 //! versions by itself (the bit operations), hence the explicit pair.
 //!
 //! Determinism: only IEEE add, sub and mul (never `mul_add`, which Rust
@@ -30,9 +31,10 @@
 //! cos d − 1 within 1e-17 on their domains (no range reduction: callers
 //! check the bound).
 
-/// 1.5 · 2^52: adding it rounds an f64 of magnitude < 2^51 to the nearest
-/// integer (ties to even), which then sits in the low mantissa bits.
-const ROUND: f64 = 6_755_399_441_055_744.0;
+use crate::simd::{Lanes, ROUND};
+#[cfg(test)]
+use crate::simd::F64x2;
+
 const INV_PI: f64 = std::f64::consts::FRAC_1_PI;
 /// π/2 in two parts: the first has 33 significant bits, so j·Q1 is exact
 /// for |j| < 2^20; Q1 + Q2 is π/2 to 3.5e-27.
@@ -51,601 +53,6 @@ const S11: f64 = -2.505_210_761_699_618_2e-8;
 const S13: f64 = 1.605_897_731_246_408_7e-10;
 const S15: f64 = -7.643_970_296_798_572e-13;
 const S17: f64 = 2.731_444_766_986_399_5e-15;
-
-/// The operations the kernels need, on one f64 or on a pair ([`F64x2`]):
-/// each kernel is written once, generic over this, so the pair gives
-/// exactly the scalar's numbers lane by lane (IEEE add/sub/mul are
-/// correctly rounded whatever the register width).
-pub trait Lanes:
-    Copy
-    + std::ops::Add<Output = Self>
-    + std::ops::Sub<Output = Self>
-    + std::ops::Mul<Output = Self>
-    + std::ops::Div<Output = Self>
-    + std::ops::Neg<Output = Self>
-{
-    /// Lanes per value.
-    const N: usize;
-    fn splat(v: f64) -> Self;
-    /// Lane `i` (< N).
-    fn lane(self, i: usize) -> f64;
-    /// The value with lane i = `f(i)`.
-    fn from_fn(f: impl FnMut(usize) -> f64) -> Self;
-    /// `if self < b { yes } else { no }` per lane.
-    fn select_lt(self, b: Self, yes: Self, no: Self) -> Self;
-    /// |self| per lane (the sign bit cleared).
-    fn abs(self) -> Self;
-    /// ±1 with the sign bit of each lane (`f64::signum` but for NaN).
-    fn sign_one(self) -> Self;
-    /// `if self < lo { lo } else { self }` per lane (NaN stays NaN).
-    fn raise_to(self, lo: f64) -> Self;
-    /// `if self > hi { hi } else { self }` per lane (NaN stays NaN).
-    fn lower_to(self, hi: f64) -> Self;
-    /// The sign bit set where bit 0 of the lane's bits is set, else +0.
-    fn low_bit_as_sign(self) -> Self;
-    /// Bitwise xor of the lanes' bits.
-    fn xor(self, o: Self) -> Self;
-    /// 2^n for `self` = ROUND + n, |n| ≤ 1022 (n in the low mantissa bits).
-    fn pow2_of_rounded(self) -> Self;
-}
-
-impl Lanes for f64 {
-    const N: usize = 1;
-    #[inline(always)]
-    fn splat(v: f64) -> f64 {
-        v
-    }
-    #[inline(always)]
-    fn lane(self, _i: usize) -> f64 {
-        self
-    }
-    #[inline(always)]
-    fn from_fn(mut f: impl FnMut(usize) -> f64) -> f64 {
-        f(0)
-    }
-    #[inline(always)]
-    fn select_lt(self, b: f64, yes: f64, no: f64) -> f64 {
-        if self < b {
-            yes
-        } else {
-            no
-        }
-    }
-    #[inline(always)]
-    fn abs(self) -> f64 {
-        f64::abs(self)
-    }
-    #[inline(always)]
-    fn sign_one(self) -> f64 {
-        1f64.copysign(self)
-    }
-    #[inline(always)]
-    fn raise_to(self, lo: f64) -> f64 {
-        if self < lo {
-            lo
-        } else {
-            self
-        }
-    }
-    #[inline(always)]
-    fn lower_to(self, hi: f64) -> f64 {
-        if self > hi {
-            hi
-        } else {
-            self
-        }
-    }
-    #[inline(always)]
-    fn low_bit_as_sign(self) -> f64 {
-        f64::from_bits((self.to_bits() & 1) << 63)
-    }
-    #[inline(always)]
-    fn xor(self, o: f64) -> f64 {
-        f64::from_bits(self.to_bits() ^ o.to_bits())
-    }
-    #[inline(always)]
-    fn pow2_of_rounded(self) -> f64 {
-        // Two's complement n in the low bits of the difference.
-        let n = (self.to_bits() as i64).wrapping_sub(ROUND.to_bits() as i64);
-        f64::from_bits(((n + 1023) as u64) << 52)
-    }
-}
-
-/// Two f64 lanes: an SSE2 register on x86_64 (part of its baseline, so no
-/// feature detection), a pair elsewhere.
-#[derive(Clone, Copy, Debug)]
-pub struct F64x2(
-    #[cfg(target_arch = "x86_64")] std::arch::x86_64::__m128d,
-    #[cfg(not(target_arch = "x86_64"))] [f64; 2],
-);
-
-#[cfg(target_arch = "x86_64")]
-mod x2 {
-    // SAFETY (every `unsafe` below): the intrinsics are SSE2, which every
-    // x86_64 CPU has; the loads and stores go through arrays we own.
-    use super::{F64x2, ROUND};
-    use std::arch::x86_64::*;
-
-    impl F64x2 {
-        #[inline(always)]
-        pub fn new(a: [f64; 2]) -> F64x2 {
-            // SAFETY: SSE2, part of the x86_64 baseline; the pointer is to an owned array of the lane count.
-            F64x2(unsafe { _mm_loadu_pd(a.as_ptr()) })
-        }
-        #[inline(always)]
-        pub(crate) fn to_array(self) -> [f64; 2] {
-            let mut a = [0.0; 2];
-            // SAFETY: SSE2, part of the x86_64 baseline; the pointer is to an owned array of the lane count.
-            unsafe { _mm_storeu_pd(a.as_mut_ptr(), self.0) };
-            a
-        }
-    }
-    impl std::ops::Add for F64x2 {
-        type Output = F64x2;
-        #[inline(always)]
-        fn add(self, o: F64x2) -> F64x2 {
-            // SAFETY: SSE2, part of the x86_64 baseline.
-            F64x2(unsafe { _mm_add_pd(self.0, o.0) })
-        }
-    }
-    impl std::ops::Sub for F64x2 {
-        type Output = F64x2;
-        #[inline(always)]
-        fn sub(self, o: F64x2) -> F64x2 {
-            // SAFETY: SSE2, part of the x86_64 baseline.
-            F64x2(unsafe { _mm_sub_pd(self.0, o.0) })
-        }
-    }
-    impl std::ops::Mul for F64x2 {
-        type Output = F64x2;
-        #[inline(always)]
-        fn mul(self, o: F64x2) -> F64x2 {
-            // SAFETY: SSE2, part of the x86_64 baseline.
-            F64x2(unsafe { _mm_mul_pd(self.0, o.0) })
-        }
-    }
-    impl std::ops::Div for F64x2 {
-        type Output = F64x2;
-        #[inline(always)]
-        fn div(self, o: F64x2) -> F64x2 {
-            // SAFETY: SSE2, part of the x86_64 baseline.
-            F64x2(unsafe { _mm_div_pd(self.0, o.0) })
-        }
-    }
-    impl std::ops::Neg for F64x2 {
-        type Output = F64x2;
-        #[inline(always)]
-        fn neg(self) -> F64x2 {
-            // SAFETY: SSE2, part of the x86_64 baseline.
-            F64x2(unsafe { _mm_xor_pd(self.0, _mm_set1_pd(-0.0)) })
-        }
-    }
-    impl super::Lanes for F64x2 {
-        const N: usize = 2;
-        #[inline(always)]
-        fn splat(v: f64) -> F64x2 {
-            // SAFETY: SSE2, part of the x86_64 baseline.
-            F64x2(unsafe { _mm_set1_pd(v) })
-        }
-        #[inline(always)]
-        fn lane(self, i: usize) -> f64 {
-            self.to_array()[i]
-        }
-        #[inline(always)]
-        fn from_fn(mut f: impl FnMut(usize) -> f64) -> F64x2 {
-            let a = f(0);
-            F64x2::new([a, f(1)])
-        }
-        #[inline(always)]
-        fn select_lt(self, b: F64x2, yes: F64x2, no: F64x2) -> F64x2 {
-            // SAFETY: SSE2, part of the x86_64 baseline.
-            unsafe {
-                let m = _mm_cmplt_pd(self.0, b.0);
-                F64x2(_mm_or_pd(_mm_and_pd(m, yes.0), _mm_andnot_pd(m, no.0)))
-            }
-        }
-        #[inline(always)]
-        fn abs(self) -> F64x2 {
-            // SAFETY: SSE2, part of the x86_64 baseline.
-            F64x2(unsafe { _mm_andnot_pd(_mm_set1_pd(-0.0), self.0) })
-        }
-        #[inline(always)]
-        fn sign_one(self) -> F64x2 {
-            // SAFETY: SSE2, part of the x86_64 baseline.
-            unsafe {
-                let sign = _mm_and_pd(_mm_set1_pd(-0.0), self.0);
-                F64x2(_mm_or_pd(sign, _mm_set1_pd(1.0)))
-            }
-        }
-        #[inline(always)]
-        fn raise_to(self, lo: f64) -> F64x2 {
-            // SAFETY: SSE2, part of the x86_64 baseline.
-            unsafe {
-                let lo = _mm_set1_pd(lo);
-                let m = _mm_cmplt_pd(self.0, lo);
-                F64x2(_mm_or_pd(_mm_and_pd(m, lo), _mm_andnot_pd(m, self.0)))
-            }
-        }
-        #[inline(always)]
-        fn lower_to(self, hi: f64) -> F64x2 {
-            // SAFETY: SSE2, part of the x86_64 baseline.
-            unsafe {
-                let hi = _mm_set1_pd(hi);
-                let m = _mm_cmpgt_pd(self.0, hi);
-                F64x2(_mm_or_pd(_mm_and_pd(m, hi), _mm_andnot_pd(m, self.0)))
-            }
-        }
-        #[inline(always)]
-        fn low_bit_as_sign(self) -> F64x2 {
-            // SAFETY: SSE2, part of the x86_64 baseline.
-            unsafe {
-                F64x2(_mm_castsi128_pd(_mm_slli_epi64::<63>(_mm_castpd_si128(
-                    self.0,
-                ))))
-            }
-        }
-        #[inline(always)]
-        fn xor(self, o: F64x2) -> F64x2 {
-            // SAFETY: SSE2, part of the x86_64 baseline.
-            F64x2(unsafe { _mm_xor_pd(self.0, o.0) })
-        }
-        #[inline(always)]
-        fn pow2_of_rounded(self) -> F64x2 {
-            // SAFETY: SSE2, part of the x86_64 baseline.
-            unsafe {
-                let n = _mm_sub_epi64(
-                    _mm_castpd_si128(self.0),
-                    _mm_set1_epi64x(ROUND.to_bits() as i64),
-                );
-                let e = _mm_add_epi64(n, _mm_set1_epi64x(1023));
-                F64x2(_mm_castsi128_pd(_mm_slli_epi64::<52>(e)))
-            }
-        }
-    }
-}
-
-#[cfg(not(target_arch = "x86_64"))]
-mod x2 {
-    use super::{F64x2, Lanes};
-
-    impl F64x2 {
-        #[inline(always)]
-        pub fn new(a: [f64; 2]) -> F64x2 {
-            F64x2(a)
-        }
-        #[inline(always)]
-        pub(crate) fn to_array(self) -> [f64; 2] {
-            self.0
-        }
-        #[inline(always)]
-        fn map(self, o: F64x2, f: impl Fn(f64, f64) -> f64) -> F64x2 {
-            F64x2([f(self.0[0], o.0[0]), f(self.0[1], o.0[1])])
-        }
-    }
-    impl std::ops::Add for F64x2 {
-        type Output = F64x2;
-        #[inline(always)]
-        fn add(self, o: F64x2) -> F64x2 {
-            self.map(o, |a, b| a + b)
-        }
-    }
-    impl std::ops::Sub for F64x2 {
-        type Output = F64x2;
-        #[inline(always)]
-        fn sub(self, o: F64x2) -> F64x2 {
-            self.map(o, |a, b| a - b)
-        }
-    }
-    impl std::ops::Mul for F64x2 {
-        type Output = F64x2;
-        #[inline(always)]
-        fn mul(self, o: F64x2) -> F64x2 {
-            self.map(o, |a, b| a * b)
-        }
-    }
-    impl std::ops::Div for F64x2 {
-        type Output = F64x2;
-        #[inline(always)]
-        fn div(self, o: F64x2) -> F64x2 {
-            self.map(o, |a, b| a / b)
-        }
-    }
-    impl std::ops::Neg for F64x2 {
-        type Output = F64x2;
-        #[inline(always)]
-        fn neg(self) -> F64x2 {
-            F64x2(self.0.map(|a| -a))
-        }
-    }
-    impl Lanes for F64x2 {
-        const N: usize = 2;
-        #[inline(always)]
-        fn splat(v: f64) -> F64x2 {
-            F64x2([v, v])
-        }
-        #[inline(always)]
-        fn lane(self, i: usize) -> f64 {
-            self.0[i]
-        }
-        #[inline(always)]
-        fn from_fn(mut f: impl FnMut(usize) -> f64) -> F64x2 {
-            let a = f(0);
-            F64x2([a, f(1)])
-        }
-        #[inline(always)]
-        fn select_lt(self, b: F64x2, yes: F64x2, no: F64x2) -> F64x2 {
-            F64x2([0, 1].map(|i| self.0[i].select_lt(b.0[i], yes.0[i], no.0[i])))
-        }
-        #[inline(always)]
-        fn abs(self) -> F64x2 {
-            F64x2(self.0.map(f64::abs))
-        }
-        #[inline(always)]
-        fn sign_one(self) -> F64x2 {
-            F64x2(self.0.map(|a| a.sign_one()))
-        }
-        #[inline(always)]
-        fn raise_to(self, lo: f64) -> F64x2 {
-            F64x2(self.0.map(|a| a.raise_to(lo)))
-        }
-        #[inline(always)]
-        fn lower_to(self, hi: f64) -> F64x2 {
-            F64x2(self.0.map(|a| a.lower_to(hi)))
-        }
-        #[inline(always)]
-        fn low_bit_as_sign(self) -> F64x2 {
-            F64x2(self.0.map(|a| a.low_bit_as_sign()))
-        }
-        #[inline(always)]
-        fn xor(self, o: F64x2) -> F64x2 {
-            self.map(o, |a, b| a.xor(b))
-        }
-        #[inline(always)]
-        fn pow2_of_rounded(self) -> F64x2 {
-            F64x2(self.0.map(|a| a.pow2_of_rounded()))
-        }
-    }
-}
-
-/// Two values of a lane type side by side (`Two<F64x2>`: four lanes in two
-/// SSE2 registers): two independent dependency chains for the
-/// out-of-order core to overlap. Lane i < `T::N` is the first's.
-#[derive(Clone, Copy, Debug)]
-pub struct Two<T>(pub T, pub T);
-
-/// Four lanes as two SSE2 pairs.
-pub type F64x4 = Two<F64x2>;
-
-macro_rules! two_op {
-    ($tr:ident, $f:ident, $op:tt) => {
-        impl<T: Lanes> std::ops::$tr for Two<T> {
-            type Output = Two<T>;
-            #[inline(always)]
-            fn $f(self, o: Two<T>) -> Two<T> {
-                Two(self.0 $op o.0, self.1 $op o.1)
-            }
-        }
-    };
-}
-two_op!(Add, add, +);
-two_op!(Sub, sub, -);
-two_op!(Mul, mul, *);
-two_op!(Div, div, /);
-
-impl<T: Lanes> std::ops::Neg for Two<T> {
-    type Output = Two<T>;
-    #[inline(always)]
-    fn neg(self) -> Two<T> {
-        Two(-self.0, -self.1)
-    }
-}
-
-impl<T: Lanes> Lanes for Two<T> {
-    const N: usize = 2 * T::N;
-    #[inline(always)]
-    fn splat(v: f64) -> Two<T> {
-        Two(T::splat(v), T::splat(v))
-    }
-    #[inline(always)]
-    fn lane(self, i: usize) -> f64 {
-        if i < T::N {
-            self.0.lane(i)
-        } else {
-            self.1.lane(i - T::N)
-        }
-    }
-    #[inline(always)]
-    fn from_fn(mut f: impl FnMut(usize) -> f64) -> Two<T> {
-        let lo = T::from_fn(&mut f);
-        Two(lo, T::from_fn(|i| f(i + T::N)))
-    }
-    #[inline(always)]
-    fn select_lt(self, b: Two<T>, yes: Two<T>, no: Two<T>) -> Two<T> {
-        Two(
-            self.0.select_lt(b.0, yes.0, no.0),
-            self.1.select_lt(b.1, yes.1, no.1),
-        )
-    }
-    #[inline(always)]
-    fn abs(self) -> Two<T> {
-        Two(self.0.abs(), self.1.abs())
-    }
-    #[inline(always)]
-    fn sign_one(self) -> Two<T> {
-        Two(self.0.sign_one(), self.1.sign_one())
-    }
-    #[inline(always)]
-    fn raise_to(self, lo: f64) -> Two<T> {
-        Two(self.0.raise_to(lo), self.1.raise_to(lo))
-    }
-    #[inline(always)]
-    fn lower_to(self, hi: f64) -> Two<T> {
-        Two(self.0.lower_to(hi), self.1.lower_to(hi))
-    }
-    #[inline(always)]
-    fn low_bit_as_sign(self) -> Two<T> {
-        Two(self.0.low_bit_as_sign(), self.1.low_bit_as_sign())
-    }
-    #[inline(always)]
-    fn xor(self, o: Two<T>) -> Two<T> {
-        Two(self.0.xor(o.0), self.1.xor(o.1))
-    }
-    #[inline(always)]
-    fn pow2_of_rounded(self) -> Two<T> {
-        Two(self.0.pow2_of_rounded(), self.1.pow2_of_rounded())
-    }
-}
-
-/// Four f64 lanes in one AVX register, for the advection loop compiled
-/// a second time with AVX2 enabled when the CPU has it (`seeding`, as
-/// `Two<F64x4Avx>`). Only
-/// IEEE add/sub/mul/div, ordered compares, blends and integer shifts,
-/// which round and compare exactly as the SSE2 pair ([`F64x4`]) does: the
-/// same bits on every machine (test `avx_lanes_are_the_sse2_lanes`). No
-/// FMA is enabled, so nothing can be fused. The methods are
-/// `#[inline(always)]` so that they are compiled inside the AVX2 function
-/// that uses them; called anywhere else they would be wrong (the
-/// instructions need the CPU feature), hence the type is only built there.
-#[cfg(target_arch = "x86_64")]
-#[derive(Clone, Copy, Debug)]
-pub struct F64x4Avx(std::arch::x86_64::__m256d);
-
-#[cfg(target_arch = "x86_64")]
-mod x4avx {
-    // SAFETY (every `unsafe` below): these run only inside functions with
-    // `#[target_feature(enable = "avx2")]` called after
-    // `is_x86_feature_detected!("avx2")` (see `F64x4Avx`); loads and
-    // stores go through arrays we own.
-    use super::{F64x4Avx, Lanes, ROUND};
-    use std::arch::x86_64::*;
-
-    impl std::ops::Add for F64x4Avx {
-        type Output = F64x4Avx;
-        #[inline(always)]
-        fn add(self, o: F64x4Avx) -> F64x4Avx {
-            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
-            F64x4Avx(unsafe { _mm256_add_pd(self.0, o.0) })
-        }
-    }
-    impl std::ops::Sub for F64x4Avx {
-        type Output = F64x4Avx;
-        #[inline(always)]
-        fn sub(self, o: F64x4Avx) -> F64x4Avx {
-            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
-            F64x4Avx(unsafe { _mm256_sub_pd(self.0, o.0) })
-        }
-    }
-    impl std::ops::Mul for F64x4Avx {
-        type Output = F64x4Avx;
-        #[inline(always)]
-        fn mul(self, o: F64x4Avx) -> F64x4Avx {
-            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
-            F64x4Avx(unsafe { _mm256_mul_pd(self.0, o.0) })
-        }
-    }
-    impl std::ops::Div for F64x4Avx {
-        type Output = F64x4Avx;
-        #[inline(always)]
-        fn div(self, o: F64x4Avx) -> F64x4Avx {
-            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
-            F64x4Avx(unsafe { _mm256_div_pd(self.0, o.0) })
-        }
-    }
-    impl std::ops::Neg for F64x4Avx {
-        type Output = F64x4Avx;
-        #[inline(always)]
-        fn neg(self) -> F64x4Avx {
-            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
-            F64x4Avx(unsafe { _mm256_xor_pd(self.0, _mm256_set1_pd(-0.0)) })
-        }
-    }
-    impl Lanes for F64x4Avx {
-        const N: usize = 4;
-        #[inline(always)]
-        fn splat(v: f64) -> F64x4Avx {
-            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
-            F64x4Avx(unsafe { _mm256_set1_pd(v) })
-        }
-        #[inline(always)]
-        fn lane(self, i: usize) -> f64 {
-            let mut a = [0.0; 4];
-            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment); the pointer is to an owned array of the lane count.
-            unsafe { _mm256_storeu_pd(a.as_mut_ptr(), self.0) };
-            a[i]
-        }
-        #[inline(always)]
-        fn from_fn(mut f: impl FnMut(usize) -> f64) -> F64x4Avx {
-            let a = [f(0), f(1), f(2), f(3)];
-            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment); the pointer is to an owned array of the lane count.
-            F64x4Avx(unsafe { _mm256_loadu_pd(a.as_ptr()) })
-        }
-        #[inline(always)]
-        fn select_lt(self, b: F64x4Avx, yes: F64x4Avx, no: F64x4Avx) -> F64x4Avx {
-            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
-            unsafe {
-                let m = _mm256_cmp_pd::<_CMP_LT_OQ>(self.0, b.0);
-                F64x4Avx(_mm256_blendv_pd(no.0, yes.0, m))
-            }
-        }
-        #[inline(always)]
-        fn abs(self) -> F64x4Avx {
-            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
-            F64x4Avx(unsafe { _mm256_andnot_pd(_mm256_set1_pd(-0.0), self.0) })
-        }
-        #[inline(always)]
-        fn sign_one(self) -> F64x4Avx {
-            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
-            unsafe {
-                let sign = _mm256_and_pd(_mm256_set1_pd(-0.0), self.0);
-                F64x4Avx(_mm256_or_pd(sign, _mm256_set1_pd(1.0)))
-            }
-        }
-        #[inline(always)]
-        fn raise_to(self, lo: f64) -> F64x4Avx {
-            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
-            unsafe {
-                let lo = _mm256_set1_pd(lo);
-                let m = _mm256_cmp_pd::<_CMP_LT_OQ>(self.0, lo);
-                F64x4Avx(_mm256_blendv_pd(self.0, lo, m))
-            }
-        }
-        #[inline(always)]
-        fn lower_to(self, hi: f64) -> F64x4Avx {
-            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
-            unsafe {
-                let hi = _mm256_set1_pd(hi);
-                let m = _mm256_cmp_pd::<_CMP_GT_OQ>(self.0, hi);
-                F64x4Avx(_mm256_blendv_pd(self.0, hi, m))
-            }
-        }
-        #[inline(always)]
-        fn low_bit_as_sign(self) -> F64x4Avx {
-            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
-            unsafe {
-                F64x4Avx(_mm256_castsi256_pd(_mm256_slli_epi64::<63>(
-                    _mm256_castpd_si256(self.0),
-                )))
-            }
-        }
-        #[inline(always)]
-        fn xor(self, o: F64x4Avx) -> F64x4Avx {
-            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
-            F64x4Avx(unsafe { _mm256_xor_pd(self.0, o.0) })
-        }
-        #[inline(always)]
-        fn pow2_of_rounded(self) -> F64x4Avx {
-            // SAFETY: AVX only; `F64x4Avx` exists only inside `avx2` target-feature code (module comment).
-            unsafe {
-                let n = _mm256_sub_epi64(
-                    _mm256_castpd_si256(self.0),
-                    _mm256_set1_epi64x(ROUND.to_bits() as i64),
-                );
-                let e = _mm256_add_epi64(n, _mm256_set1_epi64x(1023));
-                F64x4Avx(_mm256_castsi256_pd(_mm256_slli_epi64::<52>(e)))
-            }
-        }
-    }
-}
 
 /// sin(r) for |r| ≲ π/2.
 #[inline(always)]
@@ -1044,27 +451,37 @@ mod tests {
         assert!(n[0].is_nan() && n[1] == exp(1.0));
     }
 
-    /// The AVX lanes give the scalar's bits for every operation and kernel
-    /// (on a CPU with AVX2; without, there is nothing to compare).
-    #[cfg(target_arch = "x86_64")]
+    /// Every lane type gives the scalar's bits for every operation and
+    /// kernel: the portable SSE2 pairs and, on a CPU with AVX2 and FMA,
+    /// the AVX2 lanes through the dispatcher (without them both runs take
+    /// the portable lanes).
     #[test]
-    fn avx_lanes_are_the_scalar_bit_for_bit() {
-        if !std::is_x86_feature_detected!("avx2") {
-            eprintln!("no AVX2 on this CPU: one path only");
-            return;
-        }
+    fn every_lane_type_is_the_scalar_bit_for_bit() {
+        use crate::simd::{Dispatch, LaneKernel};
         let xs = args(-2e4, 2e4, 100_000);
-        let es = args(-800.0, 800.0, 100_000);
-        let mut es = es;
+        let mut es = args(-800.0, 800.0, 100_000);
         es.extend([f64::NAN, f64::INFINITY, f64::NEG_INFINITY, 1e-310]);
-        // SAFETY: AVX2 detected above.
-        unsafe { check_avx(&xs, &es) };
+        struct Check<'a>(&'a [f64], &'a [f64]);
+        impl LaneKernel for Check<'_> {
+            type Out = usize;
+            #[inline(always)]
+            fn run<T: Lanes>(self) -> usize {
+                check_lanes::<T>(self.0, self.1);
+                T::N
+            }
+        }
+        assert_eq!(Dispatch::portable().run(Check(&xs, &es)), 4);
+        let wide = Dispatch::detect().run(Check(&xs, &es));
+        if !crate::simd::avx2_fma() {
+            eprintln!("no AVX2 + FMA on this CPU: the portable lanes only");
+        }
+        assert_eq!(wide, if crate::simd::avx2_fma() { 8 } else { 4 });
     }
 
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    unsafe fn check_avx(xs: &[f64], es: &[f64]) {
-        let same = |got: F64x4Avx, want: [f64; 4], what: &str| {
+    #[inline(always)]
+    fn check_lanes<T: Lanes>(xs: &[f64], es: &[f64]) {
+        let n = T::N;
+        let same = |got: T, want: &[f64], what: &str| {
             for (l, w) in want.iter().enumerate() {
                 assert_eq!(
                     got.lane(l).to_bits(),
@@ -1073,56 +490,44 @@ mod tests {
                 );
             }
         };
-        for k in 0..xs.len().min(es.len()) - 4 {
-            let x = [xs[k], xs[k + 1], xs[k + 2], xs[k + 3]];
-            let e = [es[k], es[k + 1], es[k + 2], es[k + 3]];
-            let b = [x[1] - 3.0, x[0], x[3], x[2] + 1.0];
+        let map = |a: &[f64], f: &dyn Fn(f64) -> f64| a.iter().map(|&v| f(v)).collect::<Vec<_>>();
+        let zip = |a: &[f64], b: &[f64], f: &dyn Fn(f64, f64) -> f64| {
+            a.iter().zip(b).map(|(&u, &v)| f(u, v)).collect::<Vec<_>>()
+        };
+        for k in 0..xs.len().min(es.len()) - n {
+            let x = &xs[k..k + n];
+            let e = &es[k..k + n];
+            // A second operand: the neighbours, shifted.
+            let b: Vec<f64> = (0..n).map(|i| x[(i + 1) % n] - 3.0 + i as f64).collect();
             let (v, w, ve) = (
-                F64x4Avx::from_fn(|i| x[i]),
-                F64x4Avx::from_fn(|i| b[i]),
-                F64x4Avx::from_fn(|i| e[i]),
+                T::from_fn(|i| x[i]),
+                T::from_fn(|i| b[i]),
+                T::from_fn(|i| e[i]),
             );
-            same(cos_lanes(v), x.map(cos), "cos");
-            same(
-                sincos_lanes(v).0,
-                x.map(|a| sincos_lanes(a).0),
-                "sincos sin",
-            );
-            same(
-                sincos_lanes(v).1,
-                x.map(|a| sincos_lanes(a).1),
-                "sincos cos",
-            );
-            let d = v * F64x4Avx::splat(1e-5);
-            let xd = x.map(|a| a * 1e-5);
-            same(
-                sincos_small(d).0,
-                xd.map(|a| sincos_small(a).0),
-                "small sin",
-            );
-            same(
-                sincos_small(d).1,
-                xd.map(|a| sincos_small(a).1),
-                "small cos",
-            );
-            let d = d * F64x4Avx::splat(0.125);
-            let xd = xd.map(|a| a * 0.125);
-            same(sincos_tiny(d).0, xd.map(|a| sincos_tiny(a).0), "tiny sin");
-            same(sincos_tiny(d).1, xd.map(|a| sincos_tiny(a).1), "tiny cos");
-            same(sin_lanes(v), x.map(sin), "sin");
-            same(exp_lanes(ve), e.map(exp), "exp");
-            same(v / w, [0, 1, 2, 3].map(|i| x[i] / b[i]), "div");
-            same(
-                v + w - v * w,
-                [0, 1, 2, 3].map(|i| x[i] + b[i] - x[i] * b[i]),
-                "arith",
-            );
-            same(-v, x.map(|a| -a), "neg");
-            same(v.abs(), x.map(f64::abs), "abs");
-            same(v.sign_one(), x.map(|a| a.sign_one()), "sign");
+            same(cos_lanes(v), &map(x, &cos), "cos");
+            same(sin_lanes(v), &map(x, &sin), "sin");
+            same(sincos_lanes(v).0, &map(x, &|a| sincos_lanes(a).0), "sincos sin");
+            same(sincos_lanes(v).1, &map(x, &|a| sincos_lanes(a).1), "sincos cos");
+            let d = v * T::splat(1e-5);
+            let xd = map(x, &|a| a * 1e-5);
+            same(sincos_small(d).0, &map(&xd, &|a| sincos_small(a).0), "small sin");
+            same(sincos_small(d).1, &map(&xd, &|a| sincos_small(a).1), "small cos");
+            let d = d * T::splat(0.125);
+            let xd = map(&xd, &|a| a * 0.125);
+            same(sincos_tiny(d).0, &map(&xd, &|a| sincos_tiny(a).0), "tiny sin");
+            same(sincos_tiny(d).1, &map(&xd, &|a| sincos_tiny(a).1), "tiny cos");
+            same(exp_lanes(ve), &map(e, &exp), "exp");
+            same(v / w, &zip(x, &b, &|a, c| a / c), "div");
+            same(v + w - v * w, &zip(x, &b, &|a, c| a + c - a * c), "arith");
+            same(-v, &map(x, &|a| -a), "neg");
+            same(v.abs(), &map(x, &f64::abs), "abs");
+            same(v.sign_one(), &map(x, &|a| a.sign_one()), "sign");
+            same(v.raise_to(1.5), &map(x, &|a| a.raise_to(1.5)), "raise");
+            same(v.lower_to(1.5), &map(x, &|a| a.lower_to(1.5)), "lower");
+            same(v.xor(w), &zip(x, &b, &|a, c| a.xor(c)), "xor");
             same(
                 v.select_lt(w, v, w),
-                [0, 1, 2, 3].map(|i| x[i].select_lt(b[i], x[i], b[i])),
+                &zip(x, &b, &|a, c| a.select_lt(c, a, c)),
                 "select",
             );
         }

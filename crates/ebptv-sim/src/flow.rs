@@ -29,7 +29,8 @@ use std::path::Path;
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 
-use super::fastmath::{self, Lanes};
+use super::fastmath;
+use crate::simd::Lanes;
 use super::scenario::FlowSpec;
 use ebptv_io::error::{Error, Result};
 
@@ -1135,7 +1136,7 @@ mod tests {
     /// for every field (the lane-by-lane fallback included).
     #[test]
     fn lanes_are_the_scalar_field() {
-        use crate::fastmath::F64x2;
+        use crate::simd::F64x2;
         let mut specs = vec![];
         for name in crate::presets::names() {
             specs.push(crate::presets::preset(name).unwrap().flow);

@@ -73,6 +73,7 @@ pub mod readout;
 pub mod record;
 pub mod scenario;
 pub mod seeding;
+pub mod simd;
 
 pub use flow::Flow;
 pub use record::{write_recording, RecordingSummary};

@@ -30,20 +30,13 @@ use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, StandardNormal};
 use rand_pcg::Pcg64;
 
-#[cfg(target_arch = "x86_64")]
-use super::fastmath::F64x4Avx;
-use super::fastmath::{F64x4, Lanes, Two};
+use super::simd::{Dispatch, LaneKernel, Lanes};
 use super::flow::{Flow, Phases, Turbulent};
 use super::scenario::Scenario;
 use super::stream_seed;
 
 /// Half-depth of the slab relative to the sheet thickness.
 const SLAB_HALF: f64 = 0.75;
-
-/// Particles advanced together through the unsteady analytic fields:
-/// four, as two SSE2 pairs, so the two pairs' dependency chains (each RK4
-/// stage needs the previous one) overlap.
-type Group = F64x4;
 
 /// Longest RK4 sub-step (px of displacement).
 pub const SUBSTEP_PX: f64 = 4.0;
@@ -298,8 +291,11 @@ impl Particles {
         // registers instead of four in two SSE2 pairs) where the CPU has
         // it: the same arithmetic per lane, so the same bits
         // (`avx_lanes_are_the_sse2_lanes`).
-        #[cfg(target_arch = "x86_64")]
-        let avx2 = pairs && std::is_x86_feature_detected!("avx2") && !FORCE_SSE2.with(|c| c.get());
+        let lanes = if FORCE_SSE2.with(|c| c.get()) {
+            Dispatch::portable()
+        } else {
+            Dispatch::detect()
+        };
         let mut particles = std::mem::take(&mut self.particles);
         let mut rngs = std::mem::take(&mut self.rngs);
         let this = &*self;
@@ -318,33 +314,17 @@ impl Particles {
                     return out;
                 }
                 if pairs {
-                    #[cfg(target_arch = "x86_64")]
-                    if avx2 {
-                        // SAFETY: the CPU has AVX2 (detected above).
-                        unsafe {
-                            this.advance_lanes_avx2(
-                                pc,
-                                rc,
-                                ci * CHUNK,
-                                n_slots,
-                                flow,
-                                t0,
-                                times,
-                                &mut out,
-                            )
-                        };
-                        return out;
-                    }
-                    this.advance_lanes::<Group>(
+                    lanes.run(AdvanceLanes {
+                        this,
                         pc,
                         rc,
-                        ci * CHUNK,
+                        slot0: ci * CHUNK,
                         n_slots,
                         flow,
                         t0,
                         times,
-                        &mut out,
-                    );
+                        out: &mut out,
+                    });
                     return out;
                 }
                 let mut turb = TurbState::<f64>::new(flow);
@@ -479,7 +459,9 @@ impl Particles {
 
     /// The particle loop of [`Particles::advance_and_snapshot`] for the
     /// unsteady analytic fields ([`Flow::has_lanes`]): `T::N` particles at
-    /// a time ([`Group`]), their RK4 stages and velocities evaluated
+    /// a time (a [`Dispatch`]'s lanes: four as two SSE2 pairs, or eight
+    /// as two AVX registers, so two dependency chains overlap, each RK4
+    /// stage needing the previous one), their RK4 stages and velocities evaluated
     /// together, lane for lane the scalar operations of
     /// [`Particles::step`] (so the same numbers, tested). Every particle's
     /// velocity at the pulse is evaluated right after its move, lit or not
@@ -541,29 +523,6 @@ impl Particles {
                 }
             }
         }
-    }
-
-    /// [`Particles::advance_lanes`] compiled with AVX2, eight particles at
-    /// a time in two AVX registers (two dependency chains, as the two SSE2
-    /// pairs of the baseline loop; measured 4–7 % less CPU than one
-    /// register of four). Everything it calls on lanes is
-    /// `#[inline(always)]`, so compiled here too. Safety: the CPU must
-    /// have AVX2.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    #[allow(clippy::too_many_arguments)]
-    unsafe fn advance_lanes_avx2(
-        &self,
-        pc: &mut [Particle],
-        rc: &mut [Pcg64],
-        slot0: usize,
-        n_slots: usize,
-        flow: &Flow,
-        t0: f64,
-        times: &[f64],
-        out: &mut [Vec<Snapshot>],
-    ) {
-        self.advance_lanes::<Two<F64x4Avx>>(pc, rc, slot0, n_slots, flow, t0, times, out);
     }
 
     /// [`Particles::step`] for `T::N` particles (slots from `slot`) of a
@@ -894,6 +853,42 @@ fn velocity_lanes<T: Lanes>(ps: &mut [Particle], flow: &Flow, t: f64) {
     }
 }
 
+/// [`Particles::advance_lanes`] as a [`LaneKernel`]: run by
+/// [`Dispatch::run`] on four lanes (two SSE2 pairs) or, where the CPU has
+/// AVX2, eight (two AVX registers). Everything it calls on lanes is
+/// `#[inline(always)]`, so it is compiled inside the dispatcher's AVX2
+/// function too.
+struct AdvanceLanes<'a> {
+    this: &'a Particles,
+    pc: &'a mut [Particle],
+    rc: &'a mut [Pcg64],
+    slot0: usize,
+    n_slots: usize,
+    flow: &'a Flow,
+    t0: f64,
+    times: &'a [f64],
+    out: &'a mut [Vec<Snapshot>],
+}
+
+impl LaneKernel for AdvanceLanes<'_> {
+    type Out = ();
+    #[inline(always)]
+    fn run<T: Lanes>(self) {
+        let AdvanceLanes {
+            this,
+            pc,
+            rc,
+            slot0,
+            n_slots,
+            flow,
+            t0,
+            times,
+            out,
+        } = self;
+        this.advance_lanes::<T>(pc, rc, slot0, n_slots, flow, t0, times, out);
+    }
+}
+
 std::thread_local! {
     /// Tests: force the generic particle loop (the reference of
     /// [`Particles::advance_parallel`]).
@@ -901,8 +896,8 @@ std::thread_local! {
     /// Tests: advance the unsteady fields one particle at a time (the
     /// reference of [`Particles::advance_lanes`]).
     static SCALAR_ADVECTION: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
-    /// Tests: keep the SSE2 groups on an AVX2 machine (the reference of
-    /// [`Particles::advance_lanes_avx2`]).
+    /// Tests: keep the SSE2 groups on an AVX2 machine (the comparison
+    /// path of the AVX2 groups).
     static FORCE_SSE2: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
 }
 
@@ -1077,16 +1072,16 @@ mod tests {
         }
     }
 
-    /// On an AVX2 machine the AVX2-compiled groups give exactly what the
-    /// SSE2 pairs give (snapshots, particle states, random streams) on the
-    /// three unsteady presets and the turbulent field with 12 px modes
-    /// (lanes of the fallback), recycling included. (Without AVX2 there is
-    /// no second path to compare; the test then says so and passes.)
-    #[cfg(target_arch = "x86_64")]
+    /// On an AVX2 + FMA machine the AVX2-compiled groups give exactly
+    /// what the SSE2 pairs give (snapshots, particle states, random
+    /// streams) on the three unsteady presets and the turbulent field with
+    /// 12 px modes (lanes of the fallback), recycling included. (Without
+    /// AVX2 + FMA there is no second path to compare; the test then says
+    /// so and passes.)
     #[test]
     fn avx_lanes_are_the_sse2_lanes() {
-        if !std::is_x86_feature_detected!("avx2") {
-            eprintln!("no AVX2 on this CPU: one path only");
+        if !crate::simd::avx2_fma() {
+            eprintln!("no AVX2 + FMA on this CPU: one path only");
             return;
         }
         let mut cases: Vec<_> = ["demo", "rib_wake", "turbulent_bl"]
