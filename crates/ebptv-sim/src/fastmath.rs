@@ -31,9 +31,9 @@
 //! cos d − 1 within 1e-17 on their domains (no range reduction: callers
 //! check the bound).
 
-use crate::simd::{Lanes, ROUND};
 #[cfg(test)]
 use crate::simd::F64x2;
+use crate::simd::{Lanes, ROUND};
 
 const INV_PI: f64 = std::f64::consts::FRAC_1_PI;
 /// π/2 in two parts: the first has 33 significant bits, so j·Q1 is exact
@@ -506,16 +506,40 @@ mod tests {
             );
             same(cos_lanes(v), &map(x, &cos), "cos");
             same(sin_lanes(v), &map(x, &sin), "sin");
-            same(sincos_lanes(v).0, &map(x, &|a| sincos_lanes(a).0), "sincos sin");
-            same(sincos_lanes(v).1, &map(x, &|a| sincos_lanes(a).1), "sincos cos");
+            same(
+                sincos_lanes(v).0,
+                &map(x, &|a| sincos_lanes(a).0),
+                "sincos sin",
+            );
+            same(
+                sincos_lanes(v).1,
+                &map(x, &|a| sincos_lanes(a).1),
+                "sincos cos",
+            );
             let d = v * T::splat(1e-5);
             let xd = map(x, &|a| a * 1e-5);
-            same(sincos_small(d).0, &map(&xd, &|a| sincos_small(a).0), "small sin");
-            same(sincos_small(d).1, &map(&xd, &|a| sincos_small(a).1), "small cos");
+            same(
+                sincos_small(d).0,
+                &map(&xd, &|a| sincos_small(a).0),
+                "small sin",
+            );
+            same(
+                sincos_small(d).1,
+                &map(&xd, &|a| sincos_small(a).1),
+                "small cos",
+            );
             let d = d * T::splat(0.125);
             let xd = map(&xd, &|a| a * 0.125);
-            same(sincos_tiny(d).0, &map(&xd, &|a| sincos_tiny(a).0), "tiny sin");
-            same(sincos_tiny(d).1, &map(&xd, &|a| sincos_tiny(a).1), "tiny cos");
+            same(
+                sincos_tiny(d).0,
+                &map(&xd, &|a| sincos_tiny(a).0),
+                "tiny sin",
+            );
+            same(
+                sincos_tiny(d).1,
+                &map(&xd, &|a| sincos_tiny(a).1),
+                "tiny cos",
+            );
             same(exp_lanes(ve), &map(e, &exp), "exp");
             same(v / w, &zip(x, &b, &|a, c| a / c), "div");
             same(v + w - v * w, &zip(x, &b, &|a, c| a + c - a * c), "arith");

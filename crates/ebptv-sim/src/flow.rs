@@ -30,8 +30,8 @@ use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 
 use super::fastmath;
-use crate::simd::Lanes;
 use super::scenario::FlowSpec;
+use crate::simd::Lanes;
 use ebptv_io::error::{Error, Result};
 
 /// A built velocity field.

@@ -30,9 +30,9 @@ use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, StandardNormal};
 use rand_pcg::Pcg64;
 
-use super::simd::{Dispatch, LaneKernel, Lanes};
 use super::flow::{Flow, Phases, Turbulent};
 use super::scenario::Scenario;
+use super::simd::{Dispatch, LaneKernel, Lanes};
 use super::stream_seed;
 
 /// Half-depth of the slab relative to the sheet thickness.

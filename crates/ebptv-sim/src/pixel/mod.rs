@@ -472,15 +472,6 @@ impl PixelModel {
                 }
                 let s = &snaps[(key & 0xFFFF_FFFF) as usize];
                 debug_assert!((lo - ry0).max(0) >= next_row.min(rh), "row drained early");
-                if let Some(q) = &self.quad {
-                    if let Some(bx) = self.particle_lean(q, s, sig, mask, stride) {
-                        debug_assert!(
-                            bx.row1 as i64 >= next_row && bx.row1 as i64 - next_row < *rows as i64
-                        );
-                        boxes[bx.row1 as usize & mask].push(bx);
-                        continue;
-                    }
-                }
                 let mut sink = RingRows {
                     sig: &mut sig[..],
                     mask,
@@ -491,7 +482,7 @@ impl PixelModel {
                     row: 0,
                     bx: ImageBox::EMPTY,
                 };
-                self.particle_rows(s, profiles, &mut sink);
+                self.draw_particle(s, profiles, &mut sink);
                 let bx = sink.bx;
                 if bx.col0 < bx.col1 {
                     debug_assert!(
@@ -904,12 +895,12 @@ fn poisson(rng: &mut Pcg64, mean: f64) -> u64 {
         .unwrap_or(0)
 }
 
+mod drain;
 mod render;
-mod simd;
 mod tables;
 
+use drain::*;
 use render::*;
-use simd::*;
 pub use tables::*;
 
 #[cfg(test)]

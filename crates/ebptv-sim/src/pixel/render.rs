@@ -143,22 +143,12 @@ impl PixelModel {
         sorted
     }
 
-    /// Signal contributions of one particle's image: `f(ix, iy, signal)`
-    /// (sensor pixel coordinates inside the ROI).
+    /// Signal contributions of one particle's image by the test oracle
+    /// ([`Exact`]): `f(ix, iy, signal)` (sensor pixel coordinates inside
+    /// the ROI).
     #[cfg(test)]
-    #[inline]
-    pub(super) fn particle_contributions(
-        &self,
-        s: &Snapshot,
-        pos: &mut Vec<(f64, f64, f64)>,
-        mut f: impl FnMut(u32, u32, f64),
-    ) {
-        self.positions(s, pos);
-        let amp = self.gain * s.brightness;
-        for &(px, py, pw) in pos.iter() {
-            let a = amp * pw;
-            self.footprint(px, py, |ix, iy, frac| f(ix, iy, a * frac));
-        }
+    pub(super) fn particle_contributions(&self, s: &Snapshot, f: impl FnMut(u32, u32, f64)) {
+        Exact.draw(self, s, &mut Profiles::new(), &mut EachPixel(f, 0));
     }
 
     /// Image positions of a particle during the pulse as offsets along its
@@ -194,37 +184,23 @@ impl PixelModel {
     /// `f(ix, iy, signal)` (for tests; the renderer takes them row by row
     /// through [`Self::particle_rows`]).
     #[cfg(test)]
-    pub(super) fn particle_contributions_fast(
+    pub(super) fn particle_contributions_fast(&self, s: &Snapshot, f: impl FnMut(u32, u32, f64)) {
+        Rows.draw(self, s, &mut Profiles::new(), &mut EachPixel(f, 0));
+    }
+
+    /// Draws `s` into the ring behind `sink` with the first production
+    /// renderer that takes it: [`Lean`] (small images straight into the
+    /// ring), else [`Rows`]. The one place the renderers are chosen.
+    #[inline(always)]
+    pub(super) fn draw_particle(
         &self,
         s: &Snapshot,
-        mut f: impl FnMut(u32, u32, f64),
+        prof: &mut Profiles,
+        sink: &mut impl ContributionSink,
     ) {
-        struct Each<F>(F, u32);
-        impl<F: FnMut(u32, u32, f64)> ContributionSink for Each<F> {
-            #[inline]
-            fn row(&mut self, iy: u32) {
-                self.1 = iy;
-            }
-            #[inline]
-            fn add_run(&mut self, ix0: u32, fractions: &[f32], scale: f32) {
-                for (a, &fx) in fractions.iter().enumerate() {
-                    (self.0)(ix0 + a as u32, self.1, (scale * fx) as f64)
-                }
-            }
-            #[inline]
-            fn add_window<const W: usize>(
-                &mut self,
-                wx: i64,
-                window: &[f32; W],
-                scale: f32,
-                x0: i64,
-                n: usize,
-            ) {
-                let a = (x0 - wx) as usize;
-                self.add_run(x0 as u32, &window[a..a + n], scale);
-            }
+        if !Lean.draw(self, s, prof, sink) {
+            Rows.draw(self, s, prof, sink);
         }
-        self.particle_rows(s, &mut Profiles::new(), &mut Each(&mut f, 0));
     }
 
     /// Streak positions of `s` as `(dt, weight)` offsets along its
@@ -689,13 +665,142 @@ impl PixelModel {
     #[cfg(test)]
     pub(super) fn contributions(&self, snaps: &[Snapshot], mut f: impl FnMut(u32, f64)) {
         let w = self.roi.width;
-        let mut pos = Vec::with_capacity(32);
         for &(key, _, _) in &self.render_order(snaps, true) {
             let s = &snaps[(key & 0xFFFF_FFFF) as usize];
-            self.particle_contributions(s, &mut pos, |ix, iy, sig| {
+            self.particle_contributions(s, |ix, iy, sig| {
                 f((iy - self.roi.y) * w + (ix - self.roi.x), sig)
             });
         }
+    }
+}
+
+/// One way of drawing a particle's image: its signal per sensor pixel,
+/// handed to a [`ContributionSink`] row by row (the ring of rows in
+/// production, lists or dense images in tests). The production renderers
+/// are chosen in one place, [`PixelModel::draw_particle`]; the plain one,
+/// [`Exact`] (erf at every pixel edge, f64), is the test oracle the fast
+/// ones are tested against (`fast_pixel_signals_match_exact_model`;
+/// [`Lean`] against [`Rows`] bit for bit:
+/// `lean_images_match_particle_rows`,
+/// `diagonal_streaks_match_particle_rows`).
+pub(super) trait Renderer {
+    /// Adds the image of `s` to `sink`; false, having added nothing,
+    /// when this renderer does not draw such a particle (the next one
+    /// in [`PixelModel::draw_particle`] then does).
+    fn draw(
+        &self,
+        m: &PixelModel,
+        s: &Snapshot,
+        prof: &mut Profiles,
+        sink: &mut impl ContributionSink,
+    ) -> bool;
+}
+
+/// Small images (the [`QuadTable`]'s windows, at most [`LEAN_NODES`]
+/// streak positions) written straight into the ring behind the sink
+/// ([`PixelModel::particle_lean`]); declines other particles and sinks
+/// without a ring.
+pub(super) struct Lean;
+
+impl Renderer for Lean {
+    #[inline(always)]
+    fn draw(
+        &self,
+        m: &PixelModel,
+        s: &Snapshot,
+        _prof: &mut Profiles,
+        sink: &mut impl ContributionSink,
+    ) -> bool {
+        let Some(q) = &m.quad else { return false };
+        let Some((sig, mask, stride)) = sink.ring() else {
+            return false;
+        };
+        match m.particle_lean(q, s, sig, mask, stride) {
+            Some(bx) => {
+                sink.wrote(bx);
+                true
+            }
+            None => false,
+        }
+    }
+}
+
+/// Any image, row by row through the sink ([`PixelModel::particle_rows`]:
+/// fixed [`QuadTable`] windows where the profiles fit them, else
+/// [`FractionTable`] slices). Takes every particle.
+pub(super) struct Rows;
+
+impl Renderer for Rows {
+    #[inline(always)]
+    fn draw(
+        &self,
+        m: &PixelModel,
+        s: &Snapshot,
+        prof: &mut Profiles,
+        sink: &mut impl ContributionSink,
+    ) -> bool {
+        m.particle_rows(s, prof, sink);
+        true
+    }
+}
+
+/// The exact model, plainly: every position's pixel-integrated Gaussian
+/// from erf at the pixel edges ([`PixelModel::footprint`]), one pixel at
+/// a time in f64 ([`ContributionSink::add`]). The test oracle.
+#[cfg(test)]
+pub(super) struct Exact;
+
+#[cfg(test)]
+impl Renderer for Exact {
+    fn draw(
+        &self,
+        m: &PixelModel,
+        s: &Snapshot,
+        _prof: &mut Profiles,
+        sink: &mut impl ContributionSink,
+    ) -> bool {
+        let mut pos = Vec::with_capacity(32);
+        m.positions(s, &mut pos);
+        let amp = m.gain * s.brightness;
+        for &(px, py, pw) in &pos {
+            let a = amp * pw;
+            m.footprint(px, py, |ix, iy, frac| {
+                sink.row(iy);
+                sink.add(ix, a * frac);
+            });
+        }
+        true
+    }
+}
+
+/// A sink calling `f(ix, iy, signal)` per pixel contribution (f64 for
+/// [`Exact`]'s, the f32 products of the fast renderers' runs).
+#[cfg(test)]
+pub(super) struct EachPixel<F>(pub(super) F, pub(super) u32);
+
+#[cfg(test)]
+impl<F: FnMut(u32, u32, f64)> ContributionSink for EachPixel<F> {
+    fn row(&mut self, iy: u32) {
+        self.1 = iy;
+    }
+    fn add_run(&mut self, ix0: u32, fractions: &[f32], scale: f32) {
+        for (a, &fx) in fractions.iter().enumerate() {
+            (self.0)(ix0 + a as u32, self.1, (scale * fx) as f64)
+        }
+    }
+    fn add_window<const W: usize>(
+        &mut self,
+        wx: i64,
+        window: &[f32; W],
+        scale: f32,
+        x0: i64,
+        n: usize,
+    ) {
+        let a = (x0 - wx) as usize;
+        self.add_run(x0 as u32, &window[a..a + n], scale);
+    }
+    fn add(&mut self, ix: u32, signal: f64) {
+        (self.0)(ix, self.1, signal)
     }
 }
 
@@ -718,6 +823,22 @@ pub(super) trait ContributionSink {
         x0: i64,
         n: usize,
     );
+    /// Add `signal` to sensor column `ix` of the current row (the plain
+    /// renderer's pixel at a time; a sink that sums in f32 rounds it).
+    #[cfg(test)]
+    fn add(&mut self, ix: u32, signal: f64) {
+        self.add_run(ix, &[1.0], signal as f32)
+    }
+    /// The ring of rows behind the sink, for a renderer that writes
+    /// straight into it: (signals, row-slot mask, row stride). None
+    /// unless the sink is the ring.
+    #[inline(always)]
+    fn ring(&mut self) -> Option<(&mut [f32], usize, usize)> {
+        None
+    }
+    /// The box a renderer wrote through [`Self::ring`].
+    #[inline(always)]
+    fn wrote(&mut self, _bx: ImageBox) {}
 }
 
 /// Columns of padding either side of a ring row, for the zero lanes of a
@@ -857,8 +978,17 @@ impl ContributionSink for RingRows<'_> {
         }
         self.extend((x0 - self.roi_x as i64) as u32, n as u32);
     }
-}
 
+    #[inline(always)]
+    fn ring(&mut self) -> Option<(&mut [f32], usize, usize)> {
+        Some((&mut *self.sig, self.mask, self.stride))
+    }
+
+    #[inline(always)]
+    fn wrote(&mut self, bx: ImageBox) {
+        self.bx = bx;
+    }
+}
 impl RingRows<'_> {
     /// Grow the box by ROI columns x0 .. x0 + n of the current row.
     #[inline]

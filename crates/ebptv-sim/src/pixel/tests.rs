@@ -145,8 +145,7 @@ fn fast_pixel_signals_match_exact_model() {
             let mut f: Vec<(u32, u32, f64)> = Vec::new();
             model.particle_contributions_fast(s, |x, y, v| f.push((y, x, v)));
             let mut e: Vec<(u32, u32, f64)> = Vec::new();
-            let mut pos = Vec::new();
-            model.particle_contributions(s, &mut pos, |x, y, v| e.push((y, x, v)));
+            model.particle_contributions(s, |x, y, v| e.push((y, x, v)));
             let sum = |v: &mut Vec<(u32, u32, f64)>| {
                 v.sort_by_key(|a| (a.0, a.1));
                 let mut out: Vec<(u32, u32, f64)> = Vec::new();
