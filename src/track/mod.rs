@@ -445,11 +445,26 @@ mod tests {
                 pulse += 1;
             }
             let sigma = 0.2;
-            let mut grid_fits = 0;
+            let mut fits = (0, 0);
             // Half the cases with the curvature prior.
             let accel = [0.0, 0.0, 0.08, 0.3][(case / 2) % 4];
-            let (fp, fs, frms) = fit_track_with(&dets, &params, sigma, accel, true, &mut grid_fits);
-            let (rp, rs, rrms) = fit_track_with(&dets, &params, sigma, accel, false, &mut 0);
+            let (fp, fs, frms) = fit_track_with(
+                &dets,
+                &params,
+                sigma,
+                accel,
+                fit::FitPath::Tabulated,
+                &mut fits,
+            );
+            let (rp, rs, rrms) = fit_track_with(
+                &dets,
+                &params,
+                sigma,
+                accel,
+                fit::FitPath::Plain,
+                &mut (0, 0),
+            );
+            let grid_fits = fits.0;
             // On the grid the tabulated path takes every detection whose
             // pilot window has no gap; jittered times never.
             if jitter > 0.0 {

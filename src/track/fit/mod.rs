@@ -117,10 +117,12 @@
 
 mod adaptive;
 mod grid;
+mod local;
 mod prior;
 mod running;
 pub use adaptive::*;
 pub use grid::*;
+pub(crate) use local::*;
 pub use prior::*;
 pub use running::*;
 
