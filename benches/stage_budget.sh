@@ -16,7 +16,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 [ $# -ge 1 ] || { echo "usage: $0 RECORDING [TRACK OPTIONS...]" >&2; exit 2; }
 rec=$1; shift
-bin=target/release/ebptv
+bin=${BIN:-target/release/ebptv}
 [ -x "$bin" ] || cargo build --release --quiet
 work=$(mktemp -d); trap 'rm -rf "$work"' EXIT
 events=$("$bin" info --json "$rec" | python3 -c 'import json,sys; print(json.load(sys.stdin)["events"])')

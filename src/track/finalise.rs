@@ -262,7 +262,7 @@ pub(super) fn finalise_one(
         params,
         sigma,
         accel_rms,
-        fit::FitPath::Tabulated,
+        fit::FitPath::Fast,
         &mut (0, 0),
     );
     if rms > params.fit.max_fit_residual {
@@ -660,7 +660,7 @@ pub fn fit_detections(
         params,
         sigma,
         accel_rms,
-        fit::FitPath::Tabulated,
+        fit::FitPath::Fast,
         &mut (0, 0),
     );
     LinkedTrack {

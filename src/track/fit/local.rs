@@ -369,7 +369,9 @@ fn gap_inverse(c: &GapCandidate, ridge: f64) -> Option<([[f64; 4]; 4], usize)> {
 pub(crate) enum FitPath {
     /// [`PlainFit`] everywhere (with `rms_residual`).
     Plain,
-    /// [`RunningFit`] and [`TabulatedFit`] on gap-free windows.
+    /// [`RunningFit`] and [`TabulatedFit`] on gap-free windows (the
+    /// tests compare the paths with and without [`GapFit`]).
+    #[cfg_attr(not(test), allow(dead_code))]
     Tabulated,
     /// As `Tabulated`, and [`GapFit`] on windows with gaps.
     Fast,
