@@ -11,22 +11,23 @@
 # (`ebptv-track-wri*`, `ebptv-table-*`). Prints per stage the CPU-s, the
 # share and the ns per event, then the whole run's wall time and CPU-s
 # (GNU time, a second run without perf). Needs perf (Debian's linux-perf)
-# and a release build.
+# and a release build; BIN=PATH measures another binary (default
+# target/release/ebptv), e.g. two builds in the same run.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 [ $# -ge 1 ] || { echo "usage: $0 RECORDING [TRACK OPTIONS...]" >&2; exit 2; }
 rec=$1; shift
-bin=target/release/ebptv
+bin=${BIN:-target/release/ebptv}
 [ -x "$bin" ] || cargo build --release --quiet
 work=$(mktemp -d); trap 'rm -rf "$work"' EXIT
 events=$("$bin" info --json "$rec" | python3 -c 'import json,sys; print(json.load(sys.stdin)["events"])')
 perf record -q -F 2000 -o "$work/perf.data" "$bin" track "$rec" "$@" --out "$work/a" >/dev/null 2>&1
 perf report -i "$work/perf.data" --no-children --sort comm -F comm,sample -g none --stdio 2>/dev/null \
-    | awk -v ev="$events" -v hz=2000 '
+    | awk -v ev="$events" -v hz=2000 -v main="$(basename "$bin" | cut -c1-15)" '
     /^#/ || NF < 2 { next }
     {
         c = $1; n = $NF
-        if (c ~ /^ebptv-pulses/ || c == "ebptv") s = "decode + pulse timing"
+        if (c ~ /^ebptv-pulses/ || c == "ebptv" || c == main) s = "decode + pulse timing"
         else if (c ~ /^ebptv-cluster/) s = "clustering"
         else if (c == "ebptv-track") s = "linking"
         else if (c ~ /^ebptv-fit/ || c ~ /^ebptv-pool/) s = "output fits"

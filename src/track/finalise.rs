@@ -5,6 +5,7 @@
 //! linking thread. [`fit_detections`] fits given detections directly.
 
 use super::*;
+use fit::LocalPolyFit;
 
 /// Window of the outlier check at finalisation (an 11-point fixed window;
 /// the output fit itself chooses its window adaptively).
@@ -256,8 +257,14 @@ pub(super) fn finalise_one(
             Verdict::Keep { by_flow: f } => by_flow = f,
         }
     }
-    let (mut points, mut detections, rms) =
-        fit_track_with(&t.dets, params, sigma, accel_rms, true, &mut 0);
+    let (mut points, mut detections, rms) = fit_track_with(
+        &t.dets,
+        params,
+        sigma,
+        accel_rms,
+        fit::FitPath::Fast,
+        &mut (0, 0),
+    );
     if rms > params.fit.max_fit_residual {
         return Finalised::Rough;
     }
@@ -481,22 +488,22 @@ pub(super) fn fit_period_s(dets: &[Det]) -> f64 {
 }
 
 /// Sliding-window polynomial fit of a track at every pulse from its first
-/// to its last detection, the window chosen per pulse by
-/// [`fit::fit_adaptive`] for position noise `sigma` (px per axis). Returns
-/// the points, the detection serials and the rms residual (px per axis) of
-/// the detections about the fitted positions.
+/// to its last detection, the window chosen per pulse by the adaptive
+/// rule of [`fit::fit_adaptive`] for position noise `sigma` (px per
+/// axis), through the one fit API ([`fit::OutputFit`]). Returns the
+/// points, the detection serials and the rms residual (px per axis) of the
+/// detections about the fitted positions.
 ///
-/// `grid` takes [`fit::fit_adaptive_grid`] (tabulated
-/// windows) at the detections whose fit windows are gap-free with regular
-/// times, `false` runs [`fit::fit_adaptive`] everywhere (the reference the
-/// tests compare with); `grid_fits` counts the tabulated fits.
+/// `path` names the backends the fit may take besides the plain one
+/// ([`fit::FitPath`]); the tests compare them with `FitPath::Plain`.
+/// `fits` counts the samples taken by the tabulated and the gap backends.
 pub(super) fn fit_track_with(
     dets: &[Det],
     p: &TrackParams,
     sigma: f64,
     accel_rms: f64,
-    grid: bool,
-    grid_fits: &mut usize,
+    path: fit::FitPath,
+    fits: &mut (usize, usize),
 ) -> (Vec<TrackPoint>, Vec<Option<u64>>, f64) {
     let n = dets.len();
     let first = dets[0].pulse;
@@ -512,6 +519,7 @@ pub(super) fn fit_track_with(
         .collect();
     let xs: Vec<f64> = dets.iter().map(|d| d.x).collect();
     let ys: Vec<f64> = dets.iter().map(|d| d.y).collect();
+    let pulses: Vec<i64> = dets.iter().map(|d| d.pulse).collect();
     let rule = fit::WindowRule {
         min_window: p.fit.fit_min_window,
         max_window: p.fit.fit_window,
@@ -521,33 +529,20 @@ pub(super) fn fit_track_with(
         // px/pulse² to px/τ² (τ in mean periods: the same on the grid).
         accel_rms,
     };
-    // The tabulated fit needs τ = pulse offset: `run_start[i]` is the
-    // first detection of the gap-free, regularly timed run holding i.
-    let tables = grid.then(|| fit::GridTables::cached(&rule));
-    let mut run_start = Vec::new();
-    let mut xy = Vec::new();
-    if grid {
-        xy.extend(dets.iter().map(|d| [d.x, d.y]));
-        let t_max = dets[0].t_us.abs().max(dets[n - 1].t_us.abs());
-        let tol = fit::grid_tolerance(t_max, period_s * 1e6);
-        let on_grid = |i: usize| (tau[i] - (dets[i].pulse - first) as f64).abs() <= tol;
-        run_start.reserve(n);
-        for i in 0..n {
-            let joined =
-                i > 0 && dets[i].pulse == dets[i - 1].pulse + 1 && on_grid(i) && on_grid(i - 1);
-            run_start.push(if joined { run_start[i - 1] } else { i });
-        }
-    }
+    let t_max = dets[0].t_us.abs().max(dets[n - 1].t_us.abs());
+    let samples = fit::TrackSamples::new(
+        tau,
+        xs,
+        ys,
+        &pulses,
+        fit::grid_tolerance(t_max, period_s * 1e6),
+    );
+    let (tau, xs, ys) = (&samples.tau, &samples.xs, &samples.ys);
+    let tables = fit::GridTables::cached(&rule);
+    let mut output_fit = fit::OutputFit::new(&rule, &tables, path);
     // Where the path turns, the turning path's fit (`turn_fit_window`).
-    let heading =
-        (p.turn_model && p.fit.turn_fit_window >= 7 && n >= p.fit.turn_fit_window).then(|| {
-            let pulses: Vec<i64> = dets.iter().map(|d| d.pulse).collect();
-            turn::heading_prefix(&pulses, &xs, &ys, sigma)
-        });
-    // Samples whose pilot window is centred take running moments.
-    let mut run_fit = tables
-        .as_deref()
-        .and_then(|t| fit::GridRunFit::new(t, &rule));
+    let heading = (p.turn_model && p.fit.turn_fit_window >= 7 && n >= p.fit.turn_fit_window)
+        .then(|| turn::heading_prefix(&pulses, xs, ys, sigma));
     let mut j = 0; // index of the first detection at or after the pulse
     for pulse in first..=last {
         while dets[j].pulse < pulse {
@@ -563,17 +558,14 @@ pub(super) fn fit_track_with(
             a.t_us + (b.t_us - a.t_us) * (pulse - a.pulse) as f64 / (b.pulse - a.pulse) as f64
         };
         let at = (t_us - dets[0].t_us) * 1e-6 / period_s;
-        let span = fit::adaptive_span(n, j, &rule);
-        let fitted = match &tables {
-            Some(t) if here && run_start[span.end - 1] <= span.start => {
-                *grid_fits += 1;
-                match &mut run_fit {
-                    Some(r) if r.serves_track(n) => r.fit(&xy, j),
-                    _ => fit::fit_adaptive_grid_with(t, &xy, j, &rule, false),
-                }
-            }
-            _ => fit::fit_adaptive_with(&tau, &xs, &ys, j, at, &rule, !grid),
-        };
+        let fitted = output_fit.fit(
+            &samples,
+            fit::At {
+                centre: j,
+                tau: at,
+                offset: pulse - first,
+            },
+        );
         let mut f = fitted.map(|(f, _)| f).unwrap_or(fit::FitState {
             x: dets[j].x,
             y: dets[j].y,
@@ -622,6 +614,7 @@ pub(super) fn fit_track_with(
         });
         serials.push(if here { Some(dets[j].serial) } else { None });
     }
+    *fits = (output_fit.tabulated_fits, output_fit.gap_fits);
     (points, serials, (ssr / (2 * n) as f64).sqrt())
 }
 
@@ -662,7 +655,14 @@ pub fn fit_detections(
             y: d.y,
         })
         .collect();
-    let (points, detections, _) = fit_track_with(&dets, params, sigma, accel_rms, true, &mut 0);
+    let (points, detections, _) = fit_track_with(
+        &dets,
+        params,
+        sigma,
+        accel_rms,
+        fit::FitPath::Fast,
+        &mut (0, 0),
+    );
     LinkedTrack {
         track: Track { id: 0, points },
         detections,

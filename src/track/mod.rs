@@ -68,7 +68,9 @@
 //!    fitted ([`fit`]: local polynomial of order `fit.fit_order` over a sliding
 //!    window of `fit.fit_min_window`..=`fit.fit_window` detections around each
 //!    pulse, chosen per pulse from the position noise by
-//!    [`fit::fit_adaptive`], with a prior on the curvature
+//!    [`fit::fit_adaptive`] (through the one fit API, `fit::OutputFit`:
+//!    tabulated, running or gap backends where the pulses are regular),
+//!    with a prior on the curvature
 //!    (`fit.fit_accel_rms`, estimated from the tracks kept so far unless
 //!    set) and, where the heading visibly turns, the turning path over
 //!    `fit.turn_fit_window` detections: position, velocity in px/s from the
@@ -445,46 +447,61 @@ mod tests {
                 pulse += 1;
             }
             let sigma = 0.2;
-            let mut grid_fits = 0;
             // Half the cases with the curvature prior.
             let accel = [0.0, 0.0, 0.08, 0.3][(case / 2) % 4];
-            let (fp, fs, frms) = fit_track_with(&dets, &params, sigma, accel, true, &mut grid_fits);
-            let (rp, rs, rrms) = fit_track_with(&dets, &params, sigma, accel, false, &mut 0);
-            // On the grid the tabulated path takes every detection whose
-            // pilot window has no gap; jittered times never.
-            if jitter > 0.0 {
-                assert_eq!(grid_fits, 0, "case {case}");
-            } else if case % 2 == 0 {
-                assert_eq!(grid_fits, n, "case {case}");
-            } else {
-                assert!(grid_fits > 0, "case {case}");
-            }
-            assert_eq!(fs, rs);
-            assert_eq!(fp.len(), rp.len());
-            assert!((frms - rrms).abs() <= 1e-9 * rrms.max(1.0));
-            for (f, r) in fp.iter().zip(&rp) {
-                assert_eq!(
-                    (f.pulse, f.t_us.to_bits(), f.interpolated),
-                    (r.pulse, r.t_us.to_bits(), r.interpolated)
-                );
-                // 1e-9 relative, absolute below 1 px/pulse (px/pulse²):
-                // the reference's τ are off the integers by ~1e-11 here.
-                let (pu, pa) = (1e6 / period, (1e6 / period).powi(2));
-                for (a, b, unit) in [
-                    (f.x, r.x, 1.0),
-                    (f.y, r.y, 1.0),
-                    (f.u, r.u, pu),
-                    (f.v, r.v, pu),
-                    (f.ax, r.ax, pa),
-                    (f.ay, r.ay, pa),
-                ] {
-                    assert!(
-                        (a - b).abs() <= 1e-9 * b.abs().max(unit),
-                        "case {case} pulse {}: {a} vs {b}",
-                        f.pulse
-                    );
+            let (rp, rs, rrms) = fit_track_with(
+                &dets,
+                &params,
+                sigma,
+                accel,
+                fit::FitPath::Plain,
+                &mut (0, 0),
+            );
+            for path in [fit::FitPath::Tabulated, fit::FitPath::Fast] {
+                let mut fits = (0, 0);
+                let (fp, fs, frms) = fit_track_with(&dets, &params, sigma, accel, path, &mut fits);
+                let (grid_fits, gap_fits) = fits;
+                // On the grid the tabulated path takes every detection whose
+                // pilot window has no gap, the gap path (`Fast`) every other
+                // sample; jittered times neither.
+                let samples = (dets[n - 1].pulse - dets[0].pulse + 1) as usize;
+                if jitter > 0.0 {
+                    assert_eq!((grid_fits, gap_fits), (0, 0), "case {case}");
+                } else if case % 2 == 0 {
+                    assert_eq!(grid_fits, n, "case {case}");
+                } else {
+                    assert!(grid_fits > 0, "case {case}");
+                    if path == fit::FitPath::Fast {
+                        assert_eq!(grid_fits + gap_fits, samples, "case {case}");
+                    }
                 }
-                compared += 1;
+                assert_eq!(fs, rs);
+                assert_eq!(fp.len(), rp.len());
+                assert!((frms - rrms).abs() <= 1e-9 * rrms.max(1.0));
+                for (f, r) in fp.iter().zip(&rp) {
+                    assert_eq!(
+                        (f.pulse, f.t_us.to_bits(), f.interpolated),
+                        (r.pulse, r.t_us.to_bits(), r.interpolated)
+                    );
+                    // 1e-9 relative, absolute below 1 px/pulse (px/pulse²):
+                    // the reference's τ are off the integers by ~1e-11 here.
+                    let (pu, pa) = (1e6 / period, (1e6 / period).powi(2));
+                    for (a, b, unit) in [
+                        (f.x, r.x, 1.0),
+                        (f.y, r.y, 1.0),
+                        (f.u, r.u, pu),
+                        (f.v, r.v, pu),
+                        (f.ax, r.ax, pa),
+                        (f.ay, r.ay, pa),
+                    ] {
+                        assert!(
+                            (a - b).abs() <= 1e-9 * b.abs().max(unit),
+                            "case {case} pulse {}: {a} vs {b}",
+                            f.pulse
+                        );
+                    }
+                    compared += 1;
+                }
             }
         }
         assert!(compared > 500);

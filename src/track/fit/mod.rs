@@ -114,13 +114,26 @@
 //! than the sample itself, which changes the last digits (~1e-13 px) but
 //! not the window chosen except at ties to rounding; the tests compare it
 //! with [`fit_adaptive`] at 1e-9.
+//!
+//! # Windows with gaps, and one API (`local.rs`)
+//! A missed detection takes every sample within a pilot window of it (up
+//! to 43 detections each side of a gap) and every missing pulse off the
+//! tables. On the pulse grid the offsets are still exact integers, so
+//! `GapFit` sums the nested candidates' moments in one pass over the
+//! pilot window about the sample's own detection and solves each
+//! candidate's 3×3 system from them, without [`Sums`]' per-candidate
+//! copies. All four paths sit behind one trait, `LocalPolyFit`, with
+//! `PlainFit` ([`fit_adaptive`]) as the oracle the others are tested
+//! against; `OutputFit` chains them for the tracker.
 
 mod adaptive;
 mod grid;
+mod local;
 mod prior;
 mod running;
 pub use adaptive::*;
 pub use grid::*;
+pub(crate) use local::*;
 pub use prior::*;
 pub use running::*;
 

@@ -1,0 +1,626 @@
+//! One API for the output fit's local polynomial: [`LocalPolyFit`], its
+//! backends and the chain the tracker uses ([`OutputFit`]).
+//!
+//! Every backend computes the same thing — the adaptive-window fit of
+//! [`fit_adaptive`] at one sample of a track — and differs only in which
+//! samples it can take and how fast:
+//!
+//! | backend | samples it takes | cost |
+//! |---|---|---|
+//! | [`PlainFit`] ([`fit_adaptive`]) | all | sums over the pilot window, a solve per candidate |
+//! | [`TabulatedFit`] ([`fit_adaptive_grid`]) | at a detection, pilot window gap-free on the pulse grid | two filters, tabulated solves |
+//! | [`RunningFit`] ([`GridRunFit`]) | as tabulated, on tracks longer than the pilot | running moments, O(1) per sample |
+//! | [`GapFit`] | pilot window on the pulse grid, gaps allowed, at a detection or a missing pulse | one pass over the pilot window, a 3×3 solve per candidate |
+//!
+//! [`PlainFit`] is the test oracle: the other backends are tested against
+//! it on random tracks with gaps (to rounding, the same window chosen).
+
+use super::*;
+
+/// A track's detections as the local fit reads them: times τ (in mean
+/// pulse periods from the first detection), positions, and where each
+/// detection sits on the pulse grid.
+#[derive(Debug, Clone, Default)]
+pub(crate) struct TrackSamples {
+    pub(crate) tau: Vec<f64>,
+    pub(crate) xs: Vec<f64>,
+    pub(crate) ys: Vec<f64>,
+    pub(crate) xy: Vec<[f64; 2]>,
+    /// Pulse offset of each detection from the first.
+    pub(crate) offset: Vec<i64>,
+    /// Distance within which a τ counts as on the grid ([`grid_tolerance`]).
+    pub(crate) tol: f64,
+    /// First detection of the gap-free, on-grid run holding each one.
+    pub(crate) run_start: Vec<usize>,
+    /// First detection of the on-grid run (gaps allowed) holding each one.
+    pub(crate) grid_start: Vec<usize>,
+}
+
+impl TrackSamples {
+    /// The samples of detections at `pulses` (increasing) with times
+    /// `tau`; `tol` as [`grid_tolerance`].
+    pub(crate) fn new(tau: Vec<f64>, xs: Vec<f64>, ys: Vec<f64>, pulses: &[i64], tol: f64) -> Self {
+        let n = tau.len();
+        let first = pulses.first().copied().unwrap_or(0);
+        let offset: Vec<i64> = pulses.iter().map(|p| p - first).collect();
+        let on_grid = |i: usize| (tau[i] - offset[i] as f64).abs() <= tol;
+        let (mut run_start, mut grid_start) = (Vec::with_capacity(n), Vec::with_capacity(n));
+        for i in 0..n {
+            let both = i > 0 && on_grid(i) && on_grid(i - 1);
+            let joined = both && offset[i] == offset[i - 1] + 1;
+            run_start.push(if joined { run_start[i - 1] } else { i });
+            grid_start.push(if both { grid_start[i - 1] } else { i });
+        }
+        let xy = xs.iter().zip(&ys).map(|(&x, &y)| [x, y]).collect();
+        TrackSamples {
+            tau,
+            xs,
+            ys,
+            xy,
+            offset,
+            tol,
+            run_start,
+            grid_start,
+        }
+    }
+
+    pub(crate) fn len(&self) -> usize {
+        self.tau.len()
+    }
+}
+
+/// Where one output sample is evaluated: at τ `tau`, pulse offset
+/// `offset` (from the track's first detection), the window centred on
+/// detection `centre` (the sample's own detection, or at a missing pulse
+/// the next one).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct At {
+    pub(crate) centre: usize,
+    pub(crate) tau: f64,
+    pub(crate) offset: i64,
+}
+
+impl At {
+    /// Whether the sample is at its own detection.
+    fn at_detection(&self, s: &TrackSamples) -> bool {
+        s.offset[self.centre] == self.offset
+    }
+}
+
+/// The output fit's local polynomial at one sample of a track: the
+/// adaptive window of [`fit_adaptive`] (its rule fixed per backend).
+pub(crate) trait LocalPolyFit {
+    /// Whether this backend takes the sample.
+    fn serves(&self, s: &TrackSamples, at: At) -> bool;
+    /// The fit and its window (detections); `None` when no window can be
+    /// fitted. Only for samples the backend [`serves`](Self::serves).
+    /// `rms_residual` may be NaN (not computed).
+    fn fit(&mut self, s: &TrackSamples, at: At) -> Option<(FitState, usize)>;
+}
+
+/// [`fit_adaptive`] itself: the plain sums, every sample; the oracle.
+#[derive(Debug, Clone)]
+pub(crate) struct PlainFit {
+    pub(crate) rule: WindowRule,
+    /// Compute `rms_residual` (a second pass with the curvature prior).
+    pub(crate) residual: bool,
+}
+
+impl LocalPolyFit for PlainFit {
+    fn serves(&self, _: &TrackSamples, _: At) -> bool {
+        true
+    }
+
+    fn fit(&mut self, s: &TrackSamples, at: At) -> Option<(FitState, usize)> {
+        fit_adaptive_with(
+            &s.tau,
+            &s.xs,
+            &s.ys,
+            at.centre,
+            at.tau,
+            &self.rule,
+            self.residual,
+        )
+    }
+}
+
+/// [`fit_adaptive_grid`]: samples at a detection whose pilot window is
+/// gap-free on the pulse grid.
+#[derive(Debug, Clone)]
+pub(crate) struct TabulatedFit<'t> {
+    pub(crate) tables: &'t GridTables,
+    pub(crate) rule: WindowRule,
+}
+
+impl LocalPolyFit for TabulatedFit<'_> {
+    fn serves(&self, s: &TrackSamples, at: At) -> bool {
+        let span = adaptive_span(s.len(), at.centre, &self.rule);
+        self.tables.serves(&self.rule)
+            && at.at_detection(s)
+            && !span.is_empty()
+            && s.run_start[span.end - 1] <= span.start
+    }
+
+    fn fit(&mut self, s: &TrackSamples, at: At) -> Option<(FitState, usize)> {
+        fit_adaptive_grid_with(self.tables, &s.xy, at.centre, &self.rule, false)
+    }
+}
+
+/// [`GridRunFit`]: the tabulated fit's samples on tracks longer than the
+/// pilot window, consecutive samples by running moments.
+#[derive(Debug, Clone)]
+pub(crate) struct RunningFit<'t> {
+    tabulated: TabulatedFit<'t>,
+    run: GridRunFit<'t>,
+}
+
+impl<'t> RunningFit<'t> {
+    /// `None` where the running path does not apply ([`GridRunFit::new`]).
+    pub(crate) fn new(tables: &'t GridTables, rule: &WindowRule) -> Option<Self> {
+        Some(RunningFit {
+            tabulated: TabulatedFit {
+                tables,
+                rule: *rule,
+            },
+            run: GridRunFit::new(tables, rule)?,
+        })
+    }
+}
+
+impl LocalPolyFit for RunningFit<'_> {
+    fn serves(&self, s: &TrackSamples, at: At) -> bool {
+        self.run.serves_track(s.len()) && self.tabulated.serves(s, at)
+    }
+
+    fn fit(&mut self, s: &TrackSamples, at: At) -> Option<(FitState, usize)> {
+        self.run.fit(&s.xy, at.centre)
+    }
+}
+
+/// One candidate window of [`GapFit`]: its length, time moments `Σ sᵏ`
+/// (k = 0..=5) and data moments `Σ sᵃ·d` (a = 0..=2, per axis).
+#[derive(Debug, Clone, Copy)]
+struct GapCandidate {
+    w: usize,
+    t: [f64; 6],
+    d: [[f64; 2]; 3],
+}
+
+/// [`fit_adaptive`] for samples whose pilot window lies on the pulse
+/// grid (τ = pulse offset to rounding) but may hold gaps, at a detection
+/// or at a missing pulse: the offsets `s` from the sample are exact
+/// integers, so one pass over the pilot window gives every nested
+/// candidate's moments (positions taken from the sample's detection, for
+/// conditioning), and a candidate costs a 3×3 symmetric solve; nothing is
+/// copied per candidate and the chosen fit is solved from the moments
+/// already summed. Quadratic, adaptive rules only (others: [`PlainFit`]).
+/// Equal to [`fit_adaptive`] to rounding (tested): the reference's τ,
+/// computed from µs times, are off the integers by ~1e-11.
+#[derive(Debug, Clone)]
+pub(crate) struct GapFit {
+    rule: WindowRule,
+    cands: Vec<GapCandidate>,
+}
+
+impl GapFit {
+    /// `None` for a rule this path does not take (order ≠ 2, a fixed
+    /// window).
+    pub(crate) fn new(rule: &WindowRule) -> Option<Self> {
+        let wmax = rule.max_window.max(1);
+        (rule.order == 2 && rule.min_window.clamp(1, wmax) < wmax).then(|| GapFit {
+            rule: *rule,
+            cands: Vec::with_capacity(MAX_CANDIDATES),
+        })
+    }
+}
+
+impl LocalPolyFit for GapFit {
+    fn serves(&self, s: &TrackSamples, at: At) -> bool {
+        let span = adaptive_span(s.len(), at.centre, &self.rule);
+        !span.is_empty()
+            && s.grid_start[span.end - 1] <= span.start
+            && (at.tau - at.offset as f64).abs() <= s.tol
+    }
+
+    fn fit(&mut self, s: &TrackSamples, at: At) -> Option<(FitState, usize)> {
+        let rule = &self.rule;
+        let n = s.len();
+        if n == 0 {
+            return None;
+        }
+        let wmax = rule.max_window.clamp(1, n);
+        let wmin = rule.min_window.clamp(1, wmax);
+        let c = at.centre.min(n - 1);
+        let pilot = (2 * wmax + 1).min(n);
+        let p0 = s.xy[c];
+        let (xy, off) = (&s.xy, &s.offset);
+        let mut t = [0.0f64; 7];
+        let mut d = [[0.0f64; 2]; 4];
+        let add = |i: usize, t: &mut [f64; 7], d: &mut [[f64; 2]; 4]| {
+            let si = (off[i] - at.offset) as f64;
+            let q = [xy[i][0] - p0[0], xy[i][1] - p0[1]];
+            let mut sk = 1.0;
+            for (k, tk) in t.iter_mut().enumerate() {
+                *tk += sk;
+                if k < 4 {
+                    d[k][0] += sk * q[0];
+                    d[k][1] += sk * q[1];
+                }
+                sk *= si;
+            }
+        };
+        let cands = &mut self.cands;
+        cands.clear();
+        let (mut lo, mut hi) = (usize::MAX, 0usize);
+        let mut w = wmin;
+        loop {
+            let start = c.saturating_sub(w / 2).min(n - w);
+            if lo == usize::MAX {
+                (lo, hi) = (start, start);
+            }
+            while lo > start {
+                lo -= 1;
+                add(lo, &mut t, &mut d);
+            }
+            while hi < start + w {
+                add(hi, &mut t, &mut d);
+                hi += 1;
+            }
+            if w <= wmax && cands.len() < MAX_CANDIDATES {
+                cands.push(GapCandidate {
+                    w,
+                    t: [t[0], t[1], t[2], t[3], t[4], t[5]],
+                    d: [d[0], d[1], d[2]],
+                });
+            }
+            if w >= pilot {
+                break;
+            }
+            w = if w < wmax { (w + 2).min(wmax) } else { pilot };
+        }
+        // The pilot cubic (as Sums::pilot): its cubic and quadratic
+        // coefficients and their variance factors.
+        let s2 = rule.sigma * rule.sigma;
+        let mut ridge = rule.ridge();
+        let mut c3sq = 0.0;
+        if pilot >= 5 {
+            let mut ata = [[0.0f64; 4]; 4];
+            for (a, row) in ata.iter_mut().enumerate() {
+                for (b, v) in row.iter_mut().enumerate() {
+                    *v = t[a + b];
+                }
+            }
+            if let Some(inv) = invert(&ata, 4) {
+                let dot = |row: &[f64; 4], k: usize| (0..4).map(|b| row[b] * d[b][k]).sum::<f64>();
+                let c3 = [dot(&inv[3], 0), dot(&inv[3], 1)];
+                let c2 = [dot(&inv[2], 0), dot(&inv[2], 1)];
+                c3sq = (c3[0] * c3[0] + c3[1] * c3[1] - 2.0 * s2 * inv[3][3]).max(0.0);
+                let c2sq =
+                    (c2[0] * c2[0] + c2[1] * c2[1] - WIDEN_NOISE * 2.0 * s2 * inv[2][2]).max(0.0);
+                ridge = widened_ridge(ridge, rule.sigma, c2sq);
+            }
+        }
+        // The candidates' criterion; the least wins, on a tie the larger
+        // window (candidates come in increasing size).
+        let mut best: Option<(f64, usize, [[f64; 4]; 4], usize)> = None;
+        for cand in cands.iter() {
+            let Some((inv, p)) = gap_inverse(cand, ridge) else {
+                continue;
+            };
+            let (v, b) = if p < 2 {
+                (0.0, 0.0)
+            } else {
+                (
+                    inv[1][1],
+                    (0..p).map(|b| inv[1][b] * cand.t[b + 3]).sum::<f64>(),
+                )
+            };
+            let q = rule.bias_weight * c3sq * b * b + 2.0 * s2 * v;
+            if best.is_none_or(|x| q.total_cmp(&x.0).is_le()) {
+                best = Some((q, cand.w, inv, p));
+            }
+        }
+        let (_, w, inv, p) = best?;
+        let cand = cands.iter().find(|k| k.w == w)?;
+        let (mut cx, mut cy) = ([0.0f64; 3], [0.0f64; 3]);
+        for a in 0..p {
+            for b in 0..p {
+                cx[a] += inv[a][b] * cand.d[b][0];
+                cy[a] += inv[a][b] * cand.d[b][1];
+            }
+        }
+        Some((
+            FitState {
+                x: cx[0] + p0[0],
+                y: cy[0] + p0[1],
+                vx: cx[1],
+                vy: cy[1],
+                ax: 2.0 * cx[2],
+                ay: 2.0 * cy[2],
+                rms_residual: f64::NAN,
+                leverage: inv[0][0],
+                velocity_variance: if p > 1 { inv[1][1] } else { 0.0 },
+            },
+            w,
+        ))
+    }
+}
+
+/// A [`GapFit`] candidate's inverse normal matrix (quadratic, lowered to
+/// what its samples allow; `ridge` on the quadratic coefficient) and size.
+fn gap_inverse(c: &GapCandidate, ridge: f64) -> Option<([[f64; 4]; 4], usize)> {
+    let p = 2.min(c.w - 1) + 1;
+    let mut ata = [[0.0f64; 4]; 4];
+    for (a, row) in ata.iter_mut().enumerate().take(p) {
+        for (b, v) in row.iter_mut().enumerate().take(p) {
+            *v = c.t[a + b];
+        }
+    }
+    if p == 3 {
+        ata[2][2] += ridge;
+        invert_sym3(&ata).map(|inv| (inv, 3))
+    } else {
+        invert(&ata, p).map(|inv| (inv, p))
+    }
+}
+
+/// Which backends [`OutputFit`] may take besides [`PlainFit`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum FitPath {
+    /// [`PlainFit`] everywhere (with `rms_residual`).
+    Plain,
+    /// [`RunningFit`] and [`TabulatedFit`] on gap-free windows (the
+    /// tests compare the paths with and without [`GapFit`]).
+    #[cfg_attr(not(test), allow(dead_code))]
+    Tabulated,
+    /// As `Tabulated`, and [`GapFit`] on windows with gaps.
+    Fast,
+}
+
+/// The output fit: per sample the fastest backend that takes it —
+/// [`RunningFit`], [`TabulatedFit`], [`GapFit`] (as `path` allows) — and
+/// [`PlainFit`] for the rest (irregular times, other rules).
+pub(crate) struct OutputFit<'t> {
+    running: Option<RunningFit<'t>>,
+    tabulated: Option<TabulatedFit<'t>>,
+    gaps: Option<GapFit>,
+    plain: PlainFit,
+    /// Samples taken by the tabulated backends (running included) and by
+    /// [`GapFit`].
+    pub(crate) tabulated_fits: usize,
+    pub(crate) gap_fits: usize,
+}
+
+impl<'t> OutputFit<'t> {
+    pub(crate) fn new(rule: &WindowRule, tables: &'t GridTables, path: FitPath) -> Self {
+        let grid = path != FitPath::Plain;
+        OutputFit {
+            running: grid.then(|| RunningFit::new(tables, rule)).flatten(),
+            tabulated: grid.then_some(TabulatedFit {
+                tables,
+                rule: *rule,
+            }),
+            gaps: (path == FitPath::Fast).then(|| GapFit::new(rule)).flatten(),
+            plain: PlainFit {
+                rule: *rule,
+                residual: !grid,
+            },
+            tabulated_fits: 0,
+            gap_fits: 0,
+        }
+    }
+}
+
+impl LocalPolyFit for OutputFit<'_> {
+    fn serves(&self, _: &TrackSamples, _: At) -> bool {
+        true
+    }
+
+    fn fit(&mut self, s: &TrackSamples, at: At) -> Option<(FitState, usize)> {
+        if let Some(t) = &mut self.tabulated {
+            if t.serves(s, at) {
+                self.tabulated_fits += 1;
+                return match &mut self.running {
+                    Some(r) if r.serves(s, at) => r.fit(s, at),
+                    _ => t.fit(s, at),
+                };
+            }
+        }
+        if let Some(g) = &mut self.gaps {
+            if g.serves(s, at) {
+                self.gap_fits += 1;
+                return g.fit(s, at);
+            }
+        }
+        self.plain.fit(s, at)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    /// A random track on the pulse grid: `n` detections, gaps of 1–4
+    /// pulses with probability `gap`, a path turning at a random rate.
+    fn random_track(rng: &mut rand_pcg::Pcg64, n: usize, gap: f64, sigma: f64) -> TrackSamples {
+        let turn = rng.gen_range(0.0..0.4);
+        let (u, v) = (rng.gen_range(-8.0..8.0), rng.gen_range(-8.0..8.0));
+        let mut pulses = Vec::with_capacity(n);
+        let mut p = rng.gen_range(0..1000i64);
+        for _ in 0..n {
+            pulses.push(p);
+            p += 1;
+            if rng.gen_range(0.0..1.0) < gap {
+                p += rng.gen_range(1..=4);
+            }
+        }
+        let first = pulses[0];
+        let tau: Vec<f64> = pulses.iter().map(|&p| (p - first) as f64).collect();
+        let xs = tau
+            .iter()
+            .map(|&t| 700.0 + u * t + 30.0 * (turn * t).sin() + rng.gen_range(-sigma..=sigma))
+            .collect();
+        let ys = tau
+            .iter()
+            .map(|&t| 300.0 + v * t + 30.0 * (turn * t).cos() + rng.gen_range(-sigma..=sigma))
+            .collect();
+        TrackSamples::new(tau, xs, ys, &pulses, grid_tolerance(1e6, 200.0))
+    }
+
+    fn assert_close(f: &FitState, r: &FitState, what: &str) {
+        for (name, p, q) in [
+            ("x", f.x, r.x),
+            ("y", f.y, r.y),
+            ("vx", f.vx, r.vx),
+            ("vy", f.vy, r.vy),
+            ("ax", f.ax, r.ax),
+            ("ay", f.ay, r.ay),
+            ("leverage", f.leverage, r.leverage),
+            (
+                "velocity_variance",
+                f.velocity_variance,
+                r.velocity_variance,
+            ),
+        ] {
+            assert!(
+                (p - q).abs() <= 1e-9 * q.abs().max(1.0),
+                "{what}: {name} {p} vs {q}"
+            );
+        }
+    }
+
+    #[test]
+    fn every_backend_matches_the_plain_fit_on_tracks_with_gaps() {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(25);
+        // (min, max window, bias weight, prior): the default rule among them.
+        let rules = [
+            (5, 21, 4.0, 0.0),
+            (5, 21, 4.0, 0.1),
+            (5, 21, 1.0, 0.5),
+            (3, 10, 4.0, 0.05),
+            (2, 7, 1.0, 0.0),
+        ];
+        // Samples compared per backend: tabulated, running, gaps (at a
+        // detection, at a missing pulse), the chain.
+        let mut served = [0usize; 5];
+        for (case, &(min_window, max_window, bias_weight, accel_rms)) in rules.iter().enumerate() {
+            for track in 0..40 {
+                let n = [4, 9, 30, 45, 80, 200][track % 6];
+                let gap = [0.0, 0.02, 0.1, 0.3][(track / 6) % 4];
+                let sigma = [0.05, 0.3, 1.0][(case + track) % 3];
+                let rule = WindowRule {
+                    min_window,
+                    max_window,
+                    order: 2,
+                    sigma,
+                    bias_weight,
+                    accel_rms,
+                };
+                let s = random_track(&mut rng, n, gap, sigma);
+                let tables = GridTables::cached(&rule);
+                let mut plain = PlainFit {
+                    rule,
+                    residual: false,
+                };
+                let mut tabulated = TabulatedFit {
+                    tables: &tables,
+                    rule,
+                };
+                let mut running = RunningFit::new(&tables, &rule).expect("running path");
+                let mut gaps = GapFit::new(&rule).expect("gap path");
+                let mut chain = OutputFit::new(&rule, &tables, FitPath::Fast);
+                let mut j = 0;
+                for offset in 0..=s.offset[n - 1] {
+                    while s.offset[j] < offset {
+                        j += 1;
+                    }
+                    let at = At {
+                        centre: j,
+                        tau: offset as f64,
+                        offset,
+                    };
+                    let what = format!("rule {case} track {track} offset {offset}");
+                    let (r, rw) = plain.fit(&s, at).expect(&what);
+                    let here = s.offset[j] == offset;
+                    let backends: [(usize, &mut dyn LocalPolyFit); 4] = [
+                        (0, &mut tabulated),
+                        (1, &mut running),
+                        (if here { 2 } else { 3 }, &mut gaps),
+                        (4, &mut chain),
+                    ];
+                    for (k, b) in backends {
+                        if b.serves(&s, at) {
+                            let (f, fw) = b.fit(&s, at).expect(&what);
+                            assert_eq!(fw, rw, "{what}: backend {k} window");
+                            assert_close(&f, &r, &format!("{what}: backend {k}"));
+                            served[k] += 1;
+                        }
+                    }
+                }
+            }
+        }
+        println!("{served:?}");
+        assert!(served.iter().all(|&k| k > 500), "{served:?}");
+    }
+
+    #[test]
+    fn the_chain_serves_every_sample_and_the_gap_path_takes_gaps() {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(27);
+        let rule = WindowRule {
+            min_window: 5,
+            max_window: 21,
+            order: 2,
+            sigma: 0.3,
+            bias_weight: 4.0,
+            accel_rms: 0.1,
+        };
+        let tables = GridTables::cached(&rule);
+        // One gap of two pulses in the middle of a gap-free track.
+        let s = random_track(&mut rng, 200, 0.0, 0.3);
+        let pulses: Vec<i64> = (0..200).map(|k| k + 2 * (k >= 100) as i64).collect();
+        let tau = pulses.iter().map(|&p| p as f64).collect();
+        let s = TrackSamples::new(tau, s.xs, s.ys, &pulses, s.tol);
+        let mut fast = OutputFit::new(&rule, &tables, FitPath::Fast);
+        let mut tab = OutputFit::new(&rule, &tables, FitPath::Tabulated);
+        let mut plain = OutputFit::new(&rule, &tables, FitPath::Plain);
+        for (j, &offset) in s.offset.iter().enumerate() {
+            let at = At {
+                centre: j,
+                tau: offset as f64,
+                offset,
+            };
+            assert!(fast.fit(&s, at).is_some());
+            assert!(tab.fit(&s, at).is_some());
+            assert!(plain.fit(&s, at).is_some());
+        }
+        // Off the grid (jittered times) only the plain backend.
+        let mut jittered = s.clone();
+        jittered.tau[60] += 0.01;
+        let jittered = TrackSamples::new(
+            jittered.tau,
+            jittered.xs,
+            jittered.ys,
+            &jittered.offset,
+            s.tol,
+        );
+        let at = At {
+            centre: 60,
+            tau: jittered.tau[60],
+            offset: jittered.offset[60],
+        };
+        assert!(!GapFit::new(&rule).unwrap().serves(&jittered, at));
+        // The pilot windows (43 detections) holding the gap.
+        assert_eq!(fast.gap_fits, 42);
+        assert_eq!(fast.gap_fits + fast.tabulated_fits, s.len());
+        assert_eq!((plain.gap_fits, plain.tabulated_fits), (0, 0));
+        assert_eq!(tab.gap_fits, 0);
+        // Fixed windows and lower orders are not the gap path's.
+        assert!(GapFit::new(&WindowRule {
+            min_window: 21,
+            ..rule
+        })
+        .is_none());
+        assert!(GapFit::new(&WindowRule { order: 1, ..rule }).is_none());
+    }
+}
