@@ -138,7 +138,8 @@ impl PivRun {
 /// `ebptv piv RECORDING` in memory: the pulse timing, then a field every
 /// `step` pulses (to `sink`), then the mean statistics. The recording is
 /// read twice. The run stops with an error when `cancel` is set (it looks
-/// after each chunk read) or the sink returns one. Errors name the file.
+/// before each chunk read and each field) or the sink returns one. Errors
+/// name the file.
 pub fn run_recording(
     path: &Path,
     opts: &PivRunOptions,
@@ -218,6 +219,7 @@ pub fn run_recording(
     );
     let mut steps = Vec::new();
     let mut emit = |f: StepField| -> Result<()> {
+        cancel.check()?;
         sink.field(&f)?;
         steps.push((f.first_pulse, f.t_us));
         fields.store(steps.len() as u64, Ordering::Relaxed);
