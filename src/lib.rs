@@ -78,6 +78,7 @@ pub use ebptv_io::{error, events};
 pub use ebptv_sim as sim;
 
 pub mod calib;
+pub mod cancel;
 pub mod cluster;
 pub mod compare;
 pub mod evaluate;
@@ -91,5 +92,6 @@ pub mod spectra;
 pub mod table;
 pub mod track;
 
+pub use cancel::Cancel;
 pub use error::{Error, Result};
 pub use events::{Chunk, Edge, Event, EventChunk, Geometry, Trigger};

@@ -10,7 +10,7 @@ import ebptv
 sim = ebptv.simulate("demo", seconds=0.05, seed=1)     # recording + truth
 particles, tracks = ebptv.track(sim["recording"])      # as `ebptv track`
 print(tracks.attrs["summary"]["tracks"], "tracks,", len(tracks), "points")
-g = ebptv.grid(tracks, bin=16)                         # as `ebptv grid`
+g = ebptv.grid(tracks, bin=16, as_xarray=False)        # as `ebptv grid`
 
 fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4))
 for _, t in tracks[tracks.pulse < 40].groupby("track_id"):

@@ -37,13 +37,19 @@ __all__ = [
     "grid_state",
     "grid_merge",
     "grid_estimate",
+    "grid_to_xarray",
     "GRID_DEFAULTS",
     "spectra",
     "SPECTRA_DEFAULTS",
     "model_check",
+    "piv",
+    "PIV_DEFAULTS",
+    "PIV_MEAN_COLUMNS",
+    "PIV_STEPS_COLUMNS",
     "GRID_COLUMNS",
     "PARTICLES_COLUMNS",
     "TRACKS_COLUMNS",
+    "TRACKS_PHYSICAL_COLUMNS",
 ]
 
 PathLike = Union[str, "os.PathLike[str]"]
@@ -53,6 +59,8 @@ Events = Dict[str, Any]
 PARTICLES_COLUMNS = ["pulse", "t_us", "x", "y", "n_events"]
 #: Columns of ``tracks.csv`` (µs, px, px/s).
 TRACKS_COLUMNS = ["track_id", "pulse", "t_us", "x", "y", "u", "v"]
+#: Columns a calibration adds to the tracks (mm, m/s).
+TRACKS_PHYSICAL_COLUMNS = ["X_mm", "Y_mm", "U_m_s", "V_m_s"]
 
 #: Columns of ``grid.csv`` (px, px/s, (px/s)²); rows ordered by y then x.
 GRID_COLUMNS = ["x", "y", "count", "u", "v", "uu", "vv", "uv"]
@@ -136,6 +144,8 @@ def track(
     all_polarities: bool = False,
     hot_pixels: Optional[PathLike] = None,
     linker: Optional[str] = None,
+    calibration: Optional[PathLike] = None,
+    mask: Optional[PathLike] = None,
 ) -> Tuple[pd.DataFrame, pd.DataFrame]:
     """The run of ``ebptv track`` in memory: ``(particles, tracks)``.
 
@@ -145,6 +155,12 @@ def track(
     ``ebptv track`` with the same defaults (``None``: the library's
     default; ``params``: a ``params.toml`` as for ``--params``, the other
     options over it; ``linker``: ``"sequential"`` or ``"sliced"``).
+
+    ``calibration``: a ``calib.toml`` as for ``--calibration``: ``tracks``
+    gains the physical columns ``X_mm, Y_mm, U_m_s, V_m_s`` after the pixel
+    ones, and the file's ``[mask]`` applies. ``mask``: as ``--mask``, a PNG
+    of the sensor's size (non-zero = not flow: its events are ignored, no
+    track is stitched across it) or a list of hot pixels (``x,y`` lines).
 
     ``particles`` has the ``particles.csv`` columns and ``tracks`` the
     ``tracks.csv`` columns, row for row what ``ebptv track`` writes
@@ -164,6 +180,8 @@ def track(
         all_polarities=all_polarities,
         hot_pixels=os.fspath(hot_pixels) if hot_pixels is not None else None,
         linker=linker,
+        calibration=os.fspath(calibration) if calibration is not None else None,
+        mask=os.fspath(mask) if mask is not None else None,
     )
     params_path = os.fspath(params) if params is not None else None
     if isinstance(path_or_particles, pd.DataFrame):
@@ -183,9 +201,12 @@ def track(
         result = _ebptv.track(
             path=os.fspath(path_or_particles), params=params_path, options=options
         )
-    pcols, tcols, summary, pulses, toml = result
+    pcols, tcols, summary, pulses, toml, physical = result
     particles = pd.DataFrame(pcols, columns=PARTICLES_COLUMNS)
     tracks = pd.DataFrame(tcols, columns=TRACKS_COLUMNS)
+    if physical is not None:
+        for c in TRACKS_PHYSICAL_COLUMNS:
+            tracks[c] = physical[c]
     tracks.attrs["summary"] = json.loads(summary)
     tracks.attrs["pulses"] = json.loads(pulses) if pulses is not None else None
     tracks.attrs["params"] = toml
@@ -278,13 +299,55 @@ def grid(
     fit: Optional[str] = None,
     min_count: Optional[int] = None,
     noise_rms: Optional[float] = None,
-) -> pd.DataFrame:
-    """Tracks binned onto an Eulerian grid: ``ebptv grid``'s ``grid.csv``
-    as a DataFrame (see :func:`grid_estimate`), the same options and
-    defaults (``None``: the CLI's default, :data:`GRID_DEFAULTS`).
-    ``tracks`` has the ``tracks.csv`` columns (from :func:`track`)."""
+    as_xarray: Optional[bool] = None,
+) -> Any:
+    """Tracks binned onto an Eulerian grid, the same options and defaults
+    as ``ebptv grid`` (``None``: the CLI's default, :data:`GRID_DEFAULTS`).
+    ``tracks`` has the ``tracks.csv`` columns (from :func:`track`).
+
+    ``as_xarray``: ``None`` (the default) gives an ``xarray.Dataset`` when
+    xarray is installed and a DataFrame otherwise; ``True`` always a
+    Dataset (``ImportError`` without xarray); ``False`` always a DataFrame.
+
+    The DataFrame is ``ebptv grid``'s ``grid.csv`` (see
+    :func:`grid_estimate`): rows by y then x, ``attrs`` ``nx`` and ``ny``.
+    The Dataset holds the same values on dimensions ``(y, x)`` (bin
+    centres, px, as coordinates): ``count``, ``u``, ``v`` (px/s), ``uu``,
+    ``vv``, ``uv`` ((px/s)²) and ``n_tracks``; empty bins NaN.
+    """
     state = grid_state(tracks, bin, bin_h, overlap, origin, weighting)
-    return grid_estimate(state, fit, min_count, noise_rms)
+    frame = grid_estimate(state, fit, min_count, noise_rms)
+    if as_xarray is False:
+        return frame
+    try:
+        import xarray  # noqa: F401
+    except ImportError:
+        if as_xarray:
+            raise
+        return frame
+    return grid_to_xarray(frame)
+
+
+def grid_to_xarray(frame: pd.DataFrame) -> Any:
+    """A grid DataFrame (:func:`grid_estimate`, rows by y then x) as an
+    ``xarray.Dataset`` on dimensions ``(y, x)``."""
+    import xarray as xr
+
+    nx, ny = int(frame.attrs["nx"]), int(frame.attrs["ny"])
+    x = frame["x"].to_numpy()[:nx]
+    y = frame["y"].to_numpy()[::nx] if nx else frame["y"].to_numpy()
+    units = {"count": "1", "u": "px/s", "v": "px/s", "uu": "(px/s)^2", "vv": "(px/s)^2",
+             "uv": "(px/s)^2", "n_tracks": "1"}
+    data = {
+        c: (("y", "x"), frame[c].to_numpy().reshape(ny, nx), {"units": u})
+        for c, u in units.items()
+        if c in frame.columns
+    }
+    return xr.Dataset(
+        data,
+        coords={"x": ("x", x, {"units": "px"}), "y": ("y", y, {"units": "px"})},
+        attrs={"nx": nx, "ny": ny},
+    )
 
 
 def simulate(
@@ -459,3 +522,110 @@ def model_check(
     )
     report["out"] = out
     return report
+
+
+#: The defaults of ``ebptv piv`` (read from the library): ``window``,
+#: ``window_h``, ``spacing``, ``passes``, ``pyramid``, ``no_clip``,
+#: ``frames``, ``step``, ``sigma``, ``counts``, ``both_polarities``,
+#: ``force_pulses``.
+PIV_DEFAULTS: Dict[str, Any] = dict(_ebptv.PIV_DEFAULTS)
+
+#: Columns of ``piv_mean.csv`` (px, px/s, (px/s)², fraction of valid steps).
+PIV_MEAN_COLUMNS = ["x", "y", "u", "v", "uu", "vv", "uv", "valid"]
+#: Columns of ``piv_steps.csv``.
+PIV_STEPS_COLUMNS = ["step", "first_pulse", "t_us"]
+
+
+def piv(
+    path: PathLike,
+    window: int = 32,
+    frames: int = 5,
+    *,
+    window_h: Optional[int] = None,
+    spacing: Optional[int] = None,
+    passes: int = 3,
+    pyramid: int = 1,
+    no_clip: bool = False,
+    step: Optional[int] = None,
+    sigma: float = 1.0,
+    counts: bool = False,
+    both_polarities: bool = False,
+    pulse_hz: Optional[float] = None,
+    batch: Optional[int] = None,
+    force_pulses: bool = False,
+    calibration: Optional[PathLike] = None,
+    mask: Optional[PathLike] = None,
+) -> Dict[str, Any]:
+    """``ebptv piv PATH``: multi-frame correlation PIV on the pulsed
+    pseudo-images of a recording, in memory. The options are those of
+    ``ebptv piv`` with the same defaults (:data:`PIV_DEFAULTS`):
+    ``window`` px (``window_h``: its height, default the width), nodes
+    ``spacing`` px apart (default half the window), ``passes``,
+    ``pyramid``, ``frames`` pulses per evaluation and one every ``step``
+    pulses (default ``frames - 1``), blur ``sigma`` px, ``counts``
+    instead of binary pseudo-images, ``both_polarities``, ``pulse_hz``
+    when the recording has no triggers, ``batch`` steps evaluated in
+    parallel (the fields do not depend on it), ``force_pulses``,
+    ``calibration`` (``calib.toml``: physical columns in ``mean``, its
+    ``[mask]`` applied) and ``mask`` (PNG of the sensor's size).
+
+    Returns a dict:
+
+    - ``"mean"``: ``piv_mean.csv`` as a DataFrame (:data:`PIV_MEAN_COLUMNS`,
+      then ``X_mm, Y_mm, U_m_s, V_m_s, uu_m2_s2, vv_m2_s2, uv_m2_s2`` with a
+      calibration);
+    - ``"steps"``: ``piv_steps.csv`` (:data:`PIV_STEPS_COLUMNS`);
+    - ``"u"``, ``"v"`` (float32, px/s) and ``"flag"`` (uint8, 0 = valid):
+      the fields of every step, shape ``(steps, ny, nx)``, as
+      ``piv_u.npy``, ``piv_v.npy``, ``piv_flag.npy``; ``"x"`` (nx) and
+      ``"y"`` (ny): the node coordinates (px);
+    - ``"report"``: ``fields``, ``nodes``, ``nx``, ``ny``, ``pulse_hz``,
+      ``nodes_without_vector`` (with a mask, else ``None``) and
+      ``pulses`` (pulses.json).
+
+    Every field is held in memory; for long recordings use the command
+    line, which streams them to disk.
+    """
+    r = _ebptv.piv(
+        os.fspath(path),
+        window=int(window),
+        window_h=window_h,
+        spacing=spacing,
+        passes=int(passes),
+        pyramid=int(pyramid),
+        no_clip=bool(no_clip),
+        frames=int(frames),
+        step=step,
+        sigma=float(sigma),
+        counts=bool(counts),
+        both_polarities=bool(both_polarities),
+        pulse_hz=pulse_hz,
+        batch=batch,
+        force_pulses=bool(force_pulses),
+        calibration=os.fspath(calibration) if calibration is not None else None,
+        mask=os.fspath(mask) if mask is not None else None,
+    )
+    first_pulse, t_us = r["first_pulse"], r["t_us"]
+    steps = pd.DataFrame(
+        {"step": np.arange(len(first_pulse)), "first_pulse": first_pulse, "t_us": t_us},
+        columns=PIV_STEPS_COLUMNS,
+    )
+    ny, nx = len(r["y"]), len(r["x"])
+    return {
+        "mean": pd.read_csv(io.StringIO(r["mean_csv"])),
+        "steps": steps,
+        "u": r["u"],
+        "v": r["v"],
+        "flag": r["flag"],
+        "x": r["x"],
+        "y": r["y"],
+        "report": {
+            "fields": len(first_pulse),
+            "nodes": r["nodes"],
+            "nx": nx,
+            "ny": ny,
+            "pulse_hz": r["pulse_hz"],
+            "nodes_without_vector": r["nodes_without_vector"],
+            "pulses": json.loads(r["pulses"]),
+        },
+    }

@@ -5,9 +5,10 @@
 //! for Ctrl-C between pulses / chunks.
 
 use std::path::{Path, PathBuf};
-use std::time::{Duration, Instant};
+use std::sync::mpsc;
+use std::time::Duration;
 
-use numpy::{IntoPyArray, PyReadonlyArray1};
+use numpy::{IntoPyArray, PyArrayMethods, PyReadonlyArray1};
 use pyo3::create_exception;
 use pyo3::exceptions::PyException;
 use pyo3::prelude::*;
@@ -17,7 +18,7 @@ use ebptv::cluster::Particle;
 use ebptv::io::filter::{Filtered, PolaritySelect, Roi, Selection};
 use ebptv::io::{self, EventSource};
 use ebptv::track::{self as ptv, PtvSink, Track, TrackConfig, TrackInput};
-use ebptv::{grid, Chunk};
+use ebptv::{grid, Cancel, Chunk};
 
 create_exception!(
     _ebptv,
@@ -32,43 +33,65 @@ fn err(e: ebptv::Error) -> PyErr {
 }
 
 /// How often a long call looks for Ctrl-C.
-const SIGNAL_CHECK: Duration = Duration::from_millis(100);
+const SIGNAL_CHECK: Duration = Duration::from_millis(50);
 
-/// Looks for a pending Python signal (Ctrl-C) at most every
-/// [`SIGNAL_CHECK`], taking the GIL briefly; keeps the exception.
-struct Interrupt {
-    last: Instant,
-    raised: Option<PyErr>,
-}
+/// Stack of the thread a long call runs on (the size of a main thread's).
+const WORKER_STACK: usize = 8 << 20;
 
-impl Interrupt {
-    fn new() -> Self {
-        Interrupt {
-            last: Instant::now(),
-            raised: None,
-        }
-    }
-
-    /// An error (the run stops) when a signal handler raised.
-    fn check(&mut self) -> ebptv::Result<()> {
-        if self.raised.is_none() && self.last.elapsed() >= SIGNAL_CHECK {
-            self.last = Instant::now();
-            if let Err(e) = Python::with_gil(|py| py.check_signals()) {
-                self.raised = Some(e);
+/// Runs `f` without the GIL on a thread of its own while this (the
+/// calling) thread looks for Ctrl-C every [`SIGNAL_CHECK`]: when a signal
+/// handler raises, `f`'s [`Cancel`] is set, the library stops at its next
+/// check, and the handler's exception (`KeyboardInterrupt`) is raised in
+/// place of `f`'s result. Signals are only seen on Python's main thread,
+/// and the library's parallel parts run on other threads: hence the
+/// watching thread.
+fn interruptible<T, F>(py: Python<'_>, f: F) -> PyResult<T>
+where
+    T: Send,
+    F: FnOnce(&Cancel) -> ebptv::Result<T> + Send,
+{
+    let cancel = Cancel::new();
+    let (result, raised) = py.allow_threads(|| {
+        std::thread::scope(|s| {
+            let (done, finished) = mpsc::channel::<()>();
+            let c = &cancel;
+            let worker = std::thread::Builder::new()
+                .name("ebptv-call".into())
+                .stack_size(WORKER_STACK)
+                .spawn_scoped(s, move || {
+                    let r = f(c);
+                    let _ = done.send(());
+                    r
+                });
+            let worker = match worker {
+                Ok(w) => w,
+                Err(e) => {
+                    return (
+                        Err(ebptv::Error::analysis(format!(
+                            "cannot start a thread: {e}"
+                        ))),
+                        None,
+                    )
+                }
+            };
+            let mut raised = None;
+            while let Err(mpsc::RecvTimeoutError::Timeout) = finished.recv_timeout(SIGNAL_CHECK) {
+                if raised.is_none() {
+                    if let Err(e) = Python::with_gil(|py| py.check_signals()) {
+                        raised = Some(e);
+                        cancel.cancel();
+                    }
+                }
             }
-        }
-        match self.raised {
-            Some(_) => Err(ebptv::Error::analysis("interrupted")),
-            None => Ok(()),
-        }
-    }
-
-    /// The raised exception in place of the library's error.
-    fn result<T>(self, r: ebptv::Result<T>) -> PyResult<T> {
-        match (self.raised, r) {
-            (Some(e), _) => Err(e),
-            (None, r) => r.map_err(err),
-        }
+            match worker.join() {
+                Ok(r) => (r, raised),
+                Err(panic) => std::panic::resume_unwind(panic),
+            }
+        })
+    });
+    match raised {
+        Some(e) => Err(e),
+        None => result.map_err(err),
     }
 }
 
@@ -154,18 +177,17 @@ fn read_events<'py>(
     polarity: Option<&str>,
 ) -> PyResult<Bound<'py, PyDict>> {
     let sel = selection(from_us, to_us, roi, polarity).map_err(err)?;
-    let mut stop = Interrupt::new();
-    let r = py.allow_threads(|| -> ebptv::Result<Columns> {
+    interruptible(py, |cancel| -> ebptv::Result<Columns> {
         let mut src = open_selected(&path, None, sel)?;
         let mut cols = Columns::default();
         let mut chunk = Chunk::default();
         while src.next_chunk(&mut chunk)? {
             cols.extend(&chunk);
-            stop.check()?;
+            cancel.check()?;
         }
         Ok(cols)
-    });
-    stop.result(r)?.into_dict(py)
+    })?
+    .into_dict(py)
 }
 
 /// A recording read chunk by chunk (`ebptv.iter_events`).
@@ -220,36 +242,29 @@ impl EventChunks {
 /// `ebptv info --json` as JSON text.
 #[pyfunction]
 fn info(py: Python<'_>, path: PathBuf) -> PyResult<String> {
-    let mut stop = Interrupt::new();
-    let r = py.allow_threads(|| -> ebptv::Result<String> {
+    interruptible(py, |cancel| -> ebptv::Result<String> {
         let opts = io::OpenOptions::default();
         let mut src = io::open_with(&path, &opts)?;
-        let mut cancelled = Ok(());
-        let summary = io::summary::summarize(&mut src, io::summary::DEFAULT_PEAK_BIN_US, |_| {
-            if cancelled.is_ok() {
-                cancelled = stop.check();
-            }
-        })?;
-        cancelled?;
+        let summary = io::summary::summarize(&mut src, io::summary::DEFAULT_PEAK_BIN_US, |_| {})?;
         let verdict = ebptv::pulses::file_verdict(&path, &opts).map_err(|e| e.to_string());
         let v = ebptv::pulses::info_json(&summary, &verdict)?;
+        cancel.check()?;
         serde_json::to_string(&v).map_err(|e| ebptv::Error::analysis(e.to_string()))
-    });
-    stop.result(r)
+    })
 }
 
-/// Collects a run's particles and tracks, looking for Ctrl-C after each
-/// pulse.
+/// Collects a run's particles and tracks, looking at the cancel flag
+/// after each pulse.
 struct Collect {
     particles: Vec<Particle>,
     tracks: Vec<Track>,
-    stop: Interrupt,
+    cancel: Cancel,
 }
 
 impl PtvSink for Collect {
     fn particles(&mut self, _pulse: i64, _t_us: f64, ps: &[Particle]) -> ebptv::Result<()> {
         self.particles.extend_from_slice(ps);
-        self.stop.check()
+        self.cancel.check()
     }
     fn tracks(&mut self, tracks: &[Track]) -> ebptv::Result<()> {
         self.tracks.extend_from_slice(tracks);
@@ -294,6 +309,8 @@ fn track_config(
                 }
             }
             "hot_pixels" => c.run.hot_pixels = Some(v.extract::<PathBuf>()?),
+            "calibration" => c.run.calibration = Some(v.extract::<PathBuf>()?),
+            "mask" => c.run.set_mask_file(&v.extract::<PathBuf>()?).map_err(err)?,
             "linker" => {
                 c.run.linker = match v.extract::<String>()?.as_str() {
                     "sequential" => ptv::Linker::Sequential,
@@ -385,13 +402,15 @@ fn track_columns<'py>(py: Python<'py>, tracks: &[Track]) -> PyResult<Bound<'py, 
 }
 
 /// What [`track`] hands back: particles, tracks, summary.json,
-/// pulses.json (recordings only) and params.toml.
+/// pulses.json (recordings only), params.toml and, with a calibration,
+/// the physical columns of the tracks.
 type TrackResult<'py> = (
     Bound<'py, PyDict>,
     Bound<'py, PyDict>,
     String,
     Option<String>,
     String,
+    Option<Bound<'py, PyDict>>,
 );
 
 /// Particle columns `pulse, t_us, x, y, n_events`.
@@ -456,15 +475,21 @@ fn track<'py>(
             ))
         }
     };
-    let mut sink = Collect {
-        particles: Vec::new(),
-        tracks: Vec::new(),
-        stop: Interrupt::new(),
-    };
-    let r = py.allow_threads(|| -> ebptv::Result<_> {
+    let (particles, tracks, summary, pulses, toml, calib) = interruptible(py, |cancel| {
         let config = ptv::resolve_config(&config)?;
+        let calib = config
+            .run
+            .calibration
+            .as_deref()
+            .map(ebptv::calib::Calibration::from_file)
+            .transpose()?;
         let stream = ptv::stream_of(&config)?;
-        let run = ptv::track_into(input, &config, stream, &mut sink, &|_| {})?;
+        let mut sink = Collect {
+            particles: Vec::new(),
+            tracks: Vec::new(),
+            cancel: cancel.clone(),
+        };
+        let run = ptv::track_into(input, &config, stream, &mut sink, &|_| {}, cancel)?;
         let summary = ptv::Summary::new(&sink.tracks, &run.stats);
         let json = |e: serde_json::Error| ebptv::Error::analysis(e.to_string());
         let summary = serde_json::to_string(&summary).map_err(json)?;
@@ -473,21 +498,41 @@ fn track<'py>(
             .as_ref()
             .map(|p| serde_json::to_string(p).map_err(json))
             .transpose()?;
-        Ok((summary, pulses, config.to_toml()?))
-    });
-    let Collect {
-        particles,
-        tracks,
-        stop,
-    } = sink;
-    let (summary, pulses, toml) = stop.result(r)?;
+        let toml = config.to_toml()?;
+        Ok((sink.particles, sink.tracks, summary, pulses, toml, calib))
+    })?;
+    let physical = calib
+        .map(|c| physical_columns(py, &c, &tracks))
+        .transpose()?;
     Ok((
         particle_columns(py, &particles)?,
         track_columns(py, &tracks)?,
         summary,
         pulses,
         toml,
+        physical,
     ))
+}
+
+/// The physical columns of a calibrated run's track points
+/// (`X_mm, Y_mm, U_m_s, V_m_s`), in the order of [`track_columns`].
+fn physical_columns<'py>(
+    py: Python<'py>,
+    calib: &ebptv::calib::Calibration,
+    tracks: &[Track],
+) -> PyResult<Bound<'py, PyDict>> {
+    let names = ebptv::calib::Calibration::point_columns();
+    let mut cols: Vec<Vec<f64>> = vec![Vec::new(); names.len()];
+    for p in tracks.iter().flat_map(|t| &t.points) {
+        for (c, v) in cols.iter_mut().zip(calib.point_values(p.x, p.y, p.u, p.v)) {
+            c.push(v);
+        }
+    }
+    let d = PyDict::new(py);
+    for (name, c) in names.iter().zip(cols) {
+        d.set_item(*name, c.into_pyarray(py))?;
+    }
+    Ok(d)
 }
 
 fn from_name<T: serde::de::DeserializeOwned>(
@@ -575,18 +620,16 @@ fn grid_state(
             track_id: id[i],
         })
         .collect();
-    let mut stop = Interrupt::new();
-    let r = py.allow_threads(|| -> ebptv::Result<String> {
+    interruptible(py, |cancel| -> ebptv::Result<String> {
         let mut cancelled = Ok(());
         let acc = grid::accumulate(&samples, &opts, what, &mut |_| {
             if cancelled.is_ok() {
-                cancelled = stop.check();
+                cancelled = cancel.check();
             }
         })?;
         cancelled?;
         grid::io::state_json(&acc).map_err(|e| ebptv::Error::analysis(e.to_string()))
-    });
-    stop.result(r)
+    })
 }
 
 fn load(text: &str, k: usize) -> ebptv::Result<grid::GridAccumulator> {
@@ -677,19 +720,17 @@ fn simulate(
     if let Some(s) = seconds {
         sc.duration_s = s;
     }
-    let mut stop = Interrupt::new();
-    let r = py.allow_threads(|| -> ebptv::Result<String> {
+    interruptible(py, |cancel| -> ebptv::Result<String> {
         sc.validate()?;
         let mut cancelled = Ok(());
         let summary = ebptv::sim::write_recording(&sc, seed, &out, io::Format::Evt3, |_, _| {
             if cancelled.is_ok() {
-                cancelled = stop.check();
+                cancelled = cancel.check();
             }
         })?;
         cancelled?;
         serde_json::to_string(&summary).map_err(|e| ebptv::Error::analysis(e.to_string()))
-    });
-    stop.result(r)
+    })
 }
 
 /// `ebptv pulses`: the pulse analysis (pulses.json as JSON text) and the
@@ -715,14 +756,13 @@ fn pulses<'py>(
         onset_latency_us,
         require_pulsed: !force_pulses,
     };
-    let mut stop = Interrupt::new();
-    let r = py.allow_threads(|| -> ebptv::Result<(String, Vec<f64>)> {
+    let (json, starts) = interruptible(py, |cancel| -> ebptv::Result<(String, Vec<f64>)> {
         let mut src = io::guard::TimeGuard::new(io::open(&path)?);
         let mut an = ebptv::pulses::Analyzer::new(opts, src.info().geometry)?;
         let mut chunk = Chunk::default();
         while src.next_chunk(&mut chunk)? {
             an.push(&chunk)?;
-            stop.check()?;
+            cancel.check()?;
         }
         let mut report = an.finish().map_err(|e| {
             ebptv::Error::analysis(format!("{}: pulse analysis: {e}", path.display()))
@@ -734,8 +774,7 @@ fn pulses<'py>(
         let json =
             serde_json::to_string(&report).map_err(|e| ebptv::Error::analysis(e.to_string()))?;
         Ok((json, starts))
-    });
-    let (json, starts) = stop.result(r)?;
+    })?;
     Ok((json, starts.into_pyarray(py)))
 }
 
@@ -833,7 +872,7 @@ fn model_check(
     profile_fit: Option<bool>,
     paired_judgement: Option<bool>,
 ) -> PyResult<String> {
-    use ebptv::modelcheck::check::{check_recording, ModelCheckOptions};
+    use ebptv::modelcheck::check::{check_recording_with, ModelCheckOptions};
     let d = ModelCheckOptions::default();
     let opts = ModelCheckOptions {
         model,
@@ -845,12 +884,157 @@ fn model_check(
         profile_fit: profile_fit.unwrap_or(d.profile_fit),
         paired_judgement: paired_judgement.unwrap_or(d.paired_judgement),
     };
-    py.allow_threads(|| -> ebptv::Result<String> {
-        check_recording(&path, &out, &opts)?;
+    interruptible(py, |cancel| -> ebptv::Result<String> {
+        check_recording_with(&path, &out, &opts, cancel)?;
         let json = out.join("model_check.json");
         std::fs::read_to_string(&json).map_err(|e| ebptv::Error::io(&json, e))
     })
-    .map_err(err)
+}
+
+/// The defaults of `ebptv piv`, from the library.
+fn piv_defaults(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
+    let o = ebptv::piv::PivRunOptions::default();
+    let c = &o.correlation;
+    let d = PyDict::new(py);
+    d.set_item("window", c.window_w)?;
+    d.set_item("window_h", c.window_h)?;
+    d.set_item("spacing", c.spacing_x)?;
+    d.set_item("passes", c.passes)?;
+    d.set_item("pyramid", c.pyramid)?;
+    d.set_item("no_clip", !c.clip_background)?;
+    d.set_item("frames", o.frames)?;
+    d.set_item("step", o.step())?;
+    d.set_item("sigma", o.pseudo.sigma)?;
+    d.set_item("counts", o.counts())?;
+    d.set_item("both_polarities", o.pseudo.both_polarities)?;
+    d.set_item("force_pulses", o.force_pulses)?;
+    Ok(d)
+}
+
+/// The fields of a PIV run, collected in memory (px/s, as `piv_u.npy`).
+#[derive(Default)]
+struct Fields {
+    pulse_hz: f64,
+    u: Vec<f32>,
+    v: Vec<f32>,
+    flags: Vec<u8>,
+}
+
+impl ebptv::piv::PivSink for Fields {
+    fn start(&mut self, _grid: &ebptv::piv::NodeGrid, pulse_hz: f64) -> ebptv::Result<()> {
+        self.pulse_hz = pulse_hz;
+        Ok(())
+    }
+
+    fn field(&mut self, f: &ebptv::piv::StepField) -> ebptv::Result<()> {
+        let hz = self.pulse_hz;
+        self.u.extend(f.field.u.iter().map(|&x| (x * hz) as f32));
+        self.v.extend(f.field.v.iter().map(|&x| (x * hz) as f32));
+        self.flags.extend_from_slice(&f.field.flags);
+        Ok(())
+    }
+}
+
+/// `ebptv piv` on a recording, in memory: the fields of every step
+/// (`u`, `v` in px/s and `flag`, `(steps, ny, nx)` as `piv_u.npy` …), the
+/// node coordinates, the steps (`piv_steps.csv` columns), `piv_mean.csv`
+/// as text, pulses.json as JSON text and the run's counts. `None` options
+/// take the CLI's defaults.
+#[pyfunction]
+#[pyo3(signature = (path, window=None, window_h=None, spacing=None, passes=None, pyramid=None, no_clip=None, frames=None, step=None, sigma=None, counts=None, both_polarities=None, pulse_hz=None, batch=None, force_pulses=None, calibration=None, mask=None))]
+#[allow(clippy::too_many_arguments)]
+fn piv<'py>(
+    py: Python<'py>,
+    path: PathBuf,
+    window: Option<usize>,
+    window_h: Option<usize>,
+    spacing: Option<usize>,
+    passes: Option<usize>,
+    pyramid: Option<usize>,
+    no_clip: Option<bool>,
+    frames: Option<usize>,
+    step: Option<usize>,
+    sigma: Option<f64>,
+    counts: Option<bool>,
+    both_polarities: Option<bool>,
+    pulse_hz: Option<f64>,
+    batch: Option<usize>,
+    force_pulses: Option<bool>,
+    calibration: Option<PathBuf>,
+    mask: Option<PathBuf>,
+) -> PyResult<Bound<'py, PyDict>> {
+    use ebptv::piv::{PivOptions, PivRunOptions, PixelMode};
+    let d = PivRunOptions::default();
+    let mut correlation =
+        PivOptions::sized(window.unwrap_or(d.correlation.window_w), window_h, spacing);
+    correlation.passes = passes.unwrap_or(d.correlation.passes);
+    correlation.pyramid = pyramid.unwrap_or(d.correlation.pyramid);
+    correlation.clip_background = !no_clip.unwrap_or(!d.correlation.clip_background);
+    let mut pseudo = d.pseudo;
+    if let Some(c) = counts {
+        pseudo.mode = if c {
+            PixelMode::Counts
+        } else {
+            PixelMode::Binary
+        };
+    }
+    pseudo.both_polarities = both_polarities.unwrap_or(pseudo.both_polarities);
+    pseudo.sigma = sigma.unwrap_or(pseudo.sigma);
+    let opts = PivRunOptions {
+        correlation,
+        frames: frames.unwrap_or(d.frames),
+        step,
+        pseudo,
+        pulse_hz,
+        batch,
+        force_pulses: force_pulses.unwrap_or(d.force_pulses),
+        calibration,
+        mask,
+    };
+    let (fields, run) = interruptible(py, |cancel| {
+        let mut fields = Fields::default();
+        let run = ebptv::piv::run_recording(&path, &opts, &mut fields, &|_| {}, cancel)?;
+        Ok((fields, run))
+    })?;
+    let g = run.grid;
+    let n = run.steps.len();
+    let shape = [n, g.ny, g.nx];
+    let out = PyDict::new(py);
+    out.set_item("u", fields.u.into_pyarray(py).reshape(shape)?)?;
+    out.set_item("v", fields.v.into_pyarray(py).reshape(shape)?)?;
+    out.set_item("flag", fields.flags.into_pyarray(py).reshape(shape)?)?;
+    out.set_item(
+        "x",
+        (0..g.nx)
+            .map(|i| g.x(i))
+            .collect::<Vec<_>>()
+            .into_pyarray(py),
+    )?;
+    out.set_item(
+        "y",
+        (0..g.ny)
+            .map(|j| g.y(j))
+            .collect::<Vec<_>>()
+            .into_pyarray(py),
+    )?;
+    let (first, t): (Vec<i64>, Vec<f64>) = run.steps.iter().copied().unzip();
+    out.set_item("first_pulse", first.into_pyarray(py))?;
+    out.set_item("t_us", t.into_pyarray(py))?;
+    out.set_item(
+        "mean_csv",
+        ebptv::piv::output::mean_csv(&run.mean, run.calibration.as_ref()),
+    )?;
+    out.set_item(
+        "pulses",
+        serde_json::to_string(&run.pulses).map_err(|e| EbptvError::new_err(e.to_string()))?,
+    )?;
+    out.set_item("pulse_hz", run.pulse_hz)?;
+    out.set_item("nodes", g.len())?;
+    out.set_item(
+        "nodes_without_vector",
+        run.masked.then(|| run.nodes_without_vector()),
+    )?;
+    Ok(out)
 }
 
 #[pymodule]
@@ -869,5 +1053,7 @@ fn _ebptv(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(spectra, m)?)?;
     m.add_function(wrap_pyfunction!(model_check, m)?)?;
     m.add("SPECTRA_DEFAULTS", spectra_defaults(m.py())?)?;
+    m.add_function(wrap_pyfunction!(piv, m)?)?;
+    m.add("PIV_DEFAULTS", piv_defaults(m.py())?)?;
     Ok(())
 }

@@ -22,7 +22,7 @@ def test_grid_equals_ebptv_grid(sim_run: Path, tmp_path: Path) -> None:  # noqa:
         out = tmp_path / ("g" + "".join(args))
         cli_ok("grid", str(sim_run / "tracks.csv"), "--out", str(out), "--no-plots", *args)
         want = pd.read_csv(out / "grid.csv")
-        got = ebptv.grid(tracks, **kw)
+        got = ebptv.grid(tracks, **kw, as_xarray=False)
         assert list(got.columns[:8]) == list(want.columns)
         assert len(got) == len(want)
         np.testing.assert_array_equal(got[["x", "y", "count"]], want[["x", "y", "count"]])
@@ -53,7 +53,7 @@ def test_dask_slices_merge_to_the_grid_of_the_whole(sim: Path) -> None:  # noqa:
 
     _, tracks = ebptv.track(sim)
     tracks.attrs = {}
-    whole = ebptv.grid(tracks)
+    whole = ebptv.grid(tracks, as_xarray=False)
     parts = dd.from_pandas(tracks, npartitions=5, sort=False)
     assert parts.npartitions == 5
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
@@ -65,5 +65,5 @@ def test_dask_slices_merge_to_the_grid_of_the_whole(sim: Path) -> None:  # noqa:
                                   whole[["x", "y", "count", "n_tracks"]])
     np.testing.assert_allclose(merged[STATS], whole[STATS], rtol=1e-9, atol=1e-6)
     # A slice alone is not the whole: the test can tell them apart.
-    one = ebptv.grid(parts.get_partition(0).compute())
+    one = ebptv.grid(parts.get_partition(0).compute(), as_xarray=False)
     assert one["count"].sum() < whole["count"].sum()

@@ -1,12 +1,14 @@
-use std::path::PathBuf;
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Arc;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
 
 use clap::Args;
 use ebptv::piv::output::{write_mean_csv_calibrated, NpyStack};
-use ebptv::piv::{PivOptions, PivStream, PixelMode, PseudoOptions, StreamOptions};
+use ebptv::piv::{
+    run_recording, NodeGrid, PivOptions, PivProgress, PivRunOptions, PivSink, PivStage, PixelMode,
+    PseudoOptions, StepField,
+};
 use ebptv::plot::{heatmap, Heatmap};
-use ebptv::pulses::{analyze, split_pulses, PulseOptions};
 
 /// The correlation options `ebptv piv` and `ebptv piv-images` share.
 #[derive(Args, Debug)]
@@ -36,12 +38,7 @@ pub struct CorrelationArgs {
 
 impl CorrelationArgs {
     pub fn options(&self) -> PivOptions {
-        let mut o = PivOptions::new(
-            self.window,
-            self.spacing.unwrap_or((self.window / 2).max(1)),
-        );
-        o.window_h = self.window_h.unwrap_or(self.window);
-        o.spacing_y = self.spacing.unwrap_or((o.window_h / 2).max(1));
+        let mut o = PivOptions::sized(self.window, self.window_h, self.spacing);
         o.passes = self.passes;
         o.pyramid = self.pyramid;
         o.clip_background = !self.no_clip;
@@ -97,113 +94,154 @@ pub struct PivArgs {
     pub out: PathBuf,
 }
 
-pub fn run(a: PivArgs) -> anyhow::Result<()> {
-    let src = ebptv::io::open_for_analysis(&a.recording)?;
-    super::print_warnings(&src);
-    let geom = src.info().geometry.ok_or_else(|| {
-        anyhow::anyhow!(
-            "{}: the sensor size is not stated in the file; PIV needs it for the pseudo-images",
-            a.recording.display()
-        )
-    })?;
-    let mut src = super::progress::Reading::with_bar(src, "pulse timing");
-    let report = analyze(
-        &mut src,
-        &PulseOptions {
-            pulse_hz: a.pulse_hz,
-            require_pulsed: !a.force_pulses,
-            ..Default::default()
-        },
-    )?;
-    let (calib, mask) = ebptv::calib::load(a.calibration.as_deref(), a.mask.as_deref())?;
-    let mut piv = a.correlation.options();
-    if let Some(m) = &mask {
-        if let Some(p) = &a.mask {
-            let (mw, mh) = ebptv::calib::PixelMask::from_png(p)?.size();
-            anyhow::ensure!(
-                (mw, mh) == (geom.width as u32, geom.height as u32),
-                "{}: mask of {mw} x {mh} pixels, the sensor has {} x {}",
-                p.display(),
-                geom.width,
-                geom.height
-            );
-        }
-        let (w, h) = (geom.width as u32, geom.height as u32);
-        piv.mask = Some(
-            (0..h)
-                .flat_map(|y| (0..w).map(move |x| (x, y)))
-                .map(|(x, y)| m.is_masked_px(x, y))
-                .collect(),
-        );
-    }
-    let opts = StreamOptions {
-        piv,
-        pseudo: PseudoOptions {
-            mode: if a.counts {
-                PixelMode::Counts
-            } else {
-                PixelMode::Binary
+impl PivArgs {
+    /// The library's options of this command line.
+    fn options(&self) -> PivRunOptions {
+        PivRunOptions {
+            correlation: self.correlation.options(),
+            frames: self.frames,
+            step: self.step,
+            pseudo: PseudoOptions {
+                mode: if self.counts {
+                    PixelMode::Counts
+                } else {
+                    PixelMode::Binary
+                },
+                both_polarities: self.both_polarities,
+                sigma: self.sigma,
             },
-            both_polarities: a.both_polarities,
-            sigma: a.sigma,
-        },
-        frames: a.frames,
-        step: a.step.unwrap_or(a.frames.saturating_sub(1).max(1)),
-    };
-    let (w, h) = (geom.width as usize, geom.height as usize);
-    let mut stream = PivStream::new(w, h, report.timing, opts)?;
-    let g = *stream.grid();
-    ebptv::io::atomic::create_output_dir(&a.out)?;
-    let mut su = NpyStack::create(&a.out.join("piv_u.npy"), "<f4", g.ny, g.nx)?;
-    let mut sv = NpyStack::create(&a.out.join("piv_v.npy"), "<f4", g.ny, g.nx)?;
-    let mut sf = NpyStack::create(&a.out.join("piv_flag.npy"), "|u1", g.ny, g.nx)?;
-    let mut times = Vec::new();
-    let hz = stream.pulse_hz();
-    // Second pass over the recording: the bar restarts, with the fields so far.
-    let bar = src.bar().clone();
-    bar.reset();
-    bar.set_prefix("PIV");
-    let fields = Arc::new(AtomicU64::new(0));
-    let shown = fields.clone();
-    let mut src = super::progress::Reading::new(ebptv::io::open_for_analysis(&a.recording)?, bar)
-        .with_note(Arc::new(move || {
-            format!("{} fields", shown.load(Ordering::Relaxed))
-        }));
-    stream.set_batch(a.batch.unwrap_or_else(rayon::current_num_threads))?;
-    let mut emit = |f: ebptv::piv::StepField| -> ebptv::Result<()> {
+            pulse_hz: self.pulse_hz,
+            batch: self.batch,
+            force_pulses: self.force_pulses,
+            calibration: self.calibration.clone(),
+            mask: self.mask.clone(),
+        }
+    }
+}
+
+/// The per-step fields as `.npy` stacks in OUT (px/s).
+struct NpySink<'a> {
+    out: &'a Path,
+    stacks: Option<[NpyStack; 3]>,
+    pulse_hz: f64,
+}
+
+impl PivSink for NpySink<'_> {
+    fn start(&mut self, g: &NodeGrid, pulse_hz: f64) -> ebptv::Result<()> {
+        ebptv::io::atomic::create_output_dir(self.out)?;
+        self.pulse_hz = pulse_hz;
+        self.stacks = Some([
+            NpyStack::create(&self.out.join("piv_u.npy"), "<f4", g.ny, g.nx)?,
+            NpyStack::create(&self.out.join("piv_v.npy"), "<f4", g.ny, g.nx)?,
+            NpyStack::create(&self.out.join("piv_flag.npy"), "|u1", g.ny, g.nx)?,
+        ]);
+        Ok(())
+    }
+
+    fn field(&mut self, f: &StepField) -> ebptv::Result<()> {
+        let hz = self.pulse_hz;
+        let Some([su, sv, sf]) = self.stacks.as_mut() else {
+            return Err(ebptv::Error::analysis("PIV field before its grid"));
+        };
         su.push_f32(f.field.u.iter().map(|&x| (x * hz) as f32))?;
         sv.push_f32(f.field.v.iter().map(|&x| (x * hz) as f32))?;
-        sf.push_u8(&f.field.flags)?;
-        times.push((f.first_pulse, f.t_us));
-        fields.store(times.len() as u64, Ordering::Relaxed);
-        Ok(())
-    };
-    split_pulses(&mut src, &report.timing, &mut |pe| {
-        stream.feed(&pe, &mut emit)
-    })?;
-    stream.flush(&mut emit)?;
-    src.bar().finish_and_clear();
-    if times.is_empty() {
-        anyhow::bail!(
-            "{}: no PIV field: fewer than {} consecutive pulses with events",
-            a.recording.display(),
-            a.frames
-        );
+        sf.push_u8(&f.field.flags)
     }
-    su.finish()?;
-    sv.finish()?;
-    sf.finish()?;
+}
+
+/// The bar's state: when it was last drawn and when the pass started.
+#[derive(Default)]
+struct Shown {
+    started: Option<Instant>,
+    shown: Option<Instant>,
+}
+
+pub fn run(a: PivArgs) -> anyhow::Result<()> {
+    let size = std::fs::metadata(&a.recording).ok().map(|m| m.len());
+    let bar = super::progress::file_bar(size, "pulse timing");
+    let shown = Mutex::new(Shown::default());
+    let on_progress = |p: PivProgress<'_>| match p {
+        PivProgress::Stage { stage, file_size } => {
+            // Second pass over the recording: the bar restarts, with the fields so far.
+            if stage == PivStage::Correlation {
+                bar.reset();
+                bar.set_prefix("PIV");
+            }
+            if let Some(s) = file_size {
+                bar.set_length(s);
+            }
+            bar.set_message("");
+            *shown.lock().unwrap_or_else(|e| e.into_inner()) = Shown::default();
+        }
+        PivProgress::Read {
+            stage,
+            bytes,
+            events,
+            fields,
+        } => {
+            if bar.is_hidden() {
+                return;
+            }
+            let now = Instant::now();
+            let mut s = shown.lock().unwrap_or_else(|e| e.into_inner());
+            let started = *s.started.get_or_insert(now);
+            let due = s.shown.is_none_or(|t| {
+                now.duration_since(t)
+                    >= Duration::from_millis(1000 / super::progress::REFRESH_HZ as u64)
+            });
+            if !due {
+                return;
+            }
+            s.shown = Some(now);
+            bar.set_position(bytes);
+            let secs = now.duration_since(started).as_secs_f64();
+            let rate = if secs > 0.0 {
+                events as f64 / secs
+            } else {
+                0.0
+            };
+            let count = super::progress::count;
+            let mut msg = format!("{}ev, {}ev/s", count(events as f64), count(rate));
+            if stage == PivStage::Correlation {
+                msg.push_str(&format!(", {fields} fields"));
+            }
+            bar.set_message(msg);
+        }
+        PivProgress::Warning(w) => bar.suspend(|| eprintln!("warning: {w}")),
+        _ => {}
+    };
+    let mut sink = NpySink {
+        out: &a.out,
+        stacks: None,
+        pulse_hz: 0.0,
+    };
+    let result = run_recording(
+        &a.recording,
+        &a.options(),
+        &mut sink,
+        &on_progress,
+        &ebptv::Cancel::new(),
+    );
+    bar.finish_and_clear();
+    let run = result?;
+    if let Some(stacks) = sink.stacks {
+        for s in stacks {
+            s.finish()?;
+        }
+    }
+    let g = run.grid;
     let mut t = String::from("step,first_pulse,t_us\n");
-    for (k, (p, tu)) in times.iter().enumerate() {
+    for (k, (p, tu)) in run.steps.iter().enumerate() {
         t.push_str(&format!("{k},{p},{tu}\n"));
     }
     ebptv::io::atomic::AtomicFile::write_all_to(a.out.join("piv_steps.csv"), t.as_bytes())?;
-    let rows = stream.stats.rows();
-    write_mean_csv_calibrated(&a.out.join("piv_mean.csv"), &rows, calib.as_ref())?;
+    let rows = &run.mean;
+    let calib = &run.calibration;
+    write_mean_csv_calibrated(&a.out.join("piv_mean.csv"), rows, calib.as_ref())?;
     let xr = (g.x(0), g.x(g.nx - 1));
     let yr = (g.y(0), g.y(g.ny - 1));
     // With a calibration the maps are in m/s (and m²/s²).
-    let phys = |r: &ebptv::piv::MeanRow| match &calib {
+    let phys = |r: &ebptv::piv::MeanRow| match calib {
         Some(c) => {
             let (u, v) = c.velocity_px_s_to_m_s(r.u, r.v);
             let (uu, _, _) = c.stress_px2_s2_to_m2_s2(r.uu, r.vv, r.uv);
@@ -243,13 +281,29 @@ pub fn run(a: PivArgs) -> anyhow::Result<()> {
             },
         )?;
     }
-    if mask.is_some() {
-        let masked = rows
-            .iter()
-            .filter(|r| r.valid == 0.0 && r.u.is_nan())
-            .count();
-        eprintln!("{masked} of {} nodes masked or without a vector", g.len());
+    if run.masked {
+        eprintln!(
+            "{} of {} nodes masked or without a vector",
+            run.nodes_without_vector(),
+            g.len()
+        );
     }
-    eprintln!("{} PIV fields, {} nodes each", times.len(), g.len());
+    eprintln!("{} PIV fields, {} nodes each", run.steps.len(), g.len());
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::{Cli, Command};
+    use super::*;
+
+    #[test]
+    fn the_command_line_defaults_are_the_library_defaults() {
+        let cli = <Cli as clap::Parser>::try_parse_from(["ebptv", "piv", "r.raw", "--out", "o"])
+            .expect("parses");
+        let Command::Piv(a) = cli.command else {
+            panic!("not the piv command");
+        };
+        assert_eq!(a.options(), PivRunOptions::default());
+    }
 }

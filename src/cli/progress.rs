@@ -6,7 +6,6 @@
 //! limited to [`REFRESH_HZ`] and happens only when stderr is a terminal
 //! (indicatif hides the bar otherwise: pipes, logs and tests stay quiet).
 
-use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use ebptv::io::{Anomalies, EventSource, StreamInfo};
@@ -43,14 +42,10 @@ pub(crate) fn file_bar(total: Option<u64>, what: &str) -> ProgressBar {
     bar
 }
 
-/// Extra text after the event counts (e.g. tracks so far).
-pub(crate) type Note = Arc<dyn Fn() -> String + Send + Sync>;
-
 /// An [`EventSource`] that moves a progress bar as it is read.
 pub(crate) struct Reading<S> {
     inner: S,
     bar: ProgressBar,
-    note: Option<Note>,
     events: u64,
     started: Instant,
     shown: Option<Instant>,
@@ -63,7 +58,6 @@ impl<S: EventSource> Reading<S> {
         Reading {
             inner,
             bar,
-            note: None,
             events: 0,
             started: Instant::now(),
             shown: None,
@@ -74,12 +68,6 @@ impl<S: EventSource> Reading<S> {
     pub(crate) fn with_bar(inner: S, what: &str) -> Self {
         let bar = file_bar(inner.info().file_size, what);
         Reading::new(inner, bar)
-    }
-
-    /// Text appended to the message (evaluated at each redraw).
-    pub(crate) fn with_note(mut self, note: Note) -> Self {
-        self.note = Some(note);
-        self
     }
 
     /// The wrapped source (e.g. for its own counters after the pass).
@@ -101,11 +89,7 @@ impl<S: EventSource> Reading<S> {
         } else {
             0.0
         };
-        let mut msg = format!("{}ev, {}ev/s", count(self.events as f64), count(rate));
-        if let Some(note) = &self.note {
-            msg.push_str(", ");
-            msg.push_str(&note());
-        }
+        let msg = format!("{}ev, {}ev/s", count(self.events as f64), count(rate));
         self.bar.set_message(msg);
     }
 }

@@ -141,22 +141,9 @@ fn config_of(args: &TrackArgs) -> anyhow::Result<TrackConfig> {
         c.run.calibration = args.calibration.clone();
     }
     if let Some(m) = &args.mask {
-        if is_png(m)? {
-            c.run.mask = Some(m.clone());
-        } else {
-            c.run.hot_pixels = Some(m.clone());
-        }
+        c.run.set_mask_file(m)?;
     }
     Ok(c)
-}
-
-/// Whether `path` starts with the PNG signature.
-fn is_png(path: &std::path::Path) -> anyhow::Result<bool> {
-    use std::io::Read;
-    let mut head = [0u8; 8];
-    let mut f = std::fs::File::open(path).map_err(|e| ebptv::Error::io(path, e))?;
-    let n = f.read(&mut head).map_err(|e| ebptv::Error::io(path, e))?;
-    Ok(n == 8 && head == *b"\x89PNG\r\n\x1a\n")
 }
 
 fn run_tracking(

@@ -77,6 +77,17 @@ pub fn check_recording(
     out: &Path,
     a: &ModelCheckOptions,
 ) -> Result<ModelCheckRun> {
+    check_recording_with(measured, out, a, &crate::Cancel::new())
+}
+
+/// [`check_recording`] that stops with an error once `cancel` is set (it
+/// looks after each chunk read and before each simulation).
+pub fn check_recording_with(
+    measured: &Path,
+    out: &Path,
+    a: &ModelCheckOptions,
+    cancel: &crate::Cancel,
+) -> Result<ModelCheckRun> {
     if a.block_pulses < MIN_BLOCK_PULSES {
         return Err(Error::param(
             "block-pulses",
@@ -92,6 +103,7 @@ pub fn check_recording(
     let mut rising = Vec::new();
     let mut chunk = Chunk::default();
     while src.next_chunk(&mut chunk)? {
+        cancel.check()?;
         events.extend_from(&chunk.events);
         rising.extend(
             chunk
@@ -169,7 +181,7 @@ pub fn check_recording(
     sc.duration_s = (block_us + timing.first_pulse_us) * 1e-6;
     let standard = a.model.is_none();
     let mut start_model = active_effects(&sc);
-    let mut sim = SceneSimulator::new(sc.without_effects())?;
+    let mut sim = SceneSimulator::new(sc.without_effects())?.with_cancel(cancel.clone());
     // Against the standard sensor: the measured rate scales its noise, and
     // every simulation is moved to the measured median latency.
     let event_rate_hz = fit_ev.len() as f64 / (block_us * 1e-6);
@@ -197,6 +209,7 @@ pub fn check_recording(
             tracks: None,
         })
     };
+    cancel.check()?;
     let fit = recording(fit_ev)?;
     let hold = recording(hold_ev)?;
     let mut cfg = sim.signature_config();

@@ -103,6 +103,8 @@ pub struct SceneSimulator {
     /// Median event latency (µs after the pulse start) every simulated
     /// recording is moved to; `None` leaves the simulator's own.
     latency_median_us: Option<f64>,
+    /// Set: every simulation stops with an error.
+    cancel: crate::Cancel,
 }
 
 impl SceneSimulator {
@@ -119,7 +121,15 @@ impl SceneSimulator {
             base,
             cluster,
             latency_median_us: None,
+            cancel: crate::Cancel::new(),
         })
+    }
+
+    /// Simulations fail (`cancelled`) once `cancel` is set: a long search
+    /// stops at its next simulation.
+    pub fn with_cancel(mut self, cancel: crate::Cancel) -> Self {
+        self.cancel = cancel;
+        self
     }
 
     /// Refit the median latency with every simulation: each simulated
@@ -146,7 +156,8 @@ impl SceneSimulator {
         // The measurement's processing stays the same for every variant.
         s.cluster = self.cluster.clone();
         Ok(s.with_catalogue(self.catalogue.clone())
-            .with_latency_median(self.latency_median_us))
+            .with_latency_median(self.latency_median_us)
+            .with_cancel(self.cancel.clone()))
     }
 
     /// Restrict or reorder the catalogue (names must be known effects).
@@ -311,6 +322,7 @@ impl Simulator for SceneSimulator {
     }
 
     fn simulate(&self, effects: &[EffectSetting], seed: u64) -> Result<Recording> {
+        self.cancel.check()?;
         let sc = self.scenario_with(effects)?;
         let out = crate::sim::simulate(&sc, seed)?;
         let timing = timing_of(&sc);

@@ -21,6 +21,7 @@
 //! * [`images`] — PNG/TIFF input for `piv-images`.
 //! * [`synth`] — synthetic particle images with known displacement.
 //! * [`output`] — `piv_mean.csv`, per-frame CSV, `.npy` field stacks.
+//! * [`run`] — `ebptv piv` on a recording, fields to a sink ([`run_recording`]).
 //!
 //! Only `N_f` images are ever in memory: a 10 s recording at 10 kHz is
 //! 100 000 pulses; its fields go to disk step by step and its statistics
@@ -32,12 +33,14 @@ pub mod images;
 pub(crate) mod multipass;
 pub mod output;
 pub mod pseudo;
+pub mod run;
 pub mod synth;
 pub mod validate;
 
 pub use multipass::{node_grid, piv_frames, NodeGrid, PivOptions, VectorField};
 pub(crate) use pseudo::{FrameRing, PseudoImager};
 pub use pseudo::{PixelMode, PseudoOptions};
+pub use run::{run_recording, PivProgress, PivRun, PivRunOptions, PivSink, PivStage};
 
 use crate::error::{Error, Result};
 use crate::pulses::{PulseEvents, PulseTiming};

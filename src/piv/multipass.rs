@@ -75,6 +75,16 @@ impl PivOptions {
             clip_background: true,
         }
     }
+
+    /// The options of `ebptv piv --window W [--window-h H] [--spacing S]`:
+    /// a `W × H` window (`H` = `W` by default) and nodes `S` px apart
+    /// (default half the window in each direction, at least 1 px).
+    pub fn sized(window: usize, window_h: Option<usize>, spacing: Option<usize>) -> Self {
+        let mut o = PivOptions::new(window, spacing.unwrap_or((window / 2).max(1)));
+        o.window_h = window_h.unwrap_or(window);
+        o.spacing_y = spacing.unwrap_or((o.window_h / 2).max(1));
+        o
+    }
 }
 
 /// The node grid: node (i, j) at `(x0 + i·dx, y0 + j·dy)`.

@@ -36,15 +36,20 @@ pub fn write_mean_csv_calibrated(
     rows: &[MeanRow],
     calib: Option<&crate::calib::Calibration>,
 ) -> Result<()> {
-    let mut f = AtomicFile::create(path)?;
-    let io = |e| Error::io(path, e);
+    AtomicFile::write_all_to(path, mean_csv(rows, calib).as_bytes())
+}
+
+/// The text of `piv_mean.csv` ([`write_mean_csv_calibrated`]).
+pub fn mean_csv(rows: &[MeanRow], calib: Option<&crate::calib::Calibration>) -> String {
+    use std::fmt::Write as _;
     let extra = match calib {
         Some(_) => crate::calib::header_suffix(crate::calib::Calibration::field_columns()),
         None => String::new(),
     };
-    writeln!(f, "x,y,u,v,uu,vv,uv,valid{extra}").map_err(io)?;
+    let mut f = format!("x,y,u,v,uu,vv,uv,valid{extra}\n");
     for r in rows {
-        write!(
+        // Writing to a String cannot fail.
+        let _ = write!(
             f,
             "{},{},{},{},{},{},{},{}",
             r.x,
@@ -55,16 +60,15 @@ pub fn write_mean_csv_calibrated(
             fmt(r.vv),
             fmt(r.uv),
             r.valid
-        )
-        .map_err(io)?;
+        );
         if let Some(c) = calib {
             for v in c.field_values(r.x, r.y, r.u, r.v, r.uu, r.vv, r.uv) {
-                write!(f, ",{}", fmt(v)).map_err(io)?;
+                let _ = write!(f, ",{}", fmt(v));
             }
         }
-        writeln!(f).map_err(io)?;
+        f.push('\n');
     }
-    f.commit()
+    f
 }
 
 /// Per-frame vectors: `x,y,u,v,flag` (px, px per frame step, flag bits of

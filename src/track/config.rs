@@ -107,6 +107,22 @@ impl Default for RunParams {
 }
 
 impl RunParams {
+    /// `ebptv track --mask FILE`: a PNG (by its signature) becomes
+    /// [`RunParams::mask`], anything else a hot-pixel list
+    /// ([`RunParams::hot_pixels`]).
+    pub fn set_mask_file(&mut self, path: &Path) -> Result<()> {
+        use std::io::Read;
+        let mut head = [0u8; 8];
+        let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+        let n = f.read(&mut head).map_err(|e| Error::io(path, e))?;
+        if n == 8 && head == *b"\x89PNG\r\n\x1a\n" {
+            self.mask = Some(path.to_path_buf());
+        } else {
+            self.hot_pixels = Some(path.to_path_buf());
+        }
+        Ok(())
+    }
+
     /// The slicing of the sliced linker.
     pub fn slicing(&self) -> SliceParams {
         SliceParams {

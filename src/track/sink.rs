@@ -130,6 +130,7 @@ pub fn track_to_dir_with(
         stream,
         &mut sink,
         on_progress,
+        &crate::Cancel::new(),
     )?;
     on_progress(TrackProgress::Writing);
     if let Some(pulses) = &run.pulses {
@@ -243,19 +244,20 @@ pub fn stream_of(config: &TrackConfig) -> Result<PtvStream> {
 
 /// The run of [`track_to_dir`] with its results handed to `sink` instead
 /// of files: `config` from [`resolve_config`], `stream` from
-/// [`stream_of`]. A sink that returns an error stops the run (a caller's
-/// way to cancel it).
+/// [`stream_of`]. The run stops with an error when `cancel` is set (it
+/// looks after each chunk read and each pulse) or a sink returns an error.
 pub fn track_into(
     input: TrackInput<'_>,
     config: &TrackConfig,
     mut stream: PtvStream,
     sink: &mut dyn PtvSink,
     on_progress: &(dyn Fn(TrackProgress<'_>) + Sync),
+    cancel: &crate::Cancel,
 ) -> Result<SinkRun> {
     let run = &config.run;
     let particles = match input {
         TrackInput::Recording(path) => {
-            return track_recording_into(path, run, stream, sink, on_progress)
+            return track_recording_into(path, run, stream, sink, on_progress, cancel)
         }
         TrackInput::ParticlesTable(path) => {
             on_progress(TrackProgress::Stage {
@@ -281,6 +283,7 @@ pub fn track_into(
         while e < sorted.len() && sorted[e].pulse == sorted[s].pulse {
             e += 1;
         }
+        cancel.check()?;
         stream.push_particles(sorted[s].pulse, sorted[s].t_us, &sorted[s..e], sink)?;
         let (particles, active_tracks) = stream.progress();
         on_progress(TrackProgress::Pulse {
@@ -305,6 +308,7 @@ fn track_recording_into(
     stream: PtvStream,
     sink: &mut dyn PtvSink,
     on_progress: &(dyn Fn(TrackProgress<'_>) + Sync),
+    cancel: &crate::Cancel,
 ) -> Result<SinkRun> {
     let opts = PulseOptions {
         pulse_hz: run.pulse_hz,
@@ -348,6 +352,7 @@ fn track_recording_into(
             stage,
             events: 0,
             on_progress,
+            cancel,
         }))
     };
     let run_result = track_recording(&open, &opts, stream, sink, &mut |s| {
@@ -405,6 +410,7 @@ struct Observed<'a> {
     stage: TrackStage,
     events: u64,
     on_progress: &'a (dyn Fn(TrackProgress<'_>) + Sync),
+    cancel: &'a crate::Cancel,
 }
 
 impl EventSource for Observed<'_> {
@@ -413,6 +419,7 @@ impl EventSource for Observed<'_> {
     }
 
     fn next_chunk(&mut self, chunk: &mut crate::Chunk) -> Result<bool> {
+        self.cancel.check()?;
         let more = self.inner.next_chunk(chunk)?;
         self.events += chunk.events.len() as u64;
         (self.on_progress)(TrackProgress::Read {
