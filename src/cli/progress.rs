@@ -82,11 +82,6 @@ impl<S: EventSource> Reading<S> {
         self
     }
 
-    /// The wrapped source (e.g. for its own counters after the pass).
-    pub(crate) fn into_inner(self) -> S {
-        self.inner
-    }
-
     /// The bar, e.g. to print a line above it or clear it.
     pub(crate) fn bar(&self) -> &ProgressBar {
         &self.bar
@@ -158,6 +153,49 @@ impl<S: EventSource> EventSource for Reading<S> {
 
     fn rejected_geometry(&self) -> Option<Geometry> {
         self.inner.rejected_geometry()
+    }
+}
+
+/// The event rate of a reading pass, for the bar's message.
+#[derive(Default)]
+pub(crate) struct ReadRate {
+    started: Option<Instant>,
+    shown: Option<Instant>,
+}
+
+impl ReadRate {
+    /// Moves the bar at most [`REFRESH_HZ`] times a second
+    /// (and on the last chunk).
+    pub(crate) fn show(
+        &mut self,
+        bar: &ProgressBar,
+        bytes: u64,
+        events: u64,
+        done: bool,
+        note: Option<String>,
+    ) {
+        let now = Instant::now();
+        let started = *self.started.get_or_insert(now);
+        let due = self.shown.is_none_or(|t| {
+            now.duration_since(t) >= Duration::from_millis(1000 / REFRESH_HZ as u64)
+        });
+        if !(due || done) {
+            return;
+        }
+        self.shown = Some(now);
+        bar.set_position(bytes);
+        let secs = now.duration_since(started).as_secs_f64();
+        let rate = if secs > 0.0 {
+            events as f64 / secs
+        } else {
+            0.0
+        };
+        let mut msg = format!("{}ev, {}ev/s", count(events as f64), count(rate));
+        if let Some(note) = note {
+            msg.push_str(", ");
+            msg.push_str(&note);
+        }
+        bar.set_message(msg);
     }
 }
 
