@@ -199,6 +199,43 @@ impl ReadRate {
     }
 }
 
+/// The bar of a command whose library call reads one file and reports
+/// `Opened` then `Read` progress (`pulses`, `info`).
+pub(crate) struct ReadBar {
+    what: &'static str,
+    bar: Option<ProgressBar>,
+    rate: ReadRate,
+}
+
+impl ReadBar {
+    /// No bar until the file is open; `what` is its prefix.
+    pub(crate) fn new(what: &'static str) -> Self {
+        ReadBar {
+            what,
+            bar: None,
+            rate: ReadRate::default(),
+        }
+    }
+
+    /// The file is open: a bar sized from `file_size` (a spinner without).
+    pub(crate) fn opened(&mut self, file_size: Option<u64>) {
+        self.bar = Some(file_bar(file_size, self.what));
+    }
+
+    /// After a chunk: bytes read and events decoded so far; the bar is
+    /// cleared on the last chunk.
+    pub(crate) fn read(&mut self, bytes: u64, events: u64, done: bool) {
+        if let Some(b) = self.bar.as_ref().filter(|b| !b.is_hidden()) {
+            self.rate.show(b, bytes, events, done, None);
+        }
+        if done {
+            if let Some(b) = self.bar.take() {
+                b.finish_and_clear();
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -90,26 +90,14 @@ pub fn run(args: PulsesArgs) -> anyhow::Result<()> {
         pulses,
         write_mask: args.write_mask.clone(),
     };
-    let mut bar: Option<indicatif::ProgressBar> = None;
-    let mut rate = super::progress::ReadRate::default();
+    let mut bar = super::progress::ReadBar::new("reading");
     let report = pulses_to_dir(&args.file, &opts, &args.out, &mut |p| match p {
-        PulsesProgress::Opened { file_size } => {
-            bar = Some(super::progress::file_bar(file_size, "reading"));
-        }
+        PulsesProgress::Opened { file_size } => bar.opened(file_size),
         PulsesProgress::Read {
             bytes,
             events,
             done,
-        } => {
-            if let Some(b) = bar.as_ref().filter(|b| !b.is_hidden()) {
-                rate.show(b, bytes, events, done, None);
-            }
-            if done {
-                if let Some(b) = bar.take() {
-                    b.finish_and_clear();
-                }
-            }
-        }
+        } => bar.read(bytes, events, done),
         PulsesProgress::Warning(w) => eprintln!("warning: {w}"),
         PulsesProgress::NotPulsed(why) => eprintln!(
             "warning: {}: {why} (going on: --force-pulses)",

@@ -82,7 +82,7 @@ pub enum GridProgress<'a> {
 /// What [`grid_to_dir`] did, besides writing its files.
 #[derive(Debug)]
 pub struct GridDirRun {
-    /// Bins along x and y.
+    /// Bins along x.
     pub nx: usize,
     /// Bins along y.
     pub ny: usize,

@@ -254,3 +254,103 @@ fn write_outputs(r: &PulseReport, out: &Path) -> Result<()> {
     )?;
     Ok(())
 }
+
+/// What `ebptv info` reports on an event file ([`file_info`]).
+#[derive(Debug)]
+pub struct FileInfo {
+    /// Format, geometry, counts, rates and triggers (one streaming pass).
+    pub summary: crate::io::summary::Summary,
+    /// A geometry the header stated but that cannot be (ignored).
+    pub rejected_geometry: Option<crate::Geometry>,
+    /// The pulsed-light test on the first events, or why it could not run.
+    pub verdict: std::result::Result<super::PulsedVerdict, String>,
+}
+
+impl FileInfo {
+    /// What `ebptv info --json` prints: the summary with the verdict under
+    /// `pulsed`.
+    pub fn to_json(&self) -> Result<serde_json::Value> {
+        super::info_json(&self.summary, &self.verdict)
+    }
+}
+
+/// Summarise the event file `path` (read with `opts`; the peak rate over
+/// bins of `peak_bin_us`) and test it for pulsed light. `on_progress`
+/// receives the reader's warnings, then [`PulsesProgress::Opened`] and
+/// [`PulsesProgress::Read`] as the file is read.
+pub fn file_info(
+    path: &Path,
+    opts: &crate::io::OpenOptions,
+    peak_bin_us: i64,
+    on_progress: &mut (dyn FnMut(PulsesProgress<'_>) + Send),
+) -> Result<FileInfo> {
+    if peak_bin_us <= 0 {
+        return Err(Error::param(
+            "peak_bin_us",
+            format!("{peak_bin_us} µs: must be positive"),
+        ));
+    }
+    let mut src = crate::io::open_with(path, opts)?;
+    for w in src.warnings() {
+        on_progress(PulsesProgress::Warning(&w));
+    }
+    let rejected_geometry = src.rejected_geometry();
+    on_progress(PulsesProgress::Opened {
+        file_size: src.info().file_size,
+    });
+    let summary = crate::io::summary::summarize(
+        &mut Reporting {
+            inner: &mut *src,
+            events: 0,
+            on_progress,
+        },
+        peak_bin_us,
+        |_| {},
+    )?;
+    let verdict = super::file_verdict(path, opts).map_err(|e| e.to_string());
+    Ok(FileInfo {
+        summary,
+        rejected_geometry,
+        verdict,
+    })
+}
+
+/// A source that reports [`PulsesProgress::Read`] after each chunk.
+struct Reporting<'a> {
+    inner: &'a mut dyn EventSource,
+    events: u64,
+    on_progress: &'a mut (dyn FnMut(PulsesProgress<'_>) + Send),
+}
+
+impl EventSource for Reporting<'_> {
+    fn info(&self) -> &crate::io::StreamInfo {
+        self.inner.info()
+    }
+
+    fn next_chunk(&mut self, chunk: &mut Chunk) -> Result<bool> {
+        let more = self.inner.next_chunk(chunk)?;
+        self.events += chunk.events.len() as u64;
+        (self.on_progress)(PulsesProgress::Read {
+            bytes: self.inner.bytes_read(),
+            events: self.events,
+            done: !more,
+        });
+        Ok(more)
+    }
+
+    fn anomalies(&self) -> crate::io::Anomalies {
+        self.inner.anomalies()
+    }
+
+    fn bytes_read(&self) -> u64 {
+        self.inner.bytes_read()
+    }
+
+    fn warnings(&self) -> Vec<String> {
+        self.inner.warnings()
+    }
+
+    fn rejected_geometry(&self) -> Option<crate::Geometry> {
+        self.inner.rejected_geometry()
+    }
+}

@@ -92,7 +92,7 @@ use accum::{Accumulator, Block, Fold};
 mod report;
 mod split;
 
-pub use dir::{pulses_to_dir, PulsesDirOptions, PulsesProgress};
+pub use dir::{file_info, pulses_to_dir, FileInfo, PulsesDirOptions, PulsesProgress};
 pub use report::*;
 pub use split::*;
 
