@@ -127,11 +127,29 @@ pub fn grid_to_dir(
         opts.calibration.as_deref(),
         opts.mask.as_deref().or(run_mask.as_deref()),
     )?;
+    // Checks that need no data, before any output exists.
+    if opts.fields_every.is_some() && tracks.is_none() {
+        return Err(Error::param(
+            "fields_every",
+            "time-resolved fields need a tracks table (grid states hold no time series)",
+        ));
+    }
+    let scale = opts
+        .profile
+        .as_ref()
+        .and_then(|p| p.px_per_mm)
+        .or(calib.as_ref().map(|c| c.px_per_mm));
+    if opts.profile.as_ref().is_some_and(|p| p.wall.is_some()) && scale.is_none() {
+        return Err(Error::param(
+            "px_per_mm",
+            "a wall fit needs the image scale (px/mm) or a calibration",
+        ));
+    }
     create_output_dir(out)?;
 
     let mut samples: Vec<Sample> = Vec::new();
-    let acc = match (&opts.input, tracks) {
-        (_, Some(tracks)) => {
+    let acc = match &opts.input {
+        GridInput::Tracks(tracks) => {
             opts.bin.lattice()?; // a bad lattice before the (long) read
             samples = super::read_track_samples(tracks)?;
             on_progress(GridProgress::Binning {
@@ -144,8 +162,7 @@ pub fn grid_to_dir(
                 &mut |n| on_progress(GridProgress::Binned(n)),
             )?
         }
-        (GridInput::Merge(states), None) => merge_states(states)?,
-        (GridInput::Tracks(_), None) => unreachable!("a tracks input has a path"),
+        GridInput::Merge(states) => merge_states(states)?,
     };
 
     let mut g = estimate(&acc, est)?;
@@ -198,27 +215,18 @@ pub fn grid_to_dir(
 
     if let Some(p) = &opts.profile {
         let (x_used, prof) = profile_at_x(&g, p.x);
-        let scale = p.px_per_mm.or(calib.as_ref().map(|c| c.px_per_mm));
-        let wall = match p.wall {
-            Some(side) => {
-                let px_per_mm = scale.ok_or_else(|| {
-                    Error::param(
-                        "px_per_mm",
-                        "a wall fit needs the image scale (px/mm) or a calibration",
-                    )
-                })?;
-                Some(wall_fit(
-                    &prof,
-                    &WallOptions {
-                        side,
-                        wall_y: p.wall_y,
-                        n_fit: p.wall_points,
-                        nu_m2_s: p.nu_m2_s,
-                        px_per_mm,
-                    },
-                )?)
-            }
-            None => None,
+        let wall = match (p.wall, scale) {
+            (Some(side), Some(px_per_mm)) => Some(wall_fit(
+                &prof,
+                &WallOptions {
+                    side,
+                    wall_y: p.wall_y,
+                    n_fit: p.wall_points,
+                    nu_m2_s: p.nu_m2_s,
+                    px_per_mm,
+                },
+            )?),
+            _ => None,
         };
         AtomicFile::write_all_to(
             out.join("profile.csv"),
@@ -232,12 +240,6 @@ pub fn grid_to_dir(
     }
 
     if let Some(k) = opts.fields_every {
-        if samples.is_empty() {
-            return Err(Error::param(
-                "fields_every",
-                "time-resolved fields need a tracks table (grid states hold no time series)",
-            ));
-        }
         let frames = Frames::from_samples(&samples, k.max(1))?;
         let f = time_resolved(&samples, &g.spec, &frames, None)?;
         gio::write_fields_npy(out, &g.spec, &f)?;
