@@ -12,13 +12,16 @@
 //! For every quantity (`u, v, uu, vv, uv`) the comparison reports the
 //! number of bins compared, the mean and rms of `PTV − PIV`, and the rms of
 //! each side for scale; difference maps and column-averaged profiles
-//! `u(y)`, `v(y)` give the picture.
+//! `u(y)`, `v(y)` give the picture. [`compare_to_dir`] is what `ebptv
+//! compare` writes.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 
 use crate::error::{Error, Result};
+use crate::io::atomic::AtomicFile;
+use crate::plot::{heatmap, line_plot, Heatmap, LinePlot, Series, SeriesStyle};
 
 /// A table read from a CSV with a header: named columns of numbers.
 #[derive(Debug, Clone)]
@@ -350,6 +353,165 @@ pub fn compare(ptv: &Table, piv: &Table, min_count: f64) -> Result<Comparison> {
         diff_maps,
         profiles,
     })
+}
+
+/// The inputs of [`compare_to_dir`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct CompareOptions {
+    /// PTV grid statistics (`grid.csv`: x,y,count,u,v,uu,vv,uv).
+    pub ptv: PathBuf,
+    /// PIV statistics (`piv_mean.csv`: x,y,u,v,uu,vv,uv,valid).
+    pub piv: PathBuf,
+    /// PTV bins with fewer samples are ignored.
+    pub min_count: f64,
+    /// A `calib.toml`: physical units in `compare.json` and the figures.
+    pub calibration: Option<PathBuf>,
+}
+
+/// What `ebptv compare` writes: the PTV and PIV statistics compared
+/// ([`compare`]) → `compare.json`, `diff_*.png` and `profiles.png` in `out`
+/// (created if missing).
+pub fn compare_to_dir(opts: &CompareOptions, out: &Path) -> Result<Comparison> {
+    let calib = opts
+        .calibration
+        .as_deref()
+        .map(crate::calib::Calibration::from_file)
+        .transpose()?;
+    let ptv = read_table(&opts.ptv, &["x", "y", "count", "u", "v", "uu", "vv", "uv"])?;
+    let piv = read_table(&opts.piv, &["x", "y", "u", "v", "uu", "vv", "uv", "valid"])?;
+    let c = compare(&ptv, &piv, opts.min_count)?;
+    crate::io::atomic::create_output_dir(out)?;
+    let mut json = serde_json::json!({
+        "ptv": opts.ptv.display().to_string(),
+        "piv": opts.piv.display().to_string(),
+        "resampling": c.resampling,
+        "ptv_bins": c.ptv_bins,
+        "compared_bins": c.compared_bins,
+    });
+    for (q, s) in &c.quantities {
+        json[q] = serde_json::to_value(s).map_err(|e| Error::analysis(format!("{q}: {e}")))?;
+    }
+    // Factor of a quantity from px/s or (px/s)² to m/s or m²/s² (signed:
+    // v and uv change sign with an upward y axis).
+    let factor = |q: &str| -> f64 {
+        match &calib {
+            None => 1.0,
+            Some(cal) => {
+                let (k, ky) = cal.velocity_px_s_to_m_s(1.0, 1.0);
+                match q {
+                    "u" => k,
+                    "v" => ky,
+                    "uv" => k * ky,
+                    _ => k * k,
+                }
+            }
+        }
+    };
+    if let Some(cal) = &calib {
+        let mut phys = serde_json::json!({ "px_per_mm": cal.px_per_mm });
+        for (q, s) in &c.quantities {
+            let k = factor(q);
+            let unit = if q.len() == 1 { "m_s" } else { "m2_s2" };
+            phys[q] = serde_json::json!({
+                "n": s.n,
+                format!("mean_diff_{unit}"): s.mean_diff * k,
+                format!("rms_diff_{unit}"): s.rms_diff * k.abs(),
+                format!("ptv_rms_{unit}"): s.ptv_rms * k.abs(),
+                format!("piv_rms_{unit}"): s.piv_rms * k.abs(),
+            });
+        }
+        json["physical"] = phys;
+    }
+    let (lv, ls) = if calib.is_some() {
+        ("m/s", "(m/s)^2")
+    } else {
+        ("px/s", "(px/s)^2")
+    };
+    AtomicFile::write_all_to(
+        out.join("compare.json"),
+        serde_json::to_string_pretty(&json)
+            .map_err(|e| Error::analysis(format!("compare.json: {e}")))?
+            .as_bytes(),
+    )?;
+    let (nx, ny) = (c.grid.xs.len(), c.grid.ys.len());
+    let xr = (c.grid.xs[0], *c.grid.xs.last().unwrap());
+    let yr = (c.grid.ys[0], *c.grid.ys.last().unwrap());
+    for (q, map) in &c.diff_maps {
+        let title = format!("PTV - PIV: {q}");
+        let k = factor(q);
+        let map: Vec<f64> = map.iter().map(|v| v * k).collect();
+        heatmap(
+            &out.join(format!("diff_{q}.png")),
+            &Heatmap {
+                title: &title,
+                values: &map,
+                nx,
+                ny,
+                x_range: xr,
+                y_range: yr,
+                colorbar_label: if q.len() == 1 { lv } else { ls },
+                diverging: true,
+                axes_mm: calib.as_ref(),
+            },
+        )?;
+    }
+    let ys: Vec<f64> = c
+        .profiles
+        .iter()
+        .map(|p| calib.as_ref().map_or(p.0, |cal| cal.px_to_mm(0.0, p.0).1))
+        .collect();
+    let ks = [factor("u"), factor("u"), factor("v"), factor("v")];
+    let cols: Vec<Vec<f64>> = (1..5)
+        .map(|i| {
+            c.profiles
+                .iter()
+                .map(|p| [p.1, p.2, p.3, p.4][i - 1] * ks[i - 1])
+                .collect()
+        })
+        .collect();
+    let (y_label, v_label) = if calib.is_some() {
+        ("y (mm)", "velocity (m/s)")
+    } else {
+        ("y (px)", "velocity (px/s)")
+    };
+    line_plot(
+        &out.join("profiles.png"),
+        &LinePlot {
+            title: "Column-averaged profiles",
+            x_label: y_label,
+            y_label: v_label,
+            series: vec![
+                Series {
+                    label: "PTV u",
+                    x: &ys,
+                    y: &cols[0],
+                    style: SeriesStyle::Points,
+                },
+                Series {
+                    label: "PIV u",
+                    x: &ys,
+                    y: &cols[1],
+                    style: SeriesStyle::Line,
+                },
+                Series {
+                    label: "PTV v",
+                    x: &ys,
+                    y: &cols[2],
+                    style: SeriesStyle::Points,
+                },
+                Series {
+                    label: "PIV v",
+                    x: &ys,
+                    y: &cols[3],
+                    style: SeriesStyle::Line,
+                },
+            ],
+            log_x: false,
+            log_y: false,
+            vlines: vec![],
+        },
+    )?;
+    Ok(c)
 }
 
 #[cfg(test)]

@@ -70,7 +70,10 @@
 //! The `ebptv` command line runs the same stages with streaming, progress
 //! and files (`ebptv track`, `ebptv grid`, …). What `ebptv track` writes
 //! (particles, tracks, pulses, summary, figure, the run's parameters) is one
-//! call: [`track::track_to_dir`]`(recording, &config, out_dir, &on_progress)`.
+//! call: [`track::track_to_dir`]`(recording, &config, out_dir, &on_progress)`;
+//! so are the folders of `ebptv pulses` ([`pulses::pulses_to_dir`]), `ebptv
+//! grid` ([`grid::grid_to_dir`]), `ebptv spectra` ([`spectra::spectra_to_dir`])
+//! and `ebptv compare` ([`compare::compare_to_dir`]).
 
 pub mod decimal;
 pub use ebptv_io as io;

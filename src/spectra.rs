@@ -27,7 +27,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
 
+mod dir;
 mod run;
+pub use dir::{spectra_to_dir, SpectraDirOptions};
 pub use run::{run_on_samples, run_on_tracks, Component, LineSpectra, RunOptions, SpectraRun};
 
 /// Parameters of Welch's method.

@@ -3,9 +3,9 @@
 use std::path::PathBuf;
 
 use clap::Args;
-use ebptv::io::filter::{Filtered, PolaritySelect, Roi, Selection};
-use ebptv::io::{self, EventSource, Format};
-use ebptv::{Chunk, Geometry};
+use ebptv::io::filter::{PolaritySelect, Roi, Selection};
+use ebptv::io::{convert_file, ConvertOptions, ConvertProgress, Format};
+use ebptv::Geometry;
 
 #[derive(Args, Debug)]
 pub struct ConvertArgs {
@@ -58,73 +58,47 @@ fn parse_geometry(s: &str) -> ebptv::Result<Geometry> {
 }
 
 pub fn run(args: ConvertArgs) -> anyhow::Result<()> {
-    let opts = super::info::open_options(args.in_format.as_deref(), args.time_unit.as_deref())?;
-    let out_format = match &args.format {
+    let open = super::info::open_options(args.in_format.as_deref(), args.time_unit.as_deref())?;
+    let format = match &args.format {
         Some(f) => Some(Format::from_name(f).ok_or_else(|| {
             ebptv::Error::param("format", format!("`{f}`: expected csv, npy, evt3 or evt2"))
         })?),
-        None => io::sniff::format_from_extension(&args.output),
+        None => None,
     };
-    if let (Ok(a), Ok(b)) = (args.input.canonicalize(), args.output.canonicalize()) {
-        if a == b {
-            return Err(ebptv::Error::param(
-                "output",
-                format!("{}: is the input file", args.output.display()),
-            )
-            .into());
+    let opts = ConvertOptions {
+        open,
+        format,
+        selection: Selection {
+            from_us: args.from_us,
+            to_us: args.to_us,
+            roi: args.roi.as_deref().map(str::parse::<Roi>).transpose()?,
+            polarity: args.polarity.parse::<PolaritySelect>()?,
+        },
+        geometry: args.geometry.as_deref().map(parse_geometry).transpose()?,
+    };
+    let mut pb: Option<indicatif::ProgressBar> = None;
+    let done = convert_file(&args.input, &args.output, &opts, &mut |p| match p {
+        ConvertProgress::Opened { file_size } => {
+            pb = Some(super::progress::file_bar(file_size, "converting"))
         }
-    }
-    let selection = Selection {
-        from_us: args.from_us,
-        to_us: args.to_us,
-        roi: args.roi.as_deref().map(str::parse::<Roi>).transpose()?,
-        polarity: args.polarity.parse::<PolaritySelect>()?,
-    };
-    let src = io::open_with(&args.input, &opts)?;
-    let needs_geometry = matches!(
-        out_format,
-        Some(Format::Evt2 | Format::Evt21 | Format::Evt3)
-    );
-    let geometry = match (
-        args.geometry.as_deref().map(parse_geometry).transpose()?,
-        src.info().geometry,
-    ) {
-        (Some(g), _) | (None, Some(g)) => g,
-        (None, None) if needs_geometry => {
-            return Err(ebptv::Error::param(
-                "geometry",
-                format!(
-                    "{} does not state its sensor geometry and {} needs one: pass --geometry WxH",
-                    args.input.display(),
-                    args.output.display()
-                ),
-            )
-            .into())
+        ConvertProgress::Read { bytes } => {
+            if let Some(b) = &pb {
+                b.set_position(bytes)
+            }
         }
-        // CSV and .npy do not store a geometry.
-        (None, None) => Geometry::new(u16::MAX, u16::MAX),
-    };
-    let total = src.info().file_size;
-    let mut src = Filtered::new(src, selection)?;
-    let mut writer = io::create(&args.output, out_format, geometry)?;
-    let pb = super::progress::file_bar(total, "converting");
-    let mut chunk = Chunk::default();
-    let (mut n_ev, mut n_tr) = (0u64, 0u64);
-    while src.next_chunk(&mut chunk)? {
-        n_ev += chunk.events.len() as u64;
-        n_tr += chunk.triggers.len() as u64;
-        writer.write_chunk(&chunk)?;
-        pb.set_position(src.bytes_read());
+        _ => {}
+    })?;
+    if let Some(b) = pb {
+        b.finish_and_clear();
     }
-    writer.finish()?;
-    pb.finish_and_clear();
-    let a = src.anomalies();
     eprintln!(
-        "wrote {n_ev} events and {n_tr} triggers to {}",
+        "wrote {} events and {} triggers to {}",
+        done.events,
+        done.triggers,
         args.output.display()
     );
-    if a.any_problem() {
-        eprintln!("input anomalies: {}", describe_anomalies(&a));
+    if done.anomalies.any_problem() {
+        eprintln!("input anomalies: {}", describe_anomalies(&done.anomalies));
     }
     Ok(())
 }

@@ -4,15 +4,11 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use clap::{Args, ValueEnum};
-use serde_json::json;
 
-use ebptv::grid::fields::{time_resolved, Frames};
-use ebptv::grid::noise::{velocity_noise, NoiseOptions};
-use ebptv::grid::profiles::{profile_at_x, wall_fit, WallOptions, WallSide};
 use ebptv::grid::{
-    self, estimate, io as gio, EstimateOptions, Fit, GridAccumulator, Sample, Weighting,
+    self, grid_to_dir, EstimateOptions, Fit, GridDirOptions, GridInput, GridProgress,
+    ProfileOptions, WallSide, Weighting,
 };
-use ebptv::io::atomic::AtomicFile;
 
 #[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
 pub enum FitArg {
@@ -165,19 +161,6 @@ fn tracks_table(paths: Vec<PathBuf>) -> anyhow::Result<Vec<PathBuf>> {
     Ok(tables)
 }
 
-/// A tracks table (any format) as samples (through the tracker's reader,
-/// which groups rows by track — what the per-track standard errors want);
-/// an error when the file holds no track point.
-pub use ebptv::grid::read_track_samples;
-
-fn state_path(p: &Path) -> PathBuf {
-    if p.is_dir() {
-        p.join("grid_state.json")
-    } else {
-        p.to_path_buf()
-    }
-}
-
 pub fn run(mut a: GridArgs) -> anyhow::Result<()> {
     a.tracks = tracks_table(std::mem::take(&mut a.tracks))?;
     let (weighting, fit) = match (a.fit, a.weighting) {
@@ -199,194 +182,83 @@ pub fn run(mut a: GridArgs) -> anyhow::Result<()> {
             },
         ),
     };
-    let opt = EstimateOptions {
-        fit,
-        min_count: a.min_count,
-        noise_rms: a.noise_rms,
-    };
-    opt.validate()?;
-    // The mask: --mask, else the tracking run's mask.png beside the tracks.
-    let run_mask = a
-        .tracks
-        .first()
-        .and_then(|t| t.parent())
-        .map(|d| d.join("mask.png"))
-        .filter(|p| a.mask.is_none() && p.is_file());
-    if let Some(p) = &run_mask {
-        eprintln!("grid: masked by {}", p.display());
-    }
-    let (calib, mask) = ebptv::calib::load(
-        a.calibration.as_deref(),
-        a.mask.as_deref().or(run_mask.as_deref()),
-    )?;
-    ebptv::io::atomic::create_output_dir(&a.out)?;
-
-    let mut samples: Vec<Sample> = Vec::new();
-    let acc = if !a.merge.is_empty() {
-        let mut acc: Option<GridAccumulator> = None;
-        for p in &a.merge {
-            let sp = state_path(p);
-            let part = gio::load_state(&sp)?;
-            match acc.as_mut() {
-                None => acc = Some(part),
-                Some(m) => m
-                    .merge(&part)
-                    .with_context(|| format!("merging {}", sp.display()))?,
-            }
-        }
-        acc.expect("at least one state")
+    let input = if !a.merge.is_empty() {
+        anyhow::ensure!(
+            a.fields_every.is_none(),
+            "--fields-every needs a tracks file (states hold no time series)"
+        );
+        GridInput::Merge(a.merge)
     } else {
-        let tracks = a
-            .tracks
-            .first()
-            .context("give a tracks file, or --merge STATE...")?;
-        let opts = grid::BinOptions {
+        GridInput::Tracks(
+            a.tracks
+                .into_iter()
+                .next()
+                .context("give a tracks file, or --merge STATE...")?,
+        )
+    };
+    anyhow::ensure!(
+        a.wall.is_none() || a.px_per_mm.is_some() || a.calibration.is_some(),
+        "--wall needs --px-per-mm (or --calibration) for wall units"
+    );
+    let opts = GridDirOptions {
+        input,
+        bin: grid::BinOptions {
             bin: a.bin,
             bin_h: a.bin_h,
             overlap: a.overlap,
             origin: a.origin.unwrap_or(grid::BinOptions::default().origin),
             weighting,
-        };
-        opts.lattice()?; // a bad lattice before the (long) read
-        samples = read_track_samples(tracks)?;
-        let bar = indicatif::ProgressBar::new(samples.len() as u64);
-        if samples.len() < 1_000_000 {
-            bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
-        }
-        let acc = grid::accumulate(&samples, &opts, &tracks.display().to_string(), &mut |n| {
-            bar.inc(n as u64)
-        })?;
-        bar.finish_and_clear();
-        acc
+        },
+        estimate: EstimateOptions {
+            fit,
+            min_count: a.min_count,
+            noise_rms: a.noise_rms,
+        },
+        profile: a.profile_x.map(|x| ProfileOptions {
+            x,
+            wall: a.wall.map(|side| match side {
+                SideArg::Top => WallSide::Top,
+                SideArg::Bottom => WallSide::Bottom,
+            }),
+            wall_y: a.wall_y,
+            wall_points: a.wall_points,
+            nu_m2_s: a.nu,
+            px_per_mm: a.px_per_mm,
+        }),
+        fields_every: a.fields_every,
+        plots: !a.no_plots,
+        calibration: a.calibration,
+        mask: a.mask,
     };
-
-    let mut g = estimate(&acc, &opt)?;
-    let masked_bins = mask.as_ref().map(|m| g.apply_mask(m));
-    gio::save_state(&a.out.join("grid_state.json"), &acc)?;
-    gio::write_grid_csv_calibrated(&a.out.join("grid.csv"), &g, calib.as_ref())?;
-    gio::write_extra_csv(&a.out.join("grid_extra.csv"), &g)?;
-    gio::write_grid_npy(&a.out, &g)?;
-    if !a.no_plots {
-        gio::write_maps_calibrated(&a.out, &g, calib.as_ref())?;
-    }
-
-    let valid = g.bins.iter().filter(|b| b.u.is_finite()).count();
-    let max_speed = g
-        .bins
-        .iter()
-        .filter(|b| b.u.is_finite())
-        .map(|b| b.u.hypot(b.v))
-        .fold(0.0, f64::max);
-    let mut summary = json!({
-        "bin_w": g.spec.lattice.bin_w, "bin_h": g.spec.lattice.bin_h, "overlap": g.spec.lattice.overlap,
-        "origin": [g.spec.lattice.origin_x, g.spec.lattice.origin_y],
-        "weighting": g.spec.weighting, "fit": opt.fit, "min_count": opt.min_count, "noise_rms": opt.noise_rms,
-        "nx": g.spec.nx, "ny": g.spec.ny, "valid_bins": valid,
-        "binned_samples": acc.total_count(), "rejected_samples": acc.rejected, "max_mean_speed": max_speed,
-    });
-
-    if let Some(n) = masked_bins {
-        summary["masked_bins"] = json!(n);
-    }
-    if let Some(c) = &calib {
-        summary["px_per_mm"] = json!(c.px_per_mm);
-    }
-    // Per-sample velocity noise (pairs of samples at one pulse) and the
-    // dynamic velocity range; needs the samples, so not after a merge.
-    if !samples.is_empty() {
-        match velocity_noise(&samples, &g, &NoiseOptions::default()) {
-            Ok(n) => {
-                summary["velocity_noise_rms"] = json!(n.noise_rms);
-                summary["noise_pairs"] = json!(n.pairs);
-                summary["dynamic_range"] = json!(n.dynamic_range);
-                eprintln!(
-                    "grid: velocity noise {:.1} px/s per sample ({} pairs), dynamic range {:.0}:1",
-                    n.noise_rms, n.pairs, n.dynamic_range
-                );
-            }
-            Err(e) => {
-                summary["velocity_noise_rms"] = json!(null);
-                summary["dynamic_range"] = json!(null);
-                eprintln!("grid: no noise estimate: {e}");
+    let bar = indicatif::ProgressBar::hidden();
+    let r = grid_to_dir(&opts, &a.out, &mut |p| match p {
+        GridProgress::MaskFound(m) => eprintln!("grid: masked by {}", m.display()),
+        GridProgress::Binning { samples } => {
+            bar.set_length(samples as u64);
+            if samples >= 1_000_000 {
+                bar.set_draw_target(indicatif::ProgressDrawTarget::stderr());
             }
         }
+        GridProgress::Binned(n) => bar.inc(n as u64),
+        _ => {}
+    })?;
+    bar.finish_and_clear();
+    match &r.noise {
+        Some(Ok(n)) => eprintln!(
+            "grid: velocity noise {:.1} px/s per sample ({} pairs), dynamic range {:.0}:1",
+            n.noise_rms, n.pairs, n.dynamic_range
+        ),
+        Some(Err(e)) => eprintln!("grid: no noise estimate: {e}"),
+        None => {}
     }
-
-    if let Some(px) = a.profile_x {
-        let (x_used, prof) = profile_at_x(&g, px);
-        let wall = match a.wall {
-            Some(side) => {
-                let scale = a
-                    .px_per_mm
-                    .or(calib.as_ref().map(|c| c.px_per_mm))
-                    .context("--wall needs --px-per-mm (or --calibration) for wall units")?;
-                let side = if side == SideArg::Top {
-                    WallSide::Top
-                } else {
-                    WallSide::Bottom
-                };
-                Some(wall_fit(
-                    &prof,
-                    &WallOptions {
-                        side,
-                        wall_y: a.wall_y,
-                        n_fit: a.wall_points,
-                        nu_m2_s: a.nu,
-                        px_per_mm: scale,
-                    },
-                )?)
-            }
-            None => None,
-        };
-        let mut s = String::from("y,count,u,v,uu,vv,uv");
-        if wall.is_some() {
-            s.push_str(",y_plus,u_plus,uu_plus");
-        }
-        s.push('\n');
-        for p in &prof {
-            s.push_str(&format!(
-                "{},{},{},{},{},{},{}",
-                p.y, p.count, p.u, p.v, p.uu, p.vv, p.uv
-            ));
-            if let (Some(w), Some(scale)) =
-                (&wall, a.px_per_mm.or(calib.as_ref().map(|c| c.px_per_mm)))
-            {
-                let (yp, up, uup) = w.inner(p, scale);
-                s.push_str(&format!(",{yp},{up},{uup}"));
-            }
-            s.push('\n');
-        }
-        let s = s.replace("NaN", "nan");
-        AtomicFile::write_all_to(a.out.join("profile.csv"), s.as_bytes())?;
-        summary["profile_x"] = json!(x_used);
-        if let Some(w) = wall {
-            summary["wall"] = serde_json::to_value(w)?;
-        }
-    }
-
-    if let Some(k) = a.fields_every {
-        anyhow::ensure!(
-            !samples.is_empty(),
-            "--fields-every needs a tracks file (states hold no time series)"
-        );
-        let frames = Frames::from_samples(&samples, k.max(1))?;
-        let f = time_resolved(&samples, &g.spec, &frames, None)?;
-        gio::write_fields_npy(&a.out, &g.spec, &f)?;
-        summary["fields"] = json!({"frames": frames.n, "step_us": frames.step_us, "window_us": frames.window_us, "t0_us": frames.t0_us});
-    }
-
-    AtomicFile::write_all_to(
-        a.out.join("grid.json"),
-        serde_json::to_string_pretty(&summary)?.as_bytes(),
-    )?;
     eprintln!(
         "grid: {} x {} bins ({} valid, ≥ {} samples), {} samples binned, max mean speed {:.1} px/s → {}",
-        g.spec.nx,
-        g.spec.ny,
-        valid,
-        opt.min_count,
-        acc.total_count(),
-        max_speed,
+        r.nx,
+        r.ny,
+        r.valid_bins,
+        a.min_count,
+        r.binned_samples,
+        r.max_mean_speed,
         a.out.display()
     );
     Ok(())

@@ -3,8 +3,9 @@
 use std::path::PathBuf;
 
 use clap::Args;
-use ebptv::io::summary::{summarize, Summary};
-use ebptv::io::{self, EventSource, Format, OpenOptions};
+use ebptv::io::summary::Summary;
+use ebptv::io::{self, Format, OpenOptions};
+use ebptv::pulses::{file_info, PulsesProgress};
 
 #[derive(Args, Debug)]
 pub struct InfoArgs {
@@ -76,18 +77,23 @@ pub fn run(args: InfoArgs) -> anyhow::Result<()> {
         .into());
     }
     let opts = open_options(args.format.as_deref(), args.time_unit.as_deref())?;
-    let src = io::open_with(&args.file, &opts)?;
-    super::print_warnings(&src);
-    let rejected = src.rejected_geometry();
-    let mut src = super::progress::Reading::with_bar(src, "reading");
-    let summary = summarize(&mut src, args.peak_bin_us, |_| {})?;
-    src.bar().finish_and_clear();
-    let verdict = pulsed_verdict(&args.file, &opts);
+    let mut bar = super::progress::ReadBar::new("reading");
+    let info = file_info(&args.file, &opts, args.peak_bin_us, &mut |p| match p {
+        PulsesProgress::Warning(w) => eprintln!("warning: {w}"),
+        PulsesProgress::Opened { file_size } => bar.opened(file_size),
+        PulsesProgress::Read {
+            bytes,
+            events,
+            done,
+        } => bar.read(bytes, events, done),
+        _ => {}
+    })?;
+    let (summary, rejected, verdict) = (&info.summary, info.rejected_geometry, &info.verdict);
     let text = if args.json {
-        let v = ebptv::pulses::info_json(&summary, &verdict)?;
+        let v = info.to_json()?;
         serde_json::to_string_pretty(&v)? + "\n"
     } else {
-        let mut t = render(&summary);
+        let mut t = render(summary);
         if let Some(g) = rejected {
             t = t.replacen(
                 "geometry           not stated",
@@ -101,7 +107,7 @@ pub fn run(args: InfoArgs) -> anyhow::Result<()> {
         t.push_str(&format!(
             "{:<18} {}\n",
             "pulsed light",
-            match &verdict {
+            match verdict {
                 Ok(v) if v.pulsed => format!(
                     "yes (burst contrast {:.1}, excess {:.0} σ, {:.0} % of events in blocks showing the burst)",
                     v.burst_contrast,
@@ -115,14 +121,6 @@ pub fn run(args: InfoArgs) -> anyhow::Result<()> {
         t
     };
     write_stdout(&text)
-}
-
-/// The pulsed-light verdict of `info`, an error as its message.
-fn pulsed_verdict(
-    path: &std::path::Path,
-    opts: &OpenOptions,
-) -> Result<ebptv::pulses::PulsedVerdict, String> {
-    ebptv::pulses::file_verdict(path, opts).map_err(|e| e.to_string())
 }
 
 /// Print, treating a closed pipe (`ebptv info f | head`) as success.

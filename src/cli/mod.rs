@@ -129,14 +129,6 @@ pub fn interrupt_flag() -> std::sync::Arc<std::sync::atomic::AtomicBool> {
         .clone()
 }
 
-/// Print the warnings of an opened source (impossible geometry, a header
-/// contradicting itself).
-pub fn print_warnings(src: &dyn ebptv::io::EventSource) {
-    for w in src.warnings() {
-        eprintln!("warning: {w}");
-    }
-}
-
 /// Run a parsed command line; `command_line` is what was typed (recorded
 /// with the outputs, `ebptv::provenance`).
 pub fn run(cli: Cli, command_line: &[String]) -> anyhow::Result<()> {

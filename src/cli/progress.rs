@@ -1,15 +1,13 @@
 //! Progress on stderr while a command reads an event file: a bar of bytes
 //! read against the file size, the events decoded, their rate and an ETA.
 //!
-//! [`Reading`] wraps any [`EventSource`] and moves the bar after each chunk
-//! from the reader's own byte count, so no reader changes. Drawing is
+//! The library reports a reading pass's progress through callbacks
+//! ([`ReadRate`], [`ReadBar`] turn them into a bar). Drawing is
 //! limited to [`REFRESH_HZ`] and happens only when stderr is a terminal
 //! (indicatif hides the bar otherwise: pipes, logs and tests stay quiet).
 
 use std::time::{Duration, Instant};
 
-use ebptv::io::{Anomalies, EventSource, StreamInfo};
-use ebptv::Geometry;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
 /// Redraws per second at most.
@@ -42,58 +40,6 @@ pub(crate) fn file_bar(total: Option<u64>, what: &str) -> ProgressBar {
     bar
 }
 
-/// An [`EventSource`] that moves a progress bar as it is read.
-pub(crate) struct Reading<S> {
-    inner: S,
-    bar: ProgressBar,
-    events: u64,
-    started: Instant,
-    shown: Option<Instant>,
-}
-
-impl<S: EventSource> Reading<S> {
-    /// Wrap `inner`, moving `bar` (its message is cleared).
-    pub(crate) fn new(inner: S, bar: ProgressBar) -> Self {
-        bar.set_message("");
-        Reading {
-            inner,
-            bar,
-            events: 0,
-            started: Instant::now(),
-            shown: None,
-        }
-    }
-
-    /// A bar of its own for `inner`, sized from its file.
-    pub(crate) fn with_bar(inner: S, what: &str) -> Self {
-        let bar = file_bar(inner.info().file_size, what);
-        Reading::new(inner, bar)
-    }
-
-    /// The wrapped source (e.g. for its own counters after the pass).
-    pub(crate) fn into_inner(self) -> S {
-        self.inner
-    }
-
-    /// The bar, e.g. to print a line above it or clear it.
-    pub(crate) fn bar(&self) -> &ProgressBar {
-        &self.bar
-    }
-
-    fn show(&mut self, now: Instant) {
-        self.shown = Some(now);
-        self.bar.set_position(self.inner.bytes_read());
-        let secs = now.duration_since(self.started).as_secs_f64();
-        let rate = if secs > 0.0 {
-            self.events as f64 / secs
-        } else {
-            0.0
-        };
-        let msg = format!("{}ev, {}ev/s", count(self.events as f64), count(rate));
-        self.bar.set_message(msg);
-    }
-}
-
 /// `1234567` → `1.23 M`, `12` → `12 `.
 pub(crate) fn count(n: f64) -> String {
     if n >= 1e9 {
@@ -107,41 +53,83 @@ pub(crate) fn count(n: f64) -> String {
     }
 }
 
-impl<S: EventSource> EventSource for Reading<S> {
-    fn info(&self) -> &StreamInfo {
-        self.inner.info()
-    }
+/// The event rate of a reading pass, for the bar's message.
+#[derive(Default)]
+pub(crate) struct ReadRate {
+    started: Option<Instant>,
+    shown: Option<Instant>,
+}
 
-    fn next_chunk(&mut self, chunk: &mut ebptv::Chunk) -> ebptv::Result<bool> {
-        let more = self.inner.next_chunk(chunk)?;
-        self.events += chunk.events.len() as u64;
-        if self.bar.is_hidden() {
-            return Ok(more);
-        }
+impl ReadRate {
+    /// Moves the bar at most [`REFRESH_HZ`] times a second
+    /// (and on the last chunk).
+    pub(crate) fn show(
+        &mut self,
+        bar: &ProgressBar,
+        bytes: u64,
+        events: u64,
+        done: bool,
+        note: Option<String>,
+    ) {
         let now = Instant::now();
+        let started = *self.started.get_or_insert(now);
         let due = self.shown.is_none_or(|t| {
             now.duration_since(t) >= Duration::from_millis(1000 / REFRESH_HZ as u64)
         });
-        if due || !more {
-            self.show(now);
+        if !(due || done) {
+            return;
         }
-        Ok(more)
+        self.shown = Some(now);
+        bar.set_position(bytes);
+        let secs = now.duration_since(started).as_secs_f64();
+        let rate = if secs > 0.0 {
+            events as f64 / secs
+        } else {
+            0.0
+        };
+        let mut msg = format!("{}ev, {}ev/s", count(events as f64), count(rate));
+        if let Some(note) = note {
+            msg.push_str(", ");
+            msg.push_str(&note);
+        }
+        bar.set_message(msg);
+    }
+}
+
+/// The bar of a command whose library call reads one file and reports
+/// `Opened` then `Read` progress (`pulses`, `info`).
+pub(crate) struct ReadBar {
+    what: &'static str,
+    bar: Option<ProgressBar>,
+    rate: ReadRate,
+}
+
+impl ReadBar {
+    /// No bar until the file is open; `what` is its prefix.
+    pub(crate) fn new(what: &'static str) -> Self {
+        ReadBar {
+            what,
+            bar: None,
+            rate: ReadRate::default(),
+        }
     }
 
-    fn anomalies(&self) -> Anomalies {
-        self.inner.anomalies()
+    /// The file is open: a bar sized from `file_size` (a spinner without).
+    pub(crate) fn opened(&mut self, file_size: Option<u64>) {
+        self.bar = Some(file_bar(file_size, self.what));
     }
 
-    fn bytes_read(&self) -> u64 {
-        self.inner.bytes_read()
-    }
-
-    fn warnings(&self) -> Vec<String> {
-        self.inner.warnings()
-    }
-
-    fn rejected_geometry(&self) -> Option<Geometry> {
-        self.inner.rejected_geometry()
+    /// After a chunk: bytes read and events decoded so far; the bar is
+    /// cleared on the last chunk.
+    pub(crate) fn read(&mut self, bytes: u64, events: u64, done: bool) {
+        if let Some(b) = self.bar.as_ref().filter(|b| !b.is_hidden()) {
+            self.rate.show(b, bytes, events, done, None);
+        }
+        if done {
+            if let Some(b) = self.bar.take() {
+                b.finish_and_clear();
+            }
+        }
     }
 }
 

@@ -3,11 +3,9 @@
 use std::path::PathBuf;
 
 use clap::{Args, ValueEnum};
-use ebptv::io::atomic::AtomicFile;
-use ebptv::plot::{self, Heatmap, LinePlot, Series, SeriesStyle};
-use ebptv::spectra::{self, RunOptions, PEAK_FALSE_ALARM};
+use ebptv::spectra::{self, RunOptions, SpectraDirOptions, PEAK_FALSE_ALARM};
 
-use super::grid::{parse_pair, read_track_samples};
+use super::grid::parse_pair;
 
 #[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
 pub enum Component {
@@ -100,92 +98,29 @@ fn parse_line(s: &str) -> Result<(f64, f64, f64, f64), String> {
 }
 
 pub fn run(a: SpectraArgs) -> anyhow::Result<()> {
-    let mut opt = RunOptions {
-        points: a.point.clone(),
-        line: a.line,
-        line_points: a.line_points,
-        component: a.component.into(),
-        bin: a.bin,
-        bin_h: a.bin_h,
-        every: a.every,
-        nperseg: a.nperseg,
-        seg_overlap: a.seg_overlap,
-        f_min: a.f_min,
-        f_max: a.f_max,
-        moving_average: a.moving_average,
-        min_count: a.min_count,
-        calibration: None,
+    let opts = SpectraDirOptions {
+        spectra: RunOptions {
+            points: a.point.clone(),
+            line: a.line,
+            line_points: a.line_points,
+            component: a.component.into(),
+            bin: a.bin,
+            bin_h: a.bin_h,
+            every: a.every,
+            nperseg: a.nperseg,
+            seg_overlap: a.seg_overlap,
+            f_min: a.f_min,
+            f_max: a.f_max,
+            moving_average: a.moving_average,
+            min_count: a.min_count,
+            calibration: None,
+        },
+        calibration: a.calibration,
+        plots: !a.no_plots,
     };
-    opt.validate()?;
-    opt.calibration = a
-        .calibration
-        .as_deref()
-        .map(ebptv::calib::Calibration::from_file)
-        .transpose()?;
-    ebptv::io::atomic::create_output_dir(&a.out)?;
-    let samples = read_track_samples(&a.tracks)?;
-    let run = spectra::run_on_samples(&samples, &opt)?;
-    let calibrated = opt.calibration.is_some();
-    let k2 = opt.psd_factor();
-
-    if let (Some(r), Some(csv)) = (&run.points, &run.spectra_csv) {
+    let run = spectra::spectra_to_dir(&a.tracks, &opts, &a.out)?;
+    if let Some(r) = &run.points {
         let first = &r.points[0];
-        AtomicFile::write_all_to(a.out.join("spectra.csv"), csv.as_bytes())?;
-        if !a.no_plots {
-            for (k, p) in r.points.iter().enumerate() {
-                let f = &p.psd_u.f_hz[1..];
-                let title = match p.peak {
-                    Some(_) => format!("PSD at ({:.0}, {:.0}) px", p.bin_x, p.bin_y),
-                    None => format!(
-                        "PSD at ({:.0}, {:.0}) px: no significant peak (false alarm {:.0} %)",
-                        p.bin_x,
-                        p.bin_y,
-                        100.0 * PEAK_FALSE_ALARM
-                    ),
-                };
-                let peak_label = p
-                    .peak
-                    .map(|pk| {
-                        format!(
-                            "peak {:.2} Hz (false alarm {:.1e})",
-                            pk.f_hz, p.peak_test.false_alarm
-                        )
-                    })
-                    .unwrap_or_default();
-                let psd_u: Vec<f64> = p.psd_u.psd[1..].iter().map(|v| v * k2).collect();
-                let psd_v: Vec<f64> = p.psd_v.psd[1..].iter().map(|v| v * k2).collect();
-                let plot = LinePlot {
-                    title: &title,
-                    x_label: "f (Hz)",
-                    y_label: if calibrated {
-                        "PSD ((m/s)^2/Hz)"
-                    } else {
-                        "PSD ((px/s)^2/Hz)"
-                    },
-                    series: vec![
-                        Series {
-                            label: "u",
-                            x: f,
-                            y: &psd_u,
-                            style: SeriesStyle::Line,
-                        },
-                        Series {
-                            label: "v",
-                            x: f,
-                            y: &psd_v,
-                            style: SeriesStyle::Line,
-                        },
-                    ],
-                    log_x: true,
-                    log_y: true,
-                    vlines: p
-                        .peak
-                        .map(|pk| vec![(pk.f_hz, peak_label.as_str())])
-                        .unwrap_or_default(),
-                };
-                plot::line_plot(&a.out.join(format!("spectrum_p{k}.png")), &plot)?;
-            }
-        }
         eprintln!(
             "spectra: {} at ({}, {}); noise rms {:.2} px/s, dynamic range {:.0}:1 → {}",
             first
@@ -202,38 +137,8 @@ pub fn run(a: SpectraArgs) -> anyhow::Result<()> {
             a.out.display()
         );
     }
-
-    if let Some(l) = &run.line {
-        let (x0, y0, x1, y1) = a.line.expect("a line was given");
-        AtomicFile::write_all_to(
-            a.out.join("premultiplied_line.csv"),
-            run.line_csv.as_deref().unwrap_or_default().as_bytes(),
-        )?;
-        let (f, nf, pts, map) = (&l.f_hz, l.f_hz.len(), &l.points, &l.map);
-        if !a.no_plots {
-            let len = ((x1 - x0).powi(2) + (y1 - y0).powi(2)).sqrt();
-            plot::heatmap(
-                &a.out.join("premultiplied_line.png"),
-                &Heatmap {
-                    title: "pre-multiplied spectrum f*E(f) along the line",
-                    values: map,
-                    nx: pts.len(),
-                    ny: nf - 1,
-                    x_range: (0.0, len),
-                    y_range: (f[1], f[nf - 1]),
-                    colorbar_label: "f*E(f) ((px/s)^2)",
-                    diverging: false,
-                    axes_mm: None,
-                },
-            )?;
-        }
-    }
     if let Some(w) = &run.noise_warning {
         eprintln!("spectra: no per-sample noise estimate: {w}");
     }
-    AtomicFile::write_all_to(
-        a.out.join("spectrum.json"),
-        serde_json::to_string_pretty(&run.summary)?.as_bytes(),
-    )?;
     Ok(())
 }

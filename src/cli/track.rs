@@ -3,11 +3,10 @@
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
-use std::time::{Duration, Instant};
 
 use clap::Args;
-use indicatif::ProgressBar;
 
+use super::progress::ReadRate;
 use ebptv::table::TableFormat;
 use ebptv::track::{track_to_dir_with, TrackConfig, TrackProgress, TrackStage};
 
@@ -216,52 +215,4 @@ fn run_tracking(
         args.out.display()
     );
     Ok(())
-}
-
-/// The event rate of a reading pass, for the bar's message.
-#[derive(Default)]
-struct ReadRate {
-    started: Option<Instant>,
-    shown: Option<Instant>,
-}
-
-impl ReadRate {
-    /// Moves the bar at most [`super::progress::REFRESH_HZ`] times a second
-    /// (and on the last chunk).
-    fn show(
-        &mut self,
-        bar: &ProgressBar,
-        bytes: u64,
-        events: u64,
-        done: bool,
-        note: Option<String>,
-    ) {
-        let now = Instant::now();
-        let started = *self.started.get_or_insert(now);
-        let due = self.shown.is_none_or(|t| {
-            now.duration_since(t)
-                >= Duration::from_millis(1000 / super::progress::REFRESH_HZ as u64)
-        });
-        if !(due || done) {
-            return;
-        }
-        self.shown = Some(now);
-        bar.set_position(bytes);
-        let secs = now.duration_since(started).as_secs_f64();
-        let rate = if secs > 0.0 {
-            events as f64 / secs
-        } else {
-            0.0
-        };
-        let mut msg = format!(
-            "{}ev, {}ev/s",
-            super::progress::count(events as f64),
-            super::progress::count(rate)
-        );
-        if let Some(note) = note {
-            msg.push_str(", ");
-            msg.push_str(&note);
-        }
-        bar.set_message(msg);
-    }
 }

@@ -28,9 +28,12 @@
 //!
 //! Typical use: [`GridSpec::covering`] the samples' extent →
 //! [`GridAccumulator::add`] each sample (streaming, bounded memory) →
-//! [`estimate()`] → [`io::write_grid_csv`].
+//! [`estimate()`] → [`io::write_grid_csv`]. What `ebptv grid` writes
+//! (tracks table or merged states → the grid folder) is one call:
+//! [`grid_to_dir`].
 
 pub mod accumulate;
+mod dir;
 pub mod estimate;
 pub mod fields;
 pub mod io;
@@ -41,7 +44,9 @@ pub mod spec;
 use serde::{Deserialize, Serialize};
 
 pub use accumulate::{BinAcc, GridAccumulator};
+pub use dir::{grid_to_dir, GridDirOptions, GridDirRun, GridInput, GridProgress, ProfileOptions};
 pub use estimate::{estimate, BinStats, EstimateOptions, Fit, GridStats};
+pub use profiles::WallSide;
 pub use spec::{GridSpec, Lattice, Weighting};
 
 use crate::error::{Error, Result};

@@ -81,6 +81,7 @@ use crate::events::{Chunk, Edge, EventChunk, Geometry};
 
 pub(crate) mod accum;
 pub mod diagnostics;
+mod dir;
 pub mod live;
 pub mod monitor;
 pub mod static_mask;
@@ -91,6 +92,7 @@ use accum::{Accumulator, Block, Fold};
 mod report;
 mod split;
 
+pub use dir::{file_info, pulses_to_dir, FileInfo, PulsesDirOptions, PulsesProgress};
 pub use report::*;
 pub use split::*;
 

@@ -11,4 +11,5 @@ mod merge;
 mod shedding;
 mod shedding_dev;
 mod sim;
+mod to_dir;
 mod welch;

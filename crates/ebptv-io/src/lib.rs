@@ -337,6 +337,8 @@ pub fn create(
 
 pub mod aedat4;
 pub mod atomic;
+mod convert;
+pub use convert::{convert_file, ConvertOptions, ConvertProgress, Converted};
 pub mod csv;
 pub mod dat;
 pub mod es;
