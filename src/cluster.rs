@@ -149,7 +149,7 @@ impl ClusterParams {
     }
 
     /// Check the parameters; errors name the parameter.
-    pub fn validate(&self) -> Result<()> {
+    pub(crate) fn validate(&self) -> Result<()> {
         if !(self.radius.is_finite() && self.radius > 0.0) {
             return Err(Error::param(
                 "radius",
@@ -178,7 +178,7 @@ impl ClusterParams {
     }
 
     /// Largest squared integer pixel distance that joins two pixels.
-    pub fn max_d2(&self) -> i64 {
+    pub(crate) fn max_d2(&self) -> i64 {
         (self.radius * self.radius).floor() as i64
     }
 }
@@ -627,7 +627,7 @@ fn canonical_labels(uf: &mut UnionFind, n: usize) -> Vec<u32> {
 
 /// Particles from labelled pixels (labels from [`pixel_labels`]), in label
 /// order, filtered by the size limits.
-pub fn particles_from_labels(
+pub(crate) fn particles_from_labels(
     pulse: &PulseEvents,
     pixels: &[PixelHits],
     labels: &[u32],

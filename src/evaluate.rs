@@ -113,7 +113,7 @@ impl Truth {
     }
 
     /// Largest true speed over all samples (px/s).
-    pub fn max_speed(&self) -> f64 {
+    pub(crate) fn max_speed(&self) -> f64 {
         self.by_pulse
             .values()
             .flatten()

@@ -285,7 +285,7 @@ pub fn viridis(t: f64) -> (u8, u8, u8) {
 }
 
 /// Colour for `t` in [0, 1] on the blue-white-red map (0.5 = white).
-pub fn diverging(t: f64) -> (u8, u8, u8) {
+pub(crate) fn diverging(t: f64) -> (u8, u8, u8) {
     interpolate(&DIVERGING, t)
 }
 

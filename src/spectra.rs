@@ -642,7 +642,7 @@ pub struct PointSpectrum {
 
 impl PointSpectrum {
     /// Summed spectrum u + v.
-    pub fn psd_sum(&self) -> Vec<f64> {
+    pub(crate) fn psd_sum(&self) -> Vec<f64> {
         self.psd_u
             .psd
             .iter()

@@ -62,19 +62,19 @@ impl KSum {
     /// and goes into `c` (same accuracy as Neumaier's branching form,
     /// without an unpredictable branch per add).
     #[inline(always)]
-    pub fn add(&mut self, x: f64) {
+    pub(crate) fn add(&mut self, x: f64) {
         let t = self.s + x;
         let z = t - self.s;
         self.c += (self.s - (t - z)) + (x - z);
         self.s = t;
     }
     #[inline]
-    pub fn merge(&mut self, o: &KSum) {
+    pub(crate) fn merge(&mut self, o: &KSum) {
         self.add(o.s);
         self.add(o.c);
     }
     #[inline]
-    pub fn value(&self) -> f64 {
+    pub(crate) fn value(&self) -> f64 {
         self.s + self.c
     }
 }
@@ -158,7 +158,7 @@ pub struct BinAcc {
 
 impl BinAcc {
     #[inline]
-    pub fn add(&mut self, xi: f64, eta: f64, w: f64, u: f64, v: f64, track_id: u64) {
+    pub(crate) fn add(&mut self, xi: f64, eta: f64, w: f64, u: f64, v: f64, track_id: u64) {
         let phi = basis(xi, eta);
         self.n += 1;
         self.w2.add(w * w);
@@ -212,12 +212,12 @@ impl BinAcc {
     }
 
     /// Weighted sample count Σ w.
-    pub fn w(&self) -> f64 {
+    pub(crate) fn w(&self) -> f64 {
         self.gram[0].value()
     }
 
     /// Number of track clusters (distinct tracks when input is grouped by track).
-    pub fn n_tracks(&self) -> u64 {
+    pub(crate) fn n_tracks(&self) -> u64 {
         self.closed.n + self.head.is_some() as u64 + self.tail.is_some() as u64
     }
 
@@ -231,7 +231,7 @@ impl BinAcc {
     }
 
     /// Add `o` (a later slice) into `self`.
-    pub fn merge(&mut self, o: &BinAcc) {
+    pub(crate) fn merge(&mut self, o: &BinAcc) {
         if o.n == 0 {
             return;
         }
@@ -302,7 +302,7 @@ impl GridAccumulator {
 
     /// Bin one sample into every bin whose support holds it.
     #[inline]
-    pub fn add(&mut self, s: &Sample) {
+    pub(crate) fn add(&mut self, s: &Sample) {
         if !(s.x.is_finite() && s.y.is_finite() && s.u.is_finite() && s.v.is_finite()) {
             self.rejected += 1;
             return;

@@ -177,7 +177,7 @@ impl GridStats {
         masked
     }
     /// One quantity as a row-major map.
-    pub fn map(&self, f: impl Fn(&BinStats) -> f64) -> Vec<f64> {
+    pub(crate) fn map(&self, f: impl Fn(&BinStats) -> f64) -> Vec<f64> {
         self.bins.iter().map(f).collect()
     }
     /// Index of the bin whose centre is nearest (x, y).

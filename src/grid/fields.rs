@@ -28,7 +28,7 @@ pub struct Frames {
 pub(crate) const MAX_FIELD_VALUES: usize = 200_000_000;
 
 impl Frames {
-    pub fn validate(&self) -> Result<()> {
+    pub(crate) fn validate(&self) -> Result<()> {
         if !(self.step_us.is_finite() && self.step_us > 0.0) {
             return Err(Error::param(
                 "step",

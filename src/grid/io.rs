@@ -128,7 +128,7 @@ fn num(x: f64) -> String {
 
 /// `grid.csv`: exactly `x,y,count,u,v,uu,vv,uv` (px, px/s, (px/s)²), one
 /// row per bin, rows ordered by y then x; empty bins have `nan` statistics.
-pub fn write_grid_csv(path: &Path, g: &GridStats) -> Result<()> {
+pub(crate) fn write_grid_csv(path: &Path, g: &GridStats) -> Result<()> {
     write_grid_csv_calibrated(path, g, None)
 }
 
@@ -273,7 +273,7 @@ pub fn write_fields_npy(
 }
 
 /// PNG maps of count, u, v, uu, vv, uv into `dir` (`map_<q>.png`).
-pub fn write_maps(dir: &Path, g: &GridStats) -> Result<()> {
+pub(crate) fn write_maps(dir: &Path, g: &GridStats) -> Result<()> {
     write_maps_calibrated(dir, g, None)
 }
 

@@ -36,7 +36,7 @@ pub mod fields;
 pub mod io;
 pub mod noise;
 pub mod profiles;
-pub mod spec;
+pub(crate) mod spec;
 
 use serde::{Deserialize, Serialize};
 

@@ -145,7 +145,7 @@ impl Lattice {
 
     /// Candidate bin index ranges (inclusive) for a sample at (x, y); the
     /// exact membership test is [`Weighting::weight`].
-    pub fn candidates(&self, x: f64, y: f64, w: Weighting) -> ((i64, i64), (i64, i64)) {
+    pub(crate) fn candidates(&self, x: f64, y: f64, w: Weighting) -> ((i64, i64), (i64, i64)) {
         let h = w.half_support();
         (
             Self::range(x, self.origin_x, self.bin_w, self.stride_x(), h),
@@ -258,13 +258,13 @@ impl GridSpec {
     }
 
     /// Bin centres along x (px), `nx` values.
-    pub fn xs(&self) -> Vec<f64> {
+    pub(crate) fn xs(&self) -> Vec<f64> {
         (0..self.nx)
             .map(|k| self.lattice.centre_x(self.i0 + k as i64))
             .collect()
     }
     /// Bin centres along y (px), `ny` values.
-    pub fn ys(&self) -> Vec<f64> {
+    pub(crate) fn ys(&self) -> Vec<f64> {
         (0..self.ny)
             .map(|k| self.lattice.centre_y(self.j0 + k as i64))
             .collect()

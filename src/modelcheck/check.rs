@@ -23,7 +23,7 @@ use crate::sim::scenario::Scenario;
 
 /// Fewest pulses per fit / held-out block: fewer hold too few events per
 /// pixel for the signatures.
-pub const MIN_BLOCK_PULSES: u64 = 20;
+pub(crate) const MIN_BLOCK_PULSES: u64 = 20;
 
 /// Options of [`check_recording`]; the defaults are those of
 /// `ebptv model-check`.

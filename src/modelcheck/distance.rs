@@ -338,7 +338,7 @@ impl DiscrepancyTable {
     /// Total excess over chance: Σ max(z, 0) over the signatures. Near
     /// 0.4 per signature when the model explains the data; the yardstick
     /// for "the gap before and after".
-    pub fn gap(&self) -> f64 {
+    pub(crate) fn gap(&self) -> f64 {
         self.rows.iter().map(|r| r.stats.z.max(0.0)).sum()
     }
 

@@ -175,7 +175,7 @@ impl Histogram {
     }
 
     #[inline]
-    pub fn add(&mut self, v: f64) {
+    pub(crate) fn add(&mut self, v: f64) {
         self.add_weighted(v, 1.0);
     }
 

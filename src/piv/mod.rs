@@ -28,12 +28,12 @@
 //! accumulate in [`FieldStats`], which two time slices can
 //! [`merge`](FieldStats::merge).
 
-pub mod correlate;
+pub(crate) mod correlate;
 pub mod images;
 pub(crate) mod multipass;
 pub mod output;
-pub mod pseudo;
-pub mod run;
+pub(crate) mod pseudo;
+pub(crate) mod run;
 pub mod synth;
 pub mod validate;
 
@@ -64,7 +64,7 @@ impl Image {
         }
     }
     #[inline]
-    pub fn get(&self, x: usize, y: usize) -> f32 {
+    pub(crate) fn get(&self, x: usize, y: usize) -> f32 {
         self.data[y * self.width + x]
     }
 }
@@ -99,7 +99,7 @@ pub struct MeanRow {
 }
 
 impl FieldStats {
-    pub fn new(grid: NodeGrid) -> Self {
+    pub(crate) fn new(grid: NodeGrid) -> Self {
         let n = grid.len();
         FieldStats {
             grid,
@@ -115,7 +115,7 @@ impl FieldStats {
 
     /// Add one field, its displacements multiplied by `scale` (e.g. the
     /// pulse frequency to get px/s).
-    pub fn add(&mut self, f: &VectorField, scale: f64) {
+    pub(crate) fn add(&mut self, f: &VectorField, scale: f64) {
         self.steps += 1;
         for k in 0..self.n.len() {
             if validate::is_valid(f.flags[k]) {
@@ -131,7 +131,7 @@ impl FieldStats {
     }
 
     /// Combine with statistics of another time slice on the same grid.
-    pub fn merge(&mut self, o: &FieldStats) -> Result<()> {
+    pub(crate) fn merge(&mut self, o: &FieldStats) -> Result<()> {
         if o.grid != self.grid {
             return Err(Error::param(
                 "stats",
@@ -275,7 +275,7 @@ impl PivStream {
         })
     }
 
-    pub fn grid(&self) -> &NodeGrid {
+    pub(crate) fn grid(&self) -> &NodeGrid {
         &self.grid
     }
 

@@ -110,7 +110,7 @@ impl NodeGrid {
     pub fn len(&self) -> usize {
         self.nx * self.ny
     }
-    pub fn is_empty(&self) -> bool {
+    pub(crate) fn is_empty(&self) -> bool {
         self.len() == 0
     }
 }

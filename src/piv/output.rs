@@ -24,7 +24,7 @@ fn fmt(v: f64) -> String {
 }
 
 /// `piv_mean.csv`: `x,y,u,v,uu,vv,uv,valid` (px, px/s, (px/s)², fraction).
-pub fn write_mean_csv(path: &Path, rows: &[MeanRow]) -> Result<()> {
+pub(crate) fn write_mean_csv(path: &Path, rows: &[MeanRow]) -> Result<()> {
     write_mean_csv_calibrated(path, rows, None)
 }
 

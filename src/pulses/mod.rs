@@ -80,11 +80,11 @@ use crate::error::{Error, Result};
 use crate::events::{Chunk, Edge, EventChunk, Geometry};
 
 pub(crate) mod accum;
-pub mod diagnostics;
+pub(crate) mod diagnostics;
 pub mod live;
 pub mod monitor;
 pub mod static_mask;
-pub mod timing;
+pub(crate) mod timing;
 
 use accum::{Accumulator, Block, Fold};
 
@@ -221,7 +221,7 @@ const MAX_SLICES: usize = 16;
 
 impl PulseOptions {
     /// Check the user's values; name the parameter that is wrong.
-    pub fn validate(&self) -> Result<()> {
+    pub(crate) fn validate(&self) -> Result<()> {
         if let Some(f) = self.pulse_hz {
             if !(f.is_finite() && (MIN_PULSE_HZ..=200_000.0).contains(&f)) {
                 return Err(Error::param(
@@ -280,7 +280,7 @@ pub fn analyze(
 
 /// Events looked at for the pulsed-light verdict of `ebptv info` (a
 /// prefix of the recording bounds its cost).
-pub const VERDICT_EVENTS: u64 = 4_000_000;
+pub(crate) const VERDICT_EVENTS: u64 = 4_000_000;
 
 /// The pulsed-light test ([`PulsedVerdict`]) of `ebptv info` on the first
 /// [`VERDICT_EVENTS`] events of `path`, triggers used when regular; an
@@ -331,7 +331,7 @@ const PIPELINE_CHUNKS: usize = 3;
 /// same as [`analyze`]'s (tested); the pass takes the longer of the two
 /// halves instead of their sum — the first pass of `ebptv track` has the
 /// machine to itself (nothing else can start before the timing is known).
-pub fn analyze_pipelined(
+pub(crate) fn analyze_pipelined(
     source: &mut dyn crate::io::EventSource,
     opts: &PulseOptions,
 ) -> Result<PulseReport> {

@@ -123,7 +123,7 @@ pub struct PulsedVerdict {
 impl PulsedVerdict {
     /// Apply the test to a latency histogram and the time blocks' burst
     /// fractions (`(events, burst fraction)` per block).
-    pub fn judge(stats: &diagnostics::LatencyStats, blocks: &[(u64, f64)]) -> PulsedVerdict {
+    pub(crate) fn judge(stats: &diagnostics::LatencyStats, blocks: &[(u64, f64)]) -> PulsedVerdict {
         let h = &stats.histogram;
         let n = h.len();
         let total: f64 = h.iter().sum();

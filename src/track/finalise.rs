@@ -71,7 +71,7 @@ pub(super) fn cut_at_steps(t: ActiveTrack, sigma: f64, threshold: f64) -> (u64, 
 /// Tracks that ended together (one call of the tracker's fits), not yet
 /// fitted: their detections and the position noise and outlier gate of
 /// the moment they ended. [`Finaliser::finalise`] turns them into tracks.
-pub struct EndedTracks {
+pub(crate) struct EndedTracks {
     pub(super) tracks: Vec<ActiveTrack>,
     pub(super) sigma: f64,
     pub(super) gate: f64,
@@ -81,11 +81,11 @@ pub struct EndedTracks {
 
 impl EndedTracks {
     /// Number of ended tracks (kept or not).
-    pub fn len(&self) -> usize {
+    pub(crate) fn len(&self) -> usize {
         self.tracks.len()
     }
 
-    pub fn is_empty(&self) -> bool {
+    pub(crate) fn is_empty(&self) -> bool {
         self.tracks.is_empty()
     }
 }
@@ -95,7 +95,7 @@ impl EndedTracks {
 /// Batches of [`EndedTracks`] must be finalised in the order they ended:
 /// each batch's fits use the prior of the batches before it (and run in
 /// parallel among themselves), its tracks are numbered after them.
-pub struct Finaliser {
+pub(crate) struct Finaliser {
     pub(super) params: TrackParams,
     pub(super) accel_prior: fit::AccelPrior,
     /// A copy of the tracker's local flow, brought up to date from each
@@ -122,7 +122,7 @@ impl Finaliser {
     /// tracks are fitted in parallel (rayon, in the caller's pool) and
     /// counted and numbered afterwards in input order: the result does
     /// not depend on the thread count.
-    pub fn finalise(&mut self, ended: EndedTracks, stats: &mut TrackerStats) -> Vec<LinkedTrack> {
+    pub(crate) fn finalise(&mut self, ended: EndedTracks, stats: &mut TrackerStats) -> Vec<LinkedTrack> {
         use rayon::prelude::*;
         let EndedTracks {
             tracks: ended,
@@ -621,7 +621,7 @@ pub(super) fn fit_track_with(
 /// One detection handed to [`fit_detections`]: its serial, pulse, pulse
 /// time (µs) and centroid (px).
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct FitInput {
+pub(crate) struct FitInput {
     pub serial: u64,
     pub pulse: i64,
     pub t_us: f64,
@@ -639,7 +639,7 @@ pub struct FitInput {
 /// the links. Only the fit: no outlier removal, length rule or step cut
 /// (those are link decisions).
 /// `dets` must be in increasing pulse order, at least one.
-pub fn fit_detections(
+pub(crate) fn fit_detections(
     dets: &[FitInput],
     params: &TrackParams,
     sigma: f64,

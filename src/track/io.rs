@@ -20,9 +20,9 @@ use crate::io::atomic::AtomicFile;
 use crate::table::{Col, TableFormat, TableWriter};
 
 /// Columns of `particles.csv`.
-pub const PARTICLES_HEADER: &str = "pulse,t_us,x,y,n_events";
+pub(crate) const PARTICLES_HEADER: &str = "pulse,t_us,x,y,n_events";
 /// Columns of `tracks.csv`.
-pub const TRACKS_HEADER: &str = "track_id,pulse,t_us,x,y,u,v";
+pub(crate) const TRACKS_HEADER: &str = "track_id,pulse,t_us,x,y,u,v";
 
 /// The columns of the `particles` table in Parquet and `.npy` (the
 /// `particles.csv` columns; µs, px).
@@ -51,7 +51,7 @@ pub static TRACK_COLUMNS: &[Col<TrackRow>] = TRACK_COLUMNS_CALIBRATED.split_at(7
 
 /// The `tracks` columns followed by the physical columns of a calibrated
 /// run ([`crate::calib::Calibration::point_columns`]: mm, m/s).
-pub static TRACK_COLUMNS_CALIBRATED: [Col<TrackRow>; 11] = [
+pub(crate) static TRACK_COLUMNS_CALIBRATED: [Col<TrackRow>; 11] = [
     Col::i64("track_id", |r| r.id as i64),
     Col::i64("pulse", |r| r.p.pulse),
     Col::f64("t_us", |r| r.p.t_us),
@@ -73,7 +73,7 @@ pub enum ParticlesWriter {
 
 impl ParticlesWriter {
     /// `dir/particles.<ext>`.
-    pub fn create(dir: &Path, format: TableFormat) -> Result<Self> {
+    pub(crate) fn create(dir: &Path, format: TableFormat) -> Result<Self> {
         let path = dir.join(format.file_name("particles"));
         Ok(match format {
             TableFormat::Csv => ParticlesWriter::Csv(ParticlesCsvWriter::create(&path)?),
@@ -83,7 +83,7 @@ impl ParticlesWriter {
             TableFormat::Npy => ParticlesWriter::Table(TableWriter::npy(&path, &PARTICLE_COLUMNS)?),
         })
     }
-    pub fn write(&mut self, particles: &[Particle]) -> Result<()> {
+    pub(crate) fn write(&mut self, particles: &[Particle]) -> Result<()> {
         match self {
             ParticlesWriter::Csv(w) => w.write(particles),
             ParticlesWriter::Table(w) => w.write(particles),
@@ -91,12 +91,12 @@ impl ParticlesWriter {
     }
     /// Records `key = value` in the file's metadata (Parquet only; CSV and
     /// `.npy` have no place for it).
-    pub fn add_metadata(&mut self, key: &str, value: &str) {
+    pub(crate) fn add_metadata(&mut self, key: &str, value: &str) {
         if let ParticlesWriter::Table(w) = self {
             w.add_metadata(key, value);
         }
     }
-    pub fn finish(self) -> Result<()> {
+    pub(crate) fn finish(self) -> Result<()> {
         match self {
             ParticlesWriter::Csv(w) => w.finish(),
             ParticlesWriter::Table(w) => w.finish(),
@@ -112,13 +112,13 @@ pub enum TracksWriter {
 
 impl TracksWriter {
     /// `dir/tracks.<ext>`.
-    pub fn create(dir: &Path, format: TableFormat) -> Result<Self> {
+    pub(crate) fn create(dir: &Path, format: TableFormat) -> Result<Self> {
         Self::create_calibrated(dir, format, None)
     }
 
     /// `dir/tracks.<ext>`, whose rows end with the physical columns of
     /// `calib` when one is given.
-    pub fn create_calibrated(
+    pub(crate) fn create_calibrated(
         dir: &Path,
         format: TableFormat,
         calib: Option<crate::calib::Calibration>,
@@ -138,7 +138,7 @@ impl TracksWriter {
         })
     }
 
-    pub fn write(&mut self, tracks: &[Track]) -> Result<()> {
+    pub(crate) fn write(&mut self, tracks: &[Track]) -> Result<()> {
         match self {
             TracksWriter::Csv(w) => w.write(tracks),
             TracksWriter::Table(w, calib) => {
@@ -155,12 +155,12 @@ impl TracksWriter {
         }
     }
     /// Records `key = value` in the file's metadata (Parquet only).
-    pub fn add_metadata(&mut self, key: &str, value: &str) {
+    pub(crate) fn add_metadata(&mut self, key: &str, value: &str) {
         if let TracksWriter::Table(w, _) = self {
             w.add_metadata(key, value);
         }
     }
-    pub fn finish(self) -> Result<()> {
+    pub(crate) fn finish(self) -> Result<()> {
         match self {
             TracksWriter::Csv(w) => w.finish(),
             TracksWriter::Table(w, _) => w.finish(),
@@ -202,7 +202,7 @@ pub struct ParticlesCsvWriter {
 }
 
 impl ParticlesCsvWriter {
-    pub fn create(path: &Path) -> Result<Self> {
+    pub(crate) fn create(path: &Path) -> Result<Self> {
         let mut file = AtomicFile::create(path)?;
         writeln!(file, "{PARTICLES_HEADER}").map_err(|e| werr(path, e))?;
         Ok(ParticlesCsvWriter {
@@ -212,7 +212,7 @@ impl ParticlesCsvWriter {
             prefix_of: None,
         })
     }
-    pub fn write(&mut self, particles: &[Particle]) -> Result<()> {
+    pub(crate) fn write(&mut self, particles: &[Particle]) -> Result<()> {
         for p in particles {
             // All particles of a pulse share pulse and t_us: their text
             // is formatted once.
@@ -261,7 +261,7 @@ impl ParticlesCsvWriter {
         true
     }
 
-    pub fn finish(mut self) -> Result<()> {
+    pub(crate) fn finish(mut self) -> Result<()> {
         write_block(&mut self.file, &mut self.line, 0)?;
         self.file.commit()
     }
@@ -338,13 +338,13 @@ impl TimeTextCache {
 }
 
 impl TracksCsvWriter {
-    pub fn create(path: &Path) -> Result<Self> {
+    pub(crate) fn create(path: &Path) -> Result<Self> {
         Self::create_calibrated(path, None)
     }
 
     /// A writer whose rows end with the physical columns of `calib`
     /// ([`crate::calib::Calibration::point_columns`]) when one is given.
-    pub fn create_calibrated(
+    pub(crate) fn create_calibrated(
         path: &Path,
         calib: Option<crate::calib::Calibration>,
     ) -> Result<Self> {
@@ -361,7 +361,7 @@ impl TracksCsvWriter {
             calib,
         })
     }
-    pub fn write(&mut self, tracks: &[Track]) -> Result<()> {
+    pub(crate) fn write(&mut self, tracks: &[Track]) -> Result<()> {
         for t in tracks {
             for p in &t.points {
                 if self.calib.is_none() && self.push_row(t.id, p) {
@@ -431,7 +431,7 @@ impl TracksCsvWriter {
         true
     }
 
-    pub fn finish(mut self) -> Result<()> {
+    pub(crate) fn finish(mut self) -> Result<()> {
         write_block(&mut self.file, &mut self.line, 0)?;
         self.file.commit()
     }
@@ -455,7 +455,7 @@ pub struct TracksNpyWriter {
 }
 
 impl TracksNpyWriter {
-    pub fn create(path: &Path) -> Result<Self> {
+    pub(crate) fn create(path: &Path) -> Result<Self> {
         let mut file = AtomicFile::create(path)?;
         let header = crate::io::npy::table_header(TRACKS_NPY_DESCR, usize::MAX, 0);
         file.write_all(&header).map_err(|e| werr(path, e))?;
@@ -467,7 +467,7 @@ impl TracksNpyWriter {
         })
     }
 
-    pub fn write(&mut self, tracks: &[Track]) -> Result<()> {
+    pub(crate) fn write(&mut self, tracks: &[Track]) -> Result<()> {
         for t in tracks {
             for p in &t.points {
                 let mut rec = [0u8; 56];
@@ -484,7 +484,7 @@ impl TracksNpyWriter {
         Ok(())
     }
 
-    pub fn finish(mut self) -> Result<()> {
+    pub(crate) fn finish(mut self) -> Result<()> {
         write_block(&mut self.file, &mut self.buf, 0)?;
         crate::io::npy::commit_streamed_table(
             self.file,
@@ -831,14 +831,14 @@ pub struct SummaryAcc {
 }
 
 impl SummaryAcc {
-    pub fn add(&mut self, tracks: &[Track]) {
+    pub(crate) fn add(&mut self, tracks: &[Track]) {
         for t in tracks {
             self.lengths.push(t.points.len() as u64);
             self.points += t.points.len() as u64;
             self.speed_sum += t.points.iter().map(|p| p.u.hypot(p.v)).sum::<f64>();
         }
     }
-    pub fn summary(&self, stats: &TrackerStats) -> Summary {
+    pub(crate) fn summary(&self, stats: &TrackerStats) -> Summary {
         Summary::from_parts(&self.lengths, self.speed_sum, self.points, stats)
     }
 }

@@ -54,16 +54,16 @@ impl std::fmt::Debug for FlowPrior {
 }
 
 impl FlowPrior {
-    pub fn from_fn(f: impl Fn(f64, f64) -> (f64, f64) + Send + Sync + 'static) -> Self {
+    pub(crate) fn from_fn(f: impl Fn(f64, f64) -> (f64, f64) + Send + Sync + 'static) -> Self {
         FlowPrior(Arc::new(f))
     }
-    pub fn uniform(u: f64, v: f64) -> Self {
+    pub(crate) fn uniform(u: f64, v: f64) -> Self {
         Self::from_fn(move |_, _| (u, v))
     }
     /// A gridded field: node `(i, j)` at `(x0 + i·dx, y0 + j·dy)`, row-major
     /// `u[j·nx + i]`; bilinear inside, clamped to the border outside.
     #[allow(clippy::too_many_arguments)]
-    pub fn grid(
+    pub(crate) fn grid(
         x0: f64,
         y0: f64,
         dx: f64,
@@ -115,7 +115,7 @@ pub(super) const FLOW_MIN_DETECTIONS: usize = 6;
 pub(super) const NEW_TRACK_CAPACITY: usize = 64;
 
 /// Frames (pulses) a new track's initialisation chain spans.
-pub const INIT_FRAMES: usize = 4;
+pub(crate) const INIT_FRAMES: usize = 4;
 
 #[derive(Debug, Clone, Copy)]
 pub(super) struct Det {
@@ -220,7 +220,7 @@ impl TrackerStats {
     /// Add the counters that [`Finaliser::finalise`] keeps (the fits'
     /// verdicts: kept, short, ghost, rough, kept by flow, particles on
     /// tracks, step cuts) from `fits`; the linking counters stay this one's.
-    pub fn add_fit_counters(&mut self, fits: &TrackerStats) {
+    pub(crate) fn add_fit_counters(&mut self, fits: &TrackerStats) {
         self.tracks_kept += fits.tracks_kept;
         self.tracks_rejected_short += fits.tracks_rejected_short;
         self.tracks_rejected_ghost += fits.tracks_rejected_ghost;
@@ -320,22 +320,22 @@ impl Tracker {
         })
     }
 
-    pub fn stats(&self) -> &TrackerStats {
+    pub(crate) fn stats(&self) -> &TrackerStats {
         &self.stats
     }
 
     /// The options the tracker runs with.
-    pub fn params(&self) -> &TrackParams {
+    pub(crate) fn params(&self) -> &TrackParams {
         &self.params
     }
 
     /// Number of tracks currently being extended.
-    pub fn active_tracks(&self) -> usize {
+    pub(crate) fn active_tracks(&self) -> usize {
         self.active.len()
     }
 
     /// Feed the particles of one pulse; returns the tracks that finished.
-    pub fn push(&mut self, pulse: i64, t_us: f64, particles: &[Particle]) -> Result<Vec<Track>> {
+    pub(crate) fn push(&mut self, pulse: i64, t_us: f64, particles: &[Particle]) -> Result<Vec<Track>> {
         Ok(self
             .push_linked(pulse, t_us, particles)?
             .into_iter()
@@ -543,7 +543,7 @@ impl Tracker {
     /// (`stream::parallel_stream_equals_sequential_tracking`); only the
     /// counters of the fits ([`TrackerStats::add_fit_counters`]) are then
     /// the finaliser's, not [`Tracker::stats`]'s.
-    pub fn defer_fits(&mut self) -> Finaliser {
+    pub(crate) fn defer_fits(&mut self) -> Finaliser {
         self.deferred.get_or_insert_with(Vec::new);
         std::mem::replace(&mut self.finaliser, Finaliser::new(self.params.clone()))
     }
@@ -551,7 +551,7 @@ impl Tracker {
     /// The ended tracks waiting since the last call (after
     /// [`Tracker::defer_fits`]), one entry per batch the tracker would
     /// have fitted at once, in order.
-    pub fn take_ended(&mut self) -> Vec<EndedTracks> {
+    pub(crate) fn take_ended(&mut self) -> Vec<EndedTracks> {
         self.deferred
             .as_mut()
             .map(std::mem::take)
@@ -561,7 +561,7 @@ impl Tracker {
     /// [`Tracker::finish`] for a tracker that defers its fits (after
     /// [`Tracker::defer_fits`]): end every track and return all that wait
     /// unfitted.
-    pub fn finish_unfitted(mut self) -> (Vec<EndedTracks>, TrackerStats) {
+    pub(crate) fn finish_unfitted(mut self) -> (Vec<EndedTracks>, TrackerStats) {
         self.deferred.get_or_insert_with(Vec::new);
         let mut all = std::mem::take(&mut self.pool);
         all.append(&mut self.active);

@@ -291,7 +291,7 @@ impl SignatureAccumulator {
     }
 
     #[cfg(test)]
-    pub fn config(&self) -> &SignatureConfig {
+    pub(crate) fn config(&self) -> &SignatureConfig {
         &self.cfg
     }
 

@@ -108,7 +108,7 @@ impl ReferenceAccumulator {
         })
     }
 
-    pub fn config(&self) -> &SignatureConfig {
+    pub(crate) fn config(&self) -> &SignatureConfig {
         &self.cfg
     }
 

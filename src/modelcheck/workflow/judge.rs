@@ -35,7 +35,7 @@ impl RowSet {
     }
 
     /// max(z, 0) per row of the set ([`Z_CAP`] for a row `t` lacks).
-    pub fn components(&self, t: &DiscrepancyTable) -> Vec<f64> {
+    pub(crate) fn components(&self, t: &DiscrepancyTable) -> Vec<f64> {
         self.names
             .iter()
             .map(|n| {
@@ -221,7 +221,7 @@ pub fn judge_candidates(
 /// the rows of `before` (a row missing after counts as unchanged); clear
 /// when the lead exceeds one null spread and [`RUNNER_UP_MARGIN`] × the
 /// gap the rival leaves (when the rival removes anything).
-pub fn judge_candidates_whole_gap(
+pub(crate) fn judge_candidates_whole_gap(
     before: &DiscrepancyTable,
     names: &[&str],
     after: &[&DiscrepancyTable],
