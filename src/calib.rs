@@ -87,17 +87,6 @@ fn config_err(path: &Path, why: impl Into<String>) -> Error {
 }
 
 impl Calibration {
-    /// A calibration of scale `px_per_mm` with the origin at pixel (0, 0)
-    /// and y down (as pixel rows).
-    pub(crate) fn from_scale(px_per_mm: f64) -> Self {
-        Calibration {
-            px_per_mm,
-            origin_px: [0.0, 0.0],
-            y_axis: YAxis::Down,
-            mask: None,
-        }
-    }
-
     /// The scale of two points `a`, `b` (px) that are `distance_mm` apart.
     pub(crate) fn scale_from_points(a: [f64; 2], b: [f64; 2], distance_mm: f64) -> f64 {
         (a[0] - b[0]).hypot(a[1] - b[1]) / distance_mm

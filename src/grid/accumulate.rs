@@ -211,11 +211,6 @@ impl BinAcc {
         }
     }
 
-    /// Weighted sample count Σ w.
-    pub(crate) fn w(&self) -> f64 {
-        self.gram[0].value()
-    }
-
     /// Number of track clusters (distinct tracks when input is grouped by track).
     pub(crate) fn n_tracks(&self) -> u64 {
         self.closed.n + self.head.is_some() as u64 + self.tail.is_some() as u64

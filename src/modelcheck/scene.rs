@@ -194,11 +194,6 @@ impl SceneSimulator {
         );
         SignatureConfig::new(g, self.timing())
     }
-
-    /// The effects of the base scenario that are switched on.
-    pub(crate) fn active_effects(&self) -> Vec<EffectSetting> {
-        active_effects(&self.base)
-    }
 }
 
 /// The effects switched on in `sc`, as settings.

@@ -63,6 +63,7 @@ impl Image {
             data: vec![0.0; width * height],
         }
     }
+    #[cfg(test)]
     #[inline]
     pub(crate) fn get(&self, x: usize, y: usize) -> f32 {
         self.data[y * self.width + x]
@@ -128,26 +129,6 @@ impl FieldStats {
                 self.suv[k] += u * v;
             }
         }
-    }
-
-    /// Combine with statistics of another time slice on the same grid.
-    pub(crate) fn merge(&mut self, o: &FieldStats) -> Result<()> {
-        if o.grid != self.grid {
-            return Err(Error::param(
-                "stats",
-                "cannot merge PIV statistics of different grids",
-            ));
-        }
-        self.steps += o.steps;
-        for k in 0..self.n.len() {
-            self.n[k] += o.n[k];
-            self.su[k] += o.su[k];
-            self.sv[k] += o.sv[k];
-            self.suu[k] += o.suu[k];
-            self.svv[k] += o.svv[k];
-            self.suv[k] += o.suv[k];
-        }
-        Ok(())
     }
 
     /// Mean, Reynolds stresses (population moments) and valid fraction per

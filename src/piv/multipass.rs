@@ -110,7 +110,8 @@ impl NodeGrid {
     pub fn len(&self) -> usize {
         self.nx * self.ny
     }
-    pub(crate) fn is_empty(&self) -> bool {
+    /// True when the grid has no node.
+    pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
 }

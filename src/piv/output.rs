@@ -23,11 +23,6 @@ fn fmt(v: f64) -> String {
     }
 }
 
-/// `piv_mean.csv`: `x,y,u,v,uu,vv,uv,valid` (px, px/s, (px/s)², fraction).
-pub(crate) fn write_mean_csv(path: &Path, rows: &[MeanRow]) -> Result<()> {
-    write_mean_csv_calibrated(path, rows, None)
-}
-
 /// [`write_mean_csv`], with the physical columns of `calib` after the
 /// pixel ones when given (`X_mm,Y_mm,U_m_s,V_m_s,uu_m2_s2,vv_m2_s2,
 /// uv_m2_s2`, [`crate::calib::Calibration::field_columns`]).

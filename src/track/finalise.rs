@@ -79,16 +79,7 @@ pub(crate) struct EndedTracks {
     pub(super) flow_samples: Vec<local_flow::FlowSample>,
 }
 
-impl EndedTracks {
-    /// Number of ended tracks (kept or not).
-    pub(crate) fn len(&self) -> usize {
-        self.tracks.len()
-    }
-
-    pub(crate) fn is_empty(&self) -> bool {
-        self.tracks.is_empty()
-    }
-}
+impl EndedTracks {}
 
 /// The output fits' sequential state: the curvature prior estimated from
 /// the tracks kept so far ([`fit::AccelPrior`]) and the next track id.
@@ -122,7 +113,11 @@ impl Finaliser {
     /// tracks are fitted in parallel (rayon, in the caller's pool) and
     /// counted and numbered afterwards in input order: the result does
     /// not depend on the thread count.
-    pub(crate) fn finalise(&mut self, ended: EndedTracks, stats: &mut TrackerStats) -> Vec<LinkedTrack> {
+    pub(crate) fn finalise(
+        &mut self,
+        ended: EndedTracks,
+        stats: &mut TrackerStats,
+    ) -> Vec<LinkedTrack> {
         use rayon::prelude::*;
         let EndedTracks {
             tracks: ended,

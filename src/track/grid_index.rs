@@ -33,6 +33,7 @@ pub(crate) struct GridIndex {
 }
 
 impl GridIndex {
+    #[cfg(test)]
     /// An empty index whose cells are about `cell` px wide (enlarged when the
     /// points are few and spread far, so the grid never has many more cells
     /// than points).
@@ -43,13 +44,10 @@ impl GridIndex {
         }
     }
 
+    #[cfg(test)]
     /// Number of points indexed.
     pub(crate) fn len(&self) -> usize {
         self.item.len()
-    }
-
-    pub(crate) fn is_empty(&self) -> bool {
-        self.item.is_empty()
     }
 
     /// Index the points `(x, y)` (finite), numbered in iteration order.

@@ -111,11 +111,6 @@ pub enum TracksWriter {
 }
 
 impl TracksWriter {
-    /// `dir/tracks.<ext>`.
-    pub(crate) fn create(dir: &Path, format: TableFormat) -> Result<Self> {
-        Self::create_calibrated(dir, format, None)
-    }
-
     /// `dir/tracks.<ext>`, whose rows end with the physical columns of
     /// `calib` when one is given.
     pub(crate) fn create_calibrated(

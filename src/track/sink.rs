@@ -640,12 +640,6 @@ pub struct FileSink {
 }
 
 impl FileSink {
-    /// Starts the writer for the outputs in `out` (which must exist), with
-    /// the `table_format`, `npy` and `plot_pulses` options of `run`.
-    pub(crate) fn create(out: &Path, run: &RunParams) -> Result<Self> {
-        Self::create_calibrated(out, run, None)
-    }
-
     /// [`FileSink::create`] whose tracks table also has the physical
     /// columns of `calib`.
     pub(crate) fn create_calibrated(
@@ -694,7 +688,11 @@ impl FileSink {
     /// Commits the files and writes `summary.json` (from `stats`, the
     /// tracker's counters) and `tracks.png`, drawn over `size` (the
     /// sensor's width and height; `None`: the extent of the particles).
-    pub(crate) fn finish(mut self, stats: &TrackerStats, size: Option<(f64, f64)>) -> Result<Summary> {
+    pub(crate) fn finish(
+        mut self,
+        stats: &TrackerStats,
+        size: Option<(f64, f64)>,
+    ) -> Result<Summary> {
         self.tx = None; // closes the channel: the writer drains it and returns
         let writer = self.join()?;
         writer.finish(stats, &self.out, size, self.provenance.as_ref())

@@ -60,6 +60,7 @@ impl FlowPrior {
     pub(crate) fn uniform(u: f64, v: f64) -> Self {
         Self::from_fn(move |_, _| (u, v))
     }
+    #[cfg(test)]
     /// A gridded field: node `(i, j)` at `(x0 + i·dx, y0 + j·dy)`, row-major
     /// `u[j·nx + i]`; bilinear inside, clamped to the border outside.
     #[allow(clippy::too_many_arguments)]
@@ -324,18 +325,18 @@ impl Tracker {
         &self.stats
     }
 
-    /// The options the tracker runs with.
-    pub(crate) fn params(&self) -> &TrackParams {
-        &self.params
-    }
-
     /// Number of tracks currently being extended.
     pub(crate) fn active_tracks(&self) -> usize {
         self.active.len()
     }
 
     /// Feed the particles of one pulse; returns the tracks that finished.
-    pub(crate) fn push(&mut self, pulse: i64, t_us: f64, particles: &[Particle]) -> Result<Vec<Track>> {
+    pub(crate) fn push(
+        &mut self,
+        pulse: i64,
+        t_us: f64,
+        particles: &[Particle],
+    ) -> Result<Vec<Track>> {
         Ok(self
             .push_linked(pulse, t_us, particles)?
             .into_iter()

@@ -591,11 +591,6 @@ impl PtvStream {
         }
     }
 
-    /// Events handed over so far.
-    pub(crate) fn events(&self) -> u64 {
-        self.events
-    }
-
     /// Particles seen and tracks active (for progress reports; from the
     /// tracker stage's last report while the pipeline runs).
     pub(crate) fn progress(&self) -> (u64, usize) {

@@ -377,7 +377,13 @@ pub(crate) fn turn_rss_gain(tau: &[f64], xs: &[f64], ys: &[f64]) -> Option<f64> 
 /// `accel`: the speed may change linearly (six real coefficients, the
 /// quadratic's count); otherwise it is constant (four, with ω found from
 /// a fit with acceleration first) — for few samples.
-pub(crate) fn turn_eval(tau: &[f64], xs: &[f64], ys: &[f64], at: f64, accel: bool) -> Option<TurnFit> {
+pub(crate) fn turn_eval(
+    tau: &[f64],
+    xs: &[f64],
+    ys: &[f64],
+    at: f64,
+    accel: bool,
+) -> Option<TurnFit> {
     turn_eval_rss(tau, xs, ys, at, accel).map(|(f, _)| f)
 }
 
@@ -431,7 +437,12 @@ fn turn_eval_rss(
 /// [`turn_eval`] with speed change, and the drop of the residual sum of
 /// squares (px², both axes) from the quadratic in time to it: how much
 /// the samples say the path turns beyond what a quadratic follows.
-pub(crate) fn turn_eval_with_gain(tau: &[f64], xs: &[f64], ys: &[f64], at: f64) -> Option<(TurnFit, f64)> {
+pub(crate) fn turn_eval_with_gain(
+    tau: &[f64],
+    xs: &[f64],
+    ys: &[f64],
+    at: f64,
+) -> Option<(TurnFit, f64)> {
     let (f, rss) = turn_eval_rss(tau, xs, ys, at, true)?;
     let (q, t) = match rss {
         Some((rw, r0)) => (r0, rw),

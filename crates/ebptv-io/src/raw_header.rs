@@ -93,6 +93,7 @@ pub struct RawHeader {
 }
 
 impl RawHeader {
+    #[cfg(test)]
     /// Look up a header value by key (case-insensitive), first occurrence.
     pub(crate) fn get(&self, key: &str) -> Option<&str> {
         get(&self.entries, key)
@@ -356,11 +357,6 @@ impl PayloadReader {
     /// File offset of the next unconsumed byte.
     pub(crate) fn file_offset(&self) -> u64 {
         self.payload_offset + self.consumed
-    }
-
-    /// The file being read.
-    pub(crate) fn path(&self) -> &Path {
-        &self.path
     }
 }
 

@@ -745,12 +745,14 @@ impl Shedding {
     }
 }
 
+#[cfg(test)]
 /// Error function (Abramowitz–Stegun 7.1.26, |error| < 1.5e-7).
 #[inline]
 pub(crate) fn erf(x: f64) -> f64 {
     erf_lanes(x)
 }
 
+#[cfg(test)]
 /// [`erf`] per lane, with [`fastmath::exp_lanes`].
 #[inline(always)]
 fn erf_lanes<T: Lanes>(x: T) -> T {

@@ -727,11 +727,6 @@ impl Simulator {
         })
     }
 
-    /// The scenario being simulated.
-    pub(crate) fn scenario(&self) -> &Scenario {
-        &self.front.sc
-    }
-
     /// Every request through the sort and the refractory filter, no
     /// refractory groups (the plain definition the tests compare with).
     #[cfg(test)]

@@ -85,6 +85,7 @@ impl Refractory {
         a.t - self.last[self.index(a)] >= self.period_us
     }
 
+    #[cfg(test)]
     /// Whether request `a` passes (requests in time order).
     #[inline]
     pub(crate) fn keep(&mut self, a: &Arrival) -> bool {
@@ -204,6 +205,7 @@ impl Arbiter {
         let _ = t;
     }
 
+    #[cfg(test)]
     /// Serve the requests `reqs`, in (time, row) order (all requests
     /// before `t_end` are known; none later is in `reqs`), emitting events
     /// granted before `t_end`. Requests not yet granted stay pending
@@ -221,6 +223,7 @@ impl Arbiter {
     /// reaches before `a` arrives (and before `t_end`), then admit `a`.
     /// The readout feeds its requests one by one as it decodes them.
     // (Always inlined: the readout calls it once per request.)
+    #[cfg(test)]
     #[inline(always)]
     pub(crate) fn offer(&mut self, a: &Arrival, t_end: f64, out: &mut EventChunk) {
         self.offer_at(
@@ -357,6 +360,7 @@ impl Arbiter {
         }
     }
 
+    #[cfg(test)]
     /// Requests still waiting.
     pub(crate) fn pending(&self) -> usize {
         self.counts.iter().map(|&n| n as usize).sum()

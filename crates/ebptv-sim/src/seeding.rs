@@ -207,11 +207,6 @@ impl Particles {
         self.particles.len()
     }
 
-    /// True when there are no particles.
-    pub(crate) fn is_empty(&self) -> bool {
-        self.particles.is_empty()
-    }
-
     /// Give slot `p` a new particle: random fluid position, brightness and
     /// out-of-plane velocity; `enter_side` places it at the slab face it
     /// enters through (recycling), else anywhere in the slab.
@@ -255,6 +250,7 @@ impl Particles {
         p.z.abs() <= self.sheet_half
     }
 
+    #[cfg(test)]
     /// Advance every particle from `t0` to each of `times` in turn (s) and
     /// return, per time, the lit particles as snapshots (in slot order).
     pub(crate) fn advance_and_snapshot(

@@ -290,11 +290,6 @@ impl SignatureAccumulator {
         })
     }
 
-    #[cfg(test)]
-    pub(crate) fn config(&self) -> &SignatureConfig {
-        &self.cfg
-    }
-
     /// Add a chunk of events (chunks in stream order).
     pub fn add_events(&mut self, ev: &EventChunk) {
         let g = self.cfg.geometry;

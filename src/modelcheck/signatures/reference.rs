@@ -108,10 +108,6 @@ impl ReferenceAccumulator {
         })
     }
 
-    pub(crate) fn config(&self) -> &SignatureConfig {
-        &self.cfg
-    }
-
     /// Add a chunk of events (chunks in stream order).
     pub fn add_events(&mut self, ev: &EventChunk) {
         let g = self.cfg.geometry;

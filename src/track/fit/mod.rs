@@ -281,14 +281,6 @@ impl Sums {
         self.yy += y * y;
     }
 
-    pub(crate) fn len(&self) -> usize {
-        self.n
-    }
-
-    pub(crate) fn is_empty(&self) -> bool {
-        self.n == 0
-    }
-
     /// The inverse normal matrix of the fit of order ≤ `order` and its
     /// size `p` (the order lowered to what the samples allow, plus one);
     /// `ridge` (≥ 0) is added to the quadratic coefficient's diagonal
@@ -327,6 +319,7 @@ impl Sums {
         Some(Solved { cx, cy, inv, p })
     }
 
+    #[cfg(test)]
     /// The fit of order ≤ `order` (≤ 2, lowered to what the points allow)
     /// evaluated at s = 0; `None` when empty or singular. Equal to
     /// [`fit_eval`] over the same samples up to rounding.
@@ -372,13 +365,6 @@ impl Sums {
         })
     }
 
-    /// The fit's velocity error per unit cubic coefficient: a path
-    /// `x = … + c₃s³` gives the fit of order `order` the velocity bias
-    /// `c₃ · velocity_bias_factor` (the regression of s³ on the basis).
-    pub(crate) fn velocity_bias_factor(&self, order: usize) -> Option<f64> {
-        self.velocity_variance_and_bias(order, 0.0).map(|v| v.1)
-    }
-
     /// `(velocity_variance, velocity_bias_factor)` from one solve (with
     /// the curvature prior `ridge`, as [`Sums::solve_with_prior`]).
     fn velocity_variance_and_bias(&self, order: usize, ridge: f64) -> Option<(f64, f64)> {
@@ -389,13 +375,6 @@ impl Sums {
         }
         let b = (0..p).map(|b| inv[1][b] * self.s[b + 3]).sum();
         Some((inv[1][1], b))
-    }
-
-    /// Cubic coefficients (x, y) of an order-3 fit and their variance
-    /// factor; `None` with fewer than 5 samples (no spare point to tell a
-    /// cubic from noise) or a singular design.
-    pub(crate) fn cubic(&self) -> Option<(f64, f64, f64)> {
-        self.pilot().map(|p| (p.c3[0], p.c3[1], p.c3_var))
     }
 
     /// The pilot's cubic fit: its cubic and quadratic coefficients and

@@ -66,6 +66,7 @@ impl AccelPrior {
         self.samples += other.samples;
     }
 
+    #[cfg(test)]
     /// Curvature samples so far.
     pub(crate) fn samples(&self) -> u64 {
         self.samples

@@ -595,6 +595,7 @@ impl PixelModel {
         }
     }
 
+    #[cfg(test)]
     /// Threshold factor of ROI pixel `idx` under `threshold_mismatch`
     /// (σ, key): 1 + σ·g with g a standard normal deviate chosen by a hash
     /// of the pixel index, so the pattern is fixed for a seed. g is one of
