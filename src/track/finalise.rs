@@ -79,8 +79,6 @@ pub(crate) struct EndedTracks {
     pub(super) flow_samples: Vec<local_flow::FlowSample>,
 }
 
-impl EndedTracks {}
-
 /// The output fits' sequential state: the curvature prior estimated from
 /// the tracks kept so far ([`fit::AccelPrior`]) and the next track id.
 /// Batches of [`EndedTracks`] must be finalised in the order they ended:
@@ -613,6 +611,7 @@ pub(super) fn fit_track_with(
     (points, serials, (ssr / (2 * n) as f64).sqrt())
 }
 
+#[cfg(any(test, feature = "testkit"))]
 /// One detection handed to [`fit_detections`]: its serial, pulse, pulse
 /// time (µs) and centroid (px).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -624,6 +623,7 @@ pub(crate) struct FitInput {
     pub y: f64,
 }
 
+#[cfg(any(test, feature = "testkit"))]
 /// The output fit the tracker gives a finished track (the sliding,
 /// adaptive-window polynomial of `fit_order` with the curvature prior
 /// `accel_rms`, px/pulse², 0 = none; position noise `sigma`, px per axis;
