@@ -47,17 +47,21 @@ use crate::pulses::PulseEvents;
 /// One particle detected in one pulse.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Particle {
+    /// Index of the pulse the particle was seen in.
     pub pulse: i64,
     /// Time of the pulse start the particle belongs to (µs).
     pub t_us: f64,
     /// Sub-pixel centroid (px).
     pub x: f64,
+    /// Sub-pixel centroid, y (px).
     pub y: f64,
+    /// Events in the particle image.
     pub n_events: u32,
     /// Number of distinct pixels.
     pub n_pixels: u32,
     /// Bounding-box extent (px) along x and y (max - min + 1).
     pub extent_x: f32,
+    /// Bounding-box extent along y (px, max - min + 1).
     pub extent_y: f32,
     /// Latency of the first event after the pulse start (µs).
     pub first_latency_us: f32,
@@ -186,9 +190,13 @@ impl ClusterParams {
 /// A distinct pixel of one pulse with its events folded in.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PixelHits {
+    /// Pixel column (px).
     pub x: u16,
+    /// Pixel row (px).
     pub y: u16,
+    /// Selected events of the pulse at this pixel.
     pub count: u32,
+    /// Earliest event time at this pixel (µs, sensor clock).
     pub first_t: i64,
 }
 

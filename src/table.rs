@@ -99,7 +99,9 @@ pub enum Getter<R> {
 
 /// One column of a table over rows of type `R`.
 pub struct Col<R> {
+    /// Column name in the table's header.
     pub name: &'static str,
+    /// How a row gives this column's value.
     pub get: Getter<R>,
 }
 

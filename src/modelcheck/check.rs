@@ -66,7 +66,9 @@ impl Default for ModelCheckOptions {
 /// What [`check_recording`] found (also written to `model_check.json`).
 #[derive(Debug, Clone)]
 pub struct ModelCheckRun {
+    /// The model check's outcome: effects found, verdict, tables, rounds.
     pub result: ModelCheckResult,
+    /// What the run did along the way (starting model, baseline estimates), one line each.
     pub notes: Vec<String>,
 }
 

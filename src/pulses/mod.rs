@@ -101,7 +101,9 @@ pub(crate) use timing::Periodicity;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum PulseSource {
+    /// Pulse times from a trigger channel.
     Trigger,
+    /// Pulse times estimated from the events' periodicity.
     Estimated,
 }
 
@@ -110,11 +112,14 @@ pub enum PulseSource {
 /// `[start_k + window_offset_us, start_k + window_offset_us + period_us)`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct PulseTiming {
+    /// Pulse period (µs).
     pub period_us: f64,
+    /// Start of pulse 0 (µs, sensor clock).
     pub first_pulse_us: f64,
     /// Offset of the assignment window from the pulse start (µs); the window
     /// boundary sits where the folded histogram is lowest. May be negative.
     pub window_offset_us: f64,
+    /// Where the pulse times came from.
     pub source: PulseSource,
     /// Pulse width (µs) when known (falling triggers, or the scenario).
     pub pulse_width_us: Option<f64>,
@@ -142,9 +147,11 @@ impl PulseTiming {
 /// The events of one pulse, gathered while streaming.
 #[derive(Debug, Clone, Default)]
 pub struct PulseEvents {
+    /// Pulse index (0 = the first pulse of the train).
     pub index: i64,
     /// Start of the light pulse (µs, sensor clock).
     pub start_us: f64,
+    /// The events assigned to this pulse.
     pub events: EventChunk,
 }
 
@@ -411,6 +418,8 @@ pub struct Analyzer {
 }
 
 impl Analyzer {
+    /// An analyzer for a recording of `geometry` (1280 × 720 when unknown).
+    /// Fails when `opts` are invalid.
     pub fn new(opts: PulseOptions, geometry: Option<Geometry>) -> Result<Self> {
         opts.validate()?;
         let (w, h) = geometry

@@ -67,6 +67,7 @@ pub struct ReferenceAccumulator {
 }
 
 impl ReferenceAccumulator {
+    /// An empty accumulator for `cfg`. Fails when `cfg` is invalid.
     pub fn new(cfg: SignatureConfig) -> Result<Self> {
         cfg.validate()?;
         let latency = Histogram::new(cfg.latency_edges(), BinScale::Linear)?;
