@@ -72,6 +72,7 @@
 //! (particles, tracks, pulses, summary, figure, the run's parameters) is one
 //! call: [`track::track_to_dir`]`(recording, &config, out_dir, &on_progress)`.
 
+#![warn(missing_docs)]
 pub mod decimal;
 pub use ebptv_io as io;
 pub use ebptv_io::{error, events};
