@@ -50,12 +50,16 @@ use std::sync::Arc;
 /// A grey-value image, row-major, `data[y * width + x]`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Image {
+    /// Width (px).
     pub width: usize,
+    /// Height (px).
     pub height: usize,
+    /// Grey values, `width · height`, row-major.
     pub data: Vec<f32>,
 }
 
 impl Image {
+    /// A black (all-zero) image of `width × height` px.
     pub fn zeros(width: usize, height: usize) -> Self {
         Image {
             width,
@@ -76,8 +80,11 @@ impl Image {
 /// of evaluated steps in which the node was valid.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FieldStats {
+    /// The node grid the statistics are on.
     pub grid: NodeGrid,
+    /// Number of fields added (evaluated time steps).
     pub steps: u64,
+    /// Number of valid vectors per node, row-major (`j·nx + i`).
     pub n: Vec<u64>,
     su: Vec<f64>,
     sv: Vec<f64>,
@@ -89,13 +96,21 @@ pub struct FieldStats {
 /// One row of `piv_mean.csv`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MeanRow {
+    /// Node x (px).
     pub x: f64,
+    /// Node y (px).
     pub y: f64,
+    /// Mean velocity along x (px/s); NaN without a valid vector.
     pub u: f64,
+    /// Mean velocity along y (px/s); NaN without a valid vector.
     pub v: f64,
+    /// Reynolds normal stress ⟨u′u′⟩ ((px/s)²).
     pub uu: f64,
+    /// Reynolds normal stress ⟨v′v′⟩ ((px/s)²).
     pub vv: f64,
+    /// Reynolds shear stress ⟨u′v′⟩ ((px/s)²).
     pub uv: f64,
+    /// Fraction of the evaluated steps in which the node was valid (0–1).
     pub valid: f64,
 }
 
@@ -169,7 +184,9 @@ impl FieldStats {
 /// Options of streaming PIV on pulses.
 #[derive(Debug, Clone, PartialEq)]
 pub struct StreamOptions {
+    /// Options of the correlation.
     pub piv: PivOptions,
+    /// How pulses' events become pseudo-images.
     pub pseudo: PseudoOptions,
     /// Frames per evaluation, `N_f` (≥ 2): pairs (k, k+1) summed.
     pub frames: usize,
@@ -180,6 +197,7 @@ pub struct StreamOptions {
 /// A field measured from pulses `first_pulse … first_pulse + N_f − 1`.
 #[derive(Debug, Clone)]
 pub struct StepField {
+    /// Index of the first pulse of the evaluation.
     pub first_pulse: i64,
     /// Centre time of the evaluated pulses (µs).
     pub t_us: f64,
@@ -200,6 +218,7 @@ pub struct PivStream {
     batch: usize,
     /// Evaluations due but not yet run (at most `batch`).
     pending: Vec<PendingEval>,
+    /// Running statistics (px/s) of the fields evaluated so far.
     pub stats: FieldStats,
 }
 
@@ -211,6 +230,10 @@ struct PendingEval {
 }
 
 impl PivStream {
+    /// A stream for a `width × height` px sensor with the given pulse
+    /// timing; an error when `frames < 2`, `piv.pyramid ≥ frames`, `step`
+    /// is 0, the pulse period is not positive, or the options do not suit
+    /// the sensor (see [`node_grid`]).
     pub fn new(
         width: usize,
         height: usize,

@@ -107,6 +107,10 @@ pub struct NpyStack {
 }
 
 impl NpyStack {
+    /// Start a stack to be written to `target` with dtype `descr`
+    /// (`"<f4"` or `"|u1"`) and frames of `ny × nx`; frames are spilled to
+    /// a hidden file next to `target` until [`finish`](Self::finish). An
+    /// error when that file cannot be created.
     pub fn create(target: &Path, descr: &'static str, ny: usize, nx: usize) -> Result<Self> {
         let dir = target
             .parent()
@@ -131,6 +135,7 @@ impl NpyStack {
         })
     }
 
+    /// Append one `<f4` frame of `ny · nx` values, row-major.
     pub fn push_f32(&mut self, vals: impl Iterator<Item = f32>) -> Result<()> {
         let w = self.spill.as_mut().expect("open");
         let mut n = 0;
@@ -144,6 +149,7 @@ impl NpyStack {
         Ok(())
     }
 
+    /// Append one `|u1` frame of `ny · nx` values, row-major.
     pub fn push_u8(&mut self, vals: &[u8]) -> Result<()> {
         let w = self.spill.as_mut().expect("open");
         w.write_all(vals)
@@ -152,6 +158,9 @@ impl NpyStack {
         Ok(())
     }
 
+    /// Write the `.npy` file (header and all frames) atomically to the
+    /// target and remove the spill file; an error names the file that
+    /// could not be read or written.
     pub fn finish(mut self) -> Result<()> {
         let w = self.spill.take().expect("open");
         w.into_inner()

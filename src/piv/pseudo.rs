@@ -31,6 +31,7 @@ pub enum PixelMode {
 /// Options of pseudo-image construction.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PseudoOptions {
+    /// How events contribute to their pixel.
     pub mode: PixelMode,
     /// Use OFF events too (default: ON only).
     pub both_polarities: bool,

@@ -37,7 +37,9 @@ pub static PARTICLE_COLUMNS: [Col<Particle>; 5] = [
 /// One row of the `tracks` table: a point and the id of its track.
 #[derive(Debug, Clone, Copy)]
 pub struct TrackRow {
+    /// Id of the track.
     pub id: u64,
+    /// The point (µs, px, px/s).
     pub p: TrackPoint,
     /// `X_mm, Y_mm, U_m_s, V_m_s` when the run is calibrated (read only by
     /// [`TRACK_COLUMNS_CALIBRATED`]).
@@ -67,7 +69,9 @@ pub(crate) static TRACK_COLUMNS_CALIBRATED: [Col<TrackRow>; 11] = [
 
 /// Streaming writer of the `particles` table in any [`TableFormat`].
 pub enum ParticlesWriter {
+    /// `particles.csv`.
     Csv(ParticlesCsvWriter),
+    /// `particles.parquet` or `particles.npy`.
     Table(TableWriter<Particle>),
 }
 
@@ -106,7 +110,10 @@ impl ParticlesWriter {
 
 /// Streaming writer of the `tracks` table in any [`TableFormat`].
 pub enum TracksWriter {
+    /// `tracks.csv`.
     Csv(TracksCsvWriter),
+    /// `tracks.parquet` or `tracks.npy`, with the calibration whose
+    /// physical columns end each row, if any.
     Table(TableWriter<TrackRow>, Option<crate::calib::Calibration>),
 }
 
@@ -799,18 +806,24 @@ pub fn read_tracks(path: &Path) -> Result<Vec<Track>> {
 /// `summary.json`: what the PTV stage found.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Summary {
+    /// Pulses processed.
     pub pulses: u64,
+    /// Particles (detections) found.
     pub particles: u64,
+    /// Tracks kept.
     pub tracks: u64,
     /// Detections on kept tracks.
     pub particles_on_tracks: u64,
     /// `particles_on_tracks / particles`.
     pub fraction_on_tracks: f64,
+    /// Mean number of points per kept track (0 without tracks).
     pub mean_track_length: f64,
     /// Histogram of track lengths (points per track): `[lower, upper)` bin
     /// edges and counts.
     pub length_histogram: Vec<(u64, u64, u64)>,
+    /// Mean speed |(u, v)| over all track points (px/s; 0 without points).
     pub mean_speed_px_s: f64,
+    /// The tracker's counters.
     pub tracker: TrackerStats,
     /// How the run was made ([`crate::provenance`]), when recorded.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -839,6 +852,8 @@ impl SummaryAcc {
 }
 
 impl Summary {
+    /// The summary of a finished set of tracks and the tracker's counters
+    /// (no provenance).
     pub fn new(tracks: &[Track], stats: &TrackerStats) -> Self {
         let mut acc = SummaryAcc::default();
         acc.add(tracks);

@@ -44,20 +44,28 @@ pub enum TrackProgress<'a> {
     /// A pass over the input starts; `file_size` is its size in bytes when
     /// known.
     Stage {
+        /// The pass that starts.
         stage: TrackStage,
+        /// Size of the input (bytes), when known.
         file_size: Option<u64>,
     },
     /// After each chunk read: the bytes read and events decoded so far in
     /// this pass; `done` on the last chunk.
     Read {
+        /// The pass under way.
         stage: TrackStage,
+        /// Bytes read so far in this pass.
         bytes: u64,
+        /// Events decoded so far in this pass.
         events: u64,
+        /// True on the pass's last chunk.
         done: bool,
     },
     /// After each pulse tracked: particles found so far and tracks active.
     Pulse {
+        /// Particles found so far.
         particles: u64,
+        /// Tracks currently active.
         active_tracks: usize,
     },
     /// A reader's warning about the input (e.g. a header it could not use).

@@ -164,6 +164,8 @@ pub struct SliceTracker {
 }
 
 impl SliceTracker {
+    /// A slice tracker with these tracking and slicing parameters; an
+    /// error when a parameter is out of range.
     pub fn new(params: TrackParams, slicing: SliceParams) -> Result<Self> {
         params.validate()?;
         slicing.validate()?;

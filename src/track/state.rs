@@ -10,16 +10,21 @@ use super::*;
 /// One point of a track: the track's fitted state at one pulse.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct TrackPoint {
+    /// Index of the pulse.
     pub pulse: i64,
+    /// Time of the pulse (µs).
     pub t_us: f64,
     /// Fitted position (px).
     pub x: f64,
+    /// Fitted position y (px).
     pub y: f64,
     /// Fitted velocity (px/s).
     pub u: f64,
+    /// Fitted velocity along y (px/s).
     pub v: f64,
     /// Fitted acceleration (px/s²).
     pub ax: f64,
+    /// Fitted acceleration along y (px/s²).
     pub ay: f64,
     /// True where the point bridges a gap (no detection at this pulse).
     pub interpolated: bool,
@@ -28,7 +33,9 @@ pub struct TrackPoint {
 /// A Lagrangian track.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Track {
+    /// Track id, unique within a run.
     pub id: u64,
+    /// The points, one per pulse in increasing pulse order.
     pub points: Vec<TrackPoint>,
 }
 
@@ -38,7 +45,9 @@ pub struct Track {
 /// (pulse-sorted) input. Used to score links against ground truth.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LinkedTrack {
+    /// The track.
     pub track: Track,
+    /// Per point, the serial number of its detection (`None` on bridged gaps).
     pub detections: Vec<Option<u64>>,
 }
 
@@ -191,12 +200,19 @@ impl Frame {
 /// Counters of what the tracker did (for `summary.json`).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct TrackerStats {
+    /// Pulses pushed.
     pub pulses: u64,
+    /// Particles (detections) pushed.
     pub particles: u64,
+    /// Tracks initialised.
     pub tracks_started: u64,
+    /// Ended tracks joined to a new chain across a gap.
     pub tracks_stitched: u64,
+    /// Tracks kept (written out).
     pub tracks_kept: u64,
+    /// Tracks dropped with fewer than `min_length` detections.
     pub tracks_rejected_short: u64,
+    /// Tracks dropped with a fit residual above `max_fit_residual`.
     pub tracks_rejected_rough: u64,
     /// Detections on kept tracks.
     pub particles_on_tracks: u64,
@@ -295,6 +311,7 @@ pub(super) struct Scratch {
 }
 
 impl Tracker {
+    /// A tracker with these parameters; an error when a parameter is out of range.
     pub fn new(params: TrackParams) -> Result<Self> {
         params.validate()?;
         let floor2 = params.gates.sigma_floor.powi(2);

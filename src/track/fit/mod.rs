@@ -140,13 +140,17 @@ pub(crate) use running::*;
 /// A fitted state at one evaluation time (in the caller's τ units).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FitState {
+    /// Fitted position x (px).
     pub x: f64,
+    /// Fitted position y (px).
     pub y: f64,
     /// dx/dτ, dy/dτ.
     pub vx: f64,
+    /// dy/dτ.
     pub vy: f64,
     /// d²x/dτ², d²y/dτ².
     pub ax: f64,
+    /// d²y/dτ².
     pub ay: f64,
     /// Residual rms per axis (px); 0 when the fit has no spare points.
     pub rms_residual: f64,
