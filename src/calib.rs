@@ -87,19 +87,8 @@ fn config_err(path: &Path, why: impl Into<String>) -> Error {
 }
 
 impl Calibration {
-    /// A calibration of scale `px_per_mm` with the origin at pixel (0, 0)
-    /// and y down (as pixel rows).
-    pub fn from_scale(px_per_mm: f64) -> Self {
-        Calibration {
-            px_per_mm,
-            origin_px: [0.0, 0.0],
-            y_axis: YAxis::Down,
-            mask: None,
-        }
-    }
-
     /// The scale of two points `a`, `b` (px) that are `distance_mm` apart.
-    pub fn scale_from_points(a: [f64; 2], b: [f64; 2], distance_mm: f64) -> f64 {
+    pub(crate) fn scale_from_points(a: [f64; 2], b: [f64; 2], distance_mm: f64) -> f64 {
         (a[0] - b[0]).hypot(a[1] - b[1]) / distance_mm
     }
 
@@ -112,7 +101,7 @@ impl Calibration {
 
     /// Parses the text of a `calib.toml`; `path` names it in errors and
     /// anchors a relative mask image.
-    pub fn from_toml(text: &str, path: &Path) -> Result<Self> {
+    pub(crate) fn from_toml(text: &str, path: &Path) -> Result<Self> {
         let f: CalibFile =
             toml::from_str(text).map_err(|e| config_err(path, e.to_string().trim_end()))?;
         let px_per_mm =
@@ -253,7 +242,7 @@ impl Calibration {
 
     /// The physical columns of a field of mean velocities and stresses
     /// (grids, PIV means).
-    pub fn field_columns() -> &'static [&'static str] {
+    pub(crate) fn field_columns() -> &'static [&'static str] {
         &[
             "X_mm", "Y_mm", "U_m_s", "V_m_s", "uu_m2_s2", "vv_m2_s2", "uv_m2_s2",
         ]
@@ -261,7 +250,7 @@ impl Calibration {
 
     /// Values of [`Self::field_columns`].
     #[allow(clippy::too_many_arguments)]
-    pub fn field_values(
+    pub(crate) fn field_values(
         &self,
         x: f64,
         y: f64,
@@ -278,13 +267,13 @@ impl Calibration {
 }
 
 /// `,A,B,…`: physical columns appended to a CSV header.
-pub fn header_suffix(columns: &[&str]) -> String {
+pub(crate) fn header_suffix(columns: &[&str]) -> String {
     columns.iter().map(|c| format!(",{c}")).collect()
 }
 
 /// A physical value as CSV text: 7 significant digits (`nan` when not
 /// finite).
-pub fn format_value(v: f64) -> String {
+pub(crate) fn format_value(v: f64) -> String {
     if !v.is_finite() {
         return "nan".into();
     }
@@ -294,7 +283,7 @@ pub fn format_value(v: f64) -> String {
 }
 
 /// Appends `,v` for each value ([`format_value`]).
-pub fn push_values(out: &mut Vec<u8>, values: &[f64]) {
+pub(crate) fn push_values(out: &mut Vec<u8>, values: &[f64]) {
     for &v in values {
         out.push(b',');
         out.extend_from_slice(format_value(v).as_bytes());
@@ -422,7 +411,7 @@ impl PixelMask {
     /// The pixels whose centres lie inside any of `polygons` (px, even-odd
     /// rule); an error text when a polygon has fewer than 3 vertices or
     /// coordinates that are not finite or beyond any sensor.
-    pub fn from_polygons(polygons: &[Vec<[f64; 2]>]) -> std::result::Result<Self, String> {
+    pub(crate) fn from_polygons(polygons: &[Vec<[f64; 2]>]) -> std::result::Result<Self, String> {
         let (mut w, mut h) = (0u32, 0u32);
         for (i, p) in polygons.iter().enumerate() {
             if p.len() < 3 {
@@ -470,7 +459,7 @@ impl PixelMask {
     }
 
     /// Pixels masked in either mask (the size of the larger).
-    pub fn union(&self, other: &PixelMask) -> PixelMask {
+    pub(crate) fn union(&self, other: &PixelMask) -> PixelMask {
         let mut m = PixelMask::new(self.width.max(other.width), self.height.max(other.height));
         for src in [self, other] {
             for y in 0..src.height {
@@ -494,7 +483,7 @@ impl PixelMask {
 
     /// Whether the pixel holding position `(x, y)` (px) is masked.
     #[inline]
-    pub fn is_masked(&self, x: f64, y: f64) -> bool {
+    pub(crate) fn is_masked(&self, x: f64, y: f64) -> bool {
         let (i, j) = ((x + 0.5).floor(), (y + 0.5).floor());
         i >= 0.0 && j >= 0.0 && i < u32::MAX as f64 && j < u32::MAX as f64 && {
             self.is_masked_px(i as u32, j as u32)
@@ -503,7 +492,7 @@ impl PixelMask {
 
     /// Fraction of the pixels with centres in `[x0, x1) × [y0, y1)` that
     /// are masked (0 when the rectangle holds no pixel centre).
-    pub fn masked_fraction(&self, x0: f64, x1: f64, y0: f64, y1: f64) -> f64 {
+    pub(crate) fn masked_fraction(&self, x0: f64, x1: f64, y0: f64, y1: f64) -> f64 {
         let lo = |v: f64| v.ceil().max(0.0);
         let hi = |v: f64| (v.ceil() - 1.0).max(-1.0);
         let (i0, i1, j0, j1) = (lo(x0), hi(x1), lo(y0), hi(y1));
@@ -525,7 +514,7 @@ impl PixelMask {
 
     /// Whether the straight segment from `a` to `b` (px) passes over a
     /// masked pixel (sampled every quarter pixel, ends included).
-    pub fn crosses(&self, a: (f64, f64), b: (f64, f64)) -> bool {
+    pub(crate) fn crosses(&self, a: (f64, f64), b: (f64, f64)) -> bool {
         let len = (b.0 - a.0).hypot(b.1 - a.1);
         if !len.is_finite() {
             return false;

@@ -47,17 +47,21 @@ use crate::pulses::PulseEvents;
 /// One particle detected in one pulse.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Particle {
+    /// Index of the pulse the particle was seen in.
     pub pulse: i64,
     /// Time of the pulse start the particle belongs to (µs).
     pub t_us: f64,
     /// Sub-pixel centroid (px).
     pub x: f64,
+    /// Sub-pixel centroid, y (px).
     pub y: f64,
+    /// Events in the particle image.
     pub n_events: u32,
     /// Number of distinct pixels.
     pub n_pixels: u32,
     /// Bounding-box extent (px) along x and y (max - min + 1).
     pub extent_x: f32,
+    /// Bounding-box extent along y (px, max - min + 1).
     pub extent_y: f32,
     /// Latency of the first event after the pulse start (µs).
     pub first_latency_us: f32,
@@ -149,7 +153,7 @@ impl ClusterParams {
     }
 
     /// Check the parameters; errors name the parameter.
-    pub fn validate(&self) -> Result<()> {
+    pub(crate) fn validate(&self) -> Result<()> {
         if !(self.radius.is_finite() && self.radius > 0.0) {
             return Err(Error::param(
                 "radius",
@@ -178,7 +182,7 @@ impl ClusterParams {
     }
 
     /// Largest squared integer pixel distance that joins two pixels.
-    pub fn max_d2(&self) -> i64 {
+    pub(crate) fn max_d2(&self) -> i64 {
         (self.radius * self.radius).floor() as i64
     }
 }
@@ -186,9 +190,13 @@ impl ClusterParams {
 /// A distinct pixel of one pulse with its events folded in.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PixelHits {
+    /// Pixel column (px).
     pub x: u16,
+    /// Pixel row (px).
     pub y: u16,
+    /// Selected events of the pulse at this pixel.
     pub count: u32,
+    /// Earliest event time at this pixel (µs, sensor clock).
     pub first_t: i64,
 }
 
@@ -627,7 +635,7 @@ fn canonical_labels(uf: &mut UnionFind, n: usize) -> Vec<u32> {
 
 /// Particles from labelled pixels (labels from [`pixel_labels`]), in label
 /// order, filtered by the size limits.
-pub fn particles_from_labels(
+pub(crate) fn particles_from_labels(
     pulse: &PulseEvents,
     pixels: &[PixelHits],
     labels: &[u32],

@@ -26,17 +26,21 @@ use crate::plot::{heatmap, line_plot, Heatmap, LinePlot, Series, SeriesStyle};
 /// A table read from a CSV with a header: named columns of numbers.
 #[derive(Debug, Clone)]
 pub struct Table {
+    /// Column names, in file order.
     pub names: Vec<String>,
+    /// Column values, one vector per name (NaN for empty or `nan` cells).
     pub cols: Vec<Vec<f64>>,
 }
 
 impl Table {
+    /// The column called `name`, if present.
     pub fn col(&self, name: &str) -> Option<&[f64]> {
         self.names
             .iter()
             .position(|n| n == name)
             .map(|i| self.cols[i].as_slice())
     }
+    /// Number of data rows.
     pub fn rows(&self) -> usize {
         self.cols.first().map_or(0, |c| c.len())
     }
@@ -139,7 +143,9 @@ pub fn read_table(path: &Path, required: &[&str]) -> Result<Table> {
 /// A regular grid recovered from scattered node coordinates.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RegularGrid {
+    /// Distinct node x coordinates, increasing.
     pub xs: Vec<f64>,
+    /// Distinct node y coordinates, increasing.
     pub ys: Vec<f64>,
 }
 
@@ -213,25 +219,33 @@ impl RegularGrid {
 /// Agreement of one quantity.
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct QuantityStats {
+    /// Bins compared for this quantity.
     pub n: usize,
     /// Mean of PTV − PIV.
     pub mean_diff: f64,
     /// rms of PTV − PIV.
     pub rms_diff: f64,
+    /// rms of the PTV values over the compared bins.
     pub ptv_rms: f64,
+    /// rms of the resampled PIV values over the compared bins.
     pub piv_rms: f64,
 }
 
 /// The comparison result (serialised as `compare.json`).
 #[derive(Debug, Clone, Serialize)]
 pub struct Comparison {
+    /// How PIV was resampled onto the PTV bins (a sentence).
     pub resampling: String,
+    /// PTV bins in the grid table.
     pub ptv_bins: usize,
+    /// PTV bins compared for at least one quantity.
     pub compared_bins: usize,
+    /// Agreement per quantity (`u`, `v`, `uu`, `vv`, `uv`), in the tables' units.
     pub quantities: Vec<(String, QuantityStats)>,
     /// The PTV grid, and per quantity the difference raster on it.
     #[serde(skip)]
     pub grid: RegularGrid,
+    /// Per quantity, PTV − PIV on the PTV grid (row-major, NaN where not compared).
     #[serde(skip)]
     pub diff_maps: Vec<(String, Vec<f64>)>,
     /// Column-averaged profiles: (y, PTV u, PIV u, PTV v, PIV v).

@@ -9,7 +9,7 @@
 //! non-finite ones). Tests compare them with `format!` on ~10^6 values.
 
 /// Append `v` in decimal.
-pub fn push_int(out: &mut Vec<u8>, v: i64) {
+pub(crate) fn push_int(out: &mut Vec<u8>, v: i64) {
     if v < 0 {
         out.push(b'-');
     }
@@ -21,7 +21,7 @@ pub fn push_int(out: &mut Vec<u8>, v: i64) {
 /// integer gives the same digits unless the scaled value sits within a
 /// few ulps of a rounding tie (or is huge, or not finite): those rare
 /// values go through `core::fmt`, which rounds the exact binary value.
-pub fn push_fixed(out: &mut Vec<u8>, v: f64, decimals: u32) {
+pub(crate) fn push_fixed(out: &mut Vec<u8>, v: f64, decimals: u32) {
     let mut b = RevDigits::<24>::new();
     if b.fixed(v, decimals) {
         out.extend_from_slice(b.as_slice());
@@ -54,7 +54,7 @@ const DIGIT_PAIRS: &[u8; 200] = b"0001020304050607080910111213141516171819\
 /// keeps the total within `N` with 8 bytes to spare in front (a number
 /// takes at most 20 digits plus sign and point; the 8-byte stores may
 /// write up to 7 bytes ahead of the text).
-pub struct RevDigits<const N: usize> {
+pub(crate) struct RevDigits<const N: usize> {
     buf: [u8; N],
     start: usize,
 }
@@ -66,7 +66,7 @@ impl<const N: usize> Default for RevDigits<N> {
 }
 
 impl<const N: usize> RevDigits<N> {
-    pub fn new() -> Self {
+    pub(crate) fn new() -> Self {
         RevDigits {
             buf: [b'0'; N],
             start: N,
@@ -74,27 +74,27 @@ impl<const N: usize> RevDigits<N> {
     }
 
     /// The text so far.
-    pub fn as_slice(&self) -> &[u8] {
+    pub(crate) fn as_slice(&self) -> &[u8] {
         &self.buf[self.start..]
     }
 
     /// Prepend one byte.
     #[inline(always)]
-    pub fn byte(&mut self, b: u8) {
+    pub(crate) fn byte(&mut self, b: u8) {
         self.start -= 1;
         self.buf[self.start] = b;
     }
 
     /// Prepend `text` (the caller keeps the total within `N`).
     #[inline(always)]
-    pub fn bytes(&mut self, text: &[u8]) {
+    pub(crate) fn bytes(&mut self, text: &[u8]) {
         self.start -= text.len();
         self.buf[self.start..self.start + text.len()].copy_from_slice(text);
     }
 
     /// Bytes still free in front of the text.
     #[inline(always)]
-    pub fn room(&self) -> usize {
+    pub(crate) fn room(&self) -> usize {
         self.start
     }
 
@@ -108,7 +108,7 @@ impl<const N: usize> RevDigits<N> {
     /// Prepend `n` in decimal: eight digits per step ([`ascii8`]); the
     /// buffer needs 8 bytes of room in front of the text at each step.
     #[inline(always)]
-    pub fn u64(&mut self, mut n: u64) {
+    pub(crate) fn u64(&mut self, mut n: u64) {
         while n >= 100_000_000 {
             let (text, _) = ascii8((n % 100_000_000) as u32);
             self.last8(text, 8);
@@ -146,7 +146,7 @@ impl<const N: usize> RevDigits<N> {
 
     /// Prepend `n` in decimal, or its negation.
     #[inline(always)]
-    pub fn i64(&mut self, n: i64) {
+    pub(crate) fn i64(&mut self, n: i64) {
         self.u64(n.unsigned_abs());
         if n < 0 {
             self.byte(b'-');
@@ -159,7 +159,7 @@ impl<const N: usize> RevDigits<N> {
     /// nothing) for the rare values near a rounding tie, huge or not
     /// finite, which need `core::fmt`'s exact rounding.
     #[inline(always)]
-    pub fn fixed(&mut self, v: f64, decimals: u32) -> bool {
+    pub(crate) fn fixed(&mut self, v: f64, decimals: u32) -> bool {
         const SCALE: [f64; 7] = [1.0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6];
         let d = decimals.min(6) as usize;
         let a = v.abs() * SCALE[d];

@@ -52,6 +52,7 @@ pub struct Truth {
     #[allow(clippy::type_complexity)]
     by_pulse: HashMap<i64, Vec<(u64, f64, f64, f64, f64)>>,
     trees: HashMap<i64, KdTree<f64, 2>>,
+    /// Truth samples (rows of `truth_particles.csv`).
     pub samples: usize,
 }
 
@@ -113,7 +114,7 @@ impl Truth {
     }
 
     /// Largest true speed over all samples (px/s).
-    pub fn max_speed(&self) -> f64 {
+    pub(crate) fn max_speed(&self) -> f64 {
         self.by_pulse
             .values()
             .flatten()
@@ -161,14 +162,22 @@ fn match_detections(
 /// Detection scores of a particles table (any format).
 #[derive(Debug, Clone, Serialize)]
 pub struct DetectionScore {
+    /// Detections in the table (rows).
     pub detections: usize,
+    /// Truth samples (particle images over all pulses).
     pub truth_samples: usize,
+    /// Matched detections / detections.
     pub precision: f64,
+    /// Matched truth samples / truth samples.
     pub recall: f64,
     /// Rms centroid error of matched detections (px, per component).
     pub position_rms_px: f64,
 }
 
+/// Score the particles table `particles_csv` (any format, columns
+/// `pulse,x,y`) against `truth`, a detection matching the nearest truth
+/// particle of its pulse within `radius` px. Fails when the table cannot be
+/// read or lacks a column.
 pub fn score_particles(particles_csv: &Path, truth: &Truth, radius: f64) -> Result<DetectionScore> {
     let t = read_table(particles_csv, &["pulse", "x", "y"])?;
     let (k, x, y) = (
@@ -203,17 +212,28 @@ pub fn score_particles(particles_csv: &Path, truth: &Truth, radius: f64) -> Resu
 /// Link and velocity scores of a tracks table (any format).
 #[derive(Debug, Clone, Serialize)]
 pub struct TrackScore {
+    /// Distinct track ids.
     pub tracks: usize,
+    /// Track points (rows of the table).
     pub track_points: usize,
+    /// Links: pairs of consecutive points of one track.
     pub links: usize,
+    /// Correct links / links.
     pub link_precision: f64,
+    /// Truth links found / truth links (detection losses included).
     pub link_recall: f64,
     /// Rms velocity error (px per pulse interval, per component) over
     /// matched track points.
     pub velocity_rms_px_per_pulse: f64,
+    /// Track points matched to a truth particle.
     pub matched_points: usize,
 }
 
+/// Score the tracks table `tracks_csv` (any format, columns
+/// `track_id,pulse,x,y,u,v`, u and v in px/s) against `truth`; `period_us` is
+/// the pulse period (µs) that turns velocities into px per pulse interval,
+/// `radius` the matching radius (px). Fails when the table cannot be read or
+/// lacks a column.
 pub fn score_tracks(
     tracks_csv: &Path,
     truth: &Truth,
@@ -278,13 +298,16 @@ pub fn score_tracks(
 /// truth binned at the same nodes.
 #[derive(Debug, Clone, Serialize)]
 pub struct FieldScore {
+    /// Nodes scored.
     pub nodes_compared: usize,
     /// Rms of the vector error over nodes, as a fraction of the largest
     /// true speed.
     pub rms_error_of_max_speed: f64,
     /// Mean error (bias) of u and v, fraction of the largest true speed.
     pub mean_error_u: f64,
+    /// Mean error (bias) of v, fraction of the largest true speed.
     pub mean_error_v: f64,
+    /// Largest true speed over all truth samples (px/s).
     pub max_true_speed: f64,
 }
 

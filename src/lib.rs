@@ -75,6 +75,8 @@
 //! grid` ([`grid::grid_to_dir`]), `ebptv spectra` ([`spectra::spectra_to_dir`])
 //! and `ebptv compare` ([`compare::compare_to_dir`]).
 
+#![warn(missing_docs)]
+
 pub mod decimal;
 pub use ebptv_io as io;
 pub use ebptv_io::{error, events};

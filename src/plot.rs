@@ -63,12 +63,19 @@ fn ensure_font() {
 /// row 0 at `y_range.0` (top of the image, y pointing down as in pixels).
 /// NaN = no data (drawn grey).
 pub struct Heatmap<'a> {
+    /// Title drawn above the map.
     pub title: &'a str,
+    /// The map, row-major, `nx * ny` values.
     pub values: &'a [f64],
+    /// Columns of the grid.
     pub nx: usize,
+    /// Rows of the grid.
     pub ny: usize,
+    /// Horizontal extent of the map (left, right), in axis units (px for sensor maps).
     pub x_range: (f64, f64),
+    /// Vertical extent of the map (top, bottom), in axis units (px for sensor maps).
     pub y_range: (f64, f64),
+    /// Label of the colour bar (quantity and unit).
     pub colorbar_label: &'a str,
     /// Symmetric colour scale around zero (differences, uv, v).
     pub diverging: bool,
@@ -102,9 +109,12 @@ pub fn heatmap_with_range(
     write_png(path, &buf, size)
 }
 
+/// How a [`Series`] is drawn.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum SeriesStyle {
+    /// Straight segments joining consecutive points.
     Line,
+    /// A marker at each point.
     Points,
     /// Piecewise constant: `y[i]` holds from `x[i]` to `x[i+1]` (the last
     /// step as wide as the one before it), e.g. a histogram given left bin
@@ -112,19 +122,31 @@ pub enum SeriesStyle {
     Steps,
 }
 
+/// One curve of a [`LinePlot`].
 pub struct Series<'a> {
+    /// Legend entry.
     pub label: &'a str,
+    /// Abscissae.
     pub x: &'a [f64],
+    /// Ordinates, one per abscissa.
     pub y: &'a [f64],
+    /// How the curve is drawn.
     pub style: SeriesStyle,
 }
 
+/// A plot of one or several curves on shared axes.
 pub struct LinePlot<'a> {
+    /// Title drawn above the plot.
     pub title: &'a str,
+    /// Label of the x axis (quantity and unit).
     pub x_label: &'a str,
+    /// Label of the y axis (quantity and unit).
     pub y_label: &'a str,
+    /// The curves.
     pub series: Vec<Series<'a>>,
+    /// Logarithmic x axis (points with x ≤ 0 are skipped).
     pub log_x: bool,
+    /// Logarithmic y axis (points with y ≤ 0 are skipped).
     pub log_y: bool,
     /// Vertical marker lines (x, label).
     pub vlines: Vec<(f64, &'a str)>,
@@ -146,15 +168,24 @@ pub fn line_plot_sized(path: &Path, plot: &LinePlot, size: (u32, u32)) -> Result
 /// A histogram from bin edges (`edges.len() == counts.len() + 1`) drawn as
 /// steps, one or several (e.g. measured vs simulated) on the same bins.
 pub struct HistogramPlot<'a> {
+    /// Title drawn above the plot.
     pub title: &'a str,
+    /// Label of the x axis (quantity and unit).
     pub x_label: &'a str,
+    /// Label of the y axis.
     pub y_label: &'a str,
+    /// Bin edges, finite and increasing.
     pub edges: &'a [f64],
     /// (label, counts) per histogram.
     pub histograms: Vec<(&'a str, &'a [f64])>,
+    /// Logarithmic y axis (empty bins are skipped).
     pub log_y: bool,
 }
 
+/// Draw a histogram plot as a PNG at `path`. Fails when there are fewer
+/// than two edges, the edges are not finite and increasing, no histogram is
+/// given, a histogram's count does not match the bins, or the image cannot
+/// be drawn or written.
 pub fn histogram_plot(path: &Path, h: &HistogramPlot) -> Result<()> {
     let what = |why: String| Error::param(format!("histogram `{}`", h.title), why);
     if h.edges.len() < 2 {
@@ -216,11 +247,17 @@ pub fn histogram_plot(path: &Path, h: &HistogramPlot) -> Result<()> {
 /// Polylines (e.g. particle tracks) coloured by a scalar (e.g. speed), over
 /// an image-sized frame with y pointing down. One value per line.
 pub struct Polylines<'a> {
+    /// Title drawn above the plot.
     pub title: &'a str,
+    /// Width of the frame (px).
     pub width: f64,
+    /// Height of the frame (px).
     pub height: f64,
+    /// The lines, each a sequence of (x, y) points (px).
     pub lines: &'a [Vec<(f64, f64)>],
+    /// Value of each line, mapped to its colour.
     pub values: &'a [f64],
+    /// Label of the colour bar (quantity and unit).
     pub colorbar_label: &'a str,
 }
 
@@ -230,6 +267,7 @@ pub fn polylines(path: &Path, p: &Polylines) -> Result<()> {
     polylines_sized(path, p, size)
 }
 
+/// Draw polylines at a given image size (px).
 pub fn polylines_sized(path: &Path, p: &Polylines, size: (u32, u32)) -> Result<()> {
     let buf = render_polylines(p, size).map_err(|e| at_path(path, e))?;
     write_png(path, &buf, size)
@@ -285,7 +323,7 @@ pub fn viridis(t: f64) -> (u8, u8, u8) {
 }
 
 /// Colour for `t` in [0, 1] on the blue-white-red map (0.5 = white).
-pub fn diverging(t: f64) -> (u8, u8, u8) {
+pub(crate) fn diverging(t: f64) -> (u8, u8, u8) {
     interpolate(&DIVERGING, t)
 }
 

@@ -29,7 +29,7 @@ use crate::{Error, Result};
 pub const PARQUET_KEY: &str = "ebptv.provenance";
 
 /// The file the record is written to in an output folder.
-pub const FILE_NAME: &str = "provenance.json";
+pub(crate) const FILE_NAME: &str = "provenance.json";
 
 /// Bytes hashed at each end of an input file.
 const HASHED_BYTES: u64 = 1 << 20;
@@ -72,7 +72,7 @@ pub struct InputFingerprint {
 
 impl InputFingerprint {
     /// Fingerprint the file at `path`.
-    pub fn of(path: &Path) -> Result<Self> {
+    pub(crate) fn of(path: &Path) -> Result<Self> {
         let io_err = |e: std::io::Error| Error::io(path, e);
         let mut f = File::open(path).map_err(io_err)?;
         let size = f.metadata().map_err(io_err)?.len();
@@ -128,7 +128,7 @@ impl Provenance {
     }
 
     /// Record the run's parameters (any serialisable settings struct).
-    pub fn with_parameters<T: Serialize>(mut self, params: &T) -> Result<Self> {
+    pub(crate) fn with_parameters<T: Serialize>(mut self, params: &T) -> Result<Self> {
         let v = serde_json::to_value(params)
             .map_err(|e| Error::analysis(format!("recording the parameters: {e}")))?;
         self.parameters = Some(v);
@@ -136,7 +136,7 @@ impl Provenance {
     }
 
     /// Record where the pulse times came from.
-    pub fn with_pulse_source(mut self, source: impl Into<String>) -> Self {
+    pub(crate) fn with_pulse_source(mut self, source: impl Into<String>) -> Self {
         self.pulse_source = Some(source.into());
         self
     }

@@ -53,14 +53,18 @@ impl Default for WelchOptions {
 /// A one-sided power spectral density.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Psd {
+    /// Frequencies (Hz), from 0 in steps of [`Psd::df`].
     pub f_hz: Vec<f64>,
     /// Density in (unit)²/Hz.
     pub psd: Vec<f64>,
+    /// Sampling frequency (Hz).
     pub fs_hz: f64,
+    /// Welch segments averaged.
     pub n_segments: usize,
 }
 
 impl Psd {
+    /// Frequency resolution (Hz); 0 with fewer than two frequencies.
     pub fn df(&self) -> f64 {
         if self.f_hz.len() > 1 {
             self.f_hz[1] - self.f_hz[0]
@@ -177,6 +181,7 @@ pub struct Peak {
     pub f_hz: f64,
     /// PSD at the peak bin.
     pub psd: f64,
+    /// Index of the peak bin in `f_hz`.
     pub bin: usize,
 }
 
@@ -591,13 +596,17 @@ mod tests {
 /// Options of [`point_spectra`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SpectraOptions {
+    /// The bins of the time-resolved grid.
     pub lattice: crate::grid::Lattice,
+    /// How samples are weighted into the bins.
     pub weighting: crate::grid::Weighting,
     /// One frame every `every` pulses (sample periods).
     pub every: usize,
+    /// Welch segment length and overlap.
     pub welch: WelchOptions,
     /// Peak search band (Hz).
     pub f_min: f64,
+    /// Upper end of the peak search band (Hz).
     pub f_max: f64,
     /// Also report the rms about a moving average of this many frames.
     pub moving_average: Option<usize>,
@@ -610,16 +619,22 @@ pub struct SpectraOptions {
 pub struct PointSpectrum {
     /// Requested point (px).
     pub x: f64,
+    /// Requested point, y (px).
     pub y: f64,
     /// Centre of the bin used (px).
     pub bin_x: f64,
+    /// Centre of the bin used, y (px).
     pub bin_y: f64,
+    /// Spectrum of u ((px/s)²/Hz).
     pub psd_u: Psd,
+    /// Spectrum of v ((px/s)²/Hz).
     pub psd_v: Psd,
     /// Significant peak (at [`PEAK_FALSE_ALARM`]) of the summed spectrum
     /// of u and v; `None` when no peak stands above the noise.
     pub peak: Option<Peak>,
+    /// Significant peak of the u spectrum alone, if any.
     pub peak_u: Option<Peak>,
+    /// Significant peak of the v spectrum alone, if any.
     pub peak_v: Option<Peak>,
     /// The test behind `peak` (false-alarm probability, strongest bin).
     pub peak_test: PeakTest,
@@ -631,20 +646,27 @@ pub struct PointSpectrum {
     pub f_resolved_hz: f64,
     /// Fraction of frames without a sample (filled by interpolation).
     pub gap_fraction: f64,
+    /// Mean of u over the frames (px/s).
     pub mean_u: f64,
+    /// Mean of v over the frames (px/s).
     pub mean_v: f64,
+    /// RMS of u about its mean (px/s).
     pub rms_u: f64,
+    /// RMS of v about its mean (px/s).
     pub rms_v: f64,
     /// RMS of the noise floor (px/s) per component.
     pub noise_rms_u: f64,
+    /// RMS of the noise floor of v (px/s).
     pub noise_rms_v: f64,
+    /// RMS of u about its moving average (px/s), when asked for.
     pub rms_ma_u: Option<f64>,
+    /// RMS of v about its moving average (px/s), when asked for.
     pub rms_ma_v: Option<f64>,
 }
 
 impl PointSpectrum {
     /// Summed spectrum u + v.
-    pub fn psd_sum(&self) -> Vec<f64> {
+    pub(crate) fn psd_sum(&self) -> Vec<f64> {
         self.psd_u
             .psd
             .iter()
@@ -657,7 +679,9 @@ impl PointSpectrum {
 /// Everything [`point_spectra`] found.
 #[derive(Debug, Clone)]
 pub struct SpectraResult {
+    /// The time axis of the frames.
     pub frames: crate::grid::fields::Frames,
+    /// The spectrum at each requested point, in order.
     pub points: Vec<PointSpectrum>,
     /// Largest mean speed over the grid's bins (px/s).
     pub max_speed: f64,

@@ -35,7 +35,7 @@ use crate::io::atomic::AtomicFile;
 
 /// Rows per Parquet row group (and per `.npy` write): ~3.5 MB of buffered
 /// values for a 7-column table.
-pub const ROW_GROUP_ROWS: usize = 1 << 16;
+pub(crate) const ROW_GROUP_ROWS: usize = 1 << 16;
 
 /// The file format of the row tables (`particles`, `tracks`).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -67,7 +67,7 @@ impl TableFormat {
 
     /// The format of an existing table file, from its first bytes
     /// (`PAR1`, `\x93NUMPY`; anything else is read as CSV).
-    pub fn sniff(path: &Path) -> Result<TableFormat> {
+    pub(crate) fn sniff(path: &Path) -> Result<TableFormat> {
         let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
         let mut head = [0u8; 6];
         let mut n = 0;
@@ -99,18 +99,20 @@ pub enum Getter<R> {
 
 /// One column of a table over rows of type `R`.
 pub struct Col<R> {
+    /// Column name in the table's header.
     pub name: &'static str,
+    /// How a row gives this column's value.
     pub get: Getter<R>,
 }
 
 impl<R> Col<R> {
-    pub const fn i64(name: &'static str, get: fn(&R) -> i64) -> Self {
+    pub(crate) const fn i64(name: &'static str, get: fn(&R) -> i64) -> Self {
         Col {
             name,
             get: Getter::I64(get),
         }
     }
-    pub const fn f64(name: &'static str, get: fn(&R) -> f64) -> Self {
+    pub(crate) const fn f64(name: &'static str, get: fn(&R) -> f64) -> Self {
         Col {
             name,
             get: Getter::F64(get),
@@ -170,7 +172,7 @@ impl<R> Batch<R> {
 }
 
 /// The compression of the Parquet tables.
-pub const PARQUET_COMPRESSION: Compression = Compression::SNAPPY;
+pub(crate) const PARQUET_COMPRESSION: Compression = Compression::SNAPPY;
 
 fn parquet_err(path: &Path, e: parquet::errors::ParquetError) -> Error {
     match e {
@@ -203,7 +205,7 @@ enum Sink {
 
 impl<R> TableWriter<R> {
     /// A Parquet file at `path` with the columns `cols`.
-    pub fn parquet(path: &Path, cols: &'static [Col<R>]) -> Result<Self> {
+    pub(crate) fn parquet(path: &Path, cols: &'static [Col<R>]) -> Result<Self> {
         Self::parquet_with(path, cols, PARQUET_COMPRESSION)
     }
 
@@ -254,7 +256,7 @@ impl<R> TableWriter<R> {
 
     /// A `.npy` file at `path`: a 1-D structured array with one field per
     /// column (`<i8` or `<f8`), its length patched in at the end.
-    pub fn npy(path: &Path, cols: &'static [Col<R>]) -> Result<Self> {
+    pub(crate) fn npy(path: &Path, cols: &'static [Col<R>]) -> Result<Self> {
         let descr = npy_descr(cols);
         let mut file = AtomicFile::create(path)?;
         let header = crate::io::npy::table_header(&descr, usize::MAX, 0);
@@ -273,7 +275,7 @@ impl<R> TableWriter<R> {
 
     /// Records `key = value` in the file's metadata (Parquet
     /// `key_value_metadata`; `.npy` has no place for it and ignores it).
-    pub fn add_metadata(&mut self, key: &str, value: &str) {
+    pub(crate) fn add_metadata(&mut self, key: &str, value: &str) {
         if let Sink::Parquet(w) = &mut self.out {
             w.append_key_value_metadata(KeyValue::new(key.to_string(), value.to_string()));
         }
@@ -292,7 +294,7 @@ impl<R> TableWriter<R> {
 
     /// Appends one row.
     #[inline]
-    pub fn push(&mut self, row: &R) -> Result<()> {
+    pub(crate) fn push(&mut self, row: &R) -> Result<()> {
         self.batch.push(row);
         if self.batch.rows >= ROW_GROUP_ROWS {
             self.flush()?;
@@ -388,7 +390,7 @@ fn npy_descr<R>(cols: &[Col<R>]) -> String {
 
 /// The column names of a table file of any format (`None` for a CSV
 /// without a header line or a file that cannot be read).
-pub fn column_names(path: &Path) -> Option<Vec<String>> {
+pub(crate) fn column_names(path: &Path) -> Option<Vec<String>> {
     match TableFormat::sniff(path).ok()? {
         TableFormat::Parquet => {
             let f = std::fs::File::open(path).ok()?;
@@ -457,7 +459,7 @@ fn parse_npy_fields(descr: &str) -> Option<Vec<(String, String)>> {
 /// The columns `names` of a Parquet or `.npy` table, as f64 (integer
 /// columns converted), in the order asked. Missing columns are an error
 /// naming the file.
-pub fn read_columns(path: &Path, names: &[&str]) -> Result<Vec<Vec<f64>>> {
+pub(crate) fn read_columns(path: &Path, names: &[&str]) -> Result<Vec<Vec<f64>>> {
     match TableFormat::sniff(path)? {
         TableFormat::Parquet => read_parquet_columns(path, names),
         TableFormat::Npy => read_npy_columns(path, names),

@@ -62,19 +62,19 @@ impl KSum {
     /// and goes into `c` (same accuracy as Neumaier's branching form,
     /// without an unpredictable branch per add).
     #[inline(always)]
-    pub fn add(&mut self, x: f64) {
+    pub(crate) fn add(&mut self, x: f64) {
         let t = self.s + x;
         let z = t - self.s;
         self.c += (self.s - (t - z)) + (x - z);
         self.s = t;
     }
     #[inline]
-    pub fn merge(&mut self, o: &KSum) {
+    pub(crate) fn merge(&mut self, o: &KSum) {
         self.add(o.s);
         self.add(o.c);
     }
     #[inline]
-    pub fn value(&self) -> f64 {
+    pub(crate) fn value(&self) -> f64 {
         self.s + self.c
     }
 }
@@ -91,6 +91,8 @@ pub(crate) fn gidx(a: usize, b: usize) -> usize {
     a * NB - a * (a + 1) / 2 + b
 }
 
+/// The quadratic in-bin basis `φ = (1, ξ, η, ξ², ξη, η²)` at the
+/// bin-local normalised offsets `(ξ, η)` (units of bin size).
 #[inline]
 pub fn basis(xi: f64, eta: f64) -> [f64; NB] {
     [1.0, xi, eta, xi * xi, xi * eta, eta * eta]
@@ -99,20 +101,30 @@ pub fn basis(xi: f64, eta: f64) -> [f64; NB] {
 /// The samples of one track inside one bin.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Cluster {
+    /// The track.
     pub track_id: u64,
+    /// Σ w: the summed weight of its samples.
     pub w: f64,
+    /// Σ w u (weight × px/s).
     pub su: f64,
+    /// Σ w v (weight × px/s).
     pub sv: f64,
 }
 
 /// Sums over closed clusters: Σ W_k², Σ W_k S_k, Σ S_k² (u and v).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 pub struct ClusterSums {
+    /// Number of closed clusters.
     pub n: u64,
+    /// Σ W_k² over closed clusters (W_k = a cluster's Σ w).
     pub ww: KSum,
+    /// Σ W_k S_k for u (S_k = a cluster's Σ w u).
     pub wsu: KSum,
+    /// Σ W_k S_k for v (S_k = a cluster's Σ w v).
     pub wsv: KSum,
+    /// Σ S_k² for u.
     pub susu: KSum,
+    /// Σ S_k² for v.
     pub svsv: KSum,
 }
 
@@ -144,11 +156,17 @@ pub struct BinAcc {
     pub w2: KSum,
     /// Packed upper triangle of Σ w φφᵀ; entry 0 is Σ w.
     pub gram: [KSum; NG],
+    /// Moments Σ w φ u of the basis with u (weight × px/s).
     pub pu: [KSum; NB],
+    /// Moments Σ w φ v of the basis with v (weight × px/s).
     pub pv: [KSum; NB],
+    /// Σ w u² ((px/s)²).
     pub uu: KSum,
+    /// Σ w v² ((px/s)²).
     pub vv: KSum,
+    /// Σ w u v ((px/s)²).
     pub uv: KSum,
+    /// Sums over the closed per-track clusters (for standard errors).
     pub closed: ClusterSums,
     /// First cluster seen (kept open for merging).
     pub head: Option<Cluster>,
@@ -158,7 +176,7 @@ pub struct BinAcc {
 
 impl BinAcc {
     #[inline]
-    pub fn add(&mut self, xi: f64, eta: f64, w: f64, u: f64, v: f64, track_id: u64) {
+    pub(crate) fn add(&mut self, xi: f64, eta: f64, w: f64, u: f64, v: f64, track_id: u64) {
         let phi = basis(xi, eta);
         self.n += 1;
         self.w2.add(w * w);
@@ -211,13 +229,8 @@ impl BinAcc {
         }
     }
 
-    /// Weighted sample count Σ w.
-    pub fn w(&self) -> f64 {
-        self.gram[0].value()
-    }
-
     /// Number of track clusters (distinct tracks when input is grouped by track).
-    pub fn n_tracks(&self) -> u64 {
+    pub(crate) fn n_tracks(&self) -> u64 {
         self.closed.n + self.head.is_some() as u64 + self.tail.is_some() as u64
     }
 
@@ -231,7 +244,7 @@ impl BinAcc {
     }
 
     /// Add `o` (a later slice) into `self`.
-    pub fn merge(&mut self, o: &BinAcc) {
+    pub(crate) fn merge(&mut self, o: &BinAcc) {
         if o.n == 0 {
             return;
         }
@@ -282,7 +295,9 @@ impl BinAcc {
 /// A grid of bin accumulators.
 #[derive(Debug, Clone, PartialEq)]
 pub struct GridAccumulator {
+    /// The window of bins.
     pub spec: GridSpec,
+    /// One accumulator per bin, at the flat index `j·nx + i` of `spec`.
     pub bins: Vec<BinAcc>,
     /// Samples with a non-finite coordinate or velocity (skipped).
     pub rejected: u64,
@@ -291,6 +306,7 @@ pub struct GridAccumulator {
 }
 
 impl GridAccumulator {
+    /// An empty accumulator for the bins of `spec`.
     pub fn new(spec: GridSpec) -> GridAccumulator {
         GridAccumulator {
             spec,
@@ -302,7 +318,7 @@ impl GridAccumulator {
 
     /// Bin one sample into every bin whose support holds it.
     #[inline]
-    pub fn add(&mut self, s: &Sample) {
+    pub(crate) fn add(&mut self, s: &Sample) {
         if !(s.x.is_finite() && s.y.is_finite() && s.u.is_finite() && s.v.is_finite()) {
             self.rejected += 1;
             return;
@@ -328,6 +344,8 @@ impl GridAccumulator {
         }
     }
 
+    /// Bin every sample (one thread); non-finite samples count as
+    /// `rejected`, those outside the window as `outside`.
     pub fn add_all<'a>(&mut self, samples: impl IntoIterator<Item = &'a Sample>) {
         for s in samples {
             self.add(s);

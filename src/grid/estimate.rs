@@ -37,6 +37,7 @@ pub enum Fit {
 }
 
 impl Fit {
+    /// Number of fit parameters: 1, 3 or 6.
     pub fn n_params(&self) -> usize {
         match self {
             Fit::None => 1,
@@ -57,6 +58,8 @@ impl Fit {
 /// so one accumulation can be evaluated several ways).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct EstimateOptions {
+    /// The in-bin model of the mean velocity (falls back to a lower order
+    /// in bins with too few or too clustered samples).
     pub fit: Fit,
     /// Bins with fewer samples are empty (NaN).
     pub min_count: u64,
@@ -76,6 +79,7 @@ impl Default for EstimateOptions {
 }
 
 impl EstimateOptions {
+    /// An error when `min_count` is 0 or `noise_rms` is negative or not finite.
     pub fn validate(&self) -> Result<()> {
         if self.min_count == 0 {
             return Err(Error::param("min-count", "must be at least 1"));
@@ -96,25 +100,39 @@ impl EstimateOptions {
 /// Statistics of one bin.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct BinStats {
+    /// Number of samples in the bin.
     pub count: u64,
+    /// Number of per-track clusters in the bin (distinct tracks when the
+    /// input is grouped by track).
     pub n_tracks: u64,
+    /// Mean velocity along x at the bin centre (px/s).
     pub u: f64,
+    /// Mean velocity along y at the bin centre (px/s).
     pub v: f64,
+    /// Reynolds normal stress ⟨u′u′⟩ ((px/s)²), noise-corrected if asked.
     pub uu: f64,
+    /// Reynolds normal stress ⟨v′v′⟩ ((px/s)²), noise-corrected if asked.
     pub vv: f64,
+    /// Reynolds shear stress ⟨u′v′⟩ ((px/s)²).
     pub uv: f64,
     /// Standard errors of u, v (cluster-robust, track = independent unit).
     pub se_u: f64,
+    /// Standard error of v (px/s).
     pub se_v: f64,
     /// Standard errors of the stresses (Gaussian approximation with the
     /// number of tracks as the independent count).
     pub se_uu: f64,
+    /// Standard error of vv ((px/s)²).
     pub se_vv: f64,
+    /// Standard error of uv ((px/s)²).
     pub se_uv: f64,
     /// Mean velocity gradients from the fit (px/s per px; NaN without fit).
     pub dudx: f64,
+    /// ∂u/∂y from the fit (px/s per px; NaN without fit).
     pub dudy: f64,
+    /// ∂v/∂x from the fit (px/s per px; NaN without fit).
     pub dvdx: f64,
+    /// ∂v/∂y from the fit (px/s per px; NaN without fit).
     pub dvdy: f64,
     /// Number of fit parameters actually used (1, 3, 6; 0 for an empty bin).
     pub fit_params: u8,
@@ -149,14 +167,20 @@ impl BinStats {
 /// the smallest y).
 #[derive(Debug, Clone)]
 pub struct GridStats {
+    /// The bins.
     pub spec: GridSpec,
+    /// The options the statistics were estimated with.
     pub options: EstimateOptions,
+    /// Bin centres along x (px), `nx` values.
     pub xs: Vec<f64>,
+    /// Bin centres along y (px), `ny` values.
     pub ys: Vec<f64>,
+    /// Statistics per bin, row-major (`iy·nx + ix`).
     pub bins: Vec<BinStats>,
 }
 
 impl GridStats {
+    /// The statistics of bin `(ix, iy)`; panics outside the grid.
     pub fn at(&self, ix: usize, iy: usize) -> &BinStats {
         &self.bins[iy * self.spec.nx + ix]
     }
@@ -177,7 +201,7 @@ impl GridStats {
         masked
     }
     /// One quantity as a row-major map.
-    pub fn map(&self, f: impl Fn(&BinStats) -> f64) -> Vec<f64> {
+    pub(crate) fn map(&self, f: impl Fn(&BinStats) -> f64) -> Vec<f64> {
         self.bins.iter().map(f).collect()
     }
     /// Index of the bin whose centre is nearest (x, y).

@@ -18,9 +18,13 @@ use crate::error::{Error, Result};
 /// The time axis of time-resolved fields.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Frames {
+    /// Centre time of frame 0 (µs).
     pub t0_us: f64,
+    /// Time between frame centres (µs).
     pub step_us: f64,
+    /// Width of a frame's time window (µs), centred on its time.
     pub window_us: f64,
+    /// Number of frames.
     pub n: usize,
 }
 
@@ -28,7 +32,7 @@ pub struct Frames {
 pub(crate) const MAX_FIELD_VALUES: usize = 200_000_000;
 
 impl Frames {
-    pub fn validate(&self) -> Result<()> {
+    pub(crate) fn validate(&self) -> Result<()> {
         if !(self.step_us.is_finite() && self.step_us > 0.0) {
             return Err(Error::param(
                 "step",
@@ -72,6 +76,7 @@ impl Frames {
     pub(crate) fn time_us(&self, k: usize) -> f64 {
         self.t0_us + k as f64 * self.step_us
     }
+    /// Frame rate (Hz): one over the step.
     pub fn rate_hz(&self) -> f64 {
         1e6 / self.step_us
     }
@@ -98,11 +103,15 @@ pub(crate) fn sample_period_us(samples: &[Sample]) -> Result<f64> {
 /// Mean u, v per frame for a set of bins; entry `[slot * n_frames + k]`.
 #[derive(Debug, Clone)]
 pub struct FieldSeries {
+    /// The time axis.
     pub frames: Frames,
     /// Flat bin indices (of `spec`) of the slots.
     pub bins: Vec<usize>,
+    /// Number of samples per slot and frame (layout as `u`).
     pub count: Vec<u32>,
+    /// Mean velocity along x (px/s) per slot and frame; NaN without samples.
     pub u: Vec<f64>,
+    /// Mean velocity along y (px/s) per slot and frame; NaN without samples.
     pub v: Vec<f64>,
 }
 

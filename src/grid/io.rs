@@ -126,12 +126,6 @@ fn num(x: f64) -> String {
     }
 }
 
-/// `grid.csv`: exactly `x,y,count,u,v,uu,vv,uv` (px, px/s, (px/s)²), one
-/// row per bin, rows ordered by y then x; empty bins have `nan` statistics.
-pub fn write_grid_csv(path: &Path, g: &GridStats) -> Result<()> {
-    write_grid_csv_calibrated(path, g, None)
-}
-
 /// [`write_grid_csv`], with the physical columns of `calib` after the
 /// pixel ones when given ([`Calibration::field_columns`]:
 /// `X_mm,Y_mm,U_m_s,V_m_s,uu_m2_s2,vv_m2_s2,uv_m2_s2`).
@@ -270,11 +264,6 @@ pub fn write_fields_npy(
     )?;
     let t: Vec<f64> = (0..nt).map(|k| f.frames.time_us(k)).collect();
     write_npy_f64(dir.join("fields_t_us.npy"), &[nt], &t)
-}
-
-/// PNG maps of count, u, v, uu, vv, uv into `dir` (`map_<q>.png`).
-pub fn write_maps(dir: &Path, g: &GridStats) -> Result<()> {
-    write_maps_calibrated(dir, g, None)
 }
 
 /// [`write_maps`]; with `calib` the colour scales are in m/s and m²/s².

@@ -39,7 +39,7 @@ pub mod fields;
 pub mod io;
 pub mod noise;
 pub mod profiles;
-pub mod spec;
+pub(crate) mod spec;
 
 use serde::{Deserialize, Serialize};
 
@@ -54,11 +54,17 @@ use crate::error::{Error, Result};
 /// One Lagrangian velocity sample to be binned.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Sample {
+    /// Position x (px).
     pub x: f64,
+    /// Position y (px).
     pub y: f64,
+    /// Velocity along x (px/s).
     pub u: f64,
+    /// Velocity along y (px/s).
     pub v: f64,
+    /// Time of the sample (µs).
     pub t_us: f64,
+    /// Id of the track the sample belongs to (the independent unit for standard errors).
     pub track_id: u64,
 }
 

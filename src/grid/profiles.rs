@@ -17,12 +17,19 @@ use crate::error::{Error, Result};
 /// One point of a profile (a column of bins).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct ProfilePoint {
+    /// Bin centre y (px).
     pub y: f64,
+    /// Number of samples in the bin.
     pub count: u64,
+    /// Mean velocity along x (px/s).
     pub u: f64,
+    /// Mean velocity along y (px/s).
     pub v: f64,
+    /// Reynolds normal stress ⟨u′u′⟩ ((px/s)²).
     pub uu: f64,
+    /// Reynolds normal stress ⟨v′v′⟩ ((px/s)²).
     pub vv: f64,
+    /// Reynolds shear stress ⟨u′v′⟩ ((px/s)²).
     pub uv: f64,
 }
 
@@ -56,8 +63,10 @@ pub enum WallSide {
     Bottom,
 }
 
+/// How [`wall_fit`] finds the wall and converts to physical units.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct WallOptions {
+    /// Which end of the profile the wall is at.
     pub side: WallSide,
     /// Known wall position (px); `None`: the zero crossing of the fit.
     pub wall_y: Option<f64>,
@@ -69,17 +78,22 @@ pub struct WallOptions {
     pub px_per_mm: f64,
 }
 
+/// The wall and its shear, from [`wall_fit`].
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct WallFit {
+    /// Wall position y (px): the given one or the fit's zero crossing.
     pub wall_y_px: f64,
+    /// True when the wall position was estimated (not given).
     pub wall_estimated: bool,
     /// Mean-velocity gradient at the wall (1/s), sign as measured.
     pub dudy_per_s: f64,
     /// Wall shear stress over density τ_w/ρ = ν dU/dy (m²/s²).
     pub tau_w_over_rho: f64,
+    /// Friction velocity u_τ = √(ν |dU/dy|_w) (m/s).
     pub u_tau_m_s: f64,
     /// Viscous length ν/u_τ in px.
     pub viscous_length_px: f64,
+    /// Number of profile points in the linear fit.
     pub points_used: usize,
 }
 

@@ -68,10 +68,15 @@ pub(crate) const GAUSS_SIGMA: f64 = 0.288_675_134_594_812_9;
 /// centre is at integer coordinates).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Lattice {
+    /// Bin width along x (px).
     pub bin_w: f64,
+    /// Bin height along y (px).
     pub bin_h: f64,
+    /// Fraction of a bin shared with its neighbour, in [0, 1).
     pub overlap: f64,
+    /// x of the lattice origin: the low-x edge of bin 0 (px).
     pub origin_x: f64,
+    /// y of the lattice origin: the low-y edge of bin 0 (px).
     pub origin_y: f64,
 }
 
@@ -81,6 +86,10 @@ impl Lattice {
         Lattice::with_origin(bin_w, bin_h, overlap, -0.5, -0.5)
     }
 
+    /// A lattice with its origin at `(origin_x, origin_y)` (px); an error
+    /// when a bin size is not positive and finite, `overlap` is outside
+    /// [0, 1) or puts a sample into more than 64 bins per axis, or the
+    /// origin is not finite.
     pub fn with_origin(
         bin_w: f64,
         bin_h: f64,
@@ -145,7 +154,7 @@ impl Lattice {
 
     /// Candidate bin index ranges (inclusive) for a sample at (x, y); the
     /// exact membership test is [`Weighting::weight`].
-    pub fn candidates(&self, x: f64, y: f64, w: Weighting) -> ((i64, i64), (i64, i64)) {
+    pub(crate) fn candidates(&self, x: f64, y: f64, w: Weighting) -> ((i64, i64), (i64, i64)) {
         let h = w.half_support();
         (
             Self::range(x, self.origin_x, self.bin_w, self.stride_x(), h),
@@ -167,11 +176,17 @@ impl Lattice {
 /// A finite window of a lattice: bins `i0..i0+nx` × `j0..j0+ny`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct GridSpec {
+    /// The lattice the bins belong to.
     pub lattice: Lattice,
+    /// Sample weighting inside a bin.
     pub weighting: Weighting,
+    /// Lattice index along x of the window's first bin.
     pub i0: i64,
+    /// Lattice index along y of the window's first bin.
     pub j0: i64,
+    /// Number of bins along x.
     pub nx: usize,
+    /// Number of bins along y.
     pub ny: usize,
 }
 
@@ -253,18 +268,19 @@ impl GridSpec {
         })
     }
 
+    /// Number of bins of the window (`nx · ny`); flat index `j·nx + i`.
     pub fn n_bins(&self) -> usize {
         self.nx * self.ny
     }
 
     /// Bin centres along x (px), `nx` values.
-    pub fn xs(&self) -> Vec<f64> {
+    pub(crate) fn xs(&self) -> Vec<f64> {
         (0..self.nx)
             .map(|k| self.lattice.centre_x(self.i0 + k as i64))
             .collect()
     }
     /// Bin centres along y (px), `ny` values.
-    pub fn ys(&self) -> Vec<f64> {
+    pub(crate) fn ys(&self) -> Vec<f64> {
         (0..self.ny)
             .map(|k| self.lattice.centre_y(self.j0 + k as i64))
             .collect()

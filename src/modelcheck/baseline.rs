@@ -67,12 +67,15 @@ impl Default for BaselineOptions {
 /// The baseline scenario, the flow it replays, and what was estimated.
 #[derive(Debug, Clone)]
 pub struct Baseline {
+    /// The simulator scenario estimated from the measurement.
     pub scenario: Scenario,
     /// Grid nodes of the flow: (x, y, u, v) in px and px/s.
     pub flow: Vec<(f64, f64, f64, f64)>,
     /// The tracks the flow was estimated from.
     pub tracks: Vec<Track>,
+    /// The particles found in the measurement.
     pub particles: Vec<Particle>,
+    /// How each part of the scenario was estimated, one line each.
     pub notes: Vec<String>,
 }
 

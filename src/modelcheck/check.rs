@@ -23,7 +23,7 @@ use crate::sim::scenario::Scenario;
 
 /// Fewest pulses per fit / held-out block: fewer hold too few events per
 /// pixel for the signatures.
-pub const MIN_BLOCK_PULSES: u64 = 20;
+pub(crate) const MIN_BLOCK_PULSES: u64 = 20;
 
 /// Options of [`check_recording`]; the defaults are those of
 /// `ebptv model-check`.
@@ -66,7 +66,9 @@ impl Default for ModelCheckOptions {
 /// What [`check_recording`] found (also written to `model_check.json`).
 #[derive(Debug, Clone)]
 pub struct ModelCheckRun {
+    /// The model check's outcome: effects found, verdict, tables, rounds.
     pub result: ModelCheckResult,
+    /// What the run did along the way (starting model, baseline estimates), one line each.
     pub notes: Vec<String>,
 }
 

@@ -95,6 +95,7 @@ pub fn histogram_wasserstein(a: &Histogram, b: &Histogram) -> Result<f64> {
 /// Two-sample chi-square on binned counts.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct ChiSquare {
+    /// The chi-square statistic.
     pub statistic: f64,
     /// Bins with data on either side, minus one (the totals are matched).
     pub dof: usize,
@@ -225,8 +226,11 @@ pub(crate) const SD_FLOOR_REL: f64 = 0.5;
 /// An observed distance judged against replicate distances.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Standardised {
+    /// The observed distance.
     pub observed: f64,
+    /// Mean of the replicate distances.
     pub replicate_mean: f64,
+    /// Sample standard deviation of the replicate distances (not floored).
     pub replicate_sd: f64,
     /// (observed − mean) / sd, the sd floored at [`SD_FLOOR_REL`] × mean
     /// (and above zero), capped at ±[`Z_CAP`].
@@ -273,7 +277,9 @@ pub fn standardise(observed: f64, replicates: &[f64]) -> Result<Standardised> {
 /// One line of the discrepancy table.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct DiscrepancyRow {
+    /// Name of the signature.
     pub signature: String,
+    /// The observed distance against the replicates.
     #[serde(flatten)]
     pub stats: Standardised,
     /// Beyond chance: z above the threshold and beyond every replicate.
@@ -283,7 +289,9 @@ pub struct DiscrepancyRow {
 /// Where measurement and model disagree, worst first.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct DiscrepancyTable {
+    /// One row per ranked signature, largest z first.
     pub rows: Vec<DiscrepancyRow>,
+    /// z above which a row disagrees (if also beyond every replicate).
     pub z_threshold: f64,
 }
 
@@ -331,6 +339,7 @@ impl DiscrepancyTable {
             .collect()
     }
 
+    /// Some signature disagrees beyond chance.
     pub fn any_disagreement(&self) -> bool {
         self.rows.iter().any(|r| r.disagrees)
     }
@@ -338,10 +347,11 @@ impl DiscrepancyTable {
     /// Total excess over chance: Σ max(z, 0) over the signatures. Near
     /// 0.4 per signature when the model explains the data; the yardstick
     /// for "the gap before and after".
-    pub fn gap(&self) -> f64 {
+    pub(crate) fn gap(&self) -> f64 {
         self.rows.iter().map(|r| r.stats.z.max(0.0)).sum()
     }
 
+    /// The table as Markdown, one row per signature.
     pub fn to_markdown(&self) -> String {
         let mut s = String::from(
             "| signature | distance | replicates mean ± sd | z | p | disagrees |\n|---|---|---|---|---|---|\n",

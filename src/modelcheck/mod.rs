@@ -25,7 +25,7 @@
 pub mod baseline;
 pub mod check;
 pub mod distance;
-pub mod report;
+pub(crate) mod report;
 pub mod scene;
 pub mod signatures;
 pub mod standard;

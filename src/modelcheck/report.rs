@@ -51,7 +51,7 @@ const FIGURES: [(&str, &str, bool); 6] = [
 
 /// Write all outputs into `dir` (created if missing).
 #[allow(clippy::too_many_arguments)]
-pub fn write_outputs(
+pub(crate) fn write_outputs(
     dir: &Path,
     sim: &SceneSimulator,
     cfg: &SignatureConfig,

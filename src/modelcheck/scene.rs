@@ -127,7 +127,7 @@ impl SceneSimulator {
 
     /// Simulations fail (`cancelled`) once `cancel` is set: a long search
     /// stops at its next simulation.
-    pub fn with_cancel(mut self, cancel: crate::Cancel) -> Self {
+    pub(crate) fn with_cancel(mut self, cancel: crate::Cancel) -> Self {
         self.cancel = cancel;
         self
     }
@@ -144,7 +144,7 @@ impl SceneSimulator {
     /// baseline. A common shift of all event times is the same as a change
     /// of the fixed latency: the readout is time-invariant, and the noise
     /// is uniform in time.
-    pub fn with_latency_median(mut self, median_us: Option<f64>) -> Self {
+    pub(crate) fn with_latency_median(mut self, median_us: Option<f64>) -> Self {
         self.latency_median_us = median_us.filter(|m| m.is_finite());
         self
     }
@@ -166,7 +166,7 @@ impl SceneSimulator {
         self
     }
 
-    pub fn base(&self) -> &Scenario {
+    pub(crate) fn base(&self) -> &Scenario {
         &self.base
     }
 
@@ -182,7 +182,7 @@ impl SceneSimulator {
     }
 
     /// Pulse timing of the scenario (the simulator's own clock).
-    pub fn timing(&self) -> PulseTiming {
+    pub(crate) fn timing(&self) -> PulseTiming {
         timing_of(&self.base)
     }
 
@@ -194,15 +194,10 @@ impl SceneSimulator {
         );
         SignatureConfig::new(g, self.timing())
     }
-
-    /// The effects of the base scenario that are switched on.
-    pub fn active_effects(&self) -> Vec<EffectSetting> {
-        active_effects(&self.base)
-    }
 }
 
 /// The effects switched on in `sc`, as settings.
-pub fn active_effects(sc: &Scenario) -> Vec<EffectSetting> {
+pub(crate) fn active_effects(sc: &Scenario) -> Vec<EffectSetting> {
     crate::sim::EFFECT_NAMES
         .iter()
         .filter_map(|name| {
@@ -348,7 +343,7 @@ impl Simulator for SceneSimulator {
 
 /// Median time of the events after the start of their pulse (µs); NaN
 /// without events inside a pulse.
-pub fn median_event_latency(events: &EventChunk, timing: &PulseTiming) -> f64 {
+pub(crate) fn median_event_latency(events: &EventChunk, timing: &PulseTiming) -> f64 {
     let mut l: Vec<f64> = events
         .t
         .iter()

@@ -131,8 +131,11 @@ pub enum BinScale {
 /// last bin is "≥ its left edge"), NaN is dropped.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Histogram {
+    /// Bin edges, `counts.len() + 1` of them, finite and increasing.
     pub edges: Vec<f64>,
+    /// Count (or summed weight) per bin.
     pub counts: Vec<f64>,
+    /// Where the bins sit for distance computations.
     pub scale: BinScale,
 }
 
@@ -160,6 +163,7 @@ impl Histogram {
         })
     }
 
+    /// Number of bins.
     pub fn n_bins(&self) -> usize {
         self.counts.len()
     }
@@ -175,7 +179,7 @@ impl Histogram {
     }
 
     #[inline]
-    pub fn add(&mut self, v: f64) {
+    pub(crate) fn add(&mut self, v: f64) {
         self.add_weighted(v, 1.0);
     }
 
@@ -186,6 +190,7 @@ impl Histogram {
         }
     }
 
+    /// Sum of the counts.
     pub fn total(&self) -> f64 {
         self.counts.iter().sum()
     }
@@ -215,6 +220,7 @@ impl Histogram {
 /// Mean of a quantity per bin of another (e.g. latency per brightness).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Profile {
+    /// Bin edges of the conditioning quantity, `mean.len() + 1` of them.
     pub edges: Vec<f64>,
     /// Mean per bin (NaN where the bin is empty).
     pub mean: Vec<f64>,
@@ -261,25 +267,36 @@ impl ProfileAcc {
     }
 }
 
+/// The value of one signature.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "lowercase")]
 pub enum SignatureValue {
+    /// A distribution on fixed bins.
     Histogram(Histogram),
+    /// A mean per bin of another quantity.
     Profile(Profile),
-    Scalar { value: f64 },
+    /// A single number.
+    Scalar {
+        /// The number, in the unit the signature's description gives.
+        value: f64,
+    },
 }
 
+/// One named statistic of a recording, compared between measurement and simulation.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Signature {
+    /// Name of the signature (the key in tables and figures).
     pub name: String,
     /// What is counted and in which unit (for tables and figure labels).
     pub description: String,
+    /// The statistic itself.
     pub value: SignatureValue,
 }
 
 /// All signatures of one recording, in a fixed order.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Signatures {
+    /// The signatures, each name once.
     pub items: Vec<Signature>,
     /// Events inside the geometry that entered the signatures.
     pub n_events: u64,
@@ -290,21 +307,25 @@ pub struct Signatures {
 }
 
 impl Signatures {
+    /// The signature called `name`.
     pub fn get(&self, name: &str) -> Option<&Signature> {
         self.items.iter().find(|s| s.name == name)
     }
+    /// The value of the scalar signature `name` (`None` if absent or not a scalar).
     pub fn scalar(&self, name: &str) -> Option<f64> {
         match self.get(name)?.value {
             SignatureValue::Scalar { value } => Some(value),
             _ => None,
         }
     }
+    /// The histogram signature `name` (`None` if absent or not a histogram).
     pub fn histogram(&self, name: &str) -> Option<&Histogram> {
         match &self.get(name)?.value {
             SignatureValue::Histogram(h) => Some(h),
             _ => None,
         }
     }
+    /// The profile signature `name` (`None` if absent or not a profile).
     pub fn profile(&self, name: &str) -> Option<&Profile> {
         match &self.get(name)?.value {
             SignatureValue::Profile(p) => Some(p),
@@ -316,7 +337,9 @@ impl Signatures {
 /// Binning and windows shared by the measured and every simulated data set.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SignatureConfig {
+    /// Sensor geometry; events outside it are ignored.
     pub geometry: Geometry,
+    /// The pulse train the events are folded on.
     pub timing: PulseTiming,
     /// Bin width of the folded latency histogram (µs).
     pub latency_bin_us: f64,

@@ -127,7 +127,7 @@ const OUTLIER_DOMINATED_ROWS: &[&str] = &["split_half_correlation"];
 
 /// The shape of a well-behaved sensor (see the module doc for the source).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct StandardSensor {
+pub(crate) struct StandardSensor {
     /// Standard deviation of the per-event latency around the fixed part
     /// (µs); with the photoreceptor's decay it makes a 5–95 % latency
     /// width of about 50 µs.
@@ -154,7 +154,7 @@ impl Default for StandardSensor {
 /// pixel fires once per pulse), which the fitted energy then shows as a
 /// shape: how those events spread over pixels and time.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct Envelope {
+pub(crate) struct Envelope {
     /// Latency spread (µs): "a spread of a few tens of µs" (5–95 % width
     /// ~35 to ~75 µs).
     pub latency_spread_us: [f64; 2],
@@ -181,7 +181,7 @@ impl Default for Envelope {
 
 /// Options of [`check`].
 #[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct StandardOptions {
+pub(crate) struct StandardOptions {
     /// Replicate simulations of the starting model (besides the reference).
     pub replicates: usize,
     /// Objective evaluations per parameter of a candidate fit.
@@ -214,7 +214,7 @@ impl Default for StandardOptions {
 /// The standard effects as settings: latency jitter at the standard spread
 /// and background noise at the standard share of `event_rate_hz` over
 /// `pixels` pixels.
-pub fn standard_effects(
+pub(crate) fn standard_effects(
     std: &StandardSensor,
     event_rate_hz: f64,
     pixels: f64,
@@ -265,7 +265,7 @@ pub(crate) struct RowScale {
 impl RowScale {
     /// √(sd² + τ²), floored at half the replicate mean (a handful of
     /// replicates underestimates a heavy-tailed spread).
-    pub fn scale(&self) -> f64 {
+    pub(crate) fn scale(&self) -> f64 {
         (self.replicate_sd.hypot(self.tolerance))
             .max(0.5 * self.replicate_mean.abs())
             .max(1e-12)
@@ -282,7 +282,7 @@ pub(crate) struct Yardstick {
 
 impl Yardstick {
     /// The discrepancy table of `measured` against a model's signatures.
-    pub fn table(
+    pub(crate) fn table(
         &self,
         measured: &Signatures,
         model: &Signatures,
@@ -321,7 +321,7 @@ impl Yardstick {
     /// in shape (its OFF events decay differently from the measured
     /// sensor's, say) grows only slowly and does not pull the fit away from
     /// the rows it does match.
-    pub fn objective(&self, measured: &Signatures, model: &Signatures) -> Result<f64> {
+    pub(crate) fn objective(&self, measured: &Signatures, model: &Signatures) -> Result<f64> {
         Ok(distances(measured, model)?
             .into_iter()
             .filter_map(|(n, d)| self.rows.get(&n).map(|r| (d / r.scale()).ln_1p()))
@@ -714,7 +714,7 @@ pub fn decide(
 /// [`standard_effects`]); `event_rate_hz` and `pixels` scale the envelope's
 /// noise levels.
 #[allow(clippy::too_many_arguments)]
-pub fn check(
+pub(crate) fn check(
     sim: &SceneSimulator,
     cfg: &SignatureConfig,
     measured_fit: &Recording,

@@ -88,8 +88,11 @@ pub use search::*;
 /// One parameter of an effect, searched in `[lo, hi]`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ParamSpec {
+    /// Name of the parameter, as the simulator knows it.
     pub name: String,
+    /// Lower bound of the search.
     pub lo: f64,
+    /// Upper bound of the search.
     pub hi: f64,
     /// Search in log space (the parameter spans decades; needs lo > 0).
     pub log: bool,
@@ -98,14 +101,18 @@ pub struct ParamSpec {
 /// A catalogue entry: a switchable effect of the simulator.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EffectSpec {
+    /// Name of the effect, as the simulator knows it.
     pub name: String,
+    /// Its parameters and their search ranges.
     pub params: Vec<ParamSpec>,
 }
 
 /// An effect switched on with parameter values.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EffectSetting {
+    /// Name of the effect.
     pub name: String,
+    /// Parameter values by parameter name.
     pub parameters: BTreeMap<String, f64>,
 }
 
@@ -113,8 +120,11 @@ pub struct EffectSetting {
 /// particles and tracks ebptv's own pipeline found in them.
 #[derive(Debug, Clone, Default)]
 pub struct Recording {
+    /// The events.
     pub events: EventChunk,
+    /// The particles found in the events.
     pub particles: Vec<Particle>,
+    /// The tracks found, when tracking ran.
     pub tracks: Option<Vec<Track>>,
 }
 
@@ -184,17 +194,22 @@ impl Default for WorkflowOptions {
 /// An effect added to the model.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FoundEffect {
+    /// Name of the effect.
     pub name: String,
+    /// Fitted parameter values by parameter name.
     pub parameters: BTreeMap<String, f64>,
     /// Gap (Σ max(z, 0), held-out data) before and after adding it.
     pub gap_before: f64,
+    /// Gap after adding it (see `gap_before`).
     pub gap_after: f64,
 }
 
 /// One candidate's result in one round.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CandidateResult {
+    /// Name of the candidate effect.
     pub name: String,
+    /// Fitted parameter values by parameter name.
     pub parameters: BTreeMap<String, f64>,
     /// Fit objective at the optimum (fit data).
     pub objective: f64,
@@ -204,6 +219,7 @@ pub struct CandidateResult {
     /// model's rows ([`RowSet`]; equal to `gap_before − gap_after` unless
     /// the candidate brings or loses a signature row).
     pub improvement: f64,
+    /// Objective evaluations the fit used.
     pub evaluations: usize,
     /// z of every signature row on held-out data with the candidate added
     /// (the components of `gap_after`: which part of the gap it removes).
@@ -211,18 +227,24 @@ pub struct CandidateResult {
     pub z_after: BTreeMap<String, f64>,
 }
 
+/// One round of the search: the current model's gap and every candidate tried.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Round {
+    /// Gap (Σ max(z, 0), held-out data) of the current model.
     pub gap_before: f64,
     /// Chance spread of the gap (leave-one-out over replicates).
     pub gap_null_sd: f64,
+    /// Discrepancy table of the current model (held-out data).
     pub table_before: DiscrepancyTable,
     /// Best first.
     pub candidates: Vec<CandidateResult>,
+    /// The effect(s) added this round (`+`-joined names), if any.
     pub accepted: Option<String>,
+    /// How the round was decided.
     pub note: String,
 }
 
+/// Outcome of the model check.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Verdict {
@@ -234,14 +256,18 @@ pub enum Verdict {
     Unexplained,
 }
 
+/// What [`run`] found.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ModelCheckResult {
     /// In the order found.
     pub effects: Vec<FoundEffect>,
+    /// Whether the data are explained, and how.
     pub verdict: Verdict,
     /// The final model: starting effects plus the ones found.
     pub model: Vec<EffectSetting>,
+    /// Discrepancy table of the final model.
     pub final_table: DiscrepancyTable,
+    /// Every round of the search, in order.
     pub rounds: Vec<Round>,
 }
 

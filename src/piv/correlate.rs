@@ -56,7 +56,7 @@ pub(crate) struct CorrelationPlan {
 }
 
 impl CorrelationPlan {
-    pub fn new(w: usize, h: usize) -> Self {
+    pub(crate) fn new(w: usize, h: usize) -> Self {
         assert!(w > 0 && h > 0, "window size must be positive");
         let mut planner = FftPlanner::<f32>::new();
         CorrelationPlan {
@@ -99,7 +99,7 @@ impl CorrelationPlan {
     }
 
     /// An empty half spectrum of this window size.
-    pub fn spectrum(&self) -> Spectrum {
+    pub(crate) fn spectrum(&self) -> Spectrum {
         Spectrum {
             data: vec![Complex32::default(); self.half_len()],
             energy: 0.0,
@@ -369,13 +369,13 @@ pub(crate) fn clip_below_mean(win: &mut [f32]) -> f64 {
 impl Workspace {
     /// Start a new sum of correlation.
     #[inline(always)]
-    pub fn reset(&mut self) {
+    pub(crate) fn reset(&mut self) {
         // The first pair overwrites the accumulator (no zeroing pass).
         self.pairs = 0;
     }
 
     /// Number of pairs that contributed since [`reset`](Self::reset).
-    pub fn pairs(&self) -> usize {
+    pub(crate) fn pairs(&self) -> usize {
         self.pairs
     }
 
@@ -498,7 +498,7 @@ impl Workspace {
     /// The accumulator is transformed in place: [`reset`](Self::reset)
     /// before the next sum ([`pairs`](Self::pairs) stays readable).
     #[inline(always)]
-    pub fn finish(&mut self, out: &mut [f32]) {
+    pub(crate) fn finish(&mut self, out: &mut [f32]) {
         let (w, h) = (self.plan.w, self.plan.h);
         let m = w / 2 + 1;
         if self.pairs == 0 {
@@ -625,7 +625,7 @@ pub(crate) fn direct_correlation_prepared(
 /// A correlation peak: integer position (signed shift), sub-pixel shift,
 /// peak height, and whether the sub-pixel fit was possible.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Peak {
+pub(crate) struct Peak {
     pub dx: f64,
     pub dy: f64,
     pub height: f32,

@@ -22,6 +22,7 @@ const LUMA: [f32; 3] = [0.299, 0.587, 0.114];
 /// of a multi-page TIFF.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Frames {
+    /// The frames in file order (TIFF pages), grey or luminance.
     pub frames: Vec<Image>,
     /// The file held colour (channels that differ somewhere), reduced to
     /// luminance.

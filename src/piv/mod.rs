@@ -28,12 +28,12 @@
 //! accumulate in [`FieldStats`], which two time slices can
 //! [`merge`](FieldStats::merge).
 
-pub mod correlate;
+pub(crate) mod correlate;
 pub mod images;
 pub(crate) mod multipass;
 pub mod output;
-pub mod pseudo;
-pub mod run;
+pub(crate) mod pseudo;
+pub(crate) mod run;
 pub mod synth;
 pub mod validate;
 
@@ -50,12 +50,16 @@ use std::sync::Arc;
 /// A grey-value image, row-major, `data[y * width + x]`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Image {
+    /// Width (px).
     pub width: usize,
+    /// Height (px).
     pub height: usize,
+    /// Grey values, `width · height`, row-major.
     pub data: Vec<f32>,
 }
 
 impl Image {
+    /// A black (all-zero) image of `width × height` px.
     pub fn zeros(width: usize, height: usize) -> Self {
         Image {
             width,
@@ -63,8 +67,9 @@ impl Image {
             data: vec![0.0; width * height],
         }
     }
+    #[cfg(test)]
     #[inline]
-    pub fn get(&self, x: usize, y: usize) -> f32 {
+    pub(crate) fn get(&self, x: usize, y: usize) -> f32 {
         self.data[y * self.width + x]
     }
 }
@@ -75,8 +80,11 @@ impl Image {
 /// of evaluated steps in which the node was valid.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FieldStats {
+    /// The node grid the statistics are on.
     pub grid: NodeGrid,
+    /// Number of fields added (evaluated time steps).
     pub steps: u64,
+    /// Number of valid vectors per node, row-major (`j·nx + i`).
     pub n: Vec<u64>,
     su: Vec<f64>,
     sv: Vec<f64>,
@@ -88,18 +96,26 @@ pub struct FieldStats {
 /// One row of `piv_mean.csv`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MeanRow {
+    /// Node x (px).
     pub x: f64,
+    /// Node y (px).
     pub y: f64,
+    /// Mean velocity along x (px/s); NaN without a valid vector.
     pub u: f64,
+    /// Mean velocity along y (px/s); NaN without a valid vector.
     pub v: f64,
+    /// Reynolds normal stress ⟨u′u′⟩ ((px/s)²).
     pub uu: f64,
+    /// Reynolds normal stress ⟨v′v′⟩ ((px/s)²).
     pub vv: f64,
+    /// Reynolds shear stress ⟨u′v′⟩ ((px/s)²).
     pub uv: f64,
+    /// Fraction of the evaluated steps in which the node was valid (0–1).
     pub valid: f64,
 }
 
 impl FieldStats {
-    pub fn new(grid: NodeGrid) -> Self {
+    pub(crate) fn new(grid: NodeGrid) -> Self {
         let n = grid.len();
         FieldStats {
             grid,
@@ -115,7 +131,7 @@ impl FieldStats {
 
     /// Add one field, its displacements multiplied by `scale` (e.g. the
     /// pulse frequency to get px/s).
-    pub fn add(&mut self, f: &VectorField, scale: f64) {
+    pub(crate) fn add(&mut self, f: &VectorField, scale: f64) {
         self.steps += 1;
         for k in 0..self.n.len() {
             if validate::is_valid(f.flags[k]) {
@@ -128,26 +144,6 @@ impl FieldStats {
                 self.suv[k] += u * v;
             }
         }
-    }
-
-    /// Combine with statistics of another time slice on the same grid.
-    pub fn merge(&mut self, o: &FieldStats) -> Result<()> {
-        if o.grid != self.grid {
-            return Err(Error::param(
-                "stats",
-                "cannot merge PIV statistics of different grids",
-            ));
-        }
-        self.steps += o.steps;
-        for k in 0..self.n.len() {
-            self.n[k] += o.n[k];
-            self.su[k] += o.su[k];
-            self.sv[k] += o.sv[k];
-            self.suu[k] += o.suu[k];
-            self.svv[k] += o.svv[k];
-            self.suv[k] += o.suv[k];
-        }
-        Ok(())
     }
 
     /// Mean, Reynolds stresses (population moments) and valid fraction per
@@ -188,7 +184,9 @@ impl FieldStats {
 /// Options of streaming PIV on pulses.
 #[derive(Debug, Clone, PartialEq)]
 pub struct StreamOptions {
+    /// Options of the correlation.
     pub piv: PivOptions,
+    /// How pulses' events become pseudo-images.
     pub pseudo: PseudoOptions,
     /// Frames per evaluation, `N_f` (≥ 2): pairs (k, k+1) summed.
     pub frames: usize,
@@ -199,6 +197,7 @@ pub struct StreamOptions {
 /// A field measured from pulses `first_pulse … first_pulse + N_f − 1`.
 #[derive(Debug, Clone)]
 pub struct StepField {
+    /// Index of the first pulse of the evaluation.
     pub first_pulse: i64,
     /// Centre time of the evaluated pulses (µs).
     pub t_us: f64,
@@ -219,6 +218,7 @@ pub struct PivStream {
     batch: usize,
     /// Evaluations due but not yet run (at most `batch`).
     pending: Vec<PendingEval>,
+    /// Running statistics (px/s) of the fields evaluated so far.
     pub stats: FieldStats,
 }
 
@@ -230,6 +230,10 @@ struct PendingEval {
 }
 
 impl PivStream {
+    /// A stream for a `width × height` px sensor with the given pulse
+    /// timing; an error when `frames < 2`, `piv.pyramid ≥ frames`, `step`
+    /// is 0, the pulse period is not positive, or the options do not suit
+    /// the sensor (see [`node_grid`]).
     pub fn new(
         width: usize,
         height: usize,
@@ -275,7 +279,7 @@ impl PivStream {
         })
     }
 
-    pub fn grid(&self) -> &NodeGrid {
+    pub(crate) fn grid(&self) -> &NodeGrid {
         &self.grid
     }
 

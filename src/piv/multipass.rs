@@ -38,6 +38,7 @@ pub struct PivOptions {
     pub window_h: usize,
     /// Node spacing in x and y (px).
     pub spacing_x: usize,
+    /// Node spacing in y (px).
     pub spacing_y: usize,
     /// Number of passes (1 = plain single pass, no deformation).
     pub passes: usize,
@@ -62,6 +63,9 @@ pub struct PivOptions {
 }
 
 impl PivOptions {
+    /// Square `window` px windows, nodes `spacing` px apart in x and y,
+    /// 3 passes, the default median test, no mask, no pyramid, background
+    /// clipping on.
     pub fn new(window: usize, spacing: usize) -> Self {
         PivOptions {
             window_w: window,
@@ -90,26 +94,36 @@ impl PivOptions {
 /// The node grid: node (i, j) at `(x0 + i·dx, y0 + j·dy)`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct NodeGrid {
+    /// Number of nodes along x.
     pub nx: usize,
+    /// Number of nodes along y.
     pub ny: usize,
+    /// x of node (0, 0) (px).
     pub x0: f64,
+    /// y of node (0, 0) (px).
     pub y0: f64,
+    /// Node spacing along x (px).
     pub dx: f64,
+    /// Node spacing along y (px).
     pub dy: f64,
 }
 
 impl NodeGrid {
+    /// x of node column `i` (px).
     #[inline]
     pub fn x(&self, i: usize) -> f64 {
         self.x0 + i as f64 * self.dx
     }
+    /// y of node row `j` (px).
     #[inline]
     pub fn y(&self, j: usize) -> f64 {
         self.y0 + j as f64 * self.dy
     }
+    /// Number of nodes (`nx · ny`).
     pub fn len(&self) -> usize {
         self.nx * self.ny
     }
+    /// True when the grid has no node.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
@@ -119,9 +133,13 @@ impl NodeGrid {
 /// [`validate::flag`]; replaced vectors keep their replacement value.
 #[derive(Debug, Clone, PartialEq)]
 pub struct VectorField {
+    /// The node grid.
     pub grid: NodeGrid,
+    /// Displacement along x per frame step (px), row-major (`j·nx + i`).
     pub u: Vec<f64>,
+    /// Displacement along y per frame step (px), row-major (`j·nx + i`).
     pub v: Vec<f64>,
+    /// Validity flags per node ([`validate::flag`] bits; 0 = valid).
     pub flags: Vec<u8>,
     /// Correlation peak height per node (0–1, mean over pairs).
     pub peak: Vec<f32>,

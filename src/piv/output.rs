@@ -23,11 +23,6 @@ fn fmt(v: f64) -> String {
     }
 }
 
-/// `piv_mean.csv`: `x,y,u,v,uu,vv,uv,valid` (px, px/s, (px/s)², fraction).
-pub fn write_mean_csv(path: &Path, rows: &[MeanRow]) -> Result<()> {
-    write_mean_csv_calibrated(path, rows, None)
-}
-
 /// [`write_mean_csv`], with the physical columns of `calib` after the
 /// pixel ones when given (`X_mm,Y_mm,U_m_s,V_m_s,uu_m2_s2,vv_m2_s2,
 /// uv_m2_s2`, [`crate::calib::Calibration::field_columns`]).
@@ -112,6 +107,10 @@ pub struct NpyStack {
 }
 
 impl NpyStack {
+    /// Start a stack to be written to `target` with dtype `descr`
+    /// (`"<f4"` or `"|u1"`) and frames of `ny × nx`; frames are spilled to
+    /// a hidden file next to `target` until [`finish`](Self::finish). An
+    /// error when that file cannot be created.
     pub fn create(target: &Path, descr: &'static str, ny: usize, nx: usize) -> Result<Self> {
         let dir = target
             .parent()
@@ -136,6 +135,7 @@ impl NpyStack {
         })
     }
 
+    /// Append one `<f4` frame of `ny · nx` values, row-major.
     pub fn push_f32(&mut self, vals: impl Iterator<Item = f32>) -> Result<()> {
         let w = self.spill.as_mut().expect("open");
         let mut n = 0;
@@ -149,6 +149,7 @@ impl NpyStack {
         Ok(())
     }
 
+    /// Append one `|u1` frame of `ny · nx` values, row-major.
     pub fn push_u8(&mut self, vals: &[u8]) -> Result<()> {
         let w = self.spill.as_mut().expect("open");
         w.write_all(vals)
@@ -157,6 +158,9 @@ impl NpyStack {
         Ok(())
     }
 
+    /// Write the `.npy` file (header and all frames) atomically to the
+    /// target and remove the spill file; an error names the file that
+    /// could not be read or written.
     pub fn finish(mut self) -> Result<()> {
         let w = self.spill.take().expect("open");
         w.into_inner()

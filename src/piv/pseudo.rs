@@ -31,6 +31,7 @@ pub enum PixelMode {
 /// Options of pseudo-image construction.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PseudoOptions {
+    /// How events contribute to their pixel.
     pub mode: PixelMode,
     /// Use OFF events too (default: ON only).
     pub both_polarities: bool,
@@ -49,7 +50,7 @@ impl Default for PseudoOptions {
 }
 
 impl PseudoOptions {
-    pub fn check(&self) -> Result<()> {
+    pub(crate) fn check(&self) -> Result<()> {
         if !(self.sigma.is_finite() && (0.0..=10.0).contains(&self.sigma)) {
             return Err(Error::param(
                 "sigma",
@@ -77,7 +78,7 @@ pub(crate) fn gaussian_kernel(sigma: f64) -> Vec<f32> {
 }
 
 /// Separable convolution with `kernel`, edges replicated. `tmp` is reused.
-pub fn blur(img: &mut Image, kernel: &[f32], tmp: &mut Vec<f32>) {
+pub(crate) fn blur(img: &mut Image, kernel: &[f32], tmp: &mut Vec<f32>) {
     if kernel.len() <= 1 {
         return;
     }
@@ -154,7 +155,7 @@ pub(crate) struct PseudoImager {
 }
 
 impl PseudoImager {
-    pub fn new(width: usize, height: usize, opts: PseudoOptions) -> Result<Self> {
+    pub(crate) fn new(width: usize, height: usize, opts: PseudoOptions) -> Result<Self> {
         opts.check()?;
         if width == 0 || height == 0 {
             return Err(Error::param(
@@ -231,7 +232,7 @@ pub(crate) struct FrameRing {
 }
 
 impl FrameRing {
-    pub fn new(capacity: usize) -> Self {
+    pub(crate) fn new(capacity: usize) -> Self {
         FrameRing {
             capacity: capacity.max(1),
             frames: VecDeque::with_capacity(capacity),
@@ -252,7 +253,7 @@ impl FrameRing {
     }
 
     /// Append a frame with its pulse index, dropping the oldest when full.
-    pub fn push(&mut self, index: i64, img: Image) {
+    pub(crate) fn push(&mut self, index: i64, img: Image) {
         if self.frames.len() == self.capacity {
             if let Some((_, old)) = self.frames.pop_front() {
                 self.recycle(old);
@@ -273,7 +274,7 @@ impl FrameRing {
     }
 
     #[cfg(test)]
-    pub fn len(&self) -> usize {
+    pub(crate) fn len(&self) -> usize {
         self.frames.len()
     }
 
@@ -288,7 +289,7 @@ impl FrameRing {
     }
 
     #[cfg(test)]
-    pub fn images(&self) -> Vec<&Image> {
+    pub(crate) fn images(&self) -> Vec<&Image> {
         self.frames.iter().map(|f| &*f.1).collect()
     }
 

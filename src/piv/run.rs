@@ -82,15 +82,21 @@ pub enum PivStage {
 pub enum PivProgress<'a> {
     /// A pass over the recording starts; `file_size` in bytes when known.
     Stage {
+        /// The pass that starts.
         stage: PivStage,
+        /// Size of the recording (bytes), when known.
         file_size: Option<u64>,
     },
     /// After each chunk read: bytes read and events decoded in this pass,
     /// and the fields so far.
     Read {
+        /// The pass under way.
         stage: PivStage,
+        /// Bytes read in this pass.
         bytes: u64,
+        /// Events decoded in this pass.
         events: u64,
+        /// Fields evaluated so far.
         fields: u64,
     },
     /// A reader's warning about the recording.

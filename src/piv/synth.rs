@@ -18,7 +18,9 @@ use super::Image;
 /// Options of the synthetic image generator.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SynthOptions {
+    /// Image width (px).
     pub width: usize,
+    /// Image height (px).
     pub height: usize,
     /// Particles per pixel.
     pub ppp: f64,

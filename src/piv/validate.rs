@@ -30,7 +30,10 @@ pub mod flag {
 /// Options of the normalised median test.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MedianTest {
+    /// A vector fails when its normalised residual exceeds this (default 3).
     pub threshold: f64,
+    /// ε added to the neighbours' median residual (px, default 0.1): the
+    /// acceptable random error, so a uniform flow is not all flagged.
     pub epsilon: f64,
 }
 

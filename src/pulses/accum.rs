@@ -51,7 +51,7 @@ pub(crate) const LARGE_GROUP: usize = 4;
 /// Largest side of the pixel-count map: the largest sensor side ebptv
 /// accepts ([`crate::io::guard::MAX_SENSOR_SIDE`]); 16 MB of u8 at most,
 /// whatever geometry a file states or coordinates damaged data holds.
-pub(crate) const MAX_MAP_SIDE: usize = crate::io::guard::MAX_SENSOR_SIDE as usize;
+pub const MAX_MAP_SIDE: usize = crate::io::guard::MAX_SENSOR_SIDE as usize;
 /// Interleaved run-size tables (breaks store-to-load chains).
 const GROUP_TABLES: usize = 4;
 
@@ -68,7 +68,7 @@ pub(crate) struct Fold {
 }
 
 impl Fold {
-    pub fn new(t_ref: i64, p_ref: f64, nbins: usize) -> Fold {
+    pub(crate) fn new(t_ref: i64, p_ref: f64, nbins: usize) -> Fold {
         assert!(
             p_ref >= 1.0 && (1..1 << 31).contains(&nbins),
             "fold period {p_ref} µs / {nbins} bins"
@@ -86,7 +86,7 @@ impl Fold {
     /// up to the rounding of `mul` (±½ in 2⁵⁷: < 10⁻⁷ of a bin within 10 h of
     /// sensor time).
     #[inline(always)]
-    pub fn bin(&self, t: i64) -> usize {
+    pub(crate) fn bin(&self, t: i64) -> usize {
         let x = (t.wrapping_sub(self.t_ref) as u64)
             .wrapping_mul(2)
             .wrapping_add(1);
@@ -126,7 +126,7 @@ pub(crate) struct Block {
 }
 
 impl Block {
-    pub fn new(start: i64, end: i64, nbins: usize) -> Self {
+    pub(crate) fn new(start: i64, end: i64, nbins: usize) -> Self {
         Block {
             start,
             end,
@@ -138,11 +138,11 @@ impl Block {
         }
     }
 
-    pub fn centre(&self) -> f64 {
+    pub(crate) fn centre(&self) -> f64 {
         self.start as f64 + self.t_rel_sum as f64 / self.n.max(1) as f64
     }
 
-    pub fn merge(&mut self, o: Block) {
+    pub(crate) fn merge(&mut self, o: Block) {
         let c = (self.centre() * self.n as f64 + o.centre() * o.n as f64)
             / (self.n + o.n).max(1) as f64;
         self.n += o.n;
@@ -242,7 +242,7 @@ fn merge_pairs(blocks: &mut Vec<Block>) {
 }
 
 impl Accumulator {
-    pub fn new(width: usize, height: usize, block_us: i64, max_blocks: usize) -> Self {
+    pub(crate) fn new(width: usize, height: usize, block_us: i64, max_blocks: usize) -> Self {
         let width = width.clamp(1, MAX_MAP_SIDE);
         let height = height.clamp(1, MAX_MAP_SIDE);
         Accumulator {
@@ -309,7 +309,7 @@ impl Accumulator {
 
     /// The fold, once set.
     #[cfg(test)]
-    pub fn fold(&self) -> Option<Fold> {
+    pub(crate) fn fold(&self) -> Option<Fold> {
         self.fold
     }
 
@@ -325,7 +325,7 @@ impl Accumulator {
     /// Add the events of `ev` (in stream order) with the fold `f` (set on
     /// the first call if not yet set); returns the chunk's time range
     /// (min, max).
-    pub fn push(&mut self, f: &Fold, ev: &EventChunk) -> (i64, i64) {
+    pub(crate) fn push(&mut self, f: &Fold, ev: &EventChunk) -> (i64, i64) {
         if self.fold.is_none() {
             self.set_fold(*f);
         }
@@ -448,7 +448,7 @@ impl Accumulator {
     }
 
     /// Number of (row, t) runs of each size (index = size, last bin = larger).
-    pub fn group_sizes(&self) -> Vec<u64> {
+    pub(crate) fn group_sizes(&self) -> Vec<u64> {
         let mut g = vec![0u64; MAX_GROUP + 1];
         for table in self.group_tables.iter() {
             for (a, b) in g.iter_mut().zip(table) {
@@ -460,7 +460,7 @@ impl Accumulator {
 
     /// Close the open runs and the current block (end of stream). Without
     /// a fold the last time run stays in `pending`.
-    pub fn close(&mut self) {
+    pub(crate) fn close(&mut self) {
         if self.started && self.run > 0 {
             self.row_t[0] = self.last_t;
             self.row_len[0] = self.run;
@@ -605,7 +605,7 @@ pub(crate) mod tests {
     }
 
     impl Reference {
-        pub fn new(width: usize, height: usize, block_us: i64) -> Self {
+        pub(crate) fn new(width: usize, height: usize, block_us: i64) -> Self {
             Reference {
                 width,
                 counts: vec![0; width * height],
@@ -636,7 +636,7 @@ pub(crate) mod tests {
             self.run = 0;
         }
 
-        pub fn push(&mut self, f: &Fold, ev: &EventChunk, max_blocks: usize) {
+        pub(crate) fn push(&mut self, f: &Fold, ev: &EventChunk, max_blocks: usize) {
             for i in 0..ev.len() {
                 let (t, x, y) = (ev.t[i], ev.x[i] as usize, ev.y[i]);
                 self.counts[y as usize * self.width + x] += 1;
@@ -671,7 +671,7 @@ pub(crate) mod tests {
             }
         }
 
-        pub fn close(&mut self) {
+        pub(crate) fn close(&mut self) {
             self.close_run();
             let cur = std::mem::replace(&mut self.cur, Block::new(0, 0, 0));
             if cur.n > 0 {

@@ -221,7 +221,7 @@ pub struct HotPixel {
 
 /// Hot pixels: rate above `factor` × the mean rate of active pixels and
 /// above 100 ev/s, sorted by rate, at most `max` listed.
-pub fn hot_pixels(
+pub(crate) fn hot_pixels(
     counts: &[u32],
     width: usize,
     duration_s: f64,

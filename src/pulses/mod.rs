@@ -80,12 +80,12 @@ use crate::error::{Error, Result};
 use crate::events::{Chunk, Edge, EventChunk, Geometry};
 
 pub(crate) mod accum;
-pub mod diagnostics;
+pub(crate) mod diagnostics;
 mod dir;
 pub mod live;
 pub mod monitor;
 pub mod static_mask;
-pub mod timing;
+pub(crate) mod timing;
 
 use accum::{Accumulator, Block, Fold};
 
@@ -103,7 +103,9 @@ pub(crate) use timing::Periodicity;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum PulseSource {
+    /// Pulse times from a trigger channel.
     Trigger,
+    /// Pulse times estimated from the events' periodicity.
     Estimated,
 }
 
@@ -112,11 +114,14 @@ pub enum PulseSource {
 /// `[start_k + window_offset_us, start_k + window_offset_us + period_us)`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct PulseTiming {
+    /// Pulse period (µs).
     pub period_us: f64,
+    /// Start of pulse 0 (µs, sensor clock).
     pub first_pulse_us: f64,
     /// Offset of the assignment window from the pulse start (µs); the window
     /// boundary sits where the folded histogram is lowest. May be negative.
     pub window_offset_us: f64,
+    /// Where the pulse times came from.
     pub source: PulseSource,
     /// Pulse width (µs) when known (falling triggers, or the scenario).
     pub pulse_width_us: Option<f64>,
@@ -144,9 +149,11 @@ impl PulseTiming {
 /// The events of one pulse, gathered while streaming.
 #[derive(Debug, Clone, Default)]
 pub struct PulseEvents {
+    /// Pulse index (0 = the first pulse of the train).
     pub index: i64,
     /// Start of the light pulse (µs, sensor clock).
     pub start_us: f64,
+    /// The events assigned to this pulse.
     pub events: EventChunk,
 }
 
@@ -223,7 +230,7 @@ const MAX_SLICES: usize = 16;
 
 impl PulseOptions {
     /// Check the user's values; name the parameter that is wrong.
-    pub fn validate(&self) -> Result<()> {
+    pub(crate) fn validate(&self) -> Result<()> {
         if let Some(f) = self.pulse_hz {
             if !(f.is_finite() && (MIN_PULSE_HZ..=200_000.0).contains(&f)) {
                 return Err(Error::param(
@@ -282,7 +289,7 @@ pub fn analyze(
 
 /// Events looked at for the pulsed-light verdict of `ebptv info` (a
 /// prefix of the recording bounds its cost).
-pub const VERDICT_EVENTS: u64 = 4_000_000;
+pub(crate) const VERDICT_EVENTS: u64 = 4_000_000;
 
 /// The pulsed-light test ([`PulsedVerdict`]) of `ebptv info` on the first
 /// [`VERDICT_EVENTS`] events of `path`, triggers used when regular; an
@@ -333,7 +340,7 @@ const PIPELINE_CHUNKS: usize = 3;
 /// same as [`analyze`]'s (tested); the pass takes the longer of the two
 /// halves instead of their sum — the first pass of `ebptv track` has the
 /// machine to itself (nothing else can start before the timing is known).
-pub fn analyze_pipelined(
+pub(crate) fn analyze_pipelined(
     source: &mut dyn crate::io::EventSource,
     opts: &PulseOptions,
 ) -> Result<PulseReport> {
@@ -413,6 +420,8 @@ pub struct Analyzer {
 }
 
 impl Analyzer {
+    /// An analyzer for a recording of `geometry` (1280 × 720 when unknown).
+    /// Fails when `opts` are invalid.
     pub fn new(opts: PulseOptions, geometry: Option<Geometry>) -> Result<Self> {
         opts.validate()?;
         let (w, h) = geometry

@@ -33,14 +33,23 @@ use crate::io::EventSource;
 /// What the monitor prints for one interval.
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct IntervalSummary {
+    /// Start of the interval (µs, sensor clock).
     pub t_start_us: i64,
+    /// End of the interval (µs, sensor clock).
     pub t_end_us: i64,
+    /// Events in the interval.
     pub events: u64,
+    /// Event rate in the interval (ev/s).
     pub rate_hz: f64,
+    /// Event density inside the burst window over that outside.
     pub burst_contrast: f64,
+    /// Full width at half maximum of the latency peak (µs).
     pub fwhm_us: f64,
+    /// Fraction of events above the random floor (tied to pulses).
     pub burst_fraction: f64,
+    /// Fraction of events in large runs sharing (row, timestamp).
     pub large_group_fraction: f64,
+    /// The interval is judged readout-saturated.
     pub saturated: bool,
     /// Why no pulse statistics could be computed, when so.
     pub note: Option<String>,

@@ -7,6 +7,7 @@ use super::*;
 /// How the trigger channels looked and how the train fitted.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct TriggerReport {
+    /// Every trigger channel seen, sorted by channel id.
     pub channels: Vec<timing::ChannelSummary>,
     /// The fit of the channel used (absent when pulses were estimated).
     pub fit: Option<timing::TriggerFit>,
@@ -15,6 +16,7 @@ pub struct TriggerReport {
 /// How the period was estimated from events.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct EstimateReport {
+    /// Band of pulse frequencies searched (Hz, low, high).
     pub search_hz: (f64, f64),
     /// Warm-up estimate (periodogram + epoch folding).
     pub warmup: Periodicity,
@@ -30,9 +32,13 @@ pub struct EstimateReport {
 /// One time block of the recording.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct TimeWindow {
+    /// Start of the block (µs, sensor clock).
     pub t_start_us: i64,
+    /// End of the block (µs, sensor clock).
     pub t_end_us: i64,
+    /// Events in the block.
     pub events: u64,
+    /// Event rate in the block (ev/s).
     pub rate_hz: f64,
     /// Events in runs sharing (row, timestamp), any size ≥ 2.
     pub shared_fraction: f64,
@@ -40,6 +46,8 @@ pub struct TimeWindow {
     pub large_group_fraction: f64,
     /// Events above the random floor of this block's latency histogram.
     pub burst_fraction: f64,
+    /// The block is flagged as readout-saturated: many large (row, timestamp)
+    /// runs and a burst fraction well below the recording's median.
     pub saturated: bool,
 }
 
@@ -49,15 +57,18 @@ pub struct SaturationReport {
     /// Number of runs of each size (index = events sharing one (row, t);
     /// the last bin collects larger runs).
     pub group_sizes: Vec<u64>,
+    /// Fraction of all events in runs of ≥ LARGE_GROUP sharing (row, timestamp).
     pub large_group_fraction: f64,
     /// Fraction of events in flagged time windows.
     pub saturated_event_fraction: f64,
+    /// The time blocks, in order.
     pub windows: Vec<TimeWindow>,
 }
 
 /// Particle-image statistics from per-pulse pseudo-images (paper App. A).
 #[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
 pub struct ParticleImageReport {
+    /// Pulses whose events were imaged.
     pub pulses_sampled: u64,
     /// Connected-pixel clusters per sensor pixel per pulse.
     pub ppp: f64,
@@ -70,12 +81,17 @@ pub struct ParticleImageReport {
 /// Event-rate map and hot pixels.
 #[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
 pub struct RateMapReport {
+    /// Sensor width (px).
     pub width: u16,
+    /// Sensor height (px).
     pub height: u16,
     /// Mean over pixels with at least one event (ev/(pixel·s)).
     pub mean_active_rate_hz: f64,
+    /// Highest pixel rate (ev/(pixel·s)).
     pub max_rate_hz: f64,
+    /// Rate above which a pixel counts as hot (ev/(pixel·s)).
     pub hot_threshold_hz: f64,
+    /// The hottest pixels, by rate, highest first (a bounded list).
     pub hot_pixels: Vec<diagnostics::HotPixel>,
     /// Events per pixel per second, row-major `height × width` (not in JSON;
     /// written as `rate_map.npy` / `.csv` by the CLI).
@@ -112,9 +128,13 @@ pub struct RateMapReport {
 /// follows the pulses) — the error then names the saturation measure.
 #[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
 pub struct PulsedVerdict {
+    /// The recording passes all three tests.
     pub pulsed: bool,
+    /// Event density inside the burst window over that outside (test 1).
     pub burst_contrast: f64,
+    /// Burst excess over the random floor in Poisson standard deviations (test 2).
     pub excess_z: f64,
+    /// Share of events in time blocks showing the burst (test 3, 0–1).
     pub locked_share: f64,
     /// What failed (empty when pulsed).
     pub reason: String,
@@ -123,7 +143,7 @@ pub struct PulsedVerdict {
 impl PulsedVerdict {
     /// Apply the test to a latency histogram and the time blocks' burst
     /// fractions (`(events, burst fraction)` per block).
-    pub fn judge(stats: &diagnostics::LatencyStats, blocks: &[(u64, f64)]) -> PulsedVerdict {
+    pub(crate) fn judge(stats: &diagnostics::LatencyStats, blocks: &[(u64, f64)]) -> PulsedVerdict {
         let h = &stats.histogram;
         let n = h.len();
         let total: f64 = h.iter().sum();
@@ -184,36 +204,57 @@ impl PulsedVerdict {
 /// Result of the pulse stage, serialised flat as `pulses.json`.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct PulseReport {
+    /// The pulse train (period, first pulse, window offset, source).
     #[serde(flatten)]
     pub timing: PulseTiming,
+    /// Peak of the latency histogram (µs after the pulse start).
     pub latency_peak_us: f64,
+    /// Full width at half maximum of the latency peak (µs).
     pub latency_fwhm_us: f64,
+    /// Shortest latency interval holding 95 % of the burst events (µs, start, end).
     pub latency_window95_us: (f64, f64),
+    /// Event density inside the 95 % window over that outside.
     pub burst_contrast: f64,
+    /// Fraction of events on the random floor of the latency histogram.
     pub random_event_fraction: f64,
+    /// min/max of the smoothed latency histogram: 1 = flat (no pulse structure).
     pub histogram_flatness: f64,
+    /// The readout is judged saturated (its timing no longer follows the pulses).
     pub saturated: bool,
     /// Fraction of events sharing (row, timestamp) with others.
     pub saturation_shared_fraction: f64,
+    /// Events in the recording.
     pub events: u64,
+    /// Fraction of events with ON polarity.
     pub on_fraction: f64,
+    /// Time of the first event (µs, sensor clock).
     pub t_first_us: i64,
+    /// Time of the last event (µs, sensor clock).
     pub t_last_us: i64,
+    /// Duration from first to last event (s).
     pub duration_s: f64,
+    /// Mean event rate (ev/s).
     pub event_rate_hz: f64,
     /// Pulses from pulse 0 to the one holding the last event.
     pub pulses: u64,
     /// Events before the window of pulse 0.
     pub unattributed_events: u64,
+    /// Trigger channels and the trigger fit.
     pub triggers: TriggerReport,
+    /// How the period was estimated (absent when triggers gave the timing).
     pub estimate: Option<EstimateReport>,
+    /// The latency histogram (events folded on the pulse train) and its measures.
     pub latency: diagnostics::LatencyStats,
+    /// Readout-saturation measures.
     pub saturation: SaturationReport,
+    /// Particle-image statistics.
     pub particles: ParticleImageReport,
+    /// Event-rate map and hot pixels.
     pub rate_map: RateMapReport,
     /// Event counts per 1 µs from `rate_trace_t0_us` over the first pulses
     /// (figure of the rate with pulse marks).
     pub rate_trace: Vec<u32>,
+    /// Time of the first bin of `rate_trace` (µs, sensor clock).
     pub rate_trace_t0_us: i64,
     /// Is the recording pulsed at all ([`PulsedVerdict`]).
     #[serde(default)]

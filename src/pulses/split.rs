@@ -43,6 +43,7 @@ pub struct Splitter {
 }
 
 impl Splitter {
+    /// A splitter for the pulse train `timing`.
     pub fn new(timing: PulseTiming) -> Self {
         let mut s = Splitter {
             timing,
@@ -77,6 +78,9 @@ impl Splitter {
         Ok(())
     }
 
+    /// Assign the events of `ev` to pulses and hand each
+    /// completed pulse to `on_pulse`. Fails when an event lies implausibly many
+    /// pulses ahead (a clock jump) or when `on_pulse` fails.
     pub fn push(
         &mut self,
         ev: &EventChunk,

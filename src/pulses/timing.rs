@@ -503,7 +503,7 @@ pub(crate) struct CircularCorrelator {
 }
 
 impl CircularCorrelator {
-    pub fn new(template: &[f64]) -> Self {
+    pub(crate) fn new(template: &[f64]) -> Self {
         let n = template.len();
         let mut planner = FftPlanner::<f64>::new();
         let fwd = planner.plan_fft_forward(n);

@@ -15,9 +15,12 @@ use crate::grid::{Lattice, Sample, Weighting};
 /// Velocity component of the line map.
 #[derive(Copy, Clone, Debug, PartialEq, Eq, Default)]
 pub enum Component {
+    /// Horizontal component u (along x).
     U,
+    /// Vertical component v (along y).
     #[default]
     V,
+    /// The sum of the u and v spectra.
     Sum,
 }
 
@@ -56,18 +59,23 @@ pub struct RunOptions {
     pub line: Option<(f64, f64, f64, f64)>,
     /// Number of points along the line.
     pub line_points: usize,
+    /// Velocity component of the pre-multiplied line map.
     pub component: Component,
     /// Bin width (px); `bin_h` the height (default = `bin`).
     pub bin: f64,
+    /// Bin height (px); `None`: square bins of `bin`.
     pub bin_h: Option<f64>,
     /// One frame every `every` pulses.
     pub every: usize,
     /// Welch segment length (frames) and overlap fraction.
     pub nperseg: usize,
+    /// Overlap of consecutive Welch segments (fraction of a segment, in [0, 1)).
     pub seg_overlap: f64,
     /// Peak search band (Hz); `f_max` infinite = the Nyquist frequency.
     pub f_min: f64,
+    /// Upper end of the peak search band (Hz).
     pub f_max: f64,
+    /// Also report the rms about a moving average of this many frames.
     pub moving_average: Option<usize>,
     /// Minimum samples per bin for the maximum mean speed.
     pub min_count: u64,
@@ -135,7 +143,9 @@ impl RunOptions {
 /// The spectra along the line.
 #[derive(Debug, Clone)]
 pub struct LineSpectra {
+    /// The points along the line (px).
     pub points: Vec<(f64, f64)>,
+    /// The spectra at those points.
     pub result: SpectraResult,
     /// Frequencies (Hz) of the spectra.
     pub f_hz: Vec<f64>,
@@ -151,9 +161,11 @@ pub struct SpectraRun {
     pub summary: Value,
     /// The spectra at the points, and `spectra.csv`.
     pub points: Option<SpectraResult>,
+    /// The content of `spectra.csv`.
     pub spectra_csv: Option<String>,
     /// The spectra along the line, and `premultiplied_line.csv`.
     pub line: Option<LineSpectra>,
+    /// The content of `premultiplied_line.csv`.
     pub line_csv: Option<String>,
     /// Why the per-sample noise estimate is missing, when it is.
     pub noise_warning: Option<String>,

@@ -124,7 +124,7 @@ impl RunParams {
     }
 
     /// The slicing of the sliced linker.
-    pub fn slicing(&self) -> SliceParams {
+    pub(crate) fn slicing(&self) -> SliceParams {
         SliceParams {
             slice_pulses: self.slice_pulses,
             overlap: self.slice_overlap,
@@ -136,7 +136,7 @@ impl RunParams {
 impl TrackConfig {
     /// Parse a TOML text; `path` names the file in errors (which name the
     /// offending key and its line).
-    pub fn from_toml(text: &str, path: &Path) -> Result<Self> {
+    pub(crate) fn from_toml(text: &str, path: &Path) -> Result<Self> {
         toml::from_str(text).map_err(|e| Error::Config {
             path: path.to_path_buf(),
             why: e.to_string().trim_end().to_string(),

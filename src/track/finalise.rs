@@ -71,7 +71,7 @@ pub(super) fn cut_at_steps(t: ActiveTrack, sigma: f64, threshold: f64) -> (u64, 
 /// Tracks that ended together (one call of the tracker's fits), not yet
 /// fitted: their detections and the position noise and outlier gate of
 /// the moment they ended. [`Finaliser::finalise`] turns them into tracks.
-pub struct EndedTracks {
+pub(crate) struct EndedTracks {
     pub(super) tracks: Vec<ActiveTrack>,
     pub(super) sigma: f64,
     pub(super) gate: f64,
@@ -79,23 +79,12 @@ pub struct EndedTracks {
     pub(super) flow_samples: Vec<local_flow::FlowSample>,
 }
 
-impl EndedTracks {
-    /// Number of ended tracks (kept or not).
-    pub fn len(&self) -> usize {
-        self.tracks.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.tracks.is_empty()
-    }
-}
-
 /// The output fits' sequential state: the curvature prior estimated from
 /// the tracks kept so far ([`fit::AccelPrior`]) and the next track id.
 /// Batches of [`EndedTracks`] must be finalised in the order they ended:
 /// each batch's fits use the prior of the batches before it (and run in
 /// parallel among themselves), its tracks are numbered after them.
-pub struct Finaliser {
+pub(crate) struct Finaliser {
     pub(super) params: TrackParams,
     pub(super) accel_prior: fit::AccelPrior,
     /// A copy of the tracker's local flow, brought up to date from each
@@ -122,7 +111,11 @@ impl Finaliser {
     /// tracks are fitted in parallel (rayon, in the caller's pool) and
     /// counted and numbered afterwards in input order: the result does
     /// not depend on the thread count.
-    pub fn finalise(&mut self, ended: EndedTracks, stats: &mut TrackerStats) -> Vec<LinkedTrack> {
+    pub(crate) fn finalise(
+        &mut self,
+        ended: EndedTracks,
+        stats: &mut TrackerStats,
+    ) -> Vec<LinkedTrack> {
         use rayon::prelude::*;
         let EndedTracks {
             tracks: ended,
@@ -618,10 +611,11 @@ pub(super) fn fit_track_with(
     (points, serials, (ssr / (2 * n) as f64).sqrt())
 }
 
+#[cfg(any(test, feature = "testkit"))]
 /// One detection handed to [`fit_detections`]: its serial, pulse, pulse
 /// time (µs) and centroid (px).
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct FitInput {
+pub(crate) struct FitInput {
     pub serial: u64,
     pub pulse: i64,
     pub t_us: f64,
@@ -629,6 +623,7 @@ pub struct FitInput {
     pub y: f64,
 }
 
+#[cfg(any(test, feature = "testkit"))]
 /// The output fit the tracker gives a finished track (the sliding,
 /// adaptive-window polynomial of `fit_order` with the curvature prior
 /// `accel_rms`, px/pulse², 0 = none; position noise `sigma`, px per axis;
@@ -639,7 +634,7 @@ pub struct FitInput {
 /// the links. Only the fit: no outlier removal, length rule or step cut
 /// (those are link decisions).
 /// `dets` must be in increasing pulse order, at least one.
-pub fn fit_detections(
+pub(crate) fn fit_detections(
     dets: &[FitInput],
     params: &TrackParams,
     sigma: f64,

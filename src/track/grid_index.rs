@@ -13,7 +13,7 @@
 
 /// Points of one pulse, bucketed by grid cell.
 #[derive(Debug, Clone, Default)]
-pub struct GridIndex {
+pub(crate) struct GridIndex {
     /// Requested cell size (px); 0 (the `Default`) means 4 px.
     base_cell: f64,
     /// Cell size of the current build and its inverse.
@@ -33,27 +33,25 @@ pub struct GridIndex {
 }
 
 impl GridIndex {
+    #[cfg(test)]
     /// An empty index whose cells are about `cell` px wide (enlarged when the
     /// points are few and spread far, so the grid never has many more cells
     /// than points).
-    pub fn new(cell: f64) -> Self {
+    pub(crate) fn new(cell: f64) -> Self {
         GridIndex {
             base_cell: cell,
             ..Default::default()
         }
     }
 
+    #[cfg(test)]
     /// Number of points indexed.
-    pub fn len(&self) -> usize {
+    pub(crate) fn len(&self) -> usize {
         self.item.len()
     }
 
-    pub fn is_empty(&self) -> bool {
-        self.item.is_empty()
-    }
-
     /// Index the points `(x, y)` (finite), numbered in iteration order.
-    pub fn rebuild(&mut self, points: impl Iterator<Item = (f64, f64)> + Clone) {
+    pub(crate) fn rebuild(&mut self, points: impl Iterator<Item = (f64, f64)> + Clone) {
         let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
         let mut n = 0usize;
         for (x, y) in points.clone() {
@@ -130,7 +128,7 @@ impl GridIndex {
 
     /// Append to `out` every point within `r` of `(x, y)` (inclusive) as
     /// `(index, squared distance)`, sorted by index.
-    pub fn within(&self, x: f64, y: f64, r: f64, out: &mut Vec<(u32, f64)>) {
+    pub(crate) fn within(&self, x: f64, y: f64, r: f64, out: &mut Vec<(u32, f64)>) {
         if self.item.is_empty() || !(r >= 0.0) {
             return;
         }

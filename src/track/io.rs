@@ -20,9 +20,9 @@ use crate::io::atomic::AtomicFile;
 use crate::table::{Col, TableFormat, TableWriter};
 
 /// Columns of `particles.csv`.
-pub const PARTICLES_HEADER: &str = "pulse,t_us,x,y,n_events";
+pub(crate) const PARTICLES_HEADER: &str = "pulse,t_us,x,y,n_events";
 /// Columns of `tracks.csv`.
-pub const TRACKS_HEADER: &str = "track_id,pulse,t_us,x,y,u,v";
+pub(crate) const TRACKS_HEADER: &str = "track_id,pulse,t_us,x,y,u,v";
 
 /// The columns of the `particles` table in Parquet and `.npy` (the
 /// `particles.csv` columns; µs, px).
@@ -37,7 +37,9 @@ pub static PARTICLE_COLUMNS: [Col<Particle>; 5] = [
 /// One row of the `tracks` table: a point and the id of its track.
 #[derive(Debug, Clone, Copy)]
 pub struct TrackRow {
+    /// Id of the track.
     pub id: u64,
+    /// The point (µs, px, px/s).
     pub p: TrackPoint,
     /// `X_mm, Y_mm, U_m_s, V_m_s` when the run is calibrated (read only by
     /// [`TRACK_COLUMNS_CALIBRATED`]).
@@ -51,7 +53,7 @@ pub static TRACK_COLUMNS: &[Col<TrackRow>] = TRACK_COLUMNS_CALIBRATED.split_at(7
 
 /// The `tracks` columns followed by the physical columns of a calibrated
 /// run ([`crate::calib::Calibration::point_columns`]: mm, m/s).
-pub static TRACK_COLUMNS_CALIBRATED: [Col<TrackRow>; 11] = [
+pub(crate) static TRACK_COLUMNS_CALIBRATED: [Col<TrackRow>; 11] = [
     Col::i64("track_id", |r| r.id as i64),
     Col::i64("pulse", |r| r.p.pulse),
     Col::f64("t_us", |r| r.p.t_us),
@@ -67,13 +69,15 @@ pub static TRACK_COLUMNS_CALIBRATED: [Col<TrackRow>; 11] = [
 
 /// Streaming writer of the `particles` table in any [`TableFormat`].
 pub enum ParticlesWriter {
+    /// `particles.csv`.
     Csv(ParticlesCsvWriter),
+    /// `particles.parquet` or `particles.npy`.
     Table(TableWriter<Particle>),
 }
 
 impl ParticlesWriter {
     /// `dir/particles.<ext>`.
-    pub fn create(dir: &Path, format: TableFormat) -> Result<Self> {
+    pub(crate) fn create(dir: &Path, format: TableFormat) -> Result<Self> {
         let path = dir.join(format.file_name("particles"));
         Ok(match format {
             TableFormat::Csv => ParticlesWriter::Csv(ParticlesCsvWriter::create(&path)?),
@@ -83,7 +87,7 @@ impl ParticlesWriter {
             TableFormat::Npy => ParticlesWriter::Table(TableWriter::npy(&path, &PARTICLE_COLUMNS)?),
         })
     }
-    pub fn write(&mut self, particles: &[Particle]) -> Result<()> {
+    pub(crate) fn write(&mut self, particles: &[Particle]) -> Result<()> {
         match self {
             ParticlesWriter::Csv(w) => w.write(particles),
             ParticlesWriter::Table(w) => w.write(particles),
@@ -91,12 +95,12 @@ impl ParticlesWriter {
     }
     /// Records `key = value` in the file's metadata (Parquet only; CSV and
     /// `.npy` have no place for it).
-    pub fn add_metadata(&mut self, key: &str, value: &str) {
+    pub(crate) fn add_metadata(&mut self, key: &str, value: &str) {
         if let ParticlesWriter::Table(w) = self {
             w.add_metadata(key, value);
         }
     }
-    pub fn finish(self) -> Result<()> {
+    pub(crate) fn finish(self) -> Result<()> {
         match self {
             ParticlesWriter::Csv(w) => w.finish(),
             ParticlesWriter::Table(w) => w.finish(),
@@ -106,19 +110,17 @@ impl ParticlesWriter {
 
 /// Streaming writer of the `tracks` table in any [`TableFormat`].
 pub enum TracksWriter {
+    /// `tracks.csv`.
     Csv(TracksCsvWriter),
+    /// `tracks.parquet` or `tracks.npy`, with the calibration whose
+    /// physical columns end each row, if any.
     Table(TableWriter<TrackRow>, Option<crate::calib::Calibration>),
 }
 
 impl TracksWriter {
-    /// `dir/tracks.<ext>`.
-    pub fn create(dir: &Path, format: TableFormat) -> Result<Self> {
-        Self::create_calibrated(dir, format, None)
-    }
-
     /// `dir/tracks.<ext>`, whose rows end with the physical columns of
     /// `calib` when one is given.
-    pub fn create_calibrated(
+    pub(crate) fn create_calibrated(
         dir: &Path,
         format: TableFormat,
         calib: Option<crate::calib::Calibration>,
@@ -138,7 +140,7 @@ impl TracksWriter {
         })
     }
 
-    pub fn write(&mut self, tracks: &[Track]) -> Result<()> {
+    pub(crate) fn write(&mut self, tracks: &[Track]) -> Result<()> {
         match self {
             TracksWriter::Csv(w) => w.write(tracks),
             TracksWriter::Table(w, calib) => {
@@ -155,12 +157,12 @@ impl TracksWriter {
         }
     }
     /// Records `key = value` in the file's metadata (Parquet only).
-    pub fn add_metadata(&mut self, key: &str, value: &str) {
+    pub(crate) fn add_metadata(&mut self, key: &str, value: &str) {
         if let TracksWriter::Table(w, _) = self {
             w.add_metadata(key, value);
         }
     }
-    pub fn finish(self) -> Result<()> {
+    pub(crate) fn finish(self) -> Result<()> {
         match self {
             TracksWriter::Csv(w) => w.finish(),
             TracksWriter::Table(w, _) => w.finish(),
@@ -202,7 +204,7 @@ pub struct ParticlesCsvWriter {
 }
 
 impl ParticlesCsvWriter {
-    pub fn create(path: &Path) -> Result<Self> {
+    pub(crate) fn create(path: &Path) -> Result<Self> {
         let mut file = AtomicFile::create(path)?;
         writeln!(file, "{PARTICLES_HEADER}").map_err(|e| werr(path, e))?;
         Ok(ParticlesCsvWriter {
@@ -212,7 +214,7 @@ impl ParticlesCsvWriter {
             prefix_of: None,
         })
     }
-    pub fn write(&mut self, particles: &[Particle]) -> Result<()> {
+    pub(crate) fn write(&mut self, particles: &[Particle]) -> Result<()> {
         for p in particles {
             // All particles of a pulse share pulse and t_us: their text
             // is formatted once.
@@ -261,7 +263,7 @@ impl ParticlesCsvWriter {
         true
     }
 
-    pub fn finish(mut self) -> Result<()> {
+    pub(crate) fn finish(mut self) -> Result<()> {
         write_block(&mut self.file, &mut self.line, 0)?;
         self.file.commit()
     }
@@ -338,13 +340,13 @@ impl TimeTextCache {
 }
 
 impl TracksCsvWriter {
-    pub fn create(path: &Path) -> Result<Self> {
+    pub(crate) fn create(path: &Path) -> Result<Self> {
         Self::create_calibrated(path, None)
     }
 
     /// A writer whose rows end with the physical columns of `calib`
     /// ([`crate::calib::Calibration::point_columns`]) when one is given.
-    pub fn create_calibrated(
+    pub(crate) fn create_calibrated(
         path: &Path,
         calib: Option<crate::calib::Calibration>,
     ) -> Result<Self> {
@@ -361,7 +363,7 @@ impl TracksCsvWriter {
             calib,
         })
     }
-    pub fn write(&mut self, tracks: &[Track]) -> Result<()> {
+    pub(crate) fn write(&mut self, tracks: &[Track]) -> Result<()> {
         for t in tracks {
             for p in &t.points {
                 if self.calib.is_none() && self.push_row(t.id, p) {
@@ -431,7 +433,7 @@ impl TracksCsvWriter {
         true
     }
 
-    pub fn finish(mut self) -> Result<()> {
+    pub(crate) fn finish(mut self) -> Result<()> {
         write_block(&mut self.file, &mut self.line, 0)?;
         self.file.commit()
     }
@@ -455,7 +457,7 @@ pub struct TracksNpyWriter {
 }
 
 impl TracksNpyWriter {
-    pub fn create(path: &Path) -> Result<Self> {
+    pub(crate) fn create(path: &Path) -> Result<Self> {
         let mut file = AtomicFile::create(path)?;
         let header = crate::io::npy::table_header(TRACKS_NPY_DESCR, usize::MAX, 0);
         file.write_all(&header).map_err(|e| werr(path, e))?;
@@ -467,7 +469,7 @@ impl TracksNpyWriter {
         })
     }
 
-    pub fn write(&mut self, tracks: &[Track]) -> Result<()> {
+    pub(crate) fn write(&mut self, tracks: &[Track]) -> Result<()> {
         for t in tracks {
             for p in &t.points {
                 let mut rec = [0u8; 56];
@@ -484,7 +486,7 @@ impl TracksNpyWriter {
         Ok(())
     }
 
-    pub fn finish(mut self) -> Result<()> {
+    pub(crate) fn finish(mut self) -> Result<()> {
         write_block(&mut self.file, &mut self.buf, 0)?;
         crate::io::npy::commit_streamed_table(
             self.file,
@@ -804,18 +806,24 @@ pub fn read_tracks(path: &Path) -> Result<Vec<Track>> {
 /// `summary.json`: what the PTV stage found.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Summary {
+    /// Pulses processed.
     pub pulses: u64,
+    /// Particles (detections) found.
     pub particles: u64,
+    /// Tracks kept.
     pub tracks: u64,
     /// Detections on kept tracks.
     pub particles_on_tracks: u64,
     /// `particles_on_tracks / particles`.
     pub fraction_on_tracks: f64,
+    /// Mean number of points per kept track (0 without tracks).
     pub mean_track_length: f64,
     /// Histogram of track lengths (points per track): `[lower, upper)` bin
     /// edges and counts.
     pub length_histogram: Vec<(u64, u64, u64)>,
+    /// Mean speed |(u, v)| over all track points (px/s; 0 without points).
     pub mean_speed_px_s: f64,
+    /// The tracker's counters.
     pub tracker: TrackerStats,
     /// How the run was made ([`crate::provenance`]), when recorded.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -831,19 +839,21 @@ pub struct SummaryAcc {
 }
 
 impl SummaryAcc {
-    pub fn add(&mut self, tracks: &[Track]) {
+    pub(crate) fn add(&mut self, tracks: &[Track]) {
         for t in tracks {
             self.lengths.push(t.points.len() as u64);
             self.points += t.points.len() as u64;
             self.speed_sum += t.points.iter().map(|p| p.u.hypot(p.v)).sum::<f64>();
         }
     }
-    pub fn summary(&self, stats: &TrackerStats) -> Summary {
+    pub(crate) fn summary(&self, stats: &TrackerStats) -> Summary {
         Summary::from_parts(&self.lengths, self.speed_sum, self.points, stats)
     }
 }
 
 impl Summary {
+    /// The summary of a finished set of tracks and the tracker's counters
+    /// (no provenance).
     pub fn new(tracks: &[Track], stats: &TrackerStats) -> Self {
         let mut acc = SummaryAcc::default();
         acc.add(tracks);

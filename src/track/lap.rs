@@ -26,7 +26,7 @@ const FORBIDDEN: f64 = 1e15;
 /// in one pass over the edges, and only the edges of rows that share a
 /// column go through the component search and the Hungarian algorithm.
 /// The result is identical to `assign_sparse_general` (tested).
-pub fn assign_sparse(
+pub(crate) fn assign_sparse(
     n_cols: usize,
     edges: &[(usize, usize, f64)],
     miss_cost: &[f64],
@@ -187,7 +187,7 @@ pub(crate) fn assign_sparse_general(
 
 /// Dense rectangular Hungarian algorithm (rows <= cols): the column of each
 /// row in a minimum-cost perfect assignment of the rows.
-pub fn hungarian(cost: &[f64], n: usize, m: usize) -> Vec<usize> {
+pub(crate) fn hungarian(cost: &[f64], n: usize, m: usize) -> Vec<usize> {
     assert!(n <= m && cost.len() == n * m);
     // 1-based potentials u (rows), v (cols); p[j] = row matched to col j.
     let mut u = vec![0.0; n + 1];

@@ -32,7 +32,7 @@
 //! function of the links in pulse order (deterministic).
 
 /// Weight below which a neighbourhood's flow counts as unknown.
-pub const MIN_FLOW_WEIGHT: f64 = 3.0;
+pub(crate) const MIN_FLOW_WEIGHT: f64 = 3.0;
 
 /// Largest grid (cells per axis): positions beyond it contribute nothing
 /// and see no flow (a short track there is judged by `min_length` alone).
@@ -109,7 +109,7 @@ struct FlowCell {
 
 /// Mean local velocity (px per pulse) with its spread and support.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct FlowEstimate {
+pub(crate) struct FlowEstimate {
     pub u: f64,
     pub v: f64,
     /// Variance per axis of the single displacements around the mean.
@@ -123,7 +123,7 @@ pub struct FlowEstimate {
 /// adds so that the finaliser, on another thread, can replay them into its
 /// own copy of the flow in the same order and see the same flow.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct FlowSample {
+pub(crate) struct FlowSample {
     pub pulse: i64,
     pub x: f64,
     pub y: f64,
@@ -133,7 +133,7 @@ pub struct FlowSample {
 
 /// Exponentially forgetting grid of link displacements (see module docs).
 #[derive(Debug, Clone)]
-pub struct LocalFlow {
+pub(crate) struct LocalFlow {
     grid: CellGrid<FlowCell>,
     decay: f64,
     /// `decay.powi(k)` for the recent `k` (a table lookup instead of the
@@ -147,7 +147,7 @@ const DECAY_TABLE: usize = 64;
 impl LocalFlow {
     /// A grid of `cell` px cells forgetting with a time constant of
     /// `memory` pulses.
-    pub fn new(cell: f64, memory: f64) -> Self {
+    pub(crate) fn new(cell: f64, memory: f64) -> Self {
         let decay = (-1.0 / memory).exp();
         LocalFlow {
             grid: CellGrid::new(cell),
@@ -159,12 +159,12 @@ impl LocalFlow {
     }
 
     /// [`LocalFlow::add`] of one [`FlowSample`].
-    pub fn add_sample(&mut self, s: FlowSample) {
+    pub(crate) fn add_sample(&mut self, s: FlowSample) {
         self.add(s.pulse, s.x, s.y, s.u, s.v)
     }
 
     /// Add a displacement `(u, v)` px per pulse seen at `(x, y)` at `pulse`.
-    pub fn add(&mut self, pulse: i64, x: f64, y: f64, u: f64, v: f64) {
+    pub(crate) fn add(&mut self, pulse: i64, x: f64, y: f64, u: f64, v: f64) {
         let Some((ix, iy)) = self.grid.index(x, y) else {
             return;
         };
@@ -186,7 +186,7 @@ impl LocalFlow {
 
     /// The flow around `(x, y)` as of `pulse`: the 3 × 3 cells around the
     /// point's, their sums decayed to `pulse`; `None` without any support.
-    pub fn at(&self, pulse: i64, x: f64, y: f64) -> Option<FlowEstimate> {
+    pub(crate) fn at(&self, pulse: i64, x: f64, y: f64) -> Option<FlowEstimate> {
         let (ix, iy) = self.grid.index(x, y)?;
         let (mut w, mut su, mut sv, mut sq) = (0.0, 0.0, 0.0, 0.0);
         for (_, _, c) in self.grid.neighbours(ix, iy) {
@@ -225,7 +225,7 @@ fn decay_factor(decay: f64, pow: &[f64; DECAY_TABLE], age: i64) -> f64 {
 
 /// Least-squares velocity (px per pulse, τ = pulse index) and mean
 /// position of detections `(pulse, x, y)`, with Σ(τ − τ̄)².
-pub fn line_fit(dets: &[(i64, f64, f64)]) -> Option<([f64; 2], [f64; 2], f64, f64)> {
+pub(crate) fn line_fit(dets: &[(i64, f64, f64)]) -> Option<([f64; 2], [f64; 2], f64, f64)> {
     let n = dets.len() as f64;
     if dets.len() < 2 {
         return None;
@@ -249,7 +249,7 @@ pub fn line_fit(dets: &[(i64, f64, f64)]) -> Option<([f64; 2], [f64; 2], f64, f6
 
 /// Outcome of the ghost test of a short track.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum FlowCheck {
+pub(crate) enum FlowCheck {
     /// Its velocity agrees with the local flow.
     Consistent,
     /// It disagrees: a ghost.
@@ -261,7 +261,7 @@ pub enum FlowCheck {
 /// Is a short track with detections `dets` (`(pulse, x, y)`) consistent
 /// with the local flow `flow` (position noise `sigma` px per axis, `k`
 /// standard deviations)? See the module docs.
-pub fn flow_consistent(
+pub(crate) fn flow_consistent(
     dets: &[(i64, f64, f64)],
     flow: &LocalFlow,
     sigma: f64,

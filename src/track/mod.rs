@@ -91,21 +91,21 @@
 //! unassigned particles and the stitch pool; finished tracks are handed out
 //! as soon as they can no longer change.
 
-pub mod config;
+pub(crate) mod config;
 pub mod fit;
-pub mod grid_index;
-pub mod io;
-pub mod lap;
-pub mod local_flow;
-pub mod sink;
-pub mod slice;
-pub mod step;
-pub mod stream;
+pub(crate) mod grid_index;
+pub(crate) mod io;
+pub(crate) mod lap;
+pub(crate) mod local_flow;
+pub(crate) mod sink;
+pub(crate) mod slice;
+pub(crate) mod step;
+pub(crate) mod stream;
 /// Synthetic scenes with ground truth, oracles and link scores for the
 /// tests and benches (feature `testkit`).
 #[cfg(any(test, feature = "testkit"))]
 pub mod synth;
-pub mod turn;
+pub(crate) mod turn;
 
 mod assign;
 mod bridge;
@@ -125,7 +125,7 @@ use grid_index::GridIndex;
 
 use assign::*;
 pub use config::{Linker, RunParams, TrackConfig};
-pub use finalise::*;
+pub(crate) use finalise::*;
 pub use io::{
     read_particles, read_particles_csv, read_tracks, read_tracks_csv, write_particles_csv,
     write_summary_json, write_tracks_csv, write_tracks_npy, ParticlesCsvWriter, ParticlesWriter,

@@ -305,7 +305,7 @@ impl Default for FitParams {
 impl TrackParams {
     /// Fewest detections any kept track may have: `min_length`, or
     /// `init.min_length_flow` when the ghost test can keep shorter tracks.
-    pub fn min_kept_length(&self) -> usize {
+    pub(crate) fn min_kept_length(&self) -> usize {
         if self.init.ghost_check_length > 0 {
             self.min_length.min(self.init.min_length_flow)
         } else {
@@ -315,7 +315,7 @@ impl TrackParams {
 
     /// Check the parameters; errors name the parameter (as `part.key`
     /// for the parts).
-    pub fn validate(&self) -> Result<()> {
+    pub(crate) fn validate(&self) -> Result<()> {
         let (g, i, s, f) = (&self.gates, &self.init, &self.stitch, &self.fit);
         let positive = [
             ("max_disp", self.max_disp),

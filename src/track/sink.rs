@@ -44,20 +44,28 @@ pub enum TrackProgress<'a> {
     /// A pass over the input starts; `file_size` is its size in bytes when
     /// known.
     Stage {
+        /// The pass that starts.
         stage: TrackStage,
+        /// Size of the input (bytes), when known.
         file_size: Option<u64>,
     },
     /// After each chunk read: the bytes read and events decoded so far in
     /// this pass; `done` on the last chunk.
     Read {
+        /// The pass under way.
         stage: TrackStage,
+        /// Bytes read so far in this pass.
         bytes: u64,
+        /// Events decoded so far in this pass.
         events: u64,
+        /// True on the pass's last chunk.
         done: bool,
     },
     /// After each pulse tracked: particles found so far and tracks active.
     Pulse {
+        /// Particles found so far.
         particles: u64,
+        /// Tracks currently active.
         active_tracks: usize,
     },
     /// A reader's warning about the input (e.g. a header it could not use).
@@ -640,15 +648,9 @@ pub struct FileSink {
 }
 
 impl FileSink {
-    /// Starts the writer for the outputs in `out` (which must exist), with
-    /// the `table_format`, `npy` and `plot_pulses` options of `run`.
-    pub fn create(out: &Path, run: &RunParams) -> Result<Self> {
-        Self::create_calibrated(out, run, None)
-    }
-
     /// [`FileSink::create`] whose tracks table also has the physical
     /// columns of `calib`.
-    pub fn create_calibrated(
+    pub(crate) fn create_calibrated(
         out: &Path,
         run: &RunParams,
         calib: Option<crate::calib::Calibration>,
@@ -694,7 +696,11 @@ impl FileSink {
     /// Commits the files and writes `summary.json` (from `stats`, the
     /// tracker's counters) and `tracks.png`, drawn over `size` (the
     /// sensor's width and height; `None`: the extent of the particles).
-    pub fn finish(mut self, stats: &TrackerStats, size: Option<(f64, f64)>) -> Result<Summary> {
+    pub(crate) fn finish(
+        mut self,
+        stats: &TrackerStats,
+        size: Option<(f64, f64)>,
+    ) -> Result<Summary> {
         self.tx = None; // closes the channel: the writer drains it and returns
         let writer = self.join()?;
         writer.finish(stats, &self.out, size, self.provenance.as_ref())

@@ -80,7 +80,7 @@ impl Default for SliceParams {
 }
 
 impl SliceParams {
-    pub fn validate(&self) -> Result<()> {
+    pub(crate) fn validate(&self) -> Result<()> {
         if self.slice_pulses == 0 {
             return Err(Error::param("slice_pulses", "must be at least 1 pulse"));
         }
@@ -164,6 +164,8 @@ pub struct SliceTracker {
 }
 
 impl SliceTracker {
+    /// A slice tracker with these tracking and slicing parameters; an
+    /// error when a parameter is out of range.
     pub fn new(params: TrackParams, slicing: SliceParams) -> Result<Self> {
         params.validate()?;
         slicing.validate()?;
@@ -183,12 +185,12 @@ impl SliceTracker {
     }
 
     /// Counters so far (final after [`SliceTracker::finish`]).
-    pub fn stats(&self) -> &TrackerStats {
+    pub(crate) fn stats(&self) -> &TrackerStats {
         &self.stats
     }
 
     /// Tracks crossing the last tracked seam.
-    pub fn active_tracks(&self) -> usize {
+    pub(crate) fn active_tracks(&self) -> usize {
         self.open.len()
     }
 

@@ -10,16 +10,21 @@ use super::*;
 /// One point of a track: the track's fitted state at one pulse.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct TrackPoint {
+    /// Index of the pulse.
     pub pulse: i64,
+    /// Time of the pulse (µs).
     pub t_us: f64,
     /// Fitted position (px).
     pub x: f64,
+    /// Fitted position y (px).
     pub y: f64,
     /// Fitted velocity (px/s).
     pub u: f64,
+    /// Fitted velocity along y (px/s).
     pub v: f64,
     /// Fitted acceleration (px/s²).
     pub ax: f64,
+    /// Fitted acceleration along y (px/s²).
     pub ay: f64,
     /// True where the point bridges a gap (no detection at this pulse).
     pub interpolated: bool,
@@ -28,7 +33,9 @@ pub struct TrackPoint {
 /// A Lagrangian track.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Track {
+    /// Track id, unique within a run.
     pub id: u64,
+    /// The points, one per pulse in increasing pulse order.
     pub points: Vec<TrackPoint>,
 }
 
@@ -38,7 +45,9 @@ pub struct Track {
 /// (pulse-sorted) input. Used to score links against ground truth.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LinkedTrack {
+    /// The track.
     pub track: Track,
+    /// Per point, the serial number of its detection (`None` on bridged gaps).
     pub detections: Vec<Option<u64>>,
 }
 
@@ -54,16 +63,17 @@ impl std::fmt::Debug for FlowPrior {
 }
 
 impl FlowPrior {
-    pub fn from_fn(f: impl Fn(f64, f64) -> (f64, f64) + Send + Sync + 'static) -> Self {
+    pub(crate) fn from_fn(f: impl Fn(f64, f64) -> (f64, f64) + Send + Sync + 'static) -> Self {
         FlowPrior(Arc::new(f))
     }
-    pub fn uniform(u: f64, v: f64) -> Self {
+    pub(crate) fn uniform(u: f64, v: f64) -> Self {
         Self::from_fn(move |_, _| (u, v))
     }
+    #[cfg(test)]
     /// A gridded field: node `(i, j)` at `(x0 + i·dx, y0 + j·dy)`, row-major
     /// `u[j·nx + i]`; bilinear inside, clamped to the border outside.
     #[allow(clippy::too_many_arguments)]
-    pub fn grid(
+    pub(crate) fn grid(
         x0: f64,
         y0: f64,
         dx: f64,
@@ -115,7 +125,7 @@ pub(super) const FLOW_MIN_DETECTIONS: usize = 6;
 pub(super) const NEW_TRACK_CAPACITY: usize = 64;
 
 /// Frames (pulses) a new track's initialisation chain spans.
-pub const INIT_FRAMES: usize = 4;
+pub(crate) const INIT_FRAMES: usize = 4;
 
 #[derive(Debug, Clone, Copy)]
 pub(super) struct Det {
@@ -190,12 +200,19 @@ impl Frame {
 /// Counters of what the tracker did (for `summary.json`).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct TrackerStats {
+    /// Pulses pushed.
     pub pulses: u64,
+    /// Particles (detections) pushed.
     pub particles: u64,
+    /// Tracks initialised.
     pub tracks_started: u64,
+    /// Ended tracks joined to a new chain across a gap.
     pub tracks_stitched: u64,
+    /// Tracks kept (written out).
     pub tracks_kept: u64,
+    /// Tracks dropped with fewer than `min_length` detections.
     pub tracks_rejected_short: u64,
+    /// Tracks dropped with a fit residual above `max_fit_residual`.
     pub tracks_rejected_rough: u64,
     /// Detections on kept tracks.
     pub particles_on_tracks: u64,
@@ -220,7 +237,7 @@ impl TrackerStats {
     /// Add the counters that [`Finaliser::finalise`] keeps (the fits'
     /// verdicts: kept, short, ghost, rough, kept by flow, particles on
     /// tracks, step cuts) from `fits`; the linking counters stay this one's.
-    pub fn add_fit_counters(&mut self, fits: &TrackerStats) {
+    pub(crate) fn add_fit_counters(&mut self, fits: &TrackerStats) {
         self.tracks_kept += fits.tracks_kept;
         self.tracks_rejected_short += fits.tracks_rejected_short;
         self.tracks_rejected_ghost += fits.tracks_rejected_ghost;
@@ -294,6 +311,7 @@ pub(super) struct Scratch {
 }
 
 impl Tracker {
+    /// A tracker with these parameters; an error when a parameter is out of range.
     pub fn new(params: TrackParams) -> Result<Self> {
         params.validate()?;
         let floor2 = params.gates.sigma_floor.powi(2);
@@ -320,22 +338,22 @@ impl Tracker {
         })
     }
 
-    pub fn stats(&self) -> &TrackerStats {
+    pub(crate) fn stats(&self) -> &TrackerStats {
         &self.stats
     }
 
-    /// The options the tracker runs with.
-    pub fn params(&self) -> &TrackParams {
-        &self.params
-    }
-
     /// Number of tracks currently being extended.
-    pub fn active_tracks(&self) -> usize {
+    pub(crate) fn active_tracks(&self) -> usize {
         self.active.len()
     }
 
     /// Feed the particles of one pulse; returns the tracks that finished.
-    pub fn push(&mut self, pulse: i64, t_us: f64, particles: &[Particle]) -> Result<Vec<Track>> {
+    pub(crate) fn push(
+        &mut self,
+        pulse: i64,
+        t_us: f64,
+        particles: &[Particle],
+    ) -> Result<Vec<Track>> {
         Ok(self
             .push_linked(pulse, t_us, particles)?
             .into_iter()
@@ -543,7 +561,7 @@ impl Tracker {
     /// (`stream::parallel_stream_equals_sequential_tracking`); only the
     /// counters of the fits ([`TrackerStats::add_fit_counters`]) are then
     /// the finaliser's, not [`Tracker::stats`]'s.
-    pub fn defer_fits(&mut self) -> Finaliser {
+    pub(crate) fn defer_fits(&mut self) -> Finaliser {
         self.deferred.get_or_insert_with(Vec::new);
         std::mem::replace(&mut self.finaliser, Finaliser::new(self.params.clone()))
     }
@@ -551,7 +569,7 @@ impl Tracker {
     /// The ended tracks waiting since the last call (after
     /// [`Tracker::defer_fits`]), one entry per batch the tracker would
     /// have fitted at once, in order.
-    pub fn take_ended(&mut self) -> Vec<EndedTracks> {
+    pub(crate) fn take_ended(&mut self) -> Vec<EndedTracks> {
         self.deferred
             .as_mut()
             .map(std::mem::take)
@@ -561,7 +579,7 @@ impl Tracker {
     /// [`Tracker::finish`] for a tracker that defers its fits (after
     /// [`Tracker::defer_fits`]): end every track and return all that wait
     /// unfitted.
-    pub fn finish_unfitted(mut self) -> (Vec<EndedTracks>, TrackerStats) {
+    pub(crate) fn finish_unfitted(mut self) -> (Vec<EndedTracks>, TrackerStats) {
         self.deferred.get_or_insert_with(Vec::new);
         let mut all = std::mem::take(&mut self.pool);
         all.append(&mut self.active);

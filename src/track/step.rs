@@ -37,10 +37,10 @@
 /// 0.9639 / 0.9646 / 0.9652 / 0.9659 / 0.9660 at recall 0.9526 / 0.9526 /
 /// 0.9523 / 0.9484 / 0.9402: wider windows see smaller steps but take
 /// the flow's curvature for steps).
-pub const STEP_HALF_WINDOW: usize = 6;
+pub(crate) const STEP_HALF_WINDOW: usize = 6;
 
 /// Fewest detections on each side of a step.
-pub const STEP_MIN_SIDE: usize = 3;
+pub(crate) const STEP_MIN_SIDE: usize = 3;
 
 #[cfg(test)]
 /// Residual sum of squares (both axes) of the least-squares fit of
@@ -444,7 +444,7 @@ fn invert3(m: &[[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
 /// pulses) at steps (see the module docs): indices of the first
 /// detection of each later piece, increasing. Cuts are only made at
 /// indices ≥ `first_cut`. `threshold` ≤ 0: none.
-pub fn step_cuts(
+pub(crate) fn step_cuts(
     dets: &[(i64, f64, f64)],
     sigma: f64,
     threshold: f64,

@@ -449,7 +449,7 @@ impl PtvStream {
 
     /// [`PtvStream::new`] linking with the parallel slice-and-stitch
     /// tracker ([`crate::track::slice`]).
-    pub fn sliced(
+    pub(crate) fn sliced(
         cluster: ClusterParams,
         track: TrackParams,
         slicing: SliceParams,
@@ -489,7 +489,7 @@ impl PtvStream {
     /// Link already-detected particles of one pulse (e.g. read from a
     /// `particles.csv`) on the caller's thread; pulses in increasing
     /// order. Not after [`PtvStream::push_pulse`] started the pipeline.
-    pub fn push_particles(
+    pub(crate) fn push_particles(
         &mut self,
         pulse: i64,
         t_us: f64,
@@ -591,14 +591,9 @@ impl PtvStream {
         }
     }
 
-    /// Events handed over so far.
-    pub fn events(&self) -> u64 {
-        self.events
-    }
-
     /// Particles seen and tracks active (for progress reports; from the
     /// tracker stage's last report while the pipeline runs).
-    pub fn progress(&self) -> (u64, usize) {
+    pub(crate) fn progress(&self) -> (u64, usize) {
         match &self.state {
             State::Idle(idle) => idle.1.progress(),
             _ => self.progress,

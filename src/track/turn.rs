@@ -33,11 +33,11 @@ use std::ops::{Add, Mul, Sub};
 
 /// Largest rate of turn (rad per pulse) the model takes: beyond it a
 /// path is sampled too coarsely to tell a turn from noise.
-pub const MAX_TURN: f64 = 0.8;
+pub(crate) const MAX_TURN: f64 = 0.8;
 
 /// Below this speed (px per pulse) the heading, and so a rate of turn, is
 /// noise: the quadratic (ω = 0) is kept.
-pub const MIN_SPEED: f64 = 0.25;
+pub(crate) const MIN_SPEED: f64 = 0.25;
 
 /// Fixed-point iterations for ω ...
 const ITERATIONS: usize = 8;
@@ -196,7 +196,7 @@ fn bases(s: &[f64], w: f64) -> Bases {
 
 /// A turning-path fit evaluated at one time.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct TurnFit {
+pub(crate) struct TurnFit {
     /// Position (px) at the evaluation time.
     pub x: f64,
     pub y: f64,
@@ -361,7 +361,7 @@ fn turn_rate_full(s: &[f64], xs: &[f64], ys: &[f64]) -> Option<Rate> {
 /// How much better (drop of the residual sum of squares, both axes, px²)
 /// the turning path fits the samples than the quadratic in time with the
 /// same number of coefficients; 0 when it does not (at least 7 samples).
-pub fn turn_rss_gain(tau: &[f64], xs: &[f64], ys: &[f64]) -> Option<f64> {
+pub(crate) fn turn_rss_gain(tau: &[f64], xs: &[f64], ys: &[f64]) -> Option<f64> {
     let (buf, n) = centred(tau)?;
     let s = &buf[..n];
     let r = turn_rate_full(s, xs, ys)?;
@@ -377,7 +377,13 @@ pub fn turn_rss_gain(tau: &[f64], xs: &[f64], ys: &[f64]) -> Option<f64> {
 /// `accel`: the speed may change linearly (six real coefficients, the
 /// quadratic's count); otherwise it is constant (four, with ω found from
 /// a fit with acceleration first) — for few samples.
-pub fn turn_eval(tau: &[f64], xs: &[f64], ys: &[f64], at: f64, accel: bool) -> Option<TurnFit> {
+pub(crate) fn turn_eval(
+    tau: &[f64],
+    xs: &[f64],
+    ys: &[f64],
+    at: f64,
+    accel: bool,
+) -> Option<TurnFit> {
     turn_eval_rss(tau, xs, ys, at, accel).map(|(f, _)| f)
 }
 
@@ -431,7 +437,12 @@ fn turn_eval_rss(
 /// [`turn_eval`] with speed change, and the drop of the residual sum of
 /// squares (px², both axes) from the quadratic in time to it: how much
 /// the samples say the path turns beyond what a quadratic follows.
-pub fn turn_eval_with_gain(tau: &[f64], xs: &[f64], ys: &[f64], at: f64) -> Option<(TurnFit, f64)> {
+pub(crate) fn turn_eval_with_gain(
+    tau: &[f64],
+    xs: &[f64],
+    ys: &[f64],
+    at: f64,
+) -> Option<(TurnFit, f64)> {
     let (f, rss) = turn_eval_rss(tau, xs, ys, at, true)?;
     let (q, t) = match rss {
         Some((rw, r0)) => (r0, rw),
@@ -450,7 +461,7 @@ pub fn turn_eval_with_gain(tau: &[f64], xs: &[f64], ys: &[f64], at: f64) -> Opti
 
 /// Residual sum of squares (px², both axes) of the turning path with
 /// speed change through the samples (at least 7).
-pub fn turn_rss(tau: &[f64], xs: &[f64], ys: &[f64]) -> Option<f64> {
+pub(crate) fn turn_rss(tau: &[f64], xs: &[f64], ys: &[f64]) -> Option<f64> {
     let (buf, n) = centred(tau)?;
     let s = &buf[..n];
     let r = turn_rate_full(s, xs, ys)?;
@@ -480,7 +491,7 @@ fn centred(tau: &[f64]) -> Option<([f64; 64], usize)> {
 /// steps into and out of each detection (rad; 0 across gaps and for slow
 /// steps) and of its noise variance (from the position noise `sigma`:
 /// three positions, ~6σ²/|step|²), so that a window's sums cost O(1).
-pub fn heading_prefix(pulses: &[i64], xs: &[f64], ys: &[f64], sigma: f64) -> Vec<[f64; 2]> {
+pub(crate) fn heading_prefix(pulses: &[i64], xs: &[f64], ys: &[f64], sigma: f64) -> Vec<[f64; 2]> {
     let n = pulses.len();
     let mut out = Vec::with_capacity(n + 1);
     out.push([0.0, 0.0]);

@@ -42,7 +42,7 @@ use crate::{Anomalies, EventSource, Format, StreamInfo};
 
 pub(crate) const MAGIC: &[u8; 14] = b"#!AER-DAT4.0\r\n";
 /// Largest packet, compressed or decompressed, that the reader accepts.
-pub const MAX_PACKET_BYTES: usize = 256 << 20;
+pub(crate) const MAX_PACKET_BYTES: usize = 256 << 20;
 /// Largest IOHeader accepted.
 const MAX_HEADER_BYTES: u32 = 16 << 20;
 
@@ -73,11 +73,11 @@ impl Compression {
         })
     }
     /// The compression code the IOHeader stores.
-    pub fn code(self) -> i32 {
+    pub(crate) fn code(self) -> i32 {
         self as i32
     }
     /// The name the IOHeader and summaries use.
-    pub fn name(self) -> &'static str {
+    pub(crate) fn name(self) -> &'static str {
         match self {
             Compression::None => "none",
             Compression::Lz4 => "LZ4",

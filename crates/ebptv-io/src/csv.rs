@@ -75,7 +75,7 @@ impl TimeUnit {
         }
     }
     /// The unit's name as written in headers and options.
-    pub fn name(self) -> &'static str {
+    pub(crate) fn name(self) -> &'static str {
         match self {
             TimeUnit::Seconds => "s",
             TimeUnit::Milliseconds => "ms",
@@ -826,10 +826,14 @@ impl TriggerStream {
     }
 }
 
+#[cfg(test)]
 /// Read a whole trigger CSV (openeb `p,id,t`, or any order by header names
 /// `t`, `id`, `p`). Time unit as for events; `unit` applies when the header
 /// does not state one.
-pub fn read_trigger_csv(path: impl AsRef<Path>, unit: Option<TimeUnit>) -> Result<Vec<Trigger>> {
+pub(crate) fn read_trigger_csv(
+    path: impl AsRef<Path>,
+    unit: Option<TimeUnit>,
+) -> Result<Vec<Trigger>> {
     let path = path.as_ref();
     let mut out = Vec::new();
     if let Some(mut s) = TriggerStream::open(path, unit)? {

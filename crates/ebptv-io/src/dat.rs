@@ -84,7 +84,7 @@ pub(crate) struct DatReader {
 }
 
 impl DatReader {
-    pub fn open(path: &Path, chunk_events: usize) -> Result<Self> {
+    pub(crate) fn open(path: &Path, chunk_events: usize) -> Result<Self> {
         let mut file = File::open(path).map_err(|e| Error::io(path, e))?;
         let file_size = file.metadata().ok().map(|m| m.len());
         if file_size == Some(0) {

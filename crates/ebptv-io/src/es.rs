@@ -64,7 +64,7 @@ pub(crate) struct EsReader {
 }
 
 impl EsReader {
-    pub fn open(path: &Path, chunk_events: usize) -> Result<Self> {
+    pub(crate) fn open(path: &Path, chunk_events: usize) -> Result<Self> {
         let mut file = File::open(path).map_err(|e| Error::io(path, e))?;
         let file_size = file.metadata().ok().map(|m| m.len());
         let mut head = [0u8; HEADER_BYTES];

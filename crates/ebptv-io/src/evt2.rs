@@ -179,7 +179,7 @@ pub type Evt2Reader = RawReader<Evt2Decoder>;
 impl RawReader<Evt2Decoder> {
     /// Open `path`, parse its header, and prepare to stream chunks of at
     /// most `chunk_events` events.
-    pub fn open(path: &Path, chunk_events: usize) -> Result<Self> {
+    pub(crate) fn open(path: &Path, chunk_events: usize) -> Result<Self> {
         Self::open_with_buffer(path, chunk_events, READ_BUFFER_BYTES)
     }
 
@@ -218,7 +218,7 @@ const EVT2_TIME: TimeSplit = TimeSplit {
 };
 
 impl Evt2Writer {
-    pub fn create(path: &Path, geometry: Geometry) -> Result<Self> {
+    pub(crate) fn create(path: &Path, geometry: Geometry) -> Result<Self> {
         Ok(Evt2Writer {
             raw: RawWordWriter::create(path, "EVT2", EVT2_TIME, geometry)?,
         })

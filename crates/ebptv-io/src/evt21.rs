@@ -23,7 +23,7 @@ use crate::raw_reader::{RawReader, WordDecoder};
 use crate::{Anomalies, Format};
 
 /// Most events one EVT 2.1 word can produce.
-pub const MAX_EVENTS_PER_WORD: usize = 32;
+pub(crate) const MAX_EVENTS_PER_WORD: usize = 32;
 
 /// The EVT 2.1 decoder, independent of where the bytes come from.
 #[derive(Debug, Clone, Default)]
@@ -58,7 +58,7 @@ impl Evt21Decoder {
     /// Decode whole 64-bit words of `bytes` into `out` until it holds at
     /// least `max_events` events (at most `max_events + 31`) or triggers.
     /// Returns the bytes consumed (a multiple of 8).
-    pub fn decode(&mut self, bytes: &[u8], out: &mut Chunk, max_events: usize) -> usize {
+    pub(crate) fn decode(&mut self, bytes: &[u8], out: &mut Chunk, max_events: usize) -> usize {
         let total = bytes.len() & !7;
         let mut pos = 0;
         while pos < total {
@@ -149,7 +149,7 @@ pub type Evt21Reader = RawReader<Evt21Decoder>;
 impl RawReader<Evt21Decoder> {
     /// Open `path` (word order from the header) and prepare to stream chunks
     /// of about `chunk_events` events (at most `chunk_events + 31`).
-    pub fn open(path: &Path, chunk_events: usize) -> Result<Self> {
+    pub(crate) fn open(path: &Path, chunk_events: usize) -> Result<Self> {
         Self::open_with_buffer(path, chunk_events, READ_BUFFER_BYTES)
     }
 

@@ -48,7 +48,7 @@ use crate::raw_writer::{RawEncoder, RawWordWriter, TimeSplit};
 use crate::{Anomalies, Format, StreamInfo};
 
 /// Most events one EVT 3.0 word can produce (VECT_12).
-pub const MAX_EVENTS_PER_WORD: usize = 12;
+pub(crate) const MAX_EVENTS_PER_WORD: usize = 12;
 
 const TIME_HIGH_BITS: u32 = 12;
 /// Largest time base a TIME_HIGH can express, µs.
@@ -560,7 +560,7 @@ impl WordDecoder for Evt3Decoder {
 
 /// EVT 3.0 writer (through [`AtomicFile`]: nothing appears at the target
 /// until [`crate::EventWriter::finish`]).
-pub struct Evt3Writer {
+pub(crate) struct Evt3Writer {
     raw: RawWordWriter<u16>,
     /// Time of the last TIME_LOW written.
     time: Option<i64>,
@@ -577,7 +577,7 @@ const EVT3_TIME: TimeSplit = TimeSplit {
 
 impl Evt3Writer {
     /// Creates a writer for `path`, a RAW file of `geometry`.
-    pub fn create(path: &Path, geometry: Geometry) -> Result<Self> {
+    pub(crate) fn create(path: &Path, geometry: Geometry) -> Result<Self> {
         Ok(Evt3Writer {
             raw: RawWordWriter::create(path, "EVT3", EVT3_TIME, geometry)?,
             time: None,

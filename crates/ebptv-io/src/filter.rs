@@ -48,7 +48,7 @@ pub struct Roi {
 impl Roi {
     /// True when pixel (`x`, `y`) lies inside the region.
     #[inline]
-    pub fn contains(&self, x: u16, y: u16) -> bool {
+    pub(crate) fn contains(&self, x: u16, y: u16) -> bool {
         x >= self.x0 && y >= self.y0 && (x - self.x0) < self.width && (y - self.y0) < self.height
     }
 }
@@ -101,7 +101,7 @@ pub struct Selection {
 
 impl Selection {
     /// Checks that the time window and region are well formed.
-    pub fn validate(&self) -> Result<()> {
+    pub(crate) fn validate(&self) -> Result<()> {
         if let (Some(a), Some(b)) = (self.from_us, self.to_us) {
             if b <= a {
                 return Err(Error::param(

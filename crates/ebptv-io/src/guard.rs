@@ -33,7 +33,7 @@ pub const MAX_SENSOR_SIDE: u16 = 4096;
 pub const TIME_JUMP_US: i64 = 5_000_000;
 /// A run of jumped events spanning this much of its own clock means the
 /// clock stayed where it jumped.
-pub const JUMP_PERSIST_US: i64 = 100_000;
+pub(crate) const JUMP_PERSIST_US: i64 = 100_000;
 
 /// True for a geometry some sensor can have.
 pub(crate) fn plausible_geometry(g: Geometry) -> bool {
@@ -41,7 +41,7 @@ pub(crate) fn plausible_geometry(g: Geometry) -> bool {
 }
 
 /// The checks of the module doc on a freshly opened source.
-pub struct Checked {
+pub(crate) struct Checked {
     inner: Box<dyn EventSource>,
     info: StreamInfo,
     rejected: Option<Geometry>,
@@ -52,7 +52,7 @@ pub struct Checked {
 
 impl Checked {
     /// Wraps `inner`.
-    pub fn new(inner: Box<dyn EventSource>) -> Self {
+    pub(crate) fn new(inner: Box<dyn EventSource>) -> Self {
         let mut info = inner.info().clone();
         let mut warnings = Vec::new();
         let mut rejected = None;
@@ -83,7 +83,7 @@ impl Checked {
 /// A RAW header whose `% format` line names another encoding than its
 /// `% evt` line: an error (decoding with the wrong one makes garbage that
 /// can even look periodic), unless the caller named the format.
-pub fn check_header(info: &StreamInfo) -> Result<()> {
+pub(crate) fn check_header(info: &StreamInfo) -> Result<()> {
     if !matches!(info.format, Format::Evt2 | Format::Evt21 | Format::Evt3) {
         return Ok(());
     }

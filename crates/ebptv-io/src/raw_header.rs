@@ -27,7 +27,7 @@ use crate::events::Geometry;
 use crate::{Format, StreamInfo};
 
 /// Longest line accepted as a header line.
-pub const MAX_HEADER_LINE: usize = 4096;
+pub(crate) const MAX_HEADER_LINE: usize = 4096;
 /// How much of a file is read to find its header.
 pub const MAX_HEADER_BYTES: usize = 1 << 20;
 
@@ -93,8 +93,9 @@ pub struct RawHeader {
 }
 
 impl RawHeader {
+    #[cfg(test)]
     /// Look up a header value by key (case-insensitive), first occurrence.
-    pub fn get(&self, key: &str) -> Option<&str> {
+    pub(crate) fn get(&self, key: &str) -> Option<&str> {
         get(&self.entries, key)
     }
 }
@@ -110,7 +111,7 @@ fn get<'a>(entries: &'a [(String, String)], key: &str) -> Option<&'a str> {
 ///
 /// 0x15 Gen3 (640x480, EVT 2.0); 0x1F, 0x27 Gen4/4.1 EVK2 (1280x720,
 /// EVT 2.0); 0x30, 0x31, 0x32 Gen4.1 / IMX636 (1280x720, EVT 3.0).
-pub fn infer_from_system_id(id: u32) -> Option<(Format, Geometry)> {
+pub(crate) fn infer_from_system_id(id: u32) -> Option<(Format, Geometry)> {
     match id {
         0x15 => Some((Format::Evt2, Geometry::new(640, 480))),
         0x1F | 0x27 => Some((Format::Evt2, Geometry::new(1280, 720))),
@@ -254,7 +255,7 @@ pub(crate) const READ_BUFFER_BYTES: usize = 1 << 20;
 /// Reads a RAW payload through one fixed-size buffer, handing out whole
 /// words (`word_bytes` = 2, 4 or 8) and carrying a partial word over to the
 /// next refill.
-pub struct PayloadReader {
+pub(crate) struct PayloadReader {
     path: PathBuf,
     file: File,
     buf: Vec<u8>,
@@ -270,7 +271,7 @@ pub struct PayloadReader {
 
 impl PayloadReader {
     /// Opens a RAW file and reads its header.
-    pub fn open(
+    pub(crate) fn open(
         path: &Path,
         payload_offset: u64,
         word_bytes: usize,
@@ -301,7 +302,7 @@ impl PayloadReader {
 
     /// The buffered whole words not yet consumed, refilling the buffer when
     /// fewer than one word remains. Empty only at the end of the file.
-    pub fn words(&mut self) -> Result<&[u8]> {
+    pub(crate) fn words(&mut self) -> Result<&[u8]> {
         if self.end - self.start < self.word_bytes && !self.eof {
             self.refill()?;
         }
@@ -356,11 +357,6 @@ impl PayloadReader {
     /// File offset of the next unconsumed byte.
     pub(crate) fn file_offset(&self) -> u64 {
         self.payload_offset + self.consumed
-    }
-
-    /// The file being read.
-    pub fn path(&self) -> &Path {
-        &self.path
     }
 }
 

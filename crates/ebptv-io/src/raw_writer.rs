@@ -148,7 +148,7 @@ pub(crate) struct RawWordWriter<W> {
 }
 
 impl<W: RawWord> RawWordWriter<W> {
-    pub fn create(
+    pub(crate) fn create(
         path: &Path,
         format_name: &str,
         split: TimeSplit,
@@ -228,7 +228,7 @@ impl<W: RawWord> RawWordWriter<W> {
         Ok(())
     }
 
-    pub fn flush(&mut self) -> Result<()> {
+    pub(crate) fn flush(&mut self) -> Result<()> {
         let target = self.file.target().to_path_buf();
         #[cfg(target_endian = "little")]
         {
@@ -264,7 +264,7 @@ impl<W: RawWord> RawWordWriter<W> {
     }
 
     /// Flush and move the file to its target.
-    pub fn finish(mut self) -> Result<()> {
+    pub(crate) fn finish(mut self) -> Result<()> {
         self.flush()?;
         self.file.commit()
     }

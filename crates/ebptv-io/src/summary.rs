@@ -98,7 +98,7 @@ pub struct Summary {
 
 /// Incremental accumulator; feed chunks, then [`SummaryBuilder::finish`].
 #[derive(Debug, Clone)]
-pub struct SummaryBuilder {
+pub(crate) struct SummaryBuilder {
     bin_us: i64,
     events: u64,
     on: u64,
@@ -120,7 +120,7 @@ pub struct SummaryBuilder {
 
 impl SummaryBuilder {
     /// `bin_us`: the bin width of the peak-rate estimate (1000 = 1 ms).
-    pub fn new(bin_us: i64) -> Self {
+    pub(crate) fn new(bin_us: i64) -> Self {
         SummaryBuilder {
             bin_us: bin_us.max(1),
             events: 0,
@@ -151,7 +151,7 @@ impl SummaryBuilder {
     }
 
     /// Folds one chunk into the summary.
-    pub fn add(&mut self, chunk: &Chunk) {
+    pub(crate) fn add(&mut self, chunk: &Chunk) {
         let ev = &chunk.events;
         for i in 0..ev.len() {
             let t = ev.t[i];
@@ -208,7 +208,7 @@ impl SummaryBuilder {
     }
 
     /// Close the summary of the stream described by `info`.
-    pub fn finish(
+    pub(crate) fn finish(
         mut self,
         info: StreamInfo,
         anomalies: Anomalies,
@@ -270,7 +270,7 @@ impl SummaryBuilder {
 /// The RAW readers infer it from `% system_ID` / `% evt` when neither a
 /// `% geometry` line nor a `width=` in `% format` states it; every other
 /// reader only reports a geometry the file states.
-pub fn geometry_source(info: &StreamInfo) -> &'static str {
+pub(crate) fn geometry_source(info: &StreamInfo) -> &'static str {
     if info.geometry.is_none() {
         return "unknown";
     }

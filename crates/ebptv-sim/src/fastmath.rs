@@ -90,7 +90,7 @@ fn reduce<T: Lanes>(x: T, odd: bool) -> (T, T) {
 
 /// cos(x) per lane (see the module docs for the accuracy).
 #[inline(always)]
-pub fn cos_lanes<T: Lanes>(x: T) -> T {
+pub(crate) fn cos_lanes<T: Lanes>(x: T) -> T {
     // cos((m + ½)π + r) = (−1)^(m+1) sin r: negate for even m.
     let (r, big) = reduce(x, true);
     sin_kernel(r).xor(big.low_bit_as_sign().xor(T::splat(-0.0)))
@@ -135,7 +135,7 @@ fn cos_kernel<T: Lanes>(r: T) -> T {
 /// [`cos_lanes`]`(x)` bit for bit, the sin within 4e-16 of libm over the
 /// same range (test `sincos_matches_libm_and_cos_lanes`).
 #[inline(always)]
-pub fn sincos_lanes<T: Lanes>(x: T) -> (T, T) {
+pub(crate) fn sincos_lanes<T: Lanes>(x: T) -> (T, T) {
     // x = (m + ½)π + r: cos x = (−1)^(m+1) sin r, sin x = (−1)^m cos r.
     let (r, big) = reduce(x, true);
     let sign = big.low_bit_as_sign();
@@ -146,9 +146,9 @@ pub fn sincos_lanes<T: Lanes>(x: T) -> (T, T) {
 }
 
 /// Domain of [`sincos_small`]: |d| ≤ 1/8.
-pub const SMALL_ANGLE: f64 = 0.125;
+pub(crate) const SMALL_ANGLE: f64 = 0.125;
 /// Domain of [`sincos_tiny`]: |d| ≤ 1/64.
-pub const TINY_ANGLE: f64 = 1.0 / 64.0;
+pub(crate) const TINY_ANGLE: f64 = 1.0 / 64.0;
 
 /// sin d ≈ d + d³ P(d²), cos d − 1 ≈ d² Q(d²) on |d| ≤ 1.001/8, P and
 /// Q of degree 3: Chebyshev fits (mpmath `chebyfit`) rounded to f64,
@@ -177,7 +177,7 @@ const TC6: f64 = -0.001_388_879_788_129_873;
 /// grows fast: callers check the bound (test
 /// `small_angle_sincos_within_bounds`).
 #[inline(always)]
-pub fn sincos_small<T: Lanes>(d: T) -> (T, T) {
+pub(crate) fn sincos_small<T: Lanes>(d: T) -> (T, T) {
     let c = T::splat;
     let s = d * d;
     let p = c(SS7) + s * c(SS9);
@@ -191,7 +191,7 @@ pub fn sincos_small<T: Lanes>(d: T) -> (T, T) {
 
 /// [`sincos_small`] for |d| ≤ [`TINY_ANGLE`] (shorter polynomials).
 #[inline(always)]
-pub fn sincos_tiny<T: Lanes>(d: T) -> (T, T) {
+pub(crate) fn sincos_tiny<T: Lanes>(d: T) -> (T, T) {
     let c = T::splat;
     let s = d * d;
     let p = c(TS3) + s * c(TS5);
@@ -203,14 +203,14 @@ pub fn sincos_tiny<T: Lanes>(d: T) -> (T, T) {
 /// cos(x) (see the module docs for the accuracy).
 #[cfg(test)]
 #[inline(always)]
-pub fn cos(x: f64) -> f64 {
+pub(crate) fn cos(x: f64) -> f64 {
     cos_lanes(x)
 }
 
 /// sin(x) (see the module docs for the accuracy).
 #[cfg(test)]
 #[inline(always)]
-pub fn sin(x: f64) -> f64 {
+pub(crate) fn sin(x: f64) -> f64 {
     sin_lanes(x)
 }
 
@@ -237,7 +237,7 @@ const E13: f64 = 1.605_904_383_682_161_3e-10;
 
 /// exp(x) per lane (see the module docs for the accuracy and the clamp).
 #[inline(always)]
-pub fn exp_lanes<T: Lanes>(x: T) -> T {
+pub(crate) fn exp_lanes<T: Lanes>(x: T) -> T {
     let c = T::splat;
     // Clamped so 2^n stays a normal number (selects: a NaN passes).
     let x = x.raise_to(-708.0).lower_to(709.0);
@@ -263,7 +263,7 @@ pub fn exp_lanes<T: Lanes>(x: T) -> T {
 /// exp(x) (see the module docs for the accuracy and the clamp).
 #[cfg(test)]
 #[inline(always)]
-pub fn exp(x: f64) -> f64 {
+pub(crate) fn exp(x: f64) -> f64 {
     exp_lanes(x)
 }
 

@@ -439,7 +439,7 @@ impl Flow {
 
     /// Steady flows along x whose u depends on y only: pathlines are
     /// straight lines at constant speed and advection is exact.
-    pub fn is_parallel_steady(&self) -> bool {
+    pub(crate) fn is_parallel_steady(&self) -> bool {
         match self {
             Flow::Uniform { v, .. } => *v == 0.0,
             Flow::Poiseuille { .. } | Flow::BoundaryLayer { .. } | Flow::Jet { .. } => true,
@@ -683,7 +683,7 @@ impl Turbulent {
 
     /// Time-averaged (uu, vv, uv) at any point: with distinct frequencies,
     /// cross terms average out and each mode contributes half its square.
-    pub fn stresses(&self) -> (f64, f64, f64) {
+    pub(crate) fn stresses(&self) -> (f64, f64, f64) {
         let (mut uu, mut vv, mut uv) = (0.0, 0.0, 0.0);
         for m in &self.modes {
             uu += 0.5 * m[1] * m[1];
@@ -745,12 +745,14 @@ impl Shedding {
     }
 }
 
+#[cfg(test)]
 /// Error function (Abramowitz–Stegun 7.1.26, |error| < 1.5e-7).
 #[inline]
-pub fn erf(x: f64) -> f64 {
+pub(crate) fn erf(x: f64) -> f64 {
     erf_lanes(x)
 }
 
+#[cfg(test)]
 /// [`erf`] per lane, with [`fastmath::exp_lanes`].
 #[inline(always)]
 fn erf_lanes<T: Lanes>(x: T) -> T {
@@ -790,7 +792,7 @@ fn erf_plain(x: f64) -> f64 {
 
 impl Gridded {
     /// Reads a grid field from a CSV file `x,y,u,v`; `scale` multiplies u and v.
-    pub fn load(path: &Path, scale: f64) -> Result<Gridded> {
+    pub(crate) fn load(path: &Path, scale: f64) -> Result<Gridded> {
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
         let mut lines = text
             .lines()

@@ -67,12 +67,12 @@ use serde::{Deserialize, Serialize};
 pub(crate) mod fastmath;
 pub mod flow;
 pub mod light;
-pub mod pixel;
+pub(crate) mod pixel;
 pub mod presets;
-pub mod readout;
-pub mod record;
+pub(crate) mod readout;
+pub(crate) mod record;
 pub mod scenario;
-pub mod seeding;
+pub(crate) mod seeding;
 pub mod simd;
 
 pub use flow::Flow;
@@ -143,11 +143,11 @@ pub struct SimStats {
 
 impl SimStats {
     /// Mean event rate over the simulated time (events/s).
-    pub fn event_rate_ev_s(&self) -> f64 {
+    pub(crate) fn event_rate_ev_s(&self) -> f64 {
         self.events as f64 / self.duration_s
     }
     /// Events per lit particle per pulse (noise included).
-    pub fn events_per_particle_per_pulse(&self) -> f64 {
+    pub(crate) fn events_per_particle_per_pulse(&self) -> f64 {
         if self.truth_samples == 0 {
             0.0
         } else {
@@ -436,14 +436,14 @@ fn order_rows_within_times(keys: &mut [u64], x_shift: u32) -> bool {
 /// digits all keys share. Same result as `sort_unstable` (keys are plain
 /// integers), in a few linear passes instead of ~log2(n) comparisons per
 /// key: the request sort was ~10 % of the simulator's instructions.
-pub fn radix_sort(keys: &mut Vec<u64>, scratch: &mut Vec<u64>) {
+pub(crate) fn radix_sort(keys: &mut Vec<u64>, scratch: &mut Vec<u64>) {
     radix_sort_above(keys, scratch, 0);
 }
 
 /// Sort `keys` stably by `key >> low_bits` (the low bits are carried,
 /// not compared: equal high parts keep their input order), by
 /// [`radix_sort`]'s passes.
-pub fn radix_sort_above(keys: &mut Vec<u64>, scratch: &mut Vec<u64>, low_bits: u32) {
+pub(crate) fn radix_sort_above(keys: &mut Vec<u64>, scratch: &mut Vec<u64>, low_bits: u32) {
     let n = keys.len();
     if n < 512 {
         if low_bits == 0 {
@@ -727,11 +727,6 @@ impl Simulator {
         })
     }
 
-    /// The scenario being simulated.
-    pub fn scenario(&self) -> &Scenario {
-        &self.front.sc
-    }
-
     /// Every request through the sort and the refractory filter, no
     /// refractory groups (the plain definition the tests compare with).
     #[cfg(test)]
@@ -753,7 +748,7 @@ impl Simulator {
     /// Give back a list from [`Simulator::take_truth`] once its rows are
     /// used: later blocks fill it instead of fresh memory (the truth of a
     /// full-frame block is ~2 MB, whose new pages cost system time).
-    pub fn recycle_truth(&mut self, rows: Vec<TruthSample>) {
+    pub(crate) fn recycle_truth(&mut self, rows: Vec<TruthSample>) {
         if self.front.truth_pool.len() < 4 && rows.capacity() > 0 {
             self.front.truth_pool.push(rows);
         }
@@ -770,7 +765,7 @@ impl Simulator {
     }
 
     /// (pulses done, pulses in total), for progress bars.
-    pub fn progress(&self) -> (u64, u64) {
+    pub(crate) fn progress(&self) -> (u64, u64) {
         (
             (self.block * self.front.pulses_per_block).min(self.front.n_pulses),
             self.front.n_pulses,

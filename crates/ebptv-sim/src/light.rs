@@ -53,7 +53,7 @@ impl PulseShape {
 }
 
 /// Relative laser power at `t` µs after the pulse start.
-pub fn envelope(l: &Light, t: f64) -> f64 {
+pub(crate) fn envelope(l: &Light, t: f64) -> f64 {
     let end = 0.5 * l.rise_us + l.pulse_width_us + 0.5 * l.fall_us;
     if t < 0.0 || t > end {
         return 0.0;

@@ -34,7 +34,7 @@ pub struct Refractory {
 
 impl Refractory {
     /// A refractory filter of `period_us` over `roi`.
-    pub fn new(period_us: f64, roi: Roi) -> Self {
+    pub(crate) fn new(period_us: f64, roi: Roi) -> Self {
         Refractory {
             period_us,
             roi,
@@ -60,7 +60,7 @@ impl Refractory {
     /// prefetch a few requests ahead, the load in [`Self::keep`] waited
     /// for memory on most requests (~70 % of the readout's time).
     #[inline(always)]
-    pub fn prefetch(&self, dx: usize, dy: usize) {
+    pub(crate) fn prefetch(&self, dx: usize, dy: usize) {
         if let Some(slot) = self.last.get(dy * self.roi.width as usize + dx) {
             prefetch(slot);
         }
@@ -85,9 +85,10 @@ impl Refractory {
         a.t - self.last[self.index(a)] >= self.period_us
     }
 
+    #[cfg(test)]
     /// Whether request `a` passes (requests in time order).
     #[inline]
-    pub fn keep(&mut self, a: &Arrival) -> bool {
+    pub(crate) fn keep(&mut self, a: &Arrival) -> bool {
         let i = self.index(a);
         if a.t - self.last[i] >= self.period_us {
             self.last[i] = a.t;
@@ -99,7 +100,7 @@ impl Refractory {
 }
 
 /// Row-arbitrated readout that delays events when many rows request at once.
-pub struct Arbiter {
+pub(crate) struct Arbiter {
     params: ArbiterSaturation,
     roi_x: u16,
     roi_y: u16,
@@ -134,7 +135,7 @@ pub struct Arbiter {
 
 impl Arbiter {
     /// An arbiter with the given timings over `roi`.
-    pub fn new(params: ArbiterSaturation, roi: Roi) -> Self {
+    pub(crate) fn new(params: ArbiterSaturation, roi: Roi) -> Self {
         let words_per_row = (roi.width as usize).div_ceil(64);
         assert!(words_per_row <= 64, "ROI wider than 4096 px");
         let rows = roi.height as usize;
@@ -158,7 +159,7 @@ impl Arbiter {
     /// ROI's corner into the cache, some requests before [`Self::offer`]
     /// needs it.
     #[inline(always)]
-    pub fn prefetch(&self, dx: usize, dy: usize) {
+    pub(crate) fn prefetch(&self, dx: usize, dy: usize) {
         if let Some(cell) = self.cells.get(dy * self.words_per_row + dx / 64) {
             prefetch(cell);
         }
@@ -204,12 +205,13 @@ impl Arbiter {
         let _ = t;
     }
 
+    #[cfg(test)]
     /// Serve the requests `reqs`, in (time, row) order (all requests
     /// before `t_end` are known; none later is in `reqs`), emitting events
     /// granted before `t_end`. Requests not yet granted stay pending
     /// inside. The same as [`Self::offer`] for each request, then
     /// [`Self::finish`].
-    pub fn run(&mut self, reqs: &[Arrival], t_end: f64, out: &mut EventChunk) {
+    pub(crate) fn run(&mut self, reqs: &[Arrival], t_end: f64, out: &mut EventChunk) {
         for a in reqs {
             self.offer(a, t_end, out);
         }
@@ -221,8 +223,9 @@ impl Arbiter {
     /// reaches before `a` arrives (and before `t_end`), then admit `a`.
     /// The readout feeds its requests one by one as it decodes them.
     // (Always inlined: the readout calls it once per request.)
+    #[cfg(test)]
     #[inline(always)]
-    pub fn offer(&mut self, a: &Arrival, t_end: f64, out: &mut EventChunk) {
+    pub(crate) fn offer(&mut self, a: &Arrival, t_end: f64, out: &mut EventChunk) {
         self.offer_at(
             a.t,
             (a.x - self.roi_x) as usize,
@@ -264,7 +267,7 @@ impl Arbiter {
 
     /// After the last request before `t_end`: emit the grants before
     /// `t_end`.
-    pub fn finish(&mut self, t_end: f64, out: &mut EventChunk) {
+    pub(crate) fn finish(&mut self, t_end: f64, out: &mut EventChunk) {
         while !self.queue.is_empty() && self.t_free < t_end {
             self.grant(out);
         }
@@ -357,15 +360,16 @@ impl Arbiter {
         }
     }
 
+    #[cfg(test)]
     /// Requests still waiting.
-    pub fn pending(&self) -> usize {
+    pub(crate) fn pending(&self) -> usize {
         self.counts.iter().map(|&n| n as usize).sum()
     }
 }
 
 /// Drops events beyond `max_rate_ev_s · window_us` in each window of the
 /// event timestamps (a counter reset every window).
-pub struct RateLimiter {
+pub(crate) struct RateLimiter {
     window_us: f64,
     max_per_window: f64,
     window: i64,
@@ -374,7 +378,7 @@ pub struct RateLimiter {
 
 impl RateLimiter {
     /// A limiter allowing `max_rate_ev_s` events/s in windows of `window_us`.
-    pub fn new(max_rate_ev_s: f64, window_us: f64) -> Self {
+    pub(crate) fn new(max_rate_ev_s: f64, window_us: f64) -> Self {
         RateLimiter {
             window_us,
             max_per_window: max_rate_ev_s * window_us * 1e-6,
@@ -623,7 +627,7 @@ mod tests {
         }
 
         impl ListArbiter {
-            pub fn new(params: ArbiterSaturation, roi: Roi) -> Self {
+            pub(crate) fn new(params: ArbiterSaturation, roi: Roi) -> Self {
                 ListArbiter {
                     params,
                     roi_y: roi.y as u16,
@@ -666,7 +670,7 @@ mod tests {
             /// granted before `t_end`. Requests not yet granted stay pending
             /// inside. The same as [`Self::offer`] for each request, then
             /// [`Self::finish`].
-            pub fn run(&mut self, reqs: &[Arrival], t_end: f64, out: &mut EventChunk) {
+            pub(crate) fn run(&mut self, reqs: &[Arrival], t_end: f64, out: &mut EventChunk) {
                 for a in reqs {
                     self.offer(a, t_end, out);
                 }
@@ -679,7 +683,7 @@ mod tests {
             /// The readout feeds its requests one by one as it decodes them.
             // (Always inlined: the readout calls it once per request.)
             #[inline(always)]
-            pub fn offer(&mut self, a: &Arrival, t_end: f64, out: &mut EventChunk) {
+            pub(crate) fn offer(&mut self, a: &Arrival, t_end: f64, out: &mut EventChunk) {
                 loop {
                     if self.queue.is_empty() {
                         // Idle: the server waits for this request.
@@ -699,7 +703,7 @@ mod tests {
 
             /// After the last request before `t_end`: emit the grants before
             /// `t_end`.
-            pub fn finish(&mut self, t_end: f64, out: &mut EventChunk) {
+            pub(crate) fn finish(&mut self, t_end: f64, out: &mut EventChunk) {
                 while !self.queue.is_empty() && self.t_free < t_end {
                     self.grant(out);
                 }
@@ -733,7 +737,7 @@ mod tests {
             }
 
             /// Requests still waiting.
-            pub fn pending(&self) -> usize {
+            pub(crate) fn pending(&self) -> usize {
                 self.rows.iter().map(|r| r.len()).sum()
             }
         }

@@ -231,7 +231,7 @@ const ROW_MASK: usize = 255;
 impl TruthWriter {
     pub(crate) const HEADER: &'static str = "pulse,t_us,particle_id,x,y,u,v";
 
-    pub fn create(path: impl AsRef<Path>) -> Result<TruthWriter> {
+    pub(crate) fn create(path: impl AsRef<Path>) -> Result<TruthWriter> {
         let mut file = AtomicFile::create(path.as_ref())?;
         writeln!(file, "{}", Self::HEADER).map_err(|e| Error::io(path.as_ref(), e))?;
         Ok(TruthWriter {
@@ -272,7 +272,7 @@ impl TruthWriter {
     }
 
     /// Append `rows`.
-    pub fn write(&mut self, rows: &[TruthSample]) -> Result<()> {
+    pub(crate) fn write(&mut self, rows: &[TruthSample]) -> Result<()> {
         for r in rows {
             if self.pos >= BATCH {
                 self.flush_batch()?;
@@ -314,7 +314,7 @@ impl TruthWriter {
         self.flush_batch()
     }
 
-    pub fn finish(self) -> Result<()> {
+    pub(crate) fn finish(self) -> Result<()> {
         self.file.commit()
     }
 }
@@ -537,7 +537,7 @@ fn put_fixed<const D: usize>(w: &mut [u8; ROW_WINDOW], p: usize, v: f64) -> Opti
 }
 
 /// The plain definition of a truth row.
-pub fn truth_line_exact(line: &mut Vec<u8>, r: &TruthSample) {
+pub(crate) fn truth_line_exact(line: &mut Vec<u8>, r: &TruthSample) {
     use std::io::Write as _;
     let _ = writeln!(
         line,

@@ -39,11 +39,11 @@ use super::stream_seed;
 const SLAB_HALF: f64 = 0.75;
 
 /// Longest RK4 sub-step (px of displacement).
-pub const SUBSTEP_PX: f64 = 4.0;
+pub(crate) const SUBSTEP_PX: f64 = 4.0;
 
 /// One seeded particle.
 #[derive(Debug, Clone, Copy)]
-pub struct Particle {
+pub(crate) struct Particle {
     /// x (px).
     pub x: f64,
     /// y (px).
@@ -106,7 +106,7 @@ impl Particle {
 
 /// The rectangle particles live in (px).
 #[derive(Debug, Clone, Copy)]
-pub struct Domain {
+pub(crate) struct Domain {
     /// Left edge.
     pub x0: f64,
     /// Right edge.
@@ -119,7 +119,7 @@ pub struct Domain {
 
 /// A particle at one pulse, as the renderer needs it.
 #[derive(Debug, Clone, Copy)]
-pub struct Snapshot {
+pub(crate) struct Snapshot {
     /// Image centre x (px).
     pub x: f64,
     /// Image centre y (px).
@@ -135,7 +135,7 @@ pub struct Snapshot {
 }
 
 /// The particles of a run and their advection.
-pub struct Particles {
+pub(crate) struct Particles {
     /// The particles.
     pub particles: Vec<Particle>,
     rngs: Vec<Pcg64>,
@@ -149,7 +149,7 @@ pub struct Particles {
 
 impl Particles {
     /// Seeds the particles of scenario `sc` in `flow`; `seed` fixes the draws.
-    pub fn seed(sc: &Scenario, flow: &Flow, seed: u64) -> Particles {
+    pub(crate) fn seed(sc: &Scenario, flow: &Flow, seed: u64) -> Particles {
         let roi = sc.roi();
         let margin = 2.0 + 1.5 * sc.optics.particle_diameter_px;
         let domain = Domain {
@@ -203,13 +203,8 @@ impl Particles {
     }
 
     /// Number of particles.
-    pub fn len(&self) -> usize {
+    pub(crate) fn len(&self) -> usize {
         self.particles.len()
-    }
-
-    /// True when there are no particles.
-    pub fn is_empty(&self) -> bool {
-        self.particles.is_empty()
     }
 
     /// Give slot `p` a new particle: random fluid position, brightness and
@@ -255,9 +250,10 @@ impl Particles {
         p.z.abs() <= self.sheet_half
     }
 
+    #[cfg(test)]
     /// Advance every particle from `t0` to each of `times` in turn (s) and
     /// return, per time, the lit particles as snapshots (in slot order).
-    pub fn advance_and_snapshot(
+    pub(crate) fn advance_and_snapshot(
         &mut self,
         flow: &Flow,
         t0: f64,

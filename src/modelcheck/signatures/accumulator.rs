@@ -242,6 +242,7 @@ pub(super) fn yield_edges() -> Vec<f64> {
 }
 
 impl SignatureAccumulator {
+    /// An empty accumulator for `cfg`. Fails when `cfg` is invalid.
     pub fn new(cfg: SignatureConfig) -> Result<Self> {
         cfg.validate()?;
         let latency = UniformBins::new(Histogram::new(cfg.latency_edges(), BinScale::Linear)?);
@@ -288,11 +289,6 @@ impl SignatureAccumulator {
             track_lengths: Vec::new(),
             cfg,
         })
-    }
-
-    #[cfg(test)]
-    pub fn config(&self) -> &SignatureConfig {
-        &self.cfg
     }
 
     /// Add a chunk of events (chunks in stream order).

@@ -67,6 +67,7 @@ pub struct ReferenceAccumulator {
 }
 
 impl ReferenceAccumulator {
+    /// An empty accumulator for `cfg`. Fails when `cfg` is invalid.
     pub fn new(cfg: SignatureConfig) -> Result<Self> {
         cfg.validate()?;
         let latency = Histogram::new(cfg.latency_edges(), BinScale::Linear)?;
@@ -106,10 +107,6 @@ impl ReferenceAccumulator {
             track_lengths: Vec::new(),
             cfg,
         })
-    }
-
-    pub fn config(&self) -> &SignatureConfig {
-        &self.cfg
     }
 
     /// Add a chunk of events (chunks in stream order).

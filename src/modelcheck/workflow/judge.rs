@@ -23,6 +23,7 @@ use super::*;
 /// is in the model.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RowSet {
+    /// Names of the signature rows.
     pub names: Vec<String>,
 }
 
@@ -35,7 +36,7 @@ impl RowSet {
     }
 
     /// max(z, 0) per row of the set ([`Z_CAP`] for a row `t` lacks).
-    pub fn components(&self, t: &DiscrepancyTable) -> Vec<f64> {
+    pub(crate) fn components(&self, t: &DiscrepancyTable) -> Vec<f64> {
         self.names
             .iter()
             .map(|n| {
@@ -129,6 +130,7 @@ pub struct Judgement {
     pub needed: f64,
     /// What the best and its rival leave on the rows either improves.
     pub left_best: f64,
+    /// What the rival leaves on those rows.
     pub left_rival: f64,
     /// The best leaves less than (1 − [`RUNNER_UP_MARGIN`]) × what the
     /// rival leaves on those rows (or the rival removes nothing).
@@ -138,6 +140,7 @@ pub struct Judgement {
 }
 
 impl Judgement {
+    /// Index of the best candidate (`order[0]`).
     pub fn best(&self) -> usize {
         self.order[0]
     }
@@ -221,7 +224,7 @@ pub fn judge_candidates(
 /// the rows of `before` (a row missing after counts as unchanged); clear
 /// when the lead exceeds one null spread and [`RUNNER_UP_MARGIN`] × the
 /// gap the rival leaves (when the rival removes anything).
-pub fn judge_candidates_whole_gap(
+pub(crate) fn judge_candidates_whole_gap(
     before: &DiscrepancyTable,
     names: &[&str],
     after: &[&DiscrepancyTable],

@@ -62,7 +62,7 @@ pub struct WindowRule {
 impl WindowRule {
     /// The ridge σ²/var(c₂) of the curvature prior (c₂ = a/2), 0 without
     /// one or for fits below order 2.
-    pub fn ridge(&self) -> f64 {
+    pub(crate) fn ridge(&self) -> f64 {
         if self.order >= 2 && self.accel_rms.is_finite() && self.accel_rms > 0.0 {
             let c2 = 0.5 * self.accel_rms;
             let r = self.sigma * self.sigma / (c2 * c2);
@@ -263,13 +263,13 @@ pub(super) const GRID_TOLERANCE: f64 = 1e-9;
 /// How far (in τ units) a τ computed from times up to `t_max_abs` µs with
 /// period `period_us` may stray from its integer value by rounding alone:
 /// the fast path takes a detection as on the grid within this distance.
-pub fn grid_tolerance(t_max_abs: f64, period_us: f64) -> f64 {
+pub(crate) fn grid_tolerance(t_max_abs: f64, period_us: f64) -> f64 {
     GRID_TOLERANCE + 64.0 * f64::EPSILON * (t_max_abs / period_us.abs().max(1e-300))
 }
 
 /// The samples one [`fit_adaptive`] call reads (its pilot window; for a
 /// fixed window, that window): `n` samples, evaluation at `centre`.
-pub fn adaptive_span(n: usize, centre: usize, rule: &WindowRule) -> std::ops::Range<usize> {
+pub(crate) fn adaptive_span(n: usize, centre: usize, rule: &WindowRule) -> std::ops::Range<usize> {
     if n == 0 {
         return 0..0;
     }

@@ -247,7 +247,7 @@ impl GridTables {
     }
 
     /// Whether these tables serve `rule` (same windows and order).
-    pub fn serves(&self, rule: &WindowRule) -> bool {
+    pub(crate) fn serves(&self, rule: &WindowRule) -> bool {
         let max_window = rule.max_window.max(1);
         self.max_window == max_window
             && self.min_window == rule.min_window.clamp(1, max_window)
@@ -255,7 +255,7 @@ impl GridTables {
     }
 
     /// Shared tables for `rule`'s shape, built once per process.
-    pub fn cached(rule: &WindowRule) -> std::sync::Arc<GridTables> {
+    pub(crate) fn cached(rule: &WindowRule) -> std::sync::Arc<GridTables> {
         use std::sync::{Arc, Mutex, OnceLock};
         static CACHE: OnceLock<Mutex<Vec<Arc<GridTables>>>> = OnceLock::new();
         let mut cache = CACHE

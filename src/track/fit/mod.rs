@@ -135,18 +135,22 @@ pub use adaptive::*;
 pub use grid::*;
 pub(crate) use local::*;
 pub use prior::*;
-pub use running::*;
+pub(crate) use running::*;
 
 /// A fitted state at one evaluation time (in the caller's τ units).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FitState {
+    /// Fitted position x (px).
     pub x: f64,
+    /// Fitted position y (px).
     pub y: f64,
     /// dx/dτ, dy/dτ.
     pub vx: f64,
+    /// dy/dτ.
     pub vy: f64,
     /// d²x/dτ², d²y/dτ².
     pub ax: f64,
+    /// d²y/dτ².
     pub ay: f64,
     /// Residual rms per axis (px); 0 when the fit has no spare points.
     pub rms_residual: f64,
@@ -241,7 +245,7 @@ fn fit_eval_sized<const P: usize>(
 /// sample added (for conditioning). Samples can only be added, which is
 /// what nested windows need. Enough moments for fits up to order 3.
 #[derive(Debug, Clone, Copy, Default)]
-pub struct Sums {
+pub(crate) struct Sums {
     n: usize,
     /// Σ sᵏ, k = 0..=6.
     s: [f64; 7],
@@ -262,7 +266,7 @@ struct Solved {
 }
 
 impl Sums {
-    pub fn add(&mut self, s: f64, x: f64, y: f64) {
+    pub(crate) fn add(&mut self, s: f64, x: f64, y: f64) {
         if self.n == 0 {
             (self.x0, self.y0) = (x, y);
         }
@@ -279,14 +283,6 @@ impl Sums {
         }
         self.xx += x * x;
         self.yy += y * y;
-    }
-
-    pub fn len(&self) -> usize {
-        self.n
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.n == 0
     }
 
     /// The inverse normal matrix of the fit of order ≤ `order` and its
@@ -327,10 +323,11 @@ impl Sums {
         Some(Solved { cx, cy, inv, p })
     }
 
+    #[cfg(test)]
     /// The fit of order ≤ `order` (≤ 2, lowered to what the points allow)
     /// evaluated at s = 0; `None` when empty or singular. Equal to
     /// [`fit_eval`] over the same samples up to rounding.
-    pub fn solve(&self, order: usize) -> Option<FitState> {
+    pub(crate) fn solve(&self, order: usize) -> Option<FitState> {
         self.solve_with_prior(order, 0.0)
     }
 
@@ -339,7 +336,7 @@ impl Sums {
     /// fit only; 0 gives [`Sums::solve`]). `leverage` and
     /// `velocity_variance` are then the posterior variance factors (noise
     /// plus the prior's expected shrinkage bias).
-    pub fn solve_with_prior(&self, order: usize, ridge: f64) -> Option<FitState> {
+    pub(crate) fn solve_with_prior(&self, order: usize, ridge: f64) -> Option<FitState> {
         let c = self.coefficients(order.min(2), ridge)?;
         let p = c.p;
         // Residual sum of squares: xᵀx − cᵀ(Aᵀx) for least squares; the
@@ -372,13 +369,6 @@ impl Sums {
         })
     }
 
-    /// The fit's velocity error per unit cubic coefficient: a path
-    /// `x = … + c₃s³` gives the fit of order `order` the velocity bias
-    /// `c₃ · velocity_bias_factor` (the regression of s³ on the basis).
-    pub fn velocity_bias_factor(&self, order: usize) -> Option<f64> {
-        self.velocity_variance_and_bias(order, 0.0).map(|v| v.1)
-    }
-
     /// `(velocity_variance, velocity_bias_factor)` from one solve (with
     /// the curvature prior `ridge`, as [`Sums::solve_with_prior`]).
     fn velocity_variance_and_bias(&self, order: usize, ridge: f64) -> Option<(f64, f64)> {
@@ -389,13 +379,6 @@ impl Sums {
         }
         let b = (0..p).map(|b| inv[1][b] * self.s[b + 3]).sum();
         Some((inv[1][1], b))
-    }
-
-    /// Cubic coefficients (x, y) of an order-3 fit and their variance
-    /// factor; `None` with fewer than 5 samples (no spare point to tell a
-    /// cubic from noise) or a singular design.
-    pub fn cubic(&self) -> Option<(f64, f64, f64)> {
-        self.pilot().map(|p| (p.c3[0], p.c3[1], p.c3_var))
     }
 
     /// The pilot's cubic fit: its cubic and quadratic coefficients and

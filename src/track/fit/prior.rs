@@ -24,7 +24,7 @@ pub(super) const PRIOR_MIN_SAMPLES: u64 = 20;
 /// The tracker adds each kept track in output order, so the estimate a
 /// track is fitted with does not depend on the thread count.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct AccelPrior {
+pub(crate) struct AccelPrior {
     /// Σ (c₂ₓ² + c₂ᵧ²) and the number of stretches.
     pub(super) sum_sq: f64,
     pub(super) samples: u64,
@@ -33,7 +33,7 @@ pub struct AccelPrior {
 impl AccelPrior {
     /// Add the gap-free runs of a track: `pulses` (increasing) and its
     /// positions `xy`, τ in pulses.
-    pub fn add_track(&mut self, pulses: &[i64], xy: &[[f64; 2]]) {
+    pub(crate) fn add_track(&mut self, pulses: &[i64], xy: &[[f64; 2]]) {
         let n = pulses.len().min(xy.len());
         let mut start = 0;
         while start + PRIOR_WINDOW <= n {
@@ -61,13 +61,14 @@ impl AccelPrior {
     }
 
     /// Add another estimate's samples.
-    pub fn merge(&mut self, other: &AccelPrior) {
+    pub(crate) fn merge(&mut self, other: &AccelPrior) {
         self.sum_sq += other.sum_sq;
         self.samples += other.samples;
     }
 
+    #[cfg(test)]
     /// Curvature samples so far.
-    pub fn samples(&self) -> u64 {
+    pub(crate) fn samples(&self) -> u64 {
         self.samples
     }
 
@@ -76,7 +77,7 @@ impl AccelPrior {
     /// flow without measurable curvature gets a floor of a quarter of the
     /// stretches' own noise variance, which pulls short fits nearly
     /// straight but keeps the ridge finite.
-    pub fn accel_rms(&self, sigma: f64) -> f64 {
+    pub(crate) fn accel_rms(&self, sigma: f64) -> f64 {
         if self.samples < PRIOR_MIN_SAMPLES {
             return 0.0;
         }
@@ -143,7 +144,7 @@ impl LeaveOneOut {
     }
 
     /// Shared tables for `max_window`, built once per process.
-    pub fn cached(max_window: usize) -> std::sync::Arc<LeaveOneOut> {
+    pub(crate) fn cached(max_window: usize) -> std::sync::Arc<LeaveOneOut> {
         use std::sync::{Arc, Mutex, OnceLock};
         static CACHE: OnceLock<Mutex<Vec<Arc<LeaveOneOut>>>> = OnceLock::new();
         let mut cache = CACHE

@@ -121,7 +121,7 @@ pub(super) struct CentredCandidate {
 /// window chosen unless two candidates' criteria agree to rounding;
 /// `rms_residual` is not computed (NaN).
 #[derive(Debug, Clone)]
-pub struct GridRunFit<'t> {
+pub(crate) struct GridRunFit<'t> {
     pub(super) tables: &'t GridTables,
     pub(super) rule: WindowRule,
     pub(super) ridge: f64,
@@ -142,7 +142,7 @@ impl<'t> GridRunFit<'t> {
     /// `None` where the running path does not apply (a fixed window, an
     /// order below 2, tables for another rule, more candidates than the
     /// search takes): the caller takes [`fit_adaptive_grid`].
-    pub fn new(tables: &'t GridTables, rule: &WindowRule) -> Option<Self> {
+    pub(crate) fn new(tables: &'t GridTables, rule: &WindowRule) -> Option<Self> {
         let wmax = rule.max_window;
         if !tables.serves(rule)
             || rule.order < 2
@@ -201,7 +201,7 @@ impl<'t> GridRunFit<'t> {
     /// Whether a track of `n` samples takes the running path (its pilot
     /// window has full length).
     #[inline]
-    pub fn serves_track(&self, n: usize) -> bool {
+    pub(crate) fn serves_track(&self, n: usize) -> bool {
         n > 2 * self.rule.max_window
     }
 
@@ -211,7 +211,7 @@ impl<'t> GridRunFit<'t> {
     /// caller's check, as for [`fit_adaptive_grid`]). Consecutive samples
     /// of the same `xy` move the running sums; anything else starts them
     /// afresh.
-    pub fn fit(&mut self, xy: &[[f64; 2]], centre: usize) -> Option<(FitState, usize)> {
+    pub(crate) fn fit(&mut self, xy: &[[f64; 2]], centre: usize) -> Option<(FitState, usize)> {
         let n = xy.len();
         let h = self.rule.max_window;
         let (pl, wmax) = (2 * h + 1, h);

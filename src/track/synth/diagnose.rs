@@ -41,7 +41,7 @@ pub struct LinkDiagnosis {
 /// Classify every wrong link and every missed truth link of `tracks`
 /// (detections numbered as in [`score`]; `det_mixed[serial]` tells merged
 /// images, `det_xy` the detection positions, `truth` the truth samples).
-pub fn diagnose(
+pub(crate) fn diagnose(
     tracks: &[LinkedTrack],
     det_truth: &[Option<u64>],
     det_mixed: &[bool],
@@ -165,7 +165,7 @@ pub fn run_and_diagnose(
 /// apart),
 /// `noise`, `swap/first|last|gap|interior` (clean images of two
 /// particles, by position in the track).
-pub fn diagnose_detail(
+pub(crate) fn diagnose_detail(
     tracks: &[LinkedTrack],
     det_truth: &[Option<u64>],
     det_sources: &[Vec<u64>],

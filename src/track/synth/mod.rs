@@ -255,7 +255,7 @@ impl SynthParams {
     }
 
     /// Velocity (px per pulse) at a position.
-    pub fn velocity(&self, x: f64, y: f64) -> (f64, f64) {
+    pub(crate) fn velocity(&self, x: f64, y: f64) -> (f64, f64) {
         let u0 = self.speed_scale();
         let tau = std::f64::consts::TAU;
         (
@@ -397,7 +397,7 @@ pub fn cluster_with_truth_mixed(
 
 /// Particles, their truth ids, merged flags and event sources (see
 /// [`cluster_with_truth_sources`]).
-pub type TruthClusters = (Vec<Particle>, Vec<Option<u64>>, Vec<bool>, Vec<Vec<u64>>);
+pub(crate) type TruthClusters = (Vec<Particle>, Vec<Option<u64>>, Vec<bool>, Vec<Vec<u64>>);
 
 /// [`cluster_with_truth_mixed`], also listing for each particle every
 /// truth particle that made at least one of its events (sorted).

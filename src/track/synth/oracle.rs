@@ -7,7 +7,7 @@ use super::*;
 /// the detections holding its events, in pulse order (indices as in
 /// [`SceneRun`]).
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct OracleTrack {
+pub(crate) struct OracleTrack {
     pub particle: u64,
     pub detections: Vec<usize>,
 }
@@ -19,7 +19,7 @@ pub struct OracleTrack {
 /// (`det_truth`), else the one with fewer sources, else the lower index —
 /// cut where more than `max_missed` pulses in a row have none. Tracks of
 /// one detection (no link) are left out. Ordered by particle, then time.
-pub fn oracle_tracks(
+pub(crate) fn oracle_tracks(
     det_truth: &[Option<u64>],
     det_sources: &[Vec<u64>],
     det_pulse: &[i64],
@@ -163,7 +163,7 @@ pub struct OracleReport {
 /// `xy` and true velocity `v` at `j` (px per pulse), noise σ per axis:
 /// over the windows of 3 to all detections, each as centred on `j` as the
 /// track allows ([`OracleReport::best_window`]).
-pub fn best_window_mse(
+pub(crate) fn best_window_mse(
     taus: &[f64],
     xy: &[[f64; 2]],
     j: usize,
@@ -231,7 +231,7 @@ pub(super) fn inverse_row_1(m: &[[f64; 3]; 3]) -> Option<[f64; 3]> {
 /// estimators too. Weights 1/σᵢ² and `ridge` 1/var(c₂): the same bounds
 /// (the variance itself, not a factor) for known per-sample noise σᵢ.
 /// `None` when not determined.
-pub fn quadratic_velocity_variance_factor(
+pub(crate) fn quadratic_velocity_variance_factor(
     taus: &[f64],
     weights: &[f64],
     at: f64,

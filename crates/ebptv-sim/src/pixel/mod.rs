@@ -41,7 +41,7 @@ use ebptv_io::events::{OFF, ON};
 
 /// An event as it leaves the pixel (before the readout timestamps it).
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Arrival {
+pub(crate) struct Arrival {
     /// Time the pixel requests readout (µs, fractional).
     pub t: f64,
     /// Column (px).
@@ -53,7 +53,7 @@ pub struct Arrival {
 }
 
 /// The event pixels of a scenario: turns particle images at each pulse into pixel events.
-pub struct PixelModel {
+pub(crate) struct PixelModel {
     roi: Roi,
     /// The light sheet (the exact model of the tests reads its envelope).
     #[cfg(test)]
@@ -100,7 +100,7 @@ pub struct PixelModel {
 
 impl PixelModel {
     /// The pixel model of scenario `sc`; `seed` fixes the fixed-pattern and per-event draws.
-    pub fn new(sc: &Scenario, seed: u64) -> PixelModel {
+    pub(crate) fn new(sc: &Scenario, seed: u64) -> PixelModel {
         let roi = sc.roi();
         let n = roi.width as usize * roi.height as usize;
         let mismatch = sc
@@ -180,7 +180,7 @@ impl PixelModel {
     }
 
     /// Hot pixels (x, y, rate Hz), for tests and diagnostics.
-    pub fn hot_pixels(&self) -> &[(u16, u16, f64)] {
+    pub(crate) fn hot_pixels(&self) -> &[(u16, u16, f64)] {
         &self.hot
     }
 }
@@ -194,7 +194,7 @@ impl PixelModel {
     /// draws are keyed by pixel and crossing ([`crossing_draw_key`]), so
     /// the order changes only the order of the requests, which the
     /// readout sorts.
-    pub fn render_pulse(
+    pub(crate) fn render_pulse(
         &self,
         snaps: &[Snapshot],
         t_pulse_us: f64,
@@ -595,6 +595,7 @@ impl PixelModel {
         }
     }
 
+    #[cfg(test)]
     /// Threshold factor of ROI pixel `idx` under `threshold_mismatch`
     /// (σ, key): 1 + σ·g with g a standard normal deviate chosen by a hash
     /// of the pixel index, so the pattern is fixed for a seed. g is one of
@@ -603,7 +604,7 @@ impl PixelModel {
     /// Gaussian except that the tails stop at ±3.67σ (the 1/8192
     /// quantile), so a 1280×720 array lacks its ~225 most extreme pixels.
     #[inline]
-    pub fn mismatch_factor(sigma: f64, key: u64, idx: u32) -> f64 {
+    pub(crate) fn mismatch_factor(sigma: f64, key: u64, idx: u32) -> f64 {
         Self::mismatch_factor_in(normal_quantiles(), sigma, key, idx)
     }
 
@@ -721,7 +722,7 @@ impl PixelModel {
     }
 
     /// Background activity and hot-pixel events in [t0, t1) µs.
-    pub fn noise(&self, t0: f64, t1: f64, block_seed: u64, out: &mut Vec<Arrival>) {
+    pub(crate) fn noise(&self, t0: f64, t1: f64, block_seed: u64, out: &mut Vec<Arrival>) {
         let dt = t1 - t0;
         if dt <= 0.0 {
             return;
@@ -865,7 +866,7 @@ pub(crate) fn round_i64(v: f64) -> i64 {
 
 /// Where a pixel's events go: a list of arrivals (tests, the reference)
 /// or the simulator's request keys.
-pub trait ArrivalSink {
+pub(crate) trait ArrivalSink {
     /// Receives one event.
     fn arrive(&mut self, a: Arrival);
     /// Events of pixel (x, y), all of polarity `p`, at `times` (in this
@@ -901,7 +902,7 @@ mod tables;
 
 use drain::*;
 use render::*;
-pub use tables::*;
+pub(crate) use tables::*;
 
 #[cfg(test)]
 mod tests;

@@ -372,7 +372,7 @@ pub(super) fn erf_exact(x: f64) -> f64 {
 /// tested against libm to 2e-15 absolute on the response's range). The
 /// response takes one per event and one per lit pixel: libm's
 /// `log`/`log1p` were ~5 % of the simulator's instructions.
-pub struct LnTable {
+pub(crate) struct LnTable {
     /// (1/c_i, ln c_i).
     pub(super) nodes: [(f64, f64); 128],
 }
@@ -389,7 +389,7 @@ impl LnTable {
 
     /// Natural logarithm of `x` (x > 0).
     #[inline(always)]
-    pub fn ln(&self, x: f64) -> f64 {
+    pub(crate) fn ln(&self, x: f64) -> f64 {
         let bits = x.to_bits();
         let e = ((bits >> 52) & 0x7FF) as i64 - 1023;
         let m = f64::from_bits((bits & 0x000F_FFFF_FFFF_FFFF) | 0x3FF0_0000_0000_0000);
@@ -431,7 +431,7 @@ pub(super) fn ceil_count(x: f64, max: usize) -> usize {
 /// interpolation error is below 1e-9, better than the rational
 /// approximation (1.5e-7) it replaces, at a fraction of the cost (no
 /// `exp`); nodes come from [`erf_series`].
-pub struct ErfTable {
+pub(crate) struct ErfTable {
     /// (erf(x_i), h·erf'(x_i)) at x_i = i·h.
     pub(super) nodes: Vec<(f64, f64)>,
 }
@@ -455,7 +455,7 @@ impl ErfTable {
 
     /// The error function at `x`.
     #[inline(always)]
-    pub fn eval(&self, x: f64) -> f64 {
+    pub(crate) fn eval(&self, x: f64) -> f64 {
         let ax = x.abs();
         if !(ax < ERF_TABLE_END) {
             return if x.is_nan() { x } else { x.signum() };
@@ -485,7 +485,7 @@ pub(crate) fn erf_table() -> &'static ErfTable {
 /// erf(x) for 0 ≤ x ≤ 7 to ~1e-15 by the all-positive series
 /// erf x = 2/√π · e^{−x²} · Σ 2ⁿ x^{2n+1} / (1·3·…·(2n+1)) (no
 /// cancellation); slow, for building the table and testing.
-pub fn erf_series(x: f64) -> f64 {
+pub(crate) fn erf_series(x: f64) -> f64 {
     let mut term = x;
     let mut sum = x;
     let mut n = 0.0;
