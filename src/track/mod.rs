@@ -104,6 +104,8 @@ pub(crate) mod stream;
 /// Synthetic scenes with ground truth, oracles and link scores for the
 /// tests and benches (feature `testkit`).
 #[cfg(any(test, feature = "testkit"))]
+#[allow(missing_docs)]
+// the tests' and benches' kit, not the user API: its fields are documented by the module doc
 pub mod synth;
 pub(crate) mod turn;
 
