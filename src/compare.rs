@@ -258,7 +258,7 @@ pub(crate) const QUANTITIES: [&str; 5] = ["u", "v", "uu", "vv", "uv"];
 /// Compare PTV bins (`grid.csv`: `x,y,count,u,v,uu,vv,uv`) with PIV nodes
 /// (`piv_mean.csv`: `x,y,u,v,uu,vv,uv,valid`). `min_count`: bins with fewer
 /// samples are ignored.
-pub fn compare(ptv: &Table, piv: &Table, min_count: f64) -> Result<Comparison> {
+pub(crate) fn compare(ptv: &Table, piv: &Table, min_count: f64) -> Result<Comparison> {
     let c = |t: &Table, n: &str| {
         t.col(n)
             .map(|v| v.to_vec())

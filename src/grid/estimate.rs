@@ -187,7 +187,7 @@ impl GridStats {
     /// Empties (NaN statistics, as a bin below `min_count`) every bin more
     /// than half of whose pixels are masked: a wall is no flow, not a flow
     /// at rest. Returns the number of bins emptied.
-    pub fn apply_mask(&mut self, mask: &crate::calib::PixelMask) -> usize {
+    pub(crate) fn apply_mask(&mut self, mask: &crate::calib::PixelMask) -> usize {
         let (hw, hh) = (self.spec.lattice.bin_w / 2.0, self.spec.lattice.bin_h / 2.0);
         let nx = self.spec.nx;
         let mut masked = 0;

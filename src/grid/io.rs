@@ -129,7 +129,7 @@ fn num(x: f64) -> String {
 /// [`write_grid_csv`], with the physical columns of `calib` after the
 /// pixel ones when given ([`Calibration::field_columns`]:
 /// `X_mm,Y_mm,U_m_s,V_m_s,uu_m2_s2,vv_m2_s2,uv_m2_s2`).
-pub fn write_grid_csv_calibrated(
+pub(crate) fn write_grid_csv_calibrated(
     path: &Path,
     g: &GridStats,
     calib: Option<&Calibration>,
@@ -174,7 +174,7 @@ pub const EXTRA_HEADER: &str =
 
 /// `grid_extra.csv`: per bin `x,y,n_tracks,se_u,se_v,se_uu,se_vv,se_uv,
 /// dudx,dudy,dvdx,dvdy,fit_params` (same row order as `grid.csv`).
-pub fn write_extra_csv(path: &Path, g: &GridStats) -> Result<()> {
+pub(crate) fn write_extra_csv(path: &Path, g: &GridStats) -> Result<()> {
     let mut f = AtomicFile::create(path)?;
     let mut s = String::from(EXTRA_HEADER);
     s.push('\n');
@@ -206,7 +206,7 @@ pub fn write_extra_csv(path: &Path, g: &GridStats) -> Result<()> {
 /// `.npy` arrays in `dir`: `grid_x.npy` (nx), `grid_y.npy` (ny) bin centres
 /// and `grid_<q>.npy` of shape (ny, nx) for q in count, n_tracks, u, v, uu,
 /// vv, uv, se_u, se_v (f64, NaN for empty bins).
-pub fn write_grid_npy(dir: &Path, g: &GridStats) -> Result<()> {
+pub(crate) fn write_grid_npy(dir: &Path, g: &GridStats) -> Result<()> {
     use crate::io::npy::write_npy_f64;
     let shape = [g.spec.ny, g.spec.nx];
     write_npy_f64(dir.join("grid_x.npy"), &[g.spec.nx], &g.xs)?;
@@ -231,7 +231,7 @@ pub fn write_grid_npy(dir: &Path, g: &GridStats) -> Result<()> {
 /// Time-resolved fields as `.npy`: `fields_u.npy`, `fields_v.npy` (f64,
 /// NaN where a bin had no sample in a frame) and `fields_count.npy` of
 /// shape (frames, ny, nx), `fields_t_us.npy` (frames) the frame centres.
-pub fn write_fields_npy(
+pub(crate) fn write_fields_npy(
     dir: &Path,
     spec: &GridSpec,
     f: &crate::grid::fields::FieldSeries,
@@ -267,7 +267,11 @@ pub fn write_fields_npy(
 }
 
 /// [`write_maps`]; with `calib` the colour scales are in m/s and m²/s².
-pub fn write_maps_calibrated(dir: &Path, g: &GridStats, calib: Option<&Calibration>) -> Result<()> {
+pub(crate) fn write_maps_calibrated(
+    dir: &Path,
+    g: &GridStats,
+    calib: Option<&Calibration>,
+) -> Result<()> {
     let x_range = (g.xs[0], *g.xs.last().unwrap());
     let y_range = (g.ys[0], *g.ys.last().unwrap());
     let (k1, k2, ky) = match calib {

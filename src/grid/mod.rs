@@ -84,7 +84,7 @@ impl Sample {
 
 /// The samples of a tracks table (tracks.parquet, .csv or .npy); an
 /// error when it holds no track point.
-pub fn read_track_samples(path: &std::path::Path) -> Result<Vec<Sample>> {
+pub(crate) fn read_track_samples(path: &std::path::Path) -> Result<Vec<Sample>> {
     let tracks = crate::track::io::read_tracks(path)?;
     let samples: Vec<Sample> = tracks
         .iter()
@@ -175,7 +175,7 @@ impl Default for BinOptions {
 
 impl BinOptions {
     /// The lattice (an error on a bad bin size or overlap).
-    pub fn lattice(&self) -> Result<Lattice> {
+    pub(crate) fn lattice(&self) -> Result<Lattice> {
         Lattice::with_origin(
             self.bin,
             self.bin_h.unwrap_or(self.bin),

@@ -84,7 +84,7 @@ pub(crate) mod diagnostics;
 mod dir;
 pub mod live;
 pub mod monitor;
-pub mod static_mask;
+pub(crate) mod static_mask;
 pub(crate) mod timing;
 
 use accum::{Accumulator, Block, Fold};

@@ -274,7 +274,7 @@ pub struct PulseReport {
 impl PulseReport {
     /// The error of a recording without pulsed light: what was measured,
     /// and how to go on anyway.
-    pub fn not_pulsed_error(&self) -> Error {
+    pub(crate) fn not_pulsed_error(&self) -> Error {
         let v = &self.pulsed;
         let how = match self.timing.source {
             PulseSource::Trigger => format!(

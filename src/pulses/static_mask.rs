@@ -10,7 +10,7 @@ use crate::io::EventSource;
 
 /// Options of [`static_mask`].
 #[derive(Debug, Clone, Copy)]
-pub struct StaticMaskOptions {
+pub(crate) struct StaticMaskOptions {
     /// A pixel with events in more than this fraction of the pulses is
     /// static (a particle image stays on a pixel for a few pulses only).
     pub max_pulse_fraction: f64,
@@ -31,7 +31,7 @@ impl Default for StaticMaskOptions {
 /// The static pixels of a recording (`source`, read from its start) whose
 /// pulses `report` found ([`super::analyze`]): pixels with events in more
 /// than `max_pulse_fraction` of the pulses, and the hot pixels.
-pub fn static_mask(
+pub(crate) fn static_mask(
     source: &mut dyn EventSource,
     report: &PulseReport,
     opts: &StaticMaskOptions,

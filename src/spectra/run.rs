@@ -133,7 +133,7 @@ impl RunOptions {
     }
 
     /// (px/s)² → (m/s)² factor of the calibration (1 without).
-    pub fn psd_factor(&self) -> f64 {
+    pub(crate) fn psd_factor(&self) -> f64 {
         self.calibration
             .as_ref()
             .map_or(1.0, |c| c.velocity_px_s_to_m_s(1.0, 0.0).0.powi(2))

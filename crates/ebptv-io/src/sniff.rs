@@ -73,7 +73,7 @@ pub fn detect_from_bytes(path: &Path, head: &[u8]) -> Result<Format> {
 /// Format by extension: `.raw` = EVT 3.0 (the usual case; content sniffing
 /// tells EVT 2.0 / 2.1 apart), `.dat`, `.csv`/`.txt`, `.aedat4`, `.es`,
 /// `.npy`, `.evt2`, `.evt21`, `.evt3`.
-pub fn format_from_extension(path: &Path) -> Option<Format> {
+pub(crate) fn format_from_extension(path: &Path) -> Option<Format> {
     let ext = path.extension()?.to_str()?.to_ascii_lowercase();
     Format::from_name(&ext)
 }
