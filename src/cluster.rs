@@ -208,7 +208,7 @@ pub struct PixelHits {
 /// which was ~60 % of this function and a third of the clustering; small
 /// or very spread-out pulses, where the histograms would cost more than
 /// sorting, take the comparison sort. Both give exactly
-/// [`pulse_pixels_reference`]'s pixels (tested): the earliest time of a
+/// `pulse_pixels_reference`'s pixels (tested): the earliest time of a
 /// pixel is taken as a minimum, not from the order.
 pub fn pulse_pixels(pulse: &PulseEvents, params: &ClusterParams) -> Vec<PixelHits> {
     let (mut keyed, (x_lo, x_hi, y_lo, y_hi)) = selected_events(pulse, params);
@@ -413,9 +413,9 @@ impl UnionFind {
 
 /// Component label of every pixel (labels numbered in order of each
 /// component's first pixel in (y, x) order). The default path: for join
-/// radii of 1 to √3 px ([`ClusterParams::max_d2`] 1–3, the default 1.5 px
-/// among them) the run-length pass [`pixel_labels_runs`], else the row
-/// sweep [`pixel_labels_sweep`]. [`pixel_labels_kdtree`] is the general
+/// radii of 1 to √3 px (`ClusterParams::max_d2` 1–3, the default 1.5 px
+/// among them) the run-length pass `pixel_labels_runs`, else the row
+/// sweep `pixel_labels_sweep`. [`pixel_labels_kdtree`] is the general
 /// k-d tree path; all match the brute-force oracle exactly.
 pub fn pixel_labels(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u32> {
     if (1..=3).contains(&params.max_d2()) {
@@ -700,7 +700,7 @@ pub(crate) fn particles_from_labels(
 }
 
 /// Cluster the events of one pulse into particles. `params` is assumed
-/// valid (see [`ClusterParams::validate`]).
+/// valid (see `ClusterParams::validate`).
 pub fn cluster_pulse(pulse: &PulseEvents, params: &ClusterParams) -> Vec<Particle> {
     let pixels = pulse_pixels(pulse, params);
     let mut labels = pixel_labels_with(&pixels, params);

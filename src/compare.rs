@@ -383,7 +383,7 @@ pub struct CompareOptions {
 }
 
 /// What `ebptv compare` writes: the PTV and PIV statistics compared
-/// ([`compare`]) → `compare.json`, `diff_*.png` and `profiles.png` in `out`
+/// (`compare`) → `compare.json`, `diff_*.png` and `profiles.png` in `out`
 /// (created if missing).
 pub fn compare_to_dir(opts: &CompareOptions, out: &Path) -> Result<Comparison> {
     let calib = opts

@@ -14,7 +14,7 @@
 //! is tested against a direct DFT.
 //!
 //! Time series from binned tracks have gaps (a bin with no particle at some
-//! pulse); [`fill_gaps`] interpolates them linearly and reports the fraction
+//! pulse); `fill_gaps` interpolates them linearly and reports the fraction
 //! filled. The noise floor is the median PSD over the top quarter of the
 //! band, where a smooth flow has no energy left; white noise of variance σ²
 //! has the one-sided density 2σ²/f_s, so σ = √(floor·f_s/2). The dynamic
@@ -188,7 +188,7 @@ pub struct Peak {
 /// The largest PSD value in `[f_min, f_max]` (DC excluded), its frequency
 /// refined by a parabola through the logarithms of the three bins around it
 /// (exact for a Gaussian-shaped lobe, close for the Hann main lobe). No
-/// test of significance: see [`significant_peak`].
+/// test of significance: see `significant_peak`.
 pub fn find_peak(p: &Psd, f_min: f64, f_max: f64) -> Option<Peak> {
     let (mut best, mut k0) = (f64::NEG_INFINITY, None);
     for k in 1..p.psd.len() {
@@ -223,7 +223,7 @@ fn refine(p: &Psd, k: usize) -> f64 {
 /// chance that noise alone puts a peak this high anywhere in the band.
 pub const PEAK_FALSE_ALARM: f64 = 0.01;
 
-/// Result of [`significant_peak`].
+/// Result of `significant_peak`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct PeakTest {
     /// The strongest local maximum that passes the test, if any.
@@ -234,7 +234,7 @@ pub struct PeakTest {
     pub false_alarm: f64,
     /// The largest PSD value in the band, significant or not.
     pub strongest: Option<Peak>,
-    /// Degrees of freedom the test used (see [`significant_peak`]).
+    /// Degrees of freedom the test used (see `significant_peak`).
     pub dof: f64,
 }
 

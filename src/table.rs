@@ -7,7 +7,7 @@
 //! the written values all follow from it.
 //!
 //! [`TableWriter`] streams: rows are gathered column by column into row
-//! groups of [`ROW_GROUP_ROWS`] rows, each written out (Parquet) or
+//! groups of `ROW_GROUP_ROWS` rows, each written out (Parquet) or
 //! interleaved into records (`.npy`) when full, so memory stays bounded
 //! whatever the row count. The file appears under its name only at
 //! [`TableWriter::finish`] (through [`AtomicFile`]).

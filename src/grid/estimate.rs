@@ -7,7 +7,7 @@
 //! Godbersen & Schröder 2020) takes the resolved part of the spatial
 //! variation out; the fit's constant term is the mean at the bin centre and
 //! the residuals are the fluctuations. All of it follows from the power sums
-//! of [`super::accumulate`]: solve `G a = Σ w φ u` on the p×p leading block
+//! of `super::accumulate`: solve `G a = Σ w φ u` on the p×p leading block
 //! of the Gram matrix, and the residual sum of squares is
 //! `Σ w u² − aᵀ Σ w φ u`.
 //!

@@ -4,16 +4,16 @@
 //! stresses, spectra — on a grid, while the tracker gives Lagrangian samples
 //! (position, velocity, time, track). This module bins the samples:
 //!
-//! * [`spec`]: the bin lattice — regular, rectangular bins (`bin_w × bin_h`,
+//! * `spec`: the bin lattice — regular, rectangular bins (`bin_w × bin_h`,
 //!   e.g. wide and thin near a wall), overlap, a fixed origin so that runs
 //!   over different slices land on the same bins; top-hat or Gaussian
 //!   weighting.
-//! * [`accumulate`]: per-bin *power sums* (compensated), which merge exactly:
+//! * `accumulate`: per-bin *power sums* (compensated), which merge exactly:
 //!   slices of a long recording processed separately (one machine or the
 //!   tasks of a batch array) and merged give the numbers of one run. The
 //!   sums include what in-bin polynomial fits need, and per-track cluster
 //!   sums for honest standard errors.
-//! * [`estimate`]: the statistics from the sums — top-hat / Gaussian mean,
+//! * `estimate`: the statistics from the sums — top-hat / Gaussian mean,
 //!   or an in-bin linear / quadratic fit of velocity over position that
 //!   removes the unresolved-gradient bias of top-hat stresses
 //!   (≈ (dU/dy)²·b²/12); minimum count, noise-bias correction, standard
@@ -27,8 +27,8 @@
 //! * [`io`]: the mergeable state file, `grid.csv`, `grid_extra.csv`, maps.
 //!
 //! Typical use: [`GridSpec::covering`] the samples' extent →
-//! [`GridAccumulator::add`] each sample (streaming, bounded memory) →
-//! [`estimate()`] → [`io::write_grid_csv`]. What `ebptv grid` writes
+//! `GridAccumulator::add` each sample (streaming, bounded memory) →
+//! [`estimate()`] → `io::write_grid_csv`. What `ebptv grid` writes
 //! (tracks table or merged states → the grid folder) is one call:
 //! [`grid_to_dir`].
 

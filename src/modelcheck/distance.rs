@@ -232,7 +232,7 @@ pub struct Standardised {
     pub replicate_mean: f64,
     /// Sample standard deviation of the replicate distances (not floored).
     pub replicate_sd: f64,
-    /// (observed − mean) / sd, the sd floored at [`SD_FLOOR_REL`] × mean
+    /// (observed − mean) / sd, the sd floored at `SD_FLOOR_REL` × mean
     /// (and above zero), capped at ±[`Z_CAP`].
     pub z: f64,
     /// Empirical p-value: (1 + #replicates ≥ observed) / (1 + n).

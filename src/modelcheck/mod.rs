@@ -20,7 +20,7 @@
 //!   signature that tolerates what a well-behaved sensor may show, and the
 //!   acceptance rule (half the gap, a clear lead over every rival);
 //! - [`check`]: the whole run of `ebptv model-check` on a recording;
-//! - [`report`]: `model_check.json`, the fitted scenario, Markdown + PNG.
+//! - `report`: `model_check.json`, the fitted scenario, Markdown + PNG.
 
 pub mod baseline;
 pub mod check;

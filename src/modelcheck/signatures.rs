@@ -82,7 +82,7 @@
 //! (inside a busy period), so the edges of a burst, where the server idles
 //! part of a tick, do not blur the line.
 //!
-//! Busy windows: the same relation summed over [`BUSY_WINDOW_TICKS`]
+//! Busy windows: the same relation summed over `BUSY_WINDOW_TICKS`
 //! consecutive busy ticks, G·row_time + E·event_time ≈ 8 µs for the G
 //! (row, timestamp) groups (one per grant) and E events in them. A single
 //! tick holds only one to three grants of a few hundred ns, so which tick

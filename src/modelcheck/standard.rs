@@ -13,22 +13,22 @@
 //!    What every recording has and is not an effect is fitted: the flow
 //!    (from ebptv's own tracks), the seeding density, the light energy
 //!    (events per particle), and the median latency — the last one refitted
-//!    with every simulation ([`SceneSimulator::with_latency_median`]), so
+//!    with every simulation (`SceneSimulator::with_latency_median`), so
 //!    that an effect that moves the median (a saturated arbiter, an
 //!    intensity-dependent latency) is judged on the shape it leaves, not
 //!    absorbed by the nuisance. The shape parameters stay at the standard
-//!    sensor's values ([`StandardSensor`]): the seed paper's well-set-up
+//!    sensor's values (`StandardSensor`): the seed paper's well-set-up
 //!    Gen4 (Willert 2023, Exp. Fluids 64:98: a burst some 100 µs after the
 //!    pulse, mostly over 50–100 µs later, i.e. a latency spread of a few
 //!    tens of µs; 1–3 ON events per particle; background activity well
 //!    under 1 % of the events; no hot pixels, no readout saturation, no OFF
 //!    bursts, no refractory gaps).
 //!
-//! 2. **Each signature row has a yardstick** ([`Yardstick`]): the chance
+//! 2. **Each signature row has a yardstick** (`Yardstick`): the chance
 //!    spread of its distance (replicates: the standard model with other
 //!    seeds) combined with the spread a *well-behaved* sensor can show
 //!    (the envelope: the standard model with its shape parameters at the
-//!    ends of the standard range, [`Envelope`]). A row's standardised
+//!    ends of the standard range, `Envelope`). A row's standardised
 //!    disagreement is z = (d − d̄) / √(sd² + τ²) with d̄, sd the replicate
 //!    mean and spread and τ the largest excess of an envelope member. So a
 //!    latency spread or image size that a standard sensor may have is not
@@ -45,7 +45,7 @@
 //!    latency jitter and background noise, are searched *above* their
 //!    standard values) are fitted on the fit block with common random
 //!    numbers (the robust Σ ln(1 + d/scale) over all rows,
-//!    [`Yardstick::objective`]), then judged on the held-out block.
+//!    `Yardstick::objective`), then judged on the held-out block.
 //!
 //! 5. **Structural mismatch nobody can explain**: a row beyond the range
 //!    that no candidate brings even half way back ([`structural_rows`]) is

@@ -28,7 +28,7 @@
 //!    signatures it drives.
 //! 4. **Judge on held-out data** (as described here with
 //!    [`WorkflowOptions::paired_judgement`]; by default the whole-gap rule,
-//!    [`judge_candidates_whole_gap`]: fresh seeds per round, the rival
+//!    `judge_candidates_whole_gap`: fresh seeds per round, the rival
 //!    margin a quarter of the whole gap the rival leaves, no explaining
 //!    away): assess each fitted candidate against the
 //!    *held-out* measurement with the same replicate seeds as the current
@@ -41,10 +41,10 @@
 //!      gap's null spread (leave-one-out over the replicates), and
 //!    - it beats its best *rival* clearly: a rival is a candidate that
 //!      removes mostly the same part of the gap (at least
-//!      [`RIVAL_OVERLAP`] of its per-signature reductions lie where the
+//!      `RIVAL_OVERLAP` of its per-signature reductions lie where the
 //!      winner reduces as much); the lead must exceed one null spread and,
 //!      on the rows either of the two improves, the winner must leave less
-//!      than (1 − [`RUNNER_UP_MARGIN`]) × what the rival leaves there.
+//!      than (1 − `RUNNER_UP_MARGIN`) × what the rival leaves there.
 //!      A candidate that removes another part is a second real effect,
 //!      not a competing explanation: it does not block the winner and is
 //!      tried again next round.
@@ -153,9 +153,9 @@ pub struct WorkflowOptions {
     /// Base seed; every simulation seed derives from it.
     pub seed: u64,
     /// Two-parameter fits: stage 1 is the profile along the first
-    /// parameter ([`profile_then_simplex`]) instead of Nelder–Mead from
+    /// parameter (`profile_then_simplex`) instead of Nelder–Mead from
     /// the box centre, stage 2 a local profile around the stage-1 value
-    /// ([`local_profile_then_simplex`]). Needed for the arbiter's
+    /// (`local_profile_then_simplex`). Needed for the arbiter's
     /// row/event-time valley and intensity latency's exponent/reference
     /// valley (both recovered within 30 % only with it). Off by default:
     /// on small scenes it also lets intensity latency mimic a latency

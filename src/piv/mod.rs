@@ -14,14 +14,14 @@
 //!             ─▶ PivStream: one field per step ─▶ FieldStats (mean, stresses)
 //! ```
 //!
-//! * [`correlate`] — the FFT correlation (and the direct oracle).
-//! * [`multipass`] — passes, window deformation, the node grid.
+//! * `correlate` — the FFT correlation (and the direct oracle).
+//! * `multipass` — passes, window deformation, the node grid.
 //! * [`validate`] — normalised median test, replacement, flags.
-//! * [`pseudo`] — pseudo-images and the frame ring.
+//! * `pseudo` — pseudo-images and the frame ring.
 //! * [`images`] — PNG/TIFF input for `piv-images`.
 //! * [`synth`] — synthetic particle images with known displacement.
 //! * [`output`] — `piv_mean.csv`, per-frame CSV, `.npy` field stacks.
-//! * [`run`] — `ebptv piv` on a recording, fields to a sink ([`run_recording`]).
+//! * `run` — `ebptv piv` on a recording, fields to a sink ([`run_recording`]).
 //!
 //! Only `N_f` images are ever in memory: a 10 s recording at 10 kHz is
 //! 100 000 pulses; its fields go to disk step by step and its statistics

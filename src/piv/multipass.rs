@@ -53,7 +53,7 @@ pub struct PivOptions {
     pub pyramid: usize,
     /// Background clipping in single-pass evaluations (`passes == 1`):
     /// after mean removal, window values below the window mean are set to
-    /// 0 ([`clip_below_mean`]). Default on. It lowers the single-pass error
+    /// 0 (`clip_below_mean`). Default on. It lowers the single-pass error
     /// on particle images (3–15 % on the peer-comparison images). Multi-pass
     /// evaluations keep plain mean removal throughout: in deformed passes
     /// (residual shift near zero) clipping raised the random error from

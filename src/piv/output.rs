@@ -23,9 +23,9 @@ fn fmt(v: f64) -> String {
     }
 }
 
-/// [`write_mean_csv`], with the physical columns of `calib` after the
+/// `write_mean_csv`, with the physical columns of `calib` after the
 /// pixel ones when given (`X_mm,Y_mm,U_m_s,V_m_s,uu_m2_s2,vv_m2_s2,
-/// uv_m2_s2`, [`crate::calib::Calibration::field_columns`]).
+/// uv_m2_s2`, `crate::calib::Calibration::field_columns`).
 pub fn write_mean_csv_calibrated(
     path: &Path,
     rows: &[MeanRow],

@@ -7,7 +7,7 @@
 //! frame step) with a midpoint (RK2) step. Each frame renders either
 //! Gaussian particle images at sub-pixel positions (classic PIV images), or
 //! — `binary_sigma` set — pulsed-event pseudo-images: one lit pixel at the
-//! rounded particle position, blurred, as [`super::pseudo`] builds them
+//! rounded particle position, blurred, as `super::pseudo` builds them
 //! from events.
 
 use rand::{Rng, SeedableRng};

@@ -43,7 +43,7 @@ pub enum PulsesProgress<'a> {
     /// A warning about the input (a header it could not use, clock jumps).
     Warning(&'a str),
     /// The events show no pulsed light (why, as the error
-    /// [`PulseReport::not_pulsed_error`]); the analysis goes on because
+    /// `PulseReport::not_pulsed_error`); the analysis goes on because
     /// `require_pulsed` is off.
     NotPulsed(&'a str),
     /// The static-pixel mask was written: `pixels` masked, at `path`.

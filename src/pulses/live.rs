@@ -4,7 +4,7 @@
 //!
 //! The file readers of [`crate::io`] treat the first end of file as the end
 //! of the recording. A recording in progress ends there only for now: the
-//! acquisition software keeps appending. [`LiveRaw`] decodes RAW words from
+//! acquisition software keeps appending. `LiveRaw` decodes RAW words from
 //! any `Read` and, when the read returns 0 bytes, reports "no events now"
 //! (`Ok(false)`) *without* latching the end: the next call reads again and
 //! picks up what was appended. A partial word at the current end is kept

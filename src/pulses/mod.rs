@@ -10,12 +10,12 @@
 //!
 //! 1. **Warm-up.** Over the first events (≤ 2 M events or ≤ 1 s) the
 //!    fold-independent statistics already run; only the compact time runs
-//!    (one per distinct timestamp, [`accum::TimeRun`]) and the first 2¹⁸
+//!    (one per distinct timestamp, `accum::TimeRun`) and the first 2¹⁸
 //!    raw events (for pseudo-images) are kept.
 //!    From them a reference period `P_ref` is found: from the trigger train
 //!    when one is recorded, else from the event rate (1 µs bins → FFT
 //!    periodogram → harmonic sum picks the fundamental → a high harmonic
-//!    refines it → epoch folding polishes it; [`timing::estimate_period_from_counts`]).
+//!    refines it → epoch folding polishes it; `timing::estimate_period_from_counts`).
 //!    The time runs then enter step 2's block histograms, exactly as if
 //!    the period had been known from the start (the event-rate series for
 //!    the estimate is built from the same runs: no event times are kept).
@@ -28,7 +28,7 @@
 //!    their raw events for the pseudo-image statistics.
 //! 3. **Solve.** With triggers, the least-squares train over all rising
 //!    edges (integer pulse numbers: a missing edge leaves a gap, a glitch is
-//!    dropped; [`timing::fit_trigger_train`]) gives the exact period and
+//!    dropped; `timing::fit_trigger_train`) gives the exact period and
 //!    phase. Without, each block's folded histogram is cross-correlated
 //!    with the template (FFT), the block phases are unwrapped and a weighted
 //!    line through them gives the period correction (`P = P_ref / (1 − slope)`)
@@ -39,7 +39,7 @@
 //!    triggers the pulse start is the burst's *leading edge*: walking back
 //!    from the rising flank's half height to where the excess over the local
 //!    floor falls below 0.2 % of the amplitude
-//!    ([`diagnostics::leading_edge`]). An event cannot precede its light
+//!    (`diagnostics::leading_edge`). An event cannot precede its light
 //!    pulse, so the earliest burst events bound the start; on the simulator
 //!    presets this lands 2–4 µs after the light (the fastest pixels'
 //!    latency), where the flank extrapolation used before landed 6–10 µs
@@ -56,7 +56,7 @@
 //! latency histogram. Pulse 0 is the first pulse of the fitted train that
 //! starts at or after the first recorded event (with triggers: the first
 //! kept rising edge). [`split_pulses`] streams events to pulses with a small
-//! reorder window ([`REORDER_MARGIN_US`]): EVT 3 time may step back by a few
+//! reorder window (`REORDER_MARGIN_US`): EVT 3 time may step back by a few
 //! µs, so a pulse is handed over only once events 1 ms past its window end
 //! have been seen; later stragglers are counted as unattributable.
 //!
@@ -64,7 +64,7 @@
 //! When the arbiters saturate, the pending events of a row are read out with
 //! one timestamp and timing stops tracking the pulses. Two measures: the
 //! fraction of events in runs sharing (row, timestamp) (group sizes as a
-//! distribution; groups of ≥ [`LARGE_GROUP`]), and the burst fraction of
+//! distribution; groups of ≥ `LARGE_GROUP`), and the burst fraction of
 //! each time block against the recording's median. Large groups alone are
 //! normal at high event density (a granted row is read out under one
 //! timestamp, as the simulator's arbiter and EVT 3 vectors show); a block is
@@ -292,7 +292,7 @@ pub fn analyze(
 pub(crate) const VERDICT_EVENTS: u64 = 4_000_000;
 
 /// The pulsed-light test ([`PulsedVerdict`]) of `ebptv info` on the first
-/// [`VERDICT_EVENTS`] events of `path`, triggers used when regular; an
+/// `VERDICT_EVENTS` events of `path`, triggers used when regular; an
 /// error when no period could be found at all.
 pub fn file_verdict(
     path: &std::path::Path,

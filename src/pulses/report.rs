@@ -107,16 +107,16 @@ pub struct RateMapReport {
 /// the latency histogram (events folded on the pulse train, from triggers
 /// or estimated):
 ///
-/// 1. **Contrast** ≥ [`MIN_PULSED_CONTRAST`]: the event density inside the
+/// 1. **Contrast** ≥ `MIN_PULSED_CONTRAST`: the event density inside the
 ///    burst window (the shortest interval holding 95 % of the excess over
 ///    the floor) is at least twice that outside, i.e. inside the window the
 ///    events locked to the pulses at least equal the random ones. A scene
 ///    without pulsed light folded on any period (the best one of a search
 ///    included) gives 1.0–1.3: its excess is spread over most of the period.
-/// 2. **Significance** ≥ [`MIN_PULSED_Z`]: the excess in the window exceeds
+/// 2. **Significance** ≥ `MIN_PULSED_Z`: the excess in the window exceeds
 ///    the Poisson spread of the random count expected there by that many
 ///    standard deviations (few events cannot pass by chance).
-/// 3. **Locked in time** ≥ [`MIN_LOCKED_SHARE`]: at least half of the events
+/// 3. **Locked in time** ≥ `MIN_LOCKED_SHARE`: at least half of the events
 ///    lie in time blocks (of ≥ 100 events) whose own burst fraction reaches
 ///    half of the recording's; one flash of the scene folded into the
 ///    histogram makes a peak, but only in its own block.

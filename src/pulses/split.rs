@@ -6,7 +6,7 @@ use super::*;
 /// Stream `source` and hand the events of each pulse, in pulse order, to
 /// `on_pulse`: every pulse from 0 to the last one holding events, empty
 /// ones included. Returns the number of events that could not be
-/// attributed (before pulse 0, or arriving more than [`REORDER_MARGIN_US`]
+/// attributed (before pulse 0, or arriving more than `REORDER_MARGIN_US`
 /// after their pulse was handed over).
 pub fn split_pulses(
     source: &mut dyn crate::io::EventSource,

@@ -42,13 +42,13 @@ pub struct TrackRow {
     /// The point (µs, px, px/s).
     pub p: TrackPoint,
     /// `X_mm, Y_mm, U_m_s, V_m_s` when the run is calibrated (read only by
-    /// [`TRACK_COLUMNS_CALIBRATED`]).
+    /// `TRACK_COLUMNS_CALIBRATED`).
     pub phys: [f64; 4],
 }
 
 /// The columns of the `tracks` table in Parquet and `.npy` (the
 /// `tracks.csv` columns; µs, px, px/s): the first seven of
-/// [`TRACK_COLUMNS_CALIBRATED`].
+/// `TRACK_COLUMNS_CALIBRATED`.
 pub static TRACK_COLUMNS: &[Col<TrackRow>] = TRACK_COLUMNS_CALIBRATED.split_at(7).0;
 
 /// The `tracks` columns followed by the physical columns of a calibrated
@@ -193,7 +193,7 @@ fn write_block(file: &mut AtomicFile, buf: &mut Vec<u8>, min: usize) -> Result<(
 
 /// Streaming writer of `particles.csv` (`pulse,t_us,x,y,n_events`; µs and
 /// px): rows are appended as pulses are clustered; the file appears under
-/// its name only on [`ParticlesCsvWriter::finish`].
+/// its name only on `ParticlesCsvWriter::finish`.
 pub struct ParticlesCsvWriter {
     file: AtomicFile,
     /// Rows are formatted into this buffer, then written in one call.
@@ -448,7 +448,7 @@ const TRACKS_NPY_DESCR: &str = "[('track_id', '<u8'), ('pulse', '<i8'), ('t_us',
 /// same records as [`write_tracks_npy`]. Rows go to disk as tracks arrive
 /// (memory does not grow with the recording); the header is written with
 /// room for any row count and patched with the real one at
-/// [`TracksNpyWriter::finish`].
+/// `TracksNpyWriter::finish`.
 pub struct TracksNpyWriter {
     file: AtomicFile,
     header_len: usize,

@@ -8,7 +8,7 @@
 //! from four-frame chains that move smoothly, and once started they are
 //! extended with a polynomial predictor whose uncertainty is small.
 //!
-//! # Algorithm (streaming, one pulse at a time: [`Tracker::push`])
+//! # Algorithm (streaming, one pulse at a time: `Tracker::push`)
 //! The tracker's state, one pulse's step and the life cycle of a track
 //! are in `state.rs`, its options ([`TrackParams`]: five top-level knobs
 //! and the parts `gates`, `init`, `stitch`, `fit`) in `params.rs`, the full
@@ -20,7 +20,7 @@
 //!    a polynomial fit (order ≤ 2) over its last `gates.predict_window`
 //!    detections, extrapolated;
 //!    where the window visibly turns, a path turning at a constant rate
-//!    ([`turn`], `turn_model`), and for young tracks the line unless it
+//!    (`turn`, `turn_model`), and for young tracks the line unless it
 //!    misses the constant-speed turning path by `gates.young_turn_sigma`.
 //!    The search radius is `gates.n_sigma` times the predictor's position
 //!    uncertainty (the position noise σ, estimated from the innovations of
@@ -31,7 +31,7 @@
 //! 2. **Gate and assign** (`assign.rs`) globally: candidates inside each
 //!    track's radius come from a grid index over the pulse's particles;
 //!    the cost of a pair is `(d / radius)²`, the cost of a miss 1. A
-//!    minimum-total-cost assignment ([`lap`], Hungarian on the connected
+//!    minimum-total-cost assignment (`lap`, Hungarian on the connected
 //!    components of the sparse candidate graph) resolves conflicts — no
 //!    first-come order. Tracks that reached `gates.max_track_length` hand out
 //!    their detections as a segment and go on (`state.rs`).
@@ -48,7 +48,7 @@
 //!    prediction). A chain's cost is the sum of its squared velocity changes;
 //!    chains are accepted best-first without sharing particles, except
 //!    those whose velocity disagrees with the local flow of the
-//!    established tracks ([`local_flow`], `init.ghost_check_init`). Chains of
+//!    established tracks (`local_flow`, `init.ghost_check_init`). Chains of
 //!    four detections over five pulses (`init.init_gap`) follow, for particles
 //!    missed once early; they need a known local flow that they match.
 //!    New tracks are then extended backward into the pulses before their
@@ -60,7 +60,7 @@
 //!    across the gap, and a matched pair becomes one track.
 //! 6. **Finish and validate** (`finalise.rs`): a track whose stitch window
 //!    has passed is first cut where its positions jump to a close neighbour
-//!    and stay there ([`step`], `stitch.step_split`: its particle was missed and an
+//!    and stay there (`step`, `stitch.step_split`: its particle was missed and an
 //!    untracked neighbour in the gate took its place); detections further
 //!    than `fit.outlier_sigma` σ from their neighbours' fit are removed,
 //!    detections after a last gap with fewer than
@@ -81,11 +81,11 @@
 //!    (images of different particles in a line) when they disagree; those
 //!    of `init.min_length_flow..min_length` detections are kept when they
 //!    agree.
-//!    The fits can run off the linking thread ([`Finaliser`]).
+//!    The fits can run off the linking thread (`Finaliser`).
 //!
-//! Around the tracker: [`stream`] runs it over a recording (pulses,
-//! clustering, writer thread), [`io`] reads and writes its files,
-//! [`slice`] is the per-slice variant for time-resolved slices.
+//! Around the tracker: `stream` runs it over a recording (pulses,
+//! clustering, writer thread), `io` reads and writes its files,
+//! `slice` is the per-slice variant for time-resolved slices.
 //!
 //! Memory is bounded by the active tracks, the last four pulses of
 //! unassigned particles and the stitch pool; finished tracks are handed out

@@ -50,7 +50,7 @@ pub struct TrackParams {
     /// starts a track). Shorter tracks that agree with the local flow may
     /// still be kept ([`InitParams::min_length_flow`]).
     pub min_length: usize,
-    /// Follow turning paths ([`turn`]): where a track's recent detections
+    /// Follow turning paths (`turn`): where a track's recent detections
     /// visibly turn, it is predicted, stitched, step-tested and fitted by a
     /// path turning at a constant rate instead of a polynomial in time.
     /// Keep it on for vortices and curved flows; `false` uses polynomials

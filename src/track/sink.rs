@@ -635,7 +635,7 @@ const MESSAGE_POINTS: usize = 4096;
 /// A [`PtvSink`] that writes a run's files into a directory: the
 /// `particles` and `tracks` tables in `run.table_format`, `tracks.npy`
 /// (when `run.npy`), and at
-/// [`FileSink::finish`] `summary.json` and `tracks.png`. Results go to a
+/// `FileSink::finish` `summary.json` and `tracks.png`. Results go to a
 /// writer thread through a bounded channel, so a slow disk holds the
 /// tracker back instead of filling memory. Dropped without `finish` (an
 /// error on the way), it writes no file.
@@ -733,7 +733,7 @@ impl PtvSink for FileSink {
     }
 
     /// Large hand-outs (the sliced linker's come a group of slices at a
-    /// time) go in messages of at most [`MESSAGE_POINTS`] points, so the
+    /// time) go in messages of at most `MESSAGE_POINTS` points, so the
     /// bounded channel bounds the memory waiting for the writer.
     fn take_tracks(&mut self, tracks: Vec<Track>) -> Result<()> {
         let mut chunk = Vec::new();

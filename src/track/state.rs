@@ -249,7 +249,7 @@ impl TrackerStats {
 }
 
 /// Streaming multi-frame tracker: feed pulses in increasing order with
-/// [`Tracker::push`], collect finished tracks as they come out, and call
+/// `Tracker::push`, collect finished tracks as they come out, and call
 /// [`Tracker::finish`] at the end.
 pub struct Tracker {
     pub(super) params: TrackParams,
@@ -361,7 +361,7 @@ impl Tracker {
             .collect())
     }
 
-    /// [`Tracker::push`], keeping the detection serial numbers.
+    /// `Tracker::push`, keeping the detection serial numbers.
     pub fn push_linked(
         &mut self,
         pulse: i64,
@@ -545,7 +545,7 @@ impl Tracker {
     /// The output fit's prior rms acceleration per axis (px/pulse²) for
     /// the next tracks: `fit_accel_rms` if set, else the estimate from the
     /// tracks kept so far (0 until there are enough; after
-    /// [`Tracker::defer_fits`] the estimate lives in the [`Finaliser`]).
+    /// `Tracker::defer_fits` the estimate lives in the `Finaliser`).
     pub fn fit_accel_rms(&self) -> f64 {
         self.params
             .fit

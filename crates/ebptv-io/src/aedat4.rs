@@ -30,7 +30,7 @@
 //! code generation); a malformed buffer is a [`Error::Corrupt`] naming the
 //! packet's byte offset. Memory: one packet at a time; a packet's claimed
 //! size is checked against the bytes left in the file before anything is
-//! allocated, and decompression stops at [`MAX_PACKET_BYTES`].
+//! allocated, and decompression stops at `MAX_PACKET_BYTES`.
 
 use std::fs::File;
 use std::io::{BufReader, Read, Seek, SeekFrom};

@@ -31,7 +31,7 @@
 //! exists (header names `t`, `id`/`channel`, `p`/`edge`/`value`; without a
 //! header: openeb's `p,id,t`) and delivers its triggers interleaved by time:
 //! with each event chunk come the triggers up to the chunk's last event time.
-//! [`read_trigger_csv`] reads such a file on its own.
+//! `read_trigger_csv` reads such a file on its own.
 //!
 //! # Writing
 //! [`CsvWriter`] writes `t,x,y,p` (t in µs, p 1 = ON / 0 = OFF) with a

@@ -7,7 +7,7 @@
 //! the low time bits. OTHERS (0xE), IMU (0xD) and CONTINUED (0xF) words are
 //! skipped (counted). Each word stands alone, so the only state is the time
 //! base, and a read-buffer boundary never splits anything but a word (which
-//! [`crate::raw_header::PayloadReader`] keeps whole).
+//! `crate::raw_header::PayloadReader` keeps whole).
 //!
 //! The 34-bit time wraps after ~4.8 h: a loop is counted only when TIME_HIGH
 //! drops by nearly a full cycle (reference decoder's rule, threshold 10
@@ -183,7 +183,7 @@ impl RawReader<Evt2Decoder> {
         Self::open_with_buffer(path, chunk_events, READ_BUFFER_BYTES)
     }
 
-    /// [`Evt2Reader::open`] with a chosen read-buffer size.
+    /// `Evt2Reader::open` with a chosen read-buffer size.
     pub fn open_with_buffer(path: &Path, chunk_events: usize, buffer_bytes: usize) -> Result<Self> {
         RawReader::open_format(path, Format::Evt2, 4, chunk_events, buffer_bytes, |_| {
             Evt2Decoder::new()

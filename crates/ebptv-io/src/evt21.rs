@@ -153,7 +153,7 @@ impl RawReader<Evt21Decoder> {
         Self::open_with_buffer(path, chunk_events, READ_BUFFER_BYTES)
     }
 
-    /// [`Evt21Reader::open`] with a chosen read-buffer size.
+    /// `Evt21Reader::open` with a chosen read-buffer size.
     pub fn open_with_buffer(path: &Path, chunk_events: usize, buffer_bytes: usize) -> Result<Self> {
         RawReader::open_format(path, Format::Evt21, 8, chunk_events, buffer_bytes, |h| {
             Evt21Decoder::new(h.evt21_legacy)

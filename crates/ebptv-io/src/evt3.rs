@@ -28,7 +28,7 @@
 //! malformed words take the plain `match` in `decode_block`. The
 //! out-of-geometry check is a separate vectorised pass per chunk.
 //!
-//! The writer ([`Evt3Writer`]) takes time-ordered chunks (events sharing a
+//! The writer (`Evt3Writer`) takes time-ordered chunks (events sharing a
 //! timestamp and row grouped, as the simulator and cameras produce them) and
 //! uses VECT_BASE_X + VECT_12/VECT_8 for runs of increasing x where that
 //! saves words, ADDR_X otherwise, so the reader gives back exactly the same
@@ -506,7 +506,7 @@ impl RawReader<Evt3Decoder> {
         Self::open_with_buffer(path, chunk_events, READ_BUFFER_BYTES)
     }
 
-    /// [`Evt3Reader::open`] with a chosen read-buffer size (tests use tiny
+    /// `Evt3Reader::open` with a chosen read-buffer size (tests use tiny
     /// buffers to exercise sequences straddling refills).
     pub fn open_with_buffer(path: &Path, chunk_events: usize, buffer_bytes: usize) -> Result<Self> {
         RawReader::open_format(path, Format::Evt3, 2, chunk_events, buffer_bytes, |_| {

@@ -1,12 +1,12 @@
 //! Checks between a decoder and the stages: what a damaged or mislabelled
 //! file must not be allowed to do downstream.
 //!
-//! - [`Checked`] wraps every source [`super::open_with`] returns. A stated
+//! - `Checked` wraps every source [`super::open_with`] returns. A stated
 //!   geometry no sensor has (a side of 0 or above [`MAX_SENSOR_SIDE`]) is
 //!   dropped (the stages then use the extent of the events, capped the
 //!   same way) and reported ([`EventSource::warnings`]); a `% format`
 //!   line contradicting `% evt` is refused unless the caller names the
-//!   format ([`check_header`]); a RAW file without any header
+//!   format (`check_header`); a RAW file without any header
 //!   whose first chunk is mostly words of undefined types is refused (the
 //!   same bytes on standard input are refused for lacking a header).
 //! - [`TimeGuard`] is put in front of the stages that map time to pulses
@@ -15,7 +15,7 @@
 //!   event or trigger more than [`TIME_JUMP_US`] away from the last accepted
 //!   time is dropped and counted (`Anomalies::time_jump_events`, one
 //!   `time_jumps` per run of them). When such a run goes on for
-//!   [`JUMP_PERSIST_US`] of its own clock the clock did not come back: the
+//!   `JUMP_PERSIST_US` of its own clock the clock did not come back: the
 //!   recording is discontinuous and the stage stops with an error naming
 //!   the time and size of the jump, instead of guessing which side is right.
 //!   An event camera's clock runs continuously and its noise alone fires

@@ -208,7 +208,7 @@ pub trait EventSource: Send {
         Vec::new()
     }
 
-    /// A stated geometry that was dropped as impossible ([`guard::Checked`]).
+    /// A stated geometry that was dropped as impossible (`guard::Checked`).
     fn rejected_geometry(&self) -> Option<Geometry> {
         None
     }

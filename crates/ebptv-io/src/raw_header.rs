@@ -7,13 +7,13 @@
 //! say `% evt 3.0` and `% system_ID 48`, and have no `% end`, so the header is
 //! the run of lines starting with `%`. The format and geometry of such files
 //! are inferred from the system id, as Prophesee's own reader does
-//! ([`infer_from_system_id`]).
+//! (`infer_from_system_id`).
 //!
 //! Binary payload bytes can happen to be `%` (0x25), so a line only counts as
 //! a header line when it is printable ASCII and ends with a newline within
-//! [`MAX_HEADER_LINE`] bytes; the first line that is not is payload.
+//! `MAX_HEADER_LINE` bytes; the first line that is not is payload.
 //!
-//! [`PayloadReader`] reads the payload through one fixed-size buffer (a few
+//! `PayloadReader` reads the payload through one fixed-size buffer (a few
 //! MB whatever the file size) and keeps an incomplete trailing word for the
 //! next refill, so decoders see whole words only and multi-word sequences
 //! may straddle refills freely (their state lives in the decoder).

@@ -15,7 +15,7 @@
 //! the turbulent preset.
 //!
 //! The turbulent field has its own RK4 sub-step
-//! ([`Turbulent::rk4_substep`]): its modes' phases e^{iθ} are carried
+//! (`Turbulent::rk4_substep`): its modes' phases e^{iθ} are carried
 //! from stage to stage and from step to step by rotations through small
 //! angles (short polynomials, no range reduction; the advection by the
 //! mean flow cancels in the phase increment), with a per-lane fallback to

@@ -24,10 +24,10 @@
 //! # }
 //! ```
 //!
-//! The chain: [`flow`] (exact u(x, y, t)) → [`seeding`] (particles in a
+//! The chain: [`flow`] (exact u(x, y, t)) → `seeding` (particles in a
 //! light-sheet slab, RK4 pathlines, recycling) → [`light`] (pulse envelope,
-//! saw-tooth modulation) → [`pixel`] (log-contrast pixel, latency, OFF,
-//! noise) → [`readout`] (refractory, row arbiter, timestamps, rate limiter)
+//! saw-tooth modulation) → `pixel` (log-contrast pixel, latency, OFF,
+//! noise) → `readout` (refractory, row arbiter, timestamps, rate limiter)
 //! → events + triggers, with the truth (`TruthSample`: position and velocity
 //! of every lit particle at every pulse).
 //!

@@ -3,7 +3,7 @@
 //! dispatch into AVX2 code.
 //!
 //! It lives in `ebptv-sim` because the simulator's kernels (the flows'
-//! `cos`/`sin`/`exp` in [`crate::fastmath`], the particle advection in
+//! `cos`/`sin`/`exp` in `crate::fastmath`, the particle advection in
 //! `seeding`) are its main users and the `ebptv` crate depends on this
 //! crate anyway; `ebptv-io`, the file-format crate that readers use on
 //! its own, carries no numeric kernels. The `ebptv` crate's PIV
@@ -12,20 +12,20 @@
 //!
 //! - **Detection**: [`avx2_fma`], once per process (cached). No other
 //!   code calls `is_x86_feature_detected!`.
-//! - **Portable lanes**: [`Lanes`] on one `f64`, on two ([`F64x2`]: an
+//! - **Portable lanes**: `Lanes` on one `f64`, on two (`F64x2`: an
 //!   SSE2 register, part of the x86_64 baseline, so always available)
-//!   and on pairs of either ([`Two`]). Kernels are written once over
-//!   [`Lanes`], so every lane type gives the scalar's bits (IEEE add,
+//!   and on pairs of either (`Two`). Kernels are written once over
+//!   `Lanes`, so every lane type gives the scalar's bits (IEEE add,
 //!   sub, mul and div round the same at every width; nothing is fused).
 //! - **AVX2 lanes**: the operations on four f64 in one AVX register are
 //!   `unsafe fn`s with `#[target_feature(enable = "avx2,fma")]` (module
 //!   `avx`). Their lane type is private to this module: the only way
-//!   to run a kernel on it is [`Dispatch::run`], whose AVX2 branch is
-//!   taken only when [`Dispatch::detect`] found the features, so no
+//!   to run a kernel on it is `Dispatch::run`, whose AVX2 branch is
+//!   taken only when `Dispatch::detect` found the features, so no
 //!   value of it exists on a CPU without them (the safety argument of
-//!   its [`Lanes`] implementation, which the compiler enforces through
+//!   its `Lanes` implementation, which the compiler enforces through
 //!   privacy rather than a convention at the call sites). A kernel is a
-//!   [`LaneKernel`]: generic over the lane type, run by the dispatcher.
+//!   `LaneKernel`: generic over the lane type, run by the dispatcher.
 //!
 //! Tests: every operation and kernel on the AVX2 lanes against the
 //! scalar (`fastmath`'s `every_lane_type_is_the_scalar_bit_for_bit`),

@@ -9,12 +9,12 @@ use super::*;
 ///
 /// Fast path ([`reference::ReferenceAccumulator`] is the plain
 /// version the tests compare it with, signature for signature): the
-/// per-pixel state is one 32-byte record per pixel ([`PixelState`]), so
+/// per-pixel state is one 32-byte record per pixel (`PixelState`), so
 /// an event touches one cache line instead of eight arrays of the sensor
 /// size (a 640x360 sensor's state does not fit in cache, and the events of
 /// a burst land all over it); every histogram fed per event or per pixel
 /// counts integers per bin and bins through a lookup table or the uniform
-/// spacing ([`IntBins`], [`UniformBins`]) instead of a binary search per
+/// spacing (`IntBins`, `UniformBins`) instead of a binary search per
 /// value. Counts are exact integers either way, so the signatures are
 /// identical, not just close.
 pub struct SignatureAccumulator {

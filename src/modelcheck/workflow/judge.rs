@@ -48,7 +48,7 @@ impl RowSet {
             .collect()
     }
 
-    /// Σ of [`RowSet::components`].
+    /// Σ of `RowSet::components`.
     pub fn gap(&self, t: &DiscrepancyTable) -> f64 {
         self.components(t).iter().sum()
     }
@@ -132,7 +132,7 @@ pub struct Judgement {
     pub left_best: f64,
     /// What the rival leaves on those rows.
     pub left_rival: f64,
-    /// The best leaves less than (1 − [`RUNNER_UP_MARGIN`]) × what the
+    /// The best leaves less than (1 − `RUNNER_UP_MARGIN`) × what the
     /// rival leaves on those rows (or the rival removes nothing).
     pub clear_of_rival: bool,
     /// The part of the gap best and rival both remove.
@@ -158,7 +158,7 @@ impl Judgement {
 ///
 /// "Clearly beats the rival": the lead must exceed one null spread, and
 /// on the *disputed* rows (those either of the two improves) the best must
-/// leave less than (1 − [`RUNNER_UP_MARGIN`]) × what the rival leaves.
+/// leave less than (1 − `RUNNER_UP_MARGIN`) × what the rival leaves.
 /// With one hidden effect that is nearly the old rule on the whole gap
 /// (latency jitter leaving 9 where intensity latency leaves 41 is clear;
 /// 43.7 against 47.5 is not). With seven, the whole gap also holds every

@@ -66,7 +66,7 @@ impl GridWindow {
 /// variance and bias factors of every candidate and the pilot's cubic
 /// coefficient filter (Savitzky–Golay-like weights) depend only on the
 /// window's length and its offset from the evaluation sample, not on the
-/// data: they are computed once here (with the reference's own [`Sums`]
+/// data: they are computed once here (with the reference's own `Sums`
 /// arithmetic on the exact integer moments) and a sample costs the
 /// pilot's cubic dot products and the chosen window's moments.
 /// [`fit_adaptive_grid`] is the fast path; [`fit_adaptive`] the reference
@@ -277,12 +277,12 @@ impl GridTables {
 }
 
 /// [`fit_adaptive`] for samples on the integer τ grid: the points `xy`
-/// (x, y) of [`adaptive_span`]`(xy.len(), centre, rule)` are at τ = index
+/// (x, y) of `adaptive_span``(xy.len(), centre, rule)` are at τ = index
 /// (their pulses consecutive, their times regular) and the evaluation is
 /// at sample `centre`. The caller checks that; the result then equals
 /// [`fit_adaptive`]'s up to rounding (tested), the same window chosen
 /// unless two candidates' criteria agree to rounding. `tables` must
-/// [`GridTables::serves`] `rule` (else the reference is used). Points are
+/// `GridTables::serves` `rule` (else the reference is used). Points are
 /// interleaved so that x and y go through the sums side by side (the
 /// compiler pairs them in one vector register).
 pub fn fit_adaptive_grid(

@@ -41,7 +41,7 @@
 //! (bias from the pilot's quadratic coefficient): on short tracks that
 //! coefficient is too noisy, and the ends of the synthetic scene's tracks
 //! got worse (0.24 → 0.28 px/pulse at the last point), so only the order
-//! asked for is fitted. The nested windows share their sums ([`Sums`]),
+//! asked for is fitted. The nested windows share their sums (`Sums`),
 //! so a sample costs one pass over the pilot window and a small solve per
 //! candidate; [`fit_eval`] is the reference the sums are tested against.
 //!
@@ -62,7 +62,7 @@
 //! and one-sided windows move towards the line as far as the flow's
 //! typical curvature allows; long windows, whose curvature is measured
 //! (noise ≪ a), are unaffected. `a` is a population quantity:
-//! [`AccelPrior`] estimates it from the quadratic coefficients of disjoint
+//! `AccelPrior` estimates it from the quadratic coefficients of disjoint
 //! 7-detection stretches of the tracks kept so far, less their noise
 //! (on the paper-like scene 0.105 px/pulse², where fixed values
 //! 0.08–0.12 give the same result). A flow whose curvature varies
@@ -103,8 +103,8 @@
 //! and a candidate's fit is its inverse times `Σ sᵃ·x` (a = 0..=2). From
 //! one sample to the next the pilot window slides by one (or stays, near
 //! the track's ends) and the offsets shift by one, so the moments move in
-//! O(1): [`GridRunFit`] keeps them (and the largest candidate's) as
-//! running sums, summed afresh every [`RUN_RESTART`] samples, and caches
+//! O(1): `GridRunFit` keeps them (and the largest candidate's) as
+//! running sums, summed afresh every `RUN_RESTART` samples, and caches
 //! the centred candidates' prior-updated factors per track (they change
 //! only where a sample's pilot widens the prior). A sample then costs a
 //! few dozen flops for the moments and the criterion of each candidate
@@ -121,7 +121,7 @@
 //! tables. On the pulse grid the offsets are still exact integers, so
 //! `GapFit` sums the nested candidates' moments in one pass over the
 //! pilot window about the sample's own detection and solves each
-//! candidate's 3×3 system from them, without [`Sums`]' per-candidate
+//! candidate's 3×3 system from them, without `Sums`' per-candidate
 //! copies. All four paths sit behind one trait, `LocalPolyFit`, with
 //! `PlainFit` ([`fit_adaptive`]) as the oracle the others are tested
 //! against; `OutputFit` chains them for the tracker.
