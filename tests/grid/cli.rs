@@ -5,25 +5,7 @@ use crate::grid_common;
 use std::path::Path;
 use std::process::Command;
 
-use ebptv::grid::Sample;
 use grid_common::*;
-
-fn write_tracks(path: &Path, s: &[Sample]) {
-    let mut t = String::from("track_id,pulse,t_us,x,y,u,v\n");
-    for p in s {
-        t.push_str(&format!(
-            "{},{},{},{},{},{},{}\n",
-            p.track_id,
-            (p.t_us / 100.0).round() as i64,
-            p.t_us,
-            p.x,
-            p.y,
-            p.u,
-            p.v
-        ));
-    }
-    std::fs::write(path, t).unwrap();
-}
 
 fn ebptv(args: &[&str]) -> (bool, String) {
     let o = Command::new(env!("CARGO_BIN_EXE_ebptv"))

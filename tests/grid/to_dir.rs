@@ -9,23 +9,6 @@ use ebptv::grid::{
     self, grid_to_dir, EstimateOptions, Fit, GridDirOptions, GridInput, GridProgress, Sample,
 };
 
-fn write_tracks(path: &Path, s: &[Sample]) {
-    let mut t = String::from("track_id,pulse,t_us,x,y,u,v\n");
-    for p in s {
-        t.push_str(&format!(
-            "{},{},{},{},{},{},{}\n",
-            p.track_id,
-            (p.t_us / 100.0).round() as i64,
-            p.t_us,
-            p.x,
-            p.y,
-            p.u,
-            p.v
-        ));
-    }
-    std::fs::write(path, t).unwrap();
-}
-
 fn options(input: GridInput) -> GridDirOptions {
     GridDirOptions {
         input,

@@ -1,6 +1,8 @@
 //! Synthetic track samples from analytic flows, for the grid tests.
 #![allow(dead_code)]
 
+use std::path::Path;
+
 use ebptv::grid::Sample;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
@@ -150,4 +152,23 @@ pub fn median(mut v: Vec<f64>) -> f64 {
     assert!(!v.is_empty(), "median of nothing");
     v.sort_by(|a, b| a.total_cmp(b));
     v[v.len() / 2]
+}
+
+/// Samples written as a tracks CSV (the file contract's columns; pulses
+/// of 100 µs).
+pub fn write_tracks(path: &Path, s: &[Sample]) {
+    let mut t = String::from("track_id,pulse,t_us,x,y,u,v\n");
+    for p in s {
+        t.push_str(&format!(
+            "{},{},{},{},{},{},{}\n",
+            p.track_id,
+            (p.t_us / 100.0).round() as i64,
+            p.t_us,
+            p.x,
+            p.y,
+            p.u,
+            p.v
+        ));
+    }
+    std::fs::write(path, t).unwrap();
 }
