@@ -9,8 +9,7 @@ use super::{MeanRow, NodeGrid};
 use super::{PivOptions, PivStream, PixelMode, PseudoOptions, StepField, StreamOptions};
 use crate::calib::Calibration;
 use crate::error::{Error, Result};
-use crate::events::Geometry;
-use crate::io::{Anomalies, EventSource, StreamInfo};
+use crate::io::EventSource;
 use crate::pulses::{split_pulses, Analyzer, PulseOptions, PulseReport};
 use crate::Cancel;
 
@@ -164,7 +163,7 @@ pub fn run_recording(
         ))
     })?;
     let fields = AtomicU64::new(0);
-    let mut src = Observed::new(src, PivStage::PulseTiming, on_progress, &fields, cancel);
+    let mut src = observed(src, PivStage::PulseTiming, on_progress, &fields, cancel)?;
     let pulses = {
         let mut an = Analyzer::new(
             PulseOptions {
@@ -216,13 +215,13 @@ pub fn run_recording(
     sink.start(&grid, pulse_hz)?;
     stream.set_batch(opts.batch.unwrap_or_else(rayon::current_num_threads))?;
     // Second pass: the pulses, one field every `step`.
-    let mut src = Observed::new(
+    let mut src = observed(
         crate::io::open_for_analysis(path)?,
         PivStage::Correlation,
         on_progress,
         &fields,
         cancel,
-    );
+    )?;
     let mut steps = Vec::new();
     let mut emit = |f: StepField| -> Result<()> {
         cancel.check()?;
@@ -253,71 +252,28 @@ pub fn run_recording(
     })
 }
 
-/// An [`EventSource`] that reports its reading and looks at the cancel
-/// flag before each chunk.
-struct Observed<'a> {
+/// `inner`, reporting its reading as `stage` and looking at the cancel
+/// flag before the first chunk and after each one.
+fn observed<'a>(
     inner: Box<dyn EventSource>,
     stage: PivStage,
-    events: u64,
-    fields: &'a AtomicU64,
     on_progress: &'a (dyn Fn(PivProgress<'_>) + Sync),
+    fields: &'a AtomicU64,
     cancel: &'a Cancel,
-}
-
-impl<'a> Observed<'a> {
-    fn new(
-        inner: Box<dyn EventSource>,
-        stage: PivStage,
-        on_progress: &'a (dyn Fn(PivProgress<'_>) + Sync),
-        fields: &'a AtomicU64,
-        cancel: &'a Cancel,
-    ) -> Self {
-        on_progress(PivProgress::Stage {
+) -> Result<impl EventSource + 'a> {
+    on_progress(PivProgress::Stage {
+        stage,
+        file_size: inner.info().file_size,
+    });
+    cancel.check()?;
+    Ok(crate::io::Observed::new(inner, move |r| {
+        cancel.check()?;
+        on_progress(PivProgress::Read {
             stage,
-            file_size: inner.info().file_size,
+            bytes: r.bytes,
+            events: r.events,
+            fields: fields.load(Ordering::Relaxed),
         });
-        Observed {
-            inner,
-            stage,
-            events: 0,
-            fields,
-            on_progress,
-            cancel,
-        }
-    }
-}
-
-impl EventSource for Observed<'_> {
-    fn info(&self) -> &StreamInfo {
-        self.inner.info()
-    }
-
-    fn next_chunk(&mut self, chunk: &mut crate::Chunk) -> Result<bool> {
-        self.cancel.check()?;
-        let more = self.inner.next_chunk(chunk)?;
-        self.events += chunk.events.len() as u64;
-        (self.on_progress)(PivProgress::Read {
-            stage: self.stage,
-            bytes: self.inner.bytes_read(),
-            events: self.events,
-            fields: self.fields.load(Ordering::Relaxed),
-        });
-        Ok(more)
-    }
-
-    fn anomalies(&self) -> Anomalies {
-        self.inner.anomalies()
-    }
-
-    fn bytes_read(&self) -> u64 {
-        self.inner.bytes_read()
-    }
-
-    fn warnings(&self) -> Vec<String> {
-        self.inner.warnings()
-    }
-
-    fn rejected_geometry(&self) -> Option<Geometry> {
-        self.inner.rejected_geometry()
-    }
+        Ok(())
+    }))
 }

@@ -290,7 +290,7 @@ pub fn file_info(
             format!("{peak_bin_us} µs: must be positive"),
         ));
     }
-    let mut src = crate::io::open_with(path, opts)?;
+    let src = crate::io::open_with(path, opts)?;
     for w in src.warnings() {
         on_progress(PulsesProgress::Warning(&w));
     }
@@ -299,11 +299,14 @@ pub fn file_info(
         file_size: src.info().file_size,
     });
     let summary = crate::io::summary::summarize(
-        &mut Reporting {
-            inner: &mut *src,
-            events: 0,
-            on_progress,
-        },
+        &mut crate::io::Observed::new(src, |r| {
+            on_progress(PulsesProgress::Read {
+                bytes: r.bytes,
+                events: r.events,
+                done: r.done,
+            });
+            Ok(())
+        }),
         peak_bin_us,
         |_| {},
     )?;
@@ -313,44 +316,4 @@ pub fn file_info(
         rejected_geometry,
         verdict,
     })
-}
-
-/// A source that reports [`PulsesProgress::Read`] after each chunk.
-struct Reporting<'a> {
-    inner: &'a mut dyn EventSource,
-    events: u64,
-    on_progress: &'a mut (dyn FnMut(PulsesProgress<'_>) + Send),
-}
-
-impl EventSource for Reporting<'_> {
-    fn info(&self) -> &crate::io::StreamInfo {
-        self.inner.info()
-    }
-
-    fn next_chunk(&mut self, chunk: &mut Chunk) -> Result<bool> {
-        let more = self.inner.next_chunk(chunk)?;
-        self.events += chunk.events.len() as u64;
-        (self.on_progress)(PulsesProgress::Read {
-            bytes: self.inner.bytes_read(),
-            events: self.events,
-            done: !more,
-        });
-        Ok(more)
-    }
-
-    fn anomalies(&self) -> crate::io::Anomalies {
-        self.inner.anomalies()
-    }
-
-    fn bytes_read(&self) -> u64 {
-        self.inner.bytes_read()
-    }
-
-    fn warnings(&self) -> Vec<String> {
-        self.inner.warnings()
-    }
-
-    fn rejected_geometry(&self) -> Option<crate::Geometry> {
-        self.inner.rejected_geometry()
-    }
 }

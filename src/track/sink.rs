@@ -17,7 +17,7 @@ use std::path::Path;
 use crate::cluster::Particle;
 use crate::error::{Error, Result};
 use crate::io::atomic::{create_output_dir, AtomicFile};
-use crate::io::{Anomalies, EventSource, StreamInfo};
+use crate::io::EventSource;
 use crate::pulses::{PulseOptions, PulseReport};
 use crate::Geometry;
 
@@ -355,13 +355,17 @@ fn track_recording_into(
             stage,
             file_size: inner.info().file_size,
         });
-        Ok(Box::new(Observed {
-            inner,
-            stage,
-            events: 0,
-            on_progress,
-            cancel,
-        }))
+        cancel.check()?;
+        Ok(Box::new(crate::io::Observed::new(inner, move |r| {
+            cancel.check()?;
+            on_progress(TrackProgress::Read {
+                stage,
+                bytes: r.bytes,
+                events: r.events,
+                done: r.done,
+            });
+            Ok(())
+        })))
     };
     let run_result = track_recording(&open, &opts, stream, sink, &mut |s| {
         let (particles, active_tracks) = s.progress();
@@ -410,50 +414,6 @@ pub fn read_hot_pixels(path: &Path) -> Result<HashSet<(u16, u16)>> {
 /// columns are then reported by the particles reader.
 fn is_particles_table(path: &Path) -> bool {
     crate::table::column_names(path).is_some_and(|c| c.iter().any(|c| c == "pulse"))
-}
-
-/// An [`EventSource`] that reports its reading to the progress callback.
-struct Observed<'a> {
-    inner: Box<dyn EventSource>,
-    stage: TrackStage,
-    events: u64,
-    on_progress: &'a (dyn Fn(TrackProgress<'_>) + Sync),
-    cancel: &'a crate::Cancel,
-}
-
-impl EventSource for Observed<'_> {
-    fn info(&self) -> &StreamInfo {
-        self.inner.info()
-    }
-
-    fn next_chunk(&mut self, chunk: &mut crate::Chunk) -> Result<bool> {
-        self.cancel.check()?;
-        let more = self.inner.next_chunk(chunk)?;
-        self.events += chunk.events.len() as u64;
-        (self.on_progress)(TrackProgress::Read {
-            stage: self.stage,
-            bytes: self.inner.bytes_read(),
-            events: self.events,
-            done: !more,
-        });
-        Ok(more)
-    }
-
-    fn anomalies(&self) -> Anomalies {
-        self.inner.anomalies()
-    }
-
-    fn bytes_read(&self) -> u64 {
-        self.inner.bytes_read()
-    }
-
-    fn warnings(&self) -> Vec<String> {
-        self.inner.warnings()
-    }
-
-    fn rejected_geometry(&self) -> Option<Geometry> {
-        self.inner.rejected_geometry()
-    }
 }
 
 /// What the tracking thread hands to the writer thread.

@@ -377,6 +377,36 @@ mod tests {
         c
     }
 
+    #[test]
+    fn observed_reports_each_chunk_and_a_hook_error_ends_the_read() {
+        let chunks = vec![chunk(&[1, 2, 3]), chunk(&[4]), chunk(&[5, 6])];
+        let mut seen = Vec::new();
+        let mut src = crate::Observed::new(Vecs(info(), chunks.clone()), |r| {
+            seen.push((r.events, r.done));
+            Ok(())
+        });
+        let mut c = Chunk::default();
+        while src.next_chunk(&mut c).unwrap() {}
+        drop(src);
+        assert_eq!(seen, [(3, false), (4, false), (6, false), (6, true)]);
+        // An error from the hook is the read's error, after that chunk.
+        let mut n = 0;
+        let mut src = crate::Observed::new(Vecs(info(), chunks), |_| {
+            n += 1;
+            if n == 2 {
+                Err(crate::error::Error::analysis("stop"))
+            } else {
+                Ok(())
+            }
+        });
+        assert!(src.next_chunk(&mut c).unwrap());
+        assert!(src
+            .next_chunk(&mut c)
+            .unwrap_err()
+            .to_string()
+            .contains("stop"));
+    }
+
     fn drain(g: &mut dyn EventSource) -> Result<Vec<i64>> {
         let mut out = Vec::new();
         let mut c = Chunk::default();

@@ -235,6 +235,67 @@ impl EventSource for Box<dyn EventSource> {
     }
 }
 
+/// How far a read has come, handed to an [`Observed`] source's hook after
+/// each chunk.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ReadState {
+    /// Bytes of the file consumed so far.
+    pub bytes: u64,
+    /// Events decoded so far.
+    pub events: u64,
+    /// True after the last chunk.
+    pub done: bool,
+}
+
+/// A source that calls `hook` with the [`ReadState`] after each chunk: the
+/// one way a long read reports progress and lets a caller stop it (an
+/// error from the hook ends the read with that error). Every other method
+/// passes through.
+pub struct Observed<S, F> {
+    inner: S,
+    events: u64,
+    hook: F,
+}
+
+impl<S: EventSource, F: FnMut(ReadState) -> Result<()>> Observed<S, F> {
+    /// Wrap `inner`; `hook` runs after each chunk.
+    pub fn new(inner: S, hook: F) -> Self {
+        Observed {
+            inner,
+            events: 0,
+            hook,
+        }
+    }
+}
+
+impl<S: EventSource, F: FnMut(ReadState) -> Result<()> + Send> EventSource for Observed<S, F> {
+    fn info(&self) -> &StreamInfo {
+        self.inner.info()
+    }
+    fn next_chunk(&mut self, chunk: &mut Chunk) -> Result<bool> {
+        let more = self.inner.next_chunk(chunk)?;
+        self.events += chunk.events.len() as u64;
+        (self.hook)(ReadState {
+            bytes: self.inner.bytes_read(),
+            events: self.events,
+            done: !more,
+        })?;
+        Ok(more)
+    }
+    fn anomalies(&self) -> Anomalies {
+        self.inner.anomalies()
+    }
+    fn bytes_read(&self) -> u64 {
+        self.inner.bytes_read()
+    }
+    fn warnings(&self) -> Vec<String> {
+        self.inner.warnings()
+    }
+    fn rejected_geometry(&self) -> Option<Geometry> {
+        self.inner.rejected_geometry()
+    }
+}
+
 /// Options for [`open_with`].
 #[derive(Debug, Clone, Default)]
 pub struct OpenOptions {
