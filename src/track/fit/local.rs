@@ -283,7 +283,10 @@ impl LocalPolyFit for GapFit {
         let s2 = rule.sigma * rule.sigma;
         let mut ridge = rule.ridge();
         let mut c3sq = 0.0;
-        if pilot >= 5 {
+        // A track no longer than the smallest window has one candidate:
+        // the reference fits it as a fixed window, with the prior as it
+        // is (no pilot, no widening).
+        if pilot >= 5 && wmin < wmax {
             let mut ata = [[0.0f64; 4]; 4];
             for (a, row) in ata.iter_mut().enumerate() {
                 for (b, v) in row.iter_mut().enumerate() {
@@ -483,9 +486,11 @@ mod tests {
         // detection, at a missing pulse), the chain.
         let mut served = [0usize; 5];
         for (case, &(min_window, max_window, bias_weight, accel_rms)) in rules.iter().enumerate() {
-            for track in 0..40 {
-                let n = [4, 9, 30, 45, 80, 200][track % 6];
-                let gap = [0.0, 0.02, 0.1, 0.3][(track / 6) % 4];
+            for track in 0..72 {
+                // Lengths at and just above the smallest windows (one
+                // candidate: a fixed window) as well as long tracks.
+                let n = [4, 5, 6, 7, 9, 30, 45, 80, 200][track % 9];
+                let gap = [0.0, 0.02, 0.1, 0.3][(track / 9) % 4];
                 let sigma = [0.05, 0.3, 1.0][(case + track) % 3];
                 let rule = WindowRule {
                     min_window,
