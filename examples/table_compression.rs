@@ -3,13 +3,16 @@
 //!
 //! cargo run --release --example table_compression -- RUN_DIR
 //!
+//! measures uncompressed and snappy; with `--features parquet-zstd` (a C
+//! build of zstd, not part of the default build) zstd levels 1 and 3 too.
+//!
 //! RUN_DIR holds the tables of an `ebptv track` run (any format).
 use std::path::Path;
 use std::time::Instant;
 
 use ebptv::table::{Col, TableFormat, TableWriter};
 use ebptv::track::{read_particles, read_tracks, TrackRow, PARTICLE_COLUMNS, TRACK_COLUMNS};
-use parquet::basic::{Compression, ZstdLevel};
+use parquet::basic::Compression;
 
 fn find(dir: &Path, stem: &str) -> std::path::PathBuf {
     for f in [TableFormat::Parquet, TableFormat::Csv, TableFormat::Npy] {
@@ -22,12 +25,17 @@ fn find(dir: &Path, stem: &str) -> std::path::PathBuf {
 }
 
 fn measure<R>(name: &str, rows: &[R], cols: &'static [Col<R>], out: &Path) {
-    let codecs = [
+    #[allow(unused_mut)]
+    let mut codecs = vec![
         ("uncompressed", Compression::UNCOMPRESSED),
         ("snappy", Compression::SNAPPY),
-        ("zstd(1)", Compression::ZSTD(ZstdLevel::try_new(1).unwrap())),
-        ("zstd(3)", Compression::ZSTD(ZstdLevel::try_new(3).unwrap())),
     ];
+    #[cfg(feature = "parquet-zstd")]
+    {
+        use parquet::basic::ZstdLevel;
+        codecs.push(("zstd(1)", Compression::ZSTD(ZstdLevel::try_new(1).unwrap())));
+        codecs.push(("zstd(3)", Compression::ZSTD(ZstdLevel::try_new(3).unwrap())));
+    }
     for (label, c) in codecs {
         let path = out.join(format!("{name}.{label}.parquet"));
         let mut best = f64::INFINITY;

@@ -58,7 +58,7 @@ pub fn load_frames(path: &Path) -> Result<Frames> {
     {
         load_tiff(path)
     } else if head.starts_with(b"BM") {
-        load_other(path)
+        load_bmp(path)
     } else {
         Err(Error::corrupt(
             path,
@@ -317,63 +317,38 @@ fn load_png(path: &Path) -> Result<(Image, bool)> {
     }
 }
 
-/// BMP (and whatever else the `image` crate recognises) through `image`.
-fn load_other(path: &Path) -> Result<Frames> {
-    use image::DynamicImage as D;
+/// A BMP file (1/4/8-bit palette, RLE4/RLE8, 16/24/32-bit) through
+/// `tinybmp`, whose pixels come as RGB: grey when the three channels agree
+/// everywhere (a grey palette), a colour image otherwise.
+fn load_bmp(path: &Path) -> Result<Frames> {
+    use embedded_graphics::pixelcolor::{Rgb888, RgbColor};
+    use embedded_graphics::prelude::{OriginDimensions, Pixel};
     let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-    let img = image::load_from_memory(&bytes)
-        .map_err(|e| Error::corrupt(path, 0, format!("image: {e}")))?;
-    let (w, h) = (img.width() as usize, img.height() as usize);
-    let (img, colour) = match img {
-        D::ImageLuma8(b) => grey_from_channels(
+    let bmp = tinybmp::Bmp::<Rgb888>::from_slice(&bytes)
+        .map_err(|e| Error::corrupt(path, 0, format!("BMP: {e:?}")))?;
+    let size = bmp.size();
+    let (w, h) = (size.width as usize, size.height as usize);
+    let mut rgb = vec![0.0f32; 3 * w * h];
+    let mut seen = 0usize;
+    for Pixel(p, c) in bmp.pixels() {
+        let (x, y) = (p.x as usize, p.y as usize);
+        if p.x < 0 || p.y < 0 || x >= w || y >= h {
+            continue;
+        }
+        let k = 3 * (y * w + x);
+        rgb[k] = f32::from(c.r());
+        rgb[k + 1] = f32::from(c.g());
+        rgb[k + 2] = f32::from(c.b());
+        seen += 1;
+    }
+    if seen != w * h {
+        return Err(Error::corrupt(
             path,
-            w,
-            h,
-            1,
-            false,
-            b.into_raw().into_iter().map(f32::from),
-        )?,
-        D::ImageLumaA8(b) => {
-            grey_from_channels(path, w, h, 2, true, b.into_raw().into_iter().map(f32::from))?
-        }
-        D::ImageLuma16(b) => grey_from_channels(
-            path,
-            w,
-            h,
-            1,
-            false,
-            b.into_raw().into_iter().map(f32::from),
-        )?,
-        D::ImageLumaA16(b) => {
-            grey_from_channels(path, w, h, 2, true, b.into_raw().into_iter().map(f32::from))?
-        }
-        D::ImageRgb16(_) | D::ImageRgba16(_) => {
-            let b = img.to_rgb16();
-            grey_from_channels(
-                path,
-                w,
-                h,
-                3,
-                false,
-                b.into_raw().into_iter().map(f32::from),
-            )?
-        }
-        D::ImageRgb32F(_) | D::ImageRgba32F(_) => {
-            let b = img.to_rgb32f();
-            grey_from_channels(path, w, h, 3, false, b.into_raw().into_iter())?
-        }
-        other => {
-            let b = other.to_rgb8();
-            grey_from_channels(
-                path,
-                w,
-                h,
-                3,
-                false,
-                b.into_raw().into_iter().map(f32::from),
-            )?
-        }
-    };
+            0,
+            format!("image data holds {seen} pixels, header says {w}x{h}"),
+        ));
+    }
+    let (img, colour) = grey_from_channels(path, w, h, 3, false, rgb.into_iter())?;
     Ok(Frames {
         frames: vec![img],
         colour,

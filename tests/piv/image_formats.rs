@@ -69,6 +69,60 @@ fn path_str(p: &Path) -> &str {
     p.to_str().unwrap()
 }
 
+/// Pixels of [`write_bmp`], rows top to bottom.
+enum Bmp<'a> {
+    /// 8-bit indices into a grey palette (index = grey level).
+    Grey8(&'a [u8]),
+    /// R, G, B bytes per pixel.
+    Rgb24(&'a [u8]),
+}
+
+/// A minimal uncompressed Windows BMP (BITMAPINFOHEADER, bottom-up rows
+/// padded to 4 bytes), written from the format's definition.
+fn write_bmp(path: &Path, w: u32, h: u32, px: Bmp) {
+    let (bpp, palette, bytes_pp) = match px {
+        Bmp::Grey8(_) => (8u16, 256u32, 1usize),
+        Bmp::Rgb24(_) => (24, 0, 3),
+    };
+    let row = (w as usize * bytes_pp).div_ceil(4) * 4;
+    let data_off = 14 + 40 + 4 * palette;
+    let size = data_off + (row * h as usize) as u32;
+    let mut b: Vec<u8> = Vec::new();
+    b.extend_from_slice(b"BM");
+    b.extend_from_slice(&size.to_le_bytes());
+    b.extend_from_slice(&[0; 4]);
+    b.extend_from_slice(&data_off.to_le_bytes());
+    b.extend_from_slice(&40u32.to_le_bytes());
+    b.extend_from_slice(&(w as i32).to_le_bytes());
+    b.extend_from_slice(&(h as i32).to_le_bytes());
+    b.extend_from_slice(&1u16.to_le_bytes());
+    b.extend_from_slice(&bpp.to_le_bytes());
+    b.extend_from_slice(&0u32.to_le_bytes()); // BI_RGB
+    b.extend_from_slice(&((row * h as usize) as u32).to_le_bytes());
+    b.extend_from_slice(&2835i32.to_le_bytes());
+    b.extend_from_slice(&2835i32.to_le_bytes());
+    b.extend_from_slice(&palette.to_le_bytes());
+    b.extend_from_slice(&0u32.to_le_bytes());
+    for k in 0..palette {
+        b.extend_from_slice(&[k as u8, k as u8, k as u8, 0]);
+    }
+    for y in (0..h as usize).rev() {
+        let start = b.len();
+        let line = y * w as usize * bytes_pp..(y + 1) * w as usize * bytes_pp;
+        match px {
+            Bmp::Grey8(v) => b.extend_from_slice(&v[line]),
+            // BMP stores blue, green, red.
+            Bmp::Rgb24(v) => {
+                for p in v[line].chunks_exact(3) {
+                    b.extend_from_slice(&[p[2], p[1], p[0]]);
+                }
+            }
+        }
+        b.resize(start + row, 0);
+    }
+    std::fs::write(path, b).unwrap();
+}
+
 #[test]
 fn bmp_pair_grey_and_colour() {
     let dir = tempfile::tempdir().unwrap();
@@ -78,18 +132,12 @@ fn bmp_pair_grey_and_colour() {
     for (k, im) in f.iter().enumerate() {
         let v: Vec<u8> = scaled(im, 250.0).iter().map(|&x| x as u8).collect();
         let p = dir.path().join(format!("g{k}.bmp"));
-        image::GrayImage::from_raw(96, 80, v.clone())
-            .unwrap()
-            .save_with_format(&p, image::ImageFormat::Bmp)
-            .unwrap();
+        write_bmp(&p, 96, 80, Bmp::Grey8(&v));
         grey.push(p);
         // Blue at half the brightness: a colour image, not a grey one.
         let rgb: Vec<u8> = v.iter().flat_map(|&x| [x, x, x / 2]).collect();
         let p = dir.path().join(format!("c{k}.bmp"));
-        image::RgbImage::from_raw(96, 80, rgb)
-            .unwrap()
-            .save_with_format(&p, image::ImageFormat::Bmp)
-            .unwrap();
+        write_bmp(&p, 96, 80, Bmp::Rgb24(&rgb));
         colour.push(p);
     }
     let out = dir.path().join("g");
