@@ -875,6 +875,38 @@ mod tests {
     }
 
     #[test]
+    fn truth_tables_hold_the_csv_values_in_every_format() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut sc = crate::sim::presets::preset("demo").unwrap();
+        sc.duration_s = 0.002;
+        let mut tables = Vec::new();
+        for fmt in [TableFormat::Csv, TableFormat::Parquet, TableFormat::Npy] {
+            let d = dir.path().join(fmt.ext());
+            let (summary, path) =
+                write_recording(&sc, 4, &d, crate::io::Format::Evt3, fmt, |_, _| {}).unwrap();
+            assert_eq!(path, d.join(fmt.file_name("truth_particles")));
+            assert_eq!(TableFormat::sniff(&path).unwrap(), fmt);
+            let t = crate::compare::read_table(&path, &[]).unwrap();
+            assert_eq!(t.rows() as u64, summary.stats.truth_samples);
+            assert_eq!(
+                t.names,
+                ["pulse", "t_us", "particle_id", "x", "y", "u", "v"]
+            );
+            tables.push(t);
+        }
+        assert!(tables[0].rows() > 100);
+        // The CSV rounds to its decimals; Parquet and .npy keep every bit.
+        let decimals = [0, 3, 0, 4, 4, 3, 3];
+        for (k, d) in decimals.iter().enumerate() {
+            let tol = 0.5 * 10f64.powi(-d) * (1.0 + 1e-9);
+            for (a, b) in tables[0].cols[k].iter().zip(&tables[1].cols[k]) {
+                assert!((a - b).abs() <= tol, "{}: {a} vs {b}", tables[0].names[k]);
+            }
+            assert_eq!(tables[1].cols[k], tables[2].cols[k]);
+        }
+    }
+
+    #[test]
     fn npy_fields_parse() {
         assert_eq!(
             parse_npy_fields("[('t', '<i8'), ('x', '<u2'), ('p', '|u1')]").unwrap(),

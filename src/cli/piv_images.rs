@@ -91,12 +91,9 @@ pub fn run(a: PivImagesArgs, tables: Option<ebptv::table::TableFormat>) -> anyho
         .collect::<anyhow::Result<_>>()?;
     let dt = t0.elapsed().as_secs_f64();
     let cpu = process_cpu_seconds() - c0;
-    starts
-        .par_iter()
-        .zip(&fields)
-        .try_for_each(|(&s, f)| {
-            write_vectors_table(&a.out, &format!("vectors_{s:05}"), format, f).map(|_| ())
-        })?;
+    starts.par_iter().zip(&fields).try_for_each(|(&s, f)| {
+        write_vectors_table(&a.out, &format!("vectors_{s:05}"), format, f).map(|_| ())
+    })?;
     bar.finish_and_clear();
     let cpu_write = process_cpu_seconds() - c0 - cpu;
     let n: usize = fields.iter().map(|f| f.grid.len()).sum();

@@ -330,6 +330,75 @@ impl Drop for NpyStack {
 mod tests {
     use super::*;
 
+    /// Same columns; values equal bit for bit (NaN equal to NaN).
+    fn assert_same(a: &crate::compare::Table, b: &crate::compare::Table) {
+        assert_eq!(a.names, b.names);
+        for (x, y) in a.cols.iter().zip(&b.cols) {
+            assert_eq!(x.len(), y.len());
+            for (p, q) in x.iter().zip(y) {
+                assert!(
+                    p.to_bits() == q.to_bits() || (p.is_nan() && q.is_nan()),
+                    "{p} {q}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn mean_and_steps_tables_hold_the_csv_values_in_every_format() {
+        let dir = tempfile::tempdir().unwrap();
+        let rows: Vec<MeanRow> = (0..40)
+            .map(|i| {
+                let f = i as f64;
+                MeanRow {
+                    x: 16.0 * (i % 8) as f64,
+                    y: 16.0 * (i / 8) as f64,
+                    u: if i % 7 == 3 {
+                        f64::NAN
+                    } else {
+                        1.0 / (f + 0.3)
+                    },
+                    v: -f * 1e5 / 3.0,
+                    uu: f.sqrt(),
+                    vv: 1e-300 * f,
+                    uv: -0.1 * f,
+                    valid: f / 40.0,
+                }
+            })
+            .collect();
+        let steps: Vec<(i64, f64)> = (0..9).map(|k| (5 * k, 200.0 * k as f64 + 0.125)).collect();
+        let calib = crate::calib::Calibration {
+            px_per_mm: 12.5,
+            origin_px: [10.0, 5.0],
+            y_axis: crate::calib::YAxis::Up,
+            mask: None,
+        };
+        for cal in [None, Some(&calib)] {
+            let mut tables = Vec::new();
+            for fmt in [TableFormat::Csv, TableFormat::Parquet, TableFormat::Npy] {
+                let d = dir.path().join(format!("{fmt:?}{}", cal.is_some()));
+                std::fs::create_dir_all(&d).unwrap();
+                let m = write_mean_table(&d, fmt, &rows, cal).unwrap();
+                let s = write_steps_table(&d, fmt, &steps).unwrap();
+                assert_eq!(m, d.join(fmt.file_name("piv_mean")));
+                assert_eq!(crate::table::TableFormat::sniff(&m).unwrap(), fmt);
+                if fmt == TableFormat::Csv {
+                    assert_eq!(std::fs::read_to_string(&m).unwrap(), mean_csv(&rows, cal));
+                }
+                tables.push((
+                    crate::compare::read_table(&m, &[]).unwrap(),
+                    crate::compare::read_table(&s, &[]).unwrap(),
+                ));
+            }
+            assert_eq!(tables[0].0.names.len(), if cal.is_some() { 15 } else { 8 });
+            assert_eq!(tables[0].1.names, ["step", "first_pulse", "t_us"]);
+            for t in &tables[1..] {
+                assert_same(&tables[0].0, &t.0);
+                assert_same(&tables[0].1, &t.1);
+            }
+        }
+    }
+
     #[test]
     fn npy_header_is_aligned_and_parsable() {
         let h = npy_header("<f4", &[3, 4, 5]);
