@@ -78,7 +78,7 @@ pub struct PivArgs {
     /// `ebptv pulses`).
     #[arg(long)]
     pub force_pulses: bool,
-    /// A `calib.toml`: piv_mean.csv gains `X_mm,Y_mm,U_m_s,V_m_s,uu_m2_s2,
+    /// A `calib.toml`: the piv_mean table gains `X_mm,Y_mm,U_m_s,V_m_s,uu_m2_s2,
     /// vv_m2_s2,uv_m2_s2` after the pixel columns, the maps are in m/s,
     /// and its [mask] applies as --mask does.
     #[arg(long)]
@@ -88,8 +88,9 @@ pub struct PivArgs {
     /// vector (NaN, flag 4).
     #[arg(long)]
     pub mask: Option<PathBuf>,
-    /// Output folder: piv_mean.csv, piv_steps.csv and the per-step fields
-    /// piv_u.npy, piv_v.npy, piv_flag.npy.
+    /// Output folder: the piv_mean and piv_steps tables (.parquet; .csv,
+    /// .npy with --table-format) and the per-step fields piv_u.npy,
+    /// piv_v.npy, piv_flag.npy.
     #[arg(long)]
     pub out: PathBuf,
 }

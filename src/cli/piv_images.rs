@@ -25,8 +25,9 @@ pub struct PivImagesArgs {
     /// Treat the list as a sequence (1-2, 2-3, ...) instead of pairs (1-2, 3-4, ...).
     #[arg(long)]
     pub sequence: bool,
-    /// Output folder: one vectors_NNNNN.csv (x,y,u,v,flag) per evaluation,
-    /// NNNNN its first frame.
+    /// Output folder: one vectors_NNNNN table (x,y,u,v,flag; .parquet, or
+    /// .csv / .npy with --table-format) per evaluation, NNNNN its first
+    /// frame.
     #[arg(long)]
     pub out: PathBuf,
 }
