@@ -255,9 +255,9 @@ pub struct Comparison {
 
 pub(crate) const QUANTITIES: [&str; 5] = ["u", "v", "uu", "vv", "uv"];
 
-/// Compare PTV bins (`grid.csv`: `x,y,count,u,v,uu,vv,uv`) with PIV nodes
-/// (`piv_mean.csv`: `x,y,u,v,uu,vv,uv,valid`). `min_count`: bins with fewer
-/// samples are ignored.
+/// Compare PTV bins (the `grid` table: `x,y,count,u,v,uu,vv,uv`) with PIV
+/// nodes (the `piv_mean` table: `x,y,u,v,uu,vv,uv,valid`). `min_count`:
+/// bins with fewer samples are ignored.
 pub(crate) fn compare(ptv: &Table, piv: &Table, min_count: f64) -> Result<Comparison> {
     let c = |t: &Table, n: &str| {
         t.col(n)
@@ -372,9 +372,9 @@ pub(crate) fn compare(ptv: &Table, piv: &Table, min_count: f64) -> Result<Compar
 /// The inputs of [`compare_to_dir`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct CompareOptions {
-    /// PTV grid statistics (`grid.csv`: x,y,count,u,v,uu,vv,uv).
+    /// PTV grid statistics (the `grid` table, any format: x,y,count,u,v,uu,vv,uv).
     pub ptv: PathBuf,
-    /// PIV statistics (`piv_mean.csv`: x,y,u,v,uu,vv,uv,valid).
+    /// PIV statistics (the `piv_mean` table, any format: x,y,u,v,uu,vv,uv,valid).
     pub piv: PathBuf,
     /// PTV bins with fewer samples are ignored.
     pub min_count: f64,

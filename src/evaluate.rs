@@ -3,9 +3,9 @@
 //! The demo, the accuracy tests and the benchmarks all need the same
 //! question answered: *how close is what ebptv wrote to what really
 //! happened?* This module reads the files the stages write
-//! (`pulses.json`, the particles and tracks tables in any format, `grid.csv`,
-//! `piv_mean.csv`) and the truth the simulator writes
-//! (`truth_particles.csv`: `pulse,t_us,particle_id,x,y,u,v`), and scores
+//! (`pulses.json`, the particles, tracks, `grid` and `piv_mean` tables in
+//! any format) and the truth the simulator writes (the `truth_particles`
+//! table, any format: `pulse,t_us,particle_id,x,y,u,v`), and scores
 //! them. It works on files on purpose: what is scored is exactly what a
 //! user gets.
 //!
@@ -52,12 +52,12 @@ pub struct Truth {
     #[allow(clippy::type_complexity)]
     by_pulse: HashMap<i64, Vec<(u64, f64, f64, f64, f64)>>,
     trees: HashMap<i64, KdTree<f64, 2>>,
-    /// Truth samples (rows of `truth_particles.csv`).
+    /// Truth samples (rows of the `truth_particles` table).
     pub samples: usize,
 }
 
 impl Truth {
-    /// Read `truth_particles.csv`.
+    /// Read the `truth_particles` table (Parquet, CSV or `.npy`).
     pub fn read(path: &Path) -> Result<Truth> {
         let t = read_table(path, &["pulse", "particle_id", "x", "y", "u", "v"])?;
         Self::from_table(&t)
@@ -294,8 +294,8 @@ pub fn score_tracks(
     })
 }
 
-/// Error of a mean-velocity field (grid.csv or piv_mean.csv) against the
-/// truth binned at the same nodes.
+/// Error of a mean-velocity field (the `grid` or `piv_mean` table, any
+/// format) against the truth binned at the same nodes.
 #[derive(Debug, Clone, Serialize)]
 pub struct FieldScore {
     /// Nodes scored.

@@ -37,7 +37,8 @@ use crate::io::atomic::AtomicFile;
 /// values for a 7-column table.
 pub(crate) const ROW_GROUP_ROWS: usize = 1 << 16;
 
-/// The file format of the row tables (`particles`, `tracks`).
+/// The file format of the row tables (`particles`, `tracks`, the grid,
+/// PIV vectors, the simulation's truth).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum TableFormat {
@@ -374,6 +375,38 @@ impl<R> TableWriter<R> {
     }
 }
 
+/// Writes the table `stem` into `dir` in `format` (`stem.parquet`,
+/// `stem.csv` or `stem.npy`) and returns its path. Parquet and `.npy` are
+/// written from `cols` over `rows`; CSV by `csv`, the table's own text
+/// writer, so that the CSV contract (number formatting included) stays
+/// what it is. `rows` is not consumed for CSV.
+pub(crate) fn write_table<R, I>(
+    dir: &Path,
+    stem: &str,
+    format: TableFormat,
+    cols: &'static [Col<R>],
+    rows: I,
+    csv: impl FnOnce(&Path) -> Result<()>,
+) -> Result<std::path::PathBuf>
+where
+    I: IntoIterator<Item = R>,
+{
+    let path = dir.join(format.file_name(stem));
+    let mut w = match format {
+        TableFormat::Csv => {
+            csv(&path)?;
+            return Ok(path);
+        }
+        TableFormat::Parquet => TableWriter::parquet(&path, cols)?,
+        TableFormat::Npy => TableWriter::npy(&path, cols)?,
+    };
+    for r in rows {
+        w.push(&r)?;
+    }
+    w.finish()?;
+    Ok(path)
+}
+
 fn npy_descr<R>(cols: &[Col<R>]) -> String {
     let fields: Vec<String> = cols
         .iter()
@@ -687,6 +720,56 @@ pub fn parquet_metadata(path: &Path) -> Result<Vec<(String, Option<String>)>> {
         .unwrap_or_default())
 }
 
+/// Columns of the simulator's truth table (`truth_particles`):
+/// `pulse,t_us,particle_id,x,y,u,v` (µs, px, px/s).
+static TRUTH_COLUMNS: [Col<crate::sim::TruthSample>; 7] = [
+    Col::i64("pulse", |r| r.pulse),
+    Col::f64("t_us", |r| r.t_us),
+    Col::i64("particle_id", |r| r.particle_id as i64),
+    Col::f64("x", |r| r.x),
+    Col::f64("y", |r| r.y),
+    Col::f64("u", |r| r.u),
+    Col::f64("v", |r| r.v),
+];
+
+impl crate::sim::TruthTable for TableWriter<crate::sim::TruthSample> {
+    fn write(&mut self, rows: &[crate::sim::TruthSample]) -> Result<()> {
+        TableWriter::write(self, rows)
+    }
+    fn finish(self: Box<Self>) -> Result<()> {
+        TableWriter::finish(*self)
+    }
+}
+
+/// What `ebptv simulate` writes ([`crate::sim::write_recording`]), the
+/// truth as the table `truth_particles` in `tables` (CSV: the simulator's
+/// own `truth_particles.csv`, values rounded as its contract says;
+/// Parquet and `.npy` keep every bit). Returns the summary and the truth
+/// table's path.
+pub fn write_recording(
+    sc: &crate::sim::Scenario,
+    seed: u64,
+    dir: &Path,
+    format: crate::io::Format,
+    tables: TableFormat,
+    progress: impl FnMut(u64, u64),
+) -> Result<(crate::sim::RecordingSummary, std::path::PathBuf)> {
+    let path = dir.join(tables.file_name("truth_particles"));
+    let make = |d: &Path| -> Result<Box<dyn crate::sim::TruthTable>> {
+        let p = d.join(tables.file_name("truth_particles"));
+        Ok(match tables {
+            TableFormat::Npy => Box::new(TableWriter::npy(&p, &TRUTH_COLUMNS)?),
+            _ => Box::new(TableWriter::parquet(&p, &TRUTH_COLUMNS)?),
+        })
+    };
+    let truth: Option<crate::sim::TruthTableMaker<'_>> = match tables {
+        TableFormat::Csv => None,
+        _ => Some(&make),
+    };
+    let summary = crate::sim::write_recording_with(sc, seed, dir, format, truth, progress)?;
+    Ok((summary, path))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -789,6 +872,38 @@ mod tests {
         std::fs::write(&p, &bytes[..bytes.len() - 5]).unwrap();
         let e = read_columns(&p, &["id"]).unwrap_err().to_string();
         assert!(e.contains("n.npy") && e.contains("truncated"), "{e}");
+    }
+
+    #[test]
+    fn truth_tables_hold_the_csv_values_in_every_format() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut sc = crate::sim::presets::preset("demo").unwrap();
+        sc.duration_s = 0.002;
+        let mut tables = Vec::new();
+        for fmt in [TableFormat::Csv, TableFormat::Parquet, TableFormat::Npy] {
+            let d = dir.path().join(fmt.ext());
+            let (summary, path) =
+                write_recording(&sc, 4, &d, crate::io::Format::Evt3, fmt, |_, _| {}).unwrap();
+            assert_eq!(path, d.join(fmt.file_name("truth_particles")));
+            assert_eq!(TableFormat::sniff(&path).unwrap(), fmt);
+            let t = crate::compare::read_table(&path, &[]).unwrap();
+            assert_eq!(t.rows() as u64, summary.stats.truth_samples);
+            assert_eq!(
+                t.names,
+                ["pulse", "t_us", "particle_id", "x", "y", "u", "v"]
+            );
+            tables.push(t);
+        }
+        assert!(tables[0].rows() > 100);
+        // The CSV rounds to its decimals; Parquet and .npy keep every bit.
+        let decimals = [0, 3, 0, 4, 4, 3, 3];
+        for (k, d) in decimals.iter().enumerate() {
+            let tol = 0.5 * 10f64.powi(-d) * (1.0 + 1e-9);
+            for (a, b) in tables[0].cols[k].iter().zip(&tables[1].cols[k]) {
+                assert!((a - b).abs() <= tol, "{}: {a} vs {b}", tables[0].names[k]);
+            }
+            assert_eq!(tables[1].cols[k], tables[2].cols[k]);
+        }
     }
 
     #[test]

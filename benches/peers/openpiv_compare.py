@@ -56,7 +56,7 @@ def ebptv_piv(exe, a, b, out, passes, repeat=1):
     (user + sys) of the whole child process (includes start-up and PNG
     decoding, so it favours OpenPIV)."""
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    r = subprocess.run([exe, "piv-images", *([a, b] * repeat), "--window", str(W), "--spacing", str(S),
+    r = subprocess.run([exe, "--table-format", "csv", "piv-images", *([a, b] * repeat), "--window", str(W), "--spacing", str(S),
                         "--passes", str(passes), "--out", out], capture_output=True, text=True)
     r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)

@@ -133,7 +133,7 @@ def rms(a):
 
 
 def run_ebptv(exe, files, out):
-    wall, cpu = timed([exe, "piv-images", *files, "--window", str(W), "--spacing", str(S),
+    wall, cpu = timed([exe, "--table-format", "csv", "piv-images", *files, "--window", str(W), "--spacing", str(S),
                        "--passes", "1", "--out", out])
     sq, valid, total = [], 0, 0
     for k in range(len(files) // 2):
@@ -175,7 +175,7 @@ def check_samples(exe, tmp):
             print(f"sample {name}: not shipped with this OpenPIV version; skipped")
             continue
         out = os.path.join(tmp, "sample_" + pa.split("/")[0])
-        r = subprocess.run([exe, "piv-images", a, b, "--window", str(W), "--spacing", str(S),
+        r = subprocess.run([exe, "--table-format", "csv", "piv-images", a, b, "--window", str(W), "--spacing", str(S),
                             "--passes", "1", "--out", out], capture_output=True, text=True)
         if r.returncode != 0:
             print(f"sample {name}: ebptv FAILED: {r.stderr.strip()}")

@@ -58,7 +58,9 @@ def cli_error(*args: str) -> str:
 def sim(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A simulated recording (the demo scene, 0.05 s, 250 pulses)."""
     out = tmp_path_factory.mktemp("sim")
-    cli_ok("simulate", "--preset", "demo", "--seconds", "0.05", "--seed", "3", "--out", str(out))
+    # The truth as CSV: ebptv.simulate writes truth_particles.csv too.
+    cli_ok("--table-format", "csv", "simulate", "--preset", "demo", "--seconds", "0.05", "--seed", "3",
+           "--out", str(out))
     return out / "recording.raw"
 
 

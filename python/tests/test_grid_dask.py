@@ -21,7 +21,9 @@ def test_grid_equals_ebptv_grid(sim_run: Path, tmp_path: Path) -> None:  # noqa:
                                  dict(bin=24, min_count=5, fit="linear"))]:
         out = tmp_path / ("g" + "".join(args))
         cli_ok("grid", str(sim_run / "tracks.csv"), "--out", str(out), "--no-plots", *args)
-        want = pd.read_csv(out / "grid.csv")
+        # The command's grid table is Parquet by default.
+        assert not (out / "grid.csv").exists()
+        want = pd.read_parquet(out / "grid.parquet")
         got = ebptv.grid(tracks, **kw, as_xarray=False)
         assert list(got.columns[:8]) == list(want.columns)
         assert len(got) == len(want)

@@ -62,10 +62,16 @@ polygons = [[[0, 0], [480, 0], [480, 40], [0, 40]]]
 """
 
 
+def read_table(out: Path, stem: str) -> pd.DataFrame:
+    """The table `stem` of a run: Parquet (the default) or CSV."""
+    pq = out / f"{stem}.parquet"
+    return pd.read_parquet(pq) if pq.exists() else pd.read_csv(out / f"{stem}.csv")
+
+
 def assert_piv_equals_cli_files(got: dict, out: Path) -> None:
-    pd.testing.assert_frame_equal(got["mean"], pd.read_csv(out / "piv_mean.csv"))
-    # (t_us is float; the file's whole microseconds read back as integers.)
-    pd.testing.assert_frame_equal(got["steps"], pd.read_csv(out / "piv_steps.csv"),
+    pd.testing.assert_frame_equal(got["mean"], read_table(out, "piv_mean"))
+    # (t_us is float; the CSV's whole microseconds read back as integers.)
+    pd.testing.assert_frame_equal(got["steps"], read_table(out, "piv_steps"),
                                   check_dtype=False)
     for name in ("u", "v", "flag"):
         want = np.load(out / f"piv_{name}.npy")
@@ -107,7 +113,7 @@ def test_piv_options_calibration_and_mask_equal_the_cli(tmp_path: Path) -> None:
     mask = tmp_path / "strut.png"
     write_png(mask, strut)
     out = tmp_path / "piv"
-    cli_ok("piv", str(rec), "--window", "24", "--frames", "4", "--step", "5", "--passes", "2",
+    cli_ok("--table-format", "csv", "piv", str(rec), "--window", "24", "--frames", "4", "--step", "5", "--passes", "2",
            "--sigma", "0.8", "--calibration", str(calib), "--mask", str(mask), "--out", str(out))
     got = ebptv.piv(rec, window=24, frames=4, step=5, passes=2, sigma=0.8, calibration=calib,
                     mask=mask)

@@ -5,10 +5,12 @@ use ebptv::compare::{compare_to_dir, CompareOptions};
 
 #[derive(Args, Debug)]
 pub struct CompareArgs {
-    /// PTV grid statistics (`grid.csv`: x,y,count,u,v,uu,vv,uv).
+    /// PTV grid statistics (the `grid` table of `ebptv grid`, any format:
+    /// x,y,count,u,v,uu,vv,uv).
     #[arg(long)]
     pub ptv: PathBuf,
-    /// PIV statistics (`piv_mean.csv`: x,y,u,v,uu,vv,uv,valid).
+    /// PIV statistics (the `piv_mean` table of `ebptv piv`, any format:
+    /// x,y,u,v,uu,vv,uv,valid).
     #[arg(long)]
     pub piv: PathBuf,
     /// Ignore PTV bins with fewer samples.

@@ -85,6 +85,11 @@ pub fn run(args: DemoArgs, tables: Option<TableFormat>) -> anyhow::Result<()> {
         ptv.join(format.file_name("tracks")),
         ptv.join(format.file_name("particles")),
     );
+    let (grid_table, piv_table, truth_table) = (
+        grid.join(format.file_name("grid")),
+        piv.join(format.file_name("piv_mean")),
+        sim.join(format.file_name("truth_particles")),
+    );
     // `ebptv [--table-format F] CMD …`
     let s = |v: &[&str]| {
         let mut line = vec![v[0].to_string()];
@@ -154,18 +159,18 @@ pub fn run(args: DemoArgs, tables: Option<TableFormat>) -> anyhow::Result<()> {
         "ebptv",
         "compare",
         "--ptv",
-        &p(&grid.join("grid.csv")),
+        &p(&grid_table),
         "--piv",
-        &p(&piv.join("piv_mean.csv")),
+        &p(&piv_table),
         "--out",
         &p(&cmp),
     ]))?;
 
     eprintln!(
         "\nscoring against the simulator's truth ({})",
-        p(&sim.join("truth_particles.csv"))
+        p(&truth_table)
     );
-    let truth = Truth::read(&sim.join("truth_particles.csv"))?;
+    let truth = Truth::read(&truth_table)?;
     let period = scenario.period_us();
 
     let pulses: serde_json::Value = serde_json::from_str(
@@ -176,8 +181,8 @@ pub fn run(args: DemoArgs, tables: Option<TableFormat>) -> anyhow::Result<()> {
     let radius = 1.0;
     let det = evaluate::score_particles(&particles, &truth, radius)?;
     let trk = evaluate::score_tracks(&tracks, &truth, period, radius)?;
-    let grid_score = evaluate::score_mean_field(&grid.join("grid.csv"), &truth, 16.0, 16.0, 20)?;
-    let piv_score = evaluate::score_mean_field(&piv.join("piv_mean.csv"), &truth, 32.0, 32.0, 20)?;
+    let grid_score = evaluate::score_mean_field(&grid_table, &truth, 16.0, 16.0, 20)?;
+    let piv_score = evaluate::score_mean_field(&piv_table, &truth, 32.0, 32.0, 20)?;
     let comparison: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(cmp.join("compare.json")).context("reading compare.json")?,
     )?;

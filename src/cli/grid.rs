@@ -98,7 +98,7 @@ pub struct GridArgs {
     /// Skip the PNG maps.
     #[arg(long)]
     pub no_plots: bool,
-    /// A `calib.toml`: grid.csv gains `X_mm,Y_mm,U_m_s,V_m_s,uu_m2_s2,
+    /// A `calib.toml`: the grid table gains `X_mm,Y_mm,U_m_s,V_m_s,uu_m2_s2,
     /// vv_m2_s2,uv_m2_s2` after the pixel columns, the maps are in m/s,
     /// and its [mask] applies as --mask does.
     #[arg(long)]
@@ -161,7 +161,7 @@ fn tracks_table(paths: Vec<PathBuf>) -> anyhow::Result<Vec<PathBuf>> {
     Ok(tables)
 }
 
-pub fn run(mut a: GridArgs) -> anyhow::Result<()> {
+pub fn run(mut a: GridArgs, tables: Option<ebptv::table::TableFormat>) -> anyhow::Result<()> {
     a.tracks = tracks_table(std::mem::take(&mut a.tracks))?;
     let (weighting, fit) = match (a.fit, a.weighting) {
         (FitArg::Gaussian, Some(WeightArg::Tophat)) => {
@@ -229,6 +229,7 @@ pub fn run(mut a: GridArgs) -> anyhow::Result<()> {
         plots: !a.no_plots,
         calibration: a.calibration,
         mask: a.mask,
+        table_format: tables.unwrap_or_default(),
     };
     let bar = indicatif::ProgressBar::hidden();
     let r = grid_to_dir(&opts, &a.out, &mut |p| match p {

@@ -27,8 +27,9 @@ pub mod track;
     after_help = "Start with `ebptv demo --out demo` (no data needed). On a recording: `ebptv info FILE`, then `ebptv pulses FILE --out DIR`, then `ebptv track FILE --out DIR`, then `ebptv grid` or `ebptv spectra` on its tracks table (tracks.parquet; `ebptv --table-format csv track …` writes CSV).\n\nExamples:\n  ebptv demo --out demo\n  ebptv info recording.raw\n  ebptv track recording.raw --out run1\n  ebptv grid run1/tracks.parquet --out run1/grid"
 )]
 pub struct Cli {
-    /// Format of the row tables the command writes (particles, tracks):
-    /// parquet (default), csv or npy. Placed right after `ebptv`, e.g.
+    /// Format of the row tables the command writes (particles, tracks,
+    /// grid, PIV means and vectors, simulated truth): parquet (default),
+    /// csv or npy. Placed right after `ebptv`, e.g.
     /// `ebptv --table-format csv track …`.
     #[arg(long, value_enum)]
     pub table_format: Option<ebptv::table::TableFormat>,
@@ -96,7 +97,7 @@ pub enum Command {
     PivImages(piv_images::PivImagesArgs),
     /// Compare PTV grid statistics with PIV statistics on the same grid.
     #[command(
-        after_help = "Use it after `ebptv grid` and `ebptv piv` on the same recording, to see where PTV and PIV statistics differ.\n\nExamples:\n  ebptv compare --ptv run1/grid/grid.csv --piv run1/piv/piv_mean.csv --out run1/compare"
+        after_help = "Use it after `ebptv grid` and `ebptv piv` on the same recording, to see where PTV and PIV statistics differ.\n\nExamples:\n  ebptv compare --ptv run1/grid/grid.parquet --piv run1/piv/piv_mean.parquet --out run1/compare"
     )]
     Compare(compare::CompareArgs),
     /// Model check: measured vs simulated signatures → the missing effects,
@@ -138,14 +139,14 @@ pub fn run(cli: Cli, command_line: &[String]) -> anyhow::Result<()> {
         Command::Demo(a) => demo::run(a, tables),
         Command::Info(a) => info::run(a),
         Command::Convert(a) => convert::run(a),
-        Command::Simulate(a) => simulate::run(a),
+        Command::Simulate(a) => simulate::run(a, tables),
         Command::Pulses(a) => pulses::run(a),
         Command::Monitor(a) => monitor::run(a),
         Command::Track(a) => track::run(a, tables, command_line),
-        Command::Grid(a) => grid::run(a),
+        Command::Grid(a) => grid::run(a, tables),
         Command::Spectra(a) => spectra::run(a),
-        Command::Piv(a) => piv::run(a),
-        Command::PivImages(a) => piv_images::run(a),
+        Command::Piv(a) => piv::run(a, tables),
+        Command::PivImages(a) => piv_images::run(a, tables),
         Command::Compare(a) => compare::run(a),
         Command::ModelCheck(a) => model_check::run(a),
     }?;

@@ -3,7 +3,7 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use clap::Args;
-use ebptv::piv::output::{write_mean_csv_calibrated, NpyStack};
+use ebptv::piv::output::{write_mean_table, write_steps_table, NpyStack};
 use ebptv::piv::{
     run_recording, NodeGrid, PivOptions, PivProgress, PivRunOptions, PivSink, PivStage, PixelMode,
     PseudoOptions, StepField,
@@ -78,7 +78,7 @@ pub struct PivArgs {
     /// `ebptv pulses`).
     #[arg(long)]
     pub force_pulses: bool,
-    /// A `calib.toml`: piv_mean.csv gains `X_mm,Y_mm,U_m_s,V_m_s,uu_m2_s2,
+    /// A `calib.toml`: the piv_mean table gains `X_mm,Y_mm,U_m_s,V_m_s,uu_m2_s2,
     /// vv_m2_s2,uv_m2_s2` after the pixel columns, the maps are in m/s,
     /// and its [mask] applies as --mask does.
     #[arg(long)]
@@ -88,8 +88,9 @@ pub struct PivArgs {
     /// vector (NaN, flag 4).
     #[arg(long)]
     pub mask: Option<PathBuf>,
-    /// Output folder: piv_mean.csv, piv_steps.csv and the per-step fields
-    /// piv_u.npy, piv_v.npy, piv_flag.npy.
+    /// Output folder: the piv_mean and piv_steps tables (.parquet; .csv,
+    /// .npy with --table-format) and the per-step fields piv_u.npy,
+    /// piv_v.npy, piv_flag.npy.
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -156,7 +157,7 @@ struct Shown {
     shown: Option<Instant>,
 }
 
-pub fn run(a: PivArgs) -> anyhow::Result<()> {
+pub fn run(a: PivArgs, tables: Option<ebptv::table::TableFormat>) -> anyhow::Result<()> {
     let size = std::fs::metadata(&a.recording).ok().map(|m| m.len());
     let bar = super::progress::file_bar(size, "pulse timing");
     let shown = Mutex::new(Shown::default());
@@ -230,14 +231,11 @@ pub fn run(a: PivArgs) -> anyhow::Result<()> {
         }
     }
     let g = run.grid;
-    let mut t = String::from("step,first_pulse,t_us\n");
-    for (k, (p, tu)) in run.steps.iter().enumerate() {
-        t.push_str(&format!("{k},{p},{tu}\n"));
-    }
-    ebptv::io::atomic::AtomicFile::write_all_to(a.out.join("piv_steps.csv"), t.as_bytes())?;
+    let format = tables.unwrap_or_default();
+    write_steps_table(&a.out, format, &run.steps)?;
     let rows = &run.mean;
     let calib = &run.calibration;
-    write_mean_csv_calibrated(&a.out.join("piv_mean.csv"), rows, calib.as_ref())?;
+    write_mean_table(&a.out, format, rows, calib.as_ref())?;
     let xr = (g.x(0), g.x(g.nx - 1));
     let yr = (g.y(0), g.y(g.ny - 1));
     // With a calibration the maps are in m/s (and m²/s²).

@@ -2,7 +2,7 @@ use std::path::PathBuf;
 
 use clap::Args;
 use ebptv::piv::images::{expand_inputs, load_frames};
-use ebptv::piv::output::write_vectors_csv;
+use ebptv::piv::output::write_vectors_table;
 use ebptv::piv::piv_frames;
 
 use super::piv::CorrelationArgs;
@@ -25,13 +25,14 @@ pub struct PivImagesArgs {
     /// Treat the list as a sequence (1-2, 2-3, ...) instead of pairs (1-2, 3-4, ...).
     #[arg(long)]
     pub sequence: bool,
-    /// Output folder: one vectors_NNNNN.csv (x,y,u,v,flag) per evaluation,
-    /// NNNNN its first frame.
+    /// Output folder: one vectors_NNNNN table (x,y,u,v,flag; .parquet, or
+    /// .csv / .npy with --table-format) per evaluation, NNNNN its first
+    /// frame.
     #[arg(long)]
     pub out: PathBuf,
 }
 
-pub fn run(a: PivImagesArgs) -> anyhow::Result<()> {
+pub fn run(a: PivImagesArgs, tables: Option<ebptv::table::TableFormat>) -> anyhow::Result<()> {
     if a.frames < 2 {
         anyhow::bail!("invalid parameter `frames`: {} (need at least 2)", a.frames);
     }
@@ -69,6 +70,7 @@ pub fn run(a: PivImagesArgs) -> anyhow::Result<()> {
             a.frames
         );
     }
+    let format = tables.unwrap_or_default();
     let step = if a.sequence { 1 } else { a.frames };
     let starts: Vec<usize> = (0..=imgs.len() - a.frames).step_by(step).collect();
     ebptv::io::atomic::create_output_dir(&a.out)?;
@@ -78,7 +80,7 @@ pub fn run(a: PivImagesArgs) -> anyhow::Result<()> {
     // The fields stay in memory until all are measured (a field is a few
     // kB; the images, already all loaded, are far larger), so that the
     // timing below is of the correlation alone — like a peer's call that
-    // returns arrays — and the CSV writing is timed on its own.
+    // returns arrays — and the table writing is timed on its own.
     let fields: Vec<_> = starts
         .par_iter()
         .map(|&s| -> anyhow::Result<_> {
@@ -90,15 +92,14 @@ pub fn run(a: PivImagesArgs) -> anyhow::Result<()> {
         .collect::<anyhow::Result<_>>()?;
     let dt = t0.elapsed().as_secs_f64();
     let cpu = process_cpu_seconds() - c0;
-    starts
-        .par_iter()
-        .zip(&fields)
-        .try_for_each(|(&s, f)| write_vectors_csv(&a.out.join(format!("vectors_{s:05}.csv")), f))?;
+    starts.par_iter().zip(&fields).try_for_each(|(&s, f)| {
+        write_vectors_table(&a.out, &format!("vectors_{s:05}"), format, f).map(|_| ())
+    })?;
     bar.finish_and_clear();
     let cpu_write = process_cpu_seconds() - c0 - cpu;
     let n: usize = fields.iter().map(|f| f.grid.len()).sum();
     eprintln!(
-        "{} field(s), {} vectors in {:.3} s ({:.0} vectors/s), {:.4} CPU-s ({:.0} vectors per CPU-s); CSV writing {:.4} CPU-s",
+        "{} field(s), {} vectors in {:.3} s ({:.0} vectors/s), {:.4} CPU-s ({:.0} vectors per CPU-s); table writing {:.4} CPU-s",
         starts.len(),
         n,
         dt,

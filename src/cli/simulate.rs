@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::Args;
 use ebptv::io::Format;
-use ebptv::sim::{presets, write_recording, Scenario};
+use ebptv::sim::{presets, Scenario};
 
 #[derive(Args, Debug)]
 pub struct SimulateArgs {
@@ -32,7 +32,7 @@ pub struct SimulateArgs {
     pub list_presets: bool,
 }
 
-pub fn run(a: SimulateArgs) -> anyhow::Result<()> {
+pub fn run(a: SimulateArgs, tables: Option<ebptv::table::TableFormat>) -> anyhow::Result<()> {
     if a.list_presets {
         for (name, what) in presets::PRESETS {
             println!("{name:16} {what}");
@@ -56,7 +56,14 @@ pub fn run(a: SimulateArgs) -> anyhow::Result<()> {
         "{msg} [{bar:40}] {pos}/{len} pulses ({eta})",
     ));
     bar.set_message(format!("simulating {}", sc.name));
-    let summary = write_recording(&sc, a.seed, &out, format, |done, _| bar.set_position(done))?;
+    let (summary, _) = ebptv::table::write_recording(
+        &sc,
+        a.seed,
+        &out,
+        format,
+        tables.unwrap_or_default(),
+        |done, _| bar.set_position(done),
+    )?;
     bar.finish_and_clear();
     println!(
         "{}: {} events ({:.1} Mev/s), {} pulses, {:.2} events per particle per pulse -> {}",

@@ -92,7 +92,13 @@ pub fn run(
     // Check the grid options before the (long) tracking run.
     let grid_cli = grid
         .map(|g| {
-            let mut argv = vec!["ebptv".to_string(), "grid".into()];
+            // The grid tables in the run's table format.
+            let mut argv = vec![
+                "ebptv".to_string(),
+                "--table-format".into(),
+                config.run.table_format.ext().into(),
+                "grid".into(),
+            ];
             let tracks = out.join(config.run.table_format.file_name("tracks"));
             argv.push(tracks.display().to_string());
             argv.extend(["--out".into(), out.join("grid").display().to_string()]);

@@ -11,6 +11,7 @@ use super::profiles::{profile_at_x, wall_fit, ProfilePoint, WallFit, WallOptions
 use super::{estimate, io as gio, BinOptions, EstimateOptions, GridAccumulator, Sample};
 use crate::error::{Error, Result};
 use crate::io::atomic::{create_output_dir, AtomicFile};
+use crate::table::TableFormat;
 
 /// Where [`grid_to_dir`] takes its statistics from.
 #[derive(Clone, Debug, PartialEq)]
@@ -56,12 +57,14 @@ pub struct GridDirOptions {
     pub fields_every: Option<usize>,
     /// Write the PNG maps.
     pub plots: bool,
-    /// A `calib.toml`: physical columns in `grid.csv`, maps in m/s, and its
+    /// A `calib.toml`: physical columns in the `grid` table, maps in m/s, and its
     /// mask applied.
     pub calibration: Option<PathBuf>,
     /// A mask image (non-zero = not flow); `None`: the `mask.png` beside a
     /// tracks table, when there is one.
     pub mask: Option<PathBuf>,
+    /// Format of the `grid` and `grid_extra` tables.
+    pub table_format: TableFormat,
 }
 
 /// What [`grid_to_dir`] reports to its progress callback as it goes.
@@ -98,8 +101,9 @@ pub struct GridDirRun {
 }
 
 /// Bin a tracks table (or merge grid states) and write into `out` (created
-/// if missing) what `ebptv grid` writes: `grid_state.json`, `grid.csv`,
-/// `grid_extra.csv`, the `grid_*.npy` arrays, the PNG maps, `grid.json`,
+/// if missing) what `ebptv grid` writes: `grid_state.json`, the `grid` and
+/// `grid_extra` tables (`.parquet`, `.csv` or `.npy`: `table_format`), the
+/// `grid_*.npy` arrays, the PNG maps, `grid.json`,
 /// and on request `profile.csv` and the time-resolved fields.
 pub fn grid_to_dir(
     opts: &GridDirOptions,
@@ -168,8 +172,8 @@ pub fn grid_to_dir(
     let mut g = estimate(&acc, est)?;
     let masked_bins = mask.as_ref().map(|m| g.apply_mask(m));
     gio::save_state(&out.join("grid_state.json"), &acc)?;
-    gio::write_grid_csv_calibrated(&out.join("grid.csv"), &g, calib.as_ref())?;
-    gio::write_extra_csv(&out.join("grid_extra.csv"), &g)?;
+    gio::write_grid_table(out, opts.table_format, &g, calib.as_ref())?;
+    gio::write_extra_table(out, opts.table_format, &g)?;
     gio::write_grid_npy(out, &g)?;
     if opts.plots {
         gio::write_maps_calibrated(out, &g, calib.as_ref())?;

@@ -1,11 +1,11 @@
-//! Grid files: the mergeable state (`grid_state.json`), `grid.csv`,
-//! `grid_extra.csv`, `profile.csv` and PNG maps.
+//! Grid files: the mergeable state (`grid_state.json`), the `grid` and
+//! `grid_extra` tables (Parquet, CSV or `.npy`), `profile.csv` and PNG maps.
 //!
 //! The state is JSON with only the non-empty bins; f64 values are written
 //! in shortest round-trip form so reading a state back reproduces the sums.
 
 use std::io::Write;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
@@ -15,6 +15,7 @@ use super::spec::GridSpec;
 use crate::calib::Calibration;
 use crate::error::{Error, Result};
 use crate::io::atomic::AtomicFile;
+use crate::table::{write_table, Col, TableFormat};
 
 const STATE_FORMAT: &str = "ebptv-grid-state";
 const STATE_VERSION: u32 = 1;
@@ -201,6 +202,133 @@ pub(crate) fn write_extra_csv(path: &Path, g: &GridStats) -> Result<()> {
     }
     f.write_all(s.as_bytes()).map_err(|e| Error::io(path, e))?;
     f.commit()
+}
+
+/// One row of the `grid` table: a bin's centre, its statistics and, with
+/// a calibration, their physical values.
+pub(crate) struct GridRow {
+    x: f64,
+    y: f64,
+    count: i64,
+    stats: [f64; 5],
+    phys: [f64; 7],
+}
+
+macro_rules! grid_cols {
+    ($($extra:expr),*) => {
+        [
+            Col::f64("x", |r: &GridRow| r.x),
+            Col::f64("y", |r: &GridRow| r.y),
+            Col::i64("count", |r: &GridRow| r.count),
+            Col::f64("u", |r: &GridRow| r.stats[0]),
+            Col::f64("v", |r: &GridRow| r.stats[1]),
+            Col::f64("uu", |r: &GridRow| r.stats[2]),
+            Col::f64("vv", |r: &GridRow| r.stats[3]),
+            Col::f64("uv", |r: &GridRow| r.stats[4]),
+            $($extra),*
+        ]
+    };
+}
+
+/// Columns of the `grid` table (px, px/s, (px/s)²).
+static GRID_COLUMNS: [Col<GridRow>; 8] = grid_cols!();
+/// [`GRID_COLUMNS`] and the physical columns of a calibration
+/// (`X_mm,Y_mm,U_m_s,V_m_s,uu_m2_s2,vv_m2_s2,uv_m2_s2`).
+static GRID_COLUMNS_CALIBRATED: [Col<GridRow>; 15] = grid_cols!(
+    Col::f64("X_mm", |r: &GridRow| r.phys[0]),
+    Col::f64("Y_mm", |r: &GridRow| r.phys[1]),
+    Col::f64("U_m_s", |r: &GridRow| r.phys[2]),
+    Col::f64("V_m_s", |r: &GridRow| r.phys[3]),
+    Col::f64("uu_m2_s2", |r: &GridRow| r.phys[4]),
+    Col::f64("vv_m2_s2", |r: &GridRow| r.phys[5]),
+    Col::f64("uv_m2_s2", |r: &GridRow| r.phys[6])
+);
+
+/// The rows of the `grid` table, by y then x.
+fn grid_rows<'a>(
+    g: &'a GridStats,
+    calib: Option<&'a Calibration>,
+) -> impl Iterator<Item = GridRow> + 'a {
+    g.ys.iter().enumerate().flat_map(move |(iy, &y)| {
+        g.xs.iter().enumerate().map(move |(ix, &x)| {
+            let b = g.at(ix, iy);
+            GridRow {
+                x,
+                y,
+                count: b.count as i64,
+                stats: [b.u, b.v, b.uu, b.vv, b.uv],
+                phys: calib.map_or([f64::NAN; 7], |c| {
+                    c.field_values(x, y, b.u, b.v, b.uu, b.vv, b.uv)
+                }),
+            }
+        })
+    })
+}
+
+/// The `grid` table (`grid.parquet`, `grid.csv` or `grid.npy`) in `dir`;
+/// with `calib` its physical columns after the pixel ones. The path
+/// written.
+pub(crate) fn write_grid_table(
+    dir: &Path,
+    format: TableFormat,
+    g: &GridStats,
+    calib: Option<&Calibration>,
+) -> Result<PathBuf> {
+    let cols: &'static [Col<GridRow>] = match calib {
+        Some(_) => &GRID_COLUMNS_CALIBRATED,
+        None => &GRID_COLUMNS,
+    };
+    write_table(dir, "grid", format, cols, grid_rows(g, calib), |p| {
+        write_grid_csv_calibrated(p, g, calib)
+    })
+}
+
+/// One row of the `grid_extra` table.
+pub(crate) struct ExtraRow {
+    x: f64,
+    y: f64,
+    n_tracks: i64,
+    vals: [f64; 9],
+    fit_params: i64,
+}
+
+/// Columns of the `grid_extra` table ([`EXTRA_HEADER`]).
+static EXTRA_COLUMNS: [Col<ExtraRow>; 13] = [
+    Col::f64("x", |r| r.x),
+    Col::f64("y", |r| r.y),
+    Col::i64("n_tracks", |r| r.n_tracks),
+    Col::f64("se_u", |r| r.vals[0]),
+    Col::f64("se_v", |r| r.vals[1]),
+    Col::f64("se_uu", |r| r.vals[2]),
+    Col::f64("se_vv", |r| r.vals[3]),
+    Col::f64("se_uv", |r| r.vals[4]),
+    Col::f64("dudx", |r| r.vals[5]),
+    Col::f64("dudy", |r| r.vals[6]),
+    Col::f64("dvdx", |r| r.vals[7]),
+    Col::f64("dvdy", |r| r.vals[8]),
+    Col::i64("fit_params", |r| r.fit_params),
+];
+
+/// The `grid_extra` table in `dir`, rows as in the `grid` table. The path
+/// written.
+pub(crate) fn write_extra_table(dir: &Path, format: TableFormat, g: &GridStats) -> Result<PathBuf> {
+    let rows = g.ys.iter().enumerate().flat_map(|(iy, &y)| {
+        g.xs.iter().enumerate().map(move |(ix, &x)| {
+            let b = g.at(ix, iy);
+            ExtraRow {
+                x,
+                y,
+                n_tracks: b.n_tracks as i64,
+                vals: [
+                    b.se_u, b.se_v, b.se_uu, b.se_vv, b.se_uv, b.dudx, b.dudy, b.dvdx, b.dvdy,
+                ],
+                fit_params: b.fit_params as i64,
+            }
+        })
+    });
+    write_table(dir, "grid_extra", format, &EXTRA_COLUMNS, rows, |p| {
+        write_extra_csv(p, g)
+    })
 }
 
 /// `.npy` arrays in `dir`: `grid_x.npy` (nx), `grid_y.npy` (ny) bin centres

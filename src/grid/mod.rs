@@ -24,11 +24,11 @@
 //!   inner scaling.
 //! * [`noise`]: the per-sample velocity noise from pairs of nearby
 //!   samples at one instant, and the dynamic velocity range.
-//! * [`io`]: the mergeable state file, `grid.csv`, `grid_extra.csv`, maps.
+//! * [`io`]: the mergeable state file, the `grid` and `grid_extra` tables, maps.
 //!
 //! Typical use: [`GridSpec::covering`] the samples' extent →
 //! `GridAccumulator::add` each sample (streaming, bounded memory) →
-//! [`estimate()`] → `io::write_grid_csv`. What `ebptv grid` writes
+//! [`estimate()`] → `io::write_grid_table`. What `ebptv grid` writes
 //! (tracks table or merged states → the grid folder) is one call:
 //! [`grid_to_dir`].
 

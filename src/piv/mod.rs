@@ -20,7 +20,8 @@
 //! * `pseudo` — pseudo-images and the frame ring.
 //! * [`images`] — PNG/TIFF input for `piv-images`.
 //! * [`synth`] — synthetic particle images with known displacement.
-//! * [`output`] — `piv_mean.csv`, per-frame CSV, `.npy` field stacks.
+//! * [`output`] — the `piv_mean`, `piv_steps` and per-frame vector tables
+//!   (Parquet, CSV or `.npy`), `.npy` field stacks.
 //! * `run` — `ebptv piv` on a recording, fields to a sink ([`run_recording`]).
 //!
 //! Only `N_f` images are ever in memory: a 10 s recording at 10 kHz is
@@ -93,7 +94,7 @@ pub struct FieldStats {
     suv: Vec<f64>,
 }
 
-/// One row of `piv_mean.csv`.
+/// One row of the `piv_mean` table.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MeanRow {
     /// Node x (px).

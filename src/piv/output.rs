@@ -1,5 +1,5 @@
-//! PIV output files: `piv_mean.csv`, per-frame vector CSV and `.npy`
-//! stacks of the fields at every step. Everything goes through
+//! PIV output files: the `piv_mean` and `piv_steps` tables, per-frame
+//! vector tables (Parquet, CSV or `.npy`) and `.npy` stacks of the fields at every step. Everything goes through
 //! [`AtomicFile`].
 //!
 //! The `.npy` stack is written while streaming: the number of steps is only
@@ -14,6 +14,7 @@ use std::path::{Path, PathBuf};
 use super::{MeanRow, VectorField};
 use crate::error::{Error, Result};
 use crate::io::atomic::AtomicFile;
+use crate::table::{write_table, Col, TableFormat};
 
 fn fmt(v: f64) -> String {
     if v.is_finite() {
@@ -86,6 +87,137 @@ pub fn write_vectors_csv(path: &Path, f: &VectorField) -> Result<()> {
         .map_err(io)?;
     }
     out.commit()
+}
+
+/// One row of the `piv_mean` table: a node's statistics and, with a
+/// calibration, their physical values.
+struct MeanTableRow {
+    r: MeanRow,
+    phys: [f64; 7],
+}
+
+macro_rules! mean_cols {
+    ($($extra:expr),*) => {
+        [
+            Col::f64("x", |m: &MeanTableRow| m.r.x),
+            Col::f64("y", |m: &MeanTableRow| m.r.y),
+            Col::f64("u", |m: &MeanTableRow| m.r.u),
+            Col::f64("v", |m: &MeanTableRow| m.r.v),
+            Col::f64("uu", |m: &MeanTableRow| m.r.uu),
+            Col::f64("vv", |m: &MeanTableRow| m.r.vv),
+            Col::f64("uv", |m: &MeanTableRow| m.r.uv),
+            Col::f64("valid", |m: &MeanTableRow| m.r.valid),
+            $($extra),*
+        ]
+    };
+}
+
+/// Columns of the `piv_mean` table (px, px/s, (px/s)², fraction).
+static MEAN_COLUMNS: [Col<MeanTableRow>; 8] = mean_cols!();
+/// [`MEAN_COLUMNS`] and the physical columns of a calibration.
+static MEAN_COLUMNS_CALIBRATED: [Col<MeanTableRow>; 15] = mean_cols!(
+    Col::f64("X_mm", |m: &MeanTableRow| m.phys[0]),
+    Col::f64("Y_mm", |m: &MeanTableRow| m.phys[1]),
+    Col::f64("U_m_s", |m: &MeanTableRow| m.phys[2]),
+    Col::f64("V_m_s", |m: &MeanTableRow| m.phys[3]),
+    Col::f64("uu_m2_s2", |m: &MeanTableRow| m.phys[4]),
+    Col::f64("vv_m2_s2", |m: &MeanTableRow| m.phys[5]),
+    Col::f64("uv_m2_s2", |m: &MeanTableRow| m.phys[6])
+);
+
+/// The `piv_mean` table (`piv_mean.parquet`, `.csv` or `.npy`) in `dir`:
+/// the columns of [`mean_csv`], physical ones with `calib`. The path
+/// written.
+pub fn write_mean_table(
+    dir: &Path,
+    format: TableFormat,
+    rows: &[MeanRow],
+    calib: Option<&crate::calib::Calibration>,
+) -> Result<PathBuf> {
+    let cols: &'static [Col<MeanTableRow>] = match calib {
+        Some(_) => &MEAN_COLUMNS_CALIBRATED,
+        None => &MEAN_COLUMNS,
+    };
+    let table = rows.iter().map(|&r| MeanTableRow {
+        r,
+        phys: calib.map_or([f64::NAN; 7], |c| {
+            c.field_values(r.x, r.y, r.u, r.v, r.uu, r.vv, r.uv)
+        }),
+    });
+    write_table(dir, "piv_mean", format, cols, table, |p| {
+        write_mean_csv_calibrated(p, rows, calib)
+    })
+}
+
+/// One row of the `piv_steps` table: step index, its first pulse, its
+/// time (µs).
+struct StepRow(i64, i64, f64);
+
+static STEP_COLUMNS: [Col<StepRow>; 3] = [
+    Col::i64("step", |r| r.0),
+    Col::i64("first_pulse", |r| r.1),
+    Col::f64("t_us", |r| r.2),
+];
+
+/// The text of `piv_steps.csv`: `step,first_pulse,t_us` per field.
+pub fn steps_csv(steps: &[(i64, f64)]) -> String {
+    let mut t = String::from("step,first_pulse,t_us\n");
+    for (k, (p, tu)) in steps.iter().enumerate() {
+        t.push_str(&format!("{k},{p},{tu}\n"));
+    }
+    t
+}
+
+/// The `piv_steps` table in `dir` (`step,first_pulse,t_us` of every
+/// field). The path written.
+pub fn write_steps_table(dir: &Path, format: TableFormat, steps: &[(i64, f64)]) -> Result<PathBuf> {
+    let rows = steps
+        .iter()
+        .enumerate()
+        .map(|(k, &(p, t))| StepRow(k as i64, p, t));
+    write_table(dir, "piv_steps", format, &STEP_COLUMNS, rows, |p| {
+        AtomicFile::write_all_to(p, steps_csv(steps).as_bytes())
+    })
+}
+
+/// One row of a per-frame vectors table.
+struct VectorRow {
+    x: f64,
+    y: f64,
+    u: f64,
+    v: f64,
+    flag: i64,
+}
+
+static VECTOR_COLUMNS: [Col<VectorRow>; 5] = [
+    Col::f64("x", |r| r.x),
+    Col::f64("y", |r| r.y),
+    Col::f64("u", |r| r.u),
+    Col::f64("v", |r| r.v),
+    Col::i64("flag", |r| r.flag),
+];
+
+/// A per-frame vectors table `stem.parquet` (`.csv`, `.npy`) in `dir`:
+/// the columns of [`write_vectors_csv`]. The path written.
+pub fn write_vectors_table(
+    dir: &Path,
+    stem: &str,
+    format: TableFormat,
+    f: &VectorField,
+) -> Result<PathBuf> {
+    let rows = (0..f.grid.len()).map(|k| {
+        let (i, j) = (k % f.grid.nx, k / f.grid.nx);
+        VectorRow {
+            x: f.grid.x(i),
+            y: f.grid.y(j),
+            u: f.u[k],
+            v: f.v[k],
+            flag: f.flags[k] as i64,
+        }
+    });
+    write_table(dir, stem, format, &VECTOR_COLUMNS, rows, |p| {
+        write_vectors_csv(p, f)
+    })
 }
 
 /// NPY v1.0 header for a C-order array (see [`crate::io::npy`]).
@@ -197,6 +329,75 @@ impl Drop for NpyStack {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Same columns; values equal bit for bit (NaN equal to NaN).
+    fn assert_same(a: &crate::compare::Table, b: &crate::compare::Table) {
+        assert_eq!(a.names, b.names);
+        for (x, y) in a.cols.iter().zip(&b.cols) {
+            assert_eq!(x.len(), y.len());
+            for (p, q) in x.iter().zip(y) {
+                assert!(
+                    p.to_bits() == q.to_bits() || (p.is_nan() && q.is_nan()),
+                    "{p} {q}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn mean_and_steps_tables_hold_the_csv_values_in_every_format() {
+        let dir = tempfile::tempdir().unwrap();
+        let rows: Vec<MeanRow> = (0..40)
+            .map(|i| {
+                let f = i as f64;
+                MeanRow {
+                    x: 16.0 * (i % 8) as f64,
+                    y: 16.0 * (i / 8) as f64,
+                    u: if i % 7 == 3 {
+                        f64::NAN
+                    } else {
+                        1.0 / (f + 0.3)
+                    },
+                    v: -f * 1e5 / 3.0,
+                    uu: f.sqrt(),
+                    vv: 1e-300 * f,
+                    uv: -0.1 * f,
+                    valid: f / 40.0,
+                }
+            })
+            .collect();
+        let steps: Vec<(i64, f64)> = (0..9).map(|k| (5 * k, 200.0 * k as f64 + 0.125)).collect();
+        let calib = crate::calib::Calibration {
+            px_per_mm: 12.5,
+            origin_px: [10.0, 5.0],
+            y_axis: crate::calib::YAxis::Up,
+            mask: None,
+        };
+        for cal in [None, Some(&calib)] {
+            let mut tables = Vec::new();
+            for fmt in [TableFormat::Csv, TableFormat::Parquet, TableFormat::Npy] {
+                let d = dir.path().join(format!("{fmt:?}{}", cal.is_some()));
+                std::fs::create_dir_all(&d).unwrap();
+                let m = write_mean_table(&d, fmt, &rows, cal).unwrap();
+                let s = write_steps_table(&d, fmt, &steps).unwrap();
+                assert_eq!(m, d.join(fmt.file_name("piv_mean")));
+                assert_eq!(crate::table::TableFormat::sniff(&m).unwrap(), fmt);
+                if fmt == TableFormat::Csv {
+                    assert_eq!(std::fs::read_to_string(&m).unwrap(), mean_csv(&rows, cal));
+                }
+                tables.push((
+                    crate::compare::read_table(&m, &[]).unwrap(),
+                    crate::compare::read_table(&s, &[]).unwrap(),
+                ));
+            }
+            assert_eq!(tables[0].0.names.len(), if cal.is_some() { 15 } else { 8 });
+            assert_eq!(tables[0].1.names, ["step", "first_pulse", "t_us"]);
+            for t in &tables[1..] {
+                assert_same(&tables[0].0, &t.0);
+                assert_same(&tables[0].1, &t.1);
+            }
+        }
+    }
 
     #[test]
     fn npy_header_is_aligned_and_parsable() {

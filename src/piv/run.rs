@@ -122,7 +122,7 @@ pub struct PivRun {
     pub pulse_hz: f64,
     /// `(first_pulse, t_us)` of every field (`piv_steps.csv`).
     pub steps: Vec<(i64, f64)>,
-    /// The mean statistics per node, rows by y then x (`piv_mean.csv`).
+    /// The mean statistics per node, rows by y then x (the `piv_mean` table).
     pub mean: Vec<MeanRow>,
     /// The calibration of [`PivRunOptions::calibration`].
     pub calibration: Option<Calibration>,

@@ -41,8 +41,11 @@ fn demo_runs_every_stage_and_scores_against_truth() {
     for step in [
         "sim/recording.raw",
         "ptv/tracks.parquet",
-        "grid/grid.csv",
-        "piv/piv_mean.csv",
+        "sim/truth_particles.parquet",
+        "grid/grid.parquet",
+        "grid/grid_extra.parquet",
+        "piv/piv_mean.parquet",
+        "piv/piv_steps.parquet",
         "compare/compare.json",
     ] {
         assert!(out.join(step).exists(), "{step} missing");

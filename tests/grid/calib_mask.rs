@@ -8,8 +8,16 @@ use std::process::Command;
 use ebptv::calib::PixelMask;
 use ebptv::sim::scenario::{FlowSpec, HotPixels, Scenario};
 
+/// `ebptv ARGS`; `grid` writes its tables as CSV here (the files these
+/// cases read as text).
 fn ebptv(args: &[&str]) -> String {
+    let csv: &[&str] = if args.first() == Some(&"grid") {
+        &["--table-format", "csv"]
+    } else {
+        &[]
+    };
     let o = Command::new(env!("CARGO_BIN_EXE_ebptv"))
+        .args(csv)
         .args(args)
         .output()
         .unwrap();
@@ -365,7 +373,7 @@ fn bad_calibration_files_are_named_with_their_key() {
         let err = String::from_utf8_lossy(&o.stderr);
         assert!(!o.status.success(), "{name}");
         assert!(err.contains(name) && err.contains(want), "{name}: {err}");
-        assert!(!out.join("grid.csv").exists(), "{name}");
+        assert!(!out.join("grid.parquet").exists(), "{name}");
     }
     let o = Command::new(env!("CARGO_BIN_EXE_ebptv"))
         .args(["grid", tracks.to_str().unwrap(), "--mask"])
@@ -379,5 +387,5 @@ fn bad_calibration_files_are_named_with_their_key() {
         !o.status.success() && err.contains("not_a.png") && err.contains("PNG"),
         "{err}"
     );
-    assert!(!d.join("out_png/grid.csv").exists());
+    assert!(!d.join("out_png/grid.parquet").exists());
 }

@@ -5,6 +5,8 @@ use crate::grid_common::*;
 
 use std::path::Path;
 
+use ebptv::table::TableFormat;
+
 use ebptv::grid::{
     self, grid_to_dir, EstimateOptions, Fit, GridDirOptions, GridInput, GridProgress, Sample,
 };
@@ -26,6 +28,7 @@ fn options(input: GridInput) -> GridDirOptions {
         plots: false,
         calibration: None,
         mask: None,
+        table_format: TableFormat::Csv,
     }
 }
 
@@ -174,4 +177,63 @@ fn grid_to_dir_refuses_before_writing() {
     for o in ["o1", "o2", "o3"] {
         assert!(!d.join(o).exists(), "{o} was created");
     }
+}
+
+/// Same-valued columns, NaN equal to NaN, bit for bit otherwise.
+fn assert_same_table(a: &ebptv::compare::Table, b: &ebptv::compare::Table, what: &str) {
+    assert_eq!(a.names, b.names, "{what}");
+    for (n, (x, y)) in a.names.iter().zip(a.cols.iter().zip(&b.cols)) {
+        assert_eq!(x.len(), y.len(), "{what} {n}");
+        for (i, (p, q)) in x.iter().zip(y).enumerate() {
+            assert!(
+                p.to_bits() == q.to_bits() || (p.is_nan() && q.is_nan()),
+                "{what} {n} row {i}: {p} vs {q}"
+            );
+        }
+    }
+}
+
+/// The `grid` and `grid_extra` tables in Parquet and `.npy` hold the
+/// columns and values of the CSV of the same run (the CSV writes every
+/// value in shortest round-trip form, so equal means bit for bit), under
+/// the format's own extension only.
+#[test]
+fn grid_tables_in_every_format_hold_the_csv_values() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let flow = Shear {
+        u0: 300.0,
+        shear: 2.0,
+        su: 40.0,
+        sv: 25.0,
+        rho: -0.4,
+    };
+    // Wider than the tracks: the edge bins stay empty.
+    let s = flow.tracks(200.0, 120.0, 3000, 10, 100.0, 0.8, 5);
+    write_tracks(&d.join("all.csv"), &s);
+    let run = |fmt: TableFormat| {
+        let out = d.join(fmt.ext());
+        let mut o = options(GridInput::Tracks(d.join("all.csv")));
+        o.table_format = fmt;
+        grid_to_dir(&o, &out, &mut |_| {}).unwrap();
+        out
+    };
+    let csv = run(TableFormat::Csv);
+    for fmt in [TableFormat::Parquet, TableFormat::Npy] {
+        let out = run(fmt);
+        for stem in ["grid", "grid_extra"] {
+            let want = ebptv::compare::read_table(&csv.join(format!("{stem}.csv")), &[]).unwrap();
+            let got = ebptv::compare::read_table(&out.join(fmt.file_name(stem)), &[]).unwrap();
+            assert!(want.rows() > 50 && want.names.len() >= 8, "{stem}");
+            assert_same_table(&want, &got, &format!("{fmt:?} {stem}"));
+            assert!(!out.join(format!("{stem}.csv")).exists());
+        }
+        assert!(want_nan_bins(&out.join(fmt.file_name("grid"))));
+    }
+}
+
+/// The table has empty bins (NaN means), so NaN goes through the format.
+fn want_nan_bins(path: &Path) -> bool {
+    let t = ebptv::compare::read_table(path, &["u"]).unwrap();
+    t.col("u").unwrap().iter().any(|u| u.is_nan())
 }

@@ -39,10 +39,10 @@ fn png_frames(
         .collect()
 }
 
-/// `ebptv piv-images IMAGES… OPTIONS… --out OUT`.
+/// `ebptv --table-format csv piv-images IMAGES… OPTIONS… --out OUT`.
 fn piv_images(images: &[&Path], options: &[&str], out: &Path) -> Output {
     let mut cmd = ebptv();
-    cmd.arg("piv-images")
+    cmd.args(["--table-format", "csv", "piv-images"])
         .args(images)
         .args(options)
         .arg("--out")
@@ -180,7 +180,7 @@ fn piv_on_a_recording_without_pulses_is_a_clear_error() {
     let err = String::from_utf8_lossy(&r.stderr);
     assert!(!r.status.success());
     assert!(err.contains("no pulse"), "{err}");
-    assert!(!out.join("piv_mean.csv").exists());
+    assert!(!out.join("piv_mean.parquet").exists());
 }
 
 /// The pyramid depth is checked against the frames before any work.

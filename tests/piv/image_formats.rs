@@ -29,10 +29,11 @@ fn scaled(im: &Image, max: f32) -> Vec<f32> {
     im.data.iter().map(|v| (v / top * max).round()).collect()
 }
 
-/// `ebptv piv-images ARGS… --window 32 --spacing 16 --out OUT`.
+/// `ebptv --table-format csv piv-images ARGS… --window 32 --spacing 16
+/// --out OUT`.
 fn run(args: &[&str], out: &Path) -> Output {
     Command::new(env!("CARGO_BIN_EXE_ebptv"))
-        .arg("piv-images")
+        .args(["--table-format", "csv", "piv-images"])
         .args(args)
         .args(["--window", "32", "--spacing", "16", "--out"])
         .arg(out)

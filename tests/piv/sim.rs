@@ -31,6 +31,8 @@ fn simulated_vortex_recording_mean_field_within_2_percent() {
     ]));
     let out = dir.path().join("piv");
     run_ok(ebptv().args([
+        "--table-format",
+        "csv",
         "piv",
         sim.join("recording.raw").to_str().unwrap(),
         "--window",
@@ -90,6 +92,8 @@ fn simulated_vortex_recording_mean_field_within_2_percent() {
     for (threads, batch) in [("1", "1"), ("2", "3")] {
         let again = dir.path().join(format!("piv_{threads}_{batch}"));
         run_ok(ebptv().env("RAYON_NUM_THREADS", threads).args([
+            "--table-format",
+            "csv",
             "piv",
             sim.join("recording.raw").to_str().unwrap(),
             "--window",

@@ -110,7 +110,7 @@ fn fast_vortex_core_is_tracked() {
     let ptv = dir.path().join("ptv");
     let rec = sim.join("recording.raw");
     ebptv(&["track", rec.to_str().unwrap()], &ptv);
-    let truth = sim.join("truth_particles.csv");
+    let truth = sim.join("truth_particles.parquet");
     let tracks = ptv.join("tracks.parquet");
 
     // Inside the core radius (60 px): with the line-only young predictor

@@ -11,7 +11,15 @@ fn simulate_writes_recording_truth_scenario_and_summary() {
     for format in ["csv", "evt3"] {
         let dir = tempfile::tempdir().unwrap();
         let out = dir.path().join("sim");
+        // The truth table as CSV with CSV events, Parquet (the default)
+        // otherwise.
+        let tables: &[&str] = if format == "csv" {
+            &["--table-format", "csv"]
+        } else {
+            &[]
+        };
         let r = ebptv()
+            .args(tables)
             .args([
                 "simulate",
                 "--preset",
@@ -50,11 +58,23 @@ fn simulate_writes_recording_truth_scenario_and_summary() {
         assert_eq!(summary["pulses"].as_u64().unwrap(), 20);
         let epp = summary["events_per_particle_per_pulse"].as_f64().unwrap();
         assert!((1.5..2.5).contains(&epp), "{epp}");
-        let truth = std::fs::read_to_string(out.join("truth_particles.csv")).unwrap();
-        let mut lines = truth.lines();
-        assert_eq!(lines.next().unwrap(), "pulse,t_us,particle_id,x,y,u,v");
+        let truth_rows = if format == "csv" {
+            assert!(!out.join("truth_particles.parquet").exists());
+            let truth = std::fs::read_to_string(out.join("truth_particles.csv")).unwrap();
+            let mut lines = truth.lines();
+            assert_eq!(lines.next().unwrap(), "pulse,t_us,particle_id,x,y,u,v");
+            lines.count()
+        } else {
+            assert!(!out.join("truth_particles.csv").exists());
+            let t = ebptv::compare::read_table(&out.join("truth_particles.parquet"), &[]).unwrap();
+            assert_eq!(
+                t.names,
+                ["pulse", "t_us", "particle_id", "x", "y", "u", "v"]
+            );
+            t.rows()
+        };
         assert_eq!(
-            lines.count() as u64,
+            truth_rows as u64,
             summary["truth_samples"].as_u64().unwrap()
         );
         let sc = ebptv::sim::Scenario::from_toml_file(out.join("scenario.toml")).unwrap();

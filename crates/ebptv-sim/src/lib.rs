@@ -76,7 +76,9 @@ pub(crate) mod seeding;
 pub mod simd;
 
 pub use flow::Flow;
-pub use record::{write_recording, RecordingSummary};
+pub use record::{
+    write_recording, write_recording_with, RecordingSummary, TruthTable, TruthTableMaker,
+};
 pub use scenario::{Scenario, EFFECT_NAMES};
 
 use ebptv_io::error::{Error, Result};

@@ -5,7 +5,8 @@
 //! Files (the contract of `ebptv simulate`):
 //! - `recording.raw` (EVT 3.0 with trigger words; EVT 2.0 also `.raw`),
 //!   `recording.csv` or `recording.npy`, depending on the format;
-//! - `truth_particles.csv`: `pulse,t_us,particle_id,x,y,u,v` — one row per
+//! - `truth_particles.csv` (or another table: [`write_recording_with`]):
+//!   `pulse,t_us,particle_id,x,y,u,v` — one row per
 //!   lit particle per pulse with its image centre in the ROI (px, px/s;
 //!   `t_us` the pulse start);
 //! - `scenario.toml`: the scenario as simulated (after `--seconds`);
@@ -618,6 +619,41 @@ pub fn write_recording(
     seed: u64,
     dir: &Path,
     format: Format,
+    progress: impl FnMut(u64, u64),
+) -> Result<RecordingSummary> {
+    write_recording_with(sc, seed, dir, format, None, progress)
+}
+
+/// A writer of the truth table other than `truth_particles.csv` (e.g.
+/// Parquet): rows in blocks, in order, then committed.
+pub trait TruthTable: Send {
+    /// Appends `rows`.
+    fn write(&mut self, rows: &[TruthSample]) -> Result<()>;
+    /// Writes the end and gives the file its final name. A writer dropped
+    /// without it leaves no file.
+    fn finish(self: Box<Self>) -> Result<()>;
+}
+
+/// Makes the [`TruthTable`] of a recording's folder.
+pub type TruthTableMaker<'a> = &'a (dyn Fn(&Path) -> Result<Box<dyn TruthTable>> + Sync);
+
+impl TruthTable for TruthWriter {
+    fn write(&mut self, rows: &[TruthSample]) -> Result<()> {
+        TruthWriter::write(self, rows)
+    }
+    fn finish(self: Box<Self>) -> Result<()> {
+        TruthWriter::finish(*self)
+    }
+}
+
+/// [`write_recording`] with the truth written by `truth` (made from
+/// `dir`) instead of `truth_particles.csv` when given.
+pub fn write_recording_with(
+    sc: &Scenario,
+    seed: u64,
+    dir: &Path,
+    format: Format,
+    truth: Option<TruthTableMaker<'_>>,
     mut progress: impl FnMut(u64, u64),
 ) -> Result<RecordingSummary> {
     std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
@@ -656,8 +692,14 @@ pub fn write_recording(
             Ok(())
         });
         let truth_thread = scope.spawn(move || -> Result<()> {
-            let mut truth = TruthWriter::create(dir.join("truth_particles.csv"))?;
-            truth.set_particle_slots(particle_slots);
+            let mut truth: Box<dyn TruthTable> = match truth {
+                Some(make) => make(dir)?,
+                None => {
+                    let mut w = TruthWriter::create(dir.join("truth_particles.csv"))?;
+                    w.set_particle_slots(particle_slots);
+                    Box::new(w)
+                }
+            };
             for msg in truth_rx.iter() {
                 match msg {
                     Msg::Block(rows) => {
