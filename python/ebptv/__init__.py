@@ -62,7 +62,8 @@ TRACKS_COLUMNS = ["track_id", "pulse", "t_us", "x", "y", "u", "v"]
 #: Columns a calibration adds to the tracks (mm, m/s).
 TRACKS_PHYSICAL_COLUMNS = ["X_mm", "Y_mm", "U_m_s", "V_m_s"]
 
-#: Columns of ``grid.csv`` (px, px/s, (px/s)²); rows ordered by y then x.
+#: Columns of the ``grid`` table (``grid.parquet``, ``.csv`` or ``.npy``):
+#: px, px/s, (px/s)²; rows ordered by y then x.
 GRID_COLUMNS = ["x", "y", "count", "u", "v", "uu", "vv", "uv"]
 #: The defaults of ``ebptv grid`` (read from the library): ``bin``,
 #: ``overlap``, ``origin``, ``weighting``, ``fit``, ``min_count``,
@@ -272,7 +273,7 @@ def grid_estimate(
     min_count: Optional[int] = None,
     noise_rms: Optional[float] = None,
 ) -> pd.DataFrame:
-    """The statistics of a grid state: the ``grid.csv`` columns
+    """The statistics of a grid state: the ``grid`` table's columns
     (``x, y, count, u, v, uu, vv, uv``; empty bins NaN) plus ``n_tracks``.
     ``fit``: ``"none"`` (bin mean), ``"linear"`` or ``"quadratic"``; the
     defaults are those of ``ebptv grid``. ``attrs`` holds ``nx`` and ``ny``."""
@@ -309,7 +310,7 @@ def grid(
     xarray is installed and a DataFrame otherwise; ``True`` always a
     Dataset (``ImportError`` without xarray); ``False`` always a DataFrame.
 
-    The DataFrame is ``ebptv grid``'s ``grid.csv`` (see
+    The DataFrame is ``ebptv grid``'s ``grid`` table (see
     :func:`grid_estimate`): rows by y then x, ``attrs`` ``nx`` and ``ny``.
     The Dataset holds the same values on dimensions ``(y, x)`` (bin
     centres, px, as coordinates): ``count``, ``u``, ``v`` (px/s), ``uu``,
@@ -530,9 +531,9 @@ def model_check(
 #: ``force_pulses``.
 PIV_DEFAULTS: Dict[str, Any] = dict(_ebptv.PIV_DEFAULTS)
 
-#: Columns of ``piv_mean.csv`` (px, px/s, (px/s)², fraction of valid steps).
+#: Columns of the ``piv_mean`` table (px, px/s, (px/s)², fraction of valid steps).
 PIV_MEAN_COLUMNS = ["x", "y", "u", "v", "uu", "vv", "uv", "valid"]
-#: Columns of ``piv_steps.csv``.
+#: Columns of the ``piv_steps`` table.
 PIV_STEPS_COLUMNS = ["step", "first_pulse", "t_us"]
 
 
@@ -571,10 +572,10 @@ def piv(
 
     Returns a dict:
 
-    - ``"mean"``: ``piv_mean.csv`` as a DataFrame (:data:`PIV_MEAN_COLUMNS`,
+    - ``"mean"``: the ``piv_mean`` table as a DataFrame (:data:`PIV_MEAN_COLUMNS`,
       then ``X_mm, Y_mm, U_m_s, V_m_s, uu_m2_s2, vv_m2_s2, uv_m2_s2`` with a
       calibration);
-    - ``"steps"``: ``piv_steps.csv`` (:data:`PIV_STEPS_COLUMNS`);
+    - ``"steps"``: the ``piv_steps`` table (:data:`PIV_STEPS_COLUMNS`);
     - ``"u"``, ``"v"`` (float32, px/s) and ``"flag"`` (uint8, 0 = valid):
       the fields of every step, shape ``(steps, ny, nx)``, as
       ``piv_u.npy``, ``piv_v.npy``, ``piv_flag.npy``; ``"x"`` (nx) and

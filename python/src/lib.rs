@@ -654,7 +654,7 @@ fn grid_merge(py: Python<'_>, states: Vec<String>) -> PyResult<String> {
     .map_err(err)
 }
 
-/// The statistics of a grid state as the columns of `grid.csv`.
+/// The statistics of a grid state as the columns of the `grid` table.
 #[pyfunction]
 fn grid_estimate<'py>(
     py: Python<'py>,
