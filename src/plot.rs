@@ -1044,6 +1044,9 @@ fn render_polylines(p: &Polylines, size: (u32, u32)) -> Result<Vec<u8>> {
 
 #[cfg(test)]
 mod tests {
+    // The figure builders drawn into images (src/plot/tests/figures.rs).
+    mod figures;
+
     use super::*;
 
     fn pixel(buf: &[u8], w: u32, x: i32, y: i32) -> (u8, u8, u8) {

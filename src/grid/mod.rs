@@ -210,3 +210,6 @@ pub fn accumulate(
     }
     Ok(acc)
 }
+
+#[cfg(test)]
+mod tests;

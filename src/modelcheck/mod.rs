@@ -30,3 +30,6 @@ pub mod scene;
 pub mod signatures;
 pub mod standard;
 pub mod workflow;
+
+#[cfg(test)]
+mod tests;

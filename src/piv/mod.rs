@@ -429,3 +429,6 @@ impl PivStream {
         Ok(())
     }
 }
+
+#[cfg(test)]
+mod tests;

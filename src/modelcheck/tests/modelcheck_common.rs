@@ -5,8 +5,8 @@
 
 use std::collections::BTreeMap;
 
-use ebptv::modelcheck::workflow::EffectSetting;
-use ebptv::sim::scenario::{Scenario, Sensor};
+use crate::modelcheck::workflow::EffectSetting;
+use crate::sim::scenario::{Scenario, Sensor};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 
@@ -23,7 +23,7 @@ pub fn base() -> Scenario {
         ..Scenario::default()
     };
     s.seeding.ppp = 0.006;
-    s.light.energy = ebptv::sim::presets::WATER_ENERGY;
+    s.light.energy = crate::sim::presets::WATER_ENERGY;
     s
 }
 
