@@ -45,7 +45,7 @@ impl EventSource for Replay {
 
 /// A scene simulated into memory: its event chunks, stream description,
 /// flow and truth.
-pub struct Recorded {
+pub(crate) struct Recorded {
     pub chunks: Vec<Chunk>,
     pub info: StreamInfo,
     pub flow: Flow,
@@ -53,7 +53,7 @@ pub struct Recorded {
 }
 
 /// Simulate `sc` with `seed` into memory.
-pub fn record(sc: &Scenario, seed: u64) -> Recorded {
+pub(crate) fn record(sc: &Scenario, seed: u64) -> Recorded {
     let mut sim = Simulator::new(sc, seed).unwrap();
     let info = sim.info().clone();
     let flow = sim.flow().clone();
@@ -73,7 +73,7 @@ pub fn record(sc: &Scenario, seed: u64) -> Recorded {
 
 /// The turbulent boundary-layer preset on the 256×128 ROI near the wall,
 /// 0.1 s: the turbulent scene of the chain tests.
-pub fn turbulent_roi_scenario() -> Scenario {
+pub(crate) fn turbulent_roi_scenario() -> Scenario {
     let mut sc = crate::sim::presets::preset("turbulent_bl").unwrap();
     sc.sensor.roi = Some(Roi {
         x: 0,
@@ -100,7 +100,11 @@ impl PtvSink for Collect {
 
 /// Track the replayed recording with `track` and return its track samples,
 /// grouped by track as in tracks.csv.
-pub fn track_samples(info: &StreamInfo, chunks: &[Chunk], track: TrackParams) -> Vec<Sample> {
+pub(crate) fn track_samples(
+    info: &StreamInfo,
+    chunks: &[Chunk],
+    track: TrackParams,
+) -> Vec<Sample> {
     let open = || -> crate::Result<Box<dyn EventSource>> {
         Ok(Box::new(Replay {
             info: info.clone(),
@@ -132,7 +136,7 @@ pub fn track_samples(info: &StreamInfo, chunks: &[Chunk], track: TrackParams) ->
 /// y 296–423; linear fit, bins of ≥ 50 samples): the measured samples with
 /// the pair estimator's noise correction, and the analytic velocity at the
 /// same samples (the truth binned exactly like the measurement).
-pub struct TurbulentGrids {
+pub(crate) struct TurbulentGrids {
     pub spec: GridSpec,
     /// The samples with their velocity replaced by the flow's.
     pub at_samples: Vec<Sample>,
@@ -142,7 +146,7 @@ pub struct TurbulentGrids {
     pub truth: GridStats,
 }
 
-pub fn turbulent_roi_grids(samples: &[Sample], flow: &Flow) -> TurbulentGrids {
+pub(crate) fn turbulent_roi_grids(samples: &[Sample], flow: &Flow) -> TurbulentGrids {
     let spec = GridSpec::covering(
         Lattice::new(16.0, 16.0, 0.0).unwrap(),
         Weighting::TopHat,

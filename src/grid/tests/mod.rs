@@ -5,7 +5,6 @@
 mod accuracy;
 mod chain_common;
 // Shared with the command tests in tests/grid/.
-#[allow(dead_code)]
 #[path = "../../../tests/grid_common/mod.rs"]
 mod grid_common;
 mod merge;

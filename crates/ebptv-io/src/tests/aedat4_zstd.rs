@@ -9,7 +9,9 @@ use ebptv_io::EventSource;
 use ebptv_io::{Chunk, Edge, Event, Geometry, Trigger};
 
 fn fixture() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..").join("data/aedat4_zstd_small.aedat4")
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../..")
+        .join("data/aedat4_zstd_small.aedat4")
 }
 
 /// The fixture's content, deterministic.

@@ -308,7 +308,8 @@ fn drain(src: &mut dyn EventSource, chunk_events: usize, slack: usize) -> Decode
 }
 
 fn real(name: &str) -> Option<PathBuf> {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../..")
         .join("../shared/data/real")
         .join(name);
     if p.exists() {
