@@ -30,7 +30,7 @@ const SNIFF_BYTES: u64 = MAX_HEADER_BYTES as u64;
 
 /// Detect the format of the file at `path` from its content, then its
 /// extension.
-pub(crate) fn detect_format(path: &Path) -> Result<Format> {
+pub fn detect_format(path: &Path) -> Result<Format> {
     let f = File::open(path).map_err(|e| Error::io(path, e))?;
     let mut head = Vec::new();
     f.take(SNIFF_BYTES)
