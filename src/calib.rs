@@ -208,7 +208,7 @@ impl Calibration {
     }
 
     /// A position (px) in mm.
-    pub fn px_to_mm(&self, x: f64, y: f64) -> (f64, f64) {
+    pub(crate) fn px_to_mm(&self, x: f64, y: f64) -> (f64, f64) {
         (
             (x - self.origin_px[0]) / self.px_per_mm,
             self.y_sign() * (y - self.origin_px[1]) / self.px_per_mm,
@@ -292,7 +292,7 @@ pub(crate) fn push_values(out: &mut Vec<u8>, values: &[f64]) {
 
 /// Reads the optional calibration and mask of a command: the mask of
 /// `mask_file` (a PNG) joined with the calibration file's `[mask]`.
-pub fn load(
+pub(crate) fn load(
     calibration: Option<&Path>,
     mask_file: Option<&Path>,
 ) -> Result<(Option<Calibration>, Option<Arc<PixelMask>>)> {

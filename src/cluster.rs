@@ -106,7 +106,7 @@ pub struct ClusterParams {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum NeighbourSearch {
-    /// Row sweep over the (y, x)-sorted pixels ([`pixel_labels`]): integer
+    /// Row sweep over the (y, x)-sorted pixels (`pixel_labels`): integer
     /// coordinates make the neighbourhood a few rows of a sorted array;
     /// ~3.5× faster than the tree on particle data.
     #[default]
@@ -148,7 +148,7 @@ impl Default for ClusterParams {
 impl ClusterParams {
     /// The join radius for particle images of the given diameter (px): one
     /// diameter, but never below the 8-neighbourhood (√2).
-    pub fn radius_for_image_diameter(diameter_px: f64) -> f64 {
+    pub(crate) fn radius_for_image_diameter(diameter_px: f64) -> f64 {
         diameter_px.max(std::f64::consts::SQRT_2)
     }
 
@@ -417,7 +417,7 @@ impl UnionFind {
 /// among them) the run-length pass `pixel_labels_runs`, else the row
 /// sweep `pixel_labels_sweep`. [`pixel_labels_kdtree`] is the general
 /// k-d tree path; all match the brute-force oracle exactly.
-pub fn pixel_labels(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u32> {
+pub(crate) fn pixel_labels(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u32> {
     if (1..=3).contains(&params.max_d2()) {
         pixel_labels_runs(pixels, params)
     } else {
@@ -595,7 +595,7 @@ pub fn pixel_labels_with(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u3
     }
 }
 
-/// [`pixel_labels`] with a kiddo k-d tree and radius queries: the general
+/// `pixel_labels` with a kiddo k-d tree and radius queries: the general
 /// path (any point set), kept as a second implementation checked against
 /// the same oracle and compared in the benchmark.
 pub fn pixel_labels_kdtree(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u32> {

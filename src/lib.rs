@@ -77,6 +77,11 @@
 
 #![warn(missing_docs)]
 
+// Unit tests share a few helpers with the integration tests in tests/,
+// which name the crate `ebptv`.
+#[cfg(test)]
+extern crate self as ebptv;
+
 pub mod decimal;
 pub use ebptv_io as io;
 pub use ebptv_io::{error, events};

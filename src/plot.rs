@@ -1,10 +1,10 @@
 //! PNG figures (plotters, pure-Rust font path with an embedded DejaVu font).
 //!
 //! Three figure kinds cover what the stages need: a [`heatmap`] of a scalar
-//! field on a regular grid (with a colour bar), a [`line_plot`] of several
-//! series (legend, optional log axes, vertical markers) and [`polylines`]
-//! (tracks coloured by a scalar). [`histogram_plot`] is a convenience over
-//! [`line_plot`] for binned counts.
+//! field on a regular grid (with a colour bar), a `line_plot` of several
+//! series (legend, optional log axes, vertical markers) and `polylines`
+//! (tracks coloured by a scalar). `histogram_plot` is a convenience over
+//! `line_plot` for binned counts.
 //!
 //! Design choices:
 //! - Rendering happens into an in-memory RGB buffer
@@ -40,10 +40,10 @@ use crate::error::{Error, Result};
 use crate::io::atomic::AtomicFile;
 
 /// Grey used for NaN (no data) cells and lines without a finite value.
-pub const NAN_GREY: (u8, u8, u8) = (150, 150, 150);
+pub(crate) const NAN_GREY: (u8, u8, u8) = (150, 150, 150);
 
 /// Default size of a line plot, px.
-pub const LINE_PLOT_SIZE: (u32, u32) = (960, 640);
+pub(crate) const LINE_PLOT_SIZE: (u32, u32) = (960, 640);
 
 const FONT: &str = "sans-serif";
 
@@ -92,14 +92,15 @@ pub fn heatmap(path: &Path, map: &Heatmap) -> Result<()> {
 }
 
 /// Draw a heatmap at a given image size (px).
-pub fn heatmap_sized(path: &Path, map: &Heatmap, size: (u32, u32)) -> Result<()> {
+pub(crate) fn heatmap_sized(path: &Path, map: &Heatmap, size: (u32, u32)) -> Result<()> {
     let (buf, _) = render_heatmap(map, size).map_err(|e| at_path(path, e))?;
     write_png(path, &buf, size)
 }
 
+#[cfg(test)]
 /// Draw a heatmap with an explicit colour range (e.g. the same scale on
 /// several figures to compare). `vmin < vmax`, both finite.
-pub fn heatmap_with_range(
+pub(crate) fn heatmap_with_range(
     path: &Path,
     map: &Heatmap,
     size: (u32, u32),
@@ -111,7 +112,7 @@ pub fn heatmap_with_range(
 
 /// How a [`Series`] is drawn.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum SeriesStyle {
+pub(crate) enum SeriesStyle {
     /// Straight segments joining consecutive points.
     Line,
     /// A marker at each point.
@@ -123,7 +124,7 @@ pub enum SeriesStyle {
 }
 
 /// One curve of a [`LinePlot`].
-pub struct Series<'a> {
+pub(crate) struct Series<'a> {
     /// Legend entry.
     pub label: &'a str,
     /// Abscissae.
@@ -135,7 +136,7 @@ pub struct Series<'a> {
 }
 
 /// A plot of one or several curves on shared axes.
-pub struct LinePlot<'a> {
+pub(crate) struct LinePlot<'a> {
     /// Title drawn above the plot.
     pub title: &'a str,
     /// Label of the x axis (quantity and unit).
@@ -155,19 +156,19 @@ pub struct LinePlot<'a> {
 /// Draw a line plot at [`LINE_PLOT_SIZE`]. Points that cannot be shown
 /// (non-finite, or ≤ 0 on a log axis) are skipped; a series with no
 /// showable point is an error.
-pub fn line_plot(path: &Path, plot: &LinePlot) -> Result<()> {
+pub(crate) fn line_plot(path: &Path, plot: &LinePlot) -> Result<()> {
     line_plot_sized(path, plot, LINE_PLOT_SIZE)
 }
 
 /// Draw a line plot at a given image size (px).
-pub fn line_plot_sized(path: &Path, plot: &LinePlot, size: (u32, u32)) -> Result<()> {
+pub(crate) fn line_plot_sized(path: &Path, plot: &LinePlot, size: (u32, u32)) -> Result<()> {
     let buf = render_line_plot(plot, size).map_err(|e| at_path(path, e))?;
     write_png(path, &buf, size)
 }
 
 /// A histogram from bin edges (`edges.len() == counts.len() + 1`) drawn as
 /// steps, one or several (e.g. measured vs simulated) on the same bins.
-pub struct HistogramPlot<'a> {
+pub(crate) struct HistogramPlot<'a> {
     /// Title drawn above the plot.
     pub title: &'a str,
     /// Label of the x axis (quantity and unit).
@@ -186,7 +187,7 @@ pub struct HistogramPlot<'a> {
 /// than two edges, the edges are not finite and increasing, no histogram is
 /// given, a histogram's count does not match the bins, or the image cannot
 /// be drawn or written.
-pub fn histogram_plot(path: &Path, h: &HistogramPlot) -> Result<()> {
+pub(crate) fn histogram_plot(path: &Path, h: &HistogramPlot) -> Result<()> {
     let what = |why: String| Error::param(format!("histogram `{}`", h.title), why);
     if h.edges.len() < 2 {
         return Err(what("needs at least two bin edges".into()));
@@ -246,7 +247,7 @@ pub fn histogram_plot(path: &Path, h: &HistogramPlot) -> Result<()> {
 
 /// Polylines (e.g. particle tracks) coloured by a scalar (e.g. speed), over
 /// an image-sized frame with y pointing down. One value per line.
-pub struct Polylines<'a> {
+pub(crate) struct Polylines<'a> {
     /// Title drawn above the plot.
     pub title: &'a str,
     /// Width of the frame (px).
@@ -262,13 +263,13 @@ pub struct Polylines<'a> {
 }
 
 /// Draw polylines, image size chosen from the frame's aspect ratio.
-pub fn polylines(path: &Path, p: &Polylines) -> Result<()> {
+pub(crate) fn polylines(path: &Path, p: &Polylines) -> Result<()> {
     let size = heatmap_default_size((0.0, p.width), (0.0, p.height));
     polylines_sized(path, p, size)
 }
 
 /// Draw polylines at a given image size (px).
-pub fn polylines_sized(path: &Path, p: &Polylines, size: (u32, u32)) -> Result<()> {
+pub(crate) fn polylines_sized(path: &Path, p: &Polylines, size: (u32, u32)) -> Result<()> {
     let buf = render_polylines(p, size).map_err(|e| at_path(path, e))?;
     write_png(path, &buf, size)
 }
@@ -318,7 +319,7 @@ fn interpolate(table: &[(u8, u8, u8)], t: f64) -> (u8, u8, u8) {
 }
 
 /// Colour for `t` in [0, 1] on viridis.
-pub fn viridis(t: f64) -> (u8, u8, u8) {
+pub(crate) fn viridis(t: f64) -> (u8, u8, u8) {
     interpolate(&VIRIDIS, t)
 }
 
@@ -1044,6 +1045,9 @@ fn render_polylines(p: &Polylines, size: (u32, u32)) -> Result<Vec<u8>> {
 
 #[cfg(test)]
 mod tests {
+    // The figure builders drawn into images (src/plot/tests/figures.rs).
+    mod figures;
+
     use super::*;
 
     fn pixel(buf: &[u8], w: u32, x: i32, y: i32) -> (u8, u8, u8) {

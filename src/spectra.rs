@@ -53,7 +53,7 @@ impl Default for WelchOptions {
 /// A one-sided power spectral density.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Psd {
-    /// Frequencies (Hz), from 0 in steps of [`Psd::df`].
+    /// Frequencies (Hz), from 0 in steps of `Psd::df`.
     pub f_hz: Vec<f64>,
     /// Density in (unit)²/Hz.
     pub psd: Vec<f64>,
@@ -65,7 +65,7 @@ pub struct Psd {
 
 impl Psd {
     /// Frequency resolution (Hz); 0 with fewer than two frequencies.
-    pub fn df(&self) -> f64 {
+    pub(crate) fn df(&self) -> f64 {
         if self.f_hz.len() > 1 {
             self.f_hz[1] - self.f_hz[0]
         } else {
@@ -81,21 +81,22 @@ impl Psd {
             .map(|(f, p)| f * p)
             .collect()
     }
+    #[cfg(test)]
     /// ∫ P df (the variance the spectrum holds).
-    pub fn total_power(&self) -> f64 {
+    pub(crate) fn total_power(&self) -> f64 {
         self.psd.iter().sum::<f64>() * self.df()
     }
 }
 
 /// Periodic Hann window (the spectral-analysis variant).
-pub fn hann(n: usize) -> Vec<f64> {
+pub(crate) fn hann(n: usize) -> Vec<f64> {
     (0..n)
         .map(|i| 0.5 - 0.5 * (2.0 * std::f64::consts::PI * i as f64 / n as f64).cos())
         .collect()
 }
 
 /// Welch PSD of `x` sampled at `fs_hz`.
-pub fn welch(x: &[f64], fs_hz: f64, opt: &WelchOptions) -> Result<Psd> {
+pub(crate) fn welch(x: &[f64], fs_hz: f64, opt: &WelchOptions) -> Result<Psd> {
     if !(fs_hz.is_finite() && fs_hz > 0.0) {
         return Err(Error::param(
             "fs",
@@ -189,7 +190,7 @@ pub struct Peak {
 /// refined by a parabola through the logarithms of the three bins around it
 /// (exact for a Gaussian-shaped lobe, close for the Hann main lobe). No
 /// test of significance: see `significant_peak`.
-pub fn find_peak(p: &Psd, f_min: f64, f_max: f64) -> Option<Peak> {
+pub(crate) fn find_peak(p: &Psd, f_min: f64, f_max: f64) -> Option<Peak> {
     let (mut best, mut k0) = (f64::NEG_INFINITY, None);
     for k in 1..p.psd.len() {
         if p.f_hz[k] >= f_min && p.f_hz[k] <= f_max && p.psd[k] > best {
@@ -461,7 +462,7 @@ fn chi2_quantile(q: f64, nu: f64) -> f64 {
 }
 
 /// Noise floor: the median density over the top quarter of the band.
-pub fn noise_floor(p: &Psd) -> f64 {
+pub(crate) fn noise_floor(p: &Psd) -> f64 {
     let n = p.psd.len();
     let mut top: Vec<f64> = p.psd[(3 * n / 4).max(1)..].to_vec();
     if top.is_empty() {
@@ -473,7 +474,7 @@ pub fn noise_floor(p: &Psd) -> f64 {
 }
 
 /// RMS of the white noise that would produce the floor `floor` at `fs_hz`.
-pub fn noise_rms_from_floor(floor: f64, fs_hz: f64) -> f64 {
+pub(crate) fn noise_rms_from_floor(floor: f64, fs_hz: f64) -> f64 {
     (floor * fs_hz / 2.0).sqrt()
 }
 
@@ -509,7 +510,7 @@ pub(crate) fn fill_gaps(x: &[f64]) -> Result<(Vec<f64>, f64)> {
 /// RMS about a centred moving average of `n` samples (the paper's laminar
 /// case: slow drifts of the mean are not turbulence, the remainder
 /// measures the noise). Ends use the truncated window.
-pub fn rms_about_moving_average(x: &[f64], n: usize) -> Result<f64> {
+pub(crate) fn rms_about_moving_average(x: &[f64], n: usize) -> Result<f64> {
     if n < 2 {
         return Err(Error::param(
             "moving-average",

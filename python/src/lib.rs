@@ -243,11 +243,13 @@ impl EventChunks {
 #[pyfunction]
 fn info(py: Python<'_>, path: PathBuf) -> PyResult<String> {
     interruptible(py, |cancel| -> ebptv::Result<String> {
-        let opts = io::OpenOptions::default();
-        let mut src = io::open_with(&path, &opts)?;
-        let summary = io::summary::summarize(&mut src, io::summary::DEFAULT_PEAK_BIN_US, |_| {})?;
-        let verdict = ebptv::pulses::file_verdict(&path, &opts).map_err(|e| e.to_string());
-        let v = ebptv::pulses::info_json(&summary, &verdict)?;
+        let info = ebptv::pulses::file_info(
+            &path,
+            &io::OpenOptions::default(),
+            io::summary::DEFAULT_PEAK_BIN_US,
+            &mut |_| {},
+        )?;
+        let v = info.to_json()?;
         cancel.check()?;
         serde_json::to_string(&v).map_err(|e| ebptv::Error::analysis(e.to_string()))
     })

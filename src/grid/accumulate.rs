@@ -94,7 +94,7 @@ pub(crate) fn gidx(a: usize, b: usize) -> usize {
 /// The quadratic in-bin basis `φ = (1, ξ, η, ξ², ξη, η²)` at the
 /// bin-local normalised offsets `(ξ, η)` (units of bin size).
 #[inline]
-pub fn basis(xi: f64, eta: f64) -> [f64; NB] {
+pub(crate) fn basis(xi: f64, eta: f64) -> [f64; NB] {
     [1.0, xi, eta, xi * xi, xi * eta, eta * eta]
 }
 
@@ -356,7 +356,7 @@ impl GridAccumulator {
     /// binned into private accumulators and merged in order, which by the
     /// merge rules gives the sequential result to rounding (the track cut at
     /// a chunk boundary is re-joined, so track counts are exact).
-    pub fn add_par(&mut self, samples: &[Sample]) {
+    pub(crate) fn add_par(&mut self, samples: &[Sample]) {
         use rayon::prelude::*;
         // Each part holds a whole grid: cap their total memory at ~512 MB.
         let grid_bytes = self.spec.n_bins() * std::mem::size_of::<BinAcc>();

@@ -38,7 +38,7 @@ pub enum Fit {
 
 impl Fit {
     /// Number of fit parameters: 1, 3 or 6.
-    pub fn n_params(&self) -> usize {
+    pub(crate) fn n_params(&self) -> usize {
         match self {
             Fit::None => 1,
             Fit::Linear => 3,
@@ -205,7 +205,7 @@ impl GridStats {
         self.bins.iter().map(f).collect()
     }
     /// Index of the bin whose centre is nearest (x, y).
-    pub fn nearest(&self, x: f64, y: f64) -> (usize, usize) {
+    pub(crate) fn nearest(&self, x: f64, y: f64) -> (usize, usize) {
         let near = |v: &[f64], t: f64| {
             v.iter()
                 .enumerate()

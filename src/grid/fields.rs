@@ -54,7 +54,7 @@ impl Frames {
     /// Frames every `every` sample periods over the samples' time span, the
     /// window one period wide. The period is the median time step between
     /// consecutive samples of a track (the pulse period for tracks.csv).
-    pub fn from_samples(samples: &[Sample], every: usize) -> Result<Frames> {
+    pub(crate) fn from_samples(samples: &[Sample], every: usize) -> Result<Frames> {
         let period = sample_period_us(samples)?;
         let (mut t0, mut t1) = (f64::INFINITY, f64::NEG_INFINITY);
         for s in samples {
@@ -102,7 +102,7 @@ pub(crate) fn sample_period_us(samples: &[Sample]) -> Result<f64> {
 
 /// Mean u, v per frame for a set of bins; entry `[slot * n_frames + k]`.
 #[derive(Debug, Clone)]
-pub struct FieldSeries {
+pub(crate) struct FieldSeries {
     /// The time axis.
     pub frames: Frames,
     /// Flat bin indices (of `spec`) of the slots.
@@ -125,7 +125,7 @@ impl FieldSeries {
 }
 
 /// Time-resolved means on `spec` for the bins `bins` (all bins if `None`).
-pub fn time_resolved(
+pub(crate) fn time_resolved(
     samples: &[Sample],
     spec: &GridSpec,
     frames: &Frames,

@@ -32,7 +32,7 @@ struct StateFile {
 }
 
 /// Write the accumulator so that `ebptv grid --merge` can combine it with others.
-pub fn save_state(path: &Path, acc: &GridAccumulator) -> Result<()> {
+pub(crate) fn save_state(path: &Path, acc: &GridAccumulator) -> Result<()> {
     let text = state_json(acc).map_err(|e| Error::io(path, e.into()))?;
     let mut f = AtomicFile::create(path)?;
     f.write_all(text.as_bytes())
@@ -40,7 +40,7 @@ pub fn save_state(path: &Path, acc: &GridAccumulator) -> Result<()> {
     f.commit()
 }
 
-/// The text of `grid_state.json` ([`save_state`]).
+/// The text of `grid_state.json` (`save_state`).
 pub fn state_json(acc: &GridAccumulator) -> serde_json::Result<String> {
     let st = StateFile {
         format: STATE_FORMAT.into(),
@@ -60,7 +60,7 @@ pub fn state_json(acc: &GridAccumulator) -> serde_json::Result<String> {
 }
 
 /// Read a state written by [`save_state`].
-pub fn load_state(path: &Path) -> Result<GridAccumulator> {
+pub(crate) fn load_state(path: &Path) -> Result<GridAccumulator> {
     let text = std::fs::read(path).map_err(|e| Error::io(path, e))?;
     state_from_json(&text, path)
 }

@@ -18,9 +18,9 @@
 //!   removes the unresolved-gradient bias of top-hat stresses
 //!   (≈ (dU/dy)²·b²/12); minimum count, noise-bias correction, standard
 //!   errors with the track as the independent unit.
-//! * [`fields`]: time-resolved fields on the grid (every k pulses from the
+//! * `fields`: time-resolved fields on the grid (every k pulses from the
 //!   samples in a short window) and point time series for spectra.
-//! * [`profiles`]: a profile at x, the wall position, wall shear, u_τ,
+//! * `profiles`: a profile at x, the wall position, wall shear, u_τ,
 //!   inner scaling.
 //! * [`noise`]: the per-sample velocity noise from pairs of nearby
 //!   samples at one instant, and the dynamic velocity range.
@@ -32,13 +32,13 @@
 //! (tracks table or merged states → the grid folder) is one call:
 //! [`grid_to_dir`].
 
-pub mod accumulate;
+pub(crate) mod accumulate;
 mod dir;
 pub mod estimate;
-pub mod fields;
+pub(crate) mod fields;
 pub mod io;
 pub mod noise;
-pub mod profiles;
+pub(crate) mod profiles;
 pub(crate) mod spec;
 
 use serde::{Deserialize, Serialize};
@@ -105,7 +105,7 @@ pub(crate) fn read_track_samples(path: &std::path::Path) -> Result<Vec<Sample>> 
 
 /// Bounding box `(x_min, x_max, y_min, y_max)` of the finite samples;
 /// an error naming `what` when there are none.
-pub fn extent(samples: &[Sample], what: &str) -> Result<(f64, f64, f64, f64)> {
+pub(crate) fn extent(samples: &[Sample], what: &str) -> Result<(f64, f64, f64, f64)> {
     let mut e = (
         f64::INFINITY,
         f64::NEG_INFINITY,
@@ -210,3 +210,6 @@ pub fn accumulate(
     }
     Ok(acc)
 }
+
+#[cfg(test)]
+mod tests;

@@ -16,7 +16,7 @@ use crate::error::{Error, Result};
 
 /// One point of a profile (a column of bins).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct ProfilePoint {
+pub(crate) struct ProfilePoint {
     /// Bin centre y (px).
     pub y: f64,
     /// Number of samples in the bin.
@@ -34,7 +34,7 @@ pub struct ProfilePoint {
 }
 
 /// The column of bins nearest `x`, and its x.
-pub fn profile_at_x(g: &GridStats, x: f64) -> (f64, Vec<ProfilePoint>) {
+pub(crate) fn profile_at_x(g: &GridStats, x: f64) -> (f64, Vec<ProfilePoint>) {
     let (ix, _) = g.nearest(x, g.ys[0]);
     let pts = (0..g.spec.ny)
         .map(|iy| {
@@ -65,7 +65,7 @@ pub enum WallSide {
 
 /// How [`wall_fit`] finds the wall and converts to physical units.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct WallOptions {
+pub(crate) struct WallOptions {
     /// Which end of the profile the wall is at.
     pub side: WallSide,
     /// Known wall position (px); `None`: the zero crossing of the fit.
@@ -80,7 +80,7 @@ pub struct WallOptions {
 
 /// The wall and its shear, from [`wall_fit`].
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct WallFit {
+pub(crate) struct WallFit {
     /// Wall position y (px): the given one or the fit's zero crossing.
     pub wall_y_px: f64,
     /// True when the wall position was estimated (not given).
@@ -99,7 +99,7 @@ pub struct WallFit {
 
 impl WallFit {
     /// Inner-scaled coordinates of a profile point: (y⁺, u⁺, u'u'⁺).
-    pub fn inner(&self, p: &ProfilePoint, px_per_mm: f64) -> (f64, f64, f64) {
+    pub(crate) fn inner(&self, p: &ProfilePoint, px_per_mm: f64) -> (f64, f64, f64) {
         let to_ms = 1.0 / (px_per_mm * 1000.0);
         let y_plus = (p.y - self.wall_y_px).abs() / self.viscous_length_px;
         let u_plus = p.u * to_ms / self.u_tau_m_s;
@@ -109,7 +109,7 @@ impl WallFit {
 }
 
 /// Wall position and shear from the near-wall points of a profile.
-pub fn wall_fit(profile: &[ProfilePoint], opt: &WallOptions) -> Result<WallFit> {
+pub(crate) fn wall_fit(profile: &[ProfilePoint], opt: &WallOptions) -> Result<WallFit> {
     if !(opt.nu_m2_s.is_finite() && opt.nu_m2_s > 0.0) {
         return Err(Error::param(
             "nu",

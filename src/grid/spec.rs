@@ -35,7 +35,7 @@ impl Weighting {
     /// Weight at normalised offsets `(ξ, η)` from the bin centre (units of
     /// bin size), `None` outside the support.
     #[inline]
-    pub fn weight(&self, xi: f64, eta: f64) -> Option<f64> {
+    pub(crate) fn weight(&self, xi: f64, eta: f64) -> Option<f64> {
         match self {
             Weighting::TopHat => {
                 if (-0.5..0.5).contains(&xi) && (-0.5..0.5).contains(&eta) {
@@ -90,7 +90,7 @@ impl Lattice {
     /// when a bin size is not positive and finite, `overlap` is outside
     /// [0, 1) or puts a sample into more than 64 bins per axis, or the
     /// origin is not finite.
-    pub fn with_origin(
+    pub(crate) fn with_origin(
         bin_w: f64,
         bin_h: f64,
         overlap: f64,

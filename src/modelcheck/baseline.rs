@@ -45,7 +45,7 @@ use crate::track::{PtvSink, PtvStream, Track, TrackParams};
 
 /// Options of [`baseline_from_measurement`].
 #[derive(Debug, Clone)]
-pub struct BaselineOptions {
+pub(crate) struct BaselineOptions {
     /// Bin size of the flow grid (px).
     pub bin_px: f64,
     /// Track points a bin needs to count as measured.
@@ -66,15 +66,9 @@ impl Default for BaselineOptions {
 
 /// The baseline scenario, the flow it replays, and what was estimated.
 #[derive(Debug, Clone)]
-pub struct Baseline {
+pub(crate) struct Baseline {
     /// The simulator scenario estimated from the measurement.
     pub scenario: Scenario,
-    /// Grid nodes of the flow: (x, y, u, v) in px and px/s.
-    pub flow: Vec<(f64, f64, f64, f64)>,
-    /// The tracks the flow was estimated from.
-    pub tracks: Vec<Track>,
-    /// The particles found in the measurement.
-    pub particles: Vec<Particle>,
     /// How each part of the scenario was estimated, one line each.
     pub notes: Vec<String>,
 }
@@ -107,7 +101,7 @@ impl PtvSink for Collect {
 /// Build the baseline from measured `events` (time-ordered), the rising
 /// trigger edges `rising` (µs) and the sensor geometry. The flow grid is
 /// written to `flow_csv` (the scenario's `flow.path` points there).
-pub fn baseline_from_measurement(
+pub(crate) fn baseline_from_measurement(
     events: &EventChunk,
     rising: &[i64],
     geometry: Geometry,
@@ -283,9 +277,6 @@ pub fn baseline_from_measurement(
     sc.validate()?;
     Ok(Baseline {
         scenario: sc,
-        flow: flow.map(|f| f.0).unwrap_or_default(),
-        tracks: sink.tracks,
-        particles: sink.particles,
         notes,
     })
 }

@@ -32,7 +32,7 @@ use crate::error::{Error, Result};
 ///
 /// With cumulative masses `A_i`, `B_i` the transport cost is
 /// `Σ_i |A_i − B_i| (x_{i+1} − x_i)`: the mass that must cross each gap.
-pub fn wasserstein_1d(positions: &[f64], a: &[f64], b: &[f64]) -> Result<f64> {
+pub(crate) fn wasserstein_1d(positions: &[f64], a: &[f64], b: &[f64]) -> Result<f64> {
     let n = positions.len();
     if a.len() != n || b.len() != n {
         return Err(Error::param(
@@ -82,7 +82,7 @@ pub fn wasserstein_1d(positions: &[f64], a: &[f64], b: &[f64]) -> Result<f64> {
 }
 
 /// Wasserstein distance of two histograms on the same bins.
-pub fn histogram_wasserstein(a: &Histogram, b: &Histogram) -> Result<f64> {
+pub(crate) fn histogram_wasserstein(a: &Histogram, b: &Histogram) -> Result<f64> {
     if !a.same_bins(b) {
         return Err(Error::param(
             "wasserstein",
@@ -94,7 +94,7 @@ pub fn histogram_wasserstein(a: &Histogram, b: &Histogram) -> Result<f64> {
 
 /// Two-sample chi-square on binned counts.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct ChiSquare {
+pub(crate) struct ChiSquare {
     /// The chi-square statistic.
     pub statistic: f64,
     /// Bins with data on either side, minus one (the totals are matched).
@@ -103,7 +103,7 @@ pub struct ChiSquare {
 
 impl ChiSquare {
     /// Statistic per degree of freedom (≈ 1 when both are draws of one law).
-    pub fn reduced(&self) -> f64 {
+    pub(crate) fn reduced(&self) -> f64 {
         if self.dof == 0 {
             0.0
         } else {
@@ -115,7 +115,7 @@ impl ChiSquare {
 /// Two-sample chi-square for counts `r`, `s` with possibly different totals:
 /// `Σ (√(S/R)·r_i − √(R/S)·s_i)² / (r_i + s_i)` over bins with data
 /// (Numerical Recipes' `chstwo`).
-pub fn chi_square(r: &[f64], s: &[f64]) -> Result<ChiSquare> {
+pub(crate) fn chi_square(r: &[f64], s: &[f64]) -> Result<ChiSquare> {
     if r.len() != s.len() {
         return Err(Error::param(
             "chi_square",
@@ -195,7 +195,7 @@ pub(crate) fn signature_distance(a: &Signature, b: &Signature) -> Result<Option<
 /// the bulk sits) and `name.chi2` (reduced chi-square: sensitive to sparse
 /// tails, e.g. a few hot pixels far out in the per-pixel counts, that move
 /// little mass and so barely move the Wasserstein distance).
-pub fn distances(a: &Signatures, b: &Signatures) -> Result<Vec<(String, f64)>> {
+pub(crate) fn distances(a: &Signatures, b: &Signatures) -> Result<Vec<(String, f64)>> {
     let mut out = Vec::new();
     for s in &a.items {
         if let Some(t) = b.get(&s.name) {
@@ -218,7 +218,7 @@ pub fn distances(a: &Signatures, b: &Signatures) -> Result<Vec<(String, f64)>> {
 /// |z| is capped here: beyond it the replicates (often all exactly zero,
 /// e.g. no shared timestamps in any simulation) say only "far beyond
 /// chance", and an uncapped 1e9 would swamp every other row of a sum.
-pub const Z_CAP: f64 = 1000.0;
+pub(crate) const Z_CAP: f64 = 1000.0;
 
 /// Floor of the replicate spread, relative to the replicate mean.
 pub(crate) const SD_FLOOR_REL: f64 = 0.5;
@@ -242,7 +242,7 @@ pub struct Standardised {
 }
 
 /// Standardise `observed` against at least two replicate distances.
-pub fn standardise(observed: f64, replicates: &[f64]) -> Result<Standardised> {
+pub(crate) fn standardise(observed: f64, replicates: &[f64]) -> Result<Standardised> {
     if replicates.len() < 2 {
         return Err(Error::param(
             "replicates",
@@ -299,7 +299,7 @@ pub struct DiscrepancyTable {
 /// the replicate (replicate simulation vs reference simulation) distances.
 /// Signatures missing from some replicate are ranked over the replicates
 /// that have them; with fewer than two they are left out.
-pub fn rank(
+pub(crate) fn rank(
     observed: &[(String, f64)],
     replicates: &[Vec<(String, f64)>],
     z_threshold: f64,
@@ -340,7 +340,7 @@ impl DiscrepancyTable {
     }
 
     /// Some signature disagrees beyond chance.
-    pub fn any_disagreement(&self) -> bool {
+    pub(crate) fn any_disagreement(&self) -> bool {
         self.rows.iter().any(|r| r.disagrees)
     }
 
@@ -352,7 +352,7 @@ impl DiscrepancyTable {
     }
 
     /// The table as Markdown, one row per signature.
-    pub fn to_markdown(&self) -> String {
+    pub(crate) fn to_markdown(&self) -> String {
         let mut s = String::from(
             "| signature | distance | replicates mean ± sd | z | p | disagrees |\n|---|---|---|---|---|---|\n",
         );

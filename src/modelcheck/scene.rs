@@ -14,7 +14,7 @@ use crate::sim::Scenario;
 /// The catalogue searched by default, with parameter ranges wide enough for
 /// the EVK2-class sensors the project targets. Ranges are in the units of
 /// the scenario file (see `crate::sim::scenario`).
-pub fn default_catalogue(base: &Scenario) -> Vec<EffectSpec> {
+pub(crate) fn default_catalogue(base: &Scenario) -> Vec<EffectSpec> {
     let roi = base.roi();
     let pixels = roi.width as f64 * roi.height as f64;
     let p = |name: &str, lo: f64, hi: f64, log: bool| ParamSpec {
@@ -96,7 +96,7 @@ pub(crate) fn with_neutral_parameters(set: &EffectSetting) -> EffectSetting {
 }
 
 /// Drives `crate::sim` for the search.
-pub struct SceneSimulator {
+pub(crate) struct SceneSimulator {
     base: Scenario,
     catalogue: Vec<EffectSpec>,
     cluster: ClusterParams,
@@ -110,7 +110,7 @@ pub struct SceneSimulator {
 impl SceneSimulator {
     /// `base` is validated; its effects stay on as the starting model's
     /// fixed part (use `Scenario::without_effects` for an ideal sensor).
-    pub fn new(base: Scenario) -> Result<Self> {
+    pub(crate) fn new(base: Scenario) -> Result<Self> {
         base.validate()?;
         let cluster = ClusterParams {
             radius: ClusterParams::radius_for_image_diameter(base.optics.particle_diameter_px),
@@ -161,7 +161,7 @@ impl SceneSimulator {
     }
 
     /// Restrict or reorder the catalogue (names must be known effects).
-    pub fn with_catalogue(mut self, catalogue: Vec<EffectSpec>) -> Self {
+    pub(crate) fn with_catalogue(mut self, catalogue: Vec<EffectSpec>) -> Self {
         self.catalogue = catalogue;
         self
     }
@@ -187,7 +187,7 @@ impl SceneSimulator {
     }
 
     /// Signature configuration for this scene (geometry and timing).
-    pub fn signature_config(&self) -> SignatureConfig {
+    pub(crate) fn signature_config(&self) -> SignatureConfig {
         let g = Geometry::new(
             self.base.sensor.width as u16,
             self.base.sensor.height as u16,
@@ -213,7 +213,7 @@ pub(crate) fn active_effects(sc: &Scenario) -> Vec<EffectSetting> {
 }
 
 /// Pulse timing of a scenario.
-pub fn timing_of(sc: &Scenario) -> PulseTiming {
+pub(crate) fn timing_of(sc: &Scenario) -> PulseTiming {
     PulseTiming {
         period_us: sc.period_us(),
         first_pulse_us: sc.light.first_pulse_us,
@@ -228,8 +228,8 @@ pub fn timing_of(sc: &Scenario) -> PulseTiming {
 ///
 /// The events of a pulse are copied a run at a time (a run: consecutive
 /// events of one pulse), not one by one: the same pulses and events as
-/// `pulses_of_reference` (`testkit` feature), which the tests compare it with.
-pub fn pulses_of(events: &EventChunk, timing: &PulseTiming) -> Result<Vec<PulseEvents>> {
+/// `pulses_of_reference` (unit tests), which the tests compare it with.
+pub(crate) fn pulses_of(events: &EventChunk, timing: &PulseTiming) -> Result<Vec<PulseEvents>> {
     fn copy_run(pulses: &mut [PulseEvents], events: &EventChunk, a: usize, b: usize) {
         let p = &mut pulses.last_mut().expect("a run belongs to a pulse").events;
         p.t.extend_from_slice(&events.t[a..b]);
@@ -282,9 +282,12 @@ fn open_pulse(pulses: &mut Vec<PulseEvents>, k: i64, timing: &PulseTiming) -> Re
 }
 
 /// [`pulses_of`] event by event: the reference it is tested against
-/// (with the `testkit` feature).
-#[cfg(any(test, feature = "testkit"))]
-pub fn pulses_of_reference(events: &EventChunk, timing: &PulseTiming) -> Result<Vec<PulseEvents>> {
+/// (unit tests).
+#[cfg(test)]
+pub(crate) fn pulses_of_reference(
+    events: &EventChunk,
+    timing: &PulseTiming,
+) -> Result<Vec<PulseEvents>> {
     let mut pulses: Vec<PulseEvents> = Vec::new();
     for i in 0..events.len() {
         let Some(k) = timing.assign(events.t[i]) else {
@@ -299,7 +302,7 @@ pub fn pulses_of_reference(events: &EventChunk, timing: &PulseTiming) -> Result<
 }
 
 /// Split time-ordered events into pulses by `timing` and cluster them.
-pub fn particles_of(
+pub(crate) fn particles_of(
     events: &EventChunk,
     timing: &PulseTiming,
     params: &ClusterParams,

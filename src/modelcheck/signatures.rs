@@ -99,7 +99,8 @@
 
 use std::collections::HashMap;
 
-pub mod reference;
+#[cfg(test)]
+pub(crate) mod reference;
 
 use serde::{Deserialize, Serialize};
 
@@ -111,13 +112,13 @@ use crate::track::Track;
 
 mod accumulator;
 
-pub use accumulator::*;
+pub(crate) use accumulator::*;
 
 /// How a histogram's bins are placed on the line when measuring distances
 /// between distributions (see [`super::distance`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
-pub enum BinScale {
+pub(crate) enum BinScale {
     /// Bin centres in the quantity's own unit (µs for latency).
     Linear,
     /// Bin index: for roughly geometric binnings (counts, intervals), so a
@@ -130,7 +131,7 @@ pub enum BinScale {
 /// first bin, values at or beyond the last edge in the last bin (so the
 /// last bin is "≥ its left edge"), NaN is dropped.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Histogram {
+pub(crate) struct Histogram {
     /// Bin edges, `counts.len() + 1` of them, finite and increasing.
     pub edges: Vec<f64>,
     /// Count (or summed weight) per bin.
@@ -141,7 +142,7 @@ pub struct Histogram {
 
 impl Histogram {
     /// `edges`: at least two, finite, strictly increasing.
-    pub fn new(edges: Vec<f64>, scale: BinScale) -> Result<Self> {
+    pub(crate) fn new(edges: Vec<f64>, scale: BinScale) -> Result<Self> {
         if edges.len() < 2 {
             return Err(Error::param("histogram edges", "need at least two edges"));
         }
@@ -164,13 +165,13 @@ impl Histogram {
     }
 
     /// Number of bins.
-    pub fn n_bins(&self) -> usize {
+    pub(crate) fn n_bins(&self) -> usize {
         self.counts.len()
     }
 
     /// Bin of `v` (clamped to the first / last bin), `None` for NaN.
     #[inline]
-    pub fn bin_of(&self, v: f64) -> Option<usize> {
+    pub(crate) fn bin_of(&self, v: f64) -> Option<usize> {
         if v.is_nan() {
             return None;
         }
@@ -191,18 +192,19 @@ impl Histogram {
     }
 
     /// Sum of the counts.
-    pub fn total(&self) -> f64 {
+    pub(crate) fn total(&self) -> f64 {
         self.counts.iter().sum()
     }
 
     /// Where each bin sits on the line for distance computations.
-    pub fn positions(&self) -> Vec<f64> {
+    pub(crate) fn positions(&self) -> Vec<f64> {
         match self.scale {
             BinScale::Linear => self.edges.windows(2).map(|w| 0.5 * (w[0] + w[1])).collect(),
             BinScale::Index => (0..self.counts.len()).map(|k| k as f64).collect(),
         }
     }
 
+    #[cfg(test)]
     /// Centre of the bin holding `v` (`v` itself for NaN).
     pub(crate) fn bin_centre(&self, v: f64) -> f64 {
         match self.bin_of(v) {
@@ -219,7 +221,7 @@ impl Histogram {
 
 /// Mean of a quantity per bin of another (e.g. latency per brightness).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Profile {
+pub(crate) struct Profile {
     /// Bin edges of the conditioning quantity, `mean.len() + 1` of them.
     pub edges: Vec<f64>,
     /// Mean per bin (NaN where the bin is empty).
@@ -270,7 +272,7 @@ impl ProfileAcc {
 /// The value of one signature.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "lowercase")]
-pub enum SignatureValue {
+pub(crate) enum SignatureValue {
     /// A distribution on fixed bins.
     Histogram(Histogram),
     /// A mean per bin of another quantity.
@@ -284,7 +286,7 @@ pub enum SignatureValue {
 
 /// One named statistic of a recording, compared between measurement and simulation.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Signature {
+pub(crate) struct Signature {
     /// Name of the signature (the key in tables and figures).
     pub name: String,
     /// What is counted and in which unit (for tables and figure labels).
@@ -295,7 +297,7 @@ pub struct Signature {
 
 /// All signatures of one recording, in a fixed order.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Signatures {
+pub(crate) struct Signatures {
     /// The signatures, each name once.
     pub items: Vec<Signature>,
     /// Events inside the geometry that entered the signatures.
@@ -308,25 +310,26 @@ pub struct Signatures {
 
 impl Signatures {
     /// The signature called `name`.
-    pub fn get(&self, name: &str) -> Option<&Signature> {
+    pub(crate) fn get(&self, name: &str) -> Option<&Signature> {
         self.items.iter().find(|s| s.name == name)
     }
     /// The value of the scalar signature `name` (`None` if absent or not a scalar).
-    pub fn scalar(&self, name: &str) -> Option<f64> {
+    pub(crate) fn scalar(&self, name: &str) -> Option<f64> {
         match self.get(name)?.value {
             SignatureValue::Scalar { value } => Some(value),
             _ => None,
         }
     }
     /// The histogram signature `name` (`None` if absent or not a histogram).
-    pub fn histogram(&self, name: &str) -> Option<&Histogram> {
+    pub(crate) fn histogram(&self, name: &str) -> Option<&Histogram> {
         match &self.get(name)?.value {
             SignatureValue::Histogram(h) => Some(h),
             _ => None,
         }
     }
+    #[cfg(test)]
     /// The profile signature `name` (`None` if absent or not a profile).
-    pub fn profile(&self, name: &str) -> Option<&Profile> {
+    pub(crate) fn profile(&self, name: &str) -> Option<&Profile> {
         match &self.get(name)?.value {
             SignatureValue::Profile(p) => Some(p),
             _ => None,
@@ -336,7 +339,7 @@ impl Signatures {
 
 /// Binning and windows shared by the measured and every simulated data set.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct SignatureConfig {
+pub(crate) struct SignatureConfig {
     /// Sensor geometry; events outside it are ignored.
     pub geometry: Geometry,
     /// The pulse train the events are folded on.
@@ -357,7 +360,7 @@ pub struct SignatureConfig {
 impl SignatureConfig {
     /// Defaults: ~1 µs latency bins (at most 400 bins), blocks of 50 pulses,
     /// speed bins 0–20 000 px/s in steps of 2000.
-    pub fn new(geometry: Geometry, timing: PulseTiming) -> Self {
+    pub(crate) fn new(geometry: Geometry, timing: PulseTiming) -> Self {
         let latency_bin_us = (timing.period_us / 400.0).max(1.0);
         SignatureConfig {
             geometry,
@@ -412,7 +415,7 @@ impl SignatureConfig {
 /// Edges for counts spanning orders of magnitude: 0..16 exactly, then
 /// geometric with ratio 2^(1/4) (about 19 % wide bins: fine enough to place
 /// a tail of hot pixels, coarse enough to stay populated).
-pub fn count_edges(max: f64) -> Vec<f64> {
+pub(crate) fn count_edges(max: f64) -> Vec<f64> {
     let mut e: Vec<f64> = (0..=16).map(|k| k as f64).collect();
     let mut x = 16.0f64;
     while x < max {
@@ -434,7 +437,7 @@ pub(crate) fn interval_edges() -> Vec<f64> {
 /// Smallest circular window around the peak of a folded latency histogram
 /// holding at least `fraction` of the events: grown bin by bin towards the
 /// fuller neighbour. Returns `[start, end)` µs (end may exceed the period).
-pub fn burst_window(latency: &Histogram, fraction: f64) -> Result<(f64, f64)> {
+pub(crate) fn burst_window(latency: &Histogram, fraction: f64) -> Result<(f64, f64)> {
     let total = latency.total();
     if total <= 0.0 {
         return Err(Error::analysis(
@@ -483,7 +486,7 @@ pub fn burst_window(latency: &Histogram, fraction: f64) -> Result<(f64, f64)> {
 /// floor of the folded histogram (background activity, hot pixels), not
 /// the latency model's tails, whose shape differs from one sensor model to
 /// another.
-pub fn quiet_complement(latency: &Histogram, quiet_fraction: f64) -> Result<(f64, f64)> {
+pub(crate) fn quiet_complement(latency: &Histogram, quiet_fraction: f64) -> Result<(f64, f64)> {
     if latency.total() <= 0.0 {
         return Err(Error::analysis(
             "no events in the latency histogram: cannot locate the burst",
@@ -570,14 +573,16 @@ fn pearson_f64(a: &[f64], b: &[f64]) -> f64 {
     }
 }
 
+#[cfg(test)]
 /// Pearson correlation; 0 when either side has no variance.
 fn pearson(a: &[u32], b: &[u32]) -> f64 {
     let as_f64 = |v: &[u32]| v.iter().map(|&x| x as f64).collect::<Vec<f64>>();
     pearson_f64(&as_f64(a), &as_f64(b))
 }
 
+#[cfg(test)]
 /// Convenience: signatures of one in-memory event set.
-pub fn compute(
+pub(crate) fn compute(
     cfg: &SignatureConfig,
     events: &EventChunk,
     particles: &[Particle],
@@ -601,7 +606,7 @@ pub fn compute(
 pub(crate) const DRIFT_BLOCKS: usize = 8;
 
 /// Name of the clock-drift signature.
-pub const LATENCY_DRIFT: &str = "latency_drift";
+pub(crate) const LATENCY_DRIFT: &str = "latency_drift";
 
 /// `latency_drift`: the slope of the burst's latency over the recording,
 /// in ppm (µs of latency per s of recording).

@@ -93,11 +93,11 @@ use crate::error::{Error, Result};
 use crate::sim::Scenario;
 
 /// Name the best candidate only if it leaves at most this share of the gap.
-pub const ACCEPT_RATIO: f64 = 0.5;
+pub(crate) const ACCEPT_RATIO: f64 = 0.5;
 
 /// The runner-up must leave at least this share of the winner's
 /// improvement more gap than the winner.
-pub const RIVAL_MARGIN: f64 = 0.25;
+pub(crate) const RIVAL_MARGIN: f64 = 0.25;
 
 /// Rows left out when the signatures have no fixed burst window (the
 /// standard check's configuration): `off_burst_rate` then counts the events
@@ -332,12 +332,12 @@ impl Yardstick {
 /// How far a row lies beyond the standard sensor's range: z − 1 where
 /// positive (z = 1 is the edge of the envelope: the yardstick's scale is the
 /// largest excess a well-behaved sensor showed).
-pub fn excess(z: f64) -> f64 {
+pub(crate) fn excess(z: f64) -> f64 {
     (z - 1.0).max(0.0)
 }
 
 /// Σ [`excess`] over the rows of `table` not in `structural`.
-pub fn gap_on(table: &DiscrepancyTable, structural: &[String]) -> f64 {
+pub(crate) fn gap_on(table: &DiscrepancyTable, structural: &[String]) -> f64 {
     table
         .rows
         .iter()
@@ -350,7 +350,10 @@ pub fn gap_on(table: &DiscrepancyTable, structural: &[String]) -> f64 {
 /// back: a structural mismatch between the measured sensor and the
 /// simulator that no effect of the catalogue explains. `after` holds each
 /// candidate's table.
-pub fn structural_rows(before: &DiscrepancyTable, after: &[&DiscrepancyTable]) -> Vec<String> {
+pub(crate) fn structural_rows(
+    before: &DiscrepancyTable,
+    after: &[&DiscrepancyTable],
+) -> Vec<String> {
     before
         .rows
         .iter()
@@ -623,7 +626,7 @@ fn disagreeing(table: &DiscrepancyTable) -> String {
 /// with the fewest parameters is named when it is the only one that simple
 /// and removes half of the gap itself (the simpler of equivalent
 /// explanations); otherwise nothing is named.
-pub fn decide(
+pub(crate) fn decide(
     gap_before: f64,
     any_disagreement: bool,
     sorted: &[CandidateResult],

@@ -82,12 +82,12 @@ use crate::track::Track;
 mod judge;
 mod search;
 
-pub use judge::*;
-pub use search::*;
+pub(crate) use judge::*;
+pub(crate) use search::*;
 
 /// One parameter of an effect, searched in `[lo, hi]`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct ParamSpec {
+pub(crate) struct ParamSpec {
     /// Name of the parameter, as the simulator knows it.
     pub name: String,
     /// Lower bound of the search.
@@ -100,7 +100,7 @@ pub struct ParamSpec {
 
 /// A catalogue entry: a switchable effect of the simulator.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct EffectSpec {
+pub(crate) struct EffectSpec {
     /// Name of the effect, as the simulator knows it.
     pub name: String,
     /// Its parameters and their search ranges.
@@ -119,7 +119,7 @@ pub struct EffectSetting {
 /// What the signatures are computed from: events, and optionally the
 /// particles and tracks ebptv's own pipeline found in them.
 #[derive(Debug, Clone, Default)]
-pub struct Recording {
+pub(crate) struct Recording {
     /// The events.
     pub events: EventChunk,
     /// The particles found in the events.
@@ -129,7 +129,7 @@ pub struct Recording {
 }
 
 /// A simulator the workflow can drive.
-pub trait Simulator: Sync {
+pub(crate) trait Simulator: Sync {
     /// The effects it can switch on.
     fn catalogue(&self) -> Vec<EffectSpec>;
     /// Simulate the base scene with `effects` on, from `seed`, and run the
@@ -139,7 +139,7 @@ pub trait Simulator: Sync {
 
 /// Options of [`run`].
 #[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct WorkflowOptions {
+pub(crate) struct WorkflowOptions {
     /// Replicate simulations per assessment (besides the reference).
     pub replicates: usize,
     /// A signature disagrees when z exceeds this (and every replicate).
@@ -272,7 +272,7 @@ pub struct ModelCheckResult {
 }
 
 /// Signatures of a recording under a fixed configuration.
-pub fn signatures_of(cfg: &SignatureConfig, rec: &Recording) -> Result<Signatures> {
+pub(crate) fn signatures_of(cfg: &SignatureConfig, rec: &Recording) -> Result<Signatures> {
     let mut acc = SignatureAccumulator::new(cfg.clone())?;
     acc.add_events(&rec.events);
     acc.add_particles(&rec.particles);
@@ -628,7 +628,7 @@ const JOINT_REFIT_SWEEPS: usize = 2;
 
 /// Run the search. `measured_fit` and `measured_holdout` are two disjoint
 /// time blocks of the measurement, each as long as one simulated recording.
-pub fn run(
+pub(crate) fn run(
     sim: &dyn Simulator,
     cfg: &SignatureConfig,
     measured_fit: &Recording,

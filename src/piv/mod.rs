@@ -16,7 +16,7 @@
 //!
 //! * `correlate` — the FFT correlation (and the direct oracle).
 //! * `multipass` — passes, window deformation, the node grid.
-//! * [`validate`] — normalised median test, replacement, flags.
+//! * `validate` — normalised median test, replacement, flags.
 //! * `pseudo` — pseudo-images and the frame ring.
 //! * [`images`] — PNG/TIFF input for `piv-images`.
 //! * [`synth`] — synthetic particle images with known displacement.
@@ -26,8 +26,8 @@
 //!
 //! Only `N_f` images are ever in memory: a 10 s recording at 10 kHz is
 //! 100 000 pulses; its fields go to disk step by step and its statistics
-//! accumulate in [`FieldStats`], which two time slices can
-//! [`merge`](FieldStats::merge).
+//! accumulate in `FieldStats`, which two time slices can
+//! `FieldStats::merge`.
 
 pub(crate) mod correlate;
 pub mod images;
@@ -36,7 +36,7 @@ pub mod output;
 pub(crate) mod pseudo;
 pub(crate) mod run;
 pub mod synth;
-pub mod validate;
+pub(crate) mod validate;
 
 pub use multipass::{node_grid, piv_frames, NodeGrid, PivOptions, VectorField};
 pub(crate) use pseudo::{FrameRing, PseudoImager};
@@ -61,7 +61,7 @@ pub struct Image {
 
 impl Image {
     /// A black (all-zero) image of `width × height` px.
-    pub fn zeros(width: usize, height: usize) -> Self {
+    pub(crate) fn zeros(width: usize, height: usize) -> Self {
         Image {
             width,
             height,
@@ -80,7 +80,7 @@ impl Image {
 /// Only valid vectors (flag 0) enter the moments; `valid` is the fraction
 /// of evaluated steps in which the node was valid.
 #[derive(Debug, Clone, PartialEq)]
-pub struct FieldStats {
+pub(crate) struct FieldStats {
     /// The node grid the statistics are on.
     pub grid: NodeGrid,
     /// Number of fields added (evaluated time steps).
@@ -149,7 +149,7 @@ impl FieldStats {
 
     /// Mean, Reynolds stresses (population moments) and valid fraction per
     /// node; NaN where no valid vector was seen.
-    pub fn rows(&self) -> Vec<MeanRow> {
+    pub(crate) fn rows(&self) -> Vec<MeanRow> {
         (0..self.n.len())
             .map(|k| {
                 let n = self.n[k] as f64;
@@ -184,7 +184,7 @@ impl FieldStats {
 
 /// Options of streaming PIV on pulses.
 #[derive(Debug, Clone, PartialEq)]
-pub struct StreamOptions {
+pub(crate) struct StreamOptions {
     /// Options of the correlation.
     pub piv: PivOptions,
     /// How pulses' events become pseudo-images.
@@ -207,7 +207,7 @@ pub struct StepField {
 }
 
 /// Streaming PIV: feed pulses in order, get a field every `step` pulses.
-pub struct PivStream {
+pub(crate) struct PivStream {
     opts: StreamOptions,
     imager: PseudoImager,
     ring: FrameRing,
@@ -235,7 +235,7 @@ impl PivStream {
     /// timing; an error when `frames < 2`, `piv.pyramid ≥ frames`, `step`
     /// is 0, the pulse period is not positive, or the options do not suit
     /// the sensor (see [`node_grid`]).
-    pub fn new(
+    pub(crate) fn new(
         width: usize,
         height: usize,
         timing: PulseTiming,
@@ -285,7 +285,7 @@ impl PivStream {
     }
 
     /// Pulse frequency (Hz): displacement per pulse × this = px/s.
-    pub fn pulse_hz(&self) -> f64 {
+    pub(crate) fn pulse_hz(&self) -> f64 {
         self.pulse_hz
     }
 
@@ -310,7 +310,7 @@ impl PivStream {
     /// emitted, and added to the statistics, in time order. Memory: the
     /// frames of `n` evaluations (`n·step + N_f` pseudo-images at most) plus
     /// each running evaluation's deformed images.
-    pub fn set_batch(&mut self, n: usize) -> Result<()> {
+    pub(crate) fn set_batch(&mut self, n: usize) -> Result<()> {
         if n == 0 {
             return Err(Error::param(
                 "batch",
@@ -368,11 +368,12 @@ impl PivStream {
         }
     }
 
+    #[cfg(test)]
     /// Add the events of the next pulse. Pulses skipped by the splitter
     /// (no events) become empty frames; a gap longer than `N_f` restarts the
     /// ring. Returns a field when one was evaluated (at once, whatever the
     /// batch; [`feed`](Self::feed) runs batches in parallel).
-    pub fn push_pulse(&mut self, pe: &PulseEvents) -> Result<Option<StepField>> {
+    pub(crate) fn push_pulse(&mut self, pe: &PulseEvents) -> Result<Option<StepField>> {
         if !self.pending.is_empty() {
             return Err(Error::analysis(
                 "push_pulse after feed: flush the queued evaluations first",
@@ -392,7 +393,7 @@ impl PivStream {
     /// due evaluations are queued and run in parallel once `batch` of them
     /// are waiting; each field is passed to `emit`, in time order. Call
     /// [`flush`](Self::flush) after the last pulse.
-    pub fn feed(
+    pub(crate) fn feed(
         &mut self,
         pe: &PulseEvents,
         emit: &mut dyn FnMut(StepField) -> Result<()>,
@@ -408,7 +409,7 @@ impl PivStream {
 
     /// Run the queued evaluations (in parallel) and emit their fields in
     /// time order.
-    pub fn flush(&mut self, emit: &mut dyn FnMut(StepField) -> Result<()>) -> Result<()> {
+    pub(crate) fn flush(&mut self, emit: &mut dyn FnMut(StepField) -> Result<()>) -> Result<()> {
         if self.pending.is_empty() {
             return Ok(());
         }
@@ -430,3 +431,6 @@ impl PivStream {
         Ok(())
     }
 }
+
+#[cfg(test)]
+mod tests;

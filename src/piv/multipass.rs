@@ -130,7 +130,7 @@ impl NodeGrid {
 }
 
 /// Displacement per frame step on the node grid (px). `flags` from
-/// [`validate::flag`]; replaced vectors keep their replacement value.
+/// `validate::flag`; replaced vectors keep their replacement value.
 #[derive(Debug, Clone, PartialEq)]
 pub struct VectorField {
     /// The node grid.
@@ -139,7 +139,7 @@ pub struct VectorField {
     pub u: Vec<f64>,
     /// Displacement along y per frame step (px), row-major (`j·nx + i`).
     pub v: Vec<f64>,
-    /// Validity flags per node ([`validate::flag`] bits; 0 = valid).
+    /// Validity flags per node (`validate::flag` bits; 0 = valid).
     pub flags: Vec<u8>,
     /// Correlation peak height per node (0–1, mean over pairs).
     pub peak: Vec<f32>,

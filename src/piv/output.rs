@@ -68,7 +68,7 @@ pub fn mean_csv(rows: &[MeanRow], calib: Option<&crate::calib::Calibration>) -> 
 }
 
 /// Per-frame vectors: `x,y,u,v,flag` (px, px per frame step, flag bits of
-/// [`super::validate::flag`]; 0 = valid).
+/// `super::validate::flag`; 0 = valid).
 pub fn write_vectors_csv(path: &Path, f: &VectorField) -> Result<()> {
     let mut out = AtomicFile::create(path)?;
     let io = |e| Error::io(path, e);

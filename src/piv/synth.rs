@@ -97,11 +97,12 @@ pub fn particle_frames(o: &SynthOptions, disp: &dyn Fn(f64, f64) -> (f64, f64)) 
     frames
 }
 
+#[cfg(test)]
 /// Frames of particles in a spatially uniform but accelerating motion:
 /// frame `k` shows every particle at `p + d0·k + a·k²/2`, so the
 /// displacement from frame `k` to `k+1` is `d0 + a·(k + ½)` and the velocity
 /// (px per frame step) at frame time `t` is `d0 + a·t`.
-pub fn accelerating_frames(o: &SynthOptions, d0: (f64, f64), a: (f64, f64)) -> Vec<Image> {
+pub(crate) fn accelerating_frames(o: &SynthOptions, d0: (f64, f64), a: (f64, f64)) -> Vec<Image> {
     let mut rng = rand_pcg::Pcg64::seed_from_u64(o.seed);
     let n = o.frames as f64;
     let reach = |d: f64, a: f64| (d.abs() * n + 0.5 * a.abs() * n * n).ceil() + 4.0;

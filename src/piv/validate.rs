@@ -14,7 +14,7 @@
 //! neighbourhood (see `border_extrapolations`).
 
 /// Validity flags (bit set).
-pub mod flag {
+pub(crate) mod flag {
     /// Valid: measured and passed the median test.
     pub(crate) const VALID: u8 = 0;
     /// Failed the normalised median test; value replaced.
@@ -22,7 +22,7 @@ pub mod flag {
     /// No usable correlation peak (empty windows, peak at the border).
     pub(crate) const NO_PEAK: u8 = 2;
     /// Node inside the mask: no value.
-    pub const MASKED: u8 = 4;
+    pub(crate) const MASKED: u8 = 4;
     /// Value replaced by interpolation from neighbours.
     pub(crate) const REPLACED: u8 = 8;
 }
@@ -285,7 +285,7 @@ pub(crate) fn replace_invalid(
 
 /// True when the vector is a genuine, validated measurement.
 #[inline]
-pub fn is_valid(f: u8) -> bool {
+pub(crate) fn is_valid(f: u8) -> bool {
     f == flag::VALID
 }
 

@@ -294,7 +294,7 @@ pub(crate) const VERDICT_EVENTS: u64 = 4_000_000;
 /// The pulsed-light test ([`PulsedVerdict`]) of `ebptv info` on the first
 /// `VERDICT_EVENTS` events of `path`, triggers used when regular; an
 /// error when no period could be found at all.
-pub fn file_verdict(
+pub(crate) fn file_verdict(
     path: &std::path::Path,
     opts: &crate::io::OpenOptions,
 ) -> Result<PulsedVerdict> {
@@ -313,7 +313,7 @@ pub fn file_verdict(
 /// What `ebptv info --json` prints: the recording's summary with its
 /// pulsed-light verdict under `pulsed` (`{"pulsed": false, "reason": …}`
 /// when no period was found).
-pub fn info_json(
+pub(crate) fn info_json(
     summary: &crate::io::summary::Summary,
     verdict: &std::result::Result<PulsedVerdict, String>,
 ) -> Result<serde_json::Value> {

@@ -146,6 +146,13 @@ pub use stream::{track_recording, PtvSink, PtvStream, TrackingRun};
 
 #[cfg(test)]
 mod tests {
+    // Linking against brute-force oracles, the slice tracker, track
+    // accuracy and the output fit on synthetic scenes (src/track/tests/).
+    mod accuracy;
+    mod fit_accuracy;
+    mod oracle;
+    mod slice;
+
     use super::*;
 
     fn particle(pulse: i64, x: f64, y: f64) -> Particle {

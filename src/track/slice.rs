@@ -143,7 +143,7 @@ struct SliceOutput {
 }
 
 /// Parallel slice-and-stitch tracker (module docs). Feed pulses in
-/// increasing order with [`SliceTracker::push`]; tracks come out, joined,
+/// increasing order with `SliceTracker::push`; tracks come out, joined,
 /// as whole groups of slices are tracked.
 pub struct SliceTracker {
     params: TrackParams,
@@ -166,7 +166,7 @@ pub struct SliceTracker {
 impl SliceTracker {
     /// A slice tracker with these tracking and slicing parameters; an
     /// error when a parameter is out of range.
-    pub fn new(params: TrackParams, slicing: SliceParams) -> Result<Self> {
+    pub(crate) fn new(params: TrackParams, slicing: SliceParams) -> Result<Self> {
         params.validate()?;
         slicing.validate()?;
         Ok(SliceTracker {
@@ -195,7 +195,7 @@ impl SliceTracker {
     }
 
     /// Add the particles of the next pulse; returns tracks that are final.
-    pub fn push(
+    pub(crate) fn push(
         &mut self,
         pulse: i64,
         t_us: f64,
@@ -232,7 +232,7 @@ impl SliceTracker {
     }
 
     /// Track what is left and end every track.
-    pub fn finish(mut self) -> Result<(Vec<LinkedTrack>, TrackerStats)> {
+    pub(crate) fn finish(mut self) -> Result<(Vec<LinkedTrack>, TrackerStats)> {
         let s = self.slicing.slice_pulses;
         let slices = self.pulses_seen.div_ceil(s);
         let mut out = self.track_slices(slices)?;

@@ -525,10 +525,11 @@ impl Tracker {
         (out, self.stats)
     }
 
+    #[cfg(test)]
     /// First steps (pairs of a first and a second particle) the four-frame
     /// initialisation has expanded into chains so far: its work, for
     /// comparing search strategies (`TrackParams::gap_first_step`).
-    pub fn chains_enumerated(&self) -> u64 {
+    pub(crate) fn chains_enumerated(&self) -> u64 {
         self.chains_enumerated
     }
 

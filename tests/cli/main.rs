@@ -2,4 +2,3 @@
 
 mod demo_cli;
 mod help;
-mod plot_figures;

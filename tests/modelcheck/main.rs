@@ -1,11 +1,4 @@
-//! Integration tests of the modelcheck area, one binary (modules by concern).
+//! Integration tests of the modelcheck area: the `ebptv modelcheck` command.
+//! (The building blocks are unit-tested in `src/modelcheck/tests/`.)
 
-mod baseline;
 mod cli;
-mod decision;
-mod hidden_more;
-#[path = "../modelcheck_common/mod.rs"]
-mod modelcheck_common;
-mod scene;
-mod signatures;
-mod workflow;

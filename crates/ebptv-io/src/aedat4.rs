@@ -252,7 +252,7 @@ enum Kind {
 }
 
 /// Reads an AEDAT4 (iniVation) file packet by packet as an [`EventSource`](crate::EventSource).
-pub struct Aedat4Reader {
+pub(crate) struct Aedat4Reader {
     info: StreamInfo,
     reader: BufReader<File>,
     compression: Compression,
@@ -271,7 +271,7 @@ pub struct Aedat4Reader {
 
 impl Aedat4Reader {
     /// Opens `path` and reads its IOHeader; `chunk_events` is the target chunk size.
-    pub fn open(path: &Path, chunk_events: usize) -> Result<Self> {
+    pub(crate) fn open(path: &Path, chunk_events: usize) -> Result<Self> {
         let file = File::open(path).map_err(|e| Error::io(path, e))?;
         let file_size = file.metadata().map_err(|e| Error::io(path, e))?.len();
         if file_size == 0 {
@@ -844,9 +844,10 @@ pub fn encode_aedat4(
     out
 }
 
+#[cfg(test)]
 /// Wrap bytes in a valid Zstd frame made of raw (stored) blocks: lets tests
 /// exercise the Zstd path without a Zstd compressor.
-pub fn zstd_stored_frame(data: &[u8]) -> Vec<u8> {
+pub(crate) fn zstd_stored_frame(data: &[u8]) -> Vec<u8> {
     const MAX_BLOCK: usize = 128 * 1024;
     let mut out = vec![0x28, 0xB5, 0x2F, 0xFD, 0x00, 7 << 3];
     let mut chunks: Vec<&[u8]> = data.chunks(MAX_BLOCK).collect();

@@ -174,7 +174,7 @@ unsafe fn cd_run(words: &[u8], base: i64, sink: &mut RawAppend) -> usize {
 }
 
 /// Streaming EVT 2.0 file reader.
-pub type Evt2Reader = RawReader<Evt2Decoder>;
+pub(crate) type Evt2Reader = RawReader<Evt2Decoder>;
 
 impl RawReader<Evt2Decoder> {
     /// Open `path`, parse its header, and prepare to stream chunks of at
@@ -184,7 +184,11 @@ impl RawReader<Evt2Decoder> {
     }
 
     /// `Evt2Reader::open` with a chosen read-buffer size.
-    pub fn open_with_buffer(path: &Path, chunk_events: usize, buffer_bytes: usize) -> Result<Self> {
+    pub(crate) fn open_with_buffer(
+        path: &Path,
+        chunk_events: usize,
+        buffer_bytes: usize,
+    ) -> Result<Self> {
         RawReader::open_format(path, Format::Evt2, 4, chunk_events, buffer_bytes, |_| {
             Evt2Decoder::new()
         })

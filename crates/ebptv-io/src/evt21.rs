@@ -144,7 +144,7 @@ impl Evt21Decoder {
 }
 
 /// Streaming EVT 2.1 file reader.
-pub type Evt21Reader = RawReader<Evt21Decoder>;
+pub(crate) type Evt21Reader = RawReader<Evt21Decoder>;
 
 impl RawReader<Evt21Decoder> {
     /// Open `path` (word order from the header) and prepare to stream chunks
@@ -154,14 +154,19 @@ impl RawReader<Evt21Decoder> {
     }
 
     /// `Evt21Reader::open` with a chosen read-buffer size.
-    pub fn open_with_buffer(path: &Path, chunk_events: usize, buffer_bytes: usize) -> Result<Self> {
+    pub(crate) fn open_with_buffer(
+        path: &Path,
+        chunk_events: usize,
+        buffer_bytes: usize,
+    ) -> Result<Self> {
         RawReader::open_format(path, Format::Evt21, 8, chunk_events, buffer_bytes, |h| {
             Evt21Decoder::new(h.evt21_legacy)
         })
     }
 
+    #[cfg(test)]
     /// True when the file uses the legacy (swapped halves) word order.
-    pub fn legacy_word_order(&self) -> bool {
+    pub(crate) fn legacy_word_order(&self) -> bool {
         self.decoder.legacy
     }
 }

@@ -64,7 +64,7 @@ const ROW_EM: u8 = 2;
 const FAST_KINDS: u16 = (1 << 0x0) | (1 << 0x2) | (1 << 0x6);
 
 /// The EVT 3.0 decoding state machine, independent of where the bytes come
-/// from (files through [`Evt3Reader`], memory in tests and tools).
+/// from (files through `Evt3Reader`, memory in tests and tools).
 #[derive(Debug, Clone, Default)]
 pub struct Evt3Decoder {
     have_time_base: bool,
@@ -497,18 +497,22 @@ pub(crate) fn count_out_of_geometry(ev: &EventChunk, geometry: Option<Geometry>)
 }
 
 /// Streaming EVT 3.0 file reader.
-pub type Evt3Reader = RawReader<Evt3Decoder>;
+pub(crate) type Evt3Reader = RawReader<Evt3Decoder>;
 
 impl RawReader<Evt3Decoder> {
     /// Open `path`, parse its header, and prepare to stream chunks of about
     /// `chunk_events` events (at most `chunk_events + 11`).
-    pub fn open(path: &Path, chunk_events: usize) -> Result<Self> {
+    pub(crate) fn open(path: &Path, chunk_events: usize) -> Result<Self> {
         Self::open_with_buffer(path, chunk_events, READ_BUFFER_BYTES)
     }
 
     /// `Evt3Reader::open` with a chosen read-buffer size (tests use tiny
     /// buffers to exercise sequences straddling refills).
-    pub fn open_with_buffer(path: &Path, chunk_events: usize, buffer_bytes: usize) -> Result<Self> {
+    pub(crate) fn open_with_buffer(
+        path: &Path,
+        chunk_events: usize,
+        buffer_bytes: usize,
+    ) -> Result<Self> {
         RawReader::open_format(path, Format::Evt3, 2, chunk_events, buffer_bytes, |_| {
             Evt3Decoder::new()
         })

@@ -63,6 +63,10 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+// Unit tests name the crate `ebptv_io`, as a user does.
+#[cfg(test)]
+extern crate self as ebptv_io;
+
 pub mod error;
 pub mod events;
 
@@ -414,3 +418,6 @@ pub mod raw_reader;
 pub(crate) mod raw_writer;
 pub mod sniff;
 pub mod summary;
+
+#[cfg(test)]
+mod tests;

@@ -3,7 +3,7 @@
 //! EVT 2.0, 2.1 and 3.0 differ only in how words become events; reading
 //! whole words through a fixed buffer, stopping at the chunk size, counting
 //! a truncated tail once and events outside the geometry is the same for
-//! all three. [`RawReader`] does that part; each format supplies a
+//! all three. `RawReader` does that part; each format supplies a
 //! [`WordDecoder`] (`Evt2Decoder`, `Evt21Decoder`, `Evt3Decoder`), and
 //! `Evt2Reader` etc. are `RawReader`s of their decoder.
 
@@ -29,7 +29,7 @@ pub trait WordDecoder: Send {
 }
 
 /// A RAW file streamed through a [`WordDecoder`].
-pub struct RawReader<D> {
+pub(crate) struct RawReader<D> {
     pub(crate) info: StreamInfo,
     pub(crate) payload: PayloadReader,
     pub(crate) decoder: D,

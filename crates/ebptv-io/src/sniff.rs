@@ -1,7 +1,7 @@
 //! Format detection: content first, extension as the fallback.
 //!
 //! Extensions lie (a `.raw` may hold EVT 2.0 or EVT 3.0; files get renamed),
-//! so [`detect_format`] reads the first bytes of the file and looks for what
+//! so `detect_format` reads the first bytes of the file and looks for what
 //! each format puts there:
 //! - AEDAT 4.0: the magic `#!AER-DAT4.0`; Event Stream: `Event Stream`;
 //!   NumPy: `\x93NUMPY` (an ebptv *output* format, reported as such).
@@ -41,7 +41,7 @@ pub fn detect_format(path: &Path) -> Result<Format> {
 
 /// [`detect_format`] on the first bytes of a file (`path` for the extension
 /// fallback and the error message).
-pub fn detect_from_bytes(path: &Path, head: &[u8]) -> Result<Format> {
+pub(crate) fn detect_from_bytes(path: &Path, head: &[u8]) -> Result<Format> {
     match sniff_content(head) {
         Sniffed::Format(f) => return Ok(f),
         Sniffed::Nothing => {}

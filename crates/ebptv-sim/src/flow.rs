@@ -154,7 +154,7 @@ impl<T: Lanes> Phases<T> {
 pub(crate) static FALLBACK_LANES: std::sync::atomic::AtomicU64 =
     std::sync::atomic::AtomicU64::new(0);
 
-/// Periodic vortex shedding behind an obstacle (built from [`FlowSpec::Shedding`](crate::scenario::FlowSpec::Shedding)).
+/// Periodic vortex shedding behind an obstacle (built from [`FlowSpec::Shedding`]).
 #[derive(Debug, Clone)]
 pub struct Shedding {
     u_inf: f64,
@@ -174,7 +174,7 @@ pub struct Shedding {
     inv_size: f64,
 }
 
-/// A steady field on a regular grid, bilinearly interpolated (built from [`FlowSpec::Gridded`](crate::scenario::FlowSpec::Gridded)).
+/// A steady field on a regular grid, bilinearly interpolated (built from [`FlowSpec::Gridded`]).
 #[derive(Debug, Clone)]
 pub struct Gridded {
     xs: Vec<f64>,

@@ -5,7 +5,7 @@
 //! and records the truth (position and velocity of every lit particle at
 //! every pulse). A preset is a complete [`Scenario`]; [`simulate`] runs
 //! it into memory, [`Simulator`] streams it as an
-//! [`EventSource`](ebptv_io::EventSource):
+//! [`EventSource`]:
 //!
 //! ```
 //! use ebptv_sim::{presets, simulate};

@@ -26,7 +26,7 @@ use super::scenario::{ArbiterSaturation, Roi};
 use ebptv_io::events::EventChunk;
 
 /// Drops requests of a pixel within `period_us` after its previous one.
-pub struct Refractory {
+pub(crate) struct Refractory {
     period_us: f64,
     roi: Roi,
     last: Vec<f64>,

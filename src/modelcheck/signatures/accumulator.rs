@@ -17,7 +17,7 @@ use super::*;
 /// spacing (`IntBins`, `UniformBins`) instead of a binary search per
 /// value. Counts are exact integers either way, so the signatures are
 /// identical, not just close.
-pub struct SignatureAccumulator {
+pub(crate) struct SignatureAccumulator {
     pub(super) cfg: SignatureConfig,
     pub(super) latency: UniformBins,
     pub(super) latency_counts: Vec<u64>,
@@ -243,7 +243,7 @@ pub(super) fn yield_edges() -> Vec<f64> {
 
 impl SignatureAccumulator {
     /// An empty accumulator for `cfg`. Fails when `cfg` is invalid.
-    pub fn new(cfg: SignatureConfig) -> Result<Self> {
+    pub(crate) fn new(cfg: SignatureConfig) -> Result<Self> {
         cfg.validate()?;
         let latency = UniformBins::new(Histogram::new(cfg.latency_edges(), BinScale::Linear)?);
         let n_lat = latency.hist.n_bins();
@@ -292,7 +292,7 @@ impl SignatureAccumulator {
     }
 
     /// Add a chunk of events (chunks in stream order).
-    pub fn add_events(&mut self, ev: &EventChunk) {
+    pub(crate) fn add_events(&mut self, ev: &EventChunk) {
         let g = self.cfg.geometry;
         let width = g.width as usize;
         let period = self.cfg.timing.period_us;
@@ -449,7 +449,7 @@ impl SignatureAccumulator {
     }
 
     /// Add clustered particles (any order).
-    pub fn add_particles(&mut self, particles: &[Particle]) {
+    pub(crate) fn add_particles(&mut self, particles: &[Particle]) {
         self.particles.extend(
             particles
                 .iter()
@@ -460,7 +460,7 @@ impl SignatureAccumulator {
     /// Add tracks, with the particles they were built from (for the
     /// elongation of each tracked particle image). A particle is matched to
     /// the track point at the same pulse nearest to it, within 2 px.
-    pub fn add_tracks(&mut self, tracks: &[Track], particles: &[Particle]) -> Result<()> {
+    pub(crate) fn add_tracks(&mut self, tracks: &[Track], particles: &[Particle]) -> Result<()> {
         if self.elongation.is_none() {
             self.elongation =
                 Some(ProfileAcc::new(self.cfg.speed_edges.clone()).map_err(|_| {
@@ -504,7 +504,7 @@ impl SignatureAccumulator {
     }
 
     /// Finish: all signatures. Errors when no event fell inside the sensor.
-    pub fn finish(mut self) -> Result<Signatures> {
+    pub(crate) fn finish(mut self) -> Result<Signatures> {
         self.flush_run();
         if self.n_events == 0 {
             return Err(Error::analysis(

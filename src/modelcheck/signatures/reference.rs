@@ -17,7 +17,7 @@ use crate::events::{EventChunk, ON};
 use crate::track::Track;
 
 /// Streaming computation of [`Signatures`].
-pub struct ReferenceAccumulator {
+pub(crate) struct ReferenceAccumulator {
     cfg: SignatureConfig,
     latency: Histogram,
     /// Folded time of OFF events (same bins as `latency`).
@@ -68,7 +68,7 @@ pub struct ReferenceAccumulator {
 
 impl ReferenceAccumulator {
     /// An empty accumulator for `cfg`. Fails when `cfg` is invalid.
-    pub fn new(cfg: SignatureConfig) -> Result<Self> {
+    pub(crate) fn new(cfg: SignatureConfig) -> Result<Self> {
         cfg.validate()?;
         let latency = Histogram::new(cfg.latency_edges(), BinScale::Linear)?;
         let n = cfg.geometry.pixels();
@@ -110,7 +110,7 @@ impl ReferenceAccumulator {
     }
 
     /// Add a chunk of events (chunks in stream order).
-    pub fn add_events(&mut self, ev: &EventChunk) {
+    pub(crate) fn add_events(&mut self, ev: &EventChunk) {
         let g = self.cfg.geometry;
         let period = self.cfg.timing.period_us;
         let first = self.cfg.timing.first_pulse_us;
@@ -243,7 +243,7 @@ impl ReferenceAccumulator {
     }
 
     /// Add clustered particles (any order).
-    pub fn add_particles(&mut self, particles: &[Particle]) {
+    pub(crate) fn add_particles(&mut self, particles: &[Particle]) {
         self.particles.extend(
             particles
                 .iter()
@@ -254,7 +254,7 @@ impl ReferenceAccumulator {
     /// Add tracks, with the particles they were built from (for the
     /// elongation of each tracked particle image). A particle is matched to
     /// the track point at the same pulse nearest to it, within 2 px.
-    pub fn add_tracks(&mut self, tracks: &[Track], particles: &[Particle]) -> Result<()> {
+    pub(crate) fn add_tracks(&mut self, tracks: &[Track], particles: &[Particle]) -> Result<()> {
         if self.elongation.is_none() {
             self.elongation =
                 Some(ProfileAcc::new(self.cfg.speed_edges.clone()).map_err(|_| {
@@ -298,7 +298,7 @@ impl ReferenceAccumulator {
     }
 
     /// Finish: all signatures. Errors when no event fell inside the sensor.
-    pub fn finish(mut self) -> Result<Signatures> {
+    pub(crate) fn finish(mut self) -> Result<Signatures> {
         self.flush_run();
         if self.n_events == 0 {
             return Err(Error::analysis(

@@ -22,14 +22,14 @@ use super::*;
 /// was measured). New rows are judged from the round after their effect
 /// is in the model.
 #[derive(Debug, Clone, PartialEq)]
-pub struct RowSet {
+pub(crate) struct RowSet {
     /// Names of the signature rows.
     pub names: Vec<String>,
 }
 
 impl RowSet {
     /// The rows of `before` (the current model's held-out table).
-    pub fn of(before: &DiscrepancyTable) -> RowSet {
+    pub(crate) fn of(before: &DiscrepancyTable) -> RowSet {
         RowSet {
             names: before.rows.iter().map(|r| r.signature.clone()).collect(),
         }
@@ -49,7 +49,7 @@ impl RowSet {
     }
 
     /// Σ of `RowSet::components`.
-    pub fn gap(&self, t: &DiscrepancyTable) -> f64 {
+    pub(crate) fn gap(&self, t: &DiscrepancyTable) -> f64 {
         self.components(t).iter().sum()
     }
 }
@@ -114,7 +114,7 @@ pub(super) fn shared_reduction(rb: &[f64], ro: &[f64]) -> f64 {
 
 /// How the candidates of one round compare (see [`judge_candidates`]).
 #[derive(Debug, Clone, PartialEq)]
-pub struct Judgement {
+pub(crate) struct Judgement {
     /// Candidate indices, best first (by `improvement`, ties by name).
     pub order: Vec<usize>,
     /// Paired improvement of each candidate (input order): the gap on the
@@ -141,11 +141,11 @@ pub struct Judgement {
 
 impl Judgement {
     /// Index of the best candidate (`order[0]`).
-    pub fn best(&self) -> usize {
+    pub(crate) fn best(&self) -> usize {
         self.order[0]
     }
     /// The best clearly beats chance and its rival.
-    pub fn clear(&self) -> bool {
+    pub(crate) fn clear(&self) -> bool {
         self.beats_chance && self.lead > self.needed && self.clear_of_rival
     }
 }
@@ -164,7 +164,7 @@ impl Judgement {
 /// 43.7 against 47.5 is not). With seven, the whole gap also holds every
 /// other effect's part, rows neither touches, and a margin on it can never
 /// be met (a lead of 1079 against a required 2553 of 11 020).
-pub fn judge_candidates(
+pub(crate) fn judge_candidates(
     before: &DiscrepancyTable,
     names: &[&str],
     after: &[&DiscrepancyTable],
@@ -279,7 +279,7 @@ pub(crate) fn judge_candidates_whole_gap(
 /// What a joint fit of the best candidate and its rival says about them
 /// (see [`explain_away`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum PairOutcome {
+pub(crate) enum PairOutcome {
     /// Each adds beyond chance to the other: both effects are present.
     Both,
     /// The first explains what the second does (the second adds nothing).
@@ -297,7 +297,13 @@ pub enum PairOutcome {
 /// lowers the gap by more than `chance`, and A likewise. An impostor that
 /// mimics a real effect adds nothing once the real one is in; two real
 /// effects that both widen the burst each remove a part the other cannot.
-pub fn explain_away(gap_a: f64, gap_b: f64, gap_ab: f64, gap_ba: f64, chance: f64) -> PairOutcome {
+pub(crate) fn explain_away(
+    gap_a: f64,
+    gap_b: f64,
+    gap_ab: f64,
+    gap_ba: f64,
+    chance: f64,
+) -> PairOutcome {
     let b_needed = gap_a - gap_ab > chance;
     let a_needed = gap_b - gap_ba > chance;
     match (a_needed, b_needed) {

@@ -8,7 +8,7 @@ use super::*;
 
 /// Minimise `f` on [0, 1]: a grid, then golden-section search in the
 /// bracket around the best grid point. Returns (argmin, min, evaluations).
-pub fn minimise_1d(
+pub(crate) fn minimise_1d(
     f: &mut dyn FnMut(f64) -> Result<f64>,
     max_evals: usize,
 ) -> Result<(f64, f64, usize)> {
@@ -69,7 +69,7 @@ pub(crate) fn minimise_1d_in(
 
 /// Nelder–Mead in the unit cube (points clamped). Returns (argmin, min,
 /// evaluations).
-pub fn nelder_mead(
+pub(crate) fn nelder_mead(
     f: &mut dyn FnMut(&[f64]) -> Result<f64>,
     start: &[f64],
     step: f64,

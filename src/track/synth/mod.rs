@@ -401,7 +401,7 @@ pub(crate) type TruthClusters = (Vec<Particle>, Vec<Option<u64>>, Vec<bool>, Vec
 
 /// [`cluster_with_truth_mixed`], also listing for each particle every
 /// truth particle that made at least one of its events (sorted).
-pub fn cluster_with_truth_sources(sp: &SynthPulse, params: &ClusterParams) -> TruthClusters {
+pub(crate) fn cluster_with_truth_sources(sp: &SynthPulse, params: &ClusterParams) -> TruthClusters {
     let pixels = pulse_pixels(&sp.pulse, params);
     let mut labels = pixel_labels_with(&pixels, params);
     split_wide_clusters(&pixels, &mut labels, params.split_extent);

@@ -1,10 +1,10 @@
 //! Each reader against a plain, obviously-correct reference decoder (or its
 //! writer) on random inputs, across random chunk sizes.
 
-use ebptv::io::aedat4::{encode_aedat4, lz4_frame, Compression};
-use ebptv::io::csv::CsvWriter;
-use ebptv::io::{self, EventSource, EventWriter, Format, OpenOptions};
-use ebptv::{Chunk, Edge, Event, Geometry, Trigger};
+use ebptv_io::aedat4::{encode_aedat4, lz4_frame, Compression};
+use ebptv_io::csv::CsvWriter;
+use ebptv_io::{self as io, EventSource, EventWriter, Format, OpenOptions};
+use ebptv_io::{Chunk, Edge, Event, Geometry, Trigger};
 use proptest::prelude::*;
 
 fn read(bytes: &[u8], format: Format, ext: &str, chunk: usize) -> (Vec<Event>, Vec<Trigger>) {

@@ -2,11 +2,11 @@
 //! images advected by the analytic field), the streaming pseudo-image path
 //! from events, and bad input.
 
-use ebptv::events::EventChunk;
-use ebptv::piv::synth::{particle_frames, SynthOptions};
-use ebptv::piv::validate::is_valid;
-use ebptv::piv::{piv_frames, Image, PivOptions, PivStream, PseudoOptions, StreamOptions};
-use ebptv::pulses::{PulseEvents, PulseSource, PulseTiming};
+use crate::events::EventChunk;
+use crate::piv::synth::{particle_frames, SynthOptions};
+use crate::piv::validate::is_valid;
+use crate::piv::{piv_frames, Image, PivOptions, PivStream, PseudoOptions, StreamOptions};
+use crate::pulses::{PulseEvents, PulseSource, PulseTiming};
 use rand::{Rng, SeedableRng};
 
 /// rms error of the valid vectors relative to the largest true speed, and
@@ -62,7 +62,7 @@ fn lamb_oseen(cx: f64, cy: f64, rc: f64, vpeak: f64) -> impl Fn(f64, f64) -> (f6
     }
 }
 
-fn field_points(f: &ebptv::piv::VectorField) -> Vec<(f64, f64, f64, f64, bool)> {
+fn field_points(f: &crate::piv::VectorField) -> Vec<(f64, f64, f64, f64, bool)> {
     (0..f.grid.len())
         .map(|k| {
             (
@@ -80,7 +80,7 @@ fn field_points(f: &ebptv::piv::VectorField) -> Vec<(f64, f64, f64, f64, bool)> 
 fn vortex_mean_field_within_2_percent() {
     let vortex = lamb_oseen(128.0, 128.0, 70.0, 3.0);
     // The mean field: average of three independent recordings (seeds).
-    let mut f: Option<ebptv::piv::VectorField> = None;
+    let mut f: Option<crate::piv::VectorField> = None;
     for seed in [21, 22, 23] {
         let so = SynthOptions {
             width: 256,
@@ -340,11 +340,11 @@ fn masked_nodes_are_flagged_and_empty() {
         let x = f.grid.x(k % f.grid.nx);
         if x < 40.0 {
             // Windows more than half masked (x = 31.5: 24 of 32 columns).
-            assert_eq!(f.flags[k], ebptv::piv::validate::flag::MASKED);
+            assert_eq!(f.flags[k], crate::piv::validate::flag::MASKED);
             assert!(f.u[k].is_nan());
         } else if x < 48.0 {
             // A quarter masked (x = 47.5): a vector.
-            assert_ne!(f.flags[k], ebptv::piv::validate::flag::MASKED, "node {k}");
+            assert_ne!(f.flags[k], crate::piv::validate::flag::MASKED, "node {k}");
             assert!(f.u[k].is_finite(), "node {k}");
         } else if x > 72.0 {
             assert!(
@@ -359,7 +359,7 @@ fn masked_nodes_are_flagged_and_empty() {
 
 /// Everything a stream produced, as text: `{:?}` of an f64 is its
 /// shortest round-trip form, so equal text means equal bits.
-fn stream_record(fields: &[ebptv::piv::StepField], s: &PivStream) -> Vec<String> {
+fn stream_record(fields: &[crate::piv::StepField], s: &PivStream) -> Vec<String> {
     let mut r: Vec<String> = fields
         .iter()
         .map(|f| {
@@ -408,7 +408,7 @@ fn parallel_time_steps_match_sequential_bit_for_bit() {
                 let mut s = PivStream::new(w, h, timing(), so.clone()).unwrap();
                 s.set_batch(batch).unwrap();
                 let mut out = Vec::new();
-                let mut emit = |f: ebptv::piv::StepField| -> ebptv::Result<()> {
+                let mut emit = |f: crate::piv::StepField| -> crate::Result<()> {
                     out.push(f);
                     Ok(())
                 };

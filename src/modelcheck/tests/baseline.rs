@@ -3,11 +3,11 @@
 //! tracks, replayed by the simulator as a gridded field. Checked against
 //! the truth of a simulated vortex-in-shear recording.
 
-use ebptv::events::{Edge, Geometry};
-use ebptv::modelcheck::baseline::{baseline_from_measurement, BaselineOptions};
-use ebptv::modelcheck::scene::{particles_of, timing_of};
-use ebptv::sim::flow::Flow;
-use ebptv::sim::scenario::{FlowSpec, Scenario, Sensor};
+use crate::events::{Edge, Geometry};
+use crate::modelcheck::baseline::{baseline_from_measurement, BaselineOptions};
+use crate::modelcheck::scene::{particles_of, timing_of};
+use crate::sim::flow::Flow;
+use crate::sim::scenario::{FlowSpec, Scenario, Sensor};
 
 fn truth_scene() -> Scenario {
     let mut s = Scenario {
@@ -31,7 +31,7 @@ fn truth_scene() -> Scenario {
         ..Scenario::default()
     };
     s.seeding.ppp = 0.008;
-    s.light.energy = ebptv::sim::presets::WATER_ENERGY;
+    s.light.energy = crate::sim::presets::WATER_ENERGY;
     s.light.first_pulse_us = 37.0;
     s.pixel.latency_us = 20.0;
     s
@@ -40,7 +40,7 @@ fn truth_scene() -> Scenario {
 #[test]
 fn baseline_replays_the_measured_vortex_and_matches_pulses_seeding_brightness() {
     let truth = truth_scene();
-    let out = ebptv::sim::simulate(&truth, 4242).unwrap();
+    let out = crate::sim::simulate(&truth, 4242).unwrap();
     let rising: Vec<i64> = out
         .triggers
         .iter()
@@ -82,18 +82,18 @@ fn baseline_replays_the_measured_vortex_and_matches_pulses_seeding_brightness() 
     let replay = {
         let mut r = sc.clone();
         r.duration_s = 0.02;
-        ebptv::sim::simulate(&r, 99).unwrap()
+        crate::sim::simulate(&r, 99).unwrap()
     };
-    let cluster = ebptv::cluster::ClusterParams {
-        radius: ebptv::cluster::ClusterParams::radius_for_image_diameter(1.3),
+    let cluster = crate::cluster::ClusterParams {
+        radius: crate::cluster::ClusterParams::radius_for_image_diameter(1.3),
         ..Default::default()
     };
     let pm = particles_of(&out.events, &timing_of(&truth), &cluster).unwrap();
     let ps = particles_of(&replay.events, &timing_of(sc), &cluster).unwrap();
-    let mean = |p: &[ebptv::cluster::Particle]| {
+    let mean = |p: &[crate::cluster::Particle]| {
         p.iter().map(|q| q.n_events as f64).sum::<f64>() / p.len() as f64
     };
-    let median = |p: &[ebptv::cluster::Particle]| {
+    let median = |p: &[crate::cluster::Particle]| {
         let mut l: Vec<f64> = p.iter().map(|q| q.first_latency_us as f64).collect();
         l.sort_by(f64::total_cmp);
         l[l.len() / 2]
@@ -150,7 +150,7 @@ fn baseline_replays_the_measured_vortex_and_matches_pulses_seeding_brightness() 
 
 #[test]
 fn baseline_refuses_a_recording_without_triggers() {
-    let out = ebptv::sim::simulate(
+    let out = crate::sim::simulate(
         &Scenario {
             duration_s: 0.004,
             sensor: Sensor {

@@ -2,16 +2,16 @@
 //! candidate (signature and hidden-effect search) and two hidden effects at
 //! once (both named, joint refit). "Measured" recordings are simulated with
 //! seeds the search never uses.
-use crate::modelcheck_common;
+use super::modelcheck_common;
 
 use modelcheck_common::{base, setting, strength};
 
 use std::collections::BTreeMap;
 use std::time::Instant;
 
-use ebptv::modelcheck::scene::{default_catalogue, SceneSimulator};
-use ebptv::modelcheck::signatures::{burst_window, LATENCY_DRIFT};
-use ebptv::modelcheck::workflow::{
+use crate::modelcheck::scene::{default_catalogue, SceneSimulator};
+use crate::modelcheck::signatures::{burst_window, LATENCY_DRIFT};
+use crate::modelcheck::workflow::{
     run, signatures_of, EffectSetting, EffectSpec, ModelCheckResult, Simulator, Verdict,
     WorkflowOptions,
 };

@@ -1,4 +1,4 @@
-//! The parallel slice-and-stitch tracker (`ebptv::track::slice`) against
+//! The parallel slice-and-stitch tracker (`crate::track::slice`) against
 //! the sequential `Tracker` on simulator truth (paper-like synthetic
 //! scenes, scored as in `tests/ptv_accuracy.rs`), and its determinism
 //! across thread counts.
@@ -6,13 +6,13 @@
 //! The slices here are short (40 pulses) so that a scene of a few hundred
 //! pulses crosses many seams: what the seams cost shows up clearly.
 
-use ebptv::cluster::{ClusterParams, Particle};
-use ebptv::sim::TruthSample;
-use ebptv::track::synth::{
+use crate::cluster::{ClusterParams, Particle};
+use crate::sim::TruthSample;
+use crate::track::synth::{
     cluster_with_truth_sources, generate, score_with_sources, LinkScore, SynthParams, SynthPulse,
     INTERIOR_MARGIN,
 };
-use ebptv::track::{LinkedTrack, SliceParams, SliceTracker, TrackParams, Tracker};
+use crate::track::{LinkedTrack, SliceParams, SliceTracker, TrackParams, Tracker};
 
 struct Clustered {
     pulses: Vec<(i64, f64, Vec<Particle>)>,
@@ -167,7 +167,7 @@ fn sliced_output_is_identical_for_any_thread_count() {
     });
     let c = cluster(&scene);
     let tp = TrackParams {
-        gates: ebptv::track::GateParams {
+        gates: crate::track::GateParams {
             max_track_length: 60,
             ..Default::default()
         },

@@ -9,15 +9,15 @@
 //! bin centres for means, at the tracked samples' own positions and times
 //! for stresses and noise, and its shedding frequency. Numbers printed by
 //! each test are quoted in ARCHITECTURE.md / BENCHMARKS.md.
-use crate::chain_common;
+use super::chain_common;
 
-use ebptv::grid::{
+use crate::grid::{
     bin_samples, estimate, EstimateOptions, Fit, GridStats, Lattice, Sample, Weighting,
 };
-use ebptv::sim::scenario::{FlowSpec, Roi, Scenario};
-use ebptv::sim::Flow;
-use ebptv::spectra::{point_spectra, SpectraOptions, WelchOptions};
-use ebptv::track::TrackParams;
+use crate::sim::scenario::{FlowSpec, Roi, Scenario};
+use crate::sim::Flow;
+use crate::spectra::{point_spectra, SpectraOptions, WelchOptions};
+use crate::track::TrackParams;
 
 /// Simulate `sc`, find the pulses, cluster and track: the track samples
 /// (grouped by track, as tracks.csv) and the flow that made them.
@@ -30,7 +30,7 @@ fn chain_with_truth(
     sc: &Scenario,
     seed: u64,
     track: TrackParams,
-) -> (Vec<Sample>, Flow, Vec<ebptv::sim::TruthSample>) {
+) -> (Vec<Sample>, Flow, Vec<crate::sim::TruthSample>) {
     let rec = chain_common::record(sc, seed);
     let samples = chain_common::track_samples(&rec.info, &rec.chunks, track);
     (samples, rec.flow, rec.truth)
@@ -99,7 +99,7 @@ fn mean_errors(
 /// (turbulence uu 1.6 %, vv 1.1 %, uv 4.2 %; wake peaks within 0.2 Hz).
 fn fixed_window_fit() -> TrackParams {
     TrackParams {
-        fit: ebptv::track::FitParams {
+        fit: crate::track::FitParams {
             fit_window: 11,
             fit_min_window: 11,
             ..Default::default()
@@ -109,7 +109,7 @@ fn fixed_window_fit() -> TrackParams {
 }
 
 fn vortex_scene(seconds: f64) -> Scenario {
-    let mut sc = ebptv::sim::presets::preset("demo").unwrap();
+    let mut sc = crate::sim::presets::preset("demo").unwrap();
     sc.duration_s = seconds;
     sc
 }
@@ -215,10 +215,10 @@ fn vortex_mean_and_top_hat_bias() {
         .filter(|s| (s.x - x0).hypot(s.y - y0) <= core_radius + b)
         .cloned()
         .collect();
-    let noise = ebptv::grid::noise::velocity_noise(&core, &fit, &Default::default()).unwrap();
+    let noise = crate::grid::noise::velocity_noise(&core, &fit, &Default::default()).unwrap();
     let floor = 2.0 * noise.noise_rms.powi(2);
     let scene_noise =
-        ebptv::grid::noise::velocity_noise(&samples, &fit, &Default::default()).unwrap();
+        crate::grid::noise::velocity_noise(&samples, &fit, &Default::default()).unwrap();
     eprintln!(
         "noise floor 2σ² = {floor:.0} (px/s)² in the core ({} pairs), {:.0} over the scene",
         noise.pairs,
@@ -347,9 +347,9 @@ fn turbulent_stresses_through_the_chain() {
     // and merged give the single run's statistics to rounding.
     let t_mid = 0.5 * (samples[0].t_us + samples.iter().map(|s| s.t_us).fold(0.0, f64::max));
     let (early, late): (Vec<Sample>, Vec<Sample>) = samples.iter().partition(|s| s.t_us < t_mid);
-    let mut a = ebptv::grid::GridAccumulator::new(spec);
+    let mut a = crate::grid::GridAccumulator::new(spec);
     a.add_all(&early);
-    let mut b = ebptv::grid::GridAccumulator::new(spec);
+    let mut b = crate::grid::GridAccumulator::new(spec);
     b.add_all(&late);
     a.merge(&b).unwrap();
     let opt = EstimateOptions {
@@ -391,7 +391,7 @@ fn noise_and_dynamic_range_of_the_demo_scene() {
     let sc = vortex_scene(0.03);
     let (samples, flow) = chain(&sc, 5, TrackParams::default());
     let g = grid(&samples, 16.0, Fit::Linear, 10);
-    let est = ebptv::grid::noise::velocity_noise(&samples, &g, &Default::default()).unwrap();
+    let est = crate::grid::noise::velocity_noise(&samples, &g, &Default::default()).unwrap();
     let (rms, robust) = true_noise(&samples, &flow);
     eprintln!(
         "demo scene: noise estimate {:.1} px/s from {} pairs, true {robust:.1} (robust; plain rms {rms:.1}); max speed {:.0} px/s; dynamic range {:.0}:1 (true {:.0}:1)",
@@ -414,7 +414,7 @@ fn noise_and_dynamic_range_of_the_demo_scene() {
 /// the spectrum's floor within 25 % of the true noise of the binned series.
 #[test]
 fn shedding_frequency_through_the_chain() {
-    let mut sc = ebptv::sim::presets::preset("rib_wake").unwrap();
+    let mut sc = crate::sim::presets::preset("rib_wake").unwrap();
     sc.sensor.roi = Some(Roi {
         x: 512,
         y: 296,
@@ -456,7 +456,7 @@ fn shedding_frequency_through_the_chain() {
     // The spectral floor against the true noise of the binned series: the
     // same bins and frames from the exact velocity at the same samples.
     {
-        use ebptv::grid::fields::{time_resolved, Frames};
+        use crate::grid::fields::{time_resolved, Frames};
         let exact: Vec<Sample> = samples
             .iter()
             .map(|s| {
@@ -464,8 +464,8 @@ fn shedding_frequency_through_the_chain() {
                 Sample { u, v, ..*s }
             })
             .collect();
-        let (x0, x1, y0, y1) = ebptv::grid::extent(&samples, "s").unwrap();
-        let spec = ebptv::grid::GridSpec::covering(opt.lattice, Weighting::TopHat, x0, x1, y0, y1)
+        let (x0, x1, y0, y1) = crate::grid::extent(&samples, "s").unwrap();
+        let spec = crate::grid::GridSpec::covering(opt.lattice, Weighting::TopHat, x0, x1, y0, y1)
             .unwrap();
         let frames = Frames::from_samples(&samples, 1).unwrap();
         let m = time_resolved(&samples, &spec, &frames, None).unwrap();
@@ -488,7 +488,7 @@ fn shedding_frequency_through_the_chain() {
             .collect();
         let mean_inv = inv_n.iter().sum::<f64>() / inv_n.len() as f64;
         let g = grid(&samples, 32.0, Fit::Linear, 10);
-        let sn = ebptv::grid::noise::velocity_noise(&samples, &g, &Default::default())
+        let sn = crate::grid::noise::velocity_noise(&samples, &g, &Default::default())
             .unwrap()
             .noise_rms;
         eprintln!("field noise: spectral floor {:.1} px/s, true rms of binned series {rms:.1} px/s (robust {robust:.1}); σ_n √mean(1/n) = {:.1} (σ_n {sn:.1})", r.noise_rms, sn * mean_inv.sqrt());
@@ -508,8 +508,8 @@ fn shedding_frequency_through_the_chain() {
 /// wall gradient 2U/δ within 5 %, hence u_τ within 2.5 %.
 #[test]
 fn laminar_wall_through_the_chain() {
-    use ebptv::grid::profiles::{profile_at_x, wall_fit, WallOptions, WallSide};
-    let mut sc = ebptv::sim::presets::preset("laminar_bl").unwrap();
+    use crate::grid::profiles::{profile_at_x, wall_fit, WallOptions, WallSide};
+    let mut sc = crate::sim::presets::preset("laminar_bl").unwrap();
     sc.sensor.roi = Some(Roi {
         x: 384,
         y: 580,

@@ -1,16 +1,16 @@
 //! Clustering + tracking against exact ground truth on synthetic scenes
-//! (`ebptv::track::synth`; definitions of precision, recall and velocity
+//! (`crate::track::synth`; definitions of precision, recall and velocity
 //! error in its module docs). Thresholds are what the implementation
 //! reaches with a margin; BENCHMARKS.md compares them with the issue's
 //! targets (precision 0.99, recall 0.95, 0.05 px/pulse), which are not met
 //! at ppp 0.01 — close particle pairs whose images merge (closer than
 //! ~1 px, beyond what splitting wide clusters can separate) set the limit.
 
-use ebptv::cluster::ClusterParams;
-use ebptv::track::synth::{generate, run_and_score, SynthParams};
-use ebptv::track::TrackParams;
+use crate::cluster::ClusterParams;
+use crate::track::synth::{generate, run_and_score, SynthParams};
+use crate::track::TrackParams;
 
-fn run(sp: &SynthParams) -> ebptv::track::synth::LinkScore {
+fn run(sp: &SynthParams) -> crate::track::synth::LinkScore {
     let scene = generate(sp);
     let (tracks, s) = run_and_score(
         &scene,
@@ -128,7 +128,7 @@ fn ghost_test_keeps_short_tracks_at_paper_like_conditions() {
     // without it, the same short tracks cost velocity.
     let without = run(&TrackParams {
         min_length: 4,
-        init: ebptv::track::InitParams {
+        init: crate::track::InitParams {
             ghost_check_length: 0,
             ghost_check_init: false,
             ..Default::default()
@@ -153,7 +153,7 @@ fn cutting_tracks_at_steps_removes_swaps() {
     let run = paper_like_384_runner();
     let on = run(&TrackParams::default());
     let off = run(&TrackParams {
-        stitch: ebptv::track::StitchParams {
+        stitch: crate::track::StitchParams {
             step_split: 0.0,
             ..Default::default()
         },
@@ -180,8 +180,8 @@ fn gapped_chains_search_only_along_the_flow() {
     // Chains that skip a pulse look for their second particle
     // only where the local flow leads (`TrackParams::gap_first_step`):
     // far fewer first steps expanded, the same links to within a few.
-    use ebptv::track::synth::cluster_with_truth;
-    use ebptv::track::Tracker;
+    use crate::track::synth::cluster_with_truth;
+    use crate::track::Tracker;
     let sp = SynthParams {
         width: 256,
         height: 256,
@@ -190,7 +190,7 @@ fn gapped_chains_search_only_along_the_flow() {
     let scene = generate(&sp);
     let run = |gap_first_step: bool| {
         let mut tracker = Tracker::new(TrackParams {
-            init: ebptv::track::InitParams {
+            init: crate::track::InitParams {
                 gap_first_step,
                 ..Default::default()
             },
@@ -226,7 +226,7 @@ fn gapped_chains_search_only_along_the_flow() {
 /// The 384² paper-like scene of BENCHMARKS.md ("Accuracy vs conditions"),
 /// generated once, and a function that tracks it with the given
 /// parameters and scores the links against its truth (printed).
-fn paper_like_384_runner() -> impl Fn(&TrackParams) -> ebptv::track::synth::LinkScore {
+fn paper_like_384_runner() -> impl Fn(&TrackParams) -> crate::track::synth::LinkScore {
     let sp = SynthParams {
         width: 384,
         height: 384,

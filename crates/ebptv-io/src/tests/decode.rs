@@ -10,11 +10,11 @@
 
 use std::path::{Path, PathBuf};
 
-use ebptv::events::{Chunk, Edge, Event, Geometry, Trigger};
-use ebptv::io::evt2::Evt2Reader;
-use ebptv::io::evt21::Evt21Reader;
-use ebptv::io::evt3::Evt3Reader;
-use ebptv::io::{open, open_with, Anomalies, EventSource, Format, OpenOptions};
+use ebptv_io::events::{Chunk, Edge, Event, Geometry, Trigger};
+use ebptv_io::evt2::Evt2Reader;
+use ebptv_io::evt21::Evt21Reader;
+use ebptv_io::evt3::Evt3Reader;
+use ebptv_io::{open, open_with, Anomalies, EventSource, Format, OpenOptions};
 use proptest::prelude::*;
 
 // ------------------------------------------------------------ references
@@ -309,6 +309,7 @@ fn drain(src: &mut dyn EventSource, chunk_events: usize, slack: usize) -> Decode
 
 fn real(name: &str) -> Option<PathBuf> {
     let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../..")
         .join("../shared/data/real")
         .join(name);
     if p.exists() {
@@ -355,7 +356,7 @@ fn check_real(
     );
     let mut src = open(&path).unwrap();
     assert_eq!(src.info().format, format);
-    let fast = drain(&mut src, ebptv::io::DEFAULT_CHUNK_EVENTS, 12);
+    let fast = drain(&mut src, ebptv_io::DEFAULT_CHUNK_EVENTS, 12);
     assert_eq!(src.anomalies().out_of_geometry, 0, "{name}");
     assert!(
         fast == reference,
@@ -491,7 +492,7 @@ fn real_evt3_matches_evt3_crate() {
     };
     let theirs = evt3::Evt3Decoder::new().decode_file(&path).unwrap();
     let mut src = open(&path).unwrap();
-    let ours = drain(&mut src, ebptv::io::DEFAULT_CHUNK_EVENTS, 12);
+    let ours = drain(&mut src, ebptv_io::DEFAULT_CHUNK_EVENTS, 12);
     assert_eq!(ours.events.len(), theirs.cd_events.len());
     for (a, b) in ours.events.iter().zip(&theirs.cd_events) {
         assert_eq!(
@@ -649,8 +650,8 @@ proptest! {
     fn sniff_never_panics(head in prop::collection::vec(any::<u8>(), 0..600), pct in any::<bool>()) {
         let mut bytes = if pct { b"% ".to_vec() } else { Vec::new() };
         bytes.extend(head);
-        let _ = ebptv::io::sniff::detect_from_bytes(Path::new("x.bin"), &bytes);
-        let _ = ebptv::io::raw_header::parse_percent_header(&bytes);
+        let _ = ebptv_io::sniff::detect_from_bytes(Path::new("x.bin"), &bytes);
+        let _ = ebptv_io::raw_header::parse_percent_header(&bytes);
     }
 }
 
@@ -815,7 +816,7 @@ fn garbage_bytes_without_header_are_refused_without_panic() {
     let err = match sniffed {
         Err(e) => e.to_string(),
         Ok(mut src) => {
-            let mut chunk = ebptv::events::Chunk::default();
+            let mut chunk = ebptv_io::events::Chunk::default();
             match src.next_chunk(&mut chunk) {
                 Err(e) => e.to_string(),
                 Ok(_) => panic!("random bytes named .raw were accepted as EVT 3.0"),

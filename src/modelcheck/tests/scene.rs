@@ -1,17 +1,17 @@
 //! The model-check search driven by ebptv's own simulator (`crate::sim`):
 //! hidden effects in "measured" recordings simulated with seeds the search
 //! never sees.
-use crate::modelcheck_common;
+use super::modelcheck_common;
 
 use modelcheck_common::{base, setting, strength};
 
 use std::time::Instant;
 
-use ebptv::modelcheck::scene::{default_catalogue, SceneSimulator};
-use ebptv::modelcheck::workflow::{
+use crate::modelcheck::scene::{default_catalogue, SceneSimulator};
+use crate::modelcheck::workflow::{
     run, EffectSetting, ModelCheckResult, Simulator, Verdict, WorkflowOptions,
 };
-use ebptv::sim::scenario::{FlowSpec, Scenario, Sensor};
+use crate::sim::scenario::{FlowSpec, Scenario, Sensor};
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_pcg::Pcg64;
@@ -41,7 +41,7 @@ fn mixing() -> Scenario {
     };
     s.seeding.ppp = 0.006;
     s.seeding.out_of_plane_rms = 2000.0;
-    s.light.energy = ebptv::sim::presets::WATER_ENERGY;
+    s.light.energy = crate::sim::presets::WATER_ENERGY;
     s
 }
 
@@ -66,7 +66,7 @@ fn check_hidden_with(
     truth: Option<EffectSetting>,
     seed: u64,
     order_seed: u64,
-    catalogue: Option<Vec<ebptv::modelcheck::workflow::EffectSpec>>,
+    catalogue: Option<Vec<crate::modelcheck::workflow::EffectSpec>>,
 ) -> ModelCheckResult {
     check_hidden_on(base(), truth, seed, order_seed, catalogue)
 }
@@ -77,7 +77,7 @@ fn check_hidden_on(
     truth: Option<EffectSetting>,
     seed: u64,
     order_seed: u64,
-    catalogue: Option<Vec<ebptv::modelcheck::workflow::EffectSpec>>,
+    catalogue: Option<Vec<crate::modelcheck::workflow::EffectSpec>>,
 ) -> ModelCheckResult {
     let mut catalogue = catalogue.unwrap_or_else(|| default_catalogue(&scene));
     catalogue.shuffle(&mut Pcg64::seed_from_u64(order_seed));
@@ -90,9 +90,9 @@ fn check_hidden_on(
     let mut cfg = sim.signature_config();
     cfg.latency_bin_us = 2.0;
     let clean = sim.simulate(&[], 3_000_000 + seed).unwrap();
-    let lat = ebptv::modelcheck::workflow::signatures_of(&cfg, &clean).unwrap();
+    let lat = crate::modelcheck::workflow::signatures_of(&cfg, &clean).unwrap();
     cfg.burst_window_us = Some(
-        ebptv::modelcheck::signatures::burst_window(lat.histogram("latency").unwrap(), 0.99)
+        crate::modelcheck::signatures::burst_window(lat.histogram("latency").unwrap(), 0.99)
             .unwrap(),
     );
     let t = Instant::now();

@@ -4,9 +4,9 @@
 
 use std::process::Command;
 
-use ebptv::io::npy::{write_npy_f64, write_npy_table, NpyColumn, NpyEventWriter};
-use ebptv::io::EventWriter;
-use ebptv::{Chunk, Edge, Trigger};
+use ebptv_io::npy::{write_npy_f64, write_npy_table, NpyColumn, NpyEventWriter};
+use ebptv_io::EventWriter;
+use ebptv_io::{Chunk, Edge, Trigger};
 
 fn numpy_available() -> bool {
     Command::new("python3")

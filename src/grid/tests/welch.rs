@@ -1,7 +1,7 @@
 //! Welch PSD against a direct DFT, Parseval, known sine amplitudes, peak
 //! interpolation, noise floor, moving-average rms.
 
-use ebptv::spectra::*;
+use crate::spectra::*;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 use std::f64::consts::PI;

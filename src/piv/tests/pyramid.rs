@@ -5,9 +5,9 @@
 //! event positions is the dominant noise, as in the real data) of a flow
 //! with known displacement and acceleration.
 
-use ebptv::piv::synth::{accelerating_frames, SynthOptions};
-use ebptv::piv::validate::is_valid;
-use ebptv::piv::{piv_frames, PivOptions};
+use crate::piv::synth::{accelerating_frames, SynthOptions};
+use crate::piv::validate::is_valid;
+use crate::piv::{piv_frames, PivOptions};
 use rand::{Rng, SeedableRng};
 
 /// Random error (std about the mean, u and v pooled), bias (mean error) and

@@ -1,8 +1,8 @@
 //! PIV accuracy on synthetic particle images with known displacement.
 
-use ebptv::piv::synth::{particle_frames, SynthOptions};
-use ebptv::piv::validate::is_valid;
-use ebptv::piv::{piv_frames, PivOptions, VectorField};
+use crate::piv::synth::{particle_frames, SynthOptions};
+use crate::piv::validate::is_valid;
+use crate::piv::{piv_frames, PivOptions, VectorField};
 
 /// Bias and rms (about the mean) of the valid vectors against truth, both
 /// components pooled; nodes within `border` px of the image edge skipped.

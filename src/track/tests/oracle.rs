@@ -3,11 +3,11 @@
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
-use ebptv::cluster::{
+use crate::cluster::{
     cluster_pulse, pixel_labels, pixel_labels_kdtree, pulse_pixels, ClusterParams, NeighbourSearch,
 };
-use ebptv::events::EventChunk;
-use ebptv::pulses::PulseEvents;
+use crate::events::EventChunk;
+use crate::pulses::PulseEvents;
 use proptest::prelude::*;
 
 /// Reference: every pair of selected events closer than the radius (squared
@@ -208,7 +208,7 @@ proptest! {
         let pixels = pulse_pixels(&pulse, &params);
         let base = pixel_labels(&pixels, &params);
         let mut split = base.clone();
-        ebptv::cluster::split_wide_clusters(&pixels, &mut split, extent);
+        crate::cluster::split_wide_clusters(&pixels, &mut split, extent);
         let n_base = base.iter().map(|&l| l + 1).max().unwrap_or(0);
         let mut by_label: BTreeMap<u32, Vec<usize>> = BTreeMap::new();
         for (i, &l) in base.iter().enumerate() {

@@ -5,13 +5,13 @@
 
 use std::collections::BTreeMap;
 
-use ebptv::modelcheck::workflow::EffectSetting;
-use ebptv::sim::scenario::{Scenario, Sensor};
+use crate::modelcheck::workflow::EffectSetting;
+use crate::sim::scenario::{Scenario, Sensor};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 
 /// The small scene: 160×120, 0.02 s (100 pulses), sparse seeding.
-pub fn base() -> Scenario {
+pub(crate) fn base() -> Scenario {
     let mut s = Scenario {
         name: "modelcheck-small".into(),
         duration_s: 0.02,
@@ -23,12 +23,12 @@ pub fn base() -> Scenario {
         ..Scenario::default()
     };
     s.seeding.ppp = 0.006;
-    s.light.energy = ebptv::sim::presets::WATER_ENERGY;
+    s.light.energy = crate::sim::presets::WATER_ENERGY;
     s
 }
 
 /// A catalogue effect by name with the given parameters.
-pub fn setting(name: &str, ps: &[(&str, f64)]) -> EffectSetting {
+pub(crate) fn setting(name: &str, ps: &[(&str, f64)]) -> EffectSetting {
     EffectSetting {
         name: name.into(),
         parameters: ps
@@ -39,7 +39,7 @@ pub fn setting(name: &str, ps: &[(&str, f64)]) -> EffectSetting {
 }
 
 /// A strength drawn from a seed the search never sees (log-uniform).
-pub fn strength(seed: u64, lo: f64, hi: f64) -> f64 {
+pub(crate) fn strength(seed: u64, lo: f64, hi: f64) -> f64 {
     let u: f64 = Pcg64::seed_from_u64(seed ^ 0x5EED).gen();
     (lo.ln() + u * (hi.ln() - lo.ln())).exp()
 }

@@ -1,10 +1,10 @@
 //! Binning against analytic truth: steady vortex and channel (means),
 //! homogeneous shear with known stresses, the in-bin fit against the
 //! top-hat gradient bias, standard errors, noise correction, walls.
-use crate::grid_common;
+use super::grid_common;
 
-use ebptv::grid::profiles::{profile_at_x, wall_fit, WallOptions, WallSide};
-use ebptv::grid::{
+use crate::grid::profiles::{profile_at_x, wall_fit, WallOptions, WallSide};
+use crate::grid::{
     bin_samples, estimate, EstimateOptions, Fit, GridStats, Lattice, Sample, Weighting,
 };
 use grid_common::*;
@@ -300,8 +300,8 @@ fn standard_error_counts_tracks_not_samples() {
         }
         let lat = Lattice::new(8.0, 8.0, 0.0).unwrap();
         let spec =
-            ebptv::grid::GridSpec::covering(lat, Weighting::TopHat, 0.0, 7.0, 0.0, 7.0).unwrap();
-        let mut acc = ebptv::grid::GridAccumulator::new(spec);
+            crate::grid::GridSpec::covering(lat, Weighting::TopHat, 0.0, 7.0, 0.0, 7.0).unwrap();
+        let mut acc = crate::grid::GridAccumulator::new(spec);
         acc.add_all(&s);
         let g = estimate(&acc, &EstimateOptions::default()).unwrap();
         let (ix, iy) = g.nearest(4.0, 4.0);

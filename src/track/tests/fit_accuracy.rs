@@ -1,12 +1,12 @@
 //! The output fit's curvature prior on the paper-like synthetic scene
-//! (`ebptv::track::synth`, the test size of tests/ptv_accuracy.rs): the
+//! (`crate::track::synth`, the test size of tests/ptv_accuracy.rs): the
 //! velocity error over all scored points, against the same tracks fitted
 //! without the prior (`fit_accel_rms: Some(0.0)`, a plain least-squares fit). The
 //! links are the same either way; only the fitted velocities change.
 
-use ebptv::cluster::ClusterParams;
-use ebptv::track::synth::{generate, run_and_score, LinkScore, SynthParams};
-use ebptv::track::TrackParams;
+use crate::cluster::ClusterParams;
+use crate::track::synth::{generate, run_and_score, LinkScore, SynthParams};
+use crate::track::TrackParams;
 
 fn score(sp: &SynthParams, tp: &TrackParams) -> LinkScore {
     let scene = generate(sp);
@@ -21,7 +21,7 @@ fn curvature_prior_lowers_the_velocity_error_on_the_paper_like_scene() {
     let plain = score(
         &sp,
         &TrackParams {
-            fit: ebptv::track::FitParams {
+            fit: crate::track::FitParams {
                 fit_accel_rms: Some(0.0),
                 ..Default::default()
             },

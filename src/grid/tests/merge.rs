@@ -1,10 +1,10 @@
 //! Split-and-merge equals one run; the accumulator's fits equal a direct
 //! least-squares reference; bad input gives clear errors.
-use crate::grid_common;
+use super::grid_common;
 
-use ebptv::grid::accumulate::basis;
-use ebptv::grid::io::{load_state, save_state};
-use ebptv::grid::{
+use crate::grid::accumulate::basis;
+use crate::grid::io::{load_state, save_state};
+use crate::grid::{
     bin_samples, estimate, EstimateOptions, Fit, GridAccumulator, GridSpec, Lattice, Sample,
     Weighting,
 };

@@ -3,9 +3,9 @@
 //! so the fuzz reaches the payload decoders, and valid files get random
 //! byte flips so it reaches the flatbuffer / record parsers.
 
-use ebptv::io::aedat4::{encode_aedat4, lz4_frame, zstd_stored_frame, Compression};
-use ebptv::io::{self, EventSource, Format, OpenOptions};
-use ebptv::{Chunk, Edge, Event, Geometry, Trigger};
+use ebptv_io::aedat4::{encode_aedat4, lz4_frame, zstd_stored_frame, Compression};
+use ebptv_io::{self as io, EventSource, Format, OpenOptions};
+use ebptv_io::{Chunk, Edge, Event, Geometry, Trigger};
 use proptest::prelude::*;
 
 fn drain(bytes: &[u8], format: Format, ext: &str) {

@@ -5,8 +5,8 @@
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
-use ebptv::plot::{self, Heatmap, HistogramPlot, LinePlot, Polylines, Series, SeriesStyle};
-use ebptv::Error;
+use crate::plot::{self, Heatmap, HistogramPlot, LinePlot, Polylines, Series, SeriesStyle};
+use crate::Error;
 
 struct Out {
     _tmp: tempfile::TempDir,

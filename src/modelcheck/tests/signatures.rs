@@ -1,17 +1,17 @@
 //! Model-check building blocks: distances against brute-force references and
 //! known cases; signatures on hand-built event sets with known answers.
 
-use ebptv::cluster::Particle;
-use ebptv::events::{EventChunk, Geometry};
-use ebptv::modelcheck::distance::{
+use crate::cluster::Particle;
+use crate::events::{EventChunk, Geometry};
+use crate::modelcheck::distance::{
     chi_square, distances, histogram_wasserstein, rank, standardise, wasserstein_1d,
 };
-use ebptv::modelcheck::signatures::{
+use crate::modelcheck::signatures::{
     burst_window, compute, count_edges, BinScale, Histogram, SignatureAccumulator, SignatureConfig,
     SignatureValue,
 };
-use ebptv::pulses::{PulseSource, PulseTiming};
-use ebptv::track::{Track, TrackPoint};
+use crate::pulses::{PulseSource, PulseTiming};
+use crate::track::{Track, TrackPoint};
 use rand::{Rng, SeedableRng};
 use rand_pcg::Pcg64;
 
@@ -789,7 +789,7 @@ fn fast_and_reference(
     particles: &[Particle],
     tracks: Option<&[Track]>,
 ) -> (String, String) {
-    use ebptv::modelcheck::signatures::reference::ReferenceAccumulator;
+    use crate::modelcheck::signatures::reference::ReferenceAccumulator;
     let mut fast = SignatureAccumulator::new(cfg.clone()).unwrap();
     let mut slow = ReferenceAccumulator::new(cfg.clone()).unwrap();
     let n = events.len();
@@ -819,11 +819,11 @@ fn fast_and_reference(
 
 #[test]
 fn fast_accumulator_equals_reference_on_simulated_recordings() {
-    use ebptv::modelcheck::scene::SceneSimulator;
-    use ebptv::modelcheck::workflow::{EffectSetting, Simulator};
-    let mut scene = ebptv::sim::scenario::Scenario {
+    use crate::modelcheck::scene::SceneSimulator;
+    use crate::modelcheck::workflow::{EffectSetting, Simulator};
+    let mut scene = crate::sim::scenario::Scenario {
         duration_s: 0.01,
-        sensor: ebptv::sim::scenario::Sensor {
+        sensor: crate::sim::scenario::Sensor {
             width: 96,
             height: 64,
             roi: None,
@@ -831,7 +831,7 @@ fn fast_accumulator_equals_reference_on_simulated_recordings() {
         ..Default::default()
     };
     scene.seeding.ppp = 0.01;
-    scene.light.energy = ebptv::sim::presets::WATER_ENERGY;
+    scene.light.energy = crate::sim::presets::WATER_ENERGY;
     let sim = SceneSimulator::new(scene).unwrap();
     let set = |name: &str, ps: &[(&str, f64)]| EffectSetting {
         name: name.into(),
@@ -928,7 +928,7 @@ fn fast_accumulator_equals_reference_on_odd_streams() {
 
 #[test]
 fn pulses_of_equals_its_reference() {
-    use ebptv::modelcheck::scene::{pulses_of, pulses_of_reference};
+    use crate::modelcheck::scene::{pulses_of, pulses_of_reference};
     let mut rng = Pcg64::seed_from_u64(5);
     let tm = timing(199.7, 37.3);
     // Time-ordered, with events before the first pulse, empty pulses, and

@@ -4,18 +4,18 @@
 //! replaying twice (pulse analysis, then tracking) halves the test time.
 #![allow(dead_code)]
 
-use ebptv::cluster::{ClusterParams, Particle};
-use ebptv::events::Chunk;
-use ebptv::grid::noise::velocity_noise;
-use ebptv::grid::{
+use crate::cluster::{ClusterParams, Particle};
+use crate::events::Chunk;
+use crate::grid::noise::velocity_noise;
+use crate::grid::{
     estimate, EstimateOptions, Fit, GridAccumulator, GridSpec, GridStats, Lattice, Sample,
     Weighting,
 };
-use ebptv::io::{EventSource, StreamInfo};
-use ebptv::pulses::PulseOptions;
-use ebptv::sim::scenario::{Roi, Scenario};
-use ebptv::sim::{Flow, Simulator, TruthSample};
-use ebptv::track::{track_recording, PtvSink, PtvStream, Track, TrackParams};
+use crate::io::{EventSource, StreamInfo};
+use crate::pulses::PulseOptions;
+use crate::sim::scenario::{Roi, Scenario};
+use crate::sim::{Flow, Simulator, TruthSample};
+use crate::track::{track_recording, PtvSink, PtvStream, Track, TrackParams};
 
 /// The chunks of one simulated recording, served again on every open.
 struct Replay {
@@ -28,7 +28,7 @@ impl EventSource for Replay {
     fn info(&self) -> &StreamInfo {
         &self.info
     }
-    fn next_chunk(&mut self, chunk: &mut Chunk) -> ebptv::Result<bool> {
+    fn next_chunk(&mut self, chunk: &mut Chunk) -> crate::Result<bool> {
         match self.chunks.get(self.next) {
             Some(c) => {
                 *chunk = c.clone();
@@ -45,7 +45,7 @@ impl EventSource for Replay {
 
 /// A scene simulated into memory: its event chunks, stream description,
 /// flow and truth.
-pub struct Recorded {
+pub(crate) struct Recorded {
     pub chunks: Vec<Chunk>,
     pub info: StreamInfo,
     pub flow: Flow,
@@ -53,7 +53,7 @@ pub struct Recorded {
 }
 
 /// Simulate `sc` with `seed` into memory.
-pub fn record(sc: &Scenario, seed: u64) -> Recorded {
+pub(crate) fn record(sc: &Scenario, seed: u64) -> Recorded {
     let mut sim = Simulator::new(sc, seed).unwrap();
     let info = sim.info().clone();
     let flow = sim.flow().clone();
@@ -73,8 +73,8 @@ pub fn record(sc: &Scenario, seed: u64) -> Recorded {
 
 /// The turbulent boundary-layer preset on the 256×128 ROI near the wall,
 /// 0.1 s: the turbulent scene of the chain tests.
-pub fn turbulent_roi_scenario() -> Scenario {
-    let mut sc = ebptv::sim::presets::preset("turbulent_bl").unwrap();
+pub(crate) fn turbulent_roi_scenario() -> Scenario {
+    let mut sc = crate::sim::presets::preset("turbulent_bl").unwrap();
     sc.sensor.roi = Some(Roi {
         x: 0,
         y: 296,
@@ -89,10 +89,10 @@ pub fn turbulent_roi_scenario() -> Scenario {
 struct Collect(Vec<Track>);
 
 impl PtvSink for Collect {
-    fn particles(&mut self, _: i64, _: f64, _: &[Particle]) -> ebptv::Result<()> {
+    fn particles(&mut self, _: i64, _: f64, _: &[Particle]) -> crate::Result<()> {
         Ok(())
     }
-    fn tracks(&mut self, t: &[Track]) -> ebptv::Result<()> {
+    fn tracks(&mut self, t: &[Track]) -> crate::Result<()> {
         self.0.extend_from_slice(t);
         Ok(())
     }
@@ -100,8 +100,12 @@ impl PtvSink for Collect {
 
 /// Track the replayed recording with `track` and return its track samples,
 /// grouped by track as in tracks.csv.
-pub fn track_samples(info: &StreamInfo, chunks: &[Chunk], track: TrackParams) -> Vec<Sample> {
-    let open = || -> ebptv::Result<Box<dyn EventSource>> {
+pub(crate) fn track_samples(
+    info: &StreamInfo,
+    chunks: &[Chunk],
+    track: TrackParams,
+) -> Vec<Sample> {
+    let open = || -> crate::Result<Box<dyn EventSource>> {
         Ok(Box::new(Replay {
             info: info.clone(),
             chunks: chunks.to_vec(),
@@ -132,7 +136,7 @@ pub fn track_samples(info: &StreamInfo, chunks: &[Chunk], track: TrackParams) ->
 /// y 296–423; linear fit, bins of ≥ 50 samples): the measured samples with
 /// the pair estimator's noise correction, and the analytic velocity at the
 /// same samples (the truth binned exactly like the measurement).
-pub struct TurbulentGrids {
+pub(crate) struct TurbulentGrids {
     pub spec: GridSpec,
     /// The samples with their velocity replaced by the flow's.
     pub at_samples: Vec<Sample>,
@@ -142,7 +146,7 @@ pub struct TurbulentGrids {
     pub truth: GridStats,
 }
 
-pub fn turbulent_roi_grids(samples: &[Sample], flow: &Flow) -> TurbulentGrids {
+pub(crate) fn turbulent_roi_grids(samples: &[Sample], flow: &Flow) -> TurbulentGrids {
     let spec = GridSpec::covering(
         Lattice::new(16.0, 16.0, 0.0).unwrap(),
         Weighting::TopHat,

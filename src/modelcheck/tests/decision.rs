@@ -2,8 +2,8 @@
 //! simulation): which candidate is named, when a lead is "clear", how rows
 //! a model cannot produce are counted, and explaining away.
 
-use ebptv::modelcheck::distance::{DiscrepancyRow, DiscrepancyTable, Standardised, Z_CAP};
-use ebptv::modelcheck::workflow::{explain_away, judge_candidates, PairOutcome, RowSet};
+use crate::modelcheck::distance::{DiscrepancyRow, DiscrepancyTable, Standardised, Z_CAP};
+use crate::modelcheck::workflow::{explain_away, judge_candidates, PairOutcome, RowSet};
 
 /// A table with the given (signature, z) rows.
 fn table(rows: &[(&str, f64)]) -> DiscrepancyTable {
@@ -162,10 +162,10 @@ fn explaining_away() {
 
 mod standard_rule {
     use super::table;
-    use ebptv::modelcheck::standard::{
+    use crate::modelcheck::standard::{
         decide, excess, gap_on, structural_rows, ACCEPT_RATIO, RIVAL_MARGIN,
     };
-    use ebptv::modelcheck::workflow::CandidateResult;
+    use crate::modelcheck::workflow::CandidateResult;
     use std::collections::BTreeMap;
 
     fn cand(name: &str, n_params: usize, gap_after: f64) -> CandidateResult {
@@ -238,7 +238,7 @@ mod standard_rule {
 }
 
 mod quiet_window {
-    use ebptv::modelcheck::signatures::{quiet_complement, BinScale, Histogram};
+    use crate::modelcheck::signatures::{quiet_complement, BinScale, Histogram};
 
     #[test]
     fn the_burst_window_is_the_complement_of_the_quietest_quarter() {

@@ -4,12 +4,14 @@
 
 use std::path::{Path, PathBuf};
 
-use ebptv::io::aedat4::{encode_aedat4, Aedat4Reader, Compression};
-use ebptv::io::EventSource;
-use ebptv::{Chunk, Edge, Event, Geometry, Trigger};
+use ebptv_io::aedat4::{encode_aedat4, Aedat4Reader, Compression};
+use ebptv_io::EventSource;
+use ebptv_io::{Chunk, Edge, Event, Geometry, Trigger};
 
 fn fixture() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("data/aedat4_zstd_small.aedat4")
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../..")
+        .join("data/aedat4_zstd_small.aedat4")
 }
 
 /// The fixture's content, deterministic.

@@ -4,19 +4,19 @@
 //! with other seeds and a different (finer) generator than the model being
 //! fitted; the workflow must name that effect first, recover its parameters,
 //! and at least halve the gap.
-use crate::modelcheck_common;
+use super::modelcheck_common;
 
 use modelcheck_common::setting;
 
-use ebptv::cluster::Particle;
-use ebptv::events::{EventChunk, Geometry};
-use ebptv::modelcheck::signatures::SignatureConfig;
-use ebptv::modelcheck::workflow::{
+use crate::cluster::Particle;
+use crate::events::{EventChunk, Geometry};
+use crate::modelcheck::signatures::SignatureConfig;
+use crate::modelcheck::workflow::{
     minimise_1d, nelder_mead, run, EffectSetting, EffectSpec, ParamSpec, Recording, Simulator,
     Verdict, WorkflowOptions,
 };
-use ebptv::pulses::{PulseSource, PulseTiming};
-use ebptv::Result;
+use crate::pulses::{PulseSource, PulseTiming};
+use crate::Result;
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Exp, Normal, Poisson};

@@ -3,11 +3,13 @@
 
 use std::path::Path;
 
-use ebptv::io::sniff::detect_format;
-use ebptv::io::Format;
+use ebptv_io::sniff::detect_format;
+use ebptv_io::Format;
 
 fn real_dir() -> Option<std::path::PathBuf> {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/real");
+    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../..")
+        .join("../shared/data/real");
     if p.exists() {
         Some(p)
     } else {
