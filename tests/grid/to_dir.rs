@@ -47,10 +47,9 @@ fn grid_u(path: &Path) -> Vec<f64> {
     grid_col(path, "u")
 }
 
-#[test]
-fn grid_to_dir_matches_the_chain_and_merges_to_the_single_run() {
-    let dir = tempfile::tempdir().unwrap();
-    let d = dir.path();
+/// A sheared flow with known Reynolds stresses and 3000 tracks of 10
+/// samples through it, over 200 × 120 px.
+fn shear_tracks() -> (Shear, Vec<Sample>) {
     let flow = Shear {
         u0: 300.0,
         shear: 2.0,
@@ -59,6 +58,14 @@ fn grid_to_dir_matches_the_chain_and_merges_to_the_single_run() {
         rho: -0.4,
     };
     let s = flow.tracks(200.0, 120.0, 3000, 10, 100.0, 0.8, 5);
+    (flow, s)
+}
+
+#[test]
+fn grid_to_dir_matches_the_chain_and_merges_to_the_single_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (flow, s) = shear_tracks();
     write_tracks(&d.join("all.csv"), &s);
     write_tracks(&d.join("a.csv"), &s[..12_345]);
     write_tracks(&d.join("b.csv"), &s[12_345..]);
@@ -201,15 +208,8 @@ fn assert_same_table(a: &ebptv::compare::Table, b: &ebptv::compare::Table, what:
 fn grid_tables_in_every_format_hold_the_csv_values() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let flow = Shear {
-        u0: 300.0,
-        shear: 2.0,
-        su: 40.0,
-        sv: 25.0,
-        rho: -0.4,
-    };
     // Wider than the tracks: the edge bins stay empty.
-    let s = flow.tracks(200.0, 120.0, 3000, 10, 100.0, 0.8, 5);
+    let (_, s) = shear_tracks();
     write_tracks(&d.join("all.csv"), &s);
     let run = |fmt: TableFormat| {
         let out = d.join(fmt.ext());
