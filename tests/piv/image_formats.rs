@@ -124,6 +124,35 @@ fn write_bmp(path: &Path, w: u32, h: u32, px: Bmp) {
     std::fs::write(path, b).unwrap();
 }
 
+/// A BMP cut short (header whole, pixel rows missing) and one with a
+/// broken header: an error naming the file, no output.
+#[test]
+fn damaged_bmp_is_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let f = frames(2);
+    let mut paths = Vec::new();
+    for (k, im) in f.iter().enumerate() {
+        let v: Vec<u8> = scaled(im, 250.0).iter().map(|&x| x as u8).collect();
+        let p = dir.path().join(format!("g{k}.bmp"));
+        write_bmp(&p, 96, 80, Bmp::Grey8(&v));
+        paths.push(p);
+    }
+    let whole = std::fs::read(&paths[1]).unwrap();
+    for (name, bytes) in [
+        ("short.bmp", whole[..whole.len() / 2].to_vec()),
+        ("header.bmp", whole[..30].to_vec()),
+    ] {
+        let bad = dir.path().join(name);
+        std::fs::write(&bad, bytes).unwrap();
+        let out = dir.path().join(format!("out_{name}"));
+        let r = run(&[path_str(&paths[0]), path_str(&bad)], &out);
+        let err = String::from_utf8_lossy(&r.stderr);
+        assert!(!r.status.success(), "{name}: {err}");
+        assert!(err.contains(name) && err.contains("BMP"), "{name}: {err}");
+        assert!(!out.exists(), "{name}: output left behind");
+    }
+}
+
 #[test]
 fn bmp_pair_grey_and_colour() {
     let dir = tempfile::tempdir().unwrap();
