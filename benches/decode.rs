@@ -8,7 +8,7 @@
 //! core's work. Both decoders are measured the same way in the same run.
 //! Numbers and the command: BENCHMARKS.md.
 //!
-//! `cargo bench --bench decode`
+//! `cargo bench -p ebptv-benches --bench decode`
 
 #[path = "../examples/common/cpu.rs"]
 mod cpu;

@@ -7,7 +7,7 @@
 //! px/pulse², the tracker's default estimates one): the grid path's
 //! rank-one update and full candidate search.
 //!
-//! `cargo bench --bench fit`
+//! `cargo bench -p ebptv-benches --bench fit`
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use std::hint::black_box;

@@ -1,6 +1,6 @@
 //! Decoding speed of the DAT, CSV, AEDAT 4.0 (LZ4) and Event Stream readers
 //! on 2 M synthetic events from the page cache, one core.
-//! Run: `cargo bench --bench io_other`.
+//! Run: `cargo bench -p ebptv-benches --bench io_other`.
 
 use std::path::Path;
 use std::time::Duration;

@@ -3,7 +3,7 @@
 //! clustering and output fits on rayon, no files) on the synthetic scene of
 //! `ebptv::track::synth` (paper-like conditions).
 //!
-//! `cargo bench --bench ptv`
+//! `cargo bench -p ebptv-benches --bench ptv`
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use std::time::Duration;

@@ -9,8 +9,8 @@
 //! - `demo`: the simulator's `demo` preset over 0.2 s (4.4 M events; particles, EVT 3 row vectors,
 //!   noise, camera latency), the realistic case.
 //!
-//! `cargo bench --bench pulses` runs criterion (wall time). On a shared
-//! machine use `EBPTV_BENCH_CPU=1 cargo bench --bench pulses`: each stage is
+//! `cargo bench -p ebptv-benches --bench pulses` runs criterion (wall time). On a shared
+//! machine use `EBPTV_BENCH_CPU=1 cargo bench -p ebptv-benches --bench pulses`: each stage is
 //! run a few times and timed by this thread's CPU time
 //! (`CLOCK_THREAD_CPUTIME_ID`); the table printed is what BENCHMARKS.md
 //! records. `EBPTV_BENCH_CPU=profile` runs only the analysis, for

@@ -1,7 +1,7 @@
 //! Simulator throughput: events per second of process CPU time and of wall
 //! time, with 1 and 2 rayon threads.
 //!
-//! `cargo bench --bench sim` (add `-- quick` for one repetition). Scenes:
+//! `cargo bench -p ebptv-benches --bench sim` (add `-- quick` for one repetition). Scenes:
 //! `water_jet_5khz` (full frame, ~31 Mev/s: the paper's recording regime;
 //! steady jet, exact advection), `rib_wake` (full frame, RK4 through the
 //! shedding field), `demo` (640×360 vortex) and `turbulent_bl` (the most
