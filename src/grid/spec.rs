@@ -190,9 +190,16 @@ pub struct GridSpec {
     pub ny: usize,
 }
 
-/// Upper limit on the number of bins of one grid (guards against absurd
-/// extents / bin sizes that would exhaust memory).
-pub(crate) const MAX_BINS: usize = 50_000_000;
+/// Upper limit on the number of bins of one grid. Accumulation, estimation
+/// and the outputs hold ~1.7 KB per bin (the accumulator's moment sums alone
+/// are 768 B; measured peak: 6.4 GB for 3.7 M bins), so this caps a grid at
+/// ~3.5 GB. A finer grid is refused, naming the bin size to change, before
+/// anything is allocated.
+pub(crate) const MAX_BINS: usize = 2_000_000;
+
+/// The widest extent (px) of samples a grid accepts: four times the largest
+/// sensor side. Positions further apart come from no sensor.
+const MAX_EXTENT_PX: f64 = 4.0 * crate::io::guard::MAX_SENSOR_SIDE as f64;
 
 impl GridSpec {
     /// The smallest window holding every bin that can receive a sample in
@@ -214,23 +221,24 @@ impl GridSpec {
                 format!("invalid extent x [{x_min}, {x_max}] y [{y_min}, {y_max}]"),
             ));
         }
+        // The extent, not the bin size, is what is wrong when it is wider
+        // than any sensor.
+        if x_max - x_min > MAX_EXTENT_PX || y_max - y_min > MAX_EXTENT_PX {
+            return Err(Error::param(
+                "extent",
+                format!(
+                    "the samples span x [{x_min}, {x_max}], y [{y_min}, {y_max}] px, more than {MAX_EXTENT_PX} px: positions this far apart come from no sensor (damaged or foreign input?); check the input's x and y columns"
+                ),
+            ));
+        }
         let ((i_lo, _), (j_lo, _)) = lattice.candidates(x_min, y_min, weighting);
         let ((_, i_hi), (_, j_hi)) = lattice.candidates(x_max, y_max, weighting);
         let (nx, ny) = ((i_hi - i_lo + 1) as f64, (j_hi - j_lo + 1) as f64);
         if nx * ny > MAX_BINS as f64 {
-            // The extent, not the bin size, is what is wrong when it is
-            // wider than any sensor.
-            let side = crate::io::guard::MAX_SENSOR_SIDE as f64;
-            let absurd = x_max - x_min > 4.0 * side || y_max - y_min > 4.0 * side;
             return Err(Error::param(
-                if absurd { "extent" } else { "bin" },
+                "bin",
                 format!(
-                    "the samples span x [{x_min}, {x_max}], y [{y_min}, {y_max}] px: {nx} x {ny} bins, more than {MAX_BINS}; {}",
-                    if absurd {
-                        "positions this far apart come from no sensor (damaged or foreign input?); check the input's x and y columns"
-                    } else {
-                        "use a larger bin or a smaller extent"
-                    }
+                    "the samples span x [{x_min}, {x_max}], y [{y_min}, {y_max}] px: {nx} x {ny} bins, more than {MAX_BINS} (~1.7 KB of memory each); use a larger bin or a smaller extent"
                 ),
             ));
         }
@@ -255,7 +263,7 @@ impl GridSpec {
         if nx == 0 || ny == 0 || nx.saturating_mul(ny) > MAX_BINS {
             return Err(Error::param(
                 "bin",
-                format!("grid of {nx} x {ny} bins is empty or larger than {MAX_BINS} bins; use a larger bin or a smaller extent"),
+                format!("grid of {nx} x {ny} bins is empty or larger than {MAX_BINS} bins (~1.7 KB of memory each); use a larger bin or a smaller extent"),
             ));
         }
         Ok(GridSpec {

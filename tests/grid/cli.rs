@@ -235,6 +235,8 @@ fn bad_input_gives_clear_errors_and_no_output() {
     let cases: Vec<(Vec<String>, &str)> = vec![
         (vec![t.into(), "--bin".into(), "0".into()], "bin"),
         (vec![t.into(), "--bin=-3".into()], "bin"),
+        // 3200 x 3200 bins: refused before ~17 GB are allocated.
+        (vec![t.into(), "--bin".into(), "0.02".into()], "larger bin"),
         (vec![t.into(), "--overlap".into(), "1".into()], "overlap"),
         (
             vec![t.into(), "--min-count".into(), "0".into()],

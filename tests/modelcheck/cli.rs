@@ -172,7 +172,7 @@ fn standard_check_names_a_latency_jitter_of_an_independent_sensor() {
 
 /// Not met yet: OFF events at a fixed 150–190 µs after the pulse (the
 /// simulator's decay after the pulse's end looks different) are named
-/// `refractory` first. `cargo test --release --test modelcheck_cli --
+/// `refractory` first. `cargo test --release --test modelcheck --
 /// --ignored off_events_of_an_independent`.
 #[test]
 #[ignore]
@@ -223,7 +223,7 @@ fn standard_check_on_independent_dev_recordings_short() {
 }
 
 /// All eight development recordings with default options (several
-/// minutes): `cargo test --release --test modelcheck_cli -- --ignored dev_recordings_all`.
+/// minutes): `cargo test --release --test modelcheck -- --ignored dev_recordings_all`.
 #[test]
 #[ignore]
 fn standard_check_on_independent_dev_recordings_all() {

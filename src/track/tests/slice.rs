@@ -209,7 +209,7 @@ fn sliced_output_is_identical_for_any_thread_count() {
 }
 
 /// What the overlap costs in accuracy (printed; BENCHMARKS.md): run with
-/// `cargo test --release --test ptv_slice -- --ignored --nocapture`.
+/// `cargo test --release --lib -- --ignored --nocapture track::tests::slice`.
 #[test]
 #[ignore]
 fn overlap_sweep() {
