@@ -30,7 +30,8 @@ use crate::error::{Error, Result};
 mod dir;
 mod run;
 pub use dir::{spectra_to_dir, SpectraDirOptions};
-pub use run::{run_on_samples, run_on_tracks, Component, LineSpectra, RunOptions, SpectraRun};
+pub(crate) use run::run_on_samples;
+pub use run::{run_on_tracks, Component, LineSpectra, RunOptions, SpectraRun};
 
 /// Parameters of Welch's method.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

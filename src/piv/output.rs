@@ -27,7 +27,7 @@ fn fmt(v: f64) -> String {
 /// `write_mean_csv`, with the physical columns of `calib` after the
 /// pixel ones when given (`X_mm,Y_mm,U_m_s,V_m_s,uu_m2_s2,vv_m2_s2,
 /// uv_m2_s2`, `crate::calib::Calibration::field_columns`).
-pub fn write_mean_csv_calibrated(
+pub(crate) fn write_mean_csv_calibrated(
     path: &Path,
     rows: &[MeanRow],
     calib: Option<&crate::calib::Calibration>,
@@ -35,7 +35,7 @@ pub fn write_mean_csv_calibrated(
     AtomicFile::write_all_to(path, mean_csv(rows, calib).as_bytes())
 }
 
-/// The text of `piv_mean.csv` ([`write_mean_csv_calibrated`]).
+/// The text of `piv_mean.csv` (`write_mean_csv_calibrated`).
 pub fn mean_csv(rows: &[MeanRow], calib: Option<&crate::calib::Calibration>) -> String {
     use std::fmt::Write as _;
     let extra = match calib {
@@ -69,7 +69,7 @@ pub fn mean_csv(rows: &[MeanRow], calib: Option<&crate::calib::Calibration>) -> 
 
 /// Per-frame vectors: `x,y,u,v,flag` (px, px per frame step, flag bits of
 /// `super::validate::flag`; 0 = valid).
-pub fn write_vectors_csv(path: &Path, f: &VectorField) -> Result<()> {
+pub(crate) fn write_vectors_csv(path: &Path, f: &VectorField) -> Result<()> {
     let mut out = AtomicFile::create(path)?;
     let io = |e| Error::io(path, e);
     writeln!(out, "x,y,u,v,flag").map_err(io)?;
@@ -160,7 +160,7 @@ static STEP_COLUMNS: [Col<StepRow>; 3] = [
 ];
 
 /// The text of `piv_steps.csv`: `step,first_pulse,t_us` per field.
-pub fn steps_csv(steps: &[(i64, f64)]) -> String {
+pub(crate) fn steps_csv(steps: &[(i64, f64)]) -> String {
     let mut t = String::from("step,first_pulse,t_us\n");
     for (k, (p, tu)) in steps.iter().enumerate() {
         t.push_str(&format!("{k},{p},{tu}\n"));
@@ -198,7 +198,7 @@ static VECTOR_COLUMNS: [Col<VectorRow>; 5] = [
 ];
 
 /// A per-frame vectors table `stem.parquet` (`.csv`, `.npy`) in `dir`:
-/// the columns of [`write_vectors_csv`]. The path written.
+/// the columns of `write_vectors_csv`. The path written.
 pub fn write_vectors_table(
     dir: &Path,
     stem: &str,

@@ -51,7 +51,7 @@ pub(crate) const LARGE_GROUP: usize = 4;
 /// Largest side of the pixel-count map: the largest sensor side ebptv
 /// accepts ([`crate::io::guard::MAX_SENSOR_SIDE`]); 16 MB of u8 at most,
 /// whatever geometry a file states or coordinates damaged data holds.
-pub const MAX_MAP_SIDE: usize = crate::io::guard::MAX_SENSOR_SIDE as usize;
+pub(crate) const MAX_MAP_SIDE: usize = crate::io::guard::MAX_SENSOR_SIDE as usize;
 /// Interleaved run-size tables (breaks store-to-load chains).
 const GROUP_TABLES: usize = 4;
 

@@ -50,7 +50,7 @@ impl std::str::FromStr for Component {
     }
 }
 
-/// Options of [`run_on_samples`]; the defaults are those of `ebptv spectra`.
+/// Options of `run_on_samples`; the defaults are those of `ebptv spectra`.
 #[derive(Debug, Clone)]
 pub struct RunOptions {
     /// Points (px); the first gives `peak_hz`.
@@ -182,7 +182,7 @@ fn point_json(p: &PointSpectrum) -> Value {
     })
 }
 
-/// Samples of a tracks table and [`run_on_samples`] on them.
+/// Samples of a tracks table and `run_on_samples` on them.
 pub fn run_on_tracks(path: &std::path::Path, opt: &RunOptions) -> Result<SpectraRun> {
     opt.validate()?;
     let samples = crate::grid::read_track_samples(path)?;
@@ -191,7 +191,7 @@ pub fn run_on_tracks(path: &std::path::Path, opt: &RunOptions) -> Result<Spectra
 
 /// `ebptv spectra` on track samples: the spectra at the points and along
 /// the line, the per-sample noise, `spectrum.json` and the CSV tables.
-pub fn run_on_samples(samples: &[Sample], a: &RunOptions) -> Result<SpectraRun> {
+pub(crate) fn run_on_samples(samples: &[Sample], a: &RunOptions) -> Result<SpectraRun> {
     a.validate()?;
     let opt = a.spectra_options()?;
     let calib = a.calibration.as_ref();

@@ -80,7 +80,7 @@ pub enum Linker {
     /// One tracker over the whole run.
     #[default]
     Sequential,
-    /// Independent trackers on time slices ([`super::SliceTracker`]).
+    /// Independent trackers on time slices (`track::slice::SliceTracker`).
     Sliced,
 }
 

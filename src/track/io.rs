@@ -68,7 +68,7 @@ pub(crate) static TRACK_COLUMNS_CALIBRATED: [Col<TrackRow>; 11] = [
 ];
 
 /// Streaming writer of the `particles` table in any [`TableFormat`].
-pub enum ParticlesWriter {
+pub(crate) enum ParticlesWriter {
     /// `particles.csv`.
     Csv(ParticlesCsvWriter),
     /// `particles.parquet` or `particles.npy`.
@@ -109,7 +109,7 @@ impl ParticlesWriter {
 }
 
 /// Streaming writer of the `tracks` table in any [`TableFormat`].
-pub enum TracksWriter {
+pub(crate) enum TracksWriter {
     /// `tracks.csv`.
     Csv(TracksCsvWriter),
     /// `tracks.parquet` or `tracks.npy`, with the calibration whose
@@ -194,7 +194,7 @@ fn write_block(file: &mut AtomicFile, buf: &mut Vec<u8>, min: usize) -> Result<(
 /// Streaming writer of `particles.csv` (`pulse,t_us,x,y,n_events`; µs and
 /// px): rows are appended as pulses are clustered; the file appears under
 /// its name only on `ParticlesCsvWriter::finish`.
-pub struct ParticlesCsvWriter {
+pub(crate) struct ParticlesCsvWriter {
     file: AtomicFile,
     /// Rows are formatted into this buffer, then written in one call.
     line: Vec<u8>,
@@ -271,7 +271,7 @@ impl ParticlesCsvWriter {
 
 /// Streaming writer of `tracks.csv` (`track_id,pulse,t_us,x,y,u,v`; µs, px,
 /// px/s), one row per track point.
-pub struct TracksCsvWriter {
+pub(crate) struct TracksCsvWriter {
     file: AtomicFile,
     line: Vec<u8>,
     t_text: TimeTextCache,
@@ -340,7 +340,8 @@ impl TimeTextCache {
 }
 
 impl TracksCsvWriter {
-    pub(crate) fn create(path: &Path) -> Result<Self> {
+    #[cfg(test)]
+    fn create(path: &Path) -> Result<Self> {
         Self::create_calibrated(path, None)
     }
 
@@ -449,7 +450,7 @@ const TRACKS_NPY_DESCR: &str = "[('track_id', '<u8'), ('pulse', '<i8'), ('t_us',
 /// (memory does not grow with the recording); the header is written with
 /// room for any row count and patched with the real one at
 /// `TracksNpyWriter::finish`.
-pub struct TracksNpyWriter {
+pub(crate) struct TracksNpyWriter {
     file: AtomicFile,
     header_len: usize,
     rows: usize,
@@ -500,7 +501,8 @@ impl TracksNpyWriter {
 /// Write `tracks.npy` in one go, column by column through
 /// [`crate::io::npy::write_npy_table`] (the reference of
 /// [`TracksNpyWriter`]).
-pub fn write_tracks_npy(path: &Path, tracks: &[Track]) -> Result<()> {
+#[cfg(test)]
+fn write_tracks_npy(path: &Path, tracks: &[Track]) -> Result<()> {
     use crate::io::npy::NpyColumn;
     let pts = || {
         tracks
@@ -539,7 +541,8 @@ pub fn write_particles_csv(path: &Path, particles: &[Particle]) -> Result<()> {
 }
 
 /// Write `tracks.csv` in one go.
-pub fn write_tracks_csv(path: &Path, tracks: &[Track]) -> Result<()> {
+#[cfg(test)]
+fn write_tracks_csv(path: &Path, tracks: &[Track]) -> Result<()> {
     let mut w = TracksCsvWriter::create(path)?;
     w.write(tracks)?;
     w.finish()
@@ -754,16 +757,6 @@ pub fn read_particles(path: &Path) -> Result<Vec<Particle>> {
     Ok(out)
 }
 
-/// Read a `particles` table of any format ([`read_particles`]).
-pub fn read_particles_csv(path: &Path) -> Result<Vec<Particle>> {
-    read_particles(path)
-}
-
-/// Read a `tracks` table of any format ([`read_tracks`]).
-pub fn read_tracks_csv(path: &Path) -> Result<Vec<Track>> {
-    read_tracks(path)
-}
-
 /// Read a `tracks` table (Parquet, CSV or `.npy`) into tracks (rows
 /// grouped by `track_id`, points sorted by pulse). Accelerations are not
 /// in the file and come back as 0; points are not marked interpolated.
@@ -832,7 +825,7 @@ pub struct Summary {
 
 /// Accumulates what [`Summary`] needs while tracks stream past.
 #[derive(Debug, Clone, Default)]
-pub struct SummaryAcc {
+pub(crate) struct SummaryAcc {
     lengths: Vec<u64>,
     speed_sum: f64,
     points: u64,
@@ -899,7 +892,7 @@ impl Summary {
 }
 
 /// Write `summary.json` atomically.
-pub fn write_summary_json(path: &Path, summary: &Summary) -> Result<()> {
+pub(crate) fn write_summary_json(path: &Path, summary: &Summary) -> Result<()> {
     let bytes = serde_json::to_vec_pretty(summary)
         .map_err(|e| Error::analysis(format!("summary.json: {e}")))?;
     AtomicFile::write_all_to(path, &bytes)
@@ -925,7 +918,7 @@ mod tests {
             first_latency_us: 3.0,
         };
         write_particles_csv(&path, &[p]).unwrap();
-        let back = read_particles_csv(&path).unwrap();
+        let back = read_particles(&path).unwrap();
         assert_eq!(
             (
                 back[0].pulse,
@@ -938,21 +931,21 @@ mod tests {
         );
 
         std::fs::write(&path, "pulse,t_us,x,n_events\n1,2,3,4\n").unwrap();
-        let e = read_particles_csv(&path).unwrap_err().to_string();
+        let e = read_particles(&path).unwrap_err().to_string();
         assert!(
             e.contains("missing column(s) y") && e.contains("particles.csv"),
             "{e}"
         );
         std::fs::write(&path, "pulse,t_us,x,y,n_events\n1,2,3,4,1\n2,3,NaN,4,1\n").unwrap();
-        let e = read_particles_csv(&path).unwrap_err().to_string();
+        let e = read_particles(&path).unwrap_err().to_string();
         assert!(e.contains("line 3") && e.contains("`x`"), "{e}");
         std::fs::write(&path, "pulse,t_us,x,y,n_events\n1.5,2,3,4,1\n").unwrap();
-        assert!(read_particles_csv(&path)
+        assert!(read_particles(&path)
             .unwrap_err()
             .to_string()
             .contains("not an integer"));
         std::fs::write(&path, "").unwrap();
-        assert!(read_particles_csv(&path)
+        assert!(read_particles(&path)
             .unwrap_err()
             .to_string()
             .contains("empty"));
@@ -984,9 +977,9 @@ mod tests {
             },
         ];
         write_tracks_csv(&path, &tracks).unwrap();
-        assert_eq!(read_tracks_csv(&path).unwrap(), tracks);
+        assert_eq!(read_tracks(&path).unwrap(), tracks);
         std::fs::write(&path, "track_id,pulse,t_us,x,y,u\n").unwrap();
-        assert!(read_tracks_csv(&path)
+        assert!(read_tracks(&path)
             .unwrap_err()
             .to_string()
             .contains("missing column(s) v"));

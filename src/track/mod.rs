@@ -129,18 +129,19 @@ use assign::*;
 pub use config::{Linker, RunParams, TrackConfig};
 pub(crate) use finalise::*;
 pub use io::{
-    read_particles, read_particles_csv, read_tracks, read_tracks_csv, write_particles_csv,
-    write_summary_json, write_tracks_csv, write_tracks_npy, ParticlesCsvWriter, ParticlesWriter,
-    Summary, SummaryAcc, TrackRow, TracksCsvWriter, TracksNpyWriter, TracksWriter,
-    PARTICLE_COLUMNS, TRACK_COLUMNS,
+    read_particles, read_tracks, write_particles_csv, Summary, TrackRow, PARTICLE_COLUMNS,
+    TRACK_COLUMNS,
+};
+pub(crate) use io::{
+    write_summary_json, ParticlesWriter, SummaryAcc, TracksNpyWriter, TracksWriter,
 };
 pub use params::*;
 use predict::*;
 pub use sink::{
-    read_hot_pixels, resolve_config, stream_of, track_into, track_to_dir, track_to_dir_with,
-    DirRun, FileSink, SinkRun, TrackInput, TrackProgress, TrackStage,
+    resolve_config, stream_of, track_into, track_to_dir, track_to_dir_with, DirRun, TrackInput,
+    TrackProgress, TrackStage,
 };
-pub use slice::{SliceParams, SliceTracker};
+pub(crate) use slice::SliceParams;
 pub use state::*;
 pub use stream::{track_recording, PtvSink, PtvStream, TrackingRun};
 

@@ -384,7 +384,7 @@ fn track_recording_into(
 
 /// Reads pixels to ignore from `path`: one `x,y` per line (a header line
 /// and blank lines are skipped).
-pub fn read_hot_pixels(path: &Path) -> Result<HashSet<(u16, u16)>> {
+pub(crate) fn read_hot_pixels(path: &Path) -> Result<HashSet<(u16, u16)>> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
     let mut set = HashSet::new();
     for (i, line) in text.lines().enumerate() {
@@ -599,7 +599,7 @@ const MESSAGE_POINTS: usize = 4096;
 /// writer thread through a bounded channel, so a slow disk holds the
 /// tracker back instead of filling memory. Dropped without `finish` (an
 /// error on the way), it writes no file.
-pub struct FileSink {
+pub(crate) struct FileSink {
     out: std::path::PathBuf,
     /// Recorded in `summary.json` and the Parquet tables when set.
     pub provenance: Option<crate::provenance::Provenance>,

@@ -59,7 +59,7 @@ use crate::error::{Error, Result};
 
 /// How the pulse stream is cut for [`SliceTracker`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-pub struct SliceParams {
+pub(crate) struct SliceParams {
     /// Pulses each slice owns (≥ 1).
     pub slice_pulses: usize,
     /// Pulses a slice's tracker also sees on each side of its own.
@@ -145,7 +145,7 @@ struct SliceOutput {
 /// Parallel slice-and-stitch tracker (module docs). Feed pulses in
 /// increasing order with `SliceTracker::push`; tracks come out, joined,
 /// as whole groups of slices are tracked.
-pub struct SliceTracker {
+pub(crate) struct SliceTracker {
     params: TrackParams,
     slicing: SliceParams,
     /// Pulses from stream position `buffer_start` on.

@@ -8,11 +8,12 @@
 
 use crate::cluster::{ClusterParams, Particle};
 use crate::sim::TruthSample;
+use crate::track::slice::SliceTracker;
 use crate::track::synth::{
     cluster_with_truth_sources, generate, score_with_sources, LinkScore, SynthParams, SynthPulse,
     INTERIOR_MARGIN,
 };
-use crate::track::{LinkedTrack, SliceParams, SliceTracker, TrackParams, Tracker};
+use crate::track::{LinkedTrack, SliceParams, TrackParams, Tracker};
 
 struct Clustered {
     pulses: Vec<(i64, f64, Vec<Particle>)>,
