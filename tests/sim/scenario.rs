@@ -25,6 +25,14 @@ fn impossible_values_are_refused_naming_the_field() {
     let mut s = ok.clone();
     s.seeding.ppp = 1.5;
     refused(&s, "seeding.ppp");
+    // A dense seeding on a large sensor: 6.3 M particles (~11 GB) are
+    // refused before anything is allocated; 0.1 per pixel there is fine.
+    let mut s = ok.clone();
+    (s.sensor.width, s.sensor.height) = (2048, 2048);
+    s.seeding.ppp = 1.0;
+    refused(&s, "seeding.ppp");
+    s.seeding.ppp = 0.1;
+    s.validate().unwrap();
     let mut s = ok.clone();
     s.duration_s = 0.0;
     refused(&s, "duration_s");

@@ -32,6 +32,13 @@ use serde::{Deserialize, Serialize};
 
 use ebptv_io::error::{Error, Result};
 
+/// The most particles a scenario may seed. A simulation holds ~1.8 KB per
+/// particle (state, random stream, images, events and truth of the pulse in
+/// flight; measured: 2.2 GB for 1.26 M particles), so this caps it at
+/// ~3.5 GB. A 2048 x 2048 sensor reaches it at ~0.3 particles per pixel,
+/// far denser than PTV images are.
+pub(crate) const MAX_PARTICLES: usize = 2_000_000;
+
 /// A complete simulation scenario.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -769,6 +776,14 @@ impl Scenario {
                 )
             },
         )?;
+        let n = crate::seeding::particle_count_bound(self);
+        check(n <= MAX_PARTICLES as f64, "seeding.ppp", || {
+            let r = self.roi();
+            format!(
+                    "{} particles per pixel on {}x{} px seed up to {n:.0} particles, more than {MAX_PARTICLES} (~1.8 KB of memory each); lower the density or the sensor's region",
+                    self.seeding.ppp, r.width, r.height
+                )
+        })?;
         let p = &self.pixel;
         check(
             p.contrast_threshold.is_finite()

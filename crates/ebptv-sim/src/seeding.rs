@@ -147,17 +147,30 @@ pub(crate) struct Particles {
     brightness_spread: f64,
 }
 
+/// The seeding domain of `sc`: its region of interest with a margin for
+/// images that reach in from outside.
+fn seeding_domain(sc: &Scenario) -> Domain {
+    let roi = sc.roi();
+    let margin = 2.0 + 1.5 * sc.optics.particle_diameter_px;
+    Domain {
+        x0: roi.x as f64 - 0.5 - margin,
+        x1: (roi.x + roi.width) as f64 - 0.5 + margin,
+        y0: roi.y as f64 - 0.5 - margin,
+        y1: (roi.y + roi.height) as f64 - 0.5 + margin,
+    }
+}
+
+/// The number of particles [`Particles::seed`] makes when the whole domain
+/// is fluid: the upper bound the scenario's validation checks.
+pub(crate) fn particle_count_bound(sc: &Scenario) -> f64 {
+    let d = seeding_domain(sc);
+    sc.seeding.ppp * (d.x1 - d.x0) * (d.y1 - d.y0) * SLAB_HALF / 0.5
+}
+
 impl Particles {
     /// Seeds the particles of scenario `sc` in `flow`; `seed` fixes the draws.
     pub(crate) fn seed(sc: &Scenario, flow: &Flow, seed: u64) -> Particles {
-        let roi = sc.roi();
-        let margin = 2.0 + 1.5 * sc.optics.particle_diameter_px;
-        let domain = Domain {
-            x0: roi.x as f64 - 0.5 - margin,
-            x1: (roi.x + roi.width) as f64 - 0.5 + margin,
-            y0: roi.y as f64 - 0.5 - margin,
-            y1: (roi.y + roi.height) as f64 - 0.5 + margin,
-        };
+        let domain = seeding_domain(sc);
         // Fluid fraction of the domain, for the particle count.
         let mut fluid = 0usize;
         let probes = 64;
