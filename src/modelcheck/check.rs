@@ -99,6 +99,7 @@ pub fn check_recording_with(
             ),
         ));
     }
+    crate::modelcheck::workflow::check_budget(a.replicates, a.evaluations)?;
     let mut src = crate::io::open(measured)?;
     let geometry_hint = src.info().geometry;
     let mut events = EventChunk::default();

@@ -626,6 +626,33 @@ pub(crate) const RUNNER_UP_MARGIN: f64 = 0.25;
 /// Sweeps over the found effects in [`joint_refit`].
 const JOINT_REFIT_SWEEPS: usize = 2;
 
+/// The most replicates (simulations per model judged) a search takes.
+pub(crate) const MAX_REPLICATES: usize = 100;
+/// The most objective evaluations per parameter of a candidate fit.
+pub(crate) const MAX_EVALUATIONS: usize = 1000;
+
+/// Refuses a search budget that would run for days (every replicate and
+/// evaluation is a full simulation) or hold thousands of signature sets.
+pub(crate) fn check_budget(replicates: usize, evaluations: usize) -> Result<()> {
+    if replicates > MAX_REPLICATES {
+        return Err(Error::param(
+            "replicates",
+            format!(
+                "{replicates}: at most {MAX_REPLICATES} (each is one simulation per model judged)"
+            ),
+        ));
+    }
+    if evaluations > MAX_EVALUATIONS {
+        return Err(Error::param(
+            "evaluations",
+            format!(
+                "{evaluations}: at most {MAX_EVALUATIONS} per parameter (each is one simulation)"
+            ),
+        ));
+    }
+    Ok(())
+}
+
 /// Run the search. `measured_fit` and `measured_holdout` are two disjoint
 /// time blocks of the measurement, each as long as one simulated recording.
 pub(crate) fn run(
@@ -642,6 +669,7 @@ pub(crate) fn run(
             format!("{}: need at least 3 for a chance estimate", opts.replicates),
         ));
     }
+    check_budget(opts.replicates, opts.max_evaluations)?;
     let catalogue = sim.catalogue();
     validate_catalogue(&catalogue)?;
     let m_fit = signatures_of(cfg, measured_fit)?;

@@ -326,7 +326,8 @@ fn interrupted_simulate_leaves_no_partial_file() {
 
 /// Small items: random bytes named .raw are refused; a `% format` line
 /// contradicting `% evt` is refused (and read when --format names it);
-/// `model-check --block-pulses 0` is refused; convert lists anomalies in
+/// `model-check --block-pulses 0` and absurd search budgets are refused;
+/// convert lists anomalies in
 /// words.
 #[test]
 fn small_items() {
@@ -364,6 +365,21 @@ fn small_items() {
         "{}",
         stderr(&o)
     );
+    // A search budget that would run for days is refused up front too.
+    for (opt, value) in [("--replicates", "1000000"), ("--evaluations", "100000000")] {
+        let o = run(&[
+            "model-check".as_ref(),
+            f.as_os_str(),
+            opt.as_ref(),
+            value.as_ref(),
+            "--out".as_ref(),
+            dir.path().join("mc").as_os_str(),
+        ]);
+        assert_eq!(o.status.code(), Some(1));
+        let e = stderr(&o);
+        assert!(e.contains(&opt[2..]) && e.contains("at most"), "{e}");
+        assert!(!dir.path().join("mc").exists());
+    }
 
     let Some(real) = shared("real") else { return };
     let src = std::fs::read(real.join("evt3_sample.raw")).unwrap();
