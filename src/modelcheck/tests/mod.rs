@@ -2,6 +2,7 @@
 //! references, the decision rules, the search on hidden effects.
 
 mod baseline;
+mod check;
 mod decision;
 mod hidden_more;
 mod modelcheck_common;
