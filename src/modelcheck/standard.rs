@@ -432,7 +432,6 @@ pub(crate) fn yardstick(
             format!("{}: need at least 2 for a chance estimate", opts.replicates),
         ));
     }
-    crate::modelcheck::workflow::check_budget(opts.replicates, opts.evaluations)?;
     let reference_seed = seed_for(opts.seed, 5000, 0);
     let members = envelope_members(sim, start, opts, event_rate_hz, pixels)?;
     // Jobs: reference, replicates, envelope members.

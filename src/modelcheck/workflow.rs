@@ -631,7 +631,8 @@ pub(crate) const MAX_REPLICATES: usize = 100;
 /// The most objective evaluations per parameter of a candidate fit.
 pub(crate) const MAX_EVALUATIONS: usize = 1000;
 
-/// Refuses a search budget that would run for days (every replicate and
+/// Refuses (at `check::check_recording`, before the recording is read) a
+/// search budget that would run for days (every replicate and
 /// evaluation is a full simulation) or hold thousands of signature sets.
 pub(crate) fn check_budget(replicates: usize, evaluations: usize) -> Result<()> {
     if replicates > MAX_REPLICATES {
@@ -669,7 +670,6 @@ pub(crate) fn run(
             format!("{}: need at least 3 for a chance estimate", opts.replicates),
         ));
     }
-    check_budget(opts.replicates, opts.max_evaluations)?;
     let catalogue = sim.catalogue();
     validate_catalogue(&catalogue)?;
     let m_fit = signatures_of(cfg, measured_fit)?;

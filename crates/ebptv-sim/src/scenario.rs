@@ -780,9 +780,9 @@ impl Scenario {
         check(n <= MAX_PARTICLES as f64, "seeding.ppp", || {
             let r = self.roi();
             format!(
-                    "{} particles per pixel on {}x{} px seed up to {n:.0} particles, more than {MAX_PARTICLES} (~1.8 KB of memory each); lower the density or the sensor's region",
-                    self.seeding.ppp, r.width, r.height
-                )
+                "{} particles per pixel on {}x{} px seed up to {n:.0} particles, more than {MAX_PARTICLES} (~1.8 KB of memory each); lower the density or the sensor's region",
+                self.seeding.ppp, r.width, r.height
+            )
         })?;
         let p = &self.pixel;
         check(
