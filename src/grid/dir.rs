@@ -138,6 +138,32 @@ pub fn grid_to_dir(
             "time-resolved fields need a tracks table (grid states hold no time series)",
         ));
     }
+    if opts.fields_every == Some(0) {
+        return Err(Error::param(
+            "fields_every",
+            "a frame needs at least 1 pulse, got 0",
+        ));
+    }
+    if let Some(p) = &opts.profile {
+        if !p.x.is_finite() {
+            return Err(Error::param(
+                "profile_x",
+                format!("must be a finite position (px), got {}", p.x),
+            ));
+        }
+        if let Some(w) = p.wall_y.filter(|w| !w.is_finite()) {
+            return Err(Error::param(
+                "wall_y",
+                format!("must be a finite position (px), got {w}"),
+            ));
+        }
+        if let Some(s) = p.px_per_mm.filter(|s| !(s.is_finite() && *s > 0.0)) {
+            return Err(Error::param(
+                "px_per_mm",
+                format!("scale must be > 0 px/mm, got {s}"),
+            ));
+        }
+    }
     let scale = opts
         .profile
         .as_ref()

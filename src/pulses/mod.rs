@@ -247,6 +247,16 @@ impl PulseOptions {
                 ));
             }
         }
+        if let Some(l) = self.onset_latency_us {
+            // A sensor's delay is tens of µs to a few ms; a tenth of a
+            // second is far beyond any.
+            if !(l.is_finite() && (0.0..=1e5).contains(&l)) {
+                return Err(Error::param(
+                    "onset_latency_us",
+                    format!("{l} µs: a delay from pulse to burst must be in [0, 100000] µs"),
+                ));
+            }
+        }
         if self.pulse_hz.is_some() && self.pulse_hz_range.is_some() {
             return Err(Error::param(
                 "pulse_hz",

@@ -302,6 +302,12 @@ impl Default for FitParams {
     }
 }
 
+/// Largest `max_disp` accepted (px per pulse): wider than any event
+/// sensor, so a larger value can only be a mistake.
+const MAX_DISP_PX: f64 = 4096.0;
+/// Largest `min_length` accepted (detections).
+const MAX_MIN_LENGTH: usize = 1_000_000;
+
 impl TrackParams {
     /// Fewest detections any kept track may have: `min_length`, or
     /// `init.min_length_flow` when the ghost test can keep shorter tracks.
@@ -413,6 +419,24 @@ impl TrackParams {
         }
         if i.back_extend > 1000 {
             return Err(Error::param("init.back_extend", "at most 1000 pulses"));
+        }
+        if self.max_disp > MAX_DISP_PX {
+            return Err(Error::param(
+                "max_disp",
+                format!(
+                    "{} px per pulse is wider than any sensor (at most {MAX_DISP_PX} px)",
+                    self.max_disp
+                ),
+            ));
+        }
+        if self.min_length > MAX_MIN_LENGTH {
+            return Err(Error::param(
+                "min_length",
+                format!(
+                    "at most {MAX_MIN_LENGTH} detections (50 s of pulses at 20 kHz), got {}",
+                    self.min_length
+                ),
+            ));
         }
         if self.max_gap > 1000 || s.stitch_gap > 1000 {
             return Err(Error::param(

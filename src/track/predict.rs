@@ -114,7 +114,7 @@ impl PredictWeights {
 
 impl Tracker {
     /// Predicted position, search radius and fit leverage of a track at
-    /// pulse `pulse`: [`Tracker::predict_reference`], with cached weights
+    /// pulse `pulse`: [`Tracker::predict_plain`], with cached weights
     /// when the window has no gap (the common case).
     pub(super) fn predict(&mut self, ti: usize, pulse: i64) -> (f64, f64, f64, f64) {
         let p = &self.params;
@@ -129,12 +129,12 @@ impl Tracker {
             }
         }
         if win[0].pulse + w as i64 - 1 != last.pulse {
-            return self.predict_reference(track, pulse);
+            return self.predict_plain(track, pulse);
         }
         let order = self.predict_order(n);
         let ahead = pulse - last.pulse;
         let Some(k) = self.weights_index(w, order, ahead) else {
-            return self.predict_reference(&self.active[ti], pulse);
+            return self.predict_plain(&self.active[ti], pulse);
         };
         let c = &self.weights[k];
         let win = &self.active[ti].dets[n - w..];
@@ -256,18 +256,18 @@ impl Tracker {
         let p = &self.params;
         let gap = (ahead - 1).max(0) as f64;
         let sigma = self.position_sigma() * (1.0 + leverage).sqrt();
-        let r = (p.gates.n_sigma * sigma).clamp(p.gates.min_search_radius, p.max_disp)
+        // (`max_disp` wins over the floor when a slow flow sets it lower.)
+        let r = (p.gates.n_sigma * sigma)
+            .max(p.gates.min_search_radius)
+            .min(p.max_disp)
             * (1.0 + p.gates.gap_growth * gap);
         (r.min(p.max_disp * (1.0 + gap)), leverage)
     }
 
-    /// The predictor as a plain least-squares fit over the window (the
-    /// reference of [`Tracker::predict`]).
-    pub(super) fn predict_reference(
-        &self,
-        track: &ActiveTrack,
-        pulse: i64,
-    ) -> (f64, f64, f64, f64) {
+    /// The predictor as a plain least-squares fit over the window: the
+    /// path for windows with gaps, and what the cached weights of
+    /// [`Tracker::predict`] reproduce on gap-free windows.
+    pub(super) fn predict_plain(&self, track: &ActiveTrack, pulse: i64) -> (f64, f64, f64, f64) {
         let p = &self.params;
         let n = track.dets.len();
         let w = p.gates.predict_window.min(n);

@@ -210,6 +210,14 @@ pub struct SinkRun {
 /// against the flow. [`track_to_dir`] writes this set to `params.toml`.
 pub fn resolve_config(config: &TrackConfig) -> Result<TrackConfig> {
     let mut config = config.clone();
+    if let Some([u, v]) = config.run.prior {
+        if !(u.is_finite() && v.is_finite()) {
+            return Err(Error::param(
+                "run.prior",
+                format!("the mean flow must be finite (px/s), got [{u}, {v}]"),
+            ));
+        }
+    }
     if let Some(p) = config.run.hot_pixels.take() {
         config.cluster.hot_pixels.extend(read_hot_pixels(&p)?);
     }

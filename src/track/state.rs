@@ -649,8 +649,13 @@ impl Tracker {
             (1.0 + a).powi(2) + a * a + 1.0
         };
         let (var2, var3) = (var(2), var(3));
-        let gate =
-            |v: f64| (p.gates.n_sigma * sigma * v.sqrt()).clamp(p.init.init_radius, p.max_disp);
+        // `max_disp` bounds the gate even below `init_radius` (a slow
+        // flow): no track looks further than the user allows.
+        let gate = |v: f64| {
+            (p.gates.n_sigma * sigma * v.sqrt())
+                .max(p.init.init_radius)
+                .min(p.max_disp)
+        };
         let (gate2, gate3) = (gate(var2), gate(var3));
         // Grids over the unused particles of frames 1..3.
         let mut sc = std::mem::take(&mut self.scratch);

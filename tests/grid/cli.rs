@@ -242,6 +242,24 @@ fn bad_input_gives_clear_errors_and_no_output() {
             vec![t.into(), "--min-count".into(), "0".into()],
             "min-count",
         ),
+        (
+            vec![t.into(), "--profile-x".into(), "nan".into()],
+            "profile_x",
+        ),
+        (
+            vec![t.into(), "--fields-every".into(), "0".into()],
+            "fields_every",
+        ),
+        (
+            vec![
+                t.into(),
+                "--profile-x".into(),
+                "32".into(),
+                "--px-per-mm".into(),
+                "0".into(),
+            ],
+            "px_per_mm",
+        ),
         (vec![d.join("empty.csv").to_str().unwrap().into()], "empty"),
         (
             vec![d.join("header.csv").to_str().unwrap().into()],

@@ -162,6 +162,64 @@ fn bad_input_gives_clear_errors_and_no_outputs() {
         .output()
         .unwrap();
     assert!(!st.status.success() && String::from_utf8_lossy(&st.stderr).contains("max_disp"));
+    // Absurdly large or non-finite values are refused up front, naming
+    // the parameter.
+    for (args, name) in [
+        (&["--max-disp", "1e9"][..], "max_disp"),
+        (&["--min-length", "1000000000"][..], "min_length"),
+        (&["--prior", "nan", "0"][..], "run.prior"),
+        (&["--prior", "0", "inf"][..], "run.prior"),
+    ] {
+        let st = ebptv()
+            .arg("track")
+            .args(args)
+            .arg(&input)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&st.stderr);
+        assert!(
+            st.status.code() == Some(1) && err.contains(name),
+            "{args:?}: {err}"
+        );
+    }
+}
+
+/// A `--max-disp` below the tracker's smallest search radii (a slow flow,
+/// 0.3 px per pulse here) bounds every search instead of stopping the run
+/// (it panicked on `clamp(min > max)`): every particle is tracked at its
+/// own speed.
+#[test]
+fn max_disp_below_the_search_floors_runs() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("particles.csv");
+    let mut csv = String::from("pulse,t_us,x,y,n_events\n");
+    for pulse in 0..20 {
+        for k in 0..16 {
+            let (x, y) = (10.0 + 12.0 * (k % 4) as f64, 10.0 + 12.0 * (k / 4) as f64);
+            let x = x + 0.3 * pulse as f64;
+            csv += &format!("{pulse},{},{x},{y},2\n", 200 * pulse);
+        }
+    }
+    std::fs::write(&input, csv).unwrap();
+    let out = dir.path().join("out");
+    run_ok(
+        ebptv()
+            .args(["track", "--max-disp", "0.4"])
+            .arg(&input)
+            .arg("--out")
+            .arg(&out),
+    );
+    let tracks = ebptv::track::read_tracks(&out.join("tracks.parquet")).unwrap();
+    assert_eq!(tracks.len(), 16);
+    for t in tracks {
+        assert_eq!(t.points.len(), 20, "track {}", t.id);
+        for p in &t.points {
+            // 0.3 px per 200 µs = 1500 px/s.
+            assert!((p.u - 1500.0).abs() < 1.0 && p.v.abs() < 1.0, "{p:?}");
+        }
+    }
 }
 
 /// The sliced linker and the sequential one (default) on the same

@@ -631,3 +631,43 @@ fn saturation_that_comes_and_goes_is_flagged_per_window() {
     let f = r.saturation.saturated_event_fraction;
     assert!(f > 0.3 && f < 0.99, "saturated event fraction {f}");
 }
+
+/// Absurd options are refused before any event is read, naming the option.
+#[test]
+fn absurd_options_are_refused_by_name() {
+    let s = Scene::new(10_000.0);
+    let cases = [
+        (
+            PulseOptions {
+                onset_latency_us: Some(-5.0),
+                ..Default::default()
+            },
+            "onset_latency_us",
+        ),
+        (
+            PulseOptions {
+                onset_latency_us: Some(1e12),
+                ..Default::default()
+            },
+            "onset_latency_us",
+        ),
+        (
+            PulseOptions {
+                pulse_hz: Some(0.0),
+                ..Default::default()
+            },
+            "pulse_hz",
+        ),
+        (
+            PulseOptions {
+                pulse_hz_range: Some((5000.0, 100.0)),
+                ..Default::default()
+            },
+            "pulse_hz_range",
+        ),
+    ];
+    for (opts, name) in cases {
+        let msg = run(&s, &opts).0.unwrap_err().to_string();
+        assert!(msg.contains(name), "{name}: {msg}");
+    }
+}
