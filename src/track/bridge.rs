@@ -6,6 +6,16 @@
 
 use super::*;
 
+/// The stitching tolerance across `gap` missed pulses (px):
+/// `gates.min_search_radius` growing by `stitch.stitch_growth` per pulse,
+/// never beyond what a particle can travel (`max_disp` per pulse, the
+/// linking gates' bound too): an absurd growth would make every ended
+/// track a candidate for every new chain (10^12 ran for minutes).
+pub(super) fn stitch_tolerance(p: &TrackParams, gap: i64) -> f64 {
+    (p.gates.min_search_radius * (1.0 + p.stitch.stitch_growth * gap as f64))
+        .min(p.max_disp * (gap + 1) as f64)
+}
+
 impl Tracker {
     /// Record `t` as the owner of its detections in the kept frames.
     pub(super) fn set_owner(&mut self, t: &ActiveTrack) {
@@ -323,7 +333,7 @@ impl Tracker {
                 if gap < 0 || gap > p.stitch.stitch_gap as i64 {
                     continue;
                 }
-                let r = p.gates.min_search_radius * (1.0 + p.stitch.stitch_growth * gap as f64);
+                let r = stitch_tolerance(p, gap);
                 // Out of reach whatever the extrapolation (cheap test first).
                 let reach = (gap + 1) as f64 * p.max_disp + 2.0 * r;
                 if (end.x - start.x).powi(2) + (end.y - start.y).powi(2) > reach * reach {
@@ -475,4 +485,26 @@ pub(super) fn extrapolate(
         return young_prediction(&tau, &xs, &ys, 0.0, sigma, 0.0).map(|(x, y, _)| (x, y));
     }
     fit::fit_eval(&tau, &xs, &ys, 1, 0.0).map(|f| (f.x, f.y))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stitch_tolerance_grows_with_the_gap_up_to_the_travel_bound() {
+        let p = TrackParams::default();
+        // The defaults lie below the bound: 1.5 px growing by a quarter
+        // per missed pulse.
+        for gap in 0..=3 {
+            let expect = p.gates.min_search_radius * (1.0 + 0.25 * gap as f64);
+            assert_eq!(stitch_tolerance(&p, gap), expect);
+        }
+        let mut huge = p.clone();
+        huge.stitch.stitch_growth = 1e12;
+        huge.gates.min_search_radius = 1e12;
+        for gap in 0..=3 {
+            assert_eq!(stitch_tolerance(&huge, gap), p.max_disp * (gap + 1) as f64);
+        }
+    }
 }

@@ -376,6 +376,10 @@ fn track_stage(
 /// Pulses of linked output queued between the tracker and the fit stage.
 const FIT_QUEUE_PULSES: usize = 16;
 
+/// Largest `run.batch` accepted (pulses): 4096 pulses of a 20 Mev/s
+/// recording at 5 kHz are ~0.3 GB of events per batch in flight.
+const MAX_BATCH_PULSES: usize = 4096;
+
 /// Fit the sequential tracker's ended tracks ([`Output::Ended`]) in the
 /// order they ended, each batch in parallel (rayon, the pool this runs
 /// in), and pass everything on to the caller's thread in order. Off the
@@ -463,6 +467,15 @@ impl PtvStream {
         cluster.validate()?;
         if batch_size == 0 {
             return Err(Error::param("batch", "must be at least 1 pulse"));
+        }
+        if batch_size > MAX_BATCH_PULSES {
+            // Up to three batches of events are in flight at once.
+            return Err(Error::param(
+                "batch",
+                format!(
+                    "at most {MAX_BATCH_PULSES} pulses (each stage holds a batch of events in memory), got {batch_size}"
+                ),
+            ));
         }
         Ok(PtvStream {
             state: State::Idle(Box::new((cluster, linker))),

@@ -184,6 +184,23 @@ fn bad_input_gives_clear_errors_and_no_outputs() {
             "{args:?}: {err}"
         );
     }
+    // A batch of 10^12 pulses aborted on its allocation.
+    let params = dir.path().join("batch.toml");
+    std::fs::write(&params, "[run]\nbatch = 1000000000000\n").unwrap();
+    let st = ebptv()
+        .arg("track")
+        .arg(&input)
+        .arg("--params")
+        .arg(&params)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert!(
+        st.status.code() == Some(1) && err.contains("batch"),
+        "{err}"
+    );
 }
 
 /// A `--max-disp` below the tracker's smallest search radii (a slow flow,

@@ -33,6 +33,28 @@ fn impossible_values_are_refused_naming_the_field() {
     refused(&s, "seeding.ppp");
     s.seeding.ppp = 0.1;
     s.validate().unwrap();
+    // Noise no readout delivers (10^6 Hz per pixel: 2.3·10^11 events/s on
+    // 640x360) aborted on its allocation; a busy sensor's 100 Hz per pixel
+    // (2.3·10^7 events/s) is fine. One hot pixel at 10^12 Hz is refused too.
+    let mut s = ok.clone();
+    s.noise.background_noise = Some(BackgroundNoise { rate_hz: 1e6 });
+    refused(&s, "noise.background_noise.rate_hz");
+    s.noise.background_noise = Some(BackgroundNoise { rate_hz: 100.0 });
+    s.validate().unwrap();
+    let mut s = ok.clone();
+    s.noise.hot_pixels = Some(HotPixels {
+        count: 1,
+        rate_hz: 1e12,
+    });
+    refused(&s, "noise.hot_pixels.rate_hz");
+    // A low pulse rate makes a block one long period: 9·10^7 events/s of
+    // noise (allowed at 5 kHz) in a block of 1 s are refused.
+    let mut s = ok.clone();
+    s.noise.background_noise = Some(BackgroundNoise { rate_hz: 400.0 });
+    s.validate().unwrap();
+    s.light.pulse_hz = 1.0;
+    s.light.pulse_width_us = 10.0;
+    refused(&s, "noise.background_noise.rate_hz");
     let mut s = ok.clone();
     s.duration_s = 0.0;
     refused(&s, "duration_s");

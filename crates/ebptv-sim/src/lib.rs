@@ -179,7 +179,7 @@ pub(crate) fn stream_seed(seed: u64, stream: u64, index: u64) -> u64 {
 }
 
 /// Target time span of one block (µs).
-const BLOCK_US: f64 = 2000.0;
+pub(crate) const BLOCK_US: f64 = 2000.0;
 
 /// How a request packs into one u64 sort key: time at 1 ns resolution
 /// relative to the block's `t_begin` (ample for 1 µs timestamps; 2^39 ns

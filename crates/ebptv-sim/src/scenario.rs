@@ -39,6 +39,11 @@ use ebptv_io::error::{Error, Result};
 /// far denser than PTV images are.
 pub(crate) const MAX_PARTICLES: usize = 2_000_000;
 
+/// Most noise events (background and hot pixels) of one simulated block,
+/// which are drawn at once: 10^10 events/s at the usual 2 ms blocks, ten
+/// times what the fastest event sensors read out.
+const MAX_NOISE_PER_BLOCK: f64 = 2e7;
+
 /// A complete simulation scenario.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -846,6 +851,33 @@ impl Scenario {
         }
         if let Some(b) = self.noise.background_noise {
             non_negative(b.rate_hz, "noise.background_noise.rate_hz")?;
+        }
+        // The noise events of a block (~2 ms of pulses, or one period when
+        // longer) are drawn at once: background at 10^6 Hz per pixel on
+        // 640x360 (4.6·10^8 events per block) aborted on the allocation.
+        let npix = self.roi().width as f64 * self.roi().height as f64;
+        let background = self
+            .noise
+            .background_noise
+            .map_or(0.0, |b| b.rate_hz * npix);
+        let hot = self
+            .noise
+            .hot_pixels
+            .map_or(0.0, |h| h.rate_hz * h.count as f64);
+        let period = self.period_us();
+        let block_s = ((crate::BLOCK_US / period).round().max(1.0) * period) * 1e-6;
+        for (name, rate) in [
+            ("noise.background_noise.rate_hz", background),
+            ("noise.hot_pixels.rate_hz", hot),
+            ("noise", background + hot),
+        ] {
+            check(rate * block_s <= MAX_NOISE_PER_BLOCK, name, || {
+                format!(
+                    "{rate:.3e} noise events/s are {:.3e} per simulated block of {:.0} µs, more than {MAX_NOISE_PER_BLOCK:.0e} (~16 bytes each in memory)",
+                    rate * block_s,
+                    block_s * 1e6
+                )
+            })?;
         }
         Ok(())
     }
