@@ -215,8 +215,11 @@ def long_sim(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out / "recording.raw"
 
 
+# The child handles Ctrl-C as an interactive session does, even when the
+# tests run in the background (which starts processes with SIGINT ignored).
 CHILD = """
-import sys, time, ebptv
+import signal, sys, time, ebptv
+signal.signal(signal.SIGINT, signal.default_int_handler)
 call = {call}
 print("started", flush=True)
 t0 = time.perf_counter()
