@@ -93,10 +93,142 @@ pub fn check_recording_with(
     check_recording_capped(measured, out, a, cancel, MAX_EVENTS)
 }
 
-/// The most events a model check reads: ~13 B each (~0.65 GB), plus the two
-/// blocks cut from them. A longer recording is
-/// checked on its first `MAX_EVENTS` events, and the notes say so.
+/// The most events a model check holds: ~13 B each (~0.65 GB), plus the
+/// two blocks cut from them. Of a longer recording it reads this many
+/// around the middle, and the notes say so.
 const MAX_EVENTS: usize = 50_000_000;
+
+/// What a model check reads of a recording.
+struct Measured {
+    events: EventChunk,
+    /// Rising trigger edges among them (µs).
+    rising: Vec<i64>,
+    geometry_hint: Option<Geometry>,
+    /// Which part of a longer recording was read.
+    note: Option<String>,
+}
+
+/// The events of `path` a model check works on: the whole recording when
+/// it has at most `max_events`; of a longer one a stretch of about
+/// `max_events` around its middle, found in two passes (the first counts
+/// the events and their span, the second keeps the stretch). The middle,
+/// not the start: a recording's first moments (a flow starting, a laser
+/// warming up) need not be what the rest of it is.
+fn read_measured(path: &Path, cancel: &crate::Cancel, max_events: usize) -> Result<Measured> {
+    let first = read_pass(path, cancel, max_events, None)?;
+    if first.seen <= max_events as u64 {
+        return Ok(Measured {
+            events: first.events,
+            rising: first.rising,
+            geometry_hint: first.geometry_hint,
+            note: None,
+        });
+    }
+    drop(first.events);
+    // Span of the stretch: the cap's share of the recording's duration,
+    // with a margin for an uneven event rate (the second pass still stops
+    // at the cap).
+    let (t0, t1) = (first.t_min as f64, first.t_max as f64);
+    let share = 0.95 * max_events as f64 / first.seen as f64;
+    let half = 0.5 * share * (t1 - t0);
+    let mid = 0.5 * (t0 + t1);
+    let window = ((mid - half).floor() as i64, (mid + half).ceil() as i64);
+    let second = read_pass(path, cancel, max_events, Some(window))?;
+    let note = format!(
+        "read {} events around the middle of a recording of {} (t = {}..{} us of {}..{} us; the check's memory bound is {max_events} events)",
+        second.events.len(),
+        first.seen,
+        window.0,
+        window.1,
+        first.t_min,
+        first.t_max
+    );
+    Ok(Measured {
+        events: second.events,
+        rising: second.rising,
+        geometry_hint: second.geometry_hint,
+        note: Some(note),
+    })
+}
+
+/// One pass of [`read_measured`].
+struct Pass {
+    /// Events kept (at most the cap).
+    events: EventChunk,
+    rising: Vec<i64>,
+    geometry_hint: Option<Geometry>,
+    /// Events in the recording (whole pass), and their time span.
+    seen: u64,
+    t_min: i64,
+    t_max: i64,
+}
+
+/// Read `path`, keeping the events with `t` in `window` (all without one)
+/// up to `max_events`. Without a window the pass goes on to the end,
+/// counting what it no longer keeps; with one it stops at the first chunk
+/// that starts after the window.
+fn read_pass(
+    path: &Path,
+    cancel: &crate::Cancel,
+    max_events: usize,
+    window: Option<(i64, i64)>,
+) -> Result<Pass> {
+    let mut src = crate::io::open(path)?;
+    let geometry_hint = src.info().geometry;
+    let (lo, hi) = window.unwrap_or((i64::MIN, i64::MAX));
+    let mut pass = Pass {
+        events: EventChunk::default(),
+        rising: Vec::new(),
+        geometry_hint,
+        seen: 0,
+        t_min: i64::MAX,
+        t_max: i64::MIN,
+    };
+    let mut chunk = Chunk::default();
+    while src.next_chunk(&mut chunk)? {
+        cancel.check()?;
+        let ev = &chunk.events;
+        pass.seen += ev.len() as u64;
+        for &t in &ev.t {
+            pass.t_min = pass.t_min.min(t);
+            pass.t_max = pass.t_max.max(t);
+        }
+        if window.is_some() && ev.t.iter().min().is_some_and(|&t| t >= hi) {
+            break;
+        }
+        let room = max_events - pass.events.len();
+        if room == 0 {
+            if window.is_some() {
+                break;
+            }
+            continue; // counting only
+        }
+        let mut kept = 0;
+        let mut t_last = i64::MIN;
+        for e in ev.iter() {
+            if kept == room {
+                break;
+            }
+            if e.t >= lo && e.t < hi {
+                pass.events.push(e.t, e.x, e.y, e.p);
+                t_last = t_last.max(e.t);
+                kept += 1;
+            }
+        }
+        // The triggers of the stretch kept, up to its last event once full.
+        let full = pass.events.len() == max_events;
+        pass.rising.extend(
+            chunk
+                .triggers
+                .iter()
+                .filter(|t| {
+                    t.edge == Edge::Rising && t.t >= lo && t.t < hi && (!full || t.t <= t_last)
+                })
+                .map(|t| t.t),
+        );
+    }
+    Ok(pass)
+}
 
 /// [`check_recording_with`] reading at most `max_events` events.
 pub(crate) fn check_recording_capped(
@@ -116,39 +248,12 @@ pub(crate) fn check_recording_capped(
         ));
     }
     crate::modelcheck::workflow::check_budget(a.replicates, a.evaluations)?;
-    let mut src = crate::io::open(measured)?;
-    let geometry_hint = src.info().geometry;
-    let mut events = EventChunk::default();
-    let mut rising = Vec::new();
-    let mut chunk = Chunk::default();
-    let mut capped = false;
-    while src.next_chunk(&mut chunk)? {
-        cancel.check()?;
-        let room = max_events - events.len();
-        if chunk.events.len() > room {
-            // Keep the first `room` events, and the triggers up to the last
-            // of them.
-            let mut k = 0;
-            chunk.events.retain(|_, _, _, _| {
-                k += 1;
-                k <= room
-            });
-            let t_last = chunk.events.t.last().copied().unwrap_or(i64::MIN);
-            chunk.triggers.retain(|t| t.t <= t_last);
-            capped = true;
-        }
-        events.extend_from(&chunk.events);
-        rising.extend(
-            chunk
-                .triggers
-                .iter()
-                .filter(|t| t.edge == Edge::Rising)
-                .map(|t| t.t),
-        );
-        if capped {
-            break;
-        }
-    }
+    let Measured {
+        events,
+        rising,
+        geometry_hint,
+        note,
+    } = read_measured(measured, cancel, max_events)?;
     if events.len() < 1000 {
         return Err(Error::analysis(format!(
             "{}: only {} events, too few for a model check",
@@ -164,12 +269,7 @@ pub(crate) fn check_recording_capped(
         Geometry::new(w, h)
     });
 
-    let mut notes = Vec::new();
-    if capped {
-        notes.push(format!(
-            "read the first {max_events} events of a longer recording (the check's memory bound)"
-        ));
-    }
+    let mut notes: Vec<String> = note.into_iter().collect();
     let scenario = match &a.model {
         Some(p) => {
             notes.push(format!("starting model: {}", p.display()));
