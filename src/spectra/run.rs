@@ -110,8 +110,28 @@ impl RunOptions {
         if self.points.is_empty() && self.line.is_none() {
             return Err(Error::analysis("give at least one --point x,y or a --line"));
         }
-        if self.line.is_some() && self.line_points < 2 {
-            return Err(Error::analysis("--line-points must be at least 2"));
+        if self.line.is_some() && !(2..=MAX_LINE_POINTS).contains(&self.line_points) {
+            // Each point is a spectrum of its own bin (10^8 aborted).
+            return Err(Error::param(
+                "line-points",
+                format!("{}: must be in 2..={MAX_LINE_POINTS}", self.line_points),
+            ));
+        }
+        if self.every == 0 {
+            return Err(Error::param(
+                "every",
+                "a frame every 0 pulses: must be at least 1",
+            ));
+        }
+        if !(self.f_min.is_finite() && self.f_min >= 0.0 && self.f_max > self.f_min) {
+            // (`f_max` may be infinite: no upper limit.)
+            return Err(Error::param(
+                "f-min/f-max",
+                format!(
+                    "the peak search band {}..{} Hz: need 0 <= f-min < f-max",
+                    self.f_min, self.f_max
+                ),
+            ));
         }
         self.spectra_options().map(|_| ())
     }
@@ -120,7 +140,7 @@ impl RunOptions {
         Ok(SpectraOptions {
             lattice: Lattice::new(self.bin, self.bin_h.unwrap_or(self.bin), 0.0)?,
             weighting: Weighting::TopHat,
-            every: self.every.max(1),
+            every: self.every,
             welch: WelchOptions {
                 nperseg: self.nperseg,
                 overlap: self.seg_overlap,
@@ -139,6 +159,9 @@ impl RunOptions {
             .map_or(1.0, |c| c.velocity_px_s_to_m_s(1.0, 0.0).0.powi(2))
     }
 }
+
+/// Most points along a `--line`.
+const MAX_LINE_POINTS: usize = 4096;
 
 /// The spectra along the line.
 #[derive(Debug, Clone)]

@@ -148,6 +148,33 @@ fn bad_points_are_rejected() {
     assert!(point_spectra(&s, &[], &options()).is_err());
 }
 
+/// Absurd run options are refused by name before any table is read: a
+/// line of 10^8 points aborted on its allocation, and an empty or NaN peak
+/// band reported "no significant peak".
+#[test]
+fn absurd_spectra_options_are_refused_by_name() {
+    let ok = RunOptions {
+        points: vec![(128.0, 64.0)],
+        line: Some((128.0, 8.0, 128.0, 120.0)),
+        ..RunOptions::default()
+    };
+    ok.validate().unwrap();
+    type Change = fn(&mut RunOptions);
+    let cases: [(Change, &str); 5] = [
+        (|o| o.line_points = 100_000_000, "line-points"),
+        (|o| o.every = 0, "every"),
+        (|o| o.f_min = f64::NAN, "f-min"),
+        (|o| o.f_max = 0.5, "f-max"),
+        (|o| o.f_max = f64::NAN, "f-max"),
+    ];
+    for (change, name) in cases {
+        let mut o = ok.clone();
+        change(&mut o);
+        let e = o.validate().unwrap_err().to_string();
+        assert!(e.contains(name), "{name}: {e}");
+    }
+}
+
 #[test]
 fn spectra_command_writes_peak_hz() {
     let s = wake_sized(35.4, 10.0, 4, 2048, 200);
