@@ -102,22 +102,35 @@ fn links_a_particles_csv() {
     );
 }
 
+/// `ebptv track ARGS… INPUT --out OUT`: its exit code and its stderr.
+fn track_status(
+    args: &[&str],
+    input: &std::path::Path,
+    out: &std::path::Path,
+) -> (Option<i32>, String) {
+    let st = ebptv()
+        .arg("track")
+        .args(args)
+        .arg(input)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .unwrap();
+    (
+        st.status.code(),
+        String::from_utf8_lossy(&st.stderr).into_owned(),
+    )
+}
+
 #[test]
 fn bad_input_gives_clear_errors_and_no_outputs() {
     let dir = tempfile::tempdir().unwrap();
     let input = dir.path().join("particles.csv");
     let out = dir.path().join("out");
     std::fs::write(&input, "pulse,t_us,x,n_events\n0,0,1,1\n").unwrap();
-    let st = ebptv()
-        .arg("track")
-        .arg(&input)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&st.stderr);
+    let (code, err) = track_status(&[], &input, &out);
     assert!(
-        !st.status.success() && err.contains("missing column(s) y"),
+        code == Some(1) && err.contains("missing column(s) y"),
         "{err}"
     );
     assert!(!out.join("tracks.parquet").exists() && !out.join("particles.parquet").exists());
@@ -127,80 +140,34 @@ fn bad_input_gives_clear_errors_and_no_outputs() {
         "pulse,t_us,x,y,n_events\n0,0,1,1,1\n1,200,nan,1,1\n",
     )
     .unwrap();
-    let st = ebptv()
-        .arg("track")
-        .arg(&input)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&st.stderr);
-    assert!(!st.status.success() && err.contains("line 3"), "{err}");
+    let (code, err) = track_status(&[], &input, &out);
+    assert!(code == Some(1) && err.contains("line 3"), "{err}");
     // Failed runs leave nothing behind, not even temporary files.
     let left: Vec<_> = std::fs::read_dir(&out)
         .map(|d| d.map(|e| e.unwrap().file_name()).collect())
         .unwrap_or_default();
     assert!(left.is_empty(), "{left:?}");
 
+    // Impossible, absurdly large or non-finite values are refused up
+    // front, naming the parameter. (A batch of 10^12 pulses aborted on its
+    // allocation.)
     std::fs::write(&input, "pulse,t_us,x,y,n_events\n0,0,1,1,1\n").unwrap();
-    for r in ["--radius=0", "--radius=-1"] {
-        let st = ebptv()
-            .args(["track", r])
-            .arg(&input)
-            .arg("--out")
-            .arg(&out)
-            .output()
-            .unwrap();
-        let err = String::from_utf8_lossy(&st.stderr);
-        assert!(!st.status.success() && err.contains("radius"), "{err}");
-    }
-    let st = ebptv()
-        .args(["track", "--max-disp", "0"])
-        .arg(&input)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(!st.status.success() && String::from_utf8_lossy(&st.stderr).contains("max_disp"));
-    // Absurdly large or non-finite values are refused up front, naming
-    // the parameter.
+    let params = dir.path().join("batch.toml");
+    std::fs::write(&params, "[run]\nbatch = 1000000000000\n").unwrap();
+    let params = params.to_str().unwrap();
     for (args, name) in [
+        (&["--radius=0"][..], "radius"),
+        (&["--radius=-1"][..], "radius"),
+        (&["--max-disp", "0"][..], "max_disp"),
         (&["--max-disp", "1e9"][..], "max_disp"),
         (&["--min-length", "1000000000"][..], "min_length"),
         (&["--prior", "nan", "0"][..], "run.prior"),
         (&["--prior", "0", "inf"][..], "run.prior"),
+        (&["--params", params][..], "batch"),
     ] {
-        let st = ebptv()
-            .arg("track")
-            .args(args)
-            .arg(&input)
-            .arg("--out")
-            .arg(&out)
-            .output()
-            .unwrap();
-        let err = String::from_utf8_lossy(&st.stderr);
-        assert!(
-            st.status.code() == Some(1) && err.contains(name),
-            "{args:?}: {err}"
-        );
+        let (code, err) = track_status(args, &input, &out);
+        assert!(code == Some(1) && err.contains(name), "{args:?}: {err}");
     }
-    // A batch of 10^12 pulses aborted on its allocation.
-    let params = dir.path().join("batch.toml");
-    std::fs::write(&params, "[run]\nbatch = 1000000000000\n").unwrap();
-    let st = ebptv()
-        .arg("track")
-        .arg(&input)
-        .arg("--params")
-        .arg(&params)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&st.stderr);
-    assert!(
-        st.status.code() == Some(1) && err.contains("batch"),
-        "{err}"
-    );
 }
 
 /// A `--max-disp` below the tracker's smallest search radii (a slow flow,
