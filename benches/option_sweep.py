@@ -38,11 +38,16 @@ FLOATS = ["0", "-1", "1e-12", "1e6", "1e12", "nan"]
 INTS = ["0", "-1", "1000000", "1000000000000"]
 
 
+cmd_dir = tempfile.gettempdir()
+
+
 def run(cmd: list[str], timeout: float) -> tuple[object, float, str]:
     t0 = time.perf_counter()
     try:
+        # (In the scratch folder: options that name files, --write-mask
+        # say, write them where the run is.)
         p = subprocess.run(["prlimit", "--as=4000000000", *cmd], capture_output=True, text=True,
-                           timeout=timeout)
+                           timeout=timeout, cwd=cmd_dir)
         rc: object = p.returncode
         last = (p.stderr.strip().splitlines() or [""])[-1][:150]
     except subprocess.TimeoutExpired:
@@ -112,8 +117,10 @@ def main() -> int:
     ap.add_argument("--timeout", type=float, default=60.0)
     a = ap.parse_args()
     flagged: list[str] = []
+    global cmd_dir
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
+        cmd_dir = tmp
         cli_sweep(a.bin, work, a.timeout, flagged)
         vortex = DEV / "ptvdev_vortex" / "events.raw"
         run_dir = work / "vortex"

@@ -83,14 +83,14 @@ pub struct GridArgs {
     /// Known wall position (px); otherwise estimated from the profile.
     #[arg(long, requires = "wall")]
     pub wall_y: Option<f64>,
-    /// Number of near-wall profile points in the wall fit.
-    #[arg(long, default_value_t = 3)]
+    /// Number of near-wall profile points in the wall fit (needs --wall).
+    #[arg(long, default_value_t = 3, requires = "wall")]
     pub wall_points: usize,
-    /// Kinematic viscosity (m²/s) for wall units.
-    #[arg(long, default_value_t = 1.0e-6)]
+    /// Kinematic viscosity (m²/s) for wall units (needs --wall).
+    #[arg(long, default_value_t = 1.0e-6, requires = "wall")]
     pub nu: f64,
-    /// Image scale (px/mm) for wall units.
-    #[arg(long)]
+    /// Image scale (px/mm) of the profile and of wall units (needs --profile-x).
+    #[arg(long, requires = "profile_x")]
     pub px_per_mm: Option<f64>,
     /// Also write time-resolved fields (fields_{u,v,count,t_us}.npy) every K pulses.
     #[arg(long)]

@@ -260,6 +260,13 @@ fn bad_input_gives_clear_errors_and_no_output() {
             ],
             "px_per_mm",
         ),
+        // Wall-unit options without the wall fit they serve (ignored
+        // before, NaN included).
+        (vec![t.into(), "--nu".into(), "nan".into()], "--wall"),
+        (
+            vec![t.into(), "--px-per-mm".into(), "10".into()],
+            "--profile-x",
+        ),
         (vec![d.join("empty.csv").to_str().unwrap().into()], "empty"),
         (
             vec![d.join("header.csv").to_str().unwrap().into()],
