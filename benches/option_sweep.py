@@ -12,7 +12,8 @@ Three sweeps, each value in turn with everything else at its default:
 - every numeric key of a simulated scenario (`ebptv simulate --config`,
   the demo preset cut to 4 ms).
 
-Values: 0, -1, 1e-12, 1e6, 1e12, nan (integers: 0, -1, 10^6, 10^12). Each
+Values: 0, -1, 1e-12, 1e6, 1e12, nan (integers: 0, -1, 10^6, 10^12; on
+the command line 10^8 too, where --help does not tell the type). Each
 run is under `prlimit --as=4 GB`. A run is flagged (`!!`) when it ends
 otherwise than with exit 0 (accepted), 1 (a clear error) or 2 (refused by
 the argument parser): a panic (101), an abort (-6), a timeout. Accepted
@@ -36,6 +37,8 @@ ROOT = Path(__file__).resolve().parent.parent
 DEV = ROOT.parent / "shared" / "data" / "dev"
 FLOATS = ["0", "-1", "1e-12", "1e6", "1e12", "nan"]
 INTS = ["0", "-1", "1000000", "1000000000000"]
+# Command-line options: --help does not tell integers from floats.
+CLI_VALUES = FLOATS + ["100000000"]
 
 
 cmd_dir = tempfile.gettempdir()
@@ -82,7 +85,7 @@ def cli_sweep(ebptv: str, work: Path, timeout: float, flagged: list[str]) -> Non
         for opt, meta in re.findall(r"^\s+(?:-\w, )?(--[\w-]+) <([\w_]+)>", help_text, re.M):
             if opt in skip:
                 continue
-            for v in FLOATS:
+            for v in CLI_VALUES:
                 out = work / "o"
                 shutil.rmtree(out, ignore_errors=True)
                 rc, dt, last = run([ebptv, cmd, *args, opt, v, "--out", str(out)], timeout)
