@@ -29,6 +29,9 @@ use super::validate::{self, flag, MedianTest};
 use super::Image;
 use crate::error::{Error, Result};
 
+/// Most passes of one evaluation: window deformation converges in 3–4.
+const MAX_PASSES: usize = 20;
+
 /// Options of the correlation.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PivOptions {
@@ -159,8 +162,13 @@ pub fn node_grid(width: usize, height: usize, o: &PivOptions) -> Result<NodeGrid
     if o.spacing_x == 0 || o.spacing_y == 0 {
         return Err(Error::param("spacing", "must be at least 1 px"));
     }
-    if o.passes == 0 {
-        return Err(Error::param("passes", "must be at least 1"));
+    if !(1..=MAX_PASSES).contains(&o.passes) {
+        // Each pass costs a whole evaluation; the deformation converges in
+        // a few (10^6 ran without end).
+        return Err(Error::param(
+            "passes",
+            format!("{}: must be in 1..={MAX_PASSES}", o.passes),
+        ));
     }
     if o.pyramid == 0 {
         return Err(Error::param(

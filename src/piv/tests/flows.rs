@@ -309,6 +309,11 @@ fn bad_input_gives_clear_errors() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("at least 2"), "{e}");
+    // 10^6 passes ran without end.
+    let mut many = PivOptions::new(32, 16);
+    many.passes = 1_000_000;
+    let e = piv_frames(&[&img, &img], &many).unwrap_err().to_string();
+    assert!(e.contains("passes"), "{e}");
     let bad = StreamOptions {
         piv: PivOptions::new(32, 16),
         pseudo: PseudoOptions::default(),
