@@ -4,9 +4,10 @@
     python3 benches/option_sweep.py [--bin target/release/ebptv] [--timeout 60]
 
 Three sweeps, each value in turn with everything else at its default:
-- the numeric command-line options of `pulses`, `grid` and `spectra`
-  (parsed from `--help`), on `speeddev_shedding` and the tracks `track`
-  makes of it;
+- the numeric command-line options of `pulses`, `grid`, `spectra` and
+  `piv-images` (parsed from `--help`), on `speeddev_shedding`, the tracks
+  `track` makes of it and four synthetic PNG frames (`piv`, a slow
+  command, shares its correlation options with `piv-images`);
 - every numeric key of `ebptv track`'s params.toml (`--params`), on
   `ptvdev_vortex`;
 - every numeric key of a simulated scenario (`ebptv simulate --config`,
@@ -79,6 +80,8 @@ def cli_sweep(ebptv: str, work: Path, timeout: float, flagged: list[str]) -> Non
         "grid": [tracks],
         "spectra": [tracks, "--point", "320,180", "--line", "0,180,640,180"],
     }
+    frames = synthetic_frames(work / "frames", 4)
+    base["piv-images"] = [str(f) for f in frames]
     skip = {"--out", "--pulse-hz", "--point", "--line"}
     for cmd, args in base.items():
         help_text = subprocess.run([ebptv, cmd, "--help"], capture_output=True, text=True).stdout
@@ -90,6 +93,38 @@ def cli_sweep(ebptv: str, work: Path, timeout: float, flagged: list[str]) -> Non
                 shutil.rmtree(out, ignore_errors=True)
                 rc, dt, last = run([ebptv, cmd, *args, opt, v, "--out", str(out)], timeout)
                 report(f"{cmd} {opt} {v}", rc, dt, last, flagged)
+
+
+def synthetic_frames(folder: Path, n: int) -> list[Path]:
+    """`n` 8-bit PNG frames of 256x256 px: 800 Gaussian particles moving
+    (2.3, 1.1) px per frame (numpy and zlib only)."""
+    import struct
+    import zlib
+
+    import numpy as np
+
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(1)
+    xs, ys = rng.uniform(0, 256, 800), rng.uniform(0, 256, 800)
+    yy, xx = np.mgrid[0:256, 0:256]
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (struct.pack(">I", len(data)) + kind + data
+                + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF))
+
+    paths = []
+    for k in range(n):
+        img = np.zeros((256, 256))
+        for x, y in zip(xs + 2.3 * k, ys + 1.1 * k):
+            img += 200 * np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / 2.0)
+        rows = np.clip(img, 0, 255).astype(np.uint8)
+        raw = b"".join(b"\x00" + bytes(r) for r in rows)
+        path = folder / f"f{k}.png"
+        path.write_bytes(b"\x89PNG\r\n\x1a\n"
+                         + chunk(b"IHDR", struct.pack(">IIBBBBB", 256, 256, 8, 0, 0, 0, 0))
+                         + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
+        paths.append(path)
+    return paths
 
 
 def toml_sweep(name: str, text: str, command: list[str], work: Path, timeout: float,
