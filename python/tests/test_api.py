@@ -266,7 +266,7 @@ def test_ctrl_c_stops_a_tracking_run(sim: Path) -> None:
     import threading
     import time
 
-    # Ctrl-C as an interactive session has it: a process started in the
+    # Ctrl-C as the interactive Python prompt has it: a process started in the
     # background (`cmd &` in a script, nohup) inherits SIGINT ignored, and
     # then `interrupt_main` does nothing.
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)

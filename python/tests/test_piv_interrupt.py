@@ -215,7 +215,7 @@ def long_sim(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out / "recording.raw"
 
 
-# The child handles Ctrl-C as an interactive session does, even when the
+# The child handles Ctrl-C as the interactive Python prompt does, even when the
 # tests run in the background (which starts processes with SIGINT ignored).
 CHILD = """
 import signal, sys, time, ebptv
