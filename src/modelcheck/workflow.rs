@@ -67,7 +67,7 @@
 //! Fit and held-out measurements are different time blocks of the recording
 //! (the caller splits), so a candidate cannot win by fitting noise.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -504,20 +504,32 @@ fn fit_candidate(
     profile_fit: bool,
 ) -> Result<(Vec<f64>, f64, usize)> {
     let floors = base.spread_floors(measured_fit)?;
+    // With common random numbers the objective is a function of the
+    // parameter values alone, and the searches come back to points they
+    // have seen (a bound the step clamps to, the profile's best value that
+    // starts the simplex): such a point is simulated once.
+    let mut seen: HashMap<Vec<u64>, f64> = HashMap::new();
     let mut objective = |u: &[f64]| -> Result<f64> {
+        let candidate = setting(spec, u);
+        let key: Vec<u64> = candidate.parameters.values().map(|v| v.to_bits()).collect();
+        if let Some(&v) = seen.get(&key) {
+            return Ok(v);
+        }
         let mut m = model.to_vec();
-        m.push(setting(spec, u));
+        m.push(candidate);
         let rec = sim.simulate(&m, crn_seed)?;
-        if rec.events.is_empty() {
+        let v = if rec.events.is_empty() {
             // Parameters that silence the sensor (a rate limit of less than
             // one event per window) are as far from any measurement as can be.
-            return Ok(f64::INFINITY);
-        }
-        let s = signatures_of(cfg, &rec)?;
-        // Distances to the candidate's simulation, judged by the current
-        // model's replicate spreads.
-        let d = distances(measured_fit, &s)?;
-        let v = base.scaled_sum(&d, &floors);
+            f64::INFINITY
+        } else {
+            let s = signatures_of(cfg, &rec)?;
+            // Distances to the candidate's simulation, judged by the current
+            // model's replicate spreads.
+            let d = distances(measured_fit, &s)?;
+            base.scaled_sum(&d, &floors)
+        };
+        seen.insert(key, v);
         Ok(v)
     };
     if spec.params.len() == 1 {

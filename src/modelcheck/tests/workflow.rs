@@ -473,3 +473,59 @@ fn optimisers_find_known_minima() {
     );
     assert!(n <= 125);
 }
+
+/// Counts the simulations a search asks for, by effect settings and seed.
+struct Counting<'a> {
+    inner: &'a Toy,
+    calls: std::sync::Mutex<std::collections::HashMap<String, usize>>,
+}
+
+impl Simulator for Counting<'_> {
+    fn catalogue(&self) -> Vec<EffectSpec> {
+        self.inner.catalogue()
+    }
+
+    fn simulate(&self, effects: &[EffectSetting], seed: u64) -> Result<Recording> {
+        *self
+            .calls
+            .lock()
+            .unwrap()
+            .entry(format!("{seed} {effects:?}"))
+            .or_default() += 1;
+        self.inner.simulate(effects, seed)
+    }
+}
+
+/// A candidate's fit comes back to points it has evaluated (a bound the
+/// search clamps to, the profile's best value that starts the simplex);
+/// with common random numbers such a point is simulated once per fit. A
+/// hot-pixel search (two parameters: profile, then simplex) may meet the
+/// same point again only in another fit (a joint refit), so no setting is
+/// simulated with one seed more than twice.
+#[test]
+fn a_fit_simulates_each_point_once() {
+    let truth = setting("hot_pixels", &[("fraction", 0.01), ("rate_hz", 800.0)]);
+    let (fit, hold) = measured(std::slice::from_ref(&truth), 611, None);
+    let toy = Toy::model(Some(6));
+    let counting = Counting {
+        inner: &toy,
+        calls: Default::default(),
+    };
+    let o = WorkflowOptions {
+        profile_fit: true,
+        ..opts()
+    };
+    let res = run(&counting, &config(), &fit, &hold, &[], &o).unwrap();
+    assert_eq!(
+        res.effects.first().map(|e| e.name.as_str()),
+        Some("hot_pixels")
+    );
+    let calls = counting.calls.into_inner().unwrap();
+    let total: usize = calls.values().sum();
+    let (worst, most) = calls.iter().max_by_key(|(_, &n)| n).unwrap();
+    println!(
+        "{total} simulations, {} distinct; most {most}×: {worst}",
+        calls.len()
+    );
+    assert!(*most <= 2, "{most} simulations of {worst}");
+}
