@@ -29,6 +29,7 @@
 //! | `extent_x`, `extent_y` | histograms of particle bounding-box extents (needs particles) | pulse streaks (elongation along the flow) |
 //! | `elongation` | histogram of extent_x − extent_y per particle (needs particles) | pulse streaks, independent of brightness |
 //! | `min_iei` | histogram of per-pixel minimum inter-event interval, µs | refractory period |
+//! | `burst_repeat_share` | scalar, log10 of the share of pixels (with two events or more) that fired twice within half a pulse period | refractory period (no pixel fires twice in a burst) |
 //! | `events_per_cluster` | histogram (needs particles) | brightness, threshold |
 //! | `latency_vs_brightness` | profile: mean first latency per events-per-cluster bin | intensity-dependent latency |
 //! | `elongation_vs_speed` | profile: extent along motion − across, per speed bin (needs tracks) | pulse streaks |
@@ -426,6 +427,27 @@ pub(crate) fn count_edges(max: f64) -> Vec<f64> {
 }
 
 /// Edges for intervals (µs): [0, 1), then 4 bins per decade up to 10 s.
+/// `burst_repeat_share`: log10 of the share of pixels, among those with an
+/// inter-event interval, whose shortest interval is under half the pulse
+/// period: pixels that fired twice in one burst. Add-one smoothing keeps
+/// it finite (a sensor whose pixels never repeat within a burst reads
+/// about −log10 of its pixel count).
+///
+/// A refractory period longer than the burst leaves no such pixel; a
+/// well-behaved sensor at any bias setting has some (a lit pixel's second
+/// threshold crossing follows its first by microseconds). On a log scale
+/// the difference between "some" and "none" is what counts: the Wasserstein
+/// distance of `min_iei` weighs it as one shift of mass among others, of a
+/// size a higher contrast threshold also makes.
+pub(crate) fn burst_repeat_share(min_intervals: impl Iterator<Item = f64>, period_us: f64) -> f64 {
+    let (mut short, mut all) = (0u64, 0u64);
+    for d in min_intervals {
+        all += 1;
+        short += (d < 0.5 * period_us) as u64;
+    }
+    ((short as f64 + 1.0) / (all as f64 + 1.0)).log10()
+}
+
 pub(crate) fn interval_edges() -> Vec<f64> {
     let mut e = vec![0.0];
     for k in 0..=28 {

@@ -16,7 +16,9 @@
 //!
 //! Departures (one at a time): `latency_jitter` adds a Laplace-distributed
 //! delay (scale `strength` µs, kept ≥ 0 overall), `off_events` makes a lit
-//! pixel fire an OFF event with probability `strength` some 150 µs later.
+//! pixel fire an OFF event with probability `strength` some 150 µs later,
+//! `refractory` drops every event of a pixel that comes less than
+//! `period_us` after the pixel's last event that was kept (a dead time).
 
 #![allow(dead_code)]
 
@@ -32,6 +34,7 @@ pub enum Departure {
     None,
     LatencyJitter { scale_us: f64 },
     OffEvents { probability: f64 },
+    Refractory { period_us: f64 },
 }
 
 pub struct Recording {
@@ -132,6 +135,18 @@ impl Recording {
                     );
                 }
             }
+        }
+        if let Departure::Refractory { period_us } = self.departure {
+            ev.sort_by_key(|e| e.0);
+            let mut last = vec![i64::MIN / 2; self.width as usize * self.height as usize];
+            ev.retain(|&(t, x, y, _)| {
+                let l = &mut last[y as usize * self.width as usize + x as usize];
+                let keep = (t - *l) as f64 >= period_us;
+                if keep {
+                    *l = t;
+                }
+                keep
+            });
         }
         let signal = ev.len();
         let noise = (signal as f64 * 0.003).round() as usize;

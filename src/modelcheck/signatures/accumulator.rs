@@ -672,6 +672,19 @@ impl SignatureAccumulator {
             "pixels per bin of their minimum inter-event interval (us)",
             SignatureValue::Histogram(iei.finish()),
         );
+        push(
+            "burst_repeat_share",
+            "log10 share of pixels with an interval whose shortest is under half a pulse period",
+            SignatureValue::Scalar {
+                value: super::burst_repeat_share(
+                    self.pix
+                        .iter()
+                        .filter(|s| s.min_dt != NO_INTERVAL)
+                        .map(|s| s.min_dt as f64),
+                    self.cfg.timing.period_us,
+                ),
+            },
+        );
 
         push(
             "off_latency",

@@ -447,6 +447,19 @@ impl ReferenceAccumulator {
             "pixels per bin of their minimum inter-event interval (us)",
             SignatureValue::Histogram(iei),
         );
+        push(
+            "burst_repeat_share",
+            "log10 share of pixels with an interval whose shortest is under half a pulse period",
+            SignatureValue::Scalar {
+                value: super::burst_repeat_share(
+                    self.min_dt
+                        .iter()
+                        .filter(|&&d| d != i64::MAX)
+                        .map(|&d| d as f64),
+                    self.cfg.timing.period_us,
+                ),
+            },
+        );
 
         push(
             "off_latency",

@@ -978,3 +978,28 @@ fn pulses_of_equals_its_reference() {
     assert!(pulses_of(&back, &tm).is_err());
     assert!(pulses_of_reference(&back, &tm).is_err());
 }
+
+/// `burst_repeat_share` counts the pixels whose shortest interval is under
+/// half a pulse period (add-one smoothed, log10): "some repeat" and "none
+/// repeats" lie decades apart on a large sensor, a few more or fewer
+/// repeats do not.
+#[test]
+fn burst_repeat_share_tells_none_from_few() {
+    use crate::modelcheck::signatures::burst_repeat_share;
+    let period = 200.0;
+    // 1000 pixels with an interval: 300 repeat within a burst (5 µs), the
+    // rest only a period later.
+    let some = (0..1000).map(|i| if i < 300 { 5.0 } else { 200.0 });
+    let v = burst_repeat_share(some, period);
+    assert!((v - (301.0f64 / 1001.0).log10()).abs() < 1e-12, "{v}");
+    // A third as many repeat: half a decade down.
+    let fewer = (0..1000).map(|i| if i < 100 { 5.0 } else { 200.0 });
+    let w = burst_repeat_share(fewer, period);
+    assert!((v - w - 0.477).abs() < 0.01, "{v} {w}");
+    // None of 100 000 pixels repeats: five decades down, finite.
+    let none = (0..100_000).map(|_| 180.0);
+    let n = burst_repeat_share(none, period);
+    assert!((n + 5.0).abs() < 1e-4, "{n}");
+    // No pixel with an interval at all: log10(1) = 0.
+    assert_eq!(burst_repeat_share(std::iter::empty(), period), 0.0);
+}
