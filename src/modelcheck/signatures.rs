@@ -426,7 +426,6 @@ pub(crate) fn count_edges(max: f64) -> Vec<f64> {
     e
 }
 
-/// Edges for intervals (µs): [0, 1), then 4 bins per decade up to 10 s.
 /// `burst_repeat_share`: log10 of the share of pixels, among those with an
 /// inter-event interval, whose shortest interval is under half the pulse
 /// period: pixels that fired twice in one burst. Add-one smoothing keeps
@@ -448,6 +447,7 @@ pub(crate) fn burst_repeat_share(min_intervals: impl Iterator<Item = f64>, perio
     ((short as f64 + 1.0) / (all as f64 + 1.0)).log10()
 }
 
+/// Edges for intervals (µs): [0, 1), then 4 bins per decade up to 10 s.
 pub(crate) fn interval_edges() -> Vec<f64> {
     let mut e = vec![0.0];
     for k in 0..=28 {

@@ -99,14 +99,17 @@ pub(crate) const ACCEPT_RATIO: f64 = 0.5;
 /// improvement more gap than the winner.
 pub(crate) const RIVAL_MARGIN: f64 = 0.25;
 
-/// The tolerance of `burst_repeat_share` (log10): a well-behaved sensor's
-/// share of pixels that fire twice within a burst may lie within a factor
-/// of ~3 of the standard model's. The envelope's bias settings move the
-/// simulated share far less than sensors differ in it (how many events a
-/// lit pixel gives is the pixel's own response: 1–3 per particle in the
-/// seed paper); what no well-behaved sensor shows is no repeat at all over
-/// thousands of lit pixels, a share orders of magnitude smaller.
-const REPEAT_SHARE_TOLERANCE: f64 = 0.5;
+/// Rows that state the range of well-behaved sensors, with the tolerance
+/// each has instead of (at least) the envelope's. `burst_repeat_share`
+/// (log10): a well-behaved sensor's share of pixels that fire twice within
+/// a burst may lie within a factor of ~3 of the standard model's. The
+/// envelope's bias settings move the simulated share far less than sensors
+/// differ in it (how many events a lit pixel gives is the pixel's own
+/// response: 1–3 per particle in the seed paper); what no well-behaved
+/// sensor shows is no repeat at all over thousands of lit pixels, a share
+/// orders of magnitude smaller. The search with a starting model, judged
+/// by chance alone, leaves these rows out (`workflow::without_range_rows`).
+pub(crate) const RANGE_ROWS: &[(&str, f64)] = &[("burst_repeat_share", 0.5)];
 
 /// Rows left out when the signatures have no fixed burst window (the
 /// standard check's configuration): `off_burst_rate` then counts the events
@@ -490,10 +493,14 @@ pub(crate) fn yardstick(
         let mean = reps.iter().sum::<f64>() / n;
         let sd = (reps.iter().map(|r| (r - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
         let envs: Vec<f64> = env_d.iter().filter_map(|r| find(r, &name)).collect();
-        let mut tolerance = envs.iter().map(|e| (e - mean).max(0.0)).fold(0.0, f64::max);
-        if name == "burst_repeat_share" {
-            tolerance = tolerance.max(REPEAT_SHARE_TOLERANCE);
-        }
+        let range = RANGE_ROWS
+            .iter()
+            .find(|(n, _)| *n == name)
+            .map_or(0.0, |r| r.1);
+        let tolerance = envs
+            .iter()
+            .map(|e| (e - mean).max(0.0))
+            .fold(range, f64::max);
         let members: Vec<f64> = reps.iter().chain(&envs).copied().collect();
         let member_max = members.iter().copied().fold(f64::NEG_INFINITY, f64::max);
         rows.insert(

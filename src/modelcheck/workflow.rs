@@ -489,18 +489,18 @@ pub(crate) fn setting(spec: &EffectSpec, u: &[f64]) -> EffectSetting {
     }
 }
 
-/// Rows that state the range of well-behaved sensors, read only by the
-/// standard check (`standard`): `burst_repeat_share` tells "some pixels
-/// repeat within a burst" from "none do", and a sensor may sit anywhere
-/// within its tolerance. Against a starting model judged by chance alone
-/// it would only repeat `min_iei`, whose distribution it summarises, with
-/// a replicate spread that is tiny where most pixels repeat.
-pub(crate) const RANGE_ROWS: &[&str] = &["burst_repeat_share"];
-
-/// `s` without the [`RANGE_ROWS`]: a row absent from the measurement is
-/// left out of every distance, table and objective of the search.
+/// `s` without the standard check's range rows
+/// ([`super::standard::RANGE_ROWS`]): against a starting model judged by
+/// chance alone, `burst_repeat_share` would only repeat `min_iei`, whose
+/// distribution it summarises, with a replicate spread that is tiny where
+/// most pixels repeat. A row absent from the measurement is left out of
+/// every distance, table and objective of the search.
 fn without_range_rows(mut s: Signatures) -> Signatures {
-    s.items.retain(|x| !RANGE_ROWS.contains(&x.name.as_str()));
+    s.items.retain(|x| {
+        !super::standard::RANGE_ROWS
+            .iter()
+            .any(|(n, _)| *n == x.name)
+    });
     s
 }
 
