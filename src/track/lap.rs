@@ -36,20 +36,47 @@ pub(crate) fn assign_sparse(
     if edges.is_empty() {
         return result;
     }
+    COLUMNS.with(|cell| {
+        let mut col_rows = cell.borrow_mut();
+        assign_sparse_in(&mut col_rows, n_cols, edges, miss_cost, &mut result);
+    });
+    result
+}
+
+thread_local! {
+    /// Per-column scratch of [`assign_sparse`], all zero between calls:
+    /// a call touches (and resets) only its edges' columns, so it costs
+    /// O(edges + rows), not O(columns) — the backward extension solves a
+    /// handful of rows against a frame of thousands of particles.
+    static COLUMNS: std::cell::RefCell<Vec<u32>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// [`assign_sparse`] with its per-column scratch `col` (all zero on entry
+/// and on return; grown to `n_cols`).
+fn assign_sparse_in(
+    col: &mut Vec<u32>,
+    n_cols: usize,
+    edges: &[(usize, usize, f64)],
+    miss_cost: &[f64],
+    result: &mut [Option<usize>],
+) {
+    let n_rows = miss_cost.len();
+    if col.len() < n_cols {
+        col.resize(n_cols, 0);
+    }
     // Candidate rows per column (saturating: only "more than one" matters).
-    let mut col_rows = vec![0u8; n_cols];
     for &(_, c, _) in edges {
-        col_rows[c] = col_rows[c].saturating_add(1);
+        col[c] = col[c].saturating_add(1);
     }
     // A row touching a shared column (or one column twice) is not alone;
     // the others take their best positive gain (miss - cost), the first
-    // one on ties. (A row found shared after a pick gets the reference's
-    // answer below.)
+    // one on ties. (A row found shared after a pick gets the general
+    // solver's answer below.)
     let mut shared = vec![false; n_rows];
     let mut any_shared = false;
     let mut best_gain = vec![0.0f64; n_rows];
     for &(r, c, w) in edges {
-        if col_rows[c] > 1 {
+        if col[c] > 1 {
             shared[r] = true;
             any_shared = true;
         } else {
@@ -60,17 +87,37 @@ pub(crate) fn assign_sparse(
             }
         }
     }
-    if any_shared {
-        let rest: Vec<(usize, usize, f64)> =
-            edges.iter().copied().filter(|e| shared[e.0]).collect();
-        let solved = assign_sparse_general(n_cols, &rest, miss_cost);
-        for (r, c) in solved.into_iter().enumerate() {
-            if shared[r] {
-                result[r] = c;
+    for &(_, c, _) in edges {
+        col[c] = 0;
+    }
+    if !any_shared {
+        return;
+    }
+    // The shared rows' edges, their columns renumbered 0.. in order of
+    // first appearance (`col` holds number + 1): the general solver then
+    // sizes its tables by the columns in play. Components, their order of
+    // rows and columns and so the assignment do not depend on the numbers.
+    let mut cols: Vec<usize> = Vec::new();
+    let rest: Vec<(usize, usize, f64)> = edges
+        .iter()
+        .filter(|e| shared[e.0])
+        .map(|&(r, c, w)| {
+            if col[c] == 0 {
+                cols.push(c);
+                col[c] = cols.len() as u32;
             }
+            (r, col[c] as usize - 1, w)
+        })
+        .collect();
+    for &c in &cols {
+        col[c] = 0;
+    }
+    let solved = assign_sparse_general(cols.len(), &rest, miss_cost);
+    for (r, c) in solved.into_iter().enumerate() {
+        if shared[r] {
+            result[r] = c.map(|j| cols[j]);
         }
     }
-    result
 }
 
 /// [`assign_sparse`] for any candidate graph: every connected component
