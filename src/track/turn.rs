@@ -194,16 +194,23 @@ type Bases = [(C, C); 64];
 fn bases(s: &[f64], w: f64) -> Bases {
     let mut out = [(C::ZERO, C::ZERO); 64];
     let n = s.len().min(64);
+    bases_into(&mut out[..n], &s[..n], w);
+    out
+}
+
+/// [`bases`] into the first `s.len()` entries of `out`.
+fn bases_into(out: &mut [(C, C)], s: &[f64], w: f64) {
+    let n = s.len();
     if w == 0.0 || n == 0 {
-        for (o, &t) in out.iter_mut().zip(&s[..n]) {
+        for (o, &t) in out.iter_mut().zip(s) {
             *o = basis(w, t);
         }
-        return out;
+        return;
     }
     let step = C::new(w.cos(), w.sin());
     let iw = C::new(0.0, w);
     let mut prev: Option<(f64, C)> = None;
-    for (o, &t) in out.iter_mut().zip(&s[..n]) {
+    for (o, &t) in out.iter_mut().zip(s) {
         let ws = w * t;
         if ws.abs() < 1e-3 {
             *o = basis(w, t);
@@ -219,7 +226,6 @@ fn bases(s: &[f64], w: f64) -> Bases {
         let g2 = (e * t - g1).div(iw);
         *o = (g1, g2);
     }
-    out
 }
 
 /// A turning-path fit evaluated at one time.
@@ -384,7 +390,10 @@ fn turn_rate_full(s: &[f64], xs: &[f64], ys: &[f64]) -> Option<Rate> {
     let few = s.len() < 7;
     let iterations = if few { YOUNG_ITERATIONS } else { ITERATIONS };
     // The fit at ω = 0 serves the first step and the final check.
-    let n0 = Normal::new(&bases(s, 0.0)[..n], xs, ys);
+    let mut buf = [(C::ZERO, C::ZERO); 64];
+    let bs = &mut buf[..n];
+    bases_into(bs, &s[..n], 0.0);
+    let n0 = Normal::new(bs, xs, ys);
     let mut r0 = f64::NAN;
     let mut w = 0.0f64;
     let mut at_w = n0;
@@ -408,7 +417,8 @@ fn turn_rate_full(s: &[f64], xs: &[f64], ys: &[f64]) -> Option<Rate> {
         at_w = if w.to_bits() == 0 {
             n0
         } else {
-            Normal::new(&bases(s, w)[..n], xs, ys)
+            bases_into(bs, &s[..n], w);
+            Normal::new(bs, xs, ys)
         };
         if converged {
             break;
