@@ -246,8 +246,8 @@ impl<R> TableWriter<R> {
             .set_dictionary_enabled(false);
         for c in cols {
             if let Getter::I64(_) = c.get {
-                props =
-                    props.set_column_encoding(ColumnPath::from(c.name), Encoding::DELTA_BINARY_PACKED);
+                props = props
+                    .set_column_encoding(ColumnPath::from(c.name), Encoding::DELTA_BINARY_PACKED);
             }
         }
         let props = props.build();

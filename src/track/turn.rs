@@ -624,11 +624,13 @@ mod tests {
                     let (f1, f2) = fast[k];
                     let ws = (w * t).abs().max(1e-3);
                     let scale = (1.0 + t * t) * (1.0 / (ws * ws)).max(1.0);
-                    for (a, b) in [(f1.re, g1.re), (f1.im, g1.im), (f2.re, g2.re), (f2.im, g2.im)] {
-                        assert!(
-                            (a - b).abs() <= 1e-12 * scale,
-                            "w {w} s {t}: {a} vs {b}"
-                        );
+                    for (a, b) in [
+                        (f1.re, g1.re),
+                        (f1.im, g1.im),
+                        (f2.re, g2.re),
+                        (f2.im, g2.im),
+                    ] {
+                        assert!((a - b).abs() <= 1e-12 * scale, "w {w} s {t}: {a} vs {b}");
                     }
                 }
             }
