@@ -122,7 +122,7 @@ fn assign_sparse_in(
 
 /// [`assign_sparse`] for any candidate graph: every connected component
 /// solved on its own (one-row and one-column components by their best
-/// pair, the others by [`hungarian`]). The fast path's solver for rows
+/// pair, the others by [`hungarian_in`]). The fast path's solver for rows
 /// that share columns, and the definition its tests compare it with.
 pub(crate) fn assign_sparse_general(
     n_cols: usize,
@@ -150,6 +150,7 @@ pub(crate) fn assign_sparse_general(
     let mut row_local = vec![usize::MAX; n_rows];
     let mut col_local = vec![usize::MAX; n_cols];
     let mut comp: Vec<usize> = Vec::new();
+    let (mut cost, mut sol, mut work) = (Vec::new(), Vec::new(), Hungarian::default());
     let mut rows = Vec::new();
     let mut cols = Vec::new();
     let mut s = 0;
@@ -205,7 +206,8 @@ pub(crate) fn assign_sparse_general(
         }
         let (nr, nc) = (rows.len(), cols.len());
         let width = nc + nr;
-        let mut cost = vec![FORBIDDEN; nr * width];
+        cost.clear();
+        cost.resize(nr * width, FORBIDDEN);
         for (i, &r) in rows.iter().enumerate() {
             for j in nc..width {
                 cost[i * width + j] = miss_cost[r];
@@ -216,7 +218,7 @@ pub(crate) fn assign_sparse_general(
             let cell = &mut cost[row_local[r] * width + col_local[c]];
             *cell = cell.min(w);
         }
-        let sol = hungarian(&cost, nr, width);
+        hungarian_in(&mut work, &cost, nr, width, &mut sol);
         for (i, &j) in sol.iter().enumerate() {
             if j < nc && cost[i * width + j] < FORBIDDEN {
                 result[rows[i]] = Some(cols[j]);
@@ -232,17 +234,45 @@ pub(crate) fn assign_sparse_general(
     result
 }
 
+/// The work arrays of [`hungarian_in`], reused from one component to the
+/// next.
+#[derive(Default)]
+struct Hungarian {
+    u: Vec<f64>,
+    v: Vec<f64>,
+    p: Vec<usize>,
+    way: Vec<usize>,
+    minv: Vec<f64>,
+    used: Vec<bool>,
+}
+
 /// Dense rectangular Hungarian algorithm (rows <= cols): the column of each
-/// row in a minimum-cost perfect assignment of the rows.
-pub(crate) fn hungarian(cost: &[f64], n: usize, m: usize) -> Vec<usize> {
+/// row in a minimum-cost perfect assignment of the rows, into
+/// `row_to_col`; the work arrays in `h`.
+fn hungarian_in(h: &mut Hungarian, cost: &[f64], n: usize, m: usize, row_to_col: &mut Vec<usize>) {
     assert!(n <= m && cost.len() == n * m);
     // 1-based potentials u (rows), v (cols); p[j] = row matched to col j.
-    let mut u = vec![0.0; n + 1];
-    let mut v = vec![0.0; m + 1];
-    let mut p = vec![0usize; m + 1];
-    let mut way = vec![0usize; m + 1];
-    let mut minv = vec![0.0f64; m + 1];
-    let mut used = vec![false; m + 1];
+    let reset = |a: &mut Vec<f64>, len: usize| {
+        a.clear();
+        a.resize(len, 0.0);
+    };
+    reset(&mut h.u, n + 1);
+    reset(&mut h.v, m + 1);
+    reset(&mut h.minv, m + 1);
+    h.p.clear();
+    h.p.resize(m + 1, 0);
+    h.way.clear();
+    h.way.resize(m + 1, 0);
+    h.used.clear();
+    h.used.resize(m + 1, false);
+    let Hungarian {
+        u,
+        v,
+        p,
+        way,
+        minv,
+        used,
+    } = h;
     for i in 1..=n {
         p[0] = i;
         let mut j0 = 0usize;
@@ -288,13 +318,13 @@ pub(crate) fn hungarian(cost: &[f64], n: usize, m: usize) -> Vec<usize> {
             }
         }
     }
-    let mut row_to_col = vec![0usize; n];
+    row_to_col.clear();
+    row_to_col.resize(n, 0);
     for j in 1..=m {
         if p[j] != 0 {
             row_to_col[p[j] - 1] = j - 1;
         }
     }
-    row_to_col
 }
 
 #[cfg(test)]
