@@ -273,13 +273,28 @@ impl Tracker {
         let w = p.gates.predict_window.min(n);
         let win = &track.dets[n - w..];
         let last = track.last();
-        // τ in pulse periods (by pulse index), conditioning-friendly.
-        let tau: Vec<f64> = win.iter().map(|d| (d.pulse - last.pulse) as f64).collect();
-        let xs: Vec<f64> = win.iter().map(|d| d.x).collect();
-        let ys: Vec<f64> = win.iter().map(|d| d.y).collect();
+        // τ in pulse periods (by pulse index), conditioning-friendly; the
+        // columns on the stack for the usual windows.
+        let (mut tau, mut xs, mut ys) = ([0.0; 32], [0.0; 32], [0.0; 32]);
+        let heap: (Vec<f64>, Vec<f64>, Vec<f64>);
+        let (tau, xs, ys): (&[f64], &[f64], &[f64]) = if w <= 32 {
+            for (i, d) in win.iter().enumerate() {
+                tau[i] = (d.pulse - last.pulse) as f64;
+                xs[i] = d.x;
+                ys[i] = d.y;
+            }
+            (&tau[..w], &xs[..w], &ys[..w])
+        } else {
+            heap = (
+                win.iter().map(|d| (d.pulse - last.pulse) as f64).collect(),
+                win.iter().map(|d| d.x).collect(),
+                win.iter().map(|d| d.y).collect(),
+            );
+            (&heap.0, &heap.1, &heap.2)
+        };
         let at = (pulse - last.pulse) as f64;
         let order = self.predict_order(n);
-        let Some(f) = fit::fit_eval(&tau, &xs, &ys, order, at) else {
+        let Some(f) = fit::fit_eval(tau, xs, ys, order, at) else {
             return (last.x, last.y, p.max_disp, 1.0);
         };
         let (r, lev) = self.search_radius(f.leverage, pulse - last.pulse);
