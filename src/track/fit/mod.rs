@@ -122,7 +122,9 @@
 //! `GapFit` sums the nested candidates' moments in one pass over the
 //! pilot window about the sample's own detection and solves each
 //! candidate's 3×3 system from them, without `Sums`' per-candidate
-//! copies. All four paths sit behind one trait, `LocalPolyFit`, with
+//! copies; the offsets' powers come from a table (exact integers, the
+//! values the products give) and a candidate's criterion from the
+//! cofactors it reads, the chosen one's inverse once. All four paths sit behind one trait, `LocalPolyFit`, with
 //! `PlainFit` ([`fit_adaptive`]) as the oracle the others are tested
 //! against; `OutputFit` chains them for the tracker.
 
