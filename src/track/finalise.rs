@@ -226,15 +226,23 @@ pub(super) fn finalise_one(
 ) -> Finalised {
     // Points up to this pulse went out with an earlier segment.
     let handed_out = (t.context > 0).then(|| t.dets[t.context - 1].pulse);
+    // The outlier pass's heading prefix of the detections, while they
+    // are the ones it was computed from (the output fit's screen reads
+    // the same prefix).
+    let mut heading = None;
     if params.fit.outlier_sigma > 0.0 {
         let window = params.fit.fit_window.min(OUTLIER_WINDOW);
         if params.turn_model {
-            remove_outliers_turning(&mut t.dets, window, gate, sigma);
+            heading = remove_outliers_turning(&mut t.dets, window, gate, sigma);
         } else {
             remove_outliers(&mut t.dets, window, gate);
         }
     }
+    let before_trim = t.dets.len();
     trim_unconfirmed_tail(&mut t.dets, params.stitch.confirm_after_gap);
+    if t.dets.len() != before_trim {
+        heading = None;
+    }
     let fresh = match handed_out {
         None => t.dets.len(),
         Some(h) => t.dets.iter().filter(|d| d.pulse > h).count(),
@@ -250,13 +258,14 @@ pub(super) fn finalise_one(
             Verdict::Keep { by_flow: f } => by_flow = f,
         }
     }
-    let (mut points, mut detections, rms) = fit_track_with(
+    let (mut points, mut detections, rms) = fit_track_known(
         &t.dets,
         params,
         sigma,
         accel_rms,
         fit::FitPath::Fast,
         &mut (0, 0),
+        heading,
     );
     if rms > params.fit.max_fit_residual {
         return Finalised::Rough;
@@ -338,11 +347,18 @@ pub(super) fn remove_outliers(dets: &mut Vec<Det>, window: usize, gate: f64) {
 /// `sigma`) is predicted by the turning path through the window
 /// ([`turn`]) instead of the quadratic, which would take good detections
 /// of a vortex core for outliers and the stray one a young track took
-/// there for good.
-pub(super) fn remove_outliers_turning(dets: &mut Vec<Det>, window: usize, gate: f64, sigma: f64) {
+/// there for good. Returns the heading prefix ([`turn::heading_prefix`])
+/// of the detections it leaves when it computed one and removed none.
+pub(super) fn remove_outliers_turning(
+    dets: &mut Vec<Det>,
+    window: usize,
+    gate: f64,
+    sigma: f64,
+) -> Option<Vec<[f64; 2]>> {
     let n = dets.len();
     if n < 8 || sigma <= 0.0 {
-        return remove_outliers(dets, window, gate);
+        remove_outliers(dets, window, gate);
+        return None;
     }
     let w = window.min(n - 1).max(5);
     let pulses: Vec<i64> = dets.iter().map(|d| d.pulse).collect();
@@ -395,11 +411,15 @@ pub(super) fn remove_outliers_turning(dets: &mut Vec<Det>, window: usize, gate: 
             }
         }
     }
+    if keep.iter().all(|&k| k) {
+        return Some(hp);
+    }
     let mut k = 0;
     dets.retain(|_| {
         k += 1;
         keep[k - 1]
     });
+    None
 }
 
 /// [`remove_outliers`]; `grid` takes the tabulated predictions
@@ -490,6 +510,7 @@ pub(super) fn fit_period_s(dets: &[Det]) -> f64 {
 /// `path` names the backends the fit may take besides the plain one
 /// ([`fit::FitPath`]); the tests compare them with `FitPath::Plain`.
 /// `fits` counts the samples taken by the tabulated and the gap backends.
+#[cfg(any(test, feature = "testkit"))]
 pub(super) fn fit_track_with(
     dets: &[Det],
     p: &TrackParams,
@@ -497,6 +518,20 @@ pub(super) fn fit_track_with(
     accel_rms: f64,
     path: fit::FitPath,
     fits: &mut (usize, usize),
+) -> (Vec<TrackPoint>, Vec<Option<u64>>, f64) {
+    fit_track_known(dets, p, sigma, accel_rms, path, fits, None)
+}
+
+/// [`fit_track_with`], given the heading prefix of `dets`
+/// ([`turn::heading_prefix`] with this `sigma`) when it is known.
+fn fit_track_known(
+    dets: &[Det],
+    p: &TrackParams,
+    sigma: f64,
+    accel_rms: f64,
+    path: fit::FitPath,
+    fits: &mut (usize, usize),
+    known_heading: Option<Vec<[f64; 2]>>,
 ) -> (Vec<TrackPoint>, Vec<Option<u64>>, f64) {
     let n = dets.len();
     let first = dets[0].pulse;
@@ -534,8 +569,12 @@ pub(super) fn fit_track_with(
     let tables = fit::GridTables::cached(&rule);
     let mut output_fit = fit::OutputFit::new(&rule, &tables, path);
     // Where the path turns, the turning path's fit (`turn_fit_window`).
-    let heading = (p.turn_model && p.fit.turn_fit_window >= 7 && n >= p.fit.turn_fit_window)
-        .then(|| turn::heading_prefix(&pulses, xs, ys, sigma));
+    let heading =
+        (p.turn_model && p.fit.turn_fit_window >= 7 && n >= p.fit.turn_fit_window).then(|| {
+            known_heading
+                .filter(|h| h.len() == n + 1)
+                .unwrap_or_else(|| turn::heading_prefix(&pulses, xs, ys, sigma))
+        });
     let mut j = 0; // index of the first detection at or after the pulse
     for pulse in first..=last {
         while dets[j].pulse < pulse {

@@ -234,21 +234,30 @@ impl LocalPolyFit for GapFit {
         let pilot = (2 * wmax + 1).min(n);
         let p0 = s.xy[c];
         let (xy, off) = (&s.xy, &s.offset);
-        let mut t = [0.0f64; 7];
-        let mut d = [[0.0f64; 2]; 4];
-        let add = |i: usize, t: &mut [f64; 7], d: &mut [[f64; 2]; 4]| {
-            let si = (off[i] - at.offset) as f64;
-            let q = [xy[i][0] - p0[0], xy[i][1] - p0[1]];
-            let mut sk = 1.0;
-            for (k, tk) in t.iter_mut().enumerate() {
-                *tk += sk;
-                if k < 4 {
-                    d[k][0] += sk * q[0];
-                    d[k][1] += sk * q[1];
+        let powers = offset_powers();
+        // The powers sᵏ (k = 0..=6, exact integers) from the table, the
+        // same values the products give.
+        let add = |i: usize, t: &mut [f64; 8], d: &mut [[f64; 2]; 4]| {
+            let si = off[i] - at.offset;
+            let computed;
+            let pw = match powers.get((si + POWER_RANGE) as usize) {
+                Some(pw) => pw,
+                None => {
+                    computed = power_row(si as f64);
+                    &computed
                 }
-                sk *= si;
+            };
+            let q = [xy[i][0] - p0[0], xy[i][1] - p0[1]];
+            for (tk, pk) in t.iter_mut().zip(pw) {
+                *tk += pk;
+            }
+            for (dk, pk) in d.iter_mut().zip(pw) {
+                dk[0] += pk * q[0];
+                dk[1] += pk * q[1];
             }
         };
+        let mut t = [0.0f64; 8];
+        let mut d = [[0.0f64; 2]; 4];
         let cands = &mut self.cands;
         cands.clear();
         let (mut lo, mut hi) = (usize::MAX, 0usize);
@@ -287,13 +296,8 @@ impl LocalPolyFit for GapFit {
         // the reference fits it as a fixed window, with the prior as it
         // is (no pilot, no widening).
         if pilot >= 5 && wmin < wmax {
-            let mut ata = [[0.0f64; 4]; 4];
-            for (a, row) in ata.iter_mut().enumerate() {
-                for (b, v) in row.iter_mut().enumerate() {
-                    *v = t[a + b];
-                }
-            }
-            if let Some(inv) = invert(&ata, 4) {
+            let ata: [[f64; 4]; 4] = std::array::from_fn(|a| std::array::from_fn(|b| t[a + b]));
+            if let Some(inv) = invert_all(&ata) {
                 let dot = |row: &[f64; 4], k: usize| (0..4).map(|b| row[b] * d[b][k]).sum::<f64>();
                 let c3 = [dot(&inv[3], 0), dot(&inv[3], 1)];
                 let c2 = [dot(&inv[2], 0), dot(&inv[2], 1)];
@@ -304,27 +308,21 @@ impl LocalPolyFit for GapFit {
             }
         }
         // The candidates' criterion; the least wins, on a tie the larger
-        // window (candidates come in increasing size).
-        let mut best: Option<(f64, usize, [[f64; 4]; 4], usize)> = None;
-        for cand in cands.iter() {
-            let Some((inv, p)) = gap_inverse(cand, ridge) else {
+        // window (candidates come in increasing size). Only the factors
+        // the criterion reads; the winner's inverse afterwards.
+        let mut best: Option<(f64, usize)> = None;
+        for (k, cand) in cands.iter().enumerate() {
+            let Some((v, b)) = gap_criterion_factors(cand, ridge) else {
                 continue;
-            };
-            let (v, b) = if p < 2 {
-                (0.0, 0.0)
-            } else {
-                (
-                    inv[1][1],
-                    (0..p).map(|b| inv[1][b] * cand.t[b + 3]).sum::<f64>(),
-                )
             };
             let q = rule.bias_weight * c3sq * b * b + 2.0 * s2 * v;
             if best.is_none_or(|x| q.total_cmp(&x.0).is_le()) {
-                best = Some((q, cand.w, inv, p));
+                best = Some((q, k));
             }
         }
-        let (_, w, inv, p) = best?;
-        let cand = cands.iter().find(|k| k.w == w)?;
+        let cand = &cands[best?.1];
+        let (inv, p) = gap_inverse(cand, ridge)?;
+        let w = cand.w;
         let (mut cx, mut cy) = ([0.0f64; 3], [0.0f64; 3]);
         for a in 0..p {
             for b in 0..p {
@@ -347,6 +345,67 @@ impl LocalPolyFit for GapFit {
             w,
         ))
     }
+}
+
+/// Offsets whose powers [`offset_powers`] tabulates: −`POWER_RANGE` ..
+/// `POWER_RANGE` (a pilot window of 43 detections spans fewer pulses
+/// unless it holds long gaps; beyond, the powers are computed).
+const POWER_RANGE: i64 = 127;
+
+/// `sᵏ` for k = 0..=6 (and 0 in the last place): exact integers for
+/// |s| ≤ [`POWER_RANGE`] (127⁶ < 2⁵³), computed by the same products as
+/// the reference's `sk *= s`.
+fn power_row(s: f64) -> [f64; 8] {
+    let mut row = [0.0f64; 8];
+    let mut sk = 1.0;
+    for v in row.iter_mut().take(7) {
+        *v = sk;
+        sk *= s;
+    }
+    row
+}
+
+/// [`power_row`] of every offset −`POWER_RANGE`..=`POWER_RANGE`, at
+/// `s + POWER_RANGE`.
+fn offset_powers() -> &'static [[f64; 8]] {
+    static TABLE: std::sync::OnceLock<Vec<[f64; 8]>> = std::sync::OnceLock::new();
+    TABLE.get_or_init(|| {
+        (-POWER_RANGE..=POWER_RANGE)
+            .map(|s| power_row(s as f64))
+            .collect()
+    })
+}
+
+/// The criterion's factors of a [`GapFit`] candidate under `ridge`: the
+/// velocity variance factor `inv₁₁` and the cubic bias factor
+/// `Σ_b inv₁ᵦ·t_(b+3)`, bit for bit what [`gap_inverse`]'s inverse gives
+/// (the same cofactors for a quadratic; `None` where it has none).
+#[inline]
+fn gap_criterion_factors(c: &GapCandidate, ridge: f64) -> Option<(f64, f64)> {
+    if c.w < 3 {
+        let (inv, p) = gap_inverse(c, ridge)?;
+        return Some(if p < 2 {
+            (0.0, 0.0)
+        } else {
+            (
+                inv[1][1],
+                (0..p).map(|b| inv[1][b] * c.t[b + 3]).sum::<f64>(),
+            )
+        });
+    }
+    let t = &c.t;
+    // invert_sym3's cofactors of [[t0, t1, t2], [t1, t2, t3], [t2, t3, t4 + ridge]].
+    let (a, b, cc) = (t[0], t[1], t[2]);
+    let (d, e, f) = (t[2], t[3], t[4] + ridge);
+    let (ca, cb, c_c) = (d * f - e * e, cc * e - b * f, b * e - cc * d);
+    let (cd, ce) = (a * f - cc * cc, b * cc - a * e);
+    let det = a * ca + b * cb + cc * c_c;
+    if !det.is_finite() || det <= 1e-12 * (a * d * f).abs() {
+        return None;
+    }
+    let r = 1.0 / det;
+    let (i10, i11, i12) = (cb * r, cd * r, ce * r);
+    Some((i11, 0.0 + i10 * t[3] + i11 * t[4] + i12 * t[5]))
 }
 
 /// A [`GapFit`] candidate's inverse normal matrix (quadratic, lowered to
@@ -550,6 +609,61 @@ mod tests {
         }
         println!("{served:?}");
         assert!(served.iter().all(|&k| k > 500), "{served:?}");
+    }
+
+    #[test]
+    fn the_gap_path_matches_the_plain_fit_across_long_gaps() {
+        // Gaps longer than the power table reaches: the powers computed.
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(29);
+        let rule = WindowRule {
+            min_window: 5,
+            max_window: 21,
+            order: 2,
+            sigma: 0.3,
+            bias_weight: 4.0,
+            accel_rms: 0.1,
+        };
+        let (mut direct, mut tabled) = (0, 0);
+        for gap in [3i64, 90, 150, 400] {
+            let s = random_track(&mut rng, 70, 0.1, 0.3);
+            let pulses: Vec<i64> = (0..70)
+                .map(|k| s.offset[k] + gap * (k >= 35) as i64)
+                .collect();
+            let tau = pulses.iter().map(|&p| p as f64).collect();
+            let s = TrackSamples::new(tau, s.xs, s.ys, &pulses, s.tol);
+            let mut gaps = GapFit::new(&rule).unwrap();
+            let mut plain = PlainFit {
+                rule,
+                residual: false,
+            };
+            let mut j = 0;
+            for offset in 0..=s.offset[69] {
+                while s.offset[j] < offset {
+                    j += 1;
+                }
+                let at = At {
+                    centre: j,
+                    tau: offset as f64,
+                    offset,
+                };
+                assert!(gaps.serves(&s, at));
+                let what = format!("gap {gap} offset {offset}");
+                let (f, fw) = gaps.fit(&s, at).expect(&what);
+                let (r, rw) = plain.fit(&s, at).expect(&what);
+                assert_eq!(fw, rw, "{what}: window");
+                crate::track::fit::tests::assert_close_with(&f, &r, &what, false);
+                let span = adaptive_span(70, j, &rule);
+                let reach = (s.offset[span.start] - offset)
+                    .abs()
+                    .max(s.offset[span.end - 1] - offset);
+                if reach >= POWER_RANGE {
+                    direct += 1;
+                } else {
+                    tabled += 1;
+                }
+            }
+        }
+        assert!(direct > 100 && tabled > 100, "{direct} {tabled}");
     }
 
     #[test]

@@ -122,7 +122,9 @@
 //! `GapFit` sums the nested candidates' moments in one pass over the
 //! pilot window about the sample's own detection and solves each
 //! candidate's 3×3 system from them, without `Sums`' per-candidate
-//! copies. All four paths sit behind one trait, `LocalPolyFit`, with
+//! copies; the offsets' powers come from a table (exact integers, the
+//! values the products give) and a candidate's criterion from the
+//! cofactors it reads, the chosen one's inverse once. All four paths sit behind one trait, `LocalPolyFit`, with
 //! `PlainFit` ([`fit_adaptive`]) as the oracle the others are tested
 //! against; `OutputFit` chains them for the tracker.
 
@@ -417,8 +419,21 @@ fn invert_sym3(m: &[[f64; 4]; 4]) -> Option<[[f64; 4]; 4]> {
     Some(inv)
 }
 
+/// [`invert`] of the whole matrix: the same arithmetic, the loops of a
+/// known size unrolled (the pilot's 4×4 of every sample with gaps).
+#[inline]
+fn invert_all<const N: usize>(m: &[[f64; N]; N]) -> Option<[[f64; N]; N]> {
+    invert_inline(m, N)
+}
+
 /// Inverse of the leading `p`×`p` block (Gauss–Jordan with pivoting).
 fn invert<const N: usize>(m: &[[f64; N]; N], p: usize) -> Option<[[f64; N]; N]> {
+    invert_inline(m, p)
+}
+
+/// [`invert`]'s body, inlined where `p` is a constant.
+#[inline(always)]
+fn invert_inline<const N: usize>(m: &[[f64; N]; N], p: usize) -> Option<[[f64; N]; N]> {
     let mut a = *m;
     let mut inv = [[0.0; N]; N];
     for (i, row) in inv.iter_mut().enumerate().take(p) {
