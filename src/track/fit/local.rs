@@ -505,6 +505,19 @@ mod tests {
 
     /// A random track on the pulse grid: `n` detections, gaps of 1–4
     /// pulses with probability `gap`, a path turning at a random rate.
+    /// The tracker's default window rule (21-detection windows, order 2)
+    /// with a curvature prior.
+    fn tracker_rule() -> WindowRule {
+        WindowRule {
+            min_window: 5,
+            max_window: 21,
+            order: 2,
+            sigma: 0.3,
+            bias_weight: 4.0,
+            accel_rms: 0.1,
+        }
+    }
+
     fn random_track(rng: &mut rand_pcg::Pcg64, n: usize, gap: f64, sigma: f64) -> TrackSamples {
         let turn = rng.gen_range(0.0..0.4);
         let (u, v) = (rng.gen_range(-8.0..8.0), rng.gen_range(-8.0..8.0));
@@ -615,14 +628,7 @@ mod tests {
     fn the_gap_path_matches_the_plain_fit_across_long_gaps() {
         // Gaps longer than the power table reaches: the powers computed.
         let mut rng = rand_pcg::Pcg64::seed_from_u64(29);
-        let rule = WindowRule {
-            min_window: 5,
-            max_window: 21,
-            order: 2,
-            sigma: 0.3,
-            bias_weight: 4.0,
-            accel_rms: 0.1,
-        };
+        let rule = tracker_rule();
         let (mut direct, mut tabled) = (0, 0);
         for gap in [3i64, 90, 150, 400] {
             let s = random_track(&mut rng, 70, 0.1, 0.3);
@@ -669,14 +675,7 @@ mod tests {
     #[test]
     fn the_chain_serves_every_sample_and_the_gap_path_takes_gaps() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(27);
-        let rule = WindowRule {
-            min_window: 5,
-            max_window: 21,
-            order: 2,
-            sigma: 0.3,
-            bias_weight: 4.0,
-            accel_rms: 0.1,
-        };
+        let rule = tracker_rule();
         let tables = GridTables::cached(&rule);
         // One gap of two pulses in the middle of a gap-free track.
         let s = random_track(&mut rng, 200, 0.0, 0.3);
