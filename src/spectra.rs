@@ -1,4 +1,4 @@
-//! Power spectra of time-resolved fields (Welch, rustfft).
+//! Power spectra of time-resolved fields (Welch; RustFFT plans from `ebptv-fft`).
 //!
 //! The paper's spectra (vortex shedding behind a rib, pre-multiplied
 //! spectra across a shear layer) come from velocity time series at grid
@@ -22,7 +22,7 @@
 
 use std::sync::Arc;
 
-use rustfft::{num_complex::Complex, Fft, FftPlanner};
+use ebptv_fft::{plan_f64, Complex, Direction, Fft};
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
@@ -135,7 +135,7 @@ pub(crate) fn welch(x: &[f64], fs_hz: f64, opt: &WelchOptions) -> Result<Psd> {
     let step = ((n as f64 * (1.0 - opt.overlap)).round() as usize).max(1);
     let w = hann(n);
     let s2: f64 = w.iter().map(|v| v * v).sum();
-    let fft: Arc<dyn Fft<f64>> = FftPlanner::new().plan_fft_forward(n);
+    let fft: Arc<dyn Fft<f64>> = plan_f64(n, Direction::Forward);
     let nf = n / 2 + 1;
     let mut acc = vec![0.0f64; nf];
     let mut buf = vec![Complex::new(0.0, 0.0); n];

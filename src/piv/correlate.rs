@@ -41,8 +41,7 @@
 
 use std::sync::Arc;
 
-use rustfft::num_complex::Complex32;
-use rustfft::{Fft, FftPlanner};
+use ebptv_fft::{plan_f32, Complex32, Direction, Fft};
 
 /// FFT plans for one window size, shareable across threads.
 #[derive(Clone)]
@@ -58,14 +57,26 @@ pub(crate) struct CorrelationPlan {
 impl CorrelationPlan {
     pub(crate) fn new(w: usize, h: usize) -> Self {
         assert!(w > 0 && h > 0, "window size must be positive");
-        let mut planner = FftPlanner::<f32>::new();
+        let (fwd_w, inv_w) = (
+            plan_f32(w, Direction::Forward),
+            plan_f32(w, Direction::Inverse),
+        );
+        // A square window's rows and columns share one pair of plans.
+        let (fwd_h, inv_h) = if h == w {
+            (fwd_w.clone(), inv_w.clone())
+        } else {
+            (
+                plan_f32(h, Direction::Forward),
+                plan_f32(h, Direction::Inverse),
+            )
+        };
         CorrelationPlan {
             w,
             h,
-            fwd_w: planner.plan_fft_forward(w),
-            fwd_h: planner.plan_fft_forward(h),
-            inv_w: planner.plan_fft_inverse(w),
-            inv_h: planner.plan_fft_inverse(h),
+            fwd_w,
+            fwd_h,
+            inv_w,
+            inv_h,
         }
     }
 

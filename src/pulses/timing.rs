@@ -5,8 +5,7 @@
 
 use std::collections::BTreeMap;
 
-use rustfft::num_complex::Complex;
-use rustfft::FftPlanner;
+use ebptv_fft::{plan_f32, plan_f64, Complex, Direction, Fft};
 use serde::{Deserialize, Serialize};
 
 use super::accum::Fold;
@@ -327,9 +326,7 @@ pub(crate) fn estimate_period_from_counts(
         .map(|&c| Complex::new(c - mean, 0.0))
         .collect();
     buf.resize(n, Complex::new(0.0, 0.0));
-    FftPlanner::<f32>::new()
-        .plan_fft_forward(n)
-        .process(&mut buf);
+    plan_f32(n, Direction::Forward).process(&mut buf);
     let power: Vec<f64> = buf[..n / 2].iter().map(|c| c.norm_sqr() as f64).collect();
     drop(buf);
 
@@ -498,16 +495,15 @@ pub(crate) fn median_f64(v: &mut [f64]) -> Option<f64> {
 pub(crate) struct CircularCorrelator {
     n: usize,
     template_conj: Vec<Complex<f64>>,
-    fwd: std::sync::Arc<dyn rustfft::Fft<f64>>,
-    inv: std::sync::Arc<dyn rustfft::Fft<f64>>,
+    fwd: std::sync::Arc<dyn Fft<f64>>,
+    inv: std::sync::Arc<dyn Fft<f64>>,
 }
 
 impl CircularCorrelator {
     pub(crate) fn new(template: &[f64]) -> Self {
         let n = template.len();
-        let mut planner = FftPlanner::<f64>::new();
-        let fwd = planner.plan_fft_forward(n);
-        let inv = planner.plan_fft_inverse(n);
+        let fwd = plan_f64(n, Direction::Forward);
+        let inv = plan_f64(n, Direction::Inverse);
         let mean = template.iter().sum::<f64>() / n as f64;
         let mut t: Vec<Complex<f64>> = template
             .iter()
