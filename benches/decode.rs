@@ -10,9 +10,9 @@
 //!
 //! `cargo bench -p ebptv-benches --bench decode`
 
-#[path = "../examples/common/cpu.rs"]
+#[path = "examples/common/cpu.rs"]
 mod cpu;
-#[path = "../examples/synth_raw/gen.rs"]
+#[path = "examples/synth_raw/gen.rs"]
 mod gen;
 
 use cpu::thread_cpu_ns;

@@ -7,7 +7,7 @@ Usage:
 
 DIR holds particles.csv (pulse,t_us,x,y,n_events) and truth_particles.csv
 (pulse,t_us,particle_id,x,y,u,v), as written by the simulator or by
-`PTV_SYNTH_OUT=DIR cargo run --release --example ptv_synth_export`.
+`PTV_SYNTH_OUT=DIR cargo run --release -p ebptv-benches --example ptv_synth_export`.
 
 Scoring (identical for both trackers): every output point is attributed to
 the nearest truth particle of its pulse within --match px (none if

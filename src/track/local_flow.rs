@@ -12,7 +12,7 @@
 //! track moves with the flow that its long-lived neighbours show: on that
 //! scene 193 of 213 clean four-detection tracks are within 1 px/pulse of
 //! their neighbours' mean velocity, 26 of 29 ghosts are further than
-//! 1.5 px/pulse (`examples/ptv_ghost.rs`).
+//! 1.5 px/pulse (`benches/examples/ptv_ghost.rs`).
 //!
 //! # How
 //! Every link made by a track that already holds

@@ -2,7 +2,7 @@
 //! to a close neighbour and stay there (a *swap*), found in hindsight.
 //!
 //! # Why
-//! On the paper-like synthetic scene (384², `examples/ptv_swaps.rs`)
+//! On the paper-like synthetic scene (384², `benches/examples/ptv_swaps.rs`)
 //! 356 of a track's links inside the track join clean images of two
 //! different particles; 284 of them are *exchanges*: the track goes on
 //! with the other particle. In 149 the track's own particle was not

@@ -228,7 +228,7 @@ pub struct SynthPulse {
 }
 
 impl SynthParams {
-    /// The 384² scene of the conditions tables (`examples/ptv_conditions.rs`,
+    /// The 384² scene of the conditions tables (`benches/examples/ptv_conditions.rs`,
     /// `ptv_diagnose`, `ptv_bounds`): the defaults with these four changed.
     pub fn conditions(ppp: f64, max_disp: f64, noise_fraction: f64, seed: u64) -> Self {
         SynthParams {

@@ -147,7 +147,7 @@ fn ghost_test_keeps_short_tracks_at_paper_like_conditions() {
 fn cutting_tracks_at_steps_removes_swaps() {
     // A track whose particle is missed while an untracked
     // neighbour 1–4 px away lies in its gate goes on with the neighbour
-    // (`examples/ptv_swaps.rs`); ended tracks are cut where their positions
+    // (`benches/examples/ptv_swaps.rs`); ended tracks are cut where their positions
     // jump (`TrackParams::step_split`). Paper-like 384² scene, without the cut:
     // precision 0.9632, recall 0.9529, interior velocity rms 0.064.
     let run = paper_like_384_runner();

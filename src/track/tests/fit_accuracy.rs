@@ -43,7 +43,7 @@ fn curvature_prior_lowers_the_velocity_error_on_the_paper_like_scene() {
         prior.velocity_rms_interior_px_per_pulse
     );
     // No prior: 0.213 over all points; the prior 0.193. The
-    // error is the ends of short tracks (examples/ptv_velocity_breakdown.rs).
+    // error is the ends of short tracks (benches/examples/ptv_velocity_breakdown.rs).
     assert!(
         prior.velocity_rms_px_per_pulse <= 0.20,
         "velocity rms {}",

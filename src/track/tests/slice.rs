@@ -90,7 +90,7 @@ fn short_slices() -> SliceParams {
 fn compare(sp: &SynthParams, slicing: SliceParams) {
     let scene = generate(sp);
     let c = cluster(&scene);
-    // As examples/ptv_conditions.rs: the search reaches 25 % past the largest
+    // As benches/examples/ptv_conditions.rs: the search reaches 25 % past the largest
     // displacement.
     let tp = TrackParams {
         max_disp: (sp.max_disp * 1.25).max(10.0),

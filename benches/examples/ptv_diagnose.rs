@@ -1,7 +1,7 @@
 //! Where the wrong and missed links of the synthetic scene come from
 //! (`ebptv::track::synth::diagnose`), what linking costs, and which merged
 //! images could be split:
-//! `cargo run --release --example ptv_diagnose -- links|cost|merged`
+//! `cargo run --release -p ebptv-benches --example ptv_diagnose -- links|cost|merged`
 
 use std::collections::{BTreeMap, HashMap};
 

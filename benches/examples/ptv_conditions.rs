@@ -1,5 +1,5 @@
 //! The table of BENCHMARKS.md: link scores as conditions get harder.
-//! A few seconds per row: `cargo run --release --example ptv_conditions`
+//! A few seconds per row: `cargo run --release -p ebptv-benches --example ptv_conditions`
 //! (`PTV_MIN_LENGTH`, `PTV_FIT_ACCEL`, `PTV_STEP`, `PTV_GAP_FIRST`
 //! override those parameters, `PTV_SEED` the scene's seed, `PTV_ROWS=1`
 //! runs the paper-like and the all-three rows only).

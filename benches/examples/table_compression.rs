@@ -1,7 +1,7 @@
 //! Size and write time of a `tracks` / `particles` table in Parquet with
 //! each compression (the measurement behind the default, BENCHMARKS.md):
 //!
-//! cargo run --release --example table_compression -- RUN_DIR
+//! cargo run --release -p ebptv-benches --example table_compression -- RUN_DIR
 //!
 //! measures uncompressed and snappy; with `--features parquet-zstd` (a C
 //! build of zstd, not part of the default build) zstd levels 1 and 3 too.

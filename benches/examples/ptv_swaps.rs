@@ -1,7 +1,7 @@
 //! Swaps: links of one track between clean images of two different
 //! particles. Where are they, and what happened to the other particle?
 //! Prints counts against the truth, paper-like 384²:
-//! `cargo run --release --example ptv_swaps`
+//! `cargo run --release -p ebptv-benches --example ptv_swaps`
 //! (`PTV_SEED` picks the scene; parameters as `ptv_diagnose links`'s knobs).
 
 use std::collections::{BTreeMap, HashMap};

@@ -1,7 +1,7 @@
 //! Write a synthetic particle-like EVT 3.0 (or EVT 2.0) file of at least N
 //! events, for decode benchmarks and the peak-memory measurement.
 //!
-//! `cargo run --release --example synth_raw -- OUT.raw N_EVENTS [evt2]`
+//! `cargo run --release -p ebptv-benches --example synth_raw -- OUT.raw N_EVENTS [evt2]`
 mod gen;
 
 use ebptv::events::{Chunk, Geometry};

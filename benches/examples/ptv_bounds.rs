@@ -4,7 +4,7 @@
 //! tracker, of the tracker's own output fit on the oracle tracks, and the
 //! quadratic floors (definitions in `ebptv::track::synth`'s module docs).
 //! ~6 s for the four scenes after the build:
-//! `cargo run --release --example ptv_bounds`
+//! `cargo run --release -p ebptv-benches --example ptv_bounds`
 //! (`PTV_SCENES=paper` runs the three paper-like seeds only;
 //! `PTV_FIT_MIN_WINDOW`, `PTV_FIT_BIAS_WEIGHT`, `PTV_FIT_ACCEL` override
 //! the output fit's parameters, for the tracker and the oracle alike).

@@ -2,7 +2,7 @@
 //! chunk by the EVT 3.0 / EVT 2.0 decoder (no file reads), CPU time of this
 //! thread. For profiling the hot loop.
 //!
-//! `cargo run --release --example decode_mem -- FILE.raw [REPEATS]`
+//! `cargo run --release -p ebptv-benches --example decode_mem -- FILE.raw [REPEATS]`
 use ebptv::events::Chunk;
 use ebptv::io::raw_header::read_raw_header;
 use ebptv::io::Format;

@@ -3,7 +3,7 @@
 //!
 //! ```text
 //! PTV_SYNTH_OUT=/tmp/ptv PTV_SYNTH_PPP=0.01 PTV_SYNTH_DISP=8 PTV_SYNTH_NOISE=0.01 \
-//!   cargo run --release --example ptv_synth_export
+//!   cargo run --release -p ebptv-benches --example ptv_synth_export
 //! ```
 
 use std::io::Write;

@@ -2,7 +2,7 @@
 //! count) of decoding a RAW file with
 //! ebptv and with the `evt3` crate.
 //!
-//! `cargo run --release --example decode_compare -- FILE.raw [REPEATS]`
+//! `cargo run --release -p ebptv-benches --example decode_compare -- FILE.raw [REPEATS]`
 use ebptv::events::Chunk;
 use ebptv::io::{open, EventSource};
 

@@ -1,7 +1,7 @@
 //! Ghost tracks: short tracks made of detections of different particles
 //! that happen to line up. Which rule tells them from real short tracks?
 //! Prints counts against the truth:
-//! `cargo run --release --example ptv_ghost`
+//! `cargo run --release -p ebptv-benches --example ptv_ghost`
 
 use std::collections::{BTreeMap, HashMap};
 

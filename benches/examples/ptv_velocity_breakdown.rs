@@ -1,6 +1,6 @@
 //! Where the velocity error of the synthetic scene comes from: rms by
 //! distance from the track end and by track length:
-//! `cargo run --release --example ptv_velocity_breakdown`
+//! `cargo run --release -p ebptv-benches --example ptv_velocity_breakdown`
 
 use std::collections::{BTreeMap, HashMap};
 

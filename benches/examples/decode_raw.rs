@@ -2,7 +2,7 @@
 //! anomalies, decode rate and nothing else: the tool behind the peak-memory
 //! measurement in BENCHMARKS.md.
 //!
-//! `cargo run --release --example decode_raw -- FILE [CHUNK_EVENTS]`
+//! `cargo run --release -p ebptv-benches --example decode_raw -- FILE [CHUNK_EVENTS]`
 use std::time::Instant;
 
 use ebptv::events::Chunk;
