@@ -419,13 +419,6 @@ fn invert_sym3(m: &[[f64; 4]; 4]) -> Option<[[f64; 4]; 4]> {
     Some(inv)
 }
 
-/// [`invert`] of the whole matrix: the same arithmetic, the loops of a
-/// known size unrolled (the pilot's 4×4 of every sample with gaps).
-#[inline]
-fn invert_all<const N: usize>(m: &[[f64; N]; N]) -> Option<[[f64; N]; N]> {
-    invert_inline(m, N)
-}
-
 /// Inverse of the leading `p`×`p` block (Gauss–Jordan with pivoting).
 fn invert<const N: usize>(m: &[[f64; N]; N], p: usize) -> Option<[[f64; N]; N]> {
     invert_inline(m, p)
