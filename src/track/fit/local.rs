@@ -832,6 +832,64 @@ mod tests {
     }
 
     #[test]
+    fn the_running_gap_path_matches_the_plain_and_the_fresh_fit() {
+        // Tracks shorter than the pilot and longer, gaps at the first and
+        // last detections (track ends), gaps entering and leaving the
+        // pilot's edges at every offset, runs longer than RUN_RESTART;
+        // the running moments against the plain fit and against a GapFit
+        // summed afresh at every sample.
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(31);
+        let rule = tracker_rule();
+        let mut stepped = 0;
+        for (track, n) in [6usize, 12, 30, 43, 44, 60, 150, 300]
+            .into_iter()
+            .enumerate()
+        {
+            for gap in [0.05, 0.3] {
+                let s = random_track(&mut rng, n, gap, 0.3);
+                // A gap after the first detection and before the last.
+                let pulses: Vec<i64> = (0..n)
+                    .map(|k| s.offset[k] + 3 * (k >= 1) as i64 + 2 * (k + 1 == n) as i64)
+                    .collect();
+                let tau = pulses.iter().map(|&p| p as f64).collect();
+                let s = TrackSamples::new(tau, s.xs, s.ys, &pulses, s.tol);
+                let mut running = GapFit::new(&rule).unwrap();
+                let mut plain = PlainFit {
+                    rule,
+                    residual: false,
+                };
+                let mut j = 0;
+                for offset in 0..=s.offset[n - 1] {
+                    while s.offset[j] < offset {
+                        j += 1;
+                    }
+                    let at = At {
+                        centre: j,
+                        tau: offset as f64,
+                        offset,
+                    };
+                    assert!(running.serves(&s, at));
+                    let what = format!("track {track} gap {gap} offset {offset}");
+                    let (f, fw) = running.fit(&s, at).expect(&what);
+                    let (r, rw) = plain.fit(&s, at).expect(&what);
+                    assert_eq!(fw, rw, "{what}: window");
+                    crate::track::fit::tests::assert_close_with(&f, &r, &what, false);
+                    let (g, gw) = GapFit::new(&rule).unwrap().fit(&s, at).expect(&what);
+                    assert_eq!(fw, gw, "{what}: window (fresh)");
+                    crate::track::fit::tests::assert_close_with(&f, &g, &what, false);
+                    // The integer moments are exact, running or fresh.
+                    let fresh = GapPilot::fresh(&s, running.pilot.span, offset, s.xy[j]);
+                    if n >= 5 {
+                        assert_eq!(running.pilot.t, fresh.t, "{what}");
+                    }
+                    stepped += (running.pilot.steps > 0) as usize;
+                }
+            }
+        }
+        assert!(stepped > 1000, "{stepped}");
+    }
+
+    #[test]
     fn the_chain_serves_every_sample_and_the_gap_path_takes_gaps() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(27);
         let rule = tracker_rule();
