@@ -10,7 +10,7 @@
 //! | [`PlainFit`] ([`fit_adaptive`]) | all | sums over the pilot window, a solve per candidate |
 //! | [`TabulatedFit`] ([`fit_adaptive_grid`]) | at a detection, pilot window gap-free on the pulse grid | two filters, tabulated solves |
 //! | [`RunningFit`] ([`GridRunFit`]) | as tabulated, on tracks longer than the pilot | running moments, O(1) per sample |
-//! | [`GapFit`] | pilot window on the pulse grid, gaps allowed, at a detection or a missing pulse | one pass over the pilot window, a 3×3 solve per candidate |
+//! | [`GapFit`] | pilot window on the pulse grid, gaps allowed, at a detection or a missing pulse | running pilot moments, one pass over the largest candidate, a 3×3 solve per candidate |
 //!
 //! [`PlainFit`] is the test oracle: the other backends are tested against
 //! it on random tracks with gaps (to rounding, the same window chosen).
