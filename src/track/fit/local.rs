@@ -10,7 +10,7 @@
 //! | [`PlainFit`] ([`fit_adaptive`]) | all | sums over the pilot window, a solve per candidate |
 //! | [`TabulatedFit`] ([`fit_adaptive_grid`]) | at a detection, pilot window gap-free on the pulse grid | two filters, tabulated solves |
 //! | [`RunningFit`] ([`GridRunFit`]) | as tabulated, on tracks longer than the pilot | running moments, O(1) per sample |
-//! | [`GapFit`] | pilot window on the pulse grid, gaps allowed, at a detection or a missing pulse | one pass over the pilot window, a 3×3 solve per candidate |
+//! | [`GapFit`] | pilot window on the pulse grid, gaps allowed, at a detection or a missing pulse | running pilot moments, one pass over the largest candidate, a 3×3 solve per candidate |
 //!
 //! [`PlainFit`] is the test oracle: the other backends are tested against
 //! it on random tracks with gaps (to rounding, the same window chosen).
@@ -186,20 +186,123 @@ struct GapCandidate {
     d: [[f64; 2]; 3],
 }
 
+/// The pilot window's moments of [`GapFit`], kept along a track: `Σ sᵏ`
+/// (k = 0..=6, exact integers) and `Σ sᵃ·(d − origin)` (a = 0..=3, per
+/// axis), `s` the pulse offset from the sample.
+#[derive(Debug, Clone, Copy)]
+struct GapPilot {
+    /// The track (its points' address and count), the sample's pulse
+    /// offset, the pilot's detections `span.0..span.1`, the reference
+    /// point, the steps since the moments were summed afresh.
+    of: (usize, usize),
+    offset: i64,
+    span: (usize, usize),
+    origin: [f64; 2],
+    steps: usize,
+    t: [f64; 8],
+    d: [[f64; 2]; 4],
+}
+
+impl GapPilot {
+    const NONE: GapPilot = GapPilot {
+        of: (0, 0),
+        offset: 0,
+        span: (0, 0),
+        origin: [0.0; 2],
+        steps: 0,
+        t: [0.0; 8],
+        d: [[0.0; 2]; 4],
+    };
+
+    /// Adds (`sign` 1) or removes (−1) detection `i` at pulse offset `si`
+    /// from the sample.
+    #[inline(always)]
+    fn add(&mut self, s: &TrackSamples, i: usize, si: i64, sign: f64) {
+        let pw = powers_of(si);
+        let q = [
+            sign * (s.xy[i][0] - self.origin[0]),
+            sign * (s.xy[i][1] - self.origin[1]),
+        ];
+        for (tk, pk) in self.t.iter_mut().zip(&pw) {
+            *tk += sign * pk;
+        }
+        for (dk, pk) in self.d.iter_mut().zip(&pw) {
+            dk[0] += pk * q[0];
+            dk[1] += pk * q[1];
+        }
+    }
+
+    /// Summed afresh over `span` about pulse offset `offset`, positions
+    /// from `origin`.
+    fn fresh(s: &TrackSamples, span: (usize, usize), offset: i64, origin: [f64; 2]) -> Self {
+        let mut p = GapPilot {
+            of: (s.xy.as_ptr() as usize, s.len()),
+            offset,
+            span,
+            origin,
+            ..GapPilot::NONE
+        };
+        for i in span.0..span.1 {
+            p.add(s, i, s.offset[i] - offset, 1.0);
+        }
+        p
+    }
+
+    /// From the sample at `self.offset` to the one a pulse later, the
+    /// pilot now at `span` (both ends at or after the old ones, the
+    /// windows overlapping): the offsets shift by one (binomial: exact
+    /// for the integer moments), the detections that left are taken out
+    /// and those that entered added.
+    fn step(&mut self, s: &TrackSamples, span: (usize, usize)) {
+        self.offset += 1;
+        let o = self.t;
+        let t = &mut self.t;
+        // Σ (s − 1)ᵏ = Σ_j C(k, j)(−1)^(k−j) Σ sʲ.
+        t[1] = o[1] - o[0];
+        t[2] = o[2] - 2.0 * o[1] + o[0];
+        t[3] = o[3] - 3.0 * o[2] + 3.0 * o[1] - o[0];
+        t[4] = o[4] - 4.0 * o[3] + 6.0 * o[2] - 4.0 * o[1] + o[0];
+        t[5] = o[5] - 5.0 * o[4] + 10.0 * o[3] - 10.0 * o[2] + 5.0 * o[1] - o[0];
+        t[6] = o[6] - 6.0 * o[5] + 15.0 * o[4] - 20.0 * o[3] + 15.0 * o[2] - 6.0 * o[1] + o[0];
+        for a in 0..2 {
+            let c: [f64; 4] = std::array::from_fn(|k| self.d[k][a]);
+            let d = &mut self.d;
+            d[1][a] = c[1] - c[0];
+            d[2][a] = c[2] - 2.0 * c[1] + c[0];
+            d[3][a] = c[3] - 3.0 * c[2] + 3.0 * c[1] - c[0];
+        }
+        for i in self.span.0..span.0 {
+            self.add(s, i, s.offset[i] - self.offset, -1.0);
+        }
+        for i in self.span.1..span.1 {
+            self.add(s, i, s.offset[i] - self.offset, 1.0);
+        }
+        self.span = span;
+        self.steps += 1;
+    }
+}
+
 /// [`fit_adaptive`] for samples whose pilot window lies on the pulse
 /// grid (τ = pulse offset to rounding) but may hold gaps, at a detection
 /// or at a missing pulse: the offsets `s` from the sample are exact
-/// integers, so one pass over the pilot window gives every nested
-/// candidate's moments (positions taken from the sample's detection, for
-/// conditioning), and a candidate costs a 3×3 symmetric solve; nothing is
-/// copied per candidate and the chosen fit is solved from the moments
-/// already summed. Quadratic, adaptive rules only (others: [`PlainFit`]).
-/// Equal to [`fit_adaptive`] to rounding (tested): the reference's τ,
-/// computed from µs times, are off the integers by ~1e-11.
+/// integers. The pilot window's moments are kept along the track
+/// ([`GapPilot`]): from one sample to the next (a pulse later) they shift
+/// by the binomial expansion and take the detections entering and
+/// leaving the window, summed afresh every [`RUN_RESTART`] samples (the
+/// integer moments `Σ sᵏ` stay exact, the data moments pick up rounding
+/// only). The candidates' moments come from one pass over the largest
+/// candidate window (they are nested, positions taken from the sample's
+/// detection, for conditioning), and a candidate costs the cofactors of
+/// its 3×3 system; nothing is copied per candidate and the chosen fit is
+/// solved from the moments already summed. Quadratic, adaptive rules
+/// only (others: [`PlainFit`]). Equal to [`fit_adaptive`] to rounding
+/// (tested): the reference's τ, computed from µs times, are off the
+/// integers by ~1e-11.
 #[derive(Debug, Clone)]
 pub(crate) struct GapFit {
     rule: WindowRule,
     cands: Vec<GapCandidate>,
+    pilot: GapPilot,
 }
 
 impl GapFit {
@@ -210,7 +313,38 @@ impl GapFit {
         (rule.order == 2 && rule.min_window.clamp(1, wmax) < wmax).then(|| GapFit {
             rule: *rule,
             cands: Vec::with_capacity(MAX_CANDIDATES),
+            pilot: GapPilot::NONE,
         })
+    }
+
+    /// The pilot's moments at sample `at` (centre `c`) over `span`: moved
+    /// from the previous sample's where it was a pulse earlier on the same
+    /// track, else summed afresh. Offsets beyond the power table's reach
+    /// are summed afresh every time.
+    fn pilot_moments(&mut self, s: &TrackSamples, at: At, c: usize, span: (usize, usize)) {
+        let reach = POWER_RANGE - 1;
+        let near =
+            s.offset[span.0] - at.offset >= -reach && s.offset[span.1 - 1] - at.offset <= reach;
+        let p = &mut self.pilot;
+        let same = p.of == (s.xy.as_ptr() as usize, s.len());
+        if near && same && p.offset == at.offset && p.span == span {
+            return;
+        }
+        if near
+            && same
+            && p.offset + 1 == at.offset
+            && p.steps < RUN_RESTART
+            && span.0 >= p.span.0
+            && span.1 >= p.span.1
+            && span.0 <= p.span.1
+        {
+            p.step(s, span);
+            return;
+        }
+        *p = GapPilot::fresh(s, span, at.offset, s.xy[c]);
+        if !near {
+            p.of = (0, 0);
+        }
     }
 }
 
@@ -223,7 +357,7 @@ impl LocalPolyFit for GapFit {
     }
 
     fn fit(&mut self, s: &TrackSamples, at: At) -> Option<(FitState, usize)> {
-        let rule = &self.rule;
+        let rule = self.rule;
         let n = s.len();
         if n == 0 {
             return None;
@@ -234,32 +368,21 @@ impl LocalPolyFit for GapFit {
         let pilot = (2 * wmax + 1).min(n);
         let p0 = s.xy[c];
         let (xy, off) = (&s.xy, &s.offset);
-        let powers = offset_powers();
-        // The powers sᵏ (k = 0..=6, exact integers) from the table, the
-        // same values the products give.
+        // The candidates' moments, nested windows in one pass.
         let add = |i: usize, t: &mut [f64; 8], d: &mut [[f64; 2]; 4]| {
-            let si = off[i] - at.offset;
-            let computed;
-            let pw = match powers.get((si + POWER_RANGE) as usize) {
-                Some(pw) => pw,
-                None => {
-                    computed = power_row(si as f64);
-                    &computed
-                }
-            };
+            let pw = powers_of(off[i] - at.offset);
             let q = [xy[i][0] - p0[0], xy[i][1] - p0[1]];
-            for (tk, pk) in t.iter_mut().zip(pw) {
+            for (tk, pk) in t.iter_mut().zip(&pw) {
                 *tk += pk;
             }
-            for (dk, pk) in d.iter_mut().zip(pw) {
+            for (dk, pk) in d.iter_mut().zip(&pw).take(3) {
                 dk[0] += pk * q[0];
                 dk[1] += pk * q[1];
             }
         };
         let mut t = [0.0f64; 8];
         let mut d = [[0.0f64; 2]; 4];
-        let cands = &mut self.cands;
-        cands.clear();
+        self.cands.clear();
         let (mut lo, mut hi) = (usize::MAX, 0usize);
         let mut w = wmin;
         loop {
@@ -275,17 +398,17 @@ impl LocalPolyFit for GapFit {
                 add(hi, &mut t, &mut d);
                 hi += 1;
             }
-            if w <= wmax && cands.len() < MAX_CANDIDATES {
-                cands.push(GapCandidate {
+            if self.cands.len() < MAX_CANDIDATES {
+                self.cands.push(GapCandidate {
                     w,
                     t: [t[0], t[1], t[2], t[3], t[4], t[5]],
                     d: [d[0], d[1], d[2]],
                 });
             }
-            if w >= pilot {
+            if w >= wmax {
                 break;
             }
-            w = if w < wmax { (w + 2).min(wmax) } else { pilot };
+            w = (w + 2).min(wmax);
         }
         // The pilot cubic (as Sums::pilot): its cubic and quadratic
         // coefficients and their variance factors.
@@ -296,14 +419,12 @@ impl LocalPolyFit for GapFit {
         // the reference fits it as a fixed window, with the prior as it
         // is (no pilot, no widening).
         if pilot >= 5 && wmin < wmax {
-            let ata: [[f64; 4]; 4] = std::array::from_fn(|a| std::array::from_fn(|b| t[a + b]));
-            if let Some(inv) = invert_all(&ata) {
-                let dot = |row: &[f64; 4], k: usize| (0..4).map(|b| row[b] * d[b][k]).sum::<f64>();
-                let c3 = [dot(&inv[3], 0), dot(&inv[3], 1)];
-                let c2 = [dot(&inv[2], 0), dot(&inv[2], 1)];
-                c3sq = (c3[0] * c3[0] + c3[1] * c3[1] - 2.0 * s2 * inv[3][3]).max(0.0);
-                let c2sq =
-                    (c2[0] * c2[0] + c2[1] * c2[1] - WIDEN_NOISE * 2.0 * s2 * inv[2][2]).max(0.0);
+            let start = c.saturating_sub(pilot / 2).min(n - pilot);
+            self.pilot_moments(s, at, c, (start, start + pilot));
+            let (t, d) = (&self.pilot.t, &self.pilot.d);
+            if let Some((c3, c2, v33, v22)) = pilot_cubic(t, d) {
+                c3sq = (c3[0] * c3[0] + c3[1] * c3[1] - 2.0 * s2 * v33).max(0.0);
+                let c2sq = (c2[0] * c2[0] + c2[1] * c2[1] - WIDEN_NOISE * 2.0 * s2 * v22).max(0.0);
                 ridge = widened_ridge(ridge, rule.sigma, c2sq);
             }
         }
@@ -311,7 +432,7 @@ impl LocalPolyFit for GapFit {
         // window (candidates come in increasing size). Only the factors
         // the criterion reads; the winner's inverse afterwards.
         let mut best: Option<(f64, usize)> = None;
-        for (k, cand) in cands.iter().enumerate() {
+        for (k, cand) in self.cands.iter().enumerate() {
             let Some((v, b)) = gap_criterion_factors(cand, ridge) else {
                 continue;
             };
@@ -320,7 +441,7 @@ impl LocalPolyFit for GapFit {
                 best = Some((q, k));
             }
         }
-        let cand = &cands[best?.1];
+        let cand = &self.cands[best?.1];
         let (inv, p) = gap_inverse(cand, ridge)?;
         let w = cand.w;
         let (mut cx, mut cy) = ([0.0f64; 3], [0.0f64; 3]);
@@ -344,6 +465,44 @@ impl LocalPolyFit for GapFit {
             },
             w,
         ))
+    }
+}
+
+/// The pilot cubic from its moments `t` (`Σ sᵏ`) and `d` (`Σ sᵃ·x`):
+/// the cubic and quadratic coefficients (per axis) and their variance
+/// factors `inv₃₃`, `inv₂₂`, by the Schur complement of the quadratic
+/// block (cofactors of the 3×3, as [`invert_sym3`]) instead of the whole
+/// 4×4 inverse; `None` where the system is (numerically) singular.
+#[inline]
+fn pilot_cubic(t: &[f64; 8], d: &[[f64; 2]; 4]) -> Option<([f64; 2], [f64; 2], f64, f64)> {
+    let b = invert_sym3(&[
+        [t[0], t[1], t[2], 0.0],
+        [t[1], t[2], t[3], 0.0],
+        [t[2], t[3], t[4], 0.0],
+        [0.0; 4],
+    ])?;
+    // u = B⁻¹·(t₃, t₄, t₅); the Schur complement t₆ − (t₃, t₄, t₅)·u.
+    let u: [f64; 3] = std::array::from_fn(|a| b[a][0] * t[3] + b[a][1] * t[4] + b[a][2] * t[5]);
+    let schur = t[6] - (t[3] * u[0] + t[4] * u[1] + t[5] * u[2]);
+    if !schur.is_finite() || schur <= 1e-12 * t[6].abs() {
+        return None;
+    }
+    let r = 1.0 / schur;
+    let (mut c3, mut c2) = ([0.0f64; 2], [0.0f64; 2]);
+    for k in 0..2 {
+        c3[k] = (d[3][k] - (u[0] * d[0][k] + u[1] * d[1][k] + u[2] * d[2][k])) * r;
+        c2[k] = b[2][0] * d[0][k] + b[2][1] * d[1][k] + b[2][2] * d[2][k] - u[2] * c3[k];
+    }
+    Some((c3, c2, r, b[2][2] + u[2] * u[2] * r))
+}
+
+/// The powers `sᵏ` of offset `s` ([`power_row`]): from the table within
+/// its range, else computed.
+#[inline(always)]
+fn powers_of(s: i64) -> [f64; 8] {
+    match offset_powers().get((s + POWER_RANGE) as usize) {
+        Some(pw) => *pw,
+        None => power_row(s as f64),
     }
 }
 
@@ -670,6 +829,64 @@ mod tests {
             }
         }
         assert!(direct > 100 && tabled > 100, "{direct} {tabled}");
+    }
+
+    #[test]
+    fn the_running_gap_path_matches_the_plain_and_the_fresh_fit() {
+        // Tracks shorter than the pilot and longer, gaps at the first and
+        // last detections (track ends), gaps entering and leaving the
+        // pilot's edges at every offset, runs longer than RUN_RESTART;
+        // the running moments against the plain fit and against a GapFit
+        // summed afresh at every sample.
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(31);
+        let rule = tracker_rule();
+        let mut stepped = 0;
+        for (track, n) in [6usize, 12, 30, 43, 44, 60, 150, 300]
+            .into_iter()
+            .enumerate()
+        {
+            for gap in [0.05, 0.3] {
+                let s = random_track(&mut rng, n, gap, 0.3);
+                // A gap after the first detection and before the last.
+                let pulses: Vec<i64> = (0..n)
+                    .map(|k| s.offset[k] + 3 * (k >= 1) as i64 + 2 * (k + 1 == n) as i64)
+                    .collect();
+                let tau = pulses.iter().map(|&p| p as f64).collect();
+                let s = TrackSamples::new(tau, s.xs, s.ys, &pulses, s.tol);
+                let mut running = GapFit::new(&rule).unwrap();
+                let mut plain = PlainFit {
+                    rule,
+                    residual: false,
+                };
+                let mut j = 0;
+                for offset in 0..=s.offset[n - 1] {
+                    while s.offset[j] < offset {
+                        j += 1;
+                    }
+                    let at = At {
+                        centre: j,
+                        tau: offset as f64,
+                        offset,
+                    };
+                    assert!(running.serves(&s, at));
+                    let what = format!("track {track} gap {gap} offset {offset}");
+                    let (f, fw) = running.fit(&s, at).expect(&what);
+                    let (r, rw) = plain.fit(&s, at).expect(&what);
+                    assert_eq!(fw, rw, "{what}: window");
+                    crate::track::fit::tests::assert_close_with(&f, &r, &what, false);
+                    let (g, gw) = GapFit::new(&rule).unwrap().fit(&s, at).expect(&what);
+                    assert_eq!(fw, gw, "{what}: window (fresh)");
+                    crate::track::fit::tests::assert_close_with(&f, &g, &what, false);
+                    // The integer moments are exact, running or fresh.
+                    let fresh = GapPilot::fresh(&s, running.pilot.span, offset, s.xy[j]);
+                    if n >= 5 {
+                        assert_eq!(running.pilot.t, fresh.t, "{what}");
+                    }
+                    stepped += (running.pilot.steps > 0) as usize;
+                }
+            }
+        }
+        assert!(stepped > 1000, "{stepped}");
     }
 
     #[test]

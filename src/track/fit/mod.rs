@@ -105,8 +105,9 @@
 //! the track's ends) and the offsets shift by one, so the moments move in
 //! O(1): `GridRunFit` keeps them (and the largest candidate's) as
 //! running sums, summed afresh every `RUN_RESTART` samples, and caches
-//! the centred candidates' prior-updated factors per track (they change
-//! only where a sample's pilot widens the prior). A sample then costs a
+//! the centred candidates' prior-updated factors (they change only where
+//! a sample's pilot widens the prior) per window rule, the last rule's
+//! kept per thread. A sample then costs a
 //! few dozen flops for the moments and the criterion of each candidate
 //! instead of two 43-point filters and the window's sums (~2 300 → ~830
 //! instructions per sample on the water jet, ends and widened priors
@@ -119,14 +120,28 @@
 //! A missed detection takes every sample within a pilot window of it (up
 //! to 43 detections each side of a gap) and every missing pulse off the
 //! tables. On the pulse grid the offsets are still exact integers, so
-//! `GapFit` sums the nested candidates' moments in one pass over the
-//! pilot window about the sample's own detection and solves each
-//! candidate's 3×3 system from them, without `Sums`' per-candidate
-//! copies; the offsets' powers come from a table (exact integers, the
-//! values the products give) and a candidate's criterion from the
-//! cofactors it reads, the chosen one's inverse once. All four paths sit behind one trait, `LocalPolyFit`, with
-//! `PlainFit` ([`fit_adaptive`]) as the oracle the others are tested
-//! against; `OutputFit` chains them for the tracker.
+//! `GapFit` keeps the pilot window's moments `Σ sᵏ` (k = 0..=6) and
+//! `Σ sᵃ·x` (a = 0..=3) along the track as `GridRunFit` does: from one
+//! sample to the next (a pulse later, at a detection or a missing pulse)
+//! they shift by the binomial expansion and take the detections entering
+//! and leaving the window, summed afresh every `RUN_RESTART` samples and
+//! wherever an offset leaves the power table. The integer moments stay
+//! exact (the values a fresh sum gives; tested), the data moments pick
+//! up rounding only. The pilot's cubic and quadratic coefficients and
+//! their variance factors come from the Schur complement of the
+//! quadratic block (the 3×3 cofactors) rather than the whole 4×4
+//! inverse. The nested candidates' moments are summed in one pass over
+//! the largest candidate about the sample's own detection, each
+//! candidate's criterion from the cofactors of its 3×3 system (the
+//! normal matrices depend on the gap pattern, so every sample solves
+//! them), the chosen one's inverse once; the offsets' powers come from a
+//! table (exact integers, the values the products give). On the
+//! speeddev_shedding recording this takes a gap sample from ~3 800 to
+//! ~2 700 instructions; the candidates' criteria (~500) and their pass
+//! (~20 detections) are most of what is left. All four paths sit behind
+//! one trait, `LocalPolyFit`, with `PlainFit` ([`fit_adaptive`]) as the
+//! oracle the others are tested against; `OutputFit` chains them for the
+//! tracker.
 
 mod adaptive;
 mod grid;
@@ -417,13 +432,6 @@ fn invert_sym3(m: &[[f64; 4]; 4]) -> Option<[[f64; 4]; 4]> {
     inv[1][..3].copy_from_slice(&[cb * r, cd * r, ce * r]);
     inv[2][..3].copy_from_slice(&[cc * r, ce * r, cf * r]);
     Some(inv)
-}
-
-/// [`invert`] of the whole matrix: the same arithmetic, the loops of a
-/// known size unrolled (the pilot's 4×4 of every sample with gaps).
-#[inline]
-fn invert_all<const N: usize>(m: &[[f64; N]; N]) -> Option<[[f64; N]; N]> {
-    invert_inline(m, N)
 }
 
 /// Inverse of the leading `p`×`p` block (Gauss–Jordan with pivoting).

@@ -126,7 +126,7 @@ pub(crate) struct GridRunFit<'t> {
     pub(super) rule: WindowRule,
     pub(super) ridge: f64,
     /// The candidate windows in the order of the search, centred.
-    pub(super) centred: Vec<CentredCandidate>,
+    pub(super) centred: std::sync::Arc<[CentredCandidate]>,
     /// The running state: the sample it is centred on, the points it
     /// belongs to (address and length), the steps since the restart, the
     /// reference point, the pilot's and the largest window's moments.
@@ -153,6 +153,54 @@ impl<'t> GridRunFit<'t> {
             return None;
         }
         let ridge = rule.ridge();
+        // The centred candidates depend on the rule only (the tables are
+        // its shape's): the last rule's are kept per thread, as the
+        // tracker fits track after track under the same rule.
+        type Last = Option<(WindowRule, std::sync::Arc<[CentredCandidate]>)>;
+        thread_local! {
+            static LAST: std::cell::RefCell<Last> = const { std::cell::RefCell::new(None) };
+        }
+        let cached = LAST.with_borrow(|last| match last {
+            Some((r, c)) if r == rule => Some(c.clone()),
+            _ => None,
+        });
+        let centred = match cached {
+            Some(c) => c,
+            None => {
+                let c: std::sync::Arc<[CentredCandidate]> =
+                    Self::centred_candidates(tables, rule, ridge)?.into();
+                LAST.set(Some((*rule, c.clone())));
+                c
+            }
+        };
+        Some(GridRunFit {
+            tables,
+            rule: *rule,
+            ridge,
+            centred,
+            at: None,
+            of: (0, 0),
+            steps: 0,
+            origin: [0.0; 2],
+            pilot: RunningMoments {
+                start: 0,
+                m: [[0.0; 2]; 4],
+            },
+            largest: RunningMoments {
+                start: 0,
+                m: [[0.0; 2]; 3],
+            },
+        })
+    }
+
+    /// The centred candidate windows of `rule` under the prior `ridge`;
+    /// `None` where the running path does not apply.
+    fn centred_candidates(
+        tables: &GridTables,
+        rule: &WindowRule,
+        ridge: f64,
+    ) -> Option<Vec<CentredCandidate>> {
+        let wmax = rule.max_window;
         let centre = wmax; // a sample with max_window samples either side
         let mut centred = Vec::new();
         let mut w = tables.min_window;
@@ -178,24 +226,7 @@ impl<'t> GridRunFit<'t> {
             }
             w = (w + 2).min(wmax);
         }
-        Some(GridRunFit {
-            tables,
-            rule: *rule,
-            ridge,
-            centred,
-            at: None,
-            of: (0, 0),
-            steps: 0,
-            origin: [0.0; 2],
-            pilot: RunningMoments {
-                start: 0,
-                m: [[0.0; 2]; 4],
-            },
-            largest: RunningMoments {
-                start: 0,
-                m: [[0.0; 2]; 3],
-            },
-        })
+        Some(centred)
     }
 
     /// Whether a track of `n` samples takes the running path (its pilot
@@ -315,7 +346,7 @@ impl<'t> GridRunFit<'t> {
         } else {
             // Near an end: the candidates as centred as the ends allow.
             let mut best: Option<(f64, usize, usize)> = None;
-            for c in &self.centred {
+            for c in self.centred.iter() {
                 let start = centre.saturating_sub(c.w / 2).min(n - c.w);
                 let window = grid_index(c.w, start as isize - centre as isize);
                 let g = &tables.windows[window];
