@@ -297,8 +297,6 @@ pub struct Tracker {
 #[derive(Default)]
 pub(super) struct Scratch {
     pub(super) grid: GridIndex,
-    pub(super) init_grids: [GridIndex; INIT_FRAMES - 1],
-    pub(super) init_idx: [Vec<usize>; INIT_FRAMES - 1],
     pub(super) near: Vec<(u32, f64)>,
     pub(super) near2: Vec<(u32, f64)>,
     pub(super) near3: Vec<(u32, f64)>,
@@ -657,21 +655,17 @@ impl Tracker {
                 .min(p.max_disp)
         };
         let (gate2, gate3) = (gate(var2), gate(var3));
-        // Grids over the unused particles of frames 1..3.
+        // The unused particles of frames 1..3 near a point: each frame's
+        // grid holds all its particles (built once, when the pulse was
+        // linked), and the used ones are skipped here. (Grids of the
+        // unused particles alone, rebuilt for every chain start, cost
+        // more than the used particles' distance tests they saved.)
         let mut sc = std::mem::take(&mut self.scratch);
-        for k in 1..INIT_FRAMES {
-            let fk = &f[idx[k]];
-            let ids = &mut sc.init_idx[k - 1];
-            ids.clear();
-            unused_indices(&fk.used[..fk.dets.len()], ids);
-            sc.init_grids[k - 1].rebuild(ids.iter().map(|&i| (fk.dets[i].x, fk.dets[i].y)));
-        }
         let near = |k: usize, x: f64, y: f64, r: f64, out: &mut Vec<(u32, f64)>| {
+            let fk = &f[idx[k]];
             out.clear();
-            sc.init_grids[k - 1].within(x, y, r, out);
-            for e in out.iter_mut() {
-                e.0 = sc.init_idx[k - 1][e.0 as usize] as u32;
-            }
+            fk.grid.within(x, y, r, out);
+            out.retain(|e| !fk.used[e.0 as usize]);
         };
         let (mut n1, mut n2, mut n3) = (
             std::mem::take(&mut sc.near),
