@@ -19,6 +19,33 @@ pub(super) fn clipped_second_moment(k: f64) -> f64 {
 /// deviations of its noise.
 pub(super) const PREDICT_TURN_Z: f64 = 2.0;
 
+/// Whether the angle θ = atan2(`cross`, `dot`) between two headings has
+/// θ² > `t2`, as computing θ would decide, mostly without computing it: for
+/// `dot` > 0, sin²θ ≤ θ² ≤ tan²θ bound it by ratios, and only a turn
+/// between the bounds (within ~θ⁴ of the threshold) or an unusual input
+/// takes the arctangent. The margins (1e-9 relative) are far wider than
+/// the arctangent's rounding, so the answer is the arctangent's (tested).
+/// The screen runs for every mature track at every pulse.
+fn turned_beyond(cross: f64, dot: f64, t2: f64) -> bool {
+    if dot > 0.0 && t2.is_finite() && t2 > 0.0 {
+        let r = cross / dot;
+        if r * r < t2 * (1.0 - 1e-9) {
+            return false;
+        }
+        let (c2, d2) = (cross * cross, dot * dot);
+        if c2 / (c2 + d2) > t2 * (1.0 + 1e-9) {
+            return true;
+        }
+    }
+    turned_beyond_exact(cross, dot, t2)
+}
+
+/// [`turned_beyond`] by the arctangent: the definition it is tested against.
+fn turned_beyond_exact(cross: f64, dot: f64, t2: f64) -> bool {
+    let turned = cross.atan2(dot);
+    turned * turned > t2
+}
+
 /// The output fit's turning path is tried where the heading change over
 /// its window is this many standard deviations of its noise ...
 pub(super) const TURN_SCREEN_Z: f64 = 1.5;
@@ -194,12 +221,12 @@ impl Tracker {
                 (b[b.len() - 1].x - b[0].x) / lb,
                 (b[b.len() - 1].y - b[0].y) / lb,
             );
-            let turned = (ux * vy - uy * vx).atan2(ux * vx + uy * vy);
             let speed2 = (ux * ux + uy * uy).min(vx * vx + vy * vy);
             // Each half's heading: σ√2 per end over its span.
             let sigma = self.position_sigma();
             let var = 2.0 * sigma * sigma / speed2 * (1.0 / (la * la) + 1.0 / (lb * lb));
-            if !(turned * turned > PREDICT_TURN_Z * PREDICT_TURN_Z * var) {
+            let (cross, dot) = (ux * vy - uy * vx, ux * vx + uy * vy);
+            if !turned_beyond(cross, dot, PREDICT_TURN_Z * PREDICT_TURN_Z * var) {
                 return None;
             }
             let (tau, xs, ys) = columns();
@@ -299,5 +326,55 @@ impl Tracker {
         };
         let (r, lev) = self.search_radius(f.leverage, pulse - last.pulse);
         (f.x, f.y, r, lev)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    /// The bounded screen decides as the arctangent does: headings at all
+    /// angles, thresholds at random and within a hair (1e-15 … 1e-6
+    /// relative) of the angle itself on either side, and the odd inputs
+    /// (opposite, perpendicular and equal headings, zero, infinite and NaN
+    /// thresholds).
+    #[test]
+    fn turn_screen_matches_the_arctangent() {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(11);
+        let mut cases = vec![
+            (0.0, 1.0, 0.0),
+            (0.0, -1.0, 1.0),
+            (1.0, 0.0, 2.0),
+            (-1.0, 0.0, 2.0),
+            (1e-300, 1.0, 1e-300),
+            (0.3, 1.0, f64::INFINITY),
+            (0.3, 1.0, f64::NAN),
+            (f64::NAN, 1.0, 0.1),
+            (1e200, 1e-200, 1.0),
+        ];
+        for _ in 0..200_000 {
+            let scale = 10f64.powi(rng.gen_range(-3..4));
+            let a: f64 = rng.gen_range(-std::f64::consts::PI..std::f64::consts::PI)
+                * if rng.gen_bool(0.5) { 1e-3 } else { 1.0 };
+            let (cross, dot) = (scale * a.sin(), scale * a.cos());
+            let theta2 = cross.atan2(dot).powi(2);
+            let t2 = match rng.gen_range(0..3) {
+                0 => rng.gen_range(0.0..4.0),
+                _ => {
+                    let rel = 10f64.powi(rng.gen_range(-15..-5)) * rng.gen_range(-1.0..1.0);
+                    theta2 * (1.0 + rel)
+                }
+            };
+            cases.push((cross, dot, t2));
+            cases.push((cross, dot, theta2));
+        }
+        for (c, d, t2) in cases {
+            assert_eq!(
+                turned_beyond(c, d, t2),
+                turned_beyond_exact(c, d, t2),
+                "cross {c}, dot {d}, t2 {t2}"
+            );
+        }
     }
 }
