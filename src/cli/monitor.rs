@@ -60,9 +60,9 @@ pub fn run(args: MonitorArgs) -> anyhow::Result<()> {
     );
     let stop: Arc<AtomicBool> = super::interrupt_flag();
     let mut src = if stdin {
-        ebptv::pulses::live::open_stdin()?
+        ebptv::io::live::open_stdin()?
     } else if args.follow {
-        ebptv::pulses::live::open_growing(&args.file, std::time::Duration::from_secs(10))?
+        ebptv::io::live::open_growing(&args.file, std::time::Duration::from_secs(10))?
     } else {
         ebptv::io::open(&args.file)?
     };

@@ -41,7 +41,7 @@ use crate::error::{Error, Result};
 /// Compensated sum (Kahan–Babuška–Neumaier accuracy via TwoSum).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 #[serde(from = "(f64, f64)", into = "(f64, f64)")]
-pub struct KSum {
+pub(crate) struct KSum {
     s: f64,
     c: f64,
 }
@@ -100,7 +100,7 @@ pub(crate) fn basis(xi: f64, eta: f64) -> [f64; NB] {
 
 /// The samples of one track inside one bin.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct Cluster {
+pub(crate) struct Cluster {
     /// The track.
     pub track_id: u64,
     /// Σ w: the summed weight of its samples.
@@ -113,7 +113,7 @@ pub struct Cluster {
 
 /// Sums over closed clusters: Σ W_k², Σ W_k S_k, Σ S_k² (u and v).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
-pub struct ClusterSums {
+pub(crate) struct ClusterSums {
     /// Number of closed clusters.
     pub n: u64,
     /// Σ W_k² over closed clusters (W_k = a cluster's Σ w).
@@ -149,7 +149,7 @@ impl ClusterSums {
 
 /// Everything one bin knows.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-pub struct BinAcc {
+pub(crate) struct BinAcc {
     /// Number of samples (unweighted).
     pub n: u64,
     /// Σ w².
@@ -298,7 +298,7 @@ pub struct GridAccumulator {
     /// The window of bins.
     pub spec: GridSpec,
     /// One accumulator per bin, at the flat index `j·nx + i` of `spec`.
-    pub bins: Vec<BinAcc>,
+    pub(crate) bins: Vec<BinAcc>,
     /// Samples with a non-finite coordinate or velocity (skipped).
     pub rejected: u64,
     /// Samples that fell outside the window (skipped).

@@ -43,7 +43,7 @@ pub(crate) mod spec;
 
 use serde::{Deserialize, Serialize};
 
-pub use accumulate::{BinAcc, GridAccumulator};
+pub use accumulate::GridAccumulator;
 pub use dir::{grid_to_dir, GridDirOptions, GridDirRun, GridInput, GridProgress, ProfileOptions};
 pub use estimate::{estimate, BinStats, EstimateOptions, Fit, GridStats};
 pub use profiles::WallSide;

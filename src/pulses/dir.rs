@@ -67,7 +67,7 @@ pub fn pulses_to_dir(
 ) -> Result<PulseReport> {
     let stdin = input.as_os_str() == "-";
     let mut src = crate::io::guard::TimeGuard::new(if stdin {
-        super::live::open_stdin()?
+        crate::io::live::open_stdin()?
     } else {
         crate::io::open(input)?
     });

@@ -82,7 +82,6 @@ use crate::events::{Chunk, Edge, EventChunk, Geometry};
 pub(crate) mod accum;
 pub(crate) mod diagnostics;
 mod dir;
-pub mod live;
 pub mod monitor;
 pub(crate) mod static_mask;
 pub(crate) mod timing;

@@ -7,7 +7,7 @@
 //! every interval, or taken from the triggers), so a change of conditions
 //! shows at once. Following a growing file relies on the source returning
 //! `Ok(false)` at the current end and delivering new data on a later call
-//! (`super::live::LiveRaw`): the monitor sleeps and polls again until
+//! (`io::live`): the monitor sleeps and polls again until
 //! `stop` is set (Ctrl-C) or, with an idle timeout, until the file has not
 //! grown for that long.
 //!

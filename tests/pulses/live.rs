@@ -7,7 +7,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use ebptv::pulses::live::open_growing;
+use ebptv::io::live::open_growing;
 use ebptv::pulses::monitor::{run, Follow, IntervalSummary};
 use ebptv::pulses::PulseOptions;
 use ebptv::sim::{presets::preset, simulate};

@@ -16,7 +16,7 @@
 //! loop and unwrapped (`Anomalies::time_loops`), smaller steps back are kept
 //! as they are (raw sensor time, never sorted).
 //!
-//! The header is parsed by [`raw_header::parse_percent_header`] (shared
+//! The header is parsed by `raw_header::parse_percent_header` (shared
 //! with RAW files). Files without any `% ` header line are refused: every Prophesee tool
 //! writes one, and without it arbitrary bytes would decode as plausible
 //! events. Memory is bounded by the chunk size: records are read in blocks

@@ -27,7 +27,7 @@ pub(crate) const MAX_EVENTS_PER_WORD: usize = 32;
 
 /// The EVT 2.1 decoder, independent of where the bytes come from.
 #[derive(Debug, Clone, Default)]
-pub struct Evt21Decoder {
+pub(crate) struct Evt21Decoder {
     legacy: bool,
     have_time_base: bool,
     time: TimeBase34,
@@ -37,7 +37,7 @@ pub struct Evt21Decoder {
 
 impl Evt21Decoder {
     /// `legacy`: the two 32-bit halves of each word are swapped.
-    pub fn new(legacy: bool) -> Self {
+    pub(crate) fn new(legacy: bool) -> Self {
         Evt21Decoder {
             legacy,
             ..Default::default()

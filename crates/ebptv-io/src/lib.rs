@@ -54,8 +54,10 @@
 //! (Prophesee DAT), `csv`, `aedat4` (iniVation), `es` (Event Stream), `npy`
 //! (write only). `raw_header` parses the `% key value` header shared by RAW
 //! and DAT files and infers format and geometry of old files. `filter` wraps
-//! any source with a time range, an ROI and a polarity selection. Errors
-//! ([`Error`]) name the file and, for malformed content, the byte offset.
+//! any source with a time range, an ROI and a polarity selection. `live`
+//! reads a RAW stream that is still being written (stdin, a growing file).
+//! Errors ([`Error`]) name the file and, for malformed content, the byte
+//! offset.
 
 #![warn(missing_docs)]
 
@@ -408,13 +410,14 @@ pub mod csv;
 pub mod dat;
 pub mod es;
 pub mod evt2;
-pub mod evt21;
+pub(crate) mod evt21;
 pub mod evt3;
 pub mod filter;
 pub mod guard;
+pub mod live;
 pub mod npy;
 pub mod raw_header;
-pub mod raw_reader;
+pub(crate) mod raw_reader;
 pub(crate) mod raw_writer;
 pub mod sniff;
 pub mod summary;

@@ -29,7 +29,7 @@ use crate::{Format, StreamInfo};
 /// Longest line accepted as a header line.
 pub(crate) const MAX_HEADER_LINE: usize = 4096;
 /// How much of a file is read to find its header.
-pub const MAX_HEADER_BYTES: usize = 1 << 20;
+pub(crate) const MAX_HEADER_BYTES: usize = 1 << 20;
 
 /// Parse the `%` header at the start of `bytes`.
 ///
@@ -38,7 +38,7 @@ pub const MAX_HEADER_BYTES: usize = 1 << 20;
 /// only a key gives an empty value; `% end` closes the header (and is not
 /// returned). Lines that start with `%` but are not printable text are
 /// payload, not header.
-pub fn parse_percent_header(bytes: &[u8]) -> (Vec<(String, String)>, usize) {
+pub(crate) fn parse_percent_header(bytes: &[u8]) -> (Vec<(String, String)>, usize) {
     let mut entries = Vec::new();
     let mut pos = 0;
     while pos < bytes.len() && bytes[pos] == b'%' {
@@ -147,7 +147,7 @@ fn parse_int(s: &str) -> Option<u32> {
 
 /// Interpret parsed header entries: format, geometry, EVT 2.1 word order.
 /// Explicit statements (`% format`, `% geometry`) win over inference.
-pub fn interpret(entries: Vec<(String, String)>, payload_offset: u64) -> RawHeader {
+pub(crate) fn interpret(entries: Vec<(String, String)>, payload_offset: u64) -> RawHeader {
     let mut format = None;
     let mut geometry = None;
     let mut legacy = None;
@@ -214,7 +214,7 @@ pub fn interpret(entries: Vec<(String, String)>, payload_offset: u64) -> RawHead
 
 /// Read and interpret the header of the file at `path`. Reads 64 KB (any
 /// real header is far shorter), more only while the header runs on, up to
-/// [`MAX_HEADER_BYTES`].
+/// `MAX_HEADER_BYTES` (1 MiB).
 pub fn read_raw_header(path: &Path) -> Result<RawHeader> {
     let mut f = File::open(path).map_err(|e| Error::io(path, e))?;
     let mut buf = Vec::new();

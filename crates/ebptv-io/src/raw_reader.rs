@@ -16,7 +16,7 @@ use crate::raw_header::{read_raw_header, stream_info, PayloadReader, RawHeader};
 use crate::{Anomalies, EventSource, Format, StreamInfo};
 
 /// Decodes a run of whole words of one RAW encoding.
-pub trait WordDecoder: Send {
+pub(crate) trait WordDecoder: Send {
     /// Most events one word can yield (pre-allocated beyond the chunk size).
     const MAX_EVENTS_PER_WORD: usize;
     /// Decode words from `bytes` (whole words only) into `out` until about

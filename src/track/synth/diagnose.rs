@@ -1,9 +1,9 @@
-//! Diagnosis of a run's links against truth ([`diagnose`],
-//! [`diagnose_detail`]): where wrong and missed links come from.
+//! Diagnosis of a run's links against truth (`diagnose`,
+//! `diagnose_detail`): where wrong and missed links come from.
 
 use super::*;
 
-/// Where wrong links and missed truth links come from (see [`diagnose`]).
+/// Where wrong links and missed truth links come from (see `diagnose`).
 #[derive(Debug, Clone, Default, Serialize, Deserialize)]
 pub struct LinkDiagnosis {
     pub links: u64,
@@ -125,7 +125,7 @@ pub(crate) fn diagnose(
     d
 }
 
-/// Cluster, track and [`diagnose`] a scene.
+/// Cluster, track and `diagnose` a scene.
 pub fn run_and_diagnose(
     scene: &[SynthPulse],
     cparams: &ClusterParams,
@@ -143,7 +143,7 @@ pub fn run_and_diagnose(
     Ok(d)
 }
 
-/// A finer breakdown than [`diagnose`], by cause, for the accuracy work:
+/// A finer breakdown than `diagnose`, by cause, for the accuracy work:
 /// counts under self-explaining keys. Missed truth links (particle `id`
 /// detected at `k` and `k + 1`, the pair not a link of one track):
 /// - `missed/never_tracked/run<4`: no detection of the particle is on a
@@ -284,7 +284,7 @@ pub(crate) fn diagnose_detail(
 
 pub(super) const INIT_FRAMES_SYNTH: usize = crate::track::INIT_FRAMES;
 
-/// Cluster, track and [`diagnose_detail`] a scene.
+/// Cluster, track and `diagnose_detail` a scene.
 pub fn run_and_diagnose_detail(
     scene: &[SynthPulse],
     cparams: &ClusterParams,

@@ -75,7 +75,7 @@
 //! tracks through the same merged images get the same labels there.
 //!
 //! # Oracle tracks
-//! [`oracle_tracks`]: what a tracker that knew every particle would
+//! `oracle_tracks`: what a tracker that knew every particle would
 //! output — per truth particle the detections holding its events, one per
 //! pulse (a merged image is on both particles' tracks); gaps of up to
 //! `TrackParams::stitch_gap` (3) missed pulses are bridged, as the tracker
@@ -90,7 +90,7 @@
 //! merged images (their particles' tracks bridge them: a tracker that
 //! knew which images are merged and refused them), and fits the
 //! tracks of at least `min_length` detections with the tracker's own
-//! output fit ([`super::fit_detections`]: same code, the tracker's final
+//! output fit (`fit_detections`: same code, the tracker's final
 //! noise estimate, the curvature prior estimated from those tracks; no
 //! outlier removal, step cuts or flow prior): the velocity error with
 //! perfect links, at every detection and at interior points.
@@ -101,7 +101,7 @@
 //! index) and the centroids carry i.i.d. Gaussian noise σ = `sigma_all`
 //! (centroid minus the particle's true position, rms per axis over those
 //! detections, merged images included): σ² (XᵀX)⁻¹ for the slope at the
-//! point ([`quadratic_velocity_variance_factor`]), with X over (a) the
+//! point (`quadratic_velocity_variance_factor`), with X over (a) the
 //! whole track (`floor_track`; the Cramér–Rao bound of unbiased
 //! estimators if the whole track were one quadratic), (b) the
 //! `fit_window` (21) detections nearest the point (`floor_window`: the
@@ -114,7 +114,7 @@
 //! bias of a quadratic on a path that is not one comes on top, and they
 //! bound single-track estimators — a prior from other tracks (the flow)
 //! is outside the model. Bias included, but for the fitter's family only:
-//! `best_window` ([`best_window_mse`]) is the least mean square error of
+//! `best_window` (`best_window_mse`) is the least mean square error of
 //! a sliding quadratic (centred as the output fit centres its windows)
 //! whose window, 3 detections to the whole track, is chosen per point
 //! knowing the true path — the error of fitting the true positions plus
@@ -144,6 +144,10 @@
 //! Recall likewise: `recall` counts truth links whose two detections
 //! exist (the tracker's share), `recall_present` and `evaluate` also the
 //! pulses where the particle made no image (the detector's share too).
+//!
+//! [`identity_labels`]: crate::track::synth::identity_labels
+//! [`oracle_report`]: crate::track::synth::oracle_report
+//! [`attribute_nearest`]: crate::track::synth::attribute_nearest
 
 use std::collections::{HashMap, HashSet};
 

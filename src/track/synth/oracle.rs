@@ -1,4 +1,4 @@
-//! Oracle tracks ([`oracle_tracks`]: the true links fitted by the
+//! Oracle tracks (`oracle_tracks`: the true links fitted by the
 //! tracker's output fit) and the velocity floor they set ([`oracle_report`]).
 
 use super::*;
@@ -257,10 +257,10 @@ pub(crate) fn quadratic_velocity_variance_factor(
     Some((s0 * s4 - s2 * s2) / det)
 }
 
-/// Build the oracle tracks of a scene run ([`oracle_tracks`], gaps of up
+/// Build the oracle tracks of a scene run (`oracle_tracks`, gaps of up
 /// to `tparams.stitch.stitch_gap` missed pulses bridged — the longest the
 /// tracker bridges, by stitching — longer ones cut), fit each with the
-/// tracker's output fit ([`crate::track::fit_detections`]) and score them: links
+/// tracker's output fit (`fit_detections`) and score them: links
 /// (strict, merged-ok, identity; all, long, exclusive), the velocity
 /// error with perfect links, and the floors (module docs).
 pub fn oracle_report(

@@ -2,7 +2,7 @@
 //! stream read from standard input or from a file that is still being
 //! written.
 //!
-//! The file readers of [`crate::io`] treat the first end of file as the end
+//! The file readers of this crate treat the first end of file as the end
 //! of the recording. A recording in progress ends there only for now: the
 //! acquisition software keeps appending. `LiveRaw` decodes RAW words from
 //! any `Read` and, when the read returns 0 bytes, reports "no events now"
@@ -21,12 +21,12 @@ use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
 use crate::events::Chunk;
-use crate::io::evt2::Evt2Decoder;
-use crate::io::evt21::Evt21Decoder;
-use crate::io::evt3::Evt3Decoder;
-use crate::io::raw_header::{interpret, parse_percent_header, MAX_HEADER_BYTES};
-use crate::io::raw_reader::WordDecoder;
-use crate::io::{EventSource, Format, StreamInfo};
+use crate::evt2::Evt2Decoder;
+use crate::evt21::Evt21Decoder;
+use crate::evt3::Evt3Decoder;
+use crate::raw_header::{interpret, parse_percent_header, MAX_HEADER_BYTES};
+use crate::raw_reader::WordDecoder;
+use crate::{EventSource, Format, StreamInfo};
 
 /// Read buffer of a live stream (bytes).
 const LIVE_BUFFER_BYTES: usize = 1 << 20;
@@ -106,7 +106,7 @@ impl<D: WordDecoder> EventSource for LiveRaw<D> {
         Ok(!chunk.is_empty())
     }
 
-    fn anomalies(&self) -> crate::io::Anomalies {
+    fn anomalies(&self) -> crate::Anomalies {
         self.decoder.anomalies().clone()
     }
 
@@ -122,7 +122,7 @@ fn read_header(
     reader: &mut dyn Read,
     name: &Path,
     wait: &mut dyn FnMut() -> bool,
-) -> Result<(crate::io::raw_header::RawHeader, Vec<u8>)> {
+) -> Result<(crate::raw_header::RawHeader, Vec<u8>)> {
     let mut buf: Vec<u8> = Vec::new();
     let mut tmp = vec![0u8; 64 * 1024];
     loop {
@@ -227,7 +227,7 @@ pub fn open_stdin() -> Result<Box<dyn EventSource>> {
     open_reader(
         Box::new(std::io::stdin()),
         Path::new("-"),
-        crate::io::DEFAULT_CHUNK_EVENTS,
+        crate::DEFAULT_CHUNK_EVENTS,
         &mut || false,
     )
 }
@@ -240,7 +240,7 @@ pub fn open_growing(path: &Path, header_wait: std::time::Duration) -> Result<Box
     open_reader(
         Box::new(file),
         path,
-        crate::io::DEFAULT_CHUNK_EVENTS,
+        crate::DEFAULT_CHUNK_EVENTS,
         &mut || {
             std::thread::sleep(std::time::Duration::from_millis(50));
             t0.elapsed() < header_wait
