@@ -13,7 +13,9 @@
 //! parallel gives the same result as advancing them one by one.
 //!
 //! Through the unsteady analytic fields (vortex, shedding, turbulent
-//! modes) particles move in groups: the RK4 stages of a group are
+//! modes) and a gridded field (a measured flow the model check replays:
+//! `Gridded::velocity_lanes` locates each lane's cell and gathers its
+//! nodes, then interpolates all lanes at once) particles move in groups: the RK4 stages of a group are
 //! evaluated together (`Flow::velocity_lanes`; four particles in two SSE2
 //! pairs, or eight in two AVX registers where the CPU has AVX2), each lane
 //! with its own sub-step count, doing exactly the scalar operations on its
@@ -467,7 +469,8 @@ impl Particles {
     }
 
     /// The particle loop of [`Particles::advance_and_snapshot`] for the
-    /// unsteady analytic fields ([`Flow::has_lanes`]): `T::N` particles at
+    /// fields that are not steady parallel and have lanes
+    /// ([`Flow::has_lanes`]: the unsteady analytic ones and the gridded): `T::N` particles at
     /// a time (a [`Dispatch`]'s lanes: four as two SSE2 pairs, or eight
     /// as two AVX registers, so two dependency chains overlap, each RK4
     /// stage needing the previous one), their RK4 stages and velocities evaluated
@@ -1001,10 +1004,13 @@ mod tests {
     /// step), repeated times (dt = 0) and a particle count that leaves a
     /// partial group at the end; the turbulent field also at a doubled
     /// time step and with 12 px modes, where groups mix lanes of the
-    /// small-rotation step and of its full-field fallback.
+    /// small-rotation step and of its full-field fallback; a gridded
+    /// field (the rib wake sampled on a grid, part of the domain outside
+    /// it) at both time steps.
     #[test]
     fn lane_advection_matches_scalar() {
         let p = |n| presets::preset(n).unwrap();
+        let dir = tempfile::tempdir().unwrap();
         for (sc, dt_scale) in [
             (p("demo"), 1.0),
             (p("rib_wake"), 1.0),
@@ -1012,6 +1018,8 @@ mod tests {
             (p("turbulent_bl"), 1.0),
             (p("turbulent_bl"), 2.0),
             (turbulent_with_length(12.0), 1.0),
+            (gridded_rib_wake(dir.path()), 1.0),
+            (gridded_rib_wake(dir.path()), 2.0),
         ] {
             let (mut sc, name) = (sc.clone(), sc.name);
             sc.sensor.roi = Some(crate::scenario::Roi {
@@ -1084,7 +1092,8 @@ mod tests {
     /// On an AVX2 + FMA machine the AVX2-compiled groups give exactly
     /// what the SSE2 pairs give (snapshots, particle states, random
     /// streams) on the three unsteady presets and the turbulent field with
-    /// 12 px modes (lanes of the fallback), recycling included. (Without
+    /// 12 px modes (lanes of the fallback) and a gridded field, recycling
+    /// included. (Without
     /// AVX2 + FMA there is no second path to compare; the test then says
     /// so and passes.)
     #[test]
@@ -1098,6 +1107,8 @@ mod tests {
             .map(|n| presets::preset(n).unwrap())
             .collect();
         cases.push(turbulent_with_length(12.0));
+        let dir = tempfile::tempdir().unwrap();
+        cases.push(gridded_rib_wake(dir.path()));
         for sc in cases {
             let (mut sc, name) = (sc.clone(), sc.name);
             sc.sensor.roi = Some(crate::scenario::Roi {
@@ -1166,6 +1177,29 @@ mod tests {
         };
         *length_scale = ls;
         sc.name = format!("turbulent_bl, length scale {ls} px");
+        sc
+    }
+
+    /// The rib wake's field at t = 0 on a 16 px grid (a `Gridded` flow,
+    /// as the model check replays a measured one), written into `dir`.
+    /// The grid starts at x = 150 inside the tests' ROI (x from 100), so
+    /// some particles move through the clamped border.
+    fn gridded_rib_wake(dir: &std::path::Path) -> crate::Scenario {
+        use crate::scenario::FlowSpec;
+        let mut sc = presets::preset("rib_wake").unwrap();
+        let wake = Flow::build(&sc.flow).unwrap();
+        let mut csv = String::from("x,y,u,v\n");
+        for j in 0..30 {
+            for i in 0..40 {
+                let (x, y) = (150.0 + 16.0 * i as f64, 120.0 + 16.0 * j as f64);
+                let (u, v) = wake.velocity(x, y, 0.0);
+                csv += &format!("{x},{y},{u},{v}\n");
+            }
+        }
+        let path = dir.join("wake.csv");
+        std::fs::write(&path, csv).unwrap();
+        sc.flow = FlowSpec::Gridded { path, scale: 1.0 };
+        sc.name = "rib_wake, gridded".into();
         sc
     }
 
