@@ -183,7 +183,8 @@ pub(super) struct Frame {
     pub(super) owner: Vec<u64>,
     /// Tracks (uids) that found no particle at this pulse.
     pub(super) hungry: Vec<u64>,
-    /// Grid over `dets` (for the delayed repair).
+    /// Grid over `dets` (chain starts, the delayed repair and the backward
+    /// extension search it; used particles are skipped by their flags).
     pub(super) grid: GridIndex,
     pub(super) dets: Vec<Det>,
     pub(super) used: Vec<bool>,
