@@ -105,6 +105,10 @@ pub(crate) struct SceneSimulator {
     latency_median_us: Option<f64>,
     /// Set: every simulation stops with an error.
     cancel: crate::Cancel,
+    /// The particle motions of the scene's seeds: the search simulates
+    /// one scene with one seed hundreds of times, only the sensor changed
+    /// (`crate::sim::MotionCache`).
+    motion: std::sync::Arc<crate::sim::MotionCache>,
 }
 
 impl SceneSimulator {
@@ -122,6 +126,7 @@ impl SceneSimulator {
             cluster,
             latency_median_us: None,
             cancel: crate::Cancel::new(),
+            motion: Default::default(),
         })
     }
 
@@ -322,7 +327,7 @@ impl Simulator for SceneSimulator {
     fn simulate(&self, effects: &[EffectSetting], seed: u64) -> Result<Recording> {
         self.cancel.check()?;
         let sc = self.scenario_with(effects)?;
-        let out = crate::sim::simulate(&sc, seed)?;
+        let out = crate::sim::simulate_with(&sc, seed, &self.motion)?;
         let timing = timing_of(&sc);
         let mut particles = particles_of(&out.events, &timing, &self.cluster)?;
         let mut events = out.events;

@@ -50,7 +50,11 @@
 //! being rendered (see [`Simulator`]); every random draw comes from a
 //! stream derived from the user's seed and the item's index (particle slot,
 //! pulse, block), so the output does not depend on the thread count.
-//! [`simulate`] drains a `Simulator` into memory (tests, small scenes).
+//! [`simulate`] drains a `Simulator` into memory (tests, small scenes);
+//! [`simulate_with`] does the same with a [`MotionCache`], which replays
+//! the particle motion of a scene and seed simulated before (many
+//! simulations of one scene with only the sensor changed, as a model
+//! check runs: the same output, without advecting again).
 //!
 //! ## Effects
 //! Each sensor/readout effect (and the laser's `clock_drift` against the
@@ -67,6 +71,7 @@ use serde::{Deserialize, Serialize};
 pub(crate) mod fastmath;
 pub mod flow;
 pub mod light;
+pub(crate) mod motion;
 pub(crate) mod pixel;
 pub mod presets;
 pub(crate) mod readout;
@@ -76,6 +81,7 @@ pub(crate) mod seeding;
 pub mod simd;
 
 pub use flow::Flow;
+pub use motion::MotionCache;
 pub use record::{
     write_recording, write_recording_with, RecordingSummary, TruthTable, TruthTableMaker,
 };
@@ -606,6 +612,16 @@ struct Front {
     /// [`KeySink::group_ns`].
     group_ns: u64,
     buffers: std::sync::Arc<Buffers>,
+    /// The motion replayed instead of advecting (found in a
+    /// [`MotionCache`]).
+    replay: Option<std::sync::Arc<motion::Motion>>,
+    /// Where this run's motion goes once its last block is made (not
+    /// found in the cache): the cache, the key and the blocks so far.
+    record: Option<(
+        std::sync::Arc<MotionCache>,
+        motion::MotionKey,
+        Vec<motion::BlockSnapshots>,
+    )>,
 }
 
 /// Readout state carried from block to block.
@@ -654,9 +670,33 @@ pub struct Simulator {
 impl Simulator {
     /// A simulator of scenario `sc`; `seed` fixes every random draw.
     pub fn new(sc: &Scenario, seed: u64) -> Result<Simulator> {
+        Simulator::build(sc, seed, None)
+    }
+
+    /// [`Simulator::new`], its particle motion replayed from `cache` when
+    /// it holds this scene's and seed's, else simulated and kept there
+    /// (see [`MotionCache`]).
+    fn build(
+        sc: &Scenario,
+        seed: u64,
+        cache: Option<&std::sync::Arc<MotionCache>>,
+    ) -> Result<Simulator> {
         sc.validate()?;
         let flow = Flow::build(&sc.flow)?;
-        let particles = seeding::Particles::seed(sc, &flow, seed);
+        let (mut replay, mut record) = (None, None);
+        if let Some(cache) = cache {
+            let key = motion::MotionKey::of(sc, seed);
+            match cache.get(&key) {
+                Some(m) => replay = Some(m),
+                None => record = Some((cache.clone(), key, Vec::new())),
+            }
+        }
+        let particles = match &replay {
+            // Nothing to advect: the particle count is all that is used.
+            Some(_) => seeding::Particles::empty(),
+            None => seeding::Particles::seed(sc, &flow, seed),
+        };
+        let n_particles = replay.as_ref().map_or(particles.len(), |m| m.particles);
         let pixel = pixel::PixelModel::new(sc, seed);
         let roi = sc.roi();
         let n_pulses = sc.pulse_count();
@@ -677,7 +717,7 @@ impl Simulator {
         };
         let buffers = std::sync::Arc::new(Buffers::default());
         let stats = SimStats {
-            particles: particles.len() as u64,
+            particles: n_particles as u64,
             duration_s: sc.duration_s,
             ..Default::default()
         };
@@ -719,6 +759,8 @@ impl Simulator {
                 truth_pool: Vec::new(),
                 group_ns: sc.pixel.refractory.map_or(0, |r| group_ns(r.period_us)),
                 buffers,
+                replay,
+                record,
             },
             ahead: None,
             info,
@@ -859,13 +901,24 @@ impl Front {
         };
         let starts: Vec<f64> = (k0..k1).map(|k| sc.pulse_start_us(k)).collect();
         let times_s: Vec<f64> = starts.iter().map(|t| t * 1e-6).collect();
-        let mut snaps = std::mem::take(&mut self.snaps);
-        self.particles.advance_and_snapshot_into(
-            &self.flow,
-            self.t_particles,
-            &times_s,
-            &mut snaps,
-        );
+        let snaps: motion::BlockSnapshots = match &self.replay {
+            Some(m) => m.blocks[b as usize].clone(),
+            None => {
+                let mut snaps = if self.record.is_some() {
+                    // Kept by the cache: fresh lists.
+                    Vec::new()
+                } else {
+                    std::mem::take(&mut self.snaps)
+                };
+                self.particles.advance_and_snapshot_into(
+                    &self.flow,
+                    self.t_particles,
+                    &times_s,
+                    &mut snaps,
+                );
+                std::sync::Arc::new(snaps)
+            }
+        };
         if let Some(&t) = times_s.last() {
             self.t_particles = t;
         }
@@ -930,7 +983,24 @@ impl Front {
             tails.push(t);
         }
         keys.extend(noise.iter().map(|a| layout.key(a, t_begin)));
-        self.snaps = snaps;
+        match self.record.take() {
+            Some((cache, key, mut blocks)) => {
+                blocks.push(snaps);
+                if last {
+                    let n = self.particles.len();
+                    cache.insert(motion::Motion::new(key, n, blocks));
+                } else {
+                    self.record = Some((cache, key, blocks));
+                }
+            }
+            None if self.replay.is_none() => {
+                // Its lists are reused by the next block.
+                if let Ok(v) = std::sync::Arc::try_unwrap(snaps) {
+                    self.snaps = v;
+                }
+            }
+            None => {}
+        }
         BlockRequests {
             block: b,
             starts,
@@ -1262,7 +1332,23 @@ impl EventSource for Simulator {
 
 /// Simulate a whole recording in memory.
 pub fn simulate(sc: &Scenario, seed: u64) -> Result<SimOutput> {
-    let mut sim = Simulator::new(sc, seed)?;
+    drain(Simulator::new(sc, seed)?)
+}
+
+/// [`simulate`], the particle motion replayed from `cache` when it holds
+/// this scene's and seed's (else simulated and kept there): for many
+/// simulations of one scene that differ only in the sensor, as a model
+/// check runs. The output is the same as [`simulate`]'s.
+pub fn simulate_with(
+    sc: &Scenario,
+    seed: u64,
+    cache: &std::sync::Arc<MotionCache>,
+) -> Result<SimOutput> {
+    drain(Simulator::build(sc, seed, Some(cache))?)
+}
+
+/// Run `sim` to its end into memory.
+fn drain(mut sim: Simulator) -> Result<SimOutput> {
     let mut out = SimOutput {
         geometry: sim.info().geometry,
         ..Default::default()

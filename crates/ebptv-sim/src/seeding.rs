@@ -217,6 +217,24 @@ impl Particles {
         ps
     }
 
+    /// No particles (a simulator that replays a cached motion).
+    pub(crate) fn empty() -> Particles {
+        Particles {
+            particles: Vec::new(),
+            rngs: Vec::new(),
+            domain: Domain {
+                x0: 0.0,
+                x1: 0.0,
+                y0: 0.0,
+                y1: 0.0,
+            },
+            sheet_half: 0.0,
+            slab_half: 0.0,
+            out_of_plane_rms: 0.0,
+            brightness_spread: 0.0,
+        }
+    }
+
     /// Number of particles.
     pub(crate) fn len(&self) -> usize {
         self.particles.len()
