@@ -123,7 +123,7 @@ impl MotionCache {
     pub(crate) const DEFAULT_BYTES: usize = 128 << 20;
 
     /// A cache that keeps at most `max_bytes` of snapshots.
-    pub fn with_budget(max_bytes: usize) -> MotionCache {
+    pub(crate) fn with_budget(max_bytes: usize) -> MotionCache {
         MotionCache {
             max_bytes,
             motions: Mutex::new(Vec::new()),
