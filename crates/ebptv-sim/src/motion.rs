@@ -165,7 +165,7 @@ impl MotionCache {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::{presets, scenario, simulate, simulate_with, Flow, SimOutput};
+    use crate::{presets, scenario, simulate, simulate_with, SimOutput};
 
     fn same(a: &SimOutput, b: &SimOutput, what: &str) {
         assert_eq!(a.events, b.events, "{what}: events");
@@ -174,10 +174,15 @@ mod tests {
         assert_eq!(a.pulse_starts_us, b.pulse_starts_us, "{what}: pulses");
     }
 
-    /// A small scene of two blocks and a bit, its flow as a grid in a file
-    /// (as the model check replays a measured one) or the analytic wake.
+    /// A small scene of two blocks and a bit, its flow the analytic rib
+    /// wake or that wake as a grid in a file (as the model check replays a
+    /// measured one; `seeding`'s tests' grid).
     fn scene(dir: &std::path::Path, gridded: bool) -> Scenario {
-        let mut sc = presets::preset("rib_wake").unwrap();
+        let mut sc = if gridded {
+            crate::seeding::tests::gridded_rib_wake(dir)
+        } else {
+            presets::preset("rib_wake").unwrap()
+        };
         sc.duration_s = 0.0051;
         sc.sensor.roi = Some(scenario::Roi {
             x: 100,
@@ -185,20 +190,6 @@ mod tests {
             width: 300,
             height: 200,
         });
-        if gridded {
-            let wake = Flow::build(&sc.flow).unwrap();
-            let mut csv = String::from("x,y,u,v\n");
-            for j in 0..16 {
-                for i in 0..22 {
-                    let (x, y) = (90.0 + 16.0 * i as f64, 140.0 + 16.0 * j as f64);
-                    let (u, v) = wake.velocity(x, y, 0.0);
-                    csv += &format!("{x},{y},{u},{v}\n");
-                }
-            }
-            let path = dir.join("wake.csv");
-            std::fs::write(&path, csv).unwrap();
-            sc.flow = FlowSpec::Gridded { path, scale: 1.0 };
-        }
         sc
     }
 

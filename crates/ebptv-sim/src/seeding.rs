@@ -932,7 +932,7 @@ std::thread_local! {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::presets;
 
@@ -1202,7 +1202,7 @@ mod tests {
     /// as the model check replays a measured one), written into `dir`.
     /// The grid starts at x = 150 inside the tests' ROI (x from 100), so
     /// some particles move through the clamped border.
-    fn gridded_rib_wake(dir: &std::path::Path) -> crate::Scenario {
+    pub(crate) fn gridded_rib_wake(dir: &std::path::Path) -> crate::Scenario {
         use crate::scenario::FlowSpec;
         let mut sc = presets::preset("rib_wake").unwrap();
         let wake = Flow::build(&sc.flow).unwrap();
