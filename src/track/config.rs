@@ -201,4 +201,22 @@ mod tests {
             assert!(e.contains(key), "{e}");
         }
     }
+
+    /// The stripped tracker BENCHMARKS.md measures must stay a valid file
+    /// that switches off what it says it does.
+    #[test]
+    fn the_benchmarks_stripped_tracker_parses_and_strips() {
+        let text = include_str!("../../benches/stripped_tracker.toml");
+        let c = TrackConfig::from_toml(text, Path::new("stripped_tracker.toml")).unwrap();
+        let d = TrackParams::default();
+        let t = &c.track;
+        assert!(d.turn_model && !t.turn_model);
+        assert!(d.gates.repair_lag > 0 && t.gates.repair_lag == 0);
+        assert!(d.init.back_extend > 0 && t.init.back_extend == 0);
+        assert!(d.init.ghost_check_length > 0 && t.init.ghost_check_length == 0);
+        assert!(d.stitch.step_split > 0.0 && t.stitch.step_split == 0.0);
+        assert!(d.fit.outlier_sigma > 0.0 && t.fit.outlier_sigma == 0.0);
+        assert!(t.fit.fit_min_window == t.fit.fit_window);
+        assert_eq!(t.max_disp, d.max_disp);
+    }
 }
