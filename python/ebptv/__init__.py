@@ -487,6 +487,8 @@ def model_check(
     block_pulses: Optional[int] = None,
     profile_fit: Optional[bool] = None,
     paired_judgement: Optional[bool] = None,
+    pulse_hz: Optional[float] = None,
+    ignore_triggers: Optional[bool] = None,
 ) -> Dict[str, Any]:
     """``ebptv model-check PATH --out OUT``: the measured recording against
     the simulator; the missing effects, fitted, with the gap before and
@@ -496,7 +498,10 @@ def model_check(
     calibrated to the measurement). The other options are those of
     ``ebptv model-check``; ``None`` takes its default (seed 1, 5
     replicates, 12 evaluations, 3 effects, 100 block pulses, profile fit
-    and paired judgement off). ``out``: the folder of ``model_check.json``,
+    and paired judgement off). ``pulse_hz``: the nominal pulse frequency of
+    a recording without a trigger channel (the pulses are then found from
+    the events); ``ignore_triggers``: find them from the events even when
+    there are triggers. ``out``: the folder of ``model_check.json``,
     ``model.toml``, ``report.md`` and the figures (a new temporary
     directory when ``None``).
 
@@ -519,6 +524,8 @@ def model_check(
             block_pulses,
             profile_fit,
             paired_judgement,
+            pulse_hz,
+            ignore_triggers,
         )
     )
     report["out"] = out

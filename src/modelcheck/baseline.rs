@@ -4,7 +4,10 @@
 //!
 //! What is estimated, in this order (each step uses the ones before):
 //! 1. **Pulse timing**: the period from the median spacing of the trigger
-//!    channel's rising edges, the phase from the first edge.
+//!    channel's rising edges, the phase from the first edge; without
+//!    triggers, the pulse analysis of `ebptv pulses` on the events around
+//!    a nominal frequency (pulse 0 at the bursts' leading edge: latencies
+//!    then count from there, in the measurement and the simulations alike).
 //! 2. **Flow**: ebptv's own PTV on the measurement (pulse split →
 //!    [`crate::track::PtvStream`]: clustering and tracking) → track points
 //!    binned with [`crate::grid`] (top-hat bins, `bin_px` wide) → the mean
@@ -98,12 +101,59 @@ impl PtvSink for Collect {
     }
 }
 
-/// Build the baseline from measured `events` (time-ordered), the rising
-/// trigger edges `rising` (µs) and the sensor geometry. The flow grid is
-/// written to `flow_csv` (the scenario's `flow.path` points there).
+/// The measurement's pulse train, as the baseline replays it.
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct PulseTrain {
+    /// Pulse period (µs).
+    pub period_us: f64,
+    /// A pulse start (µs, sensor clock).
+    pub start_us: f64,
+    /// Where the train came from, for the notes.
+    pub source: String,
+}
+
+impl PulseTrain {
+    /// From rising trigger edges (µs): the median spacing, the first edge.
+    pub(crate) fn from_triggers(rising: &[i64]) -> Result<Self> {
+        if rising.len() < 3 {
+            return Err(Error::analysis(
+                "no trigger channel in the recording: give the pulse timing with --model SCENARIO.toml",
+            ));
+        }
+        let mut d: Vec<i64> = rising.windows(2).map(|w| w[1] - w[0]).collect();
+        d.sort_unstable();
+        let period = d[d.len() / 2] as f64;
+        if period <= 0.0 {
+            return Err(Error::analysis("trigger edges are not increasing in time"));
+        }
+        Ok(PulseTrain {
+            period_us: period,
+            start_us: rising[0] as f64,
+            source: "from the trigger channel".into(),
+        })
+    }
+
+    /// From the pulse analysis of the events (no triggers): its period and
+    /// the start of its pulse 0, the burst's leading edge. The latencies
+    /// the check then measures count from that edge, in the measurement
+    /// and in every simulation alike.
+    pub(crate) fn estimated(timing: &crate::pulses::PulseTiming, nominal_hz: f64) -> Self {
+        PulseTrain {
+            period_us: timing.period_us,
+            start_us: timing.first_pulse_us,
+            source: format!(
+                "found from the events around {nominal_hz} Hz (no trigger used; latencies count from the bursts' leading edge)"
+            ),
+        }
+    }
+}
+
+/// Build the baseline from measured `events` (time-ordered), their pulse
+/// train and the sensor geometry. The flow grid is written to `flow_csv`
+/// (the scenario's `flow.path` points there).
 pub(crate) fn baseline_from_measurement(
     events: &EventChunk,
-    rising: &[i64],
+    train: &PulseTrain,
     geometry: Geometry,
     flow_csv: &Path,
     opts: &BaselineOptions,
@@ -114,16 +164,12 @@ pub(crate) fn baseline_from_measurement(
             format!("{} must be at least 2 px", opts.bin_px),
         ));
     }
-    if rising.len() < 3 {
-        return Err(Error::analysis(
-            "no trigger channel in the recording: give the pulse timing with --model SCENARIO.toml",
-        ));
-    }
-    let mut d: Vec<i64> = rising.windows(2).map(|w| w[1] - w[0]).collect();
-    d.sort_unstable();
-    let period = d[d.len() / 2] as f64;
-    if period <= 0.0 {
-        return Err(Error::analysis("trigger edges are not increasing in time"));
+    let period = train.period_us;
+    if !(period.is_finite() && period > 0.0 && train.start_us.is_finite()) {
+        return Err(Error::analysis(format!(
+            "pulse train of period {period} us starting at {} us: not a pulse train",
+            train.start_us
+        )));
     }
     let mut sc = Scenario {
         name: "baseline-from-measurement".into(),
@@ -135,7 +181,7 @@ pub(crate) fn baseline_from_measurement(
         ..Scenario::default()
     };
     sc.light.pulse_hz = 1e6 / period;
-    sc.light.first_pulse_us = (rising[0] as f64).rem_euclid(period);
+    sc.light.first_pulse_us = train.start_us.rem_euclid(period);
     sc.validate()?;
     let timing = timing_of(&sc);
     let cluster = ClusterParams {
@@ -143,8 +189,8 @@ pub(crate) fn baseline_from_measurement(
         ..ClusterParams::default()
     };
     let mut notes = vec![format!(
-        "baseline from the measurement: {}x{} px, pulses {:.1} Hz from the trigger channel",
-        geometry.width, geometry.height, sc.light.pulse_hz
+        "baseline from the measurement: {}x{} px, pulses {:.1} Hz {}",
+        geometry.width, geometry.height, sc.light.pulse_hz, train.source
     )];
 
     // Particles and tracks: ebptv's own PTV.

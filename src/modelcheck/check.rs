@@ -7,7 +7,7 @@ use std::path::Path;
 use crate::cluster::ClusterParams;
 use crate::error::{Error, Result};
 use crate::events::{Chunk, Edge, EventChunk, Geometry};
-use crate::modelcheck::baseline::{baseline_from_measurement, BaselineOptions};
+use crate::modelcheck::baseline::{baseline_from_measurement, BaselineOptions, PulseTrain};
 use crate::modelcheck::report::write_outputs;
 use crate::modelcheck::scene::{
     active_effects, median_event_latency, particles_of, timing_of, SceneSimulator,
@@ -46,6 +46,13 @@ pub struct ModelCheckOptions {
     pub profile_fit: bool,
     /// Paired judgement of the held-out gaps.
     pub paired_judgement: bool,
+    /// Nominal pulse frequency (Hz): without a trigger channel (or with
+    /// `ignore_triggers`) the pulse train is found from the events around
+    /// it, as `ebptv pulses --pulse-hz` does. Unused with a `model`.
+    pub pulse_hz: Option<f64>,
+    /// Find the pulse train from the events even when the recording has
+    /// triggers (needs `pulse_hz`).
+    pub ignore_triggers: bool,
 }
 
 impl Default for ModelCheckOptions {
@@ -59,6 +66,8 @@ impl Default for ModelCheckOptions {
             block_pulses: 100,
             profile_fit: false,
             paired_judgement: false,
+            pulse_hz: None,
+            ignore_triggers: false,
         }
     }
 }
@@ -230,6 +239,69 @@ fn read_pass(
     Ok(pass)
 }
 
+/// The pulse train of a check without a starting model: the trigger
+/// channel's when it has one (and `ignore_triggers` is off), else found
+/// from the events around `pulse_hz` by the pulse analysis of `ebptv
+/// pulses` (run on the events the check read).
+fn pulse_train(
+    measured: &Path,
+    events: &EventChunk,
+    rising: &[i64],
+    geometry: Geometry,
+    a: &ModelCheckOptions,
+) -> Result<PulseTrain> {
+    if let Some(hz) = a.pulse_hz {
+        if !(hz.is_finite() && hz > 0.0) {
+            return Err(Error::param("pulse-hz", format!("{hz}: must be positive")));
+        }
+    }
+    if a.ignore_triggers && a.pulse_hz.is_none() {
+        return Err(Error::param(
+            "ignore-triggers",
+            "needs --pulse-hz: the pulses are then found from the events around that frequency",
+        ));
+    }
+    if !a.ignore_triggers && rising.len() >= 3 {
+        return PulseTrain::from_triggers(rising);
+    }
+    let Some(hz) = a.pulse_hz else {
+        return Err(Error::analysis(format!(
+            "{}: no trigger channel in the recording: give the pulse frequency with --pulse-hz (the pulses are then found from the events) or the pulse timing with --model SCENARIO.toml",
+            measured.display()
+        )));
+    };
+    let opts = crate::pulses::PulseOptions {
+        pulse_hz: Some(hz),
+        ignore_triggers: true,
+        require_pulsed: true,
+        ..Default::default()
+    };
+    let mut an = crate::pulses::Analyzer::new(opts, Some(geometry))?;
+    let mut chunk = Chunk::default();
+    let n = events.len();
+    let mut i = 0;
+    while i < n {
+        let j = (i + ANALYSIS_CHUNK).min(n);
+        chunk.clear();
+        chunk.events.t.extend_from_slice(&events.t[i..j]);
+        chunk.events.x.extend_from_slice(&events.x[i..j]);
+        chunk.events.y.extend_from_slice(&events.y[i..j]);
+        chunk.events.p.extend_from_slice(&events.p[i..j]);
+        an.push(&chunk)?;
+        i = j;
+    }
+    let report = an.finish().map_err(|e| {
+        Error::analysis(format!(
+            "finding the light pulses in {}: {e}",
+            measured.display()
+        ))
+    })?;
+    Ok(PulseTrain::estimated(&report.timing, hz))
+}
+
+/// Events per chunk fed to the pulse analysis (as a reader hands them).
+const ANALYSIS_CHUNK: usize = 1 << 20;
+
 /// [`check_recording_with`] reading at most `max_events` events.
 pub(crate) fn check_recording_capped(
     measured: &Path,
@@ -276,10 +348,11 @@ pub(crate) fn check_recording_capped(
             Scenario::from_toml_file(p)?
         }
         None => {
+            let train = pulse_train(measured, &events, &rising, geometry, a)?;
             crate::io::atomic::create_output_dir(out)?;
             let b = baseline_from_measurement(
                 &events,
-                &rising,
+                &train,
                 geometry,
                 // Absolute: the fitted model.toml names it, and a relative
                 // path there would be read relative to that file.

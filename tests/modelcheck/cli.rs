@@ -152,10 +152,16 @@ fn standard_check_names_nothing_on_a_well_behaved_independent_sensor() {
 /// The check on one departure of the second generator: the first named
 /// effect is `name`, with the gap halved.
 fn names_departure(departure: independent::Departure, name: &str) {
+    names_departure_of(independent::Recording::new(departure, 12), &[], name);
+}
+
+/// [`names_departure`] of `recording`, with `extra` options.
+fn names_departure_of(recording: independent::Recording, extra: &[&str], name: &str) {
     let dir = tempfile::tempdir().unwrap();
     let rec = dir.path().join("measured.raw");
-    independent::Recording::new(departure, 12).write(&rec);
-    let json = standard_check(&rec, &dir.path().join("check"), &SHORT);
+    recording.write(&rec);
+    let args: Vec<&str> = SHORT.iter().chain(extra).copied().collect();
+    let json = standard_check(&rec, &dir.path().join("check"), &args);
     let (first, ratio) =
         first_named(&json).unwrap_or_else(|| panic!("{name}: nothing named: {:#}", json["rounds"]));
     assert_eq!(first, name, "{:#}", json["rounds"]);
@@ -172,13 +178,55 @@ fn standard_check_names_a_latency_jitter_of_an_independent_sensor() {
 
 /// A dead time of 30 µs leaves the second generator's pixels no second
 /// event within a burst (its repeats come 3–9 µs apart) and every event of
-/// a pixel's next visit (a pulse period later).
+/// a pixel's next visit (a pulse period later). The recording has no
+/// trigger channel: the check finds the pulses from the events
+/// (`--pulse-hz`), and the latencies it compares count from the bursts'
+/// leading edge.
 #[test]
-fn standard_check_names_a_refractory_period_of_an_independent_sensor() {
-    names_departure(
-        independent::Departure::Refractory { period_us: 30.0 },
-        "refractory",
-    );
+fn standard_check_names_a_refractory_period_of_an_independent_sensor_without_triggers() {
+    let mut rec =
+        independent::Recording::new(independent::Departure::Refractory { period_us: 30.0 }, 12);
+    rec.triggers = false;
+    let hz = format!("{}", 1e6 / rec.period_us);
+    names_departure_of(rec, &["--pulse-hz", &hz], "refractory");
+}
+
+/// Without a trigger channel and without `--pulse-hz` the check stops with
+/// an error that names the file and the option, and leaves no output; so
+/// does `--ignore-triggers` without `--pulse-hz`.
+#[test]
+fn standard_check_without_triggers_asks_for_the_pulse_frequency() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut rec = independent::Recording::new(independent::Departure::None, 13);
+    rec.pulses = 60;
+    rec.triggers = false;
+    let path = dir.path().join("untriggered.raw");
+    rec.write(&path);
+    let mut with_triggers = independent::Recording::new(independent::Departure::None, 13);
+    with_triggers.pulses = 60;
+    let triggered = dir.path().join("triggered.raw");
+    with_triggers.write(&triggered);
+    for (input, extra, want) in [
+        (&path, &[][..], "--pulse-hz"),
+        (&triggered, &["--ignore-triggers"][..], "needs --pulse-hz"),
+    ] {
+        let out = dir.path().join("check");
+        let res = Command::new(env!("CARGO_BIN_EXE_ebptv"))
+            .arg("model-check")
+            .arg(input)
+            .arg("--out")
+            .arg(&out)
+            .args(extra)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&res.stderr);
+        assert!(!res.status.success(), "{err}");
+        assert!(err.contains(want), "{err}");
+        if extra.is_empty() {
+            assert!(err.contains("untriggered.raw"), "{err}");
+        }
+        assert!(!out.exists(), "output left behind");
+    }
 }
 
 /// Not met yet: OFF events at a fixed 150–190 µs after the pulse (the
@@ -238,6 +286,19 @@ fn dev_recording_passes(name: &str) {
 #[test]
 fn standard_check_on_independent_dev_recording_null() {
     dev_recording_passes("mcdev_null");
+}
+
+/// The same recording with its trigger channel ignored: the pulses found
+/// from the events, nothing named either.
+#[test]
+fn standard_check_on_independent_dev_recording_null_without_triggers() {
+    let Some(dev) = dev_dir() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let extra = ["--ignore-triggers", "--pulse-hz", "5000"];
+    let (ok, what) = dev_passes(&dev, "mcdev_null", &dir.path().join("null"), &extra);
+    assert!(ok, "{what}");
+    let report = std::fs::read_to_string(dir.path().join("null/report.md")).unwrap();
+    assert!(report.contains("found from the events"), "{report}");
 }
 
 #[test]

@@ -45,6 +45,9 @@ pub struct Recording {
     pub ppp: f64,
     pub departure: Departure,
     pub seed: u64,
+    /// Write the trigger channel (a recording without one needs the pulse
+    /// frequency to be checked).
+    pub triggers: bool,
 }
 
 impl Recording {
@@ -57,10 +60,12 @@ impl Recording {
             ppp: 0.01,
             departure,
             seed,
+            triggers: true,
         }
     }
 
-    /// Write the recording as EVT 3.0 with triggers on channel 0.
+    /// Write the recording as EVT 3.0 with triggers on channel 0 (unless
+    /// `triggers` is off).
     pub fn write(&self, path: &Path) {
         let mut rng = Pcg64::seed_from_u64(self.seed);
         let (w, h) = (self.width as f64, self.height as f64);
@@ -166,6 +171,9 @@ impl Recording {
         }
         let mut w =
             ebptv::io::create(path, None, Geometry::new(self.width, self.height)).expect("writer");
+        if !self.triggers {
+            trig.clear();
+        }
         w.write_chunk(&Chunk {
             events,
             triggers: trig,

@@ -4,7 +4,7 @@
 //! the truth of a simulated vortex-in-shear recording.
 
 use crate::events::{Edge, Geometry};
-use crate::modelcheck::baseline::{baseline_from_measurement, BaselineOptions};
+use crate::modelcheck::baseline::{baseline_from_measurement, BaselineOptions, PulseTrain};
 use crate::modelcheck::scene::{particles_of, timing_of};
 use crate::sim::flow::Flow;
 use crate::sim::scenario::{FlowSpec, Scenario, Sensor};
@@ -53,7 +53,8 @@ fn baseline_replays_the_measured_vortex_and_matches_pulses_seeding_brightness() 
         bin_px: 32.0,
         ..BaselineOptions::default()
     };
-    let b = baseline_from_measurement(&out.events, &rising, Geometry::new(320, 240), &csv, &opts)
+    let train = PulseTrain::from_triggers(&rising).unwrap();
+    let b = baseline_from_measurement(&out.events, &train, Geometry::new(320, 240), &csv, &opts)
         .unwrap();
     for n in &b.notes {
         println!("{n}");
@@ -164,14 +165,17 @@ fn baseline_refuses_a_recording_without_triggers() {
     )
     .unwrap();
     let dir = tempfile::tempdir().unwrap();
-    let err = baseline_from_measurement(
-        &out.events,
-        &[],
-        Geometry::new(64, 48),
-        &dir.path().join("f.csv"),
-        &BaselineOptions::default(),
-    )
-    .unwrap_err();
+    let err = PulseTrain::from_triggers(&[])
+        .and_then(|train| {
+            baseline_from_measurement(
+                &out.events,
+                &train,
+                Geometry::new(64, 48),
+                &dir.path().join("f.csv"),
+                &BaselineOptions::default(),
+            )
+        })
+        .unwrap_err();
     assert!(err.to_string().contains("trigger"), "{err}");
     assert!(!dir.path().join("f.csv").exists());
 }
