@@ -498,10 +498,10 @@ def model_check(
     calibrated to the measurement). The other options are those of
     ``ebptv model-check``; ``None`` takes its default (seed 1, 5
     replicates, 12 evaluations, 3 effects, 100 block pulses, profile fit
-    and paired judgement off). ``pulse_hz``: the nominal pulse frequency of
-    a recording without a trigger channel (the pulses are then found from
-    the events); ``ignore_triggers``: find them from the events even when
-    there are triggers. ``out``: the folder of ``model_check.json``,
+    and paired judgement off). Without a trigger channel the pulses are
+    found from the events, around ``pulse_hz`` when given;
+    ``ignore_triggers``: find them from the events even when there are
+    triggers. ``out``: the folder of ``model_check.json``,
     ``model.toml``, ``report.md`` and the figures (a new temporary
     directory when ``None``).
 

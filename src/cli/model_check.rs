@@ -19,8 +19,8 @@ pub struct ModelCheckArgs {
     /// Starting model (scenario TOML, as `ebptv simulate --config` takes),
     /// for a recording made by a model you trust. Without it (the usual
     /// case) the baseline is a standard sensor calibrated to the
-    /// measurement: pulse timing from the trigger channel (or from the
-    /// events, with --pulse-hz), the flow from
+    /// measurement: pulse timing from the trigger channel (or, without one,
+    /// from the events), the flow from
     /// ebptv's own tracks (written as `flow_baseline.csv`), seeding density,
     /// light energy and median latency fitted; latency spread, noise and
     /// image at the seed paper's standard values; an effect is named only
@@ -59,14 +59,14 @@ pub struct ModelCheckArgs {
     /// Paired judgement: paired held-out gaps, rival margin on the disputed rows, explaining away (see docs/readme/modelcheck.md). Off by default; `--paired-judgement true`.
     #[arg(long, default_value_t = defaults().paired_judgement, action = clap::ArgAction::Set)]
     pub paired_judgement: bool,
-    /// Pulse frequency (Hz), needed when the recording has no trigger
-    /// channel: the pulse train is then found from the events around it
-    /// (as `ebptv pulses --pulse-hz`), and latencies count from the
+    /// Pulse frequency (Hz) of a recording without a trigger channel: the
+    /// pulse train is found from the events around it (without it, over
+    /// 500–50 000 Hz, as `ebptv track` does), and latencies count from the
     /// bursts' leading edge instead of the laser's trigger.
     #[arg(long)]
     pub pulse_hz: Option<f64>,
     /// Find the pulse train from the events even when the recording has
-    /// trigger events (needs --pulse-hz).
+    /// trigger events.
     #[arg(long)]
     pub ignore_triggers: bool,
 }

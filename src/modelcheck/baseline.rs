@@ -5,9 +5,10 @@
 //! What is estimated, in this order (each step uses the ones before):
 //! 1. **Pulse timing**: the period from the median spacing of the trigger
 //!    channel's rising edges, the phase from the first edge; without
-//!    triggers, the pulse analysis of `ebptv pulses` on the events around
-//!    a nominal frequency (pulse 0 at the bursts' leading edge: latencies
-//!    then count from there, in the measurement and the simulations alike).
+//!    triggers, the pulse analysis of `ebptv pulses` on the events (around
+//!    a nominal frequency when one is given; pulse 0 at the bursts' leading
+//!    edge: latencies then count from there, in the measurement and the
+//!    simulations alike).
 //! 2. **Flow**: ebptv's own PTV on the measurement (pulse split →
 //!    [`crate::track::PtvStream`]: clustering and tracking) → track points
 //!    binned with [`crate::grid`] (top-hat bins, `bin_px` wide) → the mean
@@ -137,12 +138,16 @@ impl PulseTrain {
     /// the start of its pulse 0, the burst's leading edge. The latencies
     /// the check then measures count from that edge, in the measurement
     /// and in every simulation alike.
-    pub(crate) fn estimated(timing: &crate::pulses::PulseTiming, nominal_hz: f64) -> Self {
+    pub(crate) fn estimated(timing: &crate::pulses::PulseTiming, nominal_hz: Option<f64>) -> Self {
+        let searched = match nominal_hz {
+            Some(hz) => format!("around {hz} Hz"),
+            None => "over the default band".into(),
+        };
         PulseTrain {
             period_us: timing.period_us,
             start_us: timing.first_pulse_us,
             source: format!(
-                "found from the events around {nominal_hz} Hz (no trigger used; latencies count from the bursts' leading edge)"
+                "found from the events {searched} (no trigger used; latencies count from the bursts' leading edge)"
             ),
         }
     }

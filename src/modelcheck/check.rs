@@ -46,12 +46,13 @@ pub struct ModelCheckOptions {
     pub profile_fit: bool,
     /// Paired judgement of the held-out gaps.
     pub paired_judgement: bool,
-    /// Nominal pulse frequency (Hz): without a trigger channel (or with
-    /// `ignore_triggers`) the pulse train is found from the events around
-    /// it, as `ebptv pulses --pulse-hz` does. Unused with a `model`.
+    /// Nominal pulse frequency (Hz). Without a trigger channel (or with
+    /// `ignore_triggers`) the pulse train is found from the events, as
+    /// `ebptv pulses` finds it: around this frequency when given, over
+    /// 500–50 000 Hz otherwise. Unused with a `model`.
     pub pulse_hz: Option<f64>,
     /// Find the pulse train from the events even when the recording has
-    /// triggers (needs `pulse_hz`).
+    /// triggers.
     pub ignore_triggers: bool,
 }
 
@@ -241,8 +242,9 @@ fn read_pass(
 
 /// The pulse train of a check without a starting model: the trigger
 /// channel's when it has one (and `ignore_triggers` is off), else found
-/// from the events around `pulse_hz` by the pulse analysis of `ebptv
-/// pulses` (run on the events the check read).
+/// from the events by the pulse analysis of `ebptv pulses` (around
+/// `pulse_hz` when given, over the default band otherwise), run on the
+/// events the check read.
 fn pulse_train(
     measured: &Path,
     events: &EventChunk,
@@ -255,23 +257,11 @@ fn pulse_train(
             return Err(Error::param("pulse-hz", format!("{hz}: must be positive")));
         }
     }
-    if a.ignore_triggers && a.pulse_hz.is_none() {
-        return Err(Error::param(
-            "ignore-triggers",
-            "needs --pulse-hz: the pulses are then found from the events around that frequency",
-        ));
-    }
     if !a.ignore_triggers && rising.len() >= 3 {
         return PulseTrain::from_triggers(rising);
     }
-    let Some(hz) = a.pulse_hz else {
-        return Err(Error::analysis(format!(
-            "{}: no trigger channel in the recording: give the pulse frequency with --pulse-hz (the pulses are then found from the events) or the pulse timing with --model SCENARIO.toml",
-            measured.display()
-        )));
-    };
     let opts = crate::pulses::PulseOptions {
-        pulse_hz: Some(hz),
+        pulse_hz: a.pulse_hz,
         ignore_triggers: true,
         require_pulsed: true,
         ..Default::default()
@@ -296,7 +286,7 @@ fn pulse_train(
             measured.display()
         ))
     })?;
-    Ok(PulseTrain::estimated(&report.timing, hz))
+    Ok(PulseTrain::estimated(&report.timing, a.pulse_hz))
 }
 
 /// Events per chunk fed to the pulse analysis (as a reader hands them).

@@ -191,29 +191,37 @@ fn standard_check_names_a_refractory_period_of_an_independent_sensor_without_tri
     names_departure_of(rec, &["--pulse-hz", &hz], "refractory");
 }
 
-/// Without a trigger channel and without `--pulse-hz` the check stops with
-/// an error that names the file and the option, and leaves no output; so
-/// does `--ignore-triggers` without `--pulse-hz`.
+/// A recording without triggers whose events show no pulsed light (events
+/// at random times) stops the check with the pulse analysis' reason,
+/// naming the file, and leaves no output; so does a pulse frequency that
+/// is not one.
 #[test]
-fn standard_check_without_triggers_asks_for_the_pulse_frequency() {
+fn standard_check_without_pulsed_light_says_so() {
+    use rand::{Rng, SeedableRng};
     let dir = tempfile::tempdir().unwrap();
-    let mut rec = independent::Recording::new(independent::Departure::None, 13);
-    rec.pulses = 60;
-    rec.triggers = false;
-    let path = dir.path().join("untriggered.raw");
-    rec.write(&path);
-    let mut with_triggers = independent::Recording::new(independent::Departure::None, 13);
-    with_triggers.pulses = 60;
-    let triggered = dir.path().join("triggered.raw");
-    with_triggers.write(&triggered);
-    for (input, extra, want) in [
-        (&path, &[][..], "--pulse-hz"),
-        (&triggered, &["--ignore-triggers"][..], "needs --pulse-hz"),
+    let path = dir.path().join("unpulsed.raw");
+    let mut rng = rand_pcg::Pcg64::seed_from_u64(21);
+    let mut t: Vec<i64> = (0..200_000).map(|_| rng.gen_range(0..40_000)).collect();
+    t.sort_unstable();
+    let mut events = ebptv::events::EventChunk::default();
+    for t in t {
+        events.push(t, rng.gen_range(0..320), rng.gen_range(0..180), 1);
+    }
+    let mut w = ebptv::io::create(&path, None, Geometry::new(320, 180)).unwrap();
+    w.write_chunk(&Chunk {
+        events,
+        triggers: Vec::new(),
+    })
+    .unwrap();
+    w.finish().unwrap();
+    for (extra, want) in [
+        (&[][..], "finding the light pulses in"),
+        (&["--pulse-hz", "0"][..], "must be positive"),
     ] {
         let out = dir.path().join("check");
         let res = Command::new(env!("CARGO_BIN_EXE_ebptv"))
             .arg("model-check")
-            .arg(input)
+            .arg(&path)
             .arg("--out")
             .arg(&out)
             .args(extra)
@@ -223,23 +231,10 @@ fn standard_check_without_triggers_asks_for_the_pulse_frequency() {
         assert!(!res.status.success(), "{err}");
         assert!(err.contains(want), "{err}");
         if extra.is_empty() {
-            assert!(err.contains("untriggered.raw"), "{err}");
+            assert!(err.contains("unpulsed.raw"), "{err}");
         }
         assert!(!out.exists(), "output left behind");
     }
-}
-
-/// Not met yet: OFF events at a fixed 150–190 µs after the pulse (the
-/// simulator's decay after the pulse's end looks different) are named
-/// `refractory` first. `cargo test --release --test modelcheck --
-/// --ignored off_events_of_an_independent`.
-#[test]
-#[ignore]
-fn standard_check_names_off_events_of_an_independent_sensor() {
-    names_departure(
-        independent::Departure::OffEvents { probability: 0.3 },
-        "off_events",
-    );
 }
 
 /// The independent development recordings (`../shared/data/dev`, see its
@@ -288,13 +283,14 @@ fn standard_check_on_independent_dev_recording_null() {
     dev_recording_passes("mcdev_null");
 }
 
-/// The same recording with its trigger channel ignored: the pulses found
-/// from the events, nothing named either.
+/// The same recording with its trigger channel ignored and no pulse
+/// frequency given: the pulses found from the events over the default
+/// band, nothing named either.
 #[test]
 fn standard_check_on_independent_dev_recording_null_without_triggers() {
     let Some(dev) = dev_dir() else { return };
     let dir = tempfile::tempdir().unwrap();
-    let extra = ["--ignore-triggers", "--pulse-hz", "5000"];
+    let extra = ["--ignore-triggers"];
     let (ok, what) = dev_passes(&dev, "mcdev_null", &dir.path().join("null"), &extra);
     assert!(ok, "{what}");
     let report = std::fs::read_to_string(dir.path().join("null/report.md")).unwrap();
