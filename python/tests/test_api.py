@@ -395,9 +395,19 @@ def test_model_check_equals_ebptv_model_check(sim: Path, tmp_path: Path) -> None
     assert (tmp_path / "py" / "model.toml").is_file()
 
 
+def test_model_check_ignoring_the_triggers_finds_the_pulses_from_the_events(
+    sim: Path, tmp_path: Path
+) -> None:
+    hinted = ebptv.model_check(
+        sim, out=tmp_path / "hz", ignore_triggers=True, pulse_hz=5000.0, **MODEL_CHECK_SMALL
+    )
+    assert any("found from the events around 5000" in n for n in hinted["notes"]), hinted["notes"]
+
+
 def test_model_check_bad_input_raises_the_cli_message(sim: Path, tmp_path: Path) -> None:
     for path, kwargs, args in [
         (sim, {"block_pulses": 5}, ["--block-pulses", "5"]),
+        (sim, {"pulse_hz": 0.0}, ["--pulse-hz", "0"]),
         (tmp_path / "missing.raw", {}, []),
     ]:
         message = cli_error("model-check", str(path), *args, "--out", str(tmp_path / "o"))
