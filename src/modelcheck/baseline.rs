@@ -117,9 +117,10 @@ impl PulseTrain {
     /// From rising trigger edges (µs): the median spacing, the first edge.
     pub(crate) fn from_triggers(rising: &[i64]) -> Result<Self> {
         if rising.len() < 3 {
-            return Err(Error::analysis(
-                "no trigger channel in the recording: give the pulse timing with --model SCENARIO.toml",
-            ));
+            return Err(Error::analysis(format!(
+                "{} rising trigger edges: a pulse train from the triggers needs at least 3",
+                rising.len()
+            )));
         }
         let mut d: Vec<i64> = rising.windows(2).map(|w| w[1] - w[0]).collect();
         d.sort_unstable();
