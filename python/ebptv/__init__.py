@@ -485,8 +485,6 @@ def model_check(
     evaluations: Optional[int] = None,
     max_effects: Optional[int] = None,
     block_pulses: Optional[int] = None,
-    profile_fit: Optional[bool] = None,
-    paired_judgement: Optional[bool] = None,
     pulse_hz: Optional[float] = None,
     ignore_triggers: Optional[bool] = None,
 ) -> Dict[str, Any]:
@@ -497,8 +495,7 @@ def model_check(
     ``model``: a starting scenario TOML (default: a standard sensor
     calibrated to the measurement). The other options are those of
     ``ebptv model-check``; ``None`` takes its default (seed 1, 5
-    replicates, 12 evaluations, 3 effects, 100 block pulses, profile fit
-    and paired judgement off). Without a trigger channel the pulses are
+    replicates, 12 evaluations, 3 effects, 100 block pulses). Without a trigger channel the pulses are
     found from the events, around ``pulse_hz`` when given;
     ``ignore_triggers``: find them from the events even when there are
     triggers. ``out``: the folder of ``model_check.json``,
@@ -522,8 +519,6 @@ def model_check(
             evaluations,
             max_effects,
             block_pulses,
-            profile_fit,
-            paired_judgement,
             pulse_hz,
             ignore_triggers,
         )

@@ -859,7 +859,7 @@ fn spectra(
 /// simulator, outputs written into `out`; model_check.json as JSON text.
 /// `None` options take the CLI's defaults.
 #[pyfunction]
-#[pyo3(signature = (path, out, model=None, seed=None, replicates=None, evaluations=None, max_effects=None, block_pulses=None, profile_fit=None, paired_judgement=None, pulse_hz=None, ignore_triggers=None))]
+#[pyo3(signature = (path, out, model=None, seed=None, replicates=None, evaluations=None, max_effects=None, block_pulses=None, pulse_hz=None, ignore_triggers=None))]
 #[allow(clippy::too_many_arguments)]
 fn model_check(
     py: Python<'_>,
@@ -871,8 +871,6 @@ fn model_check(
     evaluations: Option<usize>,
     max_effects: Option<usize>,
     block_pulses: Option<u64>,
-    profile_fit: Option<bool>,
-    paired_judgement: Option<bool>,
     pulse_hz: Option<f64>,
     ignore_triggers: Option<bool>,
 ) -> PyResult<String> {
@@ -885,8 +883,6 @@ fn model_check(
         evaluations: evaluations.unwrap_or(d.evaluations),
         max_effects: max_effects.unwrap_or(d.max_effects),
         block_pulses: block_pulses.unwrap_or(d.block_pulses),
-        profile_fit: profile_fit.unwrap_or(d.profile_fit),
-        paired_judgement: paired_judgement.unwrap_or(d.paired_judgement),
         pulse_hz,
         ignore_triggers: ignore_triggers.unwrap_or(d.ignore_triggers),
     };

@@ -48,17 +48,6 @@ pub struct ModelCheckArgs {
     /// grows with it; 100 pulses of a 640x360 sensor hold ~0.4 M events.
     #[arg(long, default_value_t = defaults().block_pulses)]
     pub block_pulses: u64,
-    /// Start two-parameter fits from the profile along the first parameter
-    /// (then refine by a local profile) instead of Nelder–Mead from the
-    /// box centre: finds narrow curved valleys (the arbiter's row/event
-    /// time, intensity latency's exponent/reference), but on small scenes
-    /// it also lets intensity latency mimic a latency jitter to a near tie
-    /// (then nothing is named). Off by default; `--profile-fit true`.
-    #[arg(long, default_value_t = defaults().profile_fit, action = clap::ArgAction::Set)]
-    pub profile_fit: bool,
-    /// Paired judgement: paired held-out gaps, rival margin on the disputed rows, explaining away (see docs/readme/modelcheck.md). Off by default; `--paired-judgement true`.
-    #[arg(long, default_value_t = defaults().paired_judgement, action = clap::ArgAction::Set)]
-    pub paired_judgement: bool,
     /// Pulse frequency (Hz) of a recording without a trigger channel: the
     /// pulse train is found from the events around it (without it, over
     /// 500–50 000 Hz, as `ebptv track` does), and latencies count from the
@@ -79,8 +68,6 @@ pub fn run(a: ModelCheckArgs) -> anyhow::Result<()> {
         evaluations: a.evaluations,
         max_effects: a.max_effects,
         block_pulses: a.block_pulses,
-        profile_fit: a.profile_fit,
-        paired_judgement: a.paired_judgement,
         pulse_hz: a.pulse_hz,
         ignore_triggers: a.ignore_triggers,
     };

@@ -42,10 +42,6 @@ pub struct ModelCheckOptions {
     pub max_effects: usize,
     /// Pulses per fit and per held-out block (at most half the recording).
     pub block_pulses: u64,
-    /// Two-parameter fits from a profile along the first parameter.
-    pub profile_fit: bool,
-    /// Paired judgement of the held-out gaps.
-    pub paired_judgement: bool,
     /// Nominal pulse frequency (Hz). Without a trigger channel (or with
     /// `ignore_triggers`) the pulse train is found from the events, as
     /// `ebptv pulses` finds it: around this frequency when given, over
@@ -65,8 +61,6 @@ impl Default for ModelCheckOptions {
             evaluations: 12,
             max_effects: 3,
             block_pulses: 100,
-            profile_fit: false,
-            paired_judgement: false,
             pulse_hz: None,
             ignore_triggers: false,
         }
@@ -441,8 +435,6 @@ pub(crate) fn check_recording_capped(
         max_evaluations: a.evaluations,
         max_effects: a.max_effects,
         seed: a.seed,
-        profile_fit: a.profile_fit,
-        paired_judgement: a.paired_judgement,
         ..WorkflowOptions::default()
     };
     let result = if standard {

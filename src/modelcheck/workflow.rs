@@ -20,46 +20,27 @@
 //!    values, so the objective changes with the parameters, not with the
 //!    noise): a grid then golden-section refinement for one parameter,
 //!    Nelder–Mead for more, in a box (log-scaled where the parameter spans
-//!    decades; with `profile_fit`, profiles for two parameters, see
-//!    [`WorkflowOptions::profile_fit`]). The objective is Σ d_s / spread_s,
+//!    decades). The objective is Σ d_s / spread_s,
 //!    the distances scaled by replicate spreads: first those of the
 //!    current model, then (second, narrower stage) those of the model
 //!    with the stage-1 fit added, since an effect changes the noise of the
 //!    signatures it drives.
-//! 4. **Judge on held-out data** (as described here with
-//!    [`WorkflowOptions::paired_judgement`]; by default the whole-gap rule,
-//!    `judge_candidates_whole_gap`: fresh seeds per round, the rival
-//!    margin a quarter of the whole gap the rival leaves, no explaining
-//!    away): assess each fitted candidate against the
-//!    *held-out* measurement with the same replicate seeds as the current
-//!    model (the same seeds in every round: gaps are paired comparisons,
-//!    and a signature a candidate does not touch cancels instead of adding
-//!    the noise of two replicate-spread estimates), and compare them on
-//!    the current model's rows ([`RowSet`]): [`judge_candidates`]. Accept
-//!    the best if
+//! 4. **Judge on held-out data** ([`judge_candidates`], the whole-gap
+//!    rule): assess each fitted candidate against the *held-out*
+//!    measurement with fresh replicate seeds per round. Accept the best if
 //!    - its gap reduction beats chance: more than `chance_factor` × the
 //!      gap's null spread (leave-one-out over the replicates), and
 //!    - it beats its best *rival* clearly: a rival is a candidate that
 //!      removes mostly the same part of the gap (at least
 //!      `RIVAL_OVERLAP` of its per-signature reductions lie where the
-//!      winner reduces as much); the lead must exceed one null spread and,
-//!      on the rows either of the two improves, the winner must leave less
-//!      than (1 − `RUNNER_UP_MARGIN`) × what the rival leaves there.
-//!      A candidate that removes another part is a second real effect,
-//!      not a competing explanation: it does not block the winner and is
-//!      tried again next round.
+//!      winner reduces as much); the lead must exceed one null spread and
+//!      `RUNNER_UP_MARGIN` × the gap the rival leaves. A candidate that
+//!      removes another part is a second real effect, not a competing
+//!      explanation: it does not block the winner and is tried again next
+//!      round.
 //!
-//!    When the lead over the rival is not clear, the two are fitted on
-//!    top of each other (B | A and A | B, whole ranges) and
-//!    [`explain_away`] decides: if one adds nothing beyond chance once the
-//!    other is in, the other is named; if each adds, both are named (A
-//!    first); if neither adds, they are interchangeable explanations and
-//!    the search stops with "unexplained" (the note names both).
-//!    Why the disputed rows and not the whole gap: with one
-//!    hidden effect the two are nearly the same; with seven the whole gap
-//!    holds every other effect's part too, and a margin on it can never be
-//!    met (on a seven-effect recording: a lead of 1079 against a
-//!    required 2553 of 11 020).
+//!    When the lead is not clear, the search stops with "unexplained"
+//!    (the round's note names best and rival).
 //! 5. After an acceptance with two or more effects found, the found effects
 //!    are refitted jointly (see `joint_refit`), kept only if the held-out
 //!    gap does not grow.
@@ -152,28 +133,6 @@ pub(crate) struct WorkflowOptions {
     pub chance_factor: f64,
     /// Base seed; every simulation seed derives from it.
     pub seed: u64,
-    /// Two-parameter fits: stage 1 is the profile along the first
-    /// parameter (`profile_then_simplex`) instead of Nelder–Mead from
-    /// the box centre, stage 2 a local profile around the stage-1 value
-    /// (`local_profile_then_simplex`). Needed for the arbiter's
-    /// row/event-time valley and intensity latency's exponent/reference
-    /// valley (both recovered within 30 % only with it). Off by default:
-    /// on small scenes it also lets intensity latency mimic a latency
-    /// jitter to a near tie (the CLI test's 160×120, 0.04 s scene:
-    /// held-out gap 47.5 vs 43.7 of 2114), and the acceptance rule then
-    /// names nothing.
-    #[serde(default)]
-    pub profile_fit: bool,
-    /// The paired judgement ([`judge_candidates`]): one replicate seed
-    /// set for every held-out assessment (paired gaps), candidates compared
-    /// on the current model's rows, the rival margin on the disputed rows,
-    /// and explaining away ([`explain_away`]) when the lead is not clear.
-    /// Off by default: with it an effect outside the catalogue (long pulse
-    /// streaks on the 160×120 test scene) gets two compensating effects
-    /// named (refractory, then arbiter: gap 290 → 216 → 149) where the
-    /// default names nothing.
-    #[serde(default)]
-    pub paired_judgement: bool,
 }
 
 impl Default for WorkflowOptions {
@@ -185,8 +144,6 @@ impl Default for WorkflowOptions {
             max_evaluations: 30,
             chance_factor: 3.0,
             seed: 1,
-            profile_fit: false,
-            paired_judgement: false,
         }
     }
 }
@@ -238,7 +195,7 @@ pub struct Round {
     pub table_before: DiscrepancyTable,
     /// Best first.
     pub candidates: Vec<CandidateResult>,
-    /// The effect(s) added this round (`+`-joined names), if any.
+    /// The effect added this round, if any.
     pub accepted: Option<String>,
     /// How the round was decided.
     pub note: String,
@@ -297,21 +254,6 @@ pub(crate) fn seed_for(base: u64, purpose: u64, k: u64) -> u64 {
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
     z ^ (z >> 31)
 }
-
-/// Seeds of every held-out assessment (the start model, each candidate,
-/// joint refits; the same in every round): gaps of different models are
-/// then paired comparisons. With a fresh seed set per round or per purpose
-/// a signature no candidate touches still changed its z by the noise of
-/// two replicate-spread estimates: several hundred per far-off row on the
-/// seven-effect recording, ~900 in total for a candidate that does nothing.
-fn hold_seeds(opts: &WorkflowOptions) -> Vec<u64> {
-    (0..opts.replicates as u64 + 1)
-        .map(|k| seed_for(opts.seed, HOLD_SEED_PURPOSE, k))
-        .collect()
-}
-
-/// Seed purpose of [`hold_seeds`].
-const HOLD_SEED_PURPOSE: u64 = 3000;
 
 /// The current model simulated with a reference seed and replicates.
 struct Assessment {
@@ -516,13 +458,12 @@ fn fit_candidate(
     max_evaluations: usize,
     crn_seed: u64,
     refine_from: Option<&[f64]>,
-    profile_fit: bool,
 ) -> Result<(Vec<f64>, f64, usize)> {
     let floors = base.spread_floors(measured_fit)?;
     // With common random numbers the objective is a function of the
     // parameter values alone, and the searches come back to points they
-    // have seen (a bound the step clamps to, the profile's best value that
-    // starts the simplex): such a point is simulated once.
+    // have seen (a bound the step clamps to, a simplex vertex kept from one
+    // step to the next): such a point is simulated once.
     let mut seen: HashMap<Vec<u64>, f64> = HashMap::new();
     let mut objective = |u: &[f64]| -> Result<f64> {
         let candidate = setting(spec, u);
@@ -554,13 +495,8 @@ fn fit_candidate(
         };
         let (u, v, e) = minimise_1d_in(&mut |x| objective(&[x]), lo, hi, max_evaluations)?;
         Ok((vec![u], v, e))
-    } else if profile_fit && spec.params.len() == 2 && refine_from.is_none() {
-        profile_then_simplex(&mut objective, max_evaluations)
-    } else if let (true, 2, Some(u0)) = (profile_fit, spec.params.len(), refine_from) {
-        local_profile_then_simplex(&mut objective, u0, max_evaluations)
     } else {
         let (start, step) = match refine_from {
-            Some(u) if profile_fit => (u.to_vec(), REFINE_SIMPLEX_STEP),
             Some(u) => (u.to_vec(), REFINE_HALF_WIDTH),
             None => (vec![0.5; spec.params.len()], 0.3),
         };
@@ -621,7 +557,6 @@ fn joint_refit(
                 opts.max_evaluations,
                 crn,
                 Some(&u0),
-                opts.profile_fit,
             )?;
             model[pos] = setting(spec, &u);
             refitted = true;
@@ -630,13 +565,9 @@ fn joint_refit(
     if !refitted {
         return Ok(None);
     }
-    let seeds: Vec<u64> = if opts.paired_judgement {
-        hold_seeds(opts)
-    } else {
-        (0..opts.replicates as u64 + 1)
-            .map(|k| seed_for(opts.seed, 6000 + round_no, k))
-            .collect()
-    };
+    let seeds: Vec<u64> = (0..opts.replicates as u64 + 1)
+        .map(|k| seed_for(opts.seed, 6000 + round_no, k))
+        .collect();
     let a = Assessment::new(sim, cfg, &model, &seeds, opts.z_threshold)?;
     let gap = a.table(m_hold, opts.z_threshold)?.gap();
     Ok(Some((model, a, gap)))
@@ -712,11 +643,7 @@ pub(crate) fn run(
             .map(|k| seed_for(opts.seed, purpose, k))
             .collect()
     };
-    let start_seeds = if opts.paired_judgement {
-        hold_seeds(opts)
-    } else {
-        seeds(1000, opts.replicates + 1)
-    };
+    let start_seeds = seeds(1000, opts.replicates + 1);
     let mut current = Assessment::new(sim, cfg, &model, &start_seeds, z)?;
     loop {
         let table = current.table(&m_hold, z)?;
@@ -759,11 +686,7 @@ pub(crate) fn run(
         }
         round_no += 1;
         let crn = seed_for(opts.seed, 2000 + round_no, 0);
-        let hold_seeds = if opts.paired_judgement {
-            hold_seeds(opts)
-        } else {
-            seeds(3000 + round_no, opts.replicates + 1)
-        };
+        let hold_seeds = seeds(3000 + round_no, opts.replicates + 1);
         let scale_seeds = seeds(4000 + round_no, opts.replicates + 1);
         // Candidates in parallel; each fit is sequential (its evaluations
         // share the common random numbers).
@@ -781,7 +704,6 @@ pub(crate) fn run(
                     opts.max_evaluations,
                     crn,
                     None,
-                    opts.profile_fit,
                 )?;
                 // Stage 2: the effect changes the noise of the signatures it
                 // drives (hot pixels make the off-burst rate noisy), so take
@@ -799,7 +721,6 @@ pub(crate) fn run(
                     opts.max_evaluations,
                     crn,
                     Some(&u1),
-                    opts.profile_fit,
                 )?;
                 let evaluations = e1 + e2;
                 let set = setting(spec, &u);
@@ -827,11 +748,7 @@ pub(crate) fn run(
         let mut fitted = fitted;
         let names: Vec<&str> = fitted.iter().map(|f| f.0.name.as_str()).collect();
         let tables: Vec<&DiscrepancyTable> = fitted.iter().map(|f| &f.3).collect();
-        let j = if opts.paired_judgement {
-            judge_candidates(&table, &names, &tables, null_sd, opts.chance_factor)
-        } else {
-            judge_candidates_whole_gap(&table, &names, &tables, null_sd, opts.chance_factor)
-        };
+        let j = judge_candidates(&table, &names, &tables, null_sd, opts.chance_factor);
         let candidates: Vec<CandidateResult> = j
             .order
             .iter()
@@ -848,7 +765,7 @@ pub(crate) fn run(
             .to_string();
         let judged = format!(
             "best `{}` improves the gap by {:.2} (chance {:.2}); rival `{}` by {:.2}: \
-             lead {:.2} (needs {:.2}), contested {:.2}, left on the disputed rows {:.2} vs {:.2}",
+             lead {:.2} (needs {:.2}), contested {:.2}",
             fitted[best_i].0.name,
             j.improvement[best_i],
             chance,
@@ -857,119 +774,25 @@ pub(crate) fn run(
             j.lead,
             j.needed,
             j.contested,
-            j.left_best,
-            j.left_rival
         );
-        // What to add: (setting, gap before, gap after) in order, and the
-        // assessment of the model with them.
-        let mut accepted: Vec<(EffectSetting, f64, f64)> = Vec::new();
-        let mut accepted_assessment: Option<Assessment> = None;
         let mut note = judged.clone();
         if j.clear() {
-            let f = &fitted[best_i];
-            accepted.push((f.2.clone(), gap_before, f.0.gap_after));
             note.push_str("; clear");
-        } else if let (true, true, Some(rival_i)) = (opts.paired_judgement, j.beats_chance, j.rival)
-        {
-            // Not clear: fit the two jointly and see which one the other
-            // explains away.
-            let spec_of = |i: usize| {
-                remaining
-                    .iter()
-                    .find(|c| c.name == fitted[i].0.name)
-                    .copied()
-                    .expect("fitted candidates come from `remaining`")
-            };
-            let (sa, sb) = (spec_of(best_i), spec_of(rival_i));
-            let (set_a, set_b) = (fitted[best_i].2.clone(), fitted[rival_i].2.clone());
-            let conditional = |first: &EffectSetting, spec: &EffectSpec| {
-                fit_given(
-                    sim,
-                    cfg,
-                    &model,
-                    first,
-                    spec,
-                    &m_fit,
-                    &current,
-                    opts,
-                    crn,
-                    &scale_seeds,
-                )
-            };
-            let b_given_a = conditional(&set_a, sb)?;
-            let a_given_b = conditional(&set_b, sa)?;
-            let assess = |pair: [&EffectSetting; 2]| -> Result<(Assessment, DiscrepancyTable)> {
-                let mut pm = model.clone();
-                pm.extend(pair.iter().map(|s| (*s).clone()));
-                let pa = Assessment::new(sim, cfg, &pm, &hold_seeds, z)?;
-                let pt = pa.table(&m_hold, z)?;
-                Ok((pa, pt))
-            };
-            let (pa, pt) = assess([&set_a, &b_given_a])?;
-            let (_, pt_ba) = assess([&set_b, &a_given_b])?;
-            let rows = RowSet::of(&table);
-            let (ga, gb, gab, gba) = (
-                rows.gap(tables[best_i]),
-                rows.gap(tables[rival_i]),
-                rows.gap(&pt),
-                rows.gap(&pt_ba),
-            );
-            let outcome = explain_away(ga, gb, gab, gba, chance);
-            note.push_str(&format!(
-                "; not clear: `{}` leaves {ga:.2}, with `{}` fitted on top {gab:.2} ({:?}); \
-                 `{}` leaves {gb:.2}, with `{}` on top {gba:.2} ({:?}): {outcome:?}",
-                set_a.name,
-                set_b.name,
-                b_given_a.parameters,
-                set_b.name,
-                set_a.name,
-                a_given_b.parameters,
-            ));
-            let pair = [set_a.clone(), b_given_a.clone()];
-            match outcome {
-                PairOutcome::Both => {
-                    accepted.push((pair[0].clone(), gap_before, fitted[best_i].0.gap_after));
-                    accepted.push((pair[1].clone(), fitted[best_i].0.gap_after, pt.gap()));
-                    accepted_assessment = Some(pa);
-                }
-                PairOutcome::FirstOnly => {
-                    let f = &fitted[best_i];
-                    accepted.push((f.2.clone(), gap_before, f.0.gap_after));
-                }
-                PairOutcome::SecondOnly => {
-                    let f = &fitted[rival_i];
-                    accepted.push((f.2.clone(), gap_before, f.0.gap_after));
-                }
-                PairOutcome::Ambiguous => {}
-            }
-        }
-        if !accepted.is_empty() {
-            let names_added: Vec<String> = accepted.iter().map(|a| a.0.name.clone()).collect();
-            for (set, gb, ga) in &accepted {
-                effects.push(FoundEffect {
-                    name: set.name.clone(),
-                    parameters: set.parameters.clone(),
-                    gap_before: *gb,
-                    gap_after: *ga,
-                });
-                model.push(set.clone());
-            }
-            current = match accepted_assessment {
-                Some(a) => a,
-                None => {
-                    let i = fitted
-                        .iter()
-                        .position(|f| f.0.name == names_added[0])
-                        .expect("accepted from `fitted`");
-                    fitted.swap_remove(i).1
-                }
-            };
+            let (found, assessment, set, _) = fitted.swap_remove(best_i);
+            effects.push(FoundEffect {
+                name: set.name.clone(),
+                parameters: set.parameters.clone(),
+                gap_before,
+                gap_after: found.gap_after,
+            });
+            model.push(set);
+            current = assessment;
             rounds.push(Round {
                 gap_before,
                 gap_null_sd: null_sd,
                 table_before: table,
                 candidates,
-                accepted: Some(names_added.join("+")),
+                accepted: Some(found.name),
                 note,
             });
             if effects.len() >= 2 {

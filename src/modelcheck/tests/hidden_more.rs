@@ -26,7 +26,6 @@ fn opts(max_effects: usize) -> WorkflowOptions {
         max_evaluations: 14,
         max_effects,
         seed: 77,
-        profile_fit: true,
         ..WorkflowOptions::default()
     }
 }
@@ -221,93 +220,4 @@ fn real_sim_two_hidden_effects_background_and_latency_jitter() {
         setting("latency_jitter", &[("spread_us", strength(63, 6.0, 15.0))]),
     ];
     assert_both_found(&truth, 62, 72);
-}
-
-/// Several hidden effects at once (with the paired judgement,
-/// `WorkflowOptions::paired_judgement`): every effect named must be
-/// one of the hidden ones (no impostor that mimics two of them), the gap
-/// must shrink with every effect added, and most of the hidden effects
-/// must be found, each within 30 %.
-fn assert_several_found(truth: &[EffectSetting], seed: u64, order_seed: u64, at_least: usize) {
-    let options = WorkflowOptions {
-        paired_judgement: true,
-        ..opts(truth.len())
-    };
-    let res = check_hidden_opts(truth, seed, order_seed, None, &options);
-    for e in &res.effects {
-        let t = truth
-            .iter()
-            .find(|t| t.name == e.name)
-            .unwrap_or_else(|| panic!("named `{}`, not hidden: {:#?}", e.name, res.rounds));
-        assert_parameters(&e.parameters, t);
-        assert!(e.gap_after < e.gap_before, "gap grew: {e:?}");
-    }
-    assert!(
-        res.effects.len() >= at_least,
-        "{} of {} hidden effects named: {:?}",
-        res.effects.len(),
-        truth.len(),
-        res.effects
-    );
-    let first_gap = res.effects[0].gap_before;
-    let last_gap = res.effects.last().unwrap().gap_after;
-    assert!(last_gap <= 0.5 * first_gap, "{:?}", res.effects);
-}
-
-/// Three effects, each with a component of the gap of its own (busy
-/// timestamp ticks; a fixed pattern of off-burst activity; the latency's
-/// slope over the recording), so that each round's best holds only part of
-/// the gap: the whole-gap rule (the default judgement) asks for a lead of a quarter of the
-/// *whole* remaining gap over the best rival, which the other effects'
-/// parts alone can make unreachable.
-// Not met (paired judgement): `arbiter_saturation` is named first but with the
-// wrong split (row 0.0047 µs, event 0.258 µs) and leaves only 68.6 of a
-// gap of 2799, so the hot pixels and the drift are then within chance
-// (clock drift removes 26.5, chance 63.5).
-#[test]
-#[ignore]
-fn real_sim_three_hidden_effects_arbiter_hot_pixels_clock_drift() {
-    let truth = [
-        setting(
-            "arbiter_saturation",
-            &[
-                ("row_time_us", strength(85, 0.02, 0.1)),
-                ("event_time_us", strength(86, 0.05, 0.3)),
-            ],
-        ),
-        setting(
-            "hot_pixels",
-            &[
-                ("count", strength(83, 20.0, 60.0).round()),
-                ("rate_hz", strength(84, 300.0, 3000.0)),
-            ],
-        ),
-        setting("clock_drift", &[("ppm", strength(87, 150.0, 400.0))]),
-    ];
-    assert_several_found(&truth, 85, 95, 3);
-}
-
-/// Not met (paired judgement): background noise + latency jitter + hot pixels.
-/// `off_events` with a long decay (τ ≈ 280 µs: OFF events spread over the
-/// whole period like the background's) is named first and explains
-/// background noise away (background on top of it adds nothing: 166.8 →
-/// 168.6, while OFF events on top of background still remove 71), and it
-/// leaves only 167 of a gap of 3134, so the jitter and the hot pixels are
-/// then within chance. No signature separates the background's ON/OFF
-/// pairs from a slowly decaying OFF response on this scene.
-#[test]
-#[ignore]
-fn real_sim_three_hidden_effects_background_jitter_hot_pixels() {
-    let truth = [
-        setting("background_noise", &[("rate_hz", strength(81, 3.0, 15.0))]),
-        setting("latency_jitter", &[("spread_us", strength(82, 6.0, 15.0))]),
-        setting(
-            "hot_pixels",
-            &[
-                ("count", strength(83, 20.0, 60.0).round()),
-                ("rate_hz", strength(84, 300.0, 3000.0)),
-            ],
-        ),
-    ];
-    assert_several_found(&truth, 81, 91, 3);
 }

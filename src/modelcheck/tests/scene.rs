@@ -51,7 +51,6 @@ fn opts() -> WorkflowOptions {
         max_evaluations: 14,
         max_effects: 2,
         seed: 77,
-        profile_fit: true,
         ..WorkflowOptions::default()
     }
 }

@@ -12,7 +12,7 @@ use crate::cluster::Particle;
 use crate::events::{EventChunk, Geometry};
 use crate::modelcheck::signatures::SignatureConfig;
 use crate::modelcheck::workflow::{
-    minimise_1d, nelder_mead, run, EffectSetting, EffectSpec, ParamSpec, Recording, Simulator,
+    minimise_1d_in, nelder_mead, run, EffectSetting, EffectSpec, ParamSpec, Recording, Simulator,
     Verdict, WorkflowOptions,
 };
 use crate::pulses::{PulseSource, PulseTiming};
@@ -448,13 +448,13 @@ fn catalogue_order_does_not_change_the_answer() {
 
 #[test]
 fn optimisers_find_known_minima() {
-    let (u, v, n) = minimise_1d(&mut |x| Ok((x - 0.3141).powi(2)), 30).unwrap();
+    let (u, v, n) = minimise_1d_in(&mut |x| Ok((x - 0.3141).powi(2)), 0.0, 1.0, 30).unwrap();
     assert!(
         (u - 0.3141).abs() < 1e-3 && v < 1e-6 && n <= 30,
         "{u} {v} {n}"
     );
     // Minimum on the boundary.
-    let (u, _, _) = minimise_1d(&mut |x| Ok(x), 20).unwrap();
+    let (u, _, _) = minimise_1d_in(&mut |x| Ok(x), 0.0, 1.0, 20).unwrap();
     assert!(u < 1e-9);
     let (x, v, n) = nelder_mead(
         &mut |p| {
@@ -497,11 +497,11 @@ impl Simulator for Counting<'_> {
 }
 
 /// A candidate's fit comes back to points it has evaluated (a bound the
-/// search clamps to, the profile's best value that starts the simplex);
+/// search clamps to, a simplex vertex kept from one step to the next);
 /// with common random numbers such a point is simulated once per fit. A
-/// hot-pixel search (two parameters: profile, then simplex) may meet the
-/// same point again only in another fit (a joint refit), so no setting is
-/// simulated with one seed more than twice.
+/// hot-pixel search (two parameters: the simplex, then a narrower one
+/// around it) may meet the same point again only in another fit (a joint
+/// refit), so no setting is simulated with one seed more than twice.
 #[test]
 fn a_fit_simulates_each_point_once() {
     let truth = setting("hot_pixels", &[("fraction", 0.01), ("rate_hz", 800.0)]);
@@ -511,11 +511,7 @@ fn a_fit_simulates_each_point_once() {
         inner: &toy,
         calls: Default::default(),
     };
-    let o = WorkflowOptions {
-        profile_fit: true,
-        ..opts()
-    };
-    let res = run(&counting, &config(), &fit, &hold, &[], &o).unwrap();
+    let res = run(&counting, &config(), &fit, &hold, &[], &opts()).unwrap();
     assert_eq!(
         res.effects.first().map(|e| e.name.as_str()),
         Some("hot_pixels")

@@ -1,21 +1,12 @@
 //! The searches that fit a candidate effect's parameters in the unit cube:
-//! golden-section minimisation in one dimension ([`minimise_1d`]),
-//! Nelder–Mead simplex ([`nelder_mead`]), and the profile searches that seed
-//! the simplex of two-parameter effects (a coarse grid over the first
-//! parameter with a 1-D fit of the second at each point).
+//! golden-section minimisation in one dimension ([`minimise_1d_in`]),
+//! and the Nelder–Mead simplex ([`nelder_mead`]) for several parameters.
 
 use super::*;
 
-/// Minimise `f` on [0, 1]: a grid, then golden-section search in the
-/// bracket around the best grid point. Returns (argmin, min, evaluations).
-pub(crate) fn minimise_1d(
-    f: &mut dyn FnMut(f64) -> Result<f64>,
-    max_evals: usize,
-) -> Result<(f64, f64, usize)> {
-    minimise_1d_in(f, 0.0, 1.0, max_evals)
-}
-
-/// [`minimise_1d`] on `[lo, hi]` ⊂ [0, 1].
+/// Minimise `f` on `[lo, hi]` ⊂ [0, 1]: a grid, then golden-section
+/// search in the bracket around the best grid point. Returns (argmin, min,
+/// evaluations).
 pub(crate) fn minimise_1d_in(
     f: &mut dyn FnMut(f64) -> Result<f64>,
     lo: f64,
@@ -143,120 +134,6 @@ pub(crate) fn nelder_mead(
     let (x, v) = simplex.swap_remove(0);
     Ok((x, v, evals))
 }
-
-/// Outer grid of [`profile_then_simplex`]: values of the first parameter
-/// (cell centres of the unit interval).
-pub(super) const PROFILE_OUTER: [f64; 4] = [0.125, 0.375, 0.625, 0.875];
-
-/// First-stage search for two parameters: the profile of the objective
-/// along the first (for each of [`PROFILE_OUTER`], the second parameter
-/// fitted by [`minimise_1d`]), then Nelder–Mead from the best profile point.
-///
-/// Why not Nelder–Mead from the centre: two parameters of one effect often
-/// trade off along a narrow curved valley (the arbiter's row and event time
-/// both lengthen the readout of a burst: only row·groups + event·events is
-/// pinned sharply, the split between them only weakly). A simplex started
-/// far from the valley falls into it wherever it first meets it and then
-/// shrinks there, 5× off along the valley. The profile meets the valley at
-/// every outer value and compares the objective *along* it.
-pub(super) fn profile_then_simplex(
-    objective: &mut dyn FnMut(&[f64]) -> Result<f64>,
-    max_evaluations: usize,
-) -> Result<(Vec<f64>, f64, usize)> {
-    // Budget: about 4.5 × max_evaluations + 8 (each inner search needs
-    // enough points to land in the valley: it is often narrow, 15 % of a
-    // range spanning decades).
-    let inner = max_evaluations.max(5);
-    let mut evals = 0;
-    let mut best = (vec![0.5, 0.5], f64::INFINITY);
-    for &a in &PROFILE_OUTER {
-        let (b, v, e) = minimise_1d(&mut |b| objective(&[a, b]), inner)?;
-        evals += e;
-        if v < best.1 {
-            best = (vec![a, b], v);
-        }
-    }
-    let rest = (max_evaluations / 2).max(6);
-    let (x, v, e) = nelder_mead(objective, &best.0, 0.5 / PROFILE_OUTER.len() as f64, rest)?;
-    evals += e;
-    Ok(if v <= best.1 {
-        (x, v, evals)
-    } else {
-        (best.0, best.1, evals)
-    })
-}
-
-/// Outer offsets (unit-cube coordinates of the first parameter) of
-/// [`local_profile_then_simplex`] around the stage-1 value.
-pub(super) const LOCAL_PROFILE_OUTER: [f64; 3] = [-0.15, 0.0, 0.15];
-
-/// Half width of the inner search of [`local_profile_then_simplex`] around
-/// the stage-1 value of the second parameter.
-pub(super) const LOCAL_PROFILE_INNER_HALF_WIDTH: f64 = 0.25;
-
-/// Second-stage search for two parameters (with `profile_fit`): the
-/// profile along the first parameter at the stage-1 value and
-/// ± [`LOCAL_PROFILE_OUTER`], the second fitted by [`minimise_1d_in`] in a
-/// window around its stage-1 value, then Nelder–Mead from the best
-/// profile point.
-///
-/// Why: the stage-1 weights can leave a valley flat (intensity latency:
-/// exponent and reference trade off, τ ∝ reference^exponent, and the
-/// stage-1 objective is 246 at exponent 0.31 vs 253 at the true 0.55),
-/// so stage 1 stops anywhere along it. The stage-2 weights tilt the
-/// valley towards the truth (104.6 vs 110.2), but a simplex started on the
-/// valley's floor with a step across it shrinks before it has walked
-/// along it. Stepping the first parameter and re-finding the valley's
-/// floor in the second at each step walks along it by construction. Local
-/// (not over the whole box), so a stage-1 fit already in the right basin
-/// stays there.
-pub(super) fn local_profile_then_simplex(
-    objective: &mut dyn FnMut(&[f64]) -> Result<f64>,
-    u0: &[f64],
-    max_evaluations: usize,
-) -> Result<(Vec<f64>, f64, usize)> {
-    let inner = (2 * max_evaluations / 3).max(5);
-    let mut evals = 0;
-    let mut best = (u0.to_vec(), f64::INFINITY);
-    let mut outer: Vec<f64> = LOCAL_PROFILE_OUTER
-        .iter()
-        .map(|d| (u0[0] + d).clamp(0.0, 1.0))
-        .collect();
-    outer.dedup_by(|a, b| (*a - *b).abs() < 1e-9);
-    for a in outer {
-        let (b, v, e) = minimise_1d_in(
-            &mut |b| objective(&[a, b]),
-            u0[1] - LOCAL_PROFILE_INNER_HALF_WIDTH,
-            u0[1] + LOCAL_PROFILE_INNER_HALF_WIDTH,
-            inner,
-        )?;
-        evals += e;
-        if v < best.1 {
-            best = (vec![a, b], v);
-        }
-    }
-    // The profile's outer steps are coarse (a factor 2.5 on a parameter
-    // spanning decades); the simplex walks the rest of the way along the
-    // valley, with the budget the plain second stage had.
-    let (x, v, e) = nelder_mead(
-        objective,
-        &best.0,
-        0.5 * LOCAL_PROFILE_OUTER[2],
-        2 * max_evaluations,
-    )?;
-    evals += e;
-    Ok(if v <= best.1 {
-        (x, v, evals)
-    } else {
-        (best.0, best.1, evals)
-    })
-}
-
-/// Initial simplex step of the second-stage search for several
-/// parameters: wide enough to move along a valley the first stage's
-/// weights left flat (intensity latency: exponent and reference trade off,
-/// and only the second stage's weights tell them apart).
-pub(super) const REFINE_SIMPLEX_STEP: f64 = 0.25;
 
 /// Half width (unit-cube coordinates) of the second-stage search.
 pub(super) const REFINE_HALF_WIDTH: f64 = 0.15;
