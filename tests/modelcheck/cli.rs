@@ -308,7 +308,7 @@ fn standard_check_on_independent_dev_recording_refractory() {
 }
 
 /// All eight development recordings with default options (several
-/// minutes): `cargo test --release --test modelcheck -- --ignored dev_recordings_all`.
+/// minutes): `cargo test --release --test integration -- --ignored dev_recordings_all`.
 #[test]
 #[ignore]
 fn standard_check_on_independent_dev_recordings_all() {

@@ -223,7 +223,7 @@ fn independent_shear_layer_is_tracked() {
 /// `ptvdev_vortex` of the shared independent recordings (Lamb–Oseen,
 /// rc 30 px, 4 px/pulse on 2 px/pulse), scored by the shared scorers
 /// (Python 3 with numpy and scipy). Ignored by default:
-/// `cargo test --release --test ptv -- --ignored --nocapture vortex_core::`
+/// `cargo test --release --test integration -- --ignored --nocapture ptv::vortex_core::`
 /// (`PTVDEV_DIR` overrides the folder).
 #[test]
 #[ignore]

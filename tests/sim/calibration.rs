@@ -209,7 +209,7 @@ fn readout_saturates_near_40_mev_s() {
 }
 
 /// Not a test: a fixed workload for measuring CPU time per event
-/// (`/usr/bin/time cargo test --release --test sim -- --ignored calibration::workload`).
+/// (`/usr/bin/time cargo test --release --test integration -- --ignored sim::calibration::workload`).
 #[test]
 #[ignore]
 fn workload() {

@@ -1,7 +1,7 @@
 //! Seed-to-seed statistics of the calibrated presets: the table that a
 //! change of the random stream is judged by (BENCHMARKS.md "## Simulator").
 //! Not a test (no assertion; the calibration tests hold the
-//! thresholds): `cargo test --release --test sim -- --ignored stats::
+//! thresholds): `cargo test --release --test integration -- --ignored sim::stats::
 //! --nocapture` prints one line `STAT <name> <seed> <value>` per statistic
 //! and seed, to be compared between two builds (mean and seed-to-seed
 //! standard deviation per statistic).

@@ -1,4 +1,4 @@
-//! Integration tests of the sim area, one binary (modules by concern).
+//! Integration tests of the sim area (modules by concern).
 
 mod calibration;
 mod cli;

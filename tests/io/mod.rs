@@ -1,4 +1,4 @@
-//! Integration tests of the io area, one binary (modules by concern).
+//! Integration tests of the io area (modules by concern).
 
 mod cli_info_convert;
 mod real_files;
