@@ -76,7 +76,7 @@
 //! The fit and held-out blocks are different time blocks of the recording
 //! (the caller splits them), so a candidate cannot win by fitting noise.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::BTreeMap;
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -86,8 +86,8 @@ use super::scene::SceneSimulator;
 use super::signatures::{SignatureConfig, Signatures};
 use super::workflow::{
     minimise_1d_in, nelder_mead, seed_for, setting as workflow_setting, signatures_of,
-    CandidateResult, EffectSetting, EffectSpec, FoundEffect, ModelCheckResult, Recording, Round,
-    Simulator, Verdict,
+    CandidateResult, EffectSetting, EffectSpec, FitMemo, FoundEffect, ModelCheckResult, Recording,
+    Round, Simulator, Verdict,
 };
 use crate::error::{Error, Result};
 use crate::sim::Scenario;
@@ -576,27 +576,16 @@ fn fit(
     evaluations: usize,
     crn_seed: u64,
 ) -> Result<(EffectSetting, f64, usize)> {
-    // With common random numbers the objective depends on the parameter
-    // values alone, and the search comes back to points it has seen (the
-    // best grid point starts the simplex, a step clamped to the box lands
-    // on a bound again): such a point is simulated once.
-    let mut seen: HashMap<Vec<u64>, f64> = HashMap::new();
+    let mut memo = FitMemo::default();
     let mut objective = |u: &[f64]| -> Result<f64> {
-        let candidate = workflow_setting(spec, u);
-        let key: Vec<u64> = candidate.parameters.values().map(|v| v.to_bits()).collect();
-        if let Some(&v) = seen.get(&key) {
-            return Ok(v);
-        }
-        let m = with_effect(model, candidate);
-        let rec = sim.simulate(&m, crn_seed)?;
-        let v = if rec.events.is_empty() {
-            f64::INFINITY
-        } else {
+        memo.value(workflow_setting(spec, u), |candidate| {
+            let rec = sim.simulate(&with_effect(model, candidate), crn_seed)?;
+            if rec.events.is_empty() {
+                return Ok(f64::INFINITY);
+            }
             let sg = signatures_of(cfg, &rec)?;
-            yard.objective(measured_fit, &sg)?
-        };
-        seen.insert(key, v);
-        Ok(v)
+            yard.objective(measured_fit, &sg)
+        })
     };
     let (u, v, n) = if spec.params.len() == 1 {
         let (u, v, n) = minimise_1d_in(&mut |x| objective(&[x]), 0.0, 1.0, evaluations.max(5))?;

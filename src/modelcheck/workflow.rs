@@ -460,33 +460,24 @@ fn fit_candidate(
     refine_from: Option<&[f64]>,
 ) -> Result<(Vec<f64>, f64, usize)> {
     let floors = base.spread_floors(measured_fit)?;
-    // With common random numbers the objective is a function of the
-    // parameter values alone, and the searches come back to points they
-    // have seen (a bound the step clamps to, a simplex vertex kept from one
-    // step to the next): such a point is simulated once.
-    let mut seen: HashMap<Vec<u64>, f64> = HashMap::new();
+    let mut memo = FitMemo::default();
     let mut objective = |u: &[f64]| -> Result<f64> {
-        let candidate = setting(spec, u);
-        let key: Vec<u64> = candidate.parameters.values().map(|v| v.to_bits()).collect();
-        if let Some(&v) = seen.get(&key) {
-            return Ok(v);
-        }
-        let mut m = model.to_vec();
-        m.push(candidate);
-        let rec = sim.simulate(&m, crn_seed)?;
-        let v = if rec.events.is_empty() {
-            // Parameters that silence the sensor (a rate limit of less than
-            // one event per window) are as far from any measurement as can be.
-            f64::INFINITY
-        } else {
+        memo.value(setting(spec, u), |candidate| {
+            let mut m = model.to_vec();
+            m.push(candidate);
+            let rec = sim.simulate(&m, crn_seed)?;
+            if rec.events.is_empty() {
+                // Parameters that silence the sensor (a rate limit of less
+                // than one event per window) are as far from any measurement
+                // as can be.
+                return Ok(f64::INFINITY);
+            }
             let s = signatures_of(cfg, &rec)?;
             // Distances to the candidate's simulation, judged by the current
             // model's replicate spreads.
             let d = distances(measured_fit, &s)?;
-            base.scaled_sum(&d, &floors)
-        };
-        seen.insert(key, v);
-        Ok(v)
+            Ok(base.scaled_sum(&d, &floors))
+        })
     };
     if spec.params.len() == 1 {
         let (lo, hi) = match refine_from {

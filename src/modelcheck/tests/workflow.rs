@@ -525,3 +525,31 @@ fn a_fit_simulates_each_point_once() {
     );
     assert!(*most <= 2, "{most} simulations of {worst}");
 }
+
+/// The fit memo evaluates each parameter point once and returns the same
+/// value again; another point is evaluated; a failed evaluation is not
+/// remembered (the next call tries again).
+#[test]
+fn fit_memo_evaluates_each_point_once() {
+    use crate::modelcheck::workflow::FitMemo;
+    let point = |v: f64| EffectSetting {
+        name: "hot_pixels".into(),
+        parameters: [("fraction".to_string(), v), ("rate_hz".to_string(), 800.0)]
+            .into_iter()
+            .collect(),
+    };
+    let mut memo = FitMemo::default();
+    let calls = std::cell::Cell::new(0);
+    let eval = |p: EffectSetting| -> Result<f64> {
+        calls.set(calls.get() + 1);
+        Ok(p.parameters["fraction"] * 10.0)
+    };
+    assert_eq!(memo.value(point(0.5), eval).unwrap(), 5.0);
+    assert_eq!(memo.value(point(0.5), eval).unwrap(), 5.0);
+    assert_eq!(memo.value(point(0.25), eval).unwrap(), 2.5);
+    assert_eq!(calls.get(), 2);
+    let failing = |_: EffectSetting| -> Result<f64> { Err(crate::Error::analysis("no events")) };
+    assert!(memo.value(point(0.75), failing).is_err());
+    assert_eq!(memo.value(point(0.75), eval).unwrap(), 7.5);
+    assert_eq!(calls.get(), 3);
+}

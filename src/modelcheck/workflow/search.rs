@@ -1,6 +1,7 @@
 //! The searches that fit a candidate effect's parameters in the unit cube:
 //! golden-section minimisation in one dimension ([`minimise_1d_in`]),
-//! and the Nelder–Mead simplex ([`nelder_mead`]) for several parameters.
+//! and the Nelder–Mead simplex ([`nelder_mead`]) for several parameters;
+//! [`FitMemo`] evaluates a fit's objective once per parameter point.
 
 use super::*;
 
@@ -137,3 +138,34 @@ pub(crate) fn nelder_mead(
 
 /// Half width (unit-cube coordinates) of the second-stage search.
 pub(super) const REFINE_HALF_WIDTH: f64 = 0.15;
+
+/// The objective of one candidate fit, evaluated once per parameter point.
+///
+/// A fit uses common random numbers (one seed for every point), so its
+/// objective is a function of the parameter values alone, and the searches
+/// come back to points they have seen (a bound a step clamps to, the best
+/// grid point that starts the simplex, a vertex kept from one step to the
+/// next): such a point is simulated once. Points are keyed by the effect's
+/// parameter values (bit patterns), as the simulator receives them.
+#[derive(Debug, Default)]
+pub(crate) struct FitMemo {
+    seen: HashMap<Vec<u64>, f64>,
+}
+
+impl FitMemo {
+    /// The objective at `candidate`: from the memo, or `eval(candidate)`
+    /// the first time.
+    pub(crate) fn value(
+        &mut self,
+        candidate: EffectSetting,
+        eval: impl FnOnce(EffectSetting) -> Result<f64>,
+    ) -> Result<f64> {
+        let key: Vec<u64> = candidate.parameters.values().map(|v| v.to_bits()).collect();
+        if let Some(&v) = self.seen.get(&key) {
+            return Ok(v);
+        }
+        let v = eval(candidate)?;
+        self.seen.insert(key, v);
+        Ok(v)
+    }
+}
