@@ -208,7 +208,7 @@ impl Calibration {
     }
 
     /// A position (px) in mm.
-    pub(crate) fn px_to_mm(&self, x: f64, y: f64) -> (f64, f64) {
+    pub fn px_to_mm(&self, x: f64, y: f64) -> (f64, f64) {
         (
             (x - self.origin_px[0]) / self.px_per_mm,
             self.y_sign() * (y - self.origin_px[1]) / self.px_per_mm,
@@ -228,13 +228,13 @@ impl Calibration {
     }
 
     /// The physical columns of a point with a velocity (tracks).
-    pub fn point_columns() -> &'static [&'static str] {
+    pub(crate) fn point_columns() -> &'static [&'static str] {
         &["X_mm", "Y_mm", "U_m_s", "V_m_s"]
     }
 
     /// Values of [`Self::point_columns`] for a point at `(x, y)` px moving
     /// at `(u, v)` px/s.
-    pub fn point_values(&self, x: f64, y: f64, u: f64, v: f64) -> [f64; 4] {
+    pub(crate) fn point_values(&self, x: f64, y: f64, u: f64, v: f64) -> [f64; 4] {
         let (xm, ym) = self.px_to_mm(x, y);
         let (um, vm) = self.velocity_px_s_to_m_s(u, v);
         [xm, ym, um, vm]
@@ -318,7 +318,8 @@ pub struct PixelMask {
 
 impl PixelMask {
     /// An empty (nothing masked) mask of `width × height` pixels.
-    pub fn new(width: u32, height: u32) -> Self {
+    #[ebptv_macros::testkit]
+    pub(crate) fn new(width: u32, height: u32) -> Self {
         PixelMask {
             width,
             height,
@@ -327,25 +328,29 @@ impl PixelMask {
     }
 
     /// Width and height (px).
-    pub fn size(&self) -> (u32, u32) {
+    #[ebptv_macros::testkit]
+    pub(crate) fn size(&self) -> (u32, u32) {
         (self.width, self.height)
     }
 
     /// Mask pixel `(x, y)` (ignored beyond the size).
-    pub fn set(&mut self, x: u32, y: u32) {
+    #[ebptv_macros::testkit]
+    pub(crate) fn set(&mut self, x: u32, y: u32) {
         if x < self.width && y < self.height {
             self.bits[y as usize * self.width as usize + x as usize] = true;
         }
     }
 
     /// Number of masked pixels.
-    pub fn count(&self) -> usize {
+    #[ebptv_macros::testkit]
+    pub(crate) fn count(&self) -> usize {
         self.bits.iter().filter(|&&b| b).count()
     }
 
     /// Reads a PNG: a pixel whose colour (grey level or any of R, G, B;
     /// not alpha) is non-zero is masked.
-    pub fn from_png(path: &Path) -> Result<Self> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn from_png(path: &Path) -> Result<Self> {
         let bad = |why: String| Error::Config {
             path: path.to_path_buf(),
             why,
@@ -389,7 +394,8 @@ impl PixelMask {
     }
 
     /// Writes the mask as an 8-bit grey PNG (255 = masked), atomically.
-    pub fn write_png(&self, path: &Path) -> Result<()> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn write_png(&self, path: &Path) -> Result<()> {
         let mut file = crate::io::atomic::AtomicFile::create(path)?;
         {
             let mut enc = png::Encoder::new(&mut file, self.width.max(1), self.height.max(1));
@@ -475,7 +481,8 @@ impl PixelMask {
 
     /// Whether pixel `(x, y)` is masked.
     #[inline]
-    pub fn is_masked_px(&self, x: u32, y: u32) -> bool {
+    #[ebptv_macros::testkit]
+    pub(crate) fn is_masked_px(&self, x: u32, y: u32) -> bool {
         x < self.width
             && y < self.height
             && self.bits[y as usize * self.width as usize + x as usize]

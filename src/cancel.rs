@@ -24,12 +24,12 @@ impl Cancel {
     }
 
     /// Whether [`Cancel::cancel`] was called.
-    pub(crate) fn is_cancelled(&self) -> bool {
+    pub fn is_cancelled(&self) -> bool {
         self.0.load(Ordering::Relaxed)
     }
 
     /// An error (`cancelled`) once the flag is set: a run returns it to stop.
-    pub fn check(&self) -> Result<()> {
+    pub(crate) fn check(&self) -> Result<()> {
         if self.is_cancelled() {
             Err(Error::analysis("cancelled"))
         } else {

@@ -189,7 +189,8 @@ impl ClusterParams {
 
 /// A distinct pixel of one pulse with its events folded in.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct PixelHits {
+#[ebptv_macros::testkit]
+pub(crate) struct PixelHits {
     /// Pixel column (px).
     pub x: u16,
     /// Pixel row (px).
@@ -210,7 +211,8 @@ pub struct PixelHits {
 /// sorting, take the comparison sort. Both give exactly
 /// `pulse_pixels_reference`'s pixels (tested): the earliest time of a
 /// pixel is taken as a minimum, not from the order.
-pub fn pulse_pixels(pulse: &PulseEvents, params: &ClusterParams) -> Vec<PixelHits> {
+#[ebptv_macros::testkit]
+pub(crate) fn pulse_pixels(pulse: &PulseEvents, params: &ClusterParams) -> Vec<PixelHits> {
     let (mut keyed, (x_lo, x_hi, y_lo, y_hi)) = selected_events(pulse, params);
     let n = keyed.len();
     if n == 0 {
@@ -588,7 +590,8 @@ pub(crate) fn pixel_labels_reference(pixels: &[PixelHits], params: &ClusterParam
 }
 
 /// Component labels by the search `params.neighbour_search` names.
-pub fn pixel_labels_with(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u32> {
+#[ebptv_macros::testkit]
+pub(crate) fn pixel_labels_with(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u32> {
     match params.neighbour_search {
         NeighbourSearch::RowSweep => pixel_labels(pixels, params),
         NeighbourSearch::KdTree => pixel_labels_kdtree(pixels, params),
@@ -598,7 +601,8 @@ pub fn pixel_labels_with(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u3
 /// `pixel_labels` with a kiddo k-d tree and radius queries: the general
 /// path (any point set), kept as a second implementation checked against
 /// the same oracle and compared in the benchmark.
-pub fn pixel_labels_kdtree(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u32> {
+#[ebptv_macros::testkit]
+pub(crate) fn pixel_labels_kdtree(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u32> {
     let n = pixels.len();
     let mut uf = UnionFind::new(n);
     if n > 1 {
@@ -720,7 +724,8 @@ pub fn cluster_pulse(pulse: &PulseEvents, params: &ClusterParams) -> Vec<Particl
 /// about 7 % of the images are such pairs; most of those that can be
 /// separated at all span 3 or more pixels, which one particle image almost
 /// never does.
-pub fn split_wide_clusters(pixels: &[PixelHits], labels: &mut [u32], split_extent: u32) {
+#[ebptv_macros::testkit]
+pub(crate) fn split_wide_clusters(pixels: &[PixelHits], labels: &mut [u32], split_extent: u32) {
     if split_extent == 0 || pixels.is_empty() {
         return;
     }

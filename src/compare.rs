@@ -25,7 +25,8 @@ use crate::plot::{heatmap, line_plot, Heatmap, LinePlot, Series, SeriesStyle};
 
 /// A table read from a CSV with a header: named columns of numbers.
 #[derive(Debug, Clone)]
-pub struct Table {
+#[ebptv_macros::testkit]
+pub(crate) struct Table {
     /// Column names, in file order.
     pub names: Vec<String>,
     /// Column values, one vector per name (NaN for empty or `nan` cells).
@@ -34,21 +35,24 @@ pub struct Table {
 
 impl Table {
     /// The column called `name`, if present.
-    pub fn col(&self, name: &str) -> Option<&[f64]> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn col(&self, name: &str) -> Option<&[f64]> {
         self.names
             .iter()
             .position(|n| n == name)
             .map(|i| self.cols[i].as_slice())
     }
     /// Number of data rows.
-    pub fn rows(&self) -> usize {
+    #[ebptv_macros::testkit]
+    pub(crate) fn rows(&self) -> usize {
         self.cols.first().map_or(0, |c| c.len())
     }
 }
 
 /// Read a numeric table (Parquet, `.npy`, or CSV with a header line),
 /// requiring `required` columns.
-pub fn read_table(path: &Path, required: &[&str]) -> Result<Table> {
+#[ebptv_macros::testkit]
+pub(crate) fn read_table(path: &Path, required: &[&str]) -> Result<Table> {
     use crate::table::{column_names, read_columns, TableFormat};
     if TableFormat::sniff(path)? != TableFormat::Csv {
         let names =

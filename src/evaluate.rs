@@ -47,7 +47,8 @@ use crate::compare::{read_table, Table};
 use crate::error::{Error, Result};
 
 /// Truth samples grouped by pulse, with a k-d tree per pulse for matching.
-pub struct Truth {
+#[ebptv_macros::testkit]
+pub(crate) struct Truth {
     /// Per pulse: (particle_id, x, y, u, v).
     #[allow(clippy::type_complexity)]
     by_pulse: HashMap<i64, Vec<(u64, f64, f64, f64, f64)>>,
@@ -58,7 +59,8 @@ pub struct Truth {
 
 impl Truth {
     /// Read the `truth_particles` table (Parquet, CSV or `.npy`).
-    pub fn read(path: &Path) -> Result<Truth> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn read(path: &Path) -> Result<Truth> {
         let t = read_table(path, &["pulse", "particle_id", "x", "y", "u", "v"])?;
         Self::from_table(&t)
     }
@@ -161,7 +163,7 @@ fn match_detections(
 
 /// Detection scores of a particles table (any format).
 #[derive(Debug, Clone, Serialize)]
-pub struct DetectionScore {
+pub(crate) struct DetectionScore {
     /// Detections in the table (rows).
     pub detections: usize,
     /// Truth samples (particle images over all pulses).
@@ -178,7 +180,11 @@ pub struct DetectionScore {
 /// `pulse,x,y`) against `truth`, a detection matching the nearest truth
 /// particle of its pulse within `radius` px. Fails when the table cannot be
 /// read or lacks a column.
-pub fn score_particles(particles_csv: &Path, truth: &Truth, radius: f64) -> Result<DetectionScore> {
+pub(crate) fn score_particles(
+    particles_csv: &Path,
+    truth: &Truth,
+    radius: f64,
+) -> Result<DetectionScore> {
     let t = read_table(particles_csv, &["pulse", "x", "y"])?;
     let (k, x, y) = (
         t.col("pulse").unwrap(),
@@ -211,7 +217,8 @@ pub fn score_particles(particles_csv: &Path, truth: &Truth, radius: f64) -> Resu
 
 /// Link and velocity scores of a tracks table (any format).
 #[derive(Debug, Clone, Serialize)]
-pub struct TrackScore {
+#[ebptv_macros::testkit]
+pub(crate) struct TrackScore {
     /// Distinct track ids.
     pub tracks: usize,
     /// Track points (rows of the table).
@@ -234,7 +241,8 @@ pub struct TrackScore {
 /// the pulse period (µs) that turns velocities into px per pulse interval,
 /// `radius` the matching radius (px). Fails when the table cannot be read or
 /// lacks a column.
-pub fn score_tracks(
+#[ebptv_macros::testkit]
+pub(crate) fn score_tracks(
     tracks_csv: &Path,
     truth: &Truth,
     period_us: f64,
@@ -297,7 +305,7 @@ pub fn score_tracks(
 /// Error of a mean-velocity field (the `grid` or `piv_mean` table, any
 /// format) against the truth binned at the same nodes.
 #[derive(Debug, Clone, Serialize)]
-pub struct FieldScore {
+pub(crate) struct FieldScore {
     /// Nodes scored.
     pub nodes_compared: usize,
     /// Rms of the vector error over nodes, as a fraction of the largest
@@ -316,7 +324,7 @@ pub struct FieldScore {
 /// averaged in a `bin_w × bin_h` top-hat box around each node; nodes where
 /// the truth has fewer than `min_truth` samples, or the field is NaN, are
 /// skipped.
-pub fn score_mean_field(
+pub(crate) fn score_mean_field(
     field_csv: &Path,
     truth: &Truth,
     bin_w: f64,

@@ -76,10 +76,12 @@
 //! and `ebptv compare` ([`compare::compare_to_dir`]).
 
 #![warn(missing_docs)]
+// The unit-test build leaves the command line out (`cli`), so what only it
+// uses looks unused there; the library's own build checks for dead code.
+#![cfg_attr(test, allow(dead_code))]
 
-// Unit tests share a few helpers with the integration tests in tests/,
-// which name the crate `ebptv`.
-#[cfg(test)]
+// The command line (`cli`) and the unit tests name the crate `ebptv`, as
+// the integration tests in tests/ and the Python bindings do.
 extern crate self as ebptv;
 
 pub mod decimal;
@@ -89,6 +91,13 @@ pub use ebptv_sim as sim;
 
 pub mod calib;
 pub mod cancel;
+/// The `ebptv` command line (argument parsing, progress, files), run by
+/// the binary's `main`; not an API. It lives in the library so that the
+/// stages' internals it drives need not be public. Its behaviour is tested
+/// through the binary, so the unit-test build leaves it out.
+#[doc(hidden)]
+#[cfg(not(test))]
+pub mod cli;
 pub mod cluster;
 pub mod compare;
 pub mod evaluate;
@@ -98,6 +107,8 @@ pub mod piv;
 pub mod plot;
 pub mod provenance;
 pub mod pulses;
+#[cfg(feature = "python")]
+pub mod python;
 pub mod spectra;
 pub mod table;
 pub mod track;

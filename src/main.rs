@@ -1,7 +1,7 @@
 //! The `ebptv` command line: parses arguments, calls the library, shows
 //! progress and writes files. No analysis lives here.
 
-mod cli;
+use ebptv::cli;
 
 use clap::Parser;
 

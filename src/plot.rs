@@ -62,7 +62,8 @@ fn ensure_font() {
 /// A scalar map on a regular grid. `values` is row-major, `ny` rows of `nx`,
 /// row 0 at `y_range.0` (top of the image, y pointing down as in pixels).
 /// NaN = no data (drawn grey).
-pub struct Heatmap<'a> {
+#[ebptv_macros::testkit]
+pub(crate) struct Heatmap<'a> {
     /// Title drawn above the map.
     pub title: &'a str,
     /// The map, row-major, `nx * ny` values.
@@ -86,7 +87,8 @@ pub struct Heatmap<'a> {
 }
 
 /// Draw a heatmap, image size chosen from the aspect ratio of the ranges.
-pub fn heatmap(path: &Path, map: &Heatmap) -> Result<()> {
+#[ebptv_macros::testkit]
+pub(crate) fn heatmap(path: &Path, map: &Heatmap) -> Result<()> {
     let size = heatmap_default_size(map.x_range, map.y_range);
     heatmap_sized(path, map, size)
 }

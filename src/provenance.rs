@@ -26,7 +26,8 @@ use sha2::{Digest, Sha256};
 use crate::{Error, Result};
 
 /// The key of the provenance record in a Parquet file's key/value metadata.
-pub const PARQUET_KEY: &str = "ebptv.provenance";
+#[ebptv_macros::testkit]
+pub(crate) const PARQUET_KEY: &str = "ebptv.provenance";
 
 /// The file the record is written to in an output folder.
 pub(crate) const FILE_NAME: &str = "provenance.json";
@@ -36,7 +37,8 @@ const HASHED_BYTES: u64 = 1 << 20;
 
 /// How an output was made (see the module doc).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Provenance {
+#[ebptv_macros::testkit]
+pub(crate) struct Provenance {
     /// The ebptv version (`Cargo.toml`).
     pub ebptv_version: String,
     /// The git commit ebptv was built from (`unknown` outside a checkout).
@@ -59,7 +61,8 @@ pub struct Provenance {
 
 /// An input file: its path, size and the SHA-256 of its first and last MiB.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct InputFingerprint {
+#[ebptv_macros::testkit]
+pub(crate) struct InputFingerprint {
     /// The path as given on the command line.
     pub path: String,
     /// Size in bytes.
@@ -105,7 +108,7 @@ fn hash_range(f: &mut File, start: u64, len: u64) -> std::io::Result<String> {
 impl Provenance {
     /// A record for a run started now with `command_line` (program name
     /// first), this build's version and commit.
-    pub fn new<I, S>(command_line: I) -> Self
+    pub(crate) fn new<I, S>(command_line: I) -> Self
     where
         I: IntoIterator<Item = S>,
         S: Into<String>,
@@ -122,7 +125,7 @@ impl Provenance {
     }
 
     /// Add an input file's fingerprint.
-    pub fn with_input(mut self, path: &Path) -> Result<Self> {
+    pub(crate) fn with_input(mut self, path: &Path) -> Result<Self> {
         self.inputs.push(InputFingerprint::of(path)?);
         Ok(self)
     }
@@ -142,12 +145,13 @@ impl Provenance {
     }
 
     /// The record as one JSON value (for a `"provenance"` key).
-    pub fn to_json(&self) -> serde_json::Value {
+    #[ebptv_macros::testkit]
+    pub(crate) fn to_json(&self) -> serde_json::Value {
         serde_json::to_value(self).expect("a provenance record serialises")
     }
 
     /// Write `provenance.json` into `dir` (atomically).
-    pub fn write_to_dir(&self, dir: &Path) -> Result<PathBuf> {
+    pub(crate) fn write_to_dir(&self, dir: &Path) -> Result<PathBuf> {
         let path = dir.join(FILE_NAME);
         let text = serde_json::to_string_pretty(self)
             .map_err(|e| Error::analysis(format!("writing {}: {e}", path.display())))?;
@@ -158,7 +162,8 @@ impl Provenance {
     /// Read the record of an output folder: its `provenance.json`, else
     /// the `"provenance"` key of the first JSON file in it that has one.
     /// `Ok(None)` when the folder holds none.
-    pub fn read_from_dir(dir: &Path) -> Result<Option<Self>> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn read_from_dir(dir: &Path) -> Result<Option<Self>> {
         let file = dir.join(FILE_NAME);
         if file.is_file() {
             return Self::read_json_file(&file, false);
@@ -200,7 +205,7 @@ impl Provenance {
     }
 
     /// A few lines for a terminal (what `ebptv info OUT_DIR` prints).
-    pub fn describe(&self) -> String {
+    pub(crate) fn describe(&self) -> String {
         let mut s = String::new();
         s.push_str(&format!(
             "made by            ebptv {} (commit {})\n",

@@ -35,7 +35,8 @@ pub use run::{run_on_tracks, Component, LineSpectra, RunOptions, SpectraRun};
 
 /// Parameters of Welch's method.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct WelchOptions {
+#[ebptv_macros::testkit]
+pub(crate) struct WelchOptions {
     /// Segment length (samples).
     pub nperseg: usize,
     /// Overlap of consecutive segments, fraction in [0, 1).
@@ -75,7 +76,8 @@ impl Psd {
     }
     /// Pre-multiplied spectrum f·E(f) (unit²): equal areas under a
     /// log-frequency axis mean equal energy.
-    pub fn premultiplied(&self) -> Vec<f64> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn premultiplied(&self) -> Vec<f64> {
         self.f_hz
             .iter()
             .zip(&self.psd)
@@ -223,7 +225,7 @@ fn refine(p: &Psd, k: usize) -> f64 {
 
 /// False-alarm probability at which a spectral peak is reported: the
 /// chance that noise alone puts a peak this high anywhere in the band.
-pub const PEAK_FALSE_ALARM: f64 = 0.01;
+pub(crate) const PEAK_FALSE_ALARM: f64 = 0.01;
 
 /// Result of `significant_peak`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -597,7 +599,8 @@ mod tests {
 
 /// Options of [`point_spectra`].
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct SpectraOptions {
+#[ebptv_macros::testkit]
+pub(crate) struct SpectraOptions {
     /// The bins of the time-resolved grid.
     pub lattice: crate::grid::Lattice,
     /// How samples are weighted into the bins.
@@ -694,7 +697,8 @@ pub struct SpectraResult {
 }
 
 /// Spectra of the binned velocity time series at `points` (px).
-pub fn point_spectra(
+#[ebptv_macros::testkit]
+pub(crate) fn point_spectra(
     samples: &[crate::grid::Sample],
     points: &[(f64, f64)],
     opt: &SpectraOptions,
@@ -838,7 +842,8 @@ pub fn point_spectra(
 }
 
 /// `n` points evenly spaced on the segment from `a` to `b` (inclusive).
-pub fn line_points(a: (f64, f64), b: (f64, f64), n: usize) -> Vec<(f64, f64)> {
+#[ebptv_macros::testkit]
+pub(crate) fn line_points(a: (f64, f64), b: (f64, f64), n: usize) -> Vec<(f64, f64)> {
     if n <= 1 {
         return vec![a];
     }

@@ -54,7 +54,8 @@ pub enum TableFormat {
 
 impl TableFormat {
     /// The file extension (without the dot).
-    pub fn ext(self) -> &'static str {
+    #[ebptv_macros::testkit]
+    pub(crate) fn ext(self) -> &'static str {
         match self {
             TableFormat::Parquet => "parquet",
             TableFormat::Csv => "csv",
@@ -63,7 +64,8 @@ impl TableFormat {
     }
 
     /// `stem.ext` for this format, e.g. `tracks.parquet`.
-    pub fn file_name(self, stem: &str) -> String {
+    #[ebptv_macros::testkit]
+    pub(crate) fn file_name(self, stem: &str) -> String {
         format!("{stem}.{}", self.ext())
     }
 
@@ -92,7 +94,8 @@ impl TableFormat {
 }
 
 /// How a column's value is read from a row, and its type in the file.
-pub enum Getter<R> {
+#[ebptv_macros::testkit]
+pub(crate) enum Getter<R> {
     /// A 64-bit signed integer (Parquet `INT64`, npy `<i8`).
     I64(fn(&R) -> i64),
     /// A 64-bit float (Parquet `DOUBLE`, npy `<f8`).
@@ -100,7 +103,8 @@ pub enum Getter<R> {
 }
 
 /// One column of a table over rows of type `R`.
-pub struct Col<R> {
+#[ebptv_macros::testkit]
+pub(crate) struct Col<R> {
     /// Column name in the table's header.
     pub name: &'static str,
     /// How a row gives this column's value.
@@ -189,7 +193,8 @@ fn parquet_err(path: &Path, e: parquet::errors::ParquetError) -> Error {
 }
 
 /// A streaming Parquet (or `.npy`) writer of a table over rows of type `R`.
-pub struct TableWriter<R: 'static> {
+#[ebptv_macros::testkit]
+pub(crate) struct TableWriter<R: 'static> {
     batch: Batch<R>,
     out: Sink,
 }
@@ -212,7 +217,8 @@ impl<R> TableWriter<R> {
     }
 
     /// A Parquet file with the given compression (for measurements).
-    pub fn parquet_with(
+    #[ebptv_macros::testkit]
+    pub(crate) fn parquet_with(
         path: &Path,
         cols: &'static [Col<R>],
         compression: Compression,
@@ -288,7 +294,8 @@ impl<R> TableWriter<R> {
     }
 
     /// Appends the rows.
-    pub fn write<'r>(&mut self, rows: impl IntoIterator<Item = &'r R>) -> Result<()>
+    #[ebptv_macros::testkit]
+    pub(crate) fn write<'r>(&mut self, rows: impl IntoIterator<Item = &'r R>) -> Result<()>
     where
         R: 'r,
     {
@@ -361,7 +368,8 @@ impl<R> TableWriter<R> {
     }
 
     /// Writes the last rows and the footer, and gives the file its name.
-    pub fn finish(mut self) -> Result<()> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn finish(mut self) -> Result<()> {
         self.flush()?;
         match self.out {
             Sink::Parquet(w) => {
@@ -710,7 +718,8 @@ fn read_npy_columns(path: &Path, names: &[&str]) -> Result<Vec<Vec<f64>>> {
 }
 
 /// The key/value metadata of a Parquet file (for tests and checks).
-pub fn parquet_metadata(path: &Path) -> Result<Vec<(String, Option<String>)>> {
+#[ebptv_macros::testkit]
+pub(crate) fn parquet_metadata(path: &Path) -> Result<Vec<(String, Option<String>)>> {
     let f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
     let r = SerializedFileReader::new(f)
         .map_err(|e| Error::corrupt(path, 0, format!("not a readable Parquet file: {e}")))?;

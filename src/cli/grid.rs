@@ -241,7 +241,6 @@ pub fn run(mut a: GridArgs, tables: Option<ebptv::table::TableFormat>) -> anyhow
             }
         }
         GridProgress::Binned(n) => bar.inc(n as u64),
-        _ => {}
     })?;
     bar.finish_and_clear();
     match &r.noise {

@@ -209,7 +209,6 @@ pub fn run(a: PivArgs, tables: Option<ebptv::table::TableFormat>) -> anyhow::Res
             bar.set_message(msg);
         }
         PivProgress::Warning(w) => bar.suspend(|| eprintln!("warning: {w}")),
-        _ => {}
     };
     let mut sink = NpySink {
         out: &a.out,

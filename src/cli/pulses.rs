@@ -106,7 +106,6 @@ pub fn run(args: PulsesArgs) -> anyhow::Result<()> {
         PulsesProgress::MaskWritten { pixels, path } => {
             eprintln!("mask: {pixels} static pixels → {}", path.display())
         }
-        _ => {}
     })?;
     print_summary(&report);
     Ok(())

@@ -197,7 +197,6 @@ fn run_tracking(
         }
         TrackProgress::Warning(w) => bar.suspend(|| eprintln!("warning: {w}")),
         TrackProgress::Writing => bar.finish_and_clear(),
-        _ => {}
     };
     let result = track_to_dir_with(&args.input, config, &args.out, &on_progress, command_line);
     // A note for the terminal, not for logs: shown only where the bar is.

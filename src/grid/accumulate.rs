@@ -307,7 +307,8 @@ pub struct GridAccumulator {
 
 impl GridAccumulator {
     /// An empty accumulator for the bins of `spec`.
-    pub fn new(spec: GridSpec) -> GridAccumulator {
+    #[ebptv_macros::testkit]
+    pub(crate) fn new(spec: GridSpec) -> GridAccumulator {
         GridAccumulator {
             spec,
             bins: vec![BinAcc::default(); spec.n_bins()],
@@ -346,7 +347,8 @@ impl GridAccumulator {
 
     /// Bin every sample (one thread); non-finite samples count as
     /// `rejected`, those outside the window as `outside`.
-    pub fn add_all<'a>(&mut self, samples: impl IntoIterator<Item = &'a Sample>) {
+    #[ebptv_macros::testkit]
+    pub(crate) fn add_all<'a>(&mut self, samples: impl IntoIterator<Item = &'a Sample>) {
         for s in samples {
             self.add(s);
         }
@@ -386,13 +388,14 @@ impl GridAccumulator {
     }
 
     /// Total number of samples binned (a sample in k overlapping bins counts k times).
-    pub fn total_count(&self) -> u64 {
+    #[ebptv_macros::testkit]
+    pub(crate) fn total_count(&self) -> u64 {
         self.bins.iter().map(|b| b.n).sum()
     }
 
     /// Merge a later slice into this one. Lattices and weightings must be
     /// identical; the window grows to hold both.
-    pub fn merge(&mut self, o: &GridAccumulator) -> Result<()> {
+    pub(crate) fn merge(&mut self, o: &GridAccumulator) -> Result<()> {
         if !self.spec.compatible(&o.spec) {
             return Err(Error::param(
                 "merge",

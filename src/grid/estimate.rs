@@ -80,7 +80,7 @@ impl Default for EstimateOptions {
 
 impl EstimateOptions {
     /// An error when `min_count` is 0 or `noise_rms` is negative or not finite.
-    pub fn validate(&self) -> Result<()> {
+    pub(crate) fn validate(&self) -> Result<()> {
         if self.min_count == 0 {
             return Err(Error::param("min-count", "must be at least 1"));
         }
@@ -181,7 +181,7 @@ pub struct GridStats {
 
 impl GridStats {
     /// The statistics of bin `(ix, iy)`; panics outside the grid.
-    pub fn at(&self, ix: usize, iy: usize) -> &BinStats {
+    pub(crate) fn at(&self, ix: usize, iy: usize) -> &BinStats {
         &self.bins[iy * self.spec.nx + ix]
     }
     /// Empties (NaN statistics, as a bin below `min_count`) every bin more

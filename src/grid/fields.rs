@@ -77,7 +77,8 @@ impl Frames {
         self.t0_us + k as f64 * self.step_us
     }
     /// Frame rate (Hz): one over the step.
-    pub fn rate_hz(&self) -> f64 {
+    #[ebptv_macros::testkit]
+    pub(crate) fn rate_hz(&self) -> f64 {
         1e6 / self.step_us
     }
 }

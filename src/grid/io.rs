@@ -41,7 +41,7 @@ pub(crate) fn save_state(path: &Path, acc: &GridAccumulator) -> Result<()> {
 }
 
 /// The text of `grid_state.json` (`save_state`).
-pub fn state_json(acc: &GridAccumulator) -> serde_json::Result<String> {
+pub(crate) fn state_json(acc: &GridAccumulator) -> serde_json::Result<String> {
     let st = StateFile {
         format: STATE_FORMAT.into(),
         version: STATE_VERSION,
@@ -67,7 +67,7 @@ pub(crate) fn load_state(path: &Path) -> Result<GridAccumulator> {
 
 /// A state from the text of a `grid_state.json` (`path` names it in
 /// errors).
-pub fn state_from_json(text: &[u8], path: &Path) -> Result<GridAccumulator> {
+pub(crate) fn state_from_json(text: &[u8], path: &Path) -> Result<GridAccumulator> {
     let st: StateFile = serde_json::from_slice(text).map_err(|e| {
         Error::corrupt(
             path,
@@ -170,7 +170,8 @@ pub(crate) fn write_grid_csv_calibrated(
 }
 
 /// Columns of `grid_extra.csv`.
-pub const EXTRA_HEADER: &str =
+#[ebptv_macros::testkit]
+pub(crate) const EXTRA_HEADER: &str =
     "x,y,n_tracks,se_u,se_v,se_uu,se_vv,se_uv,dudx,dudy,dvdx,dvdy,fit_params";
 
 /// `grid_extra.csv`: per bin `x,y,n_tracks,se_u,se_v,se_uu,se_vv,se_uv,

@@ -43,10 +43,12 @@ pub(crate) mod spec;
 
 use serde::{Deserialize, Serialize};
 
-pub use accumulate::GridAccumulator;
+#[ebptv_macros::testkit]
+pub(crate) use accumulate::GridAccumulator;
 pub use dir::{grid_to_dir, GridDirOptions, GridDirRun, GridInput, GridProgress, ProfileOptions};
 pub use estimate::{estimate, BinStats, EstimateOptions, Fit, GridStats};
-pub use profiles::WallSide;
+#[ebptv_macros::testkit]
+pub(crate) use profiles::WallSide;
 pub use spec::{GridSpec, Lattice, Weighting};
 
 use crate::error::{Error, Result};
@@ -144,7 +146,7 @@ pub fn bin_samples(
 
 /// Bins with fewer samples are empty (NaN): the `--min-count` of
 /// `ebptv grid`.
-pub const DEFAULT_MIN_COUNT: u64 = 10;
+pub(crate) const DEFAULT_MIN_COUNT: u64 = 10;
 
 /// The lattice and weighting of `ebptv grid` (its options and defaults).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -194,7 +196,8 @@ const ACCUMULATE_STEP: usize = 1 << 22;
 /// cores; `on_step(samples binned)` after each step of a few million.
 /// Accumulators of parts of a table merge ([`GridAccumulator::merge`], in
 /// order) into the accumulator of the whole, to rounding.
-pub fn accumulate(
+#[ebptv_macros::testkit]
+pub(crate) fn accumulate(
     samples: &[Sample],
     opts: &BinOptions,
     what: &str,

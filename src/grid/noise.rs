@@ -33,7 +33,8 @@ use crate::error::{Error, Result};
 
 /// Options of [`velocity_noise`].
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct NoiseOptions {
+#[ebptv_macros::testkit]
+pub(crate) struct NoiseOptions {
     /// Closest pair separation used (px).
     pub min_sep: f64,
     /// Farthest pair separation used (px).
@@ -110,7 +111,8 @@ fn median(v: &mut [f64]) -> f64 {
 /// Estimate the per-sample velocity noise from pairs of samples of
 /// different tracks at the same time (see the module docs). `g` is the
 /// mean field of the same samples (any bin size, fit or weighting).
-pub fn velocity_noise(
+#[ebptv_macros::testkit]
+pub(crate) fn velocity_noise(
     samples: &[Sample],
     g: &GridStats,
     opt: &NoiseOptions,

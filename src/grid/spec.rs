@@ -204,7 +204,8 @@ const MAX_EXTENT_PX: f64 = 4.0 * crate::io::guard::MAX_SENSOR_SIDE as f64;
 impl GridSpec {
     /// The smallest window holding every bin that can receive a sample in
     /// the rectangle `[x_min, x_max] × [y_min, y_max]`.
-    pub fn covering(
+    #[ebptv_macros::testkit]
+    pub(crate) fn covering(
         lattice: Lattice,
         weighting: Weighting,
         x_min: f64,
@@ -277,7 +278,8 @@ impl GridSpec {
     }
 
     /// Number of bins of the window (`nx · ny`); flat index `j·nx + i`.
-    pub fn n_bins(&self) -> usize {
+    #[ebptv_macros::testkit]
+    pub(crate) fn n_bins(&self) -> usize {
         self.nx * self.ny
     }
 

@@ -88,7 +88,7 @@ pub fn check_recording(
 
 /// [`check_recording`] that stops with an error once `cancel` is set (it
 /// looks after each chunk read and before each simulation).
-pub fn check_recording_with(
+pub(crate) fn check_recording_with(
     measured: &Path,
     out: &Path,
     a: &ModelCheckOptions,

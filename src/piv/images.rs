@@ -39,7 +39,7 @@ pub(crate) fn load_image(path: &Path) -> Result<Image> {
 
 /// Load every frame of a PNG, TIFF or BMP file, chosen by content (magic
 /// bytes), as grey images.
-pub fn load_frames(path: &Path) -> Result<Frames> {
+pub(crate) fn load_frames(path: &Path) -> Result<Frames> {
     let head = {
         let mut f = File::open(path).map_err(|e| Error::io(path, e))?;
         let mut b = [0u8; 8];
@@ -73,7 +73,7 @@ pub fn load_frames(path: &Path) -> Result<Frames> {
 /// pattern with `*` or `?` in its file name for the matching files; the
 /// files of a folder or pattern are in natural order (`frame2` before
 /// `frame10`).
-pub fn expand_inputs(inputs: &[PathBuf]) -> Result<Vec<PathBuf>> {
+pub(crate) fn expand_inputs(inputs: &[PathBuf]) -> Result<Vec<PathBuf>> {
     let mut out = Vec::new();
     for p in inputs {
         if p.is_dir() {
@@ -607,7 +607,8 @@ fn unpack_bits(src: &[u8], need: usize) -> Vec<u8> {
 
 /// Write a grey image as a 16-bit PNG (values clamped to 0–65535), through
 /// an atomic file. Used to export synthetic images for peer comparison.
-pub fn save_png16(path: &Path, img: &Image, scale: f32) -> Result<()> {
+#[ebptv_macros::testkit]
+pub(crate) fn save_png16(path: &Path, img: &Image, scale: f32) -> Result<()> {
     let mut bytes = Vec::with_capacity(img.data.len() * 2);
     for &v in &img.data {
         let q = (v * scale).round().clamp(0.0, 65535.0) as u16;

@@ -40,7 +40,7 @@ pub(crate) mod validate;
 
 pub use multipass::{node_grid, piv_frames, NodeGrid, PivOptions, VectorField};
 pub(crate) use pseudo::{FrameRing, PseudoImager};
-pub use pseudo::{PixelMode, PseudoOptions};
+pub(crate) use pseudo::{PixelMode, PseudoOptions};
 pub use run::{run_recording, PivProgress, PivRun, PivRunOptions, PivSink, PivStage};
 
 use crate::error::{Error, Result};

@@ -69,7 +69,8 @@ impl PivOptions {
     /// Square `window` px windows, nodes `spacing` px apart in x and y,
     /// 3 passes, the default median test, no mask, no pyramid, background
     /// clipping on.
-    pub fn new(window: usize, spacing: usize) -> Self {
+    #[ebptv_macros::testkit]
+    pub(crate) fn new(window: usize, spacing: usize) -> Self {
         PivOptions {
             window_w: window,
             window_h: window,
@@ -86,7 +87,7 @@ impl PivOptions {
     /// The options of `ebptv piv --window W [--window-h H] [--spacing S]`:
     /// a `W × H` window (`H` = `W` by default) and nodes `S` px apart
     /// (default half the window in each direction, at least 1 px).
-    pub fn sized(window: usize, window_h: Option<usize>, spacing: Option<usize>) -> Self {
+    pub(crate) fn sized(window: usize, window_h: Option<usize>, spacing: Option<usize>) -> Self {
         let mut o = PivOptions::new(window, spacing.unwrap_or((window / 2).max(1)));
         o.window_h = window_h.unwrap_or(window);
         o.spacing_y = spacing.unwrap_or((o.window_h / 2).max(1));
@@ -114,20 +115,22 @@ pub struct NodeGrid {
 impl NodeGrid {
     /// x of node column `i` (px).
     #[inline]
-    pub fn x(&self, i: usize) -> f64 {
+    pub(crate) fn x(&self, i: usize) -> f64 {
         self.x0 + i as f64 * self.dx
     }
     /// y of node row `j` (px).
     #[inline]
-    pub fn y(&self, j: usize) -> f64 {
+    pub(crate) fn y(&self, j: usize) -> f64 {
         self.y0 + j as f64 * self.dy
     }
     /// Number of nodes (`nx · ny`).
-    pub fn len(&self) -> usize {
+    #[ebptv_macros::testkit]
+    pub(crate) fn len(&self) -> usize {
         self.nx * self.ny
     }
     /// True when the grid has no node.
-    pub fn is_empty(&self) -> bool {
+    #[ebptv_macros::testkit]
+    pub(crate) fn is_empty(&self) -> bool {
         self.len() == 0
     }
 }

@@ -36,7 +36,7 @@ pub(crate) fn write_mean_csv_calibrated(
 }
 
 /// The text of `piv_mean.csv` (`write_mean_csv_calibrated`).
-pub fn mean_csv(rows: &[MeanRow], calib: Option<&crate::calib::Calibration>) -> String {
+pub(crate) fn mean_csv(rows: &[MeanRow], calib: Option<&crate::calib::Calibration>) -> String {
     use std::fmt::Write as _;
     let extra = match calib {
         Some(_) => crate::calib::header_suffix(crate::calib::Calibration::field_columns()),
@@ -128,7 +128,7 @@ static MEAN_COLUMNS_CALIBRATED: [Col<MeanTableRow>; 15] = mean_cols!(
 /// The `piv_mean` table (`piv_mean.parquet`, `.csv` or `.npy`) in `dir`:
 /// the columns of [`mean_csv`], physical ones with `calib`. The path
 /// written.
-pub fn write_mean_table(
+pub(crate) fn write_mean_table(
     dir: &Path,
     format: TableFormat,
     rows: &[MeanRow],
@@ -170,7 +170,11 @@ pub(crate) fn steps_csv(steps: &[(i64, f64)]) -> String {
 
 /// The `piv_steps` table in `dir` (`step,first_pulse,t_us` of every
 /// field). The path written.
-pub fn write_steps_table(dir: &Path, format: TableFormat, steps: &[(i64, f64)]) -> Result<PathBuf> {
+pub(crate) fn write_steps_table(
+    dir: &Path,
+    format: TableFormat,
+    steps: &[(i64, f64)],
+) -> Result<PathBuf> {
     let rows = steps
         .iter()
         .enumerate()
@@ -199,7 +203,7 @@ static VECTOR_COLUMNS: [Col<VectorRow>; 5] = [
 
 /// A per-frame vectors table `stem.parquet` (`.csv`, `.npy`) in `dir`:
 /// the columns of `write_vectors_csv`. The path written.
-pub fn write_vectors_table(
+pub(crate) fn write_vectors_table(
     dir: &Path,
     stem: &str,
     format: TableFormat,
@@ -227,7 +231,7 @@ pub(crate) fn npy_header(descr: &str, shape: &[usize]) -> Vec<u8> {
 
 /// A stack of 2-D frames (`ny × nx`) of one dtype (`<f4` or `|u1`) written
 /// as a 3-D `.npy` `(steps, ny, nx)`.
-pub struct NpyStack {
+pub(crate) struct NpyStack {
     target: PathBuf,
     spill_path: PathBuf,
     spill: Option<BufWriter<File>>,
@@ -243,7 +247,7 @@ impl NpyStack {
     /// (`"<f4"` or `"|u1"`) and frames of `ny × nx`; frames are spilled to
     /// a hidden file next to `target` until [`finish`](Self::finish). An
     /// error when that file cannot be created.
-    pub fn create(target: &Path, descr: &'static str, ny: usize, nx: usize) -> Result<Self> {
+    pub(crate) fn create(target: &Path, descr: &'static str, ny: usize, nx: usize) -> Result<Self> {
         let dir = target
             .parent()
             .filter(|d| !d.as_os_str().is_empty())
@@ -268,7 +272,7 @@ impl NpyStack {
     }
 
     /// Append one `<f4` frame of `ny · nx` values, row-major.
-    pub fn push_f32(&mut self, vals: impl Iterator<Item = f32>) -> Result<()> {
+    pub(crate) fn push_f32(&mut self, vals: impl Iterator<Item = f32>) -> Result<()> {
         let w = self.spill.as_mut().expect("open");
         let mut n = 0;
         for v in vals {
@@ -282,7 +286,7 @@ impl NpyStack {
     }
 
     /// Append one `|u1` frame of `ny · nx` values, row-major.
-    pub fn push_u8(&mut self, vals: &[u8]) -> Result<()> {
+    pub(crate) fn push_u8(&mut self, vals: &[u8]) -> Result<()> {
         let w = self.spill.as_mut().expect("open");
         w.write_all(vals)
             .map_err(|e| Error::io(&self.spill_path, e))?;
@@ -293,7 +297,7 @@ impl NpyStack {
     /// Write the `.npy` file (header and all frames) atomically to the
     /// target and remove the spill file; an error names the file that
     /// could not be read or written.
-    pub fn finish(mut self) -> Result<()> {
+    pub(crate) fn finish(mut self) -> Result<()> {
         let w = self.spill.take().expect("open");
         w.into_inner()
             .map_err(|e| Error::io(&self.spill_path, e.into_error()))?;

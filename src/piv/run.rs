@@ -56,12 +56,13 @@ impl Default for PivRunOptions {
 
 impl PivRunOptions {
     /// Pulses between evaluations: [`PivRunOptions::step`] or `N_f − 1`.
-    pub fn step(&self) -> usize {
+    pub(crate) fn step(&self) -> usize {
         self.step.unwrap_or(self.frames.saturating_sub(1).max(1))
     }
 
     /// Event counts (`true`) or binary pseudo-images.
-    pub fn counts(&self) -> bool {
+    #[cfg_attr(not(feature = "python"), allow(dead_code))]
+    pub(crate) fn counts(&self) -> bool {
         self.pseudo.mode == PixelMode::Counts
     }
 }
@@ -132,7 +133,7 @@ pub struct PivRun {
 
 impl PivRun {
     /// Nodes masked or never valid (the mean is NaN and `valid` 0).
-    pub fn nodes_without_vector(&self) -> usize {
+    pub(crate) fn nodes_without_vector(&self) -> usize {
         self.mean
             .iter()
             .filter(|r| r.valid == 0.0 && r.u.is_nan())

@@ -17,7 +17,8 @@ use super::Image;
 
 /// Options of the synthetic image generator.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct SynthOptions {
+#[ebptv_macros::testkit]
+pub(crate) struct SynthOptions {
     /// Image width (px).
     pub width: usize,
     /// Image height (px).
@@ -67,7 +68,11 @@ fn seed_particles(o: &SynthOptions, rng: &mut rand_pcg::Pcg64, margin: f64) -> V
 }
 
 /// Generate `o.frames` frames of particles moved by `disp` per frame step.
-pub fn particle_frames(o: &SynthOptions, disp: &dyn Fn(f64, f64) -> (f64, f64)) -> Vec<Image> {
+#[ebptv_macros::testkit]
+pub(crate) fn particle_frames(
+    o: &SynthOptions,
+    disp: &dyn Fn(f64, f64) -> (f64, f64),
+) -> Vec<Image> {
     let mut rng = rand_pcg::Pcg64::seed_from_u64(o.seed);
     // Margin wide enough for the largest displacement over the sequence.
     let mut vmax: f64 = 0.0;

@@ -269,7 +269,7 @@ pub struct FileInfo {
 impl FileInfo {
     /// What `ebptv info --json` prints: the summary with the verdict under
     /// `pulsed`.
-    pub fn to_json(&self) -> Result<serde_json::Value> {
+    pub(crate) fn to_json(&self) -> Result<serde_json::Value> {
         super::info_json(&self.summary, &self.verdict)
     }
 }

@@ -92,7 +92,8 @@ mod report;
 mod split;
 
 pub use dir::{file_info, pulses_to_dir, FileInfo, PulsesDirOptions, PulsesProgress};
-pub use report::*;
+#[ebptv_macros::testkit]
+pub(crate) use report::*;
 pub use split::*;
 
 pub(crate) use timing::ChannelEdges;
@@ -129,13 +130,15 @@ pub struct PulseTiming {
 impl PulseTiming {
     /// Start time of pulse `k` (µs).
     #[inline]
-    pub fn pulse_start(&self, k: i64) -> f64 {
+    #[ebptv_macros::testkit]
+    pub(crate) fn pulse_start(&self, k: i64) -> f64 {
         self.first_pulse_us + k as f64 * self.period_us
     }
 
     /// Pulse index of an event at time `t_us`, or `None` before pulse 0.
     #[inline]
-    pub fn assign(&self, t_us: i64) -> Option<i64> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn assign(&self, t_us: i64) -> Option<i64> {
         let rel = (t_us as f64 - self.first_pulse_us - self.window_offset_us) / self.period_us;
         if rel < 0.0 {
             None
@@ -404,7 +407,8 @@ struct Slice {
 
 /// The incremental form of [`analyze`]: feed chunks with [`Analyzer::push`],
 /// then [`Analyzer::finish`]. The monitor uses one per interval.
-pub struct Analyzer {
+#[ebptv_macros::testkit]
+pub(crate) struct Analyzer {
     opts: PulseOptions,
     /// Until the reference period is known (the warm-up).
     warming: bool,
@@ -431,7 +435,8 @@ pub struct Analyzer {
 impl Analyzer {
     /// An analyzer for a recording of `geometry` (1280 × 720 when unknown).
     /// Fails when `opts` are invalid.
-    pub fn new(opts: PulseOptions, geometry: Option<Geometry>) -> Result<Self> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn new(opts: PulseOptions, geometry: Option<Geometry>) -> Result<Self> {
         opts.validate()?;
         let (w, h) = geometry
             .map(|g| (g.width as usize, g.height as usize))
@@ -461,7 +466,8 @@ impl Analyzer {
     }
 
     /// Feed one chunk.
-    pub fn push(&mut self, chunk: &Chunk) -> Result<()> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn push(&mut self, chunk: &Chunk) -> Result<()> {
         for tr in &chunk.triggers {
             let e = self.edges.entry(tr.channel).or_default();
             match tr.edge {
@@ -707,7 +713,8 @@ impl Analyzer {
     }
 
     /// Solve for the pulse timing and compute every diagnostic.
-    pub fn finish(mut self) -> Result<PulseReport> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn finish(mut self) -> Result<PulseReport> {
         if self.warming {
             self.begin_streaming()?;
         }

@@ -32,7 +32,8 @@ use crate::io::EventSource;
 
 /// What the monitor prints for one interval.
 #[derive(Debug, Clone, Serialize, PartialEq)]
-pub struct IntervalSummary {
+#[ebptv_macros::testkit]
+pub(crate) struct IntervalSummary {
     /// Start of the interval (µs, sensor clock).
     pub t_start_us: i64,
     /// End of the interval (µs, sensor clock).
@@ -109,7 +110,8 @@ fn summarize(an: Analyzer, t0: i64, t1: i64, events: u64) -> IntervalSummary {
 
 /// How the monitor treats the end of the data.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub enum Follow {
+#[ebptv_macros::testkit]
+pub(crate) enum Follow {
     /// The first end of the data ends the monitor (a finished file, a pipe).
     No,
     /// Keep polling a growing file until `stop` is set.
@@ -122,7 +124,8 @@ pub enum Follow {
 /// recording time. When following, `Ok(false)` from the source means "no
 /// data yet": sleep and poll again (see [`Follow`]). Returns the number of
 /// intervals reported.
-pub fn run(
+#[ebptv_macros::testkit]
+pub(crate) fn run(
     source: &mut dyn EventSource,
     opts: &PulseOptions,
     interval_us: i64,

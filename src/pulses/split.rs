@@ -28,7 +28,8 @@ pub fn split_pulses(
 }
 
 /// Incremental form of [`split_pulses`].
-pub struct Splitter {
+#[ebptv_macros::testkit]
+pub(crate) struct Splitter {
     pub(super) timing: PulseTiming,
     pub(super) pending: VecDeque<EventChunk>,
     /// Pulse index of `pending[0]`.
@@ -44,7 +45,8 @@ pub struct Splitter {
 
 impl Splitter {
     /// A splitter for the pulse train `timing`.
-    pub fn new(timing: PulseTiming) -> Self {
+    #[ebptv_macros::testkit]
+    pub(crate) fn new(timing: PulseTiming) -> Self {
         let mut s = Splitter {
             timing,
             pending: VecDeque::new(),
@@ -81,7 +83,8 @@ impl Splitter {
     /// Assign the events of `ev` to pulses and hand each
     /// completed pulse to `on_pulse`. Fails when an event lies implausibly many
     /// pulses ahead (a clock jump) or when `on_pulse` fails.
-    pub fn push(
+    #[ebptv_macros::testkit]
+    pub(crate) fn push(
         &mut self,
         ev: &EventChunk,
         on_pulse: &mut dyn FnMut(PulseEvents) -> Result<()>,
@@ -147,7 +150,11 @@ impl Splitter {
     }
 
     /// Hand over the pulses still pending; returns the unattributed count.
-    pub fn finish(mut self, on_pulse: &mut dyn FnMut(PulseEvents) -> Result<()>) -> Result<u64> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn finish(
+        mut self,
+        on_pulse: &mut dyn FnMut(PulseEvents) -> Result<()>,
+    ) -> Result<u64> {
         while !self.pending.is_empty() {
             self.emit_front(on_pulse)?;
         }

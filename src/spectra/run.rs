@@ -26,7 +26,7 @@ pub enum Component {
 
 impl Component {
     /// The name in `spectrum.json` (`u`, `v`, `sum`).
-    pub fn name(self) -> &'static str {
+    pub(crate) fn name(self) -> &'static str {
         match self {
             Component::U => "u",
             Component::V => "v",
@@ -106,7 +106,8 @@ impl Default for RunOptions {
 
 impl RunOptions {
     /// The checks made before any input is read.
-    pub fn validate(&self) -> Result<()> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn validate(&self) -> Result<()> {
         if self.points.is_empty() && self.line.is_none() {
             return Err(Error::analysis("give at least one --point x,y or a --line"));
         }

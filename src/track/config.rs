@@ -110,7 +110,7 @@ impl RunParams {
     /// `ebptv track --mask FILE`: a PNG (by its signature) becomes
     /// [`RunParams::mask`], anything else a hot-pixel list
     /// ([`RunParams::hot_pixels`]).
-    pub fn set_mask_file(&mut self, path: &Path) -> Result<()> {
+    pub(crate) fn set_mask_file(&mut self, path: &Path) -> Result<()> {
         use std::io::Read;
         let mut head = [0u8; 8];
         let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
@@ -144,13 +144,13 @@ impl TrackConfig {
     }
 
     /// Read a TOML file.
-    pub fn read(path: &Path) -> Result<Self> {
+    pub(crate) fn read(path: &Path) -> Result<Self> {
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
         Self::from_toml(&text, path)
     }
 
     /// The set as TOML, every key written (optional ones only when set).
-    pub fn to_toml(&self) -> Result<String> {
+    pub(crate) fn to_toml(&self) -> Result<String> {
         let body = toml::to_string(self)
             .map_err(|e| Error::analysis(format!("writing the options as TOML: {e}")))?;
         Ok(format!(

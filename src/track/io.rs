@@ -26,7 +26,8 @@ pub(crate) const TRACKS_HEADER: &str = "track_id,pulse,t_us,x,y,u,v";
 
 /// The columns of the `particles` table in Parquet and `.npy` (the
 /// `particles.csv` columns; µs, px).
-pub static PARTICLE_COLUMNS: [Col<Particle>; 5] = [
+#[ebptv_macros::testkit]
+pub(crate) static PARTICLE_COLUMNS: [Col<Particle>; 5] = [
     Col::i64("pulse", |p| p.pulse),
     Col::f64("t_us", |p| p.t_us),
     Col::f64("x", |p| p.x),
@@ -36,7 +37,8 @@ pub static PARTICLE_COLUMNS: [Col<Particle>; 5] = [
 
 /// One row of the `tracks` table: a point and the id of its track.
 #[derive(Debug, Clone, Copy)]
-pub struct TrackRow {
+#[ebptv_macros::testkit]
+pub(crate) struct TrackRow {
     /// Id of the track.
     pub id: u64,
     /// The point (µs, px, px/s).
@@ -49,7 +51,8 @@ pub struct TrackRow {
 /// The columns of the `tracks` table in Parquet and `.npy` (the
 /// `tracks.csv` columns; µs, px, px/s): the first seven of
 /// `TRACK_COLUMNS_CALIBRATED`.
-pub static TRACK_COLUMNS: &[Col<TrackRow>] = TRACK_COLUMNS_CALIBRATED.split_at(7).0;
+#[ebptv_macros::testkit]
+pub(crate) static TRACK_COLUMNS: &[Col<TrackRow>] = TRACK_COLUMNS_CALIBRATED.split_at(7).0;
 
 /// The `tracks` columns followed by the physical columns of a calibrated
 /// run ([`crate::calib::Calibration::point_columns`]: mm, m/s).
@@ -534,7 +537,8 @@ fn write_tracks_npy(path: &Path, tracks: &[Track]) -> Result<()> {
 }
 
 /// Write `particles.csv` in one go.
-pub fn write_particles_csv(path: &Path, particles: &[Particle]) -> Result<()> {
+#[ebptv_macros::testkit]
+pub(crate) fn write_particles_csv(path: &Path, particles: &[Particle]) -> Result<()> {
     let mut w = ParticlesCsvWriter::create(path)?;
     w.write(particles)?;
     w.finish()
@@ -727,7 +731,8 @@ impl<'a> CsvColumns<'a> {
 /// Read a `particles` table (Parquet, CSV or `.npy`). Columns by name
 /// (extra columns ignored); missing columns, unparsable values or NaN/inf
 /// are errors naming the line or row.
-pub fn read_particles(path: &Path) -> Result<Vec<Particle>> {
+#[ebptv_macros::testkit]
+pub(crate) fn read_particles(path: &Path) -> Result<Vec<Particle>> {
     let names = ["pulse", "t_us", "x", "y", "n_events"];
     let mut r = CsvColumns::open(path, &names)?;
     let mut out = Vec::new();
@@ -760,7 +765,8 @@ pub fn read_particles(path: &Path) -> Result<Vec<Particle>> {
 /// Read a `tracks` table (Parquet, CSV or `.npy`) into tracks (rows
 /// grouped by `track_id`, points sorted by pulse). Accelerations are not
 /// in the file and come back as 0; points are not marked interpolated.
-pub fn read_tracks(path: &Path) -> Result<Vec<Track>> {
+#[ebptv_macros::testkit]
+pub(crate) fn read_tracks(path: &Path) -> Result<Vec<Track>> {
     let names = ["track_id", "pulse", "t_us", "x", "y", "u", "v"];
     let mut r = CsvColumns::open(path, &names)?;
     let mut by_id: BTreeMap<u64, Vec<TrackPoint>> = BTreeMap::new();
@@ -847,7 +853,8 @@ impl SummaryAcc {
 impl Summary {
     /// The summary of a finished set of tracks and the tracker's counters
     /// (no provenance).
-    pub fn new(tracks: &[Track], stats: &TrackerStats) -> Self {
+    #[cfg_attr(not(feature = "python"), allow(dead_code))]
+    pub(crate) fn new(tracks: &[Track], stats: &TrackerStats) -> Self {
         let mut acc = SummaryAcc::default();
         acc.add(tracks);
         acc.summary(stats)

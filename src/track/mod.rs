@@ -128,7 +128,8 @@ use grid_index::GridIndex;
 use assign::*;
 pub use config::{Linker, RunParams, TrackConfig};
 pub(crate) use finalise::*;
-pub use io::{
+#[ebptv_macros::testkit]
+pub(crate) use io::{
     read_particles, read_tracks, write_particles_csv, Summary, TrackRow, PARTICLE_COLUMNS,
     TRACK_COLUMNS,
 };
@@ -143,7 +144,8 @@ pub use sink::{
 };
 pub(crate) use slice::SliceParams;
 pub use state::*;
-pub use stream::{track_recording, PtvSink, PtvStream, TrackingRun};
+#[ebptv_macros::testkit]
+pub(crate) use stream::{track_recording, PtvSink, PtvStream, TrackingRun};
 
 #[cfg(test)]
 mod tests {

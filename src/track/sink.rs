@@ -182,7 +182,7 @@ pub enum TrackInput<'a> {
 impl TrackInput<'_> {
     /// A recording, or a particles table (any format) when it has a
     /// `pulse` column (what `ebptv track` decides).
-    pub fn of_path(path: &Path) -> TrackInput<'_> {
+    pub(crate) fn of_path(path: &Path) -> TrackInput<'_> {
         if is_particles_table(path) {
             TrackInput::ParticlesTable(path)
         } else {

@@ -44,7 +44,8 @@ pub struct Track {
 /// in the order they were pushed, from 0 — for [`link`] the index into its
 /// (pulse-sorted) input. Used to score links against ground truth.
 #[derive(Debug, Clone, PartialEq)]
-pub struct LinkedTrack {
+#[ebptv_macros::testkit]
+pub(crate) struct LinkedTrack {
     /// The track.
     pub track: Track,
     /// Per point, the serial number of its detection (`None` on bridged gaps).
@@ -252,7 +253,8 @@ impl TrackerStats {
 /// Streaming multi-frame tracker: feed pulses in increasing order with
 /// `Tracker::push`, collect finished tracks as they come out, and call
 /// [`Tracker::finish`] at the end.
-pub struct Tracker {
+#[ebptv_macros::testkit]
+pub(crate) struct Tracker {
     pub(super) params: TrackParams,
     pub(super) active: Vec<ActiveTrack>,
     pub(super) frames: VecDeque<Frame>,
@@ -311,7 +313,8 @@ pub(super) struct Scratch {
 
 impl Tracker {
     /// A tracker with these parameters; an error when a parameter is out of range.
-    pub fn new(params: TrackParams) -> Result<Self> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn new(params: TrackParams) -> Result<Self> {
         params.validate()?;
         let floor2 = params.gates.sigma_floor.powi(2);
         Ok(Tracker {
@@ -361,7 +364,8 @@ impl Tracker {
     }
 
     /// `Tracker::push`, keeping the detection serial numbers.
-    pub fn push_linked(
+    #[ebptv_macros::testkit]
+    pub(crate) fn push_linked(
         &mut self,
         pulse: i64,
         t_us: f64,
@@ -516,7 +520,8 @@ impl Tracker {
     }
 
     /// End every track and return the rest.
-    pub fn finish(mut self) -> (Vec<LinkedTrack>, TrackerStats) {
+    #[ebptv_macros::testkit]
+    pub(crate) fn finish(mut self) -> (Vec<LinkedTrack>, TrackerStats) {
         let mut all = std::mem::take(&mut self.pool);
         all.append(&mut self.active);
         all.sort_unstable_by_key(|t| t.dets[0].serial);
@@ -535,7 +540,8 @@ impl Tracker {
     /// Position noise per axis (px) estimated from the innovations of all
     /// accepted links so far (a few per-track residuals are too noisy to
     /// set a gate), within `[sigma_floor, sigma_ceiling]`.
-    pub fn position_sigma(&self) -> f64 {
+    #[ebptv_macros::testkit]
+    pub(crate) fn position_sigma(&self) -> f64 {
         (self.innov_sum / self.innov_n)
             .sqrt()
             .min(self.params.gates.sigma_ceiling)
@@ -546,7 +552,8 @@ impl Tracker {
     /// the next tracks: `fit_accel_rms` if set, else the estimate from the
     /// tracks kept so far (0 until there are enough; after
     /// `Tracker::defer_fits` the estimate lives in the `Finaliser`).
-    pub fn fit_accel_rms(&self) -> f64 {
+    #[ebptv_macros::testkit]
+    pub(crate) fn fit_accel_rms(&self) -> f64 {
         self.params
             .fit
             .fit_accel_rms
@@ -795,7 +802,8 @@ impl Tracker {
 /// increasing order) into tracks. The detection serials of the returned
 /// tracks index the particles sorted by `(pulse, input order)`; the second
 /// value is that sorted order as indices into `particles`.
-pub fn link_linked(
+#[ebptv_macros::testkit]
+pub(crate) fn link_linked(
     particles: &[Particle],
     params: &TrackParams,
 ) -> Result<(Vec<LinkedTrack>, Vec<usize>, TrackerStats)> {

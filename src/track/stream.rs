@@ -446,7 +446,12 @@ pub struct PtvStream {
 impl PtvStream {
     /// `batch_size`: pulses clustered per parallel batch (≥ 1). Links
     /// with one sequential [`Tracker`].
-    pub fn new(cluster: ClusterParams, track: TrackParams, batch_size: usize) -> Result<Self> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn new(
+        cluster: ClusterParams,
+        track: TrackParams,
+        batch_size: usize,
+    ) -> Result<Self> {
         let linker = Linker::Sequential(Tracker::new(track)?);
         Self::with_linker(cluster, linker, batch_size)
     }
@@ -490,7 +495,8 @@ impl PtvStream {
     /// Add the events of the next pulse (pulses in increasing order).
     /// Results of earlier pulses reach the sink here, as they come out of
     /// the pipeline.
-    pub fn push_pulse(&mut self, pulse: PulseEvents, sink: &mut dyn PtvSink) -> Result<()> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn push_pulse(&mut self, pulse: PulseEvents, sink: &mut dyn PtvSink) -> Result<()> {
         self.events += pulse.events.len() as u64;
         self.batch.push(pulse);
         if self.batch.len() >= self.batch_size {
@@ -615,7 +621,8 @@ impl PtvStream {
 
     /// Cluster and track what is left, end all tracks, hand everything to
     /// the sink.
-    pub fn finish(mut self, sink: &mut dyn PtvSink) -> Result<TrackerStats> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn finish(mut self, sink: &mut dyn PtvSink) -> Result<TrackerStats> {
         self.hand_on(sink)?;
         match std::mem::replace(&mut self.state, State::Stopped) {
             State::Idle(idle) => {
@@ -652,7 +659,8 @@ fn unlinked(tracks: Vec<super::LinkedTrack>) -> Vec<Track> {
 
 /// What [`track_recording`] found besides the tracks it handed to its sink.
 #[derive(Clone, Debug)]
-pub struct TrackingRun {
+#[ebptv_macros::testkit]
+pub(crate) struct TrackingRun {
     /// The pulse analysis (timing, lock-in test), as in `pulses.json`.
     pub pulses: PulseReport,
     /// The tracker's counters.
@@ -664,7 +672,8 @@ pub struct TrackingRun {
 /// The whole PTV stage on a recording. `open` opens the recording afresh
 /// (it is read twice: pulse analysis, then tracking); `on_pulse` is called
 /// after each pulse for progress reports.
-pub fn track_recording<'a>(
+#[ebptv_macros::testkit]
+pub(crate) fn track_recording<'a>(
     open: &dyn Fn() -> Result<Box<dyn EventSource + 'a>>,
     pulse_options: &PulseOptions,
     stream: PtvStream,

@@ -48,7 +48,8 @@ const MAX_HEADER_BYTES: u32 = 16 << 20;
 
 /// Packet compression of an AEDAT4 file.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Compression {
+#[ebptv_macros::testkit]
+pub(crate) enum Compression {
     /// Packets stored as they are.
     None,
     /// LZ4 frames.
@@ -705,7 +706,8 @@ impl EventSource for Aedat4Reader {
 /// stream (id 1), `per_packet` elements per packet, packets compressed by
 /// `compress` (which must match `compression`). Trigger channels/edges are
 /// written as the types the reader maps them from (channel 0–3).
-pub fn encode_aedat4(
+#[ebptv_macros::testkit]
+pub(crate) fn encode_aedat4(
     events: &[crate::events::Event],
     triggers: &[Trigger],
     geometry: Geometry,
@@ -864,7 +866,8 @@ pub(crate) fn zstd_stored_frame(data: &[u8]) -> Vec<u8> {
 }
 
 /// LZ4 frame compression (as dv writes), for tests and fixtures.
-pub fn lz4_frame(data: &[u8]) -> Vec<u8> {
+#[ebptv_macros::testkit]
+pub(crate) fn lz4_frame(data: &[u8]) -> Vec<u8> {
     use std::io::Write;
     let mut enc = lz4_flex::frame::FrameEncoder::new(Vec::new());
     enc.write_all(data).expect("writing to a Vec");

@@ -581,7 +581,8 @@ fn is_plain_polarity(s: &str) -> bool {
 }
 
 /// Streaming CSV event reader (see the module docs).
-pub struct CsvReader {
+#[ebptv_macros::testkit]
+pub(crate) struct CsvReader {
     info: StreamInfo,
     lines: LineReader,
     layout: Layout,
@@ -845,7 +846,8 @@ pub(crate) fn read_trigger_csv(
 }
 
 /// CSV event writer: `t,x,y,p` and a `<stem>_triggers.csv` sidecar.
-pub struct CsvWriter {
+#[ebptv_macros::testkit]
+pub(crate) struct CsvWriter {
     events: AtomicFile,
     trigger_path: PathBuf,
     triggers: Option<AtomicFile>,
@@ -854,7 +856,8 @@ pub struct CsvWriter {
 
 impl CsvWriter {
     /// Creates a writer for `path`.
-    pub fn create(path: &Path) -> Result<Self> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn create(path: &Path) -> Result<Self> {
         let mut events = AtomicFile::create(path)?;
         events
             .write_all(b"t,x,y,p\n")

@@ -282,7 +282,11 @@ impl EventSource for DatReader {
 /// Encode CD events as a DAT file (type 0x0C) — used by tests and small
 /// tools; times must fit in 32 bits after subtracting nothing (they are
 /// written modulo 2^32, as a camera would).
-pub fn encode_dat_cd(events: &[crate::events::Event], geometry: Option<Geometry>) -> Vec<u8> {
+#[ebptv_macros::testkit]
+pub(crate) fn encode_dat_cd(
+    events: &[crate::events::Event],
+    geometry: Option<Geometry>,
+) -> Vec<u8> {
     let mut out = Vec::new();
     out.extend_from_slice(b"% Data file containing CD events.\n% Version 2\n");
     if let Some(g) = geometry {
@@ -299,7 +303,8 @@ pub fn encode_dat_cd(events: &[crate::events::Event], geometry: Option<Geometry>
 }
 
 /// Encode triggers as a DAT trigger file (type 0x0E).
-pub fn encode_dat_triggers(triggers: &[Trigger]) -> Vec<u8> {
+#[ebptv_macros::testkit]
+pub(crate) fn encode_dat_triggers(triggers: &[Trigger]) -> Vec<u8> {
     let mut out = Vec::new();
     out.extend_from_slice(b"% Data file containing external trigger events.\n% Version 2\n");
     out.push(0x0E);

@@ -284,7 +284,8 @@ impl EventSource for EsReader {
 /// Encode events as an Event Stream 2.0.0 DVS file. Events must be sorted
 /// by time with `t >= 0` (the format stores non-negative deltas); used by
 /// tests and small tools.
-pub fn encode_es_dvs(events: &[crate::events::Event], geometry: Geometry) -> Vec<u8> {
+#[ebptv_macros::testkit]
+pub(crate) fn encode_es_dvs(events: &[crate::events::Event], geometry: Geometry) -> Vec<u8> {
     let mut out = Vec::with_capacity(HEADER_BYTES + events.len() * 5);
     out.extend_from_slice(MAGIC);
     out.extend_from_slice(&[2, 0, 0, 1]);

@@ -54,7 +54,8 @@ impl TimeBase34 {
 
 /// The EVT 2.0 decoder, independent of where the bytes come from.
 #[derive(Debug, Clone, Default)]
-pub struct Evt2Decoder {
+#[ebptv_macros::testkit]
+pub(crate) struct Evt2Decoder {
     have_time_base: bool,
     time: TimeBase34,
     /// Malformed or unexpected words met so far.
@@ -63,14 +64,16 @@ pub struct Evt2Decoder {
 
 impl Evt2Decoder {
     /// A decoder at the start of a stream.
-    pub fn new() -> Self {
+    #[ebptv_macros::testkit]
+    pub(crate) fn new() -> Self {
         Self::default()
     }
 
     /// Decode whole 32-bit words of `bytes` into `out` until it holds
     /// `max_events` events or triggers. Returns the bytes consumed (a
     /// multiple of 4).
-    pub fn decode(&mut self, bytes: &[u8], out: &mut Chunk, max_events: usize) -> usize {
+    #[ebptv_macros::testkit]
+    pub(crate) fn decode(&mut self, bytes: &[u8], out: &mut Chunk, max_events: usize) -> usize {
         let total = bytes.len() & !3;
         let mut pos = 0;
         while pos < total {

@@ -66,7 +66,8 @@ const FAST_KINDS: u16 = (1 << 0x0) | (1 << 0x2) | (1 << 0x6);
 /// The EVT 3.0 decoding state machine, independent of where the bytes come
 /// from (files through `Evt3Reader`, memory in tests and tools).
 #[derive(Debug, Clone, Default)]
-pub struct Evt3Decoder {
+#[ebptv_macros::testkit]
+pub(crate) struct Evt3Decoder {
     have_time_base: bool,
     /// Current time base including unwrapped loops, µs.
     time_base: u64,
@@ -83,7 +84,8 @@ pub struct Evt3Decoder {
 
 impl Evt3Decoder {
     /// A decoder at the start of a stream.
-    pub fn new() -> Self {
+    #[ebptv_macros::testkit]
+    pub(crate) fn new() -> Self {
         Self::default()
     }
 
@@ -91,7 +93,8 @@ impl Evt3Decoder {
     /// alone) into `out`, stopping once `out` holds at least `max_events`
     /// events (at most `max_events + 11`) or triggers. Returns the number of
     /// bytes consumed (always even).
-    pub fn decode(&mut self, bytes: &[u8], out: &mut Chunk, max_events: usize) -> usize {
+    #[ebptv_macros::testkit]
+    pub(crate) fn decode(&mut self, bytes: &[u8], out: &mut Chunk, max_events: usize) -> usize {
         let total = bytes.len() & !1;
         let mut pos = 0;
         while pos < total {

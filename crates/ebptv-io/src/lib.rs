@@ -315,7 +315,7 @@ pub struct OpenOptions {
 
 /// Default number of events per chunk: large enough to amortise per-chunk
 /// work, small enough (~13 MB) to keep memory bounded.
-pub const DEFAULT_CHUNK_EVENTS: usize = 1 << 20;
+pub(crate) const DEFAULT_CHUNK_EVENTS: usize = 1 << 20;
 
 /// Open an event file, sniffing its format.
 pub fn open(path: impl AsRef<Path>) -> Result<Box<dyn EventSource>> {

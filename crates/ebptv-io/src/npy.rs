@@ -71,7 +71,8 @@ pub fn table_header(descr: &str, rows: usize, min_len: usize) -> Vec<u8> {
 
 /// A column of a structured table for [`write_npy_table`].
 #[derive(Debug, Clone, Copy)]
-pub enum NpyColumn<'a> {
+#[ebptv_macros::testkit]
+pub(crate) enum NpyColumn<'a> {
     /// `<f8` values.
     F64(&'a [f64]),
     /// `<f4` values.
@@ -166,7 +167,8 @@ pub fn write_npy_f64(path: impl AsRef<Path>, shape: &[usize], data: &[f64]) -> R
 
 /// Write a 1-D structured array (a table numpy loads with named fields)
 /// from equally long columns.
-pub fn write_npy_table(path: impl AsRef<Path>, columns: &[(&str, NpyColumn)]) -> Result<()> {
+#[ebptv_macros::testkit]
+pub(crate) fn write_npy_table(path: impl AsRef<Path>, columns: &[(&str, NpyColumn)]) -> Result<()> {
     let path = path.as_ref();
     if columns.is_empty() {
         return Err(Error::param(
@@ -329,7 +331,8 @@ pub fn commit_streamed_table(
 }
 
 /// Streaming writer of events to a structured `.npy` (see the module docs).
-pub struct NpyEventWriter {
+#[ebptv_macros::testkit]
+pub(crate) struct NpyEventWriter {
     events: StreamingNpy,
     triggers: Option<StreamingNpy>,
     trigger_path: PathBuf,
@@ -337,7 +340,8 @@ pub struct NpyEventWriter {
 
 impl NpyEventWriter {
     /// Creates a writer for `path`.
-    pub fn create(path: &Path) -> Result<Self> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn create(path: &Path) -> Result<Self> {
         Ok(NpyEventWriter {
             events: StreamingNpy::create(path, EVENT_DESCR)?,
             triggers: None,

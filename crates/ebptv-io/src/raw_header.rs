@@ -78,7 +78,8 @@ pub(crate) fn parse_percent_header(bytes: &[u8]) -> (Vec<(String, String)>, usiz
 
 /// What a RAW header says (or implies) about the payload.
 #[derive(Debug, Clone, PartialEq)]
-pub struct RawHeader {
+#[ebptv_macros::testkit]
+pub(crate) struct RawHeader {
     /// The header's `% key value` lines, in file order.
     pub entries: Vec<(String, String)>,
     /// Byte offset of the first payload word.
@@ -215,7 +216,8 @@ pub(crate) fn interpret(entries: Vec<(String, String)>, payload_offset: u64) -> 
 /// Read and interpret the header of the file at `path`. Reads 64 KB (any
 /// real header is far shorter), more only while the header runs on, up to
 /// `MAX_HEADER_BYTES` (1 MiB).
-pub fn read_raw_header(path: &Path) -> Result<RawHeader> {
+#[ebptv_macros::testkit]
+pub(crate) fn read_raw_header(path: &Path) -> Result<RawHeader> {
     let mut f = File::open(path).map_err(|e| Error::io(path, e))?;
     let mut buf = Vec::new();
     let mut want = 64 * 1024;

@@ -48,7 +48,8 @@ use ebptv_io::error::{Error, Result};
 
 /// A built velocity field.
 #[derive(Debug, Clone)]
-pub enum Flow {
+#[ebptv_macros::testkit]
+pub(crate) enum Flow {
     /// The same velocity everywhere.
     Uniform {
         /// x velocity (px/s).
@@ -119,7 +120,8 @@ pub enum Flow {
 /// Random Fourier modes of a stream function ψ = Σ a_n sin(k_n·x − ω_n t + φ_n)
 /// on a mean shear flow.
 #[derive(Debug, Clone)]
-pub struct Turbulent {
+#[ebptv_macros::testkit]
+pub(crate) struct Turbulent {
     /// Mean x velocity at `y_ref` (px/s).
     pub u_mean: f64,
     /// Mean y velocity (px/s).
@@ -168,7 +170,8 @@ pub(crate) static FALLBACK_LANES: std::sync::atomic::AtomicU64 =
 
 /// Periodic vortex shedding behind an obstacle (built from [`FlowSpec::Shedding`]).
 #[derive(Debug, Clone)]
-pub struct Shedding {
+#[ebptv_macros::testkit]
+pub(crate) struct Shedding {
     u_inf: f64,
     x0: f64,
     yc: f64,
@@ -188,7 +191,8 @@ pub struct Shedding {
 
 /// A steady field on a regular grid, bilinearly interpolated (built from [`FlowSpec::Gridded`]).
 #[derive(Debug, Clone)]
-pub struct Gridded {
+#[ebptv_macros::testkit]
+pub(crate) struct Gridded {
     xs: Vec<f64>,
     ys: Vec<f64>,
     /// Nodes per unit length along x and y ([`Gridded::per_unit`]): the
@@ -202,7 +206,8 @@ pub struct Gridded {
 
 impl Flow {
     /// Builds the field a scenario describes; errors when the description is invalid or a grid file cannot be read.
-    pub fn build(spec: &FlowSpec) -> Result<Flow> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn build(spec: &FlowSpec) -> Result<Flow> {
         Ok(match spec {
             FlowSpec::Uniform { u, v } => Flow::Uniform { u: *u, v: *v },
             FlowSpec::LambOseen {
@@ -324,7 +329,8 @@ impl Flow {
 
     /// Velocity (px/s) at (x, y) px and time t (s).
     #[inline]
-    pub fn velocity(&self, x: f64, y: f64, t: f64) -> (f64, f64) {
+    #[ebptv_macros::testkit]
+    pub(crate) fn velocity(&self, x: f64, y: f64, t: f64) -> (f64, f64) {
         if self.has_lanes() {
             self.velocity_lanes(x, y, t)
         } else {
@@ -477,7 +483,8 @@ impl Flow {
 
     /// Exact Reynolds stresses (uu, vv, uv) of the fluctuations about the
     /// mean field, when the field is a statistical one.
-    pub fn known_stresses(&self) -> Option<(f64, f64, f64)> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn known_stresses(&self) -> Option<(f64, f64, f64)> {
         match self {
             Flow::Turbulent(tb) => Some(tb.stresses()),
             _ => None,
@@ -485,7 +492,8 @@ impl Flow {
     }
 
     /// Mean velocity (the field without fluctuations) for statistical fields.
-    pub fn mean_velocity(&self, x: f64, y: f64) -> (f64, f64) {
+    #[ebptv_macros::testkit]
+    pub(crate) fn mean_velocity(&self, x: f64, y: f64) -> (f64, f64) {
         match self {
             Flow::Turbulent(tb) => (tb.u_mean + tb.shear * (y - tb.y_ref), tb.v_mean),
             _ => self.velocity(x, y, 0.0),
@@ -493,7 +501,8 @@ impl Flow {
     }
 
     /// Shedding frequency (Hz) for the shedding flow.
-    pub fn shedding_frequency_hz(&self) -> Option<f64> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn shedding_frequency_hz(&self) -> Option<f64> {
         match self {
             Flow::Shedding(s) => Some(s.frequency_hz),
             _ => None,

@@ -80,7 +80,8 @@ pub mod scenario;
 pub(crate) mod seeding;
 pub mod simd;
 
-pub use flow::Flow;
+#[ebptv_macros::testkit]
+pub(crate) use flow::Flow;
 pub use motion::MotionCache;
 pub use record::{
     write_recording, write_recording_with, RecordingSummary, TruthTable, TruthTableMaker,
@@ -655,7 +656,8 @@ struct Back {
 /// sequential part does not leave a core idle; neither stage depends on
 /// the other's output of those blocks, so the result is the same as
 /// running them one after the other, for any thread count.
-pub struct Simulator {
+#[ebptv_macros::testkit]
+pub(crate) struct Simulator {
     front: Front,
     back: Back,
     /// Block `block`'s front, computed while the previous block's back ran.
@@ -669,7 +671,8 @@ pub struct Simulator {
 
 impl Simulator {
     /// A simulator of scenario `sc`; `seed` fixes every random draw.
-    pub fn new(sc: &Scenario, seed: u64) -> Result<Simulator> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn new(sc: &Scenario, seed: u64) -> Result<Simulator> {
         Simulator::build(sc, seed, None)
     }
 
@@ -780,12 +783,14 @@ impl Simulator {
     }
 
     /// The velocity field the particles follow.
-    pub fn flow(&self) -> &Flow {
+    #[ebptv_macros::testkit]
+    pub(crate) fn flow(&self) -> &Flow {
         &self.front.flow
     }
 
     /// Truth of the pulses simulated so far (and not taken before).
-    pub fn take_truth(&mut self) -> Vec<TruthSample> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn take_truth(&mut self) -> Vec<TruthSample> {
         std::mem::take(&mut self.truth)
     }
 
@@ -799,12 +804,14 @@ impl Simulator {
     }
 
     /// Start times of all pulses simulated so far (µs).
-    pub fn pulse_starts_us(&self) -> &[f64] {
+    #[ebptv_macros::testkit]
+    pub(crate) fn pulse_starts_us(&self) -> &[f64] {
         &self.pulse_starts_us
     }
 
     /// The counters so far.
-    pub fn stats(&self) -> &SimStats {
+    #[ebptv_macros::testkit]
+    pub(crate) fn stats(&self) -> &SimStats {
         &self.stats
     }
 
@@ -817,7 +824,8 @@ impl Simulator {
     }
 
     /// Hot pixels (x, y, rate) of this run.
-    pub fn hot_pixels(&self) -> &[(u16, u16, f64)] {
+    #[ebptv_macros::testkit]
+    pub(crate) fn hot_pixels(&self) -> &[(u16, u16, f64)] {
         self.front.pixel.hot_pixels()
     }
 

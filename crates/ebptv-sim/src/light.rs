@@ -14,7 +14,8 @@ use super::scenario::Light;
 
 /// Quadrature of one pulse's envelope.
 #[derive(Debug, Clone)]
-pub struct PulseShape {
+#[ebptv_macros::testkit]
+pub(crate) struct PulseShape {
     /// Sample times after the pulse start (µs) and their normalised weights.
     pub nodes: Vec<(f64, f64)>,
     /// Mean power over the nominal width, relative to the plateau.
@@ -27,7 +28,8 @@ pub struct PulseShape {
 
 impl PulseShape {
     /// The shape of the pulses of `l`.
-    pub fn new(l: &Light) -> PulseShape {
+    #[ebptv_macros::testkit]
+    pub(crate) fn new(l: &Light) -> PulseShape {
         let end = 0.5 * l.rise_us + l.pulse_width_us + 0.5 * l.fall_us;
         let n = 64;
         let mut nodes = Vec::with_capacity(n);

@@ -35,7 +35,8 @@ pub const PRESETS: [(&str, &str); 9] = [
 
 /// Pulse energy giving ~2 events per particle per pulse (water: large,
 /// bright particles).
-pub const WATER_ENERGY: f64 = 1.6;
+#[ebptv_macros::testkit]
+pub(crate) const WATER_ENERGY: f64 = 1.6;
 /// Pulse energy giving ~1.3 events per particle per pulse (air: small
 /// droplets).
 pub(crate) const AIR_ENERGY: f64 = 1.0;
@@ -241,6 +242,7 @@ pub fn preset(name: &str) -> Result<Scenario> {
 }
 
 /// All preset names.
-pub fn names() -> Vec<&'static str> {
+#[ebptv_macros::testkit]
+pub(crate) fn names() -> Vec<&'static str> {
     PRESETS.iter().map(|p| p.0).collect()
 }

@@ -1011,7 +1011,8 @@ impl Scenario {
     }
 
     /// Parse and validate TOML text.
-    pub fn from_toml_str(text: &str) -> Result<Scenario> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn from_toml_str(text: &str) -> Result<Scenario> {
         let s: Scenario = toml::from_str(text).map_err(|e| Error::Config {
             path: PathBuf::from("<scenario>"),
             why: e.to_string(),

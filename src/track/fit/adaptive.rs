@@ -35,7 +35,8 @@ pub(super) fn widened_ridge(ridge: f64, sigma: f64, c2sq: f64) -> f64 {
 
 /// How [`fit_adaptive`] chooses its window.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct WindowRule {
+#[ebptv_macros::testkit]
+pub(crate) struct WindowRule {
     /// Smallest window (detections).
     pub min_window: usize,
     /// Largest window (detections); `min_window ≥ max_window` gives the
@@ -89,7 +90,8 @@ thread_local! {
 /// each holds the one before) of least predicted velocity error (module
 /// docs). Returns the fit and its window; `None` when no window can be
 /// fitted.
-pub fn fit_adaptive(
+#[ebptv_macros::testkit]
+pub(crate) fn fit_adaptive(
     tau: &[f64],
     xs: &[f64],
     ys: &[f64],

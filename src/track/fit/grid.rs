@@ -72,7 +72,8 @@ impl GridWindow {
 /// [`fit_adaptive_grid`] is the fast path; [`fit_adaptive`] the reference
 /// and the path for windows with gaps or irregular times.
 #[derive(Debug, Clone)]
-pub struct GridTables {
+#[ebptv_macros::testkit]
+pub(crate) struct GridTables {
     pub(super) min_window: usize,
     pub(super) max_window: usize,
     pub(super) order: usize,
@@ -120,7 +121,8 @@ pub(super) fn grid_index(w: usize, offset: isize) -> usize {
 impl GridTables {
     /// Tables for the window shape of `rule` (its σ and bias weight are
     /// applied per sample, so they do not enter).
-    pub fn new(rule: &WindowRule) -> Self {
+    #[ebptv_macros::testkit]
+    pub(crate) fn new(rule: &WindowRule) -> Self {
         let max_window = rule.max_window.max(1);
         let min_window = rule.min_window.clamp(1, max_window);
         let sums_of = |w: usize, o: isize| {
@@ -285,7 +287,8 @@ impl GridTables {
 /// `GridTables::serves` `rule` (else the reference is used). Points are
 /// interleaved so that x and y go through the sums side by side (the
 /// compiler pairs them in one vector register).
-pub fn fit_adaptive_grid(
+#[ebptv_macros::testkit]
+pub(crate) fn fit_adaptive_grid(
     tables: &GridTables,
     xy: &[[f64; 2]],
     centre: usize,

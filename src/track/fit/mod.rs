@@ -148,15 +148,19 @@ mod grid;
 mod local;
 mod prior;
 mod running;
-pub use adaptive::*;
-pub use grid::*;
+#[ebptv_macros::testkit]
+pub(crate) use adaptive::*;
+#[ebptv_macros::testkit]
+pub(crate) use grid::*;
 pub(crate) use local::*;
-pub use prior::*;
+#[ebptv_macros::testkit]
+pub(crate) use prior::*;
 pub(crate) use running::*;
 
 /// A fitted state at one evaluation time (in the caller's τ units).
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct FitState {
+#[ebptv_macros::testkit]
+pub(crate) struct FitState {
     /// Fitted position x (px).
     pub x: f64,
     /// Fitted position y (px).
@@ -181,7 +185,14 @@ pub struct FitState {
 /// Fit `xs`, `ys` against `tau` with a polynomial of order `order` (0..=2,
 /// lowered to what the number of points allows) and evaluate at `at`.
 /// `None` for no points or a singular design (all τ equal with order ≥ 1).
-pub fn fit_eval(tau: &[f64], xs: &[f64], ys: &[f64], order: usize, at: f64) -> Option<FitState> {
+#[ebptv_macros::testkit]
+pub(crate) fn fit_eval(
+    tau: &[f64],
+    xs: &[f64],
+    ys: &[f64],
+    order: usize,
+    at: f64,
+) -> Option<FitState> {
     let n = tau.len();
     if n == 0 {
         return None;

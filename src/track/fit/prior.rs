@@ -95,7 +95,8 @@ impl AccelPrior {
 /// `max_window` and every `e`, from the reference's own normal matrices
 /// ([`fit_eval`] is what the tables are tested against).
 #[derive(Debug, Clone)]
-pub struct LeaveOneOut {
+#[ebptv_macros::testkit]
+pub(crate) struct LeaveOneOut {
     pub(super) max_window: usize,
     /// Per `w` (index `w`), per `e` in `0..=w`: weights of the `w + 1`
     /// samples (0 at `e`) and the leverage; `None` when the fit is singular.
@@ -105,7 +106,8 @@ pub struct LeaveOneOut {
 
 impl LeaveOneOut {
     /// Tables for windows of up to `max_window` fitted samples.
-    pub fn new(max_window: usize) -> Self {
+    #[ebptv_macros::testkit]
+    pub(crate) fn new(max_window: usize) -> Self {
         let mut table = vec![Vec::new()];
         for w in 1..=max_window {
             let mut per_e = Vec::with_capacity(w + 1);
@@ -164,7 +166,8 @@ impl LeaveOneOut {
     /// point `e`, evaluated at τ = `e`, minus point `e`. The same as
     /// [`fit_eval`] over the other points (order 2) up to rounding; `None`
     /// outside the tables or for a singular fit.
-    pub fn predict(&self, xy: &[[f64; 2]], e: usize) -> Option<(f64, f64, f64)> {
+    #[ebptv_macros::testkit]
+    pub(crate) fn predict(&self, xy: &[[f64; 2]], e: usize) -> Option<(f64, f64, f64)> {
         let w = xy.len().checked_sub(1)?;
         let (weights, leverage) = self.table.get(w)?.get(e)?.as_ref()?;
         let p0 = xy[e];

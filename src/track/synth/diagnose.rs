@@ -5,7 +5,8 @@ use super::*;
 
 /// Where wrong links and missed truth links come from (see `diagnose`).
 #[derive(Debug, Clone, Default, Serialize, Deserialize)]
-pub struct LinkDiagnosis {
+#[ebptv_macros::testkit]
+pub(crate) struct LinkDiagnosis {
     pub links: u64,
     pub wrong_links: u64,
     /// Wrong links with a merged image (events of two sources, particles
@@ -126,7 +127,8 @@ pub(crate) fn diagnose(
 }
 
 /// Cluster, track and `diagnose` a scene.
-pub fn run_and_diagnose(
+#[ebptv_macros::testkit]
+pub(crate) fn run_and_diagnose(
     scene: &[SynthPulse],
     cparams: &ClusterParams,
     tparams: &crate::track::TrackParams,
@@ -285,7 +287,8 @@ pub(crate) fn diagnose_detail(
 pub(super) const INIT_FRAMES_SYNTH: usize = crate::track::INIT_FRAMES;
 
 /// Cluster, track and `diagnose_detail` a scene.
-pub fn run_and_diagnose_detail(
+#[ebptv_macros::testkit]
+pub(crate) fn run_and_diagnose_detail(
     scene: &[SynthPulse],
     cparams: &ClusterParams,
     tparams: &crate::track::TrackParams,

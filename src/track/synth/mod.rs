@@ -170,14 +170,19 @@ mod oracle;
 mod run;
 mod score;
 
-pub use diagnose::*;
-pub use oracle::*;
-pub use run::*;
-pub use score::*;
+#[ebptv_macros::testkit]
+pub(crate) use diagnose::*;
+#[ebptv_macros::testkit]
+pub(crate) use oracle::*;
+#[ebptv_macros::testkit]
+pub(crate) use run::*;
+#[ebptv_macros::testkit]
+pub(crate) use score::*;
 
 /// Scene parameters.
 #[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct SynthParams {
+#[ebptv_macros::testkit]
+pub(crate) struct SynthParams {
     pub width: u16,
     pub height: u16,
     /// Particles per pixel in the sheet.
@@ -225,7 +230,8 @@ impl Default for SynthParams {
 /// One pulse of the scene: its events, the truth id of each event (`None`
 /// for noise) and the truth of every particle in the sheet.
 #[derive(Debug, Clone)]
-pub struct SynthPulse {
+#[ebptv_macros::testkit]
+pub(crate) struct SynthPulse {
     pub pulse: PulseEvents,
     pub event_truth: Vec<Option<u64>>,
     pub truth: Vec<TruthSample>,
@@ -234,7 +240,8 @@ pub struct SynthPulse {
 impl SynthParams {
     /// The 384² scene of the conditions tables (`benches/examples/ptv_conditions.rs`,
     /// `ptv_diagnose`, `ptv_bounds`): the defaults with these four changed.
-    pub fn conditions(ppp: f64, max_disp: f64, noise_fraction: f64, seed: u64) -> Self {
+    #[ebptv_macros::testkit]
+    pub(crate) fn conditions(ppp: f64, max_disp: f64, noise_fraction: f64, seed: u64) -> Self {
         SynthParams {
             ppp,
             max_disp,
@@ -249,7 +256,8 @@ impl SynthParams {
     /// The tracker's search reach for this scene, as the conditions tables
     /// track it: 1.25× the largest displacement, never below the default
     /// 10 px.
-    pub fn search_reach(&self) -> f64 {
+    #[ebptv_macros::testkit]
+    pub(crate) fn search_reach(&self) -> f64 {
         (self.max_disp * 1.25).max(10.0)
     }
 
@@ -281,7 +289,8 @@ impl SynthParams {
 }
 
 /// Generate the scene, pulse by pulse.
-pub fn generate(p: &SynthParams) -> Vec<SynthPulse> {
+#[ebptv_macros::testkit]
+pub(crate) fn generate(p: &SynthParams) -> Vec<SynthPulse> {
     struct P {
         id: u64,
         x: f64,
@@ -380,7 +389,8 @@ pub fn generate(p: &SynthParams) -> Vec<SynthPulse> {
 
 /// Cluster one synthetic pulse and attribute each particle to the truth
 /// particle that made most of its events.
-pub fn cluster_with_truth(
+#[ebptv_macros::testkit]
+pub(crate) fn cluster_with_truth(
     sp: &SynthPulse,
     params: &ClusterParams,
 ) -> (Vec<Particle>, Vec<Option<u64>>) {
@@ -391,7 +401,8 @@ pub fn cluster_with_truth(
 /// [`cluster_with_truth`], also telling for each particle whether its
 /// events came from more than one source (two particles, or a particle and
 /// noise): a merged image.
-pub fn cluster_with_truth_mixed(
+#[ebptv_macros::testkit]
+pub(crate) fn cluster_with_truth_mixed(
     sp: &SynthPulse,
     params: &ClusterParams,
 ) -> (Vec<Particle>, Vec<Option<u64>>, Vec<bool>) {
@@ -482,7 +493,8 @@ fn attribute_votes(
 /// events each particle made, e.g. the full simulator's
 /// `truth_particles.csv`). Particles must be grouped by pulse in the order
 /// the truth lists pulses or not: any order works.
-pub fn attribute_nearest(
+#[ebptv_macros::testkit]
+pub(crate) fn attribute_nearest(
     particles: &[Particle],
     truth: &[TruthSample],
     max_dist: f64,

@@ -71,7 +71,8 @@ pub(crate) fn oracle_tracks(
 /// What perfect links give on a scene (module docs, "Oracle tracks" and
 /// "Velocity floor"); see [`oracle_report`].
 #[derive(Debug, Clone, Default, Serialize, Deserialize)]
-pub struct OracleReport {
+#[ebptv_macros::testkit]
+pub(crate) struct OracleReport {
     /// Oracle tracks (≥ 2 detections).
     pub tracks: u64,
     /// Links that bridge missed pulses.
@@ -263,7 +264,8 @@ pub(crate) fn quadratic_velocity_variance_factor(
 /// tracker's output fit (`fit_detections`) and score them: links
 /// (strict, merged-ok, identity; all, long, exclusive), the velocity
 /// error with perfect links, and the floors (module docs).
-pub fn oracle_report(
+#[ebptv_macros::testkit]
+pub(crate) fn oracle_report(
     run: &SceneRun,
     tparams: &crate::track::TrackParams,
     period_us: f64,

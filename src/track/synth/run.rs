@@ -6,12 +6,14 @@ use super::*;
 /// Track points at least this many detections from both ends of their
 /// track count as interior in [`run_and_score`] (the half-width of the
 /// 11-point fixed output window, kept so numbers compare across fits).
-pub const INTERIOR_MARGIN: usize = 5;
+#[ebptv_macros::testkit]
+pub(crate) const INTERIOR_MARGIN: usize = 5;
 
 /// A scene clustered and tracked, with the truth of every detection
 /// (indexed by detection: the serials of [`crate::track::Tracker`]).
 #[derive(Debug, Clone)]
-pub struct SceneRun {
+#[ebptv_macros::testkit]
+pub(crate) struct SceneRun {
     pub tracks: Vec<LinkedTrack>,
     pub det_truth: Vec<Option<u64>>,
     pub det_sources: Vec<Vec<u64>>,
@@ -31,7 +33,8 @@ pub struct SceneRun {
 
 /// Cluster every pulse, track, and attribute every detection with the
 /// rule of [`cluster_with_truth`].
-pub fn run_scene(
+#[ebptv_macros::testkit]
+pub(crate) fn run_scene(
     scene: &[SynthPulse],
     cparams: &ClusterParams,
     tparams: &crate::track::TrackParams,
@@ -74,7 +77,8 @@ pub fn run_scene(
 
 /// Run the whole PTV stage on a scene: cluster every pulse, track, score
 /// ([`run_scene`]; detections of the returned tracks numbered as there).
-pub fn run_and_score(
+#[ebptv_macros::testkit]
+pub(crate) fn run_and_score(
     scene: &[SynthPulse],
     cparams: &ClusterParams,
     tparams: &crate::track::TrackParams,

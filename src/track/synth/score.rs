@@ -6,7 +6,8 @@ use super::*;
 
 /// Link scores against truth (see the module docs for the definitions).
 #[derive(Debug, Clone, Default, Serialize, Deserialize)]
-pub struct LinkScore {
+#[ebptv_macros::testkit]
+pub(crate) struct LinkScore {
     pub links: u64,
     pub correct_links: u64,
     /// Wrong links whose two detections both hold events of one truth
@@ -121,7 +122,8 @@ impl VelocityErrors {
 /// Score linked tracks. `det_truth[serial]` is the truth id of each
 /// detection (serials as the tracker numbered them), `det_pulse[serial]`
 /// its pulse; `truth` the truth samples of all pulses.
-pub fn score(
+#[ebptv_macros::testkit]
+pub(crate) fn score(
     tracks: &[LinkedTrack],
     det_truth: &[Option<u64>],
     det_pulse: &[i64],
@@ -143,7 +145,8 @@ pub fn score(
 /// [`score`] with, per detection, every truth particle that made one of
 /// its events (`det_sources[serial]`, sorted; empty slice when unknown),
 /// which tells the merged-consistent links.
-pub fn score_with_sources(
+#[ebptv_macros::testkit]
+pub(crate) fn score_with_sources(
     tracks: &[LinkedTrack],
     det_truth: &[Option<u64>],
     det_sources: &[Vec<u64>],
@@ -324,7 +327,8 @@ pub(super) fn score_identity(
 /// merged image keeps the particle it follows, and without merged
 /// images the labels are `det_truth`), then the smaller particle id
 /// (earliest in the track first): one labelling, deterministic.
-pub fn identity_labels(
+#[ebptv_macros::testkit]
+pub(crate) fn identity_labels(
     serials: &[usize],
     det_truth: &[Option<u64>],
     det_sources: &[Vec<u64>],
