@@ -18,12 +18,14 @@
 //!
 //! Open a recording, find the light pulses, cluster each pulse's events
 //! into particles, link them into tracks and bin the tracks onto a grid.
-//! (The recording here is simulated and written to a temporary file, so the
-//! example runs anywhere; point [`io::open`] at a camera file instead.)
+//! The recording here is simulated and written to a temporary file, so the
+//! example runs anywhere; point [`io::open`] at a camera file instead. The
+//! function is `examples/rust/src/pipeline.rs`, which `examples/rust` (a
+//! program that depends on ebptv with default features, as a user's does)
+//! also runs: the test command builds and runs it.
 //!
 //! ```
-//! use ebptv::{cluster, grid, io, pulses, sim, track, Chunk};
-//!
+//! # use ebptv::{io, sim, Chunk};
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
 //! # let dir = std::env::temp_dir().join(format!("ebptv-doc-{}", std::process::id()));
 //! # std::fs::create_dir_all(&dir)?;
@@ -37,34 +39,11 @@
 //! # chunk.triggers = rec.triggers;
 //! # w.write_chunk(&chunk)?;
 //! # w.finish()?;
-//! // 1. Pulse timing: from the trigger channel, or estimated from the events.
-//! let report = pulses::analyze(&mut *io::open(&path)?, &pulses::PulseOptions::default())?;
-//! println!("{:?} pulses every {:.1} µs", report.timing.source, report.timing.period_us);
-//!
-//! // 2. Each pulse's events → particles (sub-pixel centroids).
-//! let params = cluster::ClusterParams::default();
-//! let mut particles = Vec::new();
-//! pulses::split_pulses(&mut *io::open(&path)?, &report.timing, &mut |pulse| {
-//!     particles.extend(cluster::cluster_pulse(&pulse, &params));
-//!     Ok(())
-//! })?;
-//!
-//! // 3. Particles → Lagrangian tracks (positions and fitted velocities).
-//! let tracks = track::link(&particles, &track::TrackParams::default())?;
-//! assert!(tracks.len() > 100);
-//!
-//! // 4. Tracks → an Eulerian grid of means and Reynolds stresses.
-//! let samples: Vec<grid::Sample> = tracks
-//!     .iter()
-//!     .flat_map(|t| t.points.iter().map(|p| grid::Sample::from_track_point(t.id, p)))
-//!     .collect();
-//! let lattice = grid::Lattice::new(32.0, 32.0, 0.0)?;
-//! let acc = grid::bin_samples(&samples, lattice, grid::Weighting::TopHat)?;
-//! let field = grid::estimate(&acc, &grid::EstimateOptions::default())?;
-//! assert!(field.bins.iter().any(|b| b.count > 0 && b.u.is_finite()));
+//! # pipeline(&path)?;
 //! # std::fs::remove_dir_all(&dir)?;
 //! # Ok(())
 //! # }
+#![doc = include_str!("../examples/rust/src/pipeline.rs")]
 //! ```
 //!
 //! The `ebptv` command line runs the same stages with streaming, progress
