@@ -17,7 +17,7 @@
 //!
 //! Pixel coordinates are those of the outputs: pixel `(i, j)` has its
 //! centre at `x = i, y = j`. A calibration never changes the pixel columns;
-//! it adds physical ones after them ([`Calibration::point_columns`],
+//! it adds physical ones after them (`Calibration::point_columns`,
 //! `Calibration::field_columns`).
 
 use std::path::{Path, PathBuf};

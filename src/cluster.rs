@@ -90,7 +90,7 @@ pub struct ClusterParams {
     #[serde(skip)]
     pub mask: Option<std::sync::Arc<crate::calib::PixelMask>>,
     /// Clusters spanning at least this many pixels along x or y are split
-    /// in two along their principal axis ([`split_wide_clusters`]); 0 = never.
+    /// in two along their principal axis (`split_wide_clusters`); 0 = never.
     /// One particle image of 1–1.5 px puts its 1–4 events on at most 2
     /// adjacent pixels per axis, so a span of 3 is nearly always two
     /// particles (or a particle and a noise event) closer than the join
@@ -111,7 +111,7 @@ pub enum NeighbourSearch {
     /// ~3.5× faster than the tree on particle data.
     #[default]
     RowSweep,
-    /// kiddo k-d tree with radius queries ([`pixel_labels_kdtree`]).
+    /// kiddo k-d tree with radius queries (`pixel_labels_kdtree`).
     KdTree,
 }
 

@@ -1,6 +1,6 @@
 //! PNG figures (plotters, pure-Rust font path with an embedded DejaVu font).
 //!
-//! Three figure kinds cover what the stages need: a [`heatmap`] of a scalar
+//! Three figure kinds cover what the stages need: a `heatmap` of a scalar
 //! field on a regular grid (with a colour bar), a `line_plot` of several
 //! series (legend, optional log axes, vertical markers) and `polylines`
 //! (tracks coloured by a scalar). `histogram_plot` is a convenience over

@@ -2,10 +2,10 @@
 //! every parameter of the run (defaults included), the input files with a
 //! fingerprint, the pulse source and the date.
 //!
-//! Each command that writes a folder records one [`Provenance`]: under the
+//! Each command that writes a folder records one `Provenance`: under the
 //! key `"provenance"` of its JSON outputs (`summary.json`, `grid.json`, …),
 //! in `provenance.json` beside its tables, and in the key/value metadata
-//! of its Parquet tables (key [`PARQUET_KEY`], the same JSON). CSV tables
+//! of its Parquet tables (key `PARQUET_KEY`, the same JSON). CSV tables
 //! carry none of it in the file: their first line stays the header row,
 //! which header-first readers (`numpy.loadtxt(skiprows=1)`, spreadsheet
 //! imports, the scorers of the evaluation) rely on; `provenance.json`

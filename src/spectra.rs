@@ -634,7 +634,7 @@ pub struct PointSpectrum {
     pub psd_u: Psd,
     /// Spectrum of v ((px/s)²/Hz).
     pub psd_v: Psd,
-    /// Significant peak (at [`PEAK_FALSE_ALARM`]) of the summed spectrum
+    /// Significant peak (at `PEAK_FALSE_ALARM`) of the summed spectrum
     /// of u and v; `None` when no peak stands above the noise.
     pub peak: Option<Peak>,
     /// Significant peak of the u spectrum alone, if any.
@@ -681,7 +681,7 @@ impl PointSpectrum {
     }
 }
 
-/// Everything [`point_spectra`] found.
+/// Everything `point_spectra` found.
 #[derive(Debug, Clone)]
 pub struct SpectraResult {
     /// The time axis of the frames.

@@ -1,16 +1,16 @@
 //! Row tables of the analysis stages (particles, tracks, …) in Parquet,
 //! CSV or `.npy`, and a reader of all three.
 //!
-//! A table is a list of typed columns over a row type ([`Col`]): a name and
+//! A table is a list of typed columns over a row type (`Col`): a name and
 //! a function that reads the column's value from a row. Adding a column is
 //! one more entry in that list; the Parquet schema, the `.npy` dtype and
 //! the written values all follow from it.
 //!
-//! [`TableWriter`] streams: rows are gathered column by column into row
+//! `TableWriter` streams: rows are gathered column by column into row
 //! groups of `ROW_GROUP_ROWS` rows, each written out (Parquet) or
 //! interleaved into records (`.npy`) when full, so memory stays bounded
 //! whatever the row count. The file appears under its name only at
-//! [`TableWriter::finish`] (through [`AtomicFile`]).
+//! `TableWriter::finish` (through [`AtomicFile`]).
 //!
 //! Parquet files hold required (non-null) `INT64` and `DOUBLE` columns,
 //! snappy-compressed Parquet 1.0 pages, floats PLAIN and integers

@@ -100,7 +100,7 @@ pub struct GridArgs {
     pub no_plots: bool,
     /// A `calib.toml`: the grid table gains `X_mm,Y_mm,U_m_s,V_m_s,uu_m2_s2,
     /// vv_m2_s2,uv_m2_s2` after the pixel columns, the maps are in m/s,
-    /// and its [mask] applies as --mask does.
+    /// and its `[mask]` table applies as --mask does.
     #[arg(long)]
     pub calibration: Option<PathBuf>,
     /// Mask image (PNG, non-zero = not flow): bins more than half masked

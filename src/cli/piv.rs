@@ -80,7 +80,7 @@ pub struct PivArgs {
     pub force_pulses: bool,
     /// A `calib.toml`: the piv_mean table gains `X_mm,Y_mm,U_m_s,V_m_s,uu_m2_s2,
     /// vv_m2_s2,uv_m2_s2` after the pixel columns, the maps are in m/s,
-    /// and its [mask] applies as --mask does.
+    /// and its `[mask]` table applies as --mask does.
     #[arg(long)]
     pub calibration: Option<PathBuf>,
     /// Mask image (PNG of the sensor's size, non-zero = not flow): masked

@@ -2,8 +2,8 @@
 //! read against the file size, the events decoded, their rate and an ETA.
 //!
 //! The library reports a reading pass's progress through callbacks
-//! ([`ReadRate`], [`ReadBar`] turn them into a bar). Drawing is
-//! limited to [`REFRESH_HZ`] and happens only when stderr is a terminal
+//! (`ReadRate`, `ReadBar` turn them into a bar). Drawing is
+//! limited to `REFRESH_HZ` and happens only when stderr is a terminal
 //! (indicatif hides the bar otherwise: pipes, logs and tests stay quiet).
 
 use std::time::{Duration, Instant};

@@ -52,7 +52,7 @@ pub struct TrackArgs {
     /// `ebptv pulses`).
     #[arg(long)]
     pub force_pulses: bool,
-    /// A `calib.toml` (scale, origin, y axis, optional [mask]):
+    /// A `calib.toml` (scale, origin, y axis, optional `[mask]` table):
     /// tracks.csv gains `X_mm,Y_mm,U_m_s,V_m_s` after the pixel columns.
     #[arg(long)]
     pub calibration: Option<PathBuf>,
@@ -69,7 +69,7 @@ pub struct TrackArgs {
     pub grid: Option<String>,
     /// Read every option of the run from a TOML file: the tracker's parts
     /// ([track.gates], [track.init], [track.stitch], [track.fit]), the
-    /// clustering ([cluster]) and run options such as the table format,
+    /// clustering (`[cluster]`) and run options such as the table format,
     /// the plot window, batching and the sliced linker ([run]). Keys left
     /// out take their defaults; options given here override the file. A
     /// run's OUT/params.toml is such a file.

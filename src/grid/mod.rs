@@ -26,7 +26,7 @@
 //!   samples at one instant, and the dynamic velocity range.
 //! * [`io`]: the mergeable state file, the `grid` and `grid_extra` tables, maps.
 //!
-//! Typical use: [`GridSpec::covering`] the samples' extent →
+//! Typical use: `GridSpec::covering` the samples' extent →
 //! `GridAccumulator::add` each sample (streaming, bounded memory) →
 //! [`estimate()`] → `io::write_grid_table`. What `ebptv grid` writes
 //! (tracks table or merged states → the grid folder) is one call:

@@ -4,7 +4,7 @@
 //!
 //! The `.npy` stack is written while streaming: the number of steps is only
 //! known at the end, so the data goes to a hidden spill file first and is
-//! copied behind a correct header on [`NpyStack::finish`]. (A minimal NPY
+//! copied behind a correct header on `NpyStack::finish`. (A minimal NPY
 //! v1.0 writer of its own; `crate::io::npy` holds the general writers.)
 
 use std::fs::File;

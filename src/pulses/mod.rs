@@ -175,8 +175,8 @@ pub struct PulseOptions {
     /// Known delay from the light pulse to the burst onset (µs), subtracted
     /// from estimated pulse starts (ignored with triggers).
     pub onset_latency_us: Option<f64>,
-    /// Fail in [`Analyzer::finish`] when the recording does not pass the
-    /// pulsed-light test ([`PulsedVerdict`]); the report carries the
+    /// Fail in `Analyzer::finish` when the recording does not pass the
+    /// pulsed-light test (`PulsedVerdict`); the report carries the
     /// verdict either way.
     pub require_pulsed: bool,
 }

@@ -3,7 +3,7 @@
 //! saturation warning) so the operator can turn the laser or the seeding
 //! down before data is lost.
 //!
-//! Each interval gets its own [`Analyzer`] (the pulse period is re-found in
+//! Each interval gets its own `Analyzer` (the pulse period is re-found in
 //! every interval, or taken from the triggers), so a change of conditions
 //! shows at once. Following a growing file relies on the source returning
 //! `Ok(false)` at the current end and delivering new data on a later call

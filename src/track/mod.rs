@@ -68,7 +68,7 @@
 //!    fitted ([`fit`]: local polynomial of order `fit.fit_order` over a sliding
 //!    window of `fit.fit_min_window`..=`fit.fit_window` detections around each
 //!    pulse, chosen per pulse from the position noise by
-//!    [`fit::fit_adaptive`] (through the one fit API, `fit::OutputFit`:
+//!    `fit::fit_adaptive` (through the one fit API, `fit::OutputFit`:
 //!    tabulated, running or gap backends where the pulses are regular),
 //!    with a prior on the curvature
 //!    (`fit.fit_accel_rms`, estimated from the tracks kept so far unless

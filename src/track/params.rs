@@ -199,7 +199,7 @@ pub struct FitParams {
     pub fit_window: usize,
     /// Smallest window of the output fit. Per sample the window between
     /// `fit_min_window` and `fit_window` of least predicted velocity error
-    /// is taken ([`fit::fit_adaptive`]): long where the path is straight,
+    /// is taken (`fit::fit_adaptive`): long where the path is straight,
     /// short on sharp turns. `fit_min_window ≥ fit_window` gives a fixed
     /// window.
     pub fit_min_window: usize,

@@ -826,7 +826,7 @@ pub(crate) fn link_linked(
     Ok((out, order, stats))
 }
 
-/// Link particles into tracks (see [`link_linked`]).
+/// Link particles into tracks (see `link_linked`).
 pub fn link(particles: &[Particle], params: &TrackParams) -> Result<Vec<Track>> {
     Ok(link_linked(particles, params)?
         .0

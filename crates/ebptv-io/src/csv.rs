@@ -34,7 +34,7 @@
 //! `read_trigger_csv` reads such a file on its own.
 //!
 //! # Writing
-//! [`CsvWriter`] writes `t,x,y,p` (t in µs, p 1 = ON / 0 = OFF) with a
+//! `CsvWriter` writes `t,x,y,p` (t in µs, p 1 = ON / 0 = OFF) with a
 //! header line, and the triggers to `<stem>_triggers.csv` with `t,id,p`
 //! (p 1 = rising, 0 = falling). Both go through [`AtomicFile`]. When the
 //! stream holds no trigger, a `<stem>_triggers.csv` left from an earlier

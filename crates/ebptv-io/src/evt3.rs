@@ -7,7 +7,7 @@
 //! (VECT_BASE_X). ADDR_X emits one event; VECT_12 / VECT_8 emit one event per
 //! set bit at base_x + i and advance base_x by 12 / 8, each word on its own
 //! (a vector run may be any length, and may straddle a read buffer: all state
-//! lives in [`Evt3Decoder`], none in the buffer).
+//! lives in `Evt3Decoder`, none in the buffer).
 //!
 //! Time is reported exactly as the sensor wrote it: TIME_LOW may step back
 //! inside one TIME_HIGH (several event sources share the bus) and is neither

@@ -307,7 +307,7 @@ impl<S: EventSource, F: FnMut(ReadState) -> Result<()> + Send> EventSource for O
 pub struct OpenOptions {
     /// Force a format instead of sniffing it.
     pub format: Option<Format>,
-    /// Events per chunk (default [`DEFAULT_CHUNK_EVENTS`]).
+    /// Events per chunk (default `DEFAULT_CHUNK_EVENTS`).
     pub chunk_events: Option<usize>,
     /// For CSV: the unit of the time column when the header does not say.
     pub csv_time_unit: Option<csv::TimeUnit>,

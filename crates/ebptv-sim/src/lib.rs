@@ -4,7 +4,7 @@
 //! camera: the simulator streams the camera's events and trigger edges
 //! and records the truth (position and velocity of every lit particle at
 //! every pulse). A preset is a complete [`Scenario`]; [`simulate`] runs
-//! it into memory, [`Simulator`] streams it as an
+//! it into memory, `Simulator` streams it as an
 //! [`EventSource`]:
 //!
 //! ```
@@ -41,13 +41,13 @@
 //! Poisson processes. Only the readout (a queue) is sequential.
 //!
 //! ## Streaming and determinism
-//! [`Simulator`] is an [`EventSource`]: it works in blocks of pulses (about
+//! `Simulator` is an [`EventSource`]: it works in blocks of pulses (about
 //! 2 ms), so memory is bounded by a block whatever the duration, and the
 //! truth of the pulses produced so far is taken with
-//! [`Simulator::take_truth`]. Particle advection is parallel over particles,
+//! `Simulator::take_truth`. Particle advection is parallel over particles,
 //! rendering parallel over pulses (rayon), and the sequential readout of a
 //! block (request sort, refractory, arbiter) runs while the next block is
-//! being rendered (see [`Simulator`]); every random draw comes from a
+//! being rendered (see `Simulator`); every random draw comes from a
 //! stream derived from the user's seed and the item's index (particle slot,
 //! pulse, block), so the output does not depend on the thread count.
 //! [`simulate`] drains a `Simulator` into memory (tests, small scenes);

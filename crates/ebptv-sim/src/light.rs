@@ -7,7 +7,7 @@
 //! `pulse_width_us`; the falling trigger edge is at start + width. The
 //! photoreceptor is slow compared to the pulse (latency tens of µs vs. a
 //! pulse of a few µs), so a pixel responds to the pulse's mean power: the
-//! envelope enters the signal through [`PulseShape::mean_level`] and, for
+//! envelope enters the signal through `PulseShape::mean_level` and, for
 //! moving particles, as the weights of the image positions along the streak.
 
 use super::scenario::Light;

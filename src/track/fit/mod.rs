@@ -15,7 +15,7 @@
 //! curved one it bends the path (a quadratic over `w` points misses the
 //! cubic term: on a circle the speed comes out low by ω²⟨τ⁴⟩/(6⟨τ²⟩), ω
 //! the turning angle per pulse), and at a track's ends the one-sided fit
-//! amplifies the noise several-fold. [`fit_adaptive`] chooses the window
+//! amplifies the noise several-fold. `fit_adaptive` chooses the window
 //! per sample by a plug-in bias–variance criterion: over nested windows of
 //! `min_window, min_window + 2, …, max_window` detections (as centred on
 //! the sample as the track's ends allow) the velocity of the order-2 fit
@@ -43,7 +43,7 @@
 //! got worse (0.24 → 0.28 px/pulse at the last point), so only the order
 //! asked for is fitted. The nested windows share their sums (`Sums`),
 //! so a sample costs one pass over the pilot window and a small solve per
-//! candidate; [`fit_eval`] is the reference the sums are tested against.
+//! candidate; `fit_eval` is the reference the sums are tested against.
 //!
 //! # Curvature prior (short tracks and track ends)
 //! At a track's ends and on short tracks the candidates are one-sided or
@@ -53,7 +53,7 @@
 //! of a quadratic is several times noisier than a line's; a line instead
 //! is biased by the acceleration times the distance to the window's
 //! centre (a choice between the two by the track's own curvature was tried
-//! and is too noisy, above). With [`WindowRule::accel_rms`] every
+//! and is too noisy, above). With `WindowRule::accel_rms` every
 //! quadratic candidate is the posterior mean under a Gaussian prior
 //! c₂ ~ N(0, (a/2)²) per axis — a ridge `ρ = 4σ²/a²` on the quadratic
 //! coefficient's normal equation — and the criterion takes its posterior
@@ -82,10 +82,10 @@
 //! everything in the criterion except the data — the normal matrices and
 //! their inverses, the candidates' variance and bias factors, the pilot's
 //! cubic-coefficient weights (Savitzky–Golay-like) — depends only on the
-//! window's length and offset. [`GridTables`] holds these per window rule
+//! window's length and offset. `GridTables` holds these per window rule
 //! (built once with the reference's own arithmetic on exact integer
-//! moments), and [`fit_adaptive_grid`] costs a sample two short dot
-//! products: ~5× fewer instructions than [`fit_adaptive`], which stays the
+//! moments), and `fit_adaptive_grid` costs a sample two short dot
+//! products: ~5× fewer instructions than `fit_adaptive`, which stays the
 //! reference and the path for windows with gaps or irregular times. The
 //! two agree to rounding (tests): the reference's τ, computed from µs
 //! times, are off the integers by ~1e-11. With the curvature prior the
@@ -94,7 +94,7 @@
 //! bias cost a few flops more (the tabulated `(XᵀX)⁻¹Xᵀs³` gives the
 //! bias); the short search from the largest window, shown unimodal for
 //! the plain factors only, gives way to the full search over the
-//! candidates. [`LeaveOneOut`] does the same for the tracker's outlier
+//! candidates. `LeaveOneOut` does the same for the tracker's outlier
 //! pass.
 //!
 //! # Running moments along a track (the output fit's path)
@@ -114,7 +114,7 @@
 //! included). The running sums are taken about a reference point rather
 //! than the sample itself, which changes the last digits (~1e-13 px) but
 //! not the window chosen except at ties to rounding; the tests compare it
-//! with [`fit_adaptive`] at 1e-9.
+//! with `fit_adaptive` at 1e-9.
 //!
 //! # Windows with gaps, and one API (`local.rs`)
 //! A missed detection takes every sample within a pilot window of it (up
@@ -139,7 +139,7 @@
 //! speeddev_shedding recording this takes a gap sample from ~3 800 to
 //! ~2 700 instructions; the candidates' criteria (~500) and their pass
 //! (~20 detections) are most of what is left. All four paths sit behind
-//! one trait, `LocalPolyFit`, with `PlainFit` ([`fit_adaptive`]) as the
+//! one trait, `LocalPolyFit`, with `PlainFit` (`fit_adaptive`) as the
 //! oracle the others are tested against; `OutputFit` chains them for the
 //! tracker.
 
