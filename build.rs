@@ -1,6 +1,9 @@
 //! Records the git commit the binary is built from (`EBPTV_COMMIT`, read by
 //! `ebptv::provenance`), or `unknown` outside a git checkout. The build
 //! script runs again when the checkout's HEAD moves.
+//!
+//! It also indexes the library's unit tests (`#[ebptv_macros::unit_test]`)
+//! for the integration-test binary: see the `ebptv-testgen` crate.
 
 use std::process::Command;
 
@@ -33,4 +36,5 @@ fn main() {
         }
     }
     println!("cargo:rustc-env=EBPTV_COMMIT={commit}");
+    ebptv_testgen::run("ebptv");
 }

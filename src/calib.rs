@@ -548,15 +548,15 @@ fn inside(p: &[[f64; 2]], x: f64, y: f64) -> bool {
     c
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
     fn parse(text: &str) -> Result<Calibration> {
         Calibration::from_toml(text, Path::new("c.toml"))
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn two_points_equal_the_equivalent_scale() {
         let a =
             parse("[reference]\na_px = [100, 50]\nb_px = [400, 450]\ndistance_mm = 50\n").unwrap();
@@ -569,7 +569,7 @@ mod tests {
         );
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn origin_and_y_up_place_and_orient_the_axes() {
         let c = parse("px_per_mm = 4\norigin_px = [100, 200]\ny_axis = \"up\"\n").unwrap();
         assert_eq!(c.px_to_mm(104.0, 192.0), (1.0, 2.0));
@@ -578,7 +578,7 @@ mod tests {
         assert_eq!(c.stress_px2_s2_to_m2_s2(16e6, 16e6, 16e6), (1.0, 1.0, -1.0));
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn bad_files_name_the_file_and_the_key() {
         for (text, key) in [
             ("px_per_mm = -2\n", "px_per_mm"),
@@ -614,7 +614,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn polygons_mask_the_pixel_centres_inside() {
         let c = parse(
             "px_per_mm = 2\n[mask]\npolygons = [[[-0.5,-0.5],[9.5,-0.5],[9.5,2.5],[-0.5,2.5]]]\n",
@@ -628,7 +628,7 @@ mod tests {
         assert_eq!(m.masked_fraction(-0.5, 9.5, -0.5, 5.5), 0.5);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn a_mask_survives_its_png() {
         let mut m = PixelMask::new(7, 5);
         m.set(1, 2);

@@ -38,11 +38,11 @@ impl Cancel {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn a_clone_sees_the_cancel() {
         let c = Cancel::new();
         let d = c.clone();

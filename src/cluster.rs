@@ -337,7 +337,7 @@ fn fold_pixels(keyed: &[(u32, i64)]) -> Vec<PixelHits> {
 /// [`pulse_pixels`] by the plain route: a comparison sort of (pixel key,
 /// time) pairs, the earliest time of a pixel being its first after the
 /// sort. The reference the counting sort is tested against.
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 pub(crate) fn pulse_pixels_reference(
     pulse: &PulseEvents,
     params: &ClusterParams,
@@ -551,7 +551,7 @@ pub(crate) fn pixel_labels_sweep(pixels: &[PixelHits], params: &ClusterParams) -
 /// offset, the same row included, every pair distance-tested): the
 /// reference of [`pixel_labels`], which takes same-row partners without a
 /// test.
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 pub(crate) fn pixel_labels_reference(pixels: &[PixelHits], params: &ClusterParams) -> Vec<u32> {
     let n = pixels.len();
     let mut uf = UnionFind::new(n);
@@ -883,8 +883,8 @@ pub fn cluster_pulses(
         .collect())
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use crate::events::EventChunk;
 
@@ -905,7 +905,7 @@ mod tests {
     /// sign to a few ulps, over integer covariances of every orientation
     /// (pseudo-random, as the clustering's exact moments give them) and the
     /// degenerate ones (isotropic, axis-aligned either way).
-    #[test]
+    #[ebptv_macros::unit_test]
     fn principal_axis_matches_the_trigonometric_axis() {
         let trig = |cxx: f64, cxy: f64, cyy: f64| {
             let th = 0.5 * (2.0 * cxy).atan2(cxx - cyy);
@@ -943,7 +943,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn two_particles_with_weighted_centroids() {
         let p = pulse_of(&[
             (1100, 10, 10, 1),
@@ -966,7 +966,7 @@ mod tests {
         assert_eq!((q.pulse, q.t_us), (3, 1000.0));
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn radius_is_inclusive_and_diagonals_join_at_sqrt2() {
         let p = pulse_of(&[(0, 0, 0, 1), (0, 1, 1, 1), (0, 5, 0, 1), (0, 7, 0, 1)]);
         let mut params = ClusterParams {
@@ -981,7 +981,7 @@ mod tests {
         assert_eq!(cluster_pulse(&p, &params).len(), 4);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn kd_tree_search_gives_the_row_sweeps_particles() {
         // A dense pseudo-random pulse (a 60x40 patch, ~25 % of pixels hit,
         // repeats included) through both neighbour searches, several radii.
@@ -1022,7 +1022,7 @@ mod tests {
     /// [`pulse_pixels_reference`]: pulses small and large, compact and
     /// spread over the whole u16 range, with repeated pixels, times out of
     /// order, OFF events and a hot-pixel mask.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn pulse_pixels_equal_the_reference() {
         let mut state = 987654321u64;
         let mut next = |m: u64| {
@@ -1073,7 +1073,7 @@ mod tests {
     /// form on dense random patches (so that rows hold runs of
     /// neighbours) and at the u16 edges, radii 1–4 (the run pass for 1 to
     /// √3, the sweep beyond).
-    #[test]
+    #[ebptv_macros::unit_test]
     fn pixel_labels_equal_the_reference() {
         let mut state = 4242u64;
         let mut next = |m: u64| {
@@ -1119,7 +1119,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn wide_clusters_split_in_two() {
         // Two particles, 2 px apart, joined by a pixel between them: one
         // component spanning 5 px, split into the two images.
@@ -1147,7 +1147,7 @@ mod tests {
         assert_eq!(cluster_pulse(&q, &ClusterParams::default()).len(), 1);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn mask_and_size_limits() {
         let p = pulse_of(&[(0, 0, 0, 1), (0, 1, 0, 1), (0, 9, 9, 1), (0, 20, 20, 1)]);
         let mut params = ClusterParams {
@@ -1162,7 +1162,7 @@ mod tests {
         assert_eq!(cluster_pulse(&p, &params).len(), 1);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn bad_radius_is_an_error() {
         for r in [0.0, -1.0, f64::NAN] {
             let params = ClusterParams {

@@ -532,8 +532,8 @@ pub fn compare_to_dir(opts: &CompareOptions, out: &Path) -> Result<Comparison> {
     Ok(c)
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
     fn table(names: &[&str], rows: Vec<Vec<f64>>) -> Table {
@@ -549,7 +549,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn linear_fields_agree_exactly_after_bilinear_resampling() {
         // PIV on a 16 px grid, PTV bins on an offset 10 px grid; u = 2x + y.
         let f = |x: f64, y: f64| (2.0 * x + y, -x, 1.0, 2.0, 0.5);
@@ -590,7 +590,7 @@ mod tests {
         assert_eq!(u.n, inside);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn missing_columns_and_garbage_are_clear_errors() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("grid.csv");

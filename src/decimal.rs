@@ -236,12 +236,12 @@ fn ascii8(n: u32) -> (u64, usize) {
     (digits + 0x3030_3030_3030_3030, (8 - leading_zeros).max(1))
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn fast_fixed_point_matches_core_fmt() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
         let mut specials = vec![
@@ -296,7 +296,7 @@ mod tests {
     /// The eight-digit path against the pair-per-division reference on
     /// every value below 10^5, every power of ten and its neighbours, and
     /// a million random values over the whole u64 range.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn eight_digit_path_equals_the_pairs() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(8);
         let mut values: Vec<u64> = (0..100_000).collect();
@@ -322,7 +322,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn fast_number_formatting_matches_the_formatter() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
         let mut specials = vec![

@@ -400,8 +400,8 @@ fn ratio(a: usize, b: usize) -> f64 {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use std::io::Write;
 
@@ -428,7 +428,7 @@ mod tests {
         Truth::read(&p).unwrap()
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn links_and_velocity_are_scored_against_truth() {
         let dir = tempfile::tempdir().unwrap();
         let truth = scene(dir.path());
@@ -453,7 +453,7 @@ mod tests {
         assert!((s.velocity_rms_px_per_pulse - want).abs() < 1e-12);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn detections_unmatched_beyond_radius() {
         let dir = tempfile::tempdir().unwrap();
         let truth = scene(dir.path());
@@ -469,7 +469,7 @@ mod tests {
         assert!((s.position_rms_px - (0.09f64 / 4.0).sqrt()).abs() < 1e-12);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn mean_field_error_relative_to_max_speed() {
         let dir = tempfile::tempdir().unwrap();
         let truth = scene(dir.path());
@@ -488,7 +488,7 @@ mod tests {
     /// truth samples whose float sum changes with the order (values over
     /// many magnitudes, one per pulse), loaded afresh several times, must
     /// give bit-identical scores.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn mean_field_error_is_bit_identical_across_truth_loads() {
         let dir = tempfile::tempdir().unwrap();
         let mut text = String::from("pulse,t_us,particle_id,x,y,u,v\n");

@@ -55,10 +55,6 @@
 //! and `ebptv compare` ([`compare::compare_to_dir`]).
 
 #![warn(missing_docs)]
-// The unit-test build leaves the command line out (`cli`), so what only it
-// uses looks unused there; the library's own build checks for dead code.
-#![cfg_attr(test, allow(dead_code))]
-
 // The command line (`cli`) and the unit tests name the crate `ebptv`, as
 // the integration tests in tests/ and the Python bindings do.
 extern crate self as ebptv;
@@ -73,9 +69,8 @@ pub mod cancel;
 /// The `ebptv` command line (argument parsing, progress, files), run by
 /// the binary's `main`; not an API. It lives in the library so that the
 /// stages' internals it drives need not be public. Its behaviour is tested
-/// through the binary, so the unit-test build leaves it out.
+/// through the binary.
 #[doc(hidden)]
-#[cfg(not(test))]
 pub mod cli;
 pub mod cluster;
 pub mod compare;
@@ -95,3 +90,11 @@ pub mod track;
 pub use cancel::Cancel;
 pub use error::{Error, Result};
 pub use events::{Chunk, Edge, Event, EventChunk, Geometry, Trigger};
+
+/// The unit tests, indexed for the integration-test binary (build.rs,
+/// `ebptv-testgen`); test kit only.
+#[cfg(feature = "testkit")]
+#[doc(hidden)]
+pub mod unit_tests {
+    include!(concat!(env!("OUT_DIR"), "/unit_index.rs"));
+}

@@ -99,7 +99,7 @@ pub(crate) fn heatmap_sized(path: &Path, map: &Heatmap, size: (u32, u32)) -> Res
     write_png(path, &buf, size)
 }
 
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 /// Draw a heatmap with an explicit colour range (e.g. the same scale on
 /// several figures to compare). `vmin < vmax`, both finite.
 pub(crate) fn heatmap_with_range(
@@ -1045,10 +1045,10 @@ fn render_polylines(p: &Polylines, size: (u32, u32)) -> Result<Vec<u8>> {
     Ok(buf)
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     // The figure builders drawn into images (src/plot/tests/figures.rs).
-    mod figures;
+    pub(crate) mod figures;
 
     use super::*;
 
@@ -1057,7 +1057,7 @@ mod tests {
         (buf[i], buf[i + 1], buf[i + 2])
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn colormaps_hit_their_anchors() {
         assert_eq!(viridis(0.0), VIRIDIS[0]);
         assert_eq!(viridis(1.0), VIRIDIS[10]);
@@ -1074,7 +1074,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn heatmap_cells_land_where_the_grid_says() {
         // 4x2 grid: row 0 (top) = NaN in the left half, low values right;
         // row 1 (bottom) = high values everywhere.
@@ -1104,7 +1104,7 @@ mod tests {
         assert_eq!(at(0.9, 0.75), VIRIDIS[10]);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn calibrated_axes_label_in_mm_and_leave_the_cells() {
         let values = [0.0, 1.0, 2.0, 3.0];
         let calib = crate::calib::Calibration::from_toml(
@@ -1143,7 +1143,7 @@ mod tests {
         assert_ne!(px_buf, mm_buf);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn diverging_is_symmetric_around_zero() {
         let values = [-1.0, 0.0, 3.0];
         let map = Heatmap {
@@ -1172,7 +1172,7 @@ mod tests {
         assert_eq!(left, diverging(0.5 - 1.0 / 6.0), "-1 of ±3 sits at 1/3");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn crowded_log_axes_label_one_two_five() {
         // 70..2200 Hz: ticks at 100, 200, …, 900, 1000, 2000.
         let d = (2200.0f64 / 70.0).log10();
@@ -1191,7 +1191,7 @@ mod tests {
         assert_eq!(axis_tick(100.0, Some(7.0)), "100");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn heatmap_with_empty_cells_has_a_no_data_key() {
         let key_pixel = |values: &[f64]| {
             let map = Heatmap {
@@ -1220,7 +1220,7 @@ mod tests {
         );
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn tick_format_is_compact() {
         assert_eq!(fmt_tick(0.0), "0");
         assert_eq!(fmt_tick(1.5), "1.5");

@@ -274,11 +274,11 @@ fn iso8601_utc(secs: i64) -> String {
     )
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn dates_match_known_instants() {
         assert_eq!(iso8601_utc(0), "1970-01-01T00:00:00Z");
         // 2000-02-29 (a leap day of a century leap year) 12:34:56.
@@ -287,7 +287,7 @@ mod tests {
         assert_eq!(iso8601_utc(-1), "1969-12-31T23:59:59Z");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn fingerprint_hashes_both_ends() {
         let dir = tempfile::tempdir().unwrap();
         // Known digest: SHA-256 of "abc".
@@ -317,7 +317,7 @@ mod tests {
         assert!(missing.to_string().contains("nope"), "{missing}");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn a_folder_record_reads_back() {
         let dir = tempfile::tempdir().unwrap();
         assert_eq!(Provenance::read_from_dir(dir.path()).unwrap(), None);

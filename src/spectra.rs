@@ -84,7 +84,7 @@ impl Psd {
             .map(|(f, p)| f * p)
             .collect()
     }
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     /// ∫ P df (the variance the spectrum holds).
     pub(crate) fn total_power(&self) -> f64 {
         self.psd.iter().sum::<f64>() * self.df()
@@ -542,11 +542,11 @@ pub(crate) fn rms_about_moving_average(x: &[f64], n: usize) -> Result<f64> {
     Ok((ss / x.len() as f64 / corr).sqrt())
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn fill_gaps_interpolates() {
         let (y, frac) = fill_gaps(&[f64::NAN, 1.0, f64::NAN, f64::NAN, 4.0, f64::NAN]).unwrap();
         assert_eq!(y, vec![1.0, 1.0, 2.0, 3.0, 4.0, 4.0]);
@@ -554,7 +554,7 @@ mod tests {
         assert!(fill_gaps(&[f64::NAN; 3]).is_err());
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn bad_parameters() {
         let x = vec![0.0; 100];
         assert!(welch(&x, 0.0, &WelchOptions::default()).is_err());
@@ -855,11 +855,11 @@ pub(crate) fn line_points(a: (f64, f64), b: (f64, f64), n: usize) -> Vec<(f64, f
         .collect()
 }
 
-#[cfg(test)]
-mod significance_tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod significance_tests {
     use super::*;
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn chi_square_tail_matches_closed_forms() {
         // ν = 2: P(χ² > x) = exp(−x/2); ν = 1 at 3.841: 0.05; ν = 10 at 23.209: 0.01.
         for x in [0.1, 1.0, 5.0, 20.0] {
@@ -873,7 +873,7 @@ mod significance_tests {
         assert!((dof_from_log_iqr(iqr) - 7.0).abs() < 1e-3);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn welch_dof_of_hann_half_overlap() {
         // One segment: 2; many: ≈ 2K/(1 + 2·(1/6)²) (Welch's ratio).
         assert!((welch_dof(256, 0.5, 1) - 2.0).abs() < 1e-12);
@@ -885,7 +885,7 @@ mod significance_tests {
     /// White noise: no significant peak in (nearly) every realisation, the
     /// false-alarm rate near the stated level; a sine well above the
     /// noise is found.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn significance_of_peaks_in_white_noise() {
         use rand::SeedableRng;
         use rand_distr::{Distribution, Normal};

@@ -784,8 +784,8 @@ pub fn write_recording(
     Ok((summary, path))
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
     #[derive(Clone, Copy)]
@@ -804,7 +804,7 @@ mod tests {
             .collect()
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn parquet_and_npy_roundtrip_over_several_row_groups() {
         let dir = tempfile::tempdir().unwrap();
         let n = 2 * ROW_GROUP_ROWS + 17;
@@ -834,7 +834,7 @@ mod tests {
         assert_eq!(r.metadata().num_row_groups(), 3);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn parquet_key_value_metadata() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("m.parquet");
@@ -851,7 +851,7 @@ mod tests {
         assert!(kv.contains(&("second".into(), Some("2".into()))), "{kv:?}");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn empty_tables_and_bad_files() {
         let dir = tempfile::tempdir().unwrap();
         for fmt in [TableFormat::Parquet, TableFormat::Npy] {
@@ -888,7 +888,7 @@ mod tests {
         assert!(e.contains("n.npy") && e.contains("truncated"), "{e}");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn truth_tables_hold_the_csv_values_in_every_format() {
         let dir = tempfile::tempdir().unwrap();
         let mut sc = crate::sim::presets::preset("demo").unwrap();
@@ -920,7 +920,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn npy_fields_parse() {
         assert_eq!(
             parse_npy_fields("[('t', '<i8'), ('x', '<u2'), ('p', '|u1')]").unwrap(),

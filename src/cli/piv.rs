@@ -289,12 +289,12 @@ pub fn run(a: PivArgs, tables: Option<ebptv::table::TableFormat>) -> anyhow::Res
     Ok(())
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::super::{Cli, Command};
     use super::*;
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn the_command_line_defaults_are_the_library_defaults() {
         let cli = <Cli as clap::Parser>::try_parse_from(["ebptv", "piv", "r.raw", "--out", "o"])
             .expect("parses");

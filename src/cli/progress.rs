@@ -133,11 +133,11 @@ impl ReadBar {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn counts_are_short() {
         assert_eq!(count(0.0), "0 ");
         assert_eq!(count(999.0), "999 ");

@@ -450,11 +450,11 @@ impl GridAccumulator {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn gram_index_packs_upper_triangle() {
         let mut seen = [false; NG];
         for a in 0..NB {
@@ -476,7 +476,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn compensated_sum_beats_naive() {
         let mut k = KSum::default();
         let mut naive = 0.0f64;
@@ -492,7 +492,7 @@ mod tests {
         assert_ne!(naive, 1000.0);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn clusters_count_tracks_and_rejoin_on_merge() {
         let ids = [1u64, 1, 1, 2, 2, 3, 4, 4, 4, 5];
         let mut whole = BinAcc::default();

@@ -390,11 +390,11 @@ pub fn estimate(acc: &GridAccumulator, opt: &EstimateOptions) -> Result<GridStat
     })
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn cholesky_solves_a_known_system() {
         let mut g = [[0.0; NB]; NB];
         let m = [[4.0, 1.0, 0.5], [1.0, 3.0, 0.2], [0.5, 0.2, 2.0]];

@@ -220,12 +220,12 @@ pub(crate) fn time_resolved(
     })
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use crate::grid::{Lattice, Weighting};
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn each_pulse_lands_in_one_frame() {
         let lat = Lattice::new(10.0, 10.0, 0.0).unwrap();
         let spec = GridSpec::covering(lat, Weighting::TopHat, 0.0, 9.0, 0.0, 9.0).unwrap();

@@ -214,5 +214,5 @@ pub(crate) fn accumulate(
     Ok(acc)
 }
 
-#[cfg(test)]
-mod tests;
+#[cfg(feature = "testkit")]
+pub(crate) mod tests;

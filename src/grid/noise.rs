@@ -230,8 +230,8 @@ pub(crate) fn velocity_noise(
     })
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use crate::grid::{bin_samples, estimate, EstimateOptions, Fit, Lattice, Weighting};
     use rand::{Rng, SeedableRng};
@@ -268,7 +268,7 @@ mod tests {
         out
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn recovers_white_noise_under_shear_and_waves() {
         for (sigma, wave) in [(50.0, 0.0), (50.0, 300.0), (200.0, 1000.0)] {
             let s = samples(sigma, wave, 7);
@@ -293,7 +293,7 @@ mod tests {
     }
 
     /// The sorted sweep finds exactly the pairs of a brute-force search.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn sweep_equals_brute_force_pairs() {
         let s: Vec<Sample> = samples(80.0, 200.0, 3).into_iter().take(4000).collect();
         let acc = top_hat_16(&s);
@@ -332,7 +332,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn bad_options_and_sparse_data() {
         let s = samples(50.0, 0.0, 1);
         let acc = top_hat_16(&s);

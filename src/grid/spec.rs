@@ -330,11 +330,11 @@ impl GridSpec {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn candidates_contain_exactly_the_member_bins() {
         // Brute force: scan many bins and test membership directly.
         for &(w, ov) in &[
@@ -364,7 +364,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn top_hat_without_overlap_partitions_the_plane() {
         let lat = Lattice::new(8.0, 8.0, 0.0).unwrap();
         for k in 0..1000 {
@@ -382,7 +382,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn bad_parameters_are_rejected() {
         assert!(Lattice::new(0.0, 8.0, 0.0).is_err());
         assert!(Lattice::new(-1.0, 8.0, 0.0).is_err());

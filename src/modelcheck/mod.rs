@@ -31,5 +31,5 @@ pub(crate) mod signatures;
 pub(crate) mod standard;
 pub(crate) mod workflow;
 
-#[cfg(test)]
-mod tests;
+#[cfg(feature = "testkit")]
+pub(crate) mod tests;

@@ -288,7 +288,7 @@ fn open_pulse(pulses: &mut Vec<PulseEvents>, k: i64, timing: &PulseTiming) -> Re
 
 /// [`pulses_of`] event by event: the reference it is tested against
 /// (unit tests).
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 pub(crate) fn pulses_of_reference(
     events: &EventChunk,
     timing: &PulseTiming,

@@ -100,7 +100,7 @@
 
 use std::collections::HashMap;
 
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 pub(crate) mod reference;
 
 use serde::{Deserialize, Serialize};
@@ -205,7 +205,7 @@ impl Histogram {
         }
     }
 
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     /// Centre of the bin holding `v` (`v` itself for NaN).
     pub(crate) fn bin_centre(&self, v: f64) -> f64 {
         match self.bin_of(v) {
@@ -328,7 +328,7 @@ impl Signatures {
             _ => None,
         }
     }
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     /// The profile signature `name` (`None` if absent or not a profile).
     pub(crate) fn profile(&self, name: &str) -> Option<&Profile> {
         match &self.get(name)?.value {
@@ -595,14 +595,14 @@ fn pearson_f64(a: &[f64], b: &[f64]) -> f64 {
     }
 }
 
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 /// Pearson correlation; 0 when either side has no variance.
 fn pearson(a: &[u32], b: &[u32]) -> f64 {
     let as_f64 = |v: &[u32]| v.iter().map(|&x| x as f64).collect::<Vec<f64>>();
     pearson_f64(&as_f64(a), &as_f64(b))
 }
 
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 /// Convenience: signatures of one in-memory event set.
 pub(crate) fn compute(
     cfg: &SignatureConfig,
@@ -746,11 +746,11 @@ fn line_slope(points: &[(f64, f64)]) -> f64 {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::{floor_i64, interquartile_mean};
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn interquartile_mean_equals_full_sort() {
         let mut state = 12345u64;
         let mut next = || {
@@ -779,7 +779,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn floor_i64_is_floor_as_i64() {
         let mut xs = vec![
             0.0,

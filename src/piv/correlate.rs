@@ -580,7 +580,7 @@ impl Workspace {
 /// The definition, computed directly (test oracle for the FFT path):
 /// normalised circular cross-correlation averaged over the given pairs, with
 /// mean removal done here.
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 pub(crate) fn direct_correlation(pairs: &[(&[f32], &[f32])], w: usize, h: usize) -> Vec<f32> {
     let prepared: Vec<(Vec<f32>, Vec<f32>)> = pairs
         .iter()
@@ -601,7 +601,7 @@ pub(crate) fn direct_correlation(pairs: &[(&[f32], &[f32])], w: usize, h: usize)
 /// [`direct_correlation`] of windows used as given (already mean-removed,
 /// or clipped): `Σ a·b(·+d) / sqrt(Σa²·Σb²)`, averaged over the pairs with
 /// signal in both windows.
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 pub(crate) fn direct_correlation_prepared(
     pairs: &[(&[f32], &[f32])],
     w: usize,
@@ -734,8 +734,8 @@ pub(crate) fn find_peak(plane: &[f32], w: usize, h: usize) -> Peak {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
 
@@ -746,7 +746,7 @@ mod tests {
     /// The fused window cut against copy + mean removal (+ clipping) done
     /// step by step: the same bits and energy, for widths that take the
     /// fused path (multiples of 8) and widths that do not.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn cut_window_equals_its_steps() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(12);
         let (width, height) = (70usize, 50usize);
@@ -784,7 +784,7 @@ mod tests {
         out
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn fft_matches_direct_square_rect_and_odd() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
         for &(w, h, np) in &[(16, 16, 1), (12, 5, 3), (64, 8, 2), (9, 7, 4), (1, 6, 1)] {
@@ -808,7 +808,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn integer_shift_peaks_at_shift_and_self_match_is_one() {
         let (w, h) = (32, 16);
         let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
@@ -832,7 +832,7 @@ mod tests {
         assert!((p.height - 1.0).abs() < 1e-4, "{p:?}");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn empty_window_contributes_nothing() {
         let plan = CorrelationPlan::new(8, 8);
         let mut ws = plan.workspace();
@@ -844,7 +844,7 @@ mod tests {
 
     /// A workspace reused for a second sum (no zeroing between sums) gives
     /// what a fresh one gives, and a sum of nothing is a zero plane.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn reused_workspace_equals_fresh_and_empty_sum_is_zero() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(5);
         let (w, h) = (12, 10);
@@ -878,7 +878,7 @@ mod tests {
         assert!(empty.iter().all(|&v| v == 0.0));
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn gaussian_subpixel_is_exact_on_a_gaussian() {
         for &d in &[-0.4, -0.1, 0.0, 0.25, 0.49] {
             let g = |x: f64| (-(x - d) * (x - d) / 2.0).exp() as f32;

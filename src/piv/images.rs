@@ -30,7 +30,7 @@ pub struct Frames {
 }
 
 /// Load the first frame of an image file (see [`load_frames`]).
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 pub(crate) fn load_image(path: &Path) -> Result<Image> {
     let mut f = load_frames(path)?;
     // `load_frames` never returns an empty list.
@@ -628,11 +628,11 @@ pub(crate) fn save_png16(path: &Path, img: &Image, scale: f32) -> Result<()> {
     crate::io::atomic::AtomicFile::write_all_to(path, &out)
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn png16_round_trip() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("a.png");
@@ -645,7 +645,7 @@ mod tests {
         assert_eq!(back, img);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn tiff_round_trip_8bit() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("a.tif");
@@ -661,7 +661,7 @@ mod tests {
         assert_eq!(img.get(5, 3), 230.0);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn garbage_is_a_clear_error() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("x.png");
@@ -678,7 +678,7 @@ mod tests {
         assert!(load_image(&p).is_err());
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn natural_order_and_wildcards() {
         let mut v = vec!["f10.png", "f2.png", "f1.png", "f02b.png", "e9.png"];
         v.sort_by(|a, b| natural_cmp(a, b));
@@ -689,7 +689,7 @@ mod tests {
         assert!(!wildcard_match("f?.png", "f12.png"));
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn packbits_runs_and_literals() {
         // 2 literals, then a run of 3.
         assert_eq!(unpack_bits(&[1, 7, 8, 0xfe, 9], 5), [7, 8, 9, 9, 9]);

@@ -68,7 +68,7 @@ impl Image {
             data: vec![0.0; width * height],
         }
     }
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     #[inline]
     pub(crate) fn get(&self, x: usize, y: usize) -> f32 {
         self.data[y * self.width + x]
@@ -368,7 +368,7 @@ impl PivStream {
         }
     }
 
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     /// Add the events of the next pulse. Pulses skipped by the splitter
     /// (no events) become empty frames; a gap longer than `N_f` restarts the
     /// ring. Returns a field when one was evaluated (at once, whatever the
@@ -432,5 +432,5 @@ impl PivStream {
     }
 }
 
-#[cfg(test)]
-mod tests;
+#[cfg(feature = "testkit")]
+pub(crate) mod tests;

@@ -395,7 +395,7 @@ pub(crate) fn sample_bspline(coef: &Image, x: f32, y: f32) -> f32 {
 /// Bilinear interpolation of a node field at pixel position (x, y),
 /// constant extrapolation beyond the outer nodes.
 #[inline]
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 pub(crate) fn interp_field(g: &NodeGrid, f: &[f64], x: f64, y: f64) -> f64 {
     let fi = ((x - g.x0) / g.dx).clamp(0.0, (g.nx - 1) as f64);
     let fj = ((y - g.y0) / g.dy).clamp(0.0, (g.ny - 1) as f64);
@@ -1102,11 +1102,11 @@ pub fn piv_frames(frames: &[&Image], o: &PivOptions) -> Result<VectorField> {
     Ok(f)
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn tabulated_displacement_image_equals_interp_field() {
         let grid = NodeGrid {
             nx: 5,
@@ -1134,7 +1134,7 @@ mod tests {
     /// The pyramid plane against the definition: direct (non-FFT)
     /// correlation of each separation's pairs, sampled at `s·δ`, weighted
     /// by the pair counts.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn pyramid_plane_matches_direct_correlation_oracle() {
         use crate::piv::correlate::{direct_correlation, remove_mean};
         use rand::{Rng, SeedableRng};
@@ -1195,7 +1195,7 @@ mod tests {
     /// odd and even frame counts) against the direct correlation of the
     /// same windows, and the AVX2 build against the portable one (bit for
     /// bit), at several window positions and sizes.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn shared_spectrum_chain_matches_direct_oracle_and_avx2_build() {
         use crate::piv::correlate::direct_correlation_prepared;
         use rand::{Rng, SeedableRng};
@@ -1293,7 +1293,7 @@ mod tests {
     /// The AVX2 deformation against the plain per-pixel B-spline sampling:
     /// random coefficients, displacements up to ±6 px (samples near and
     /// beyond the edges take the mirrored path), pixels left out.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn fast_deformation_matches_reference() {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_pcg::Pcg64::seed_from_u64(5);
@@ -1323,7 +1323,7 @@ mod tests {
     /// The strip-wise column filter against the plain one (each column
     /// through `prefilter_line`): the same bits, odd sizes and a strip
     /// narrower than the rest included.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn strip_prefilter_equals_line_prefilter() {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_pcg::Pcg64::seed_from_u64(6);
@@ -1348,7 +1348,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn pyramid_pairs_cover_every_separation() {
         assert_eq!(frame_pairs(5, 1), vec![(0, 1), (1, 2), (2, 3), (3, 4)]);
         assert_eq!(
@@ -1358,7 +1358,7 @@ mod tests {
         assert_eq!(frame_pairs(3, 9).len(), 3);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn bspline_interpolates_pixels_exactly_and_is_smooth_between() {
         let mut img = Image::zeros(12, 9);
         for (i, v) in img.data.iter_mut().enumerate() {

@@ -330,8 +330,8 @@ impl Drop for NpyStack {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
     /// Same columns; values equal bit for bit (NaN equal to NaN).
@@ -348,7 +348,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn mean_and_steps_tables_hold_the_csv_values_in_every_format() {
         let dir = tempfile::tempdir().unwrap();
         let rows: Vec<MeanRow> = (0..40)
@@ -403,7 +403,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn npy_header_is_aligned_and_parsable() {
         let h = npy_header("<f4", &[3, 4, 5]);
         assert_eq!(h.len() % 64, 0);
@@ -412,7 +412,7 @@ mod tests {
         assert!(h.ends_with(b"\n"));
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn npy_stack_writes_header_and_data() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("u.npy");

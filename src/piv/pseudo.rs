@@ -273,7 +273,7 @@ impl FrameRing {
         self.frames.len() == self.capacity
     }
 
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     pub(crate) fn len(&self) -> usize {
         self.frames.len()
     }
@@ -288,7 +288,7 @@ impl FrameRing {
         self.frames.front().map(|f| f.0)
     }
 
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     pub(crate) fn images(&self) -> Vec<&Image> {
         self.frames.iter().map(|f| &*f.1).collect()
     }
@@ -299,11 +299,11 @@ impl FrameRing {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn kernel_sums_to_one_and_blur_keeps_mass() {
         let k = gaussian_kernel(1.3);
         assert!((k.iter().sum::<f32>() - 1.0).abs() < 1e-5);
@@ -322,7 +322,7 @@ mod tests {
         assert!((cx - 10.0).abs() < 1e-3);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn sparse_blur_equals_separable_blur_including_edges() {
         let (w, h) = (23usize, 17usize);
         let k = gaussian_kernel(1.2);
@@ -358,7 +358,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn on_events_only_by_default_and_counts() {
         let mut ev = EventChunk::default();
         ev.push(0, 2, 1, 1);
@@ -393,7 +393,7 @@ mod tests {
         assert_eq!(img.get(3, 1), 1.0);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn ring_keeps_last_n() {
         let mut r = FrameRing::new(3);
         for k in 0..7 {
@@ -408,7 +408,7 @@ mod tests {
         assert_eq!(r.images()[2].data[0], 6.0);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn absurd_sigma_is_rejected() {
         assert!(PseudoImager::new(
             4,

@@ -102,7 +102,7 @@ pub(crate) fn particle_frames(
     frames
 }
 
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 /// Frames of particles in a spatially uniform but accelerating motion:
 /// frame `k` shows every particle at `p + d0·k + a·k²/2`, so the
 /// displacement from frame `k` to `k+1` is `d0 + a·(k + ½)` and the velocity

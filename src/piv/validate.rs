@@ -289,11 +289,11 @@ pub(crate) fn is_valid(f: u8) -> bool {
     f == flag::VALID
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn single_outlier_is_found_and_replaced() {
         let (nx, ny) = (5, 5);
         let mut u: Vec<f64> = (0..25).map(|k| 1.0 + 0.01 * (k % 5) as f64).collect();
@@ -309,7 +309,7 @@ mod tests {
         assert!(f.iter().enumerate().all(|(k, &x)| k == 12 || x == 0));
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn smooth_gradient_passes() {
         let (nx, ny) = (8, 6);
         let u: Vec<f64> = (0..nx * ny).map(|k| 0.1 * (k % nx) as f64).collect();
@@ -336,7 +336,7 @@ mod tests {
         assert_eq!(f[2], flag::OUTLIER);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn hole_fills_from_rim() {
         let (nx, ny) = (6, 6);
         let mut u = vec![2.0; 36];

@@ -308,7 +308,7 @@ impl Accumulator {
     }
 
     /// The fold, once set.
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     pub(crate) fn fold(&self) -> Option<Fold> {
         self.fold
     }
@@ -584,7 +584,7 @@ impl Accumulator {
     }
 }
 
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 pub(crate) mod tests {
     use super::*;
 
@@ -726,7 +726,7 @@ pub(crate) mod tests {
         chunks
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn fast_path_equals_reference_exactly() {
         for (t_ref, p) in [(0i64, 100.0), (-250, 37.77), (1_000, 199.9993)] {
             let f = Fold::new(t_ref, p, (p.round() as usize).max(8));
@@ -757,7 +757,7 @@ pub(crate) mod tests {
     /// runs wait in `pending`), the fold set, the rest pushed: the same
     /// blocks as the reference that knew the fold from the start. The
     /// pending runs hold every event's time exactly once.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn warm_up_then_fold_equals_reference() {
         for warm_chunks in [0usize, 1, 5, 1000] {
             let f = Fold::new(-250, 37.77, 38);
@@ -810,7 +810,7 @@ pub(crate) mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn fold_bin_matches_exact_phase() {
         let mut g = Lcg(5);
         for (t_ref, p, nb) in [
@@ -844,7 +844,7 @@ pub(crate) mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn map_stays_bounded_for_absurd_coordinates() {
         let f = Fold::new(0, 50.0, 50);
         let mut a = Accumulator::new(65535, 65535, 1000, 8);
@@ -863,7 +863,7 @@ pub(crate) mod tests {
         assert_eq!(a2.n_events, 4);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn map_grows_for_events_outside_the_geometry() {
         let f = Fold::new(0, 50.0, 50);
         let mut a = Accumulator::new(4, 4, 1000, 8);

@@ -318,8 +318,8 @@ pub(crate) fn count_clusters(xs: &[u16], ys: &[u16]) -> ClusterCount {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
     /// The reference: hash map of pixels, union of the four forward
@@ -364,7 +364,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn clusters_equal_reference_on_random_images() {
         let mut s: u64 = 9;
         let mut next = |n: u64| {
@@ -404,7 +404,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn clusters_of_known_image() {
         // Two blobs (one diagonal pair, one 2x2) and one single pixel.
         let pts = [
@@ -427,7 +427,7 @@ mod tests {
 
     /// A burst starting at bin 12 (no event before) on a noisy floor, at
     /// several positions in the period (wrapping included).
-    #[test]
+    #[ebptv_macros::unit_test]
     fn leading_edge_finds_the_first_burst_events() {
         let n = 500;
         let mut s: u64 = 3;
@@ -455,7 +455,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn latency_stats_of_gaussian_burst() {
         let n = 200;
         let h: Vec<f64> = (0..n)

@@ -1143,9 +1143,9 @@ fn aligned_histogram(
     out
 }
 
-#[cfg(test)]
-mod tests {
-    #[test]
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
+    #[ebptv_macros::unit_test]
     fn pipelined_analysis_equals_the_sequential_one() {
         use crate::sim::{presets::preset, Simulator};
         for (name, triggers) in [("demo", true), ("demo", false), ("roi_burst", false)] {
@@ -1235,7 +1235,7 @@ mod tests {
     /// first pulse, a long silent gap, chunks of every size: the
     /// run-at-a-time splitter hands over exactly the same pulses, events
     /// in the same order, and counts the same unattributed events.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn splitter_equals_one_event_at_a_time() {
         let mut s: u64 = 7;
         let mut next = |m: u64| {
@@ -1300,7 +1300,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn uniform_events_give_flat_histogram() {
         let mut an = Analyzer::new(PulseOptions::default(), None).unwrap();
         let mut c = Chunk::default();

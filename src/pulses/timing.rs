@@ -543,8 +543,8 @@ impl CircularCorrelator {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
     /// Direct O(n²) circular correlation: the oracle for the FFT path.
@@ -561,7 +561,7 @@ mod tests {
 
     /// The fixed-point epoch folding against the float definition
     /// (fold phase of the sample centre `(i + ½) / P`).
-    #[test]
+    #[ebptv_macros::unit_test]
     fn fold_variance_matches_float_reference() {
         let mut s: u64 = 7;
         let nz: Vec<(i64, f32)> = (0..50_000i64)
@@ -588,7 +588,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn fft_correlation_matches_direct() {
         let n = 97;
         let template: Vec<f64> = (0..n)
@@ -608,7 +608,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn trigger_fit_handles_missing_and_spurious() {
         let p = 100.003;
         let mut rising = Vec::new();

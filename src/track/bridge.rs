@@ -487,11 +487,11 @@ pub(super) fn extrapolate(
     fit::fit_eval(&tau, &xs, &ys, 1, 0.0).map(|f| (f.x, f.y))
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn stitch_tolerance_grows_with_the_gap_up_to_the_travel_bound() {
         let p = TrackParams::default();
         // The defaults lie below the bound: 1.5 px growing by a quarter

@@ -162,11 +162,11 @@ impl TrackConfig {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn a_partial_file_takes_the_defaults_and_round_trips() {
         let c = TrackConfig::from_toml(
             "[track]\nmax_disp = 7.5\n[track.fit]\nfit_window = 15\n[run]\nnpy = true\n",
@@ -183,7 +183,7 @@ mod tests {
         assert_eq!(back.track.fit.fit_window, 15);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn unknown_keys_are_refused_by_name_and_file() {
         for text in [
             "[track]\nmax_dsip = 3.0\n",
@@ -204,7 +204,7 @@ mod tests {
 
     /// The stripped tracker BENCHMARKS.md measures must stay a valid file
     /// that switches off what it says it does.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn the_benchmarks_stripped_tracker_parses_and_strips() {
         let text = include_str!("../../benches/stripped_tracker.toml");
         let c = TrackConfig::from_toml(text, Path::new("stripped_tracker.toml")).unwrap();

@@ -510,7 +510,7 @@ pub(super) fn fit_period_s(dets: &[Det]) -> f64 {
 /// `path` names the backends the fit may take besides the plain one
 /// ([`fit::FitPath`]); the tests compare them with `FitPath::Plain`.
 /// `fits` counts the samples taken by the tabulated and the gap backends.
-#[cfg(any(test, feature = "testkit"))]
+#[cfg(feature = "testkit")]
 pub(super) fn fit_track_with(
     dets: &[Det],
     p: &TrackParams,
@@ -650,7 +650,7 @@ fn fit_track_known(
     (points, serials, (ssr / (2 * n) as f64).sqrt())
 }
 
-#[cfg(any(test, feature = "testkit"))]
+#[cfg(feature = "testkit")]
 /// One detection handed to [`fit_detections`]: its serial, pulse, pulse
 /// time (µs) and centroid (px).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -662,7 +662,7 @@ pub(crate) struct FitInput {
     pub y: f64,
 }
 
-#[cfg(any(test, feature = "testkit"))]
+#[cfg(feature = "testkit")]
 /// The output fit the tracker gives a finished track (the sliding,
 /// adaptive-window polynomial of `fit_order` with the curvature prior
 /// `accel_rms`, px/pulse², 0 = none; position noise `sigma`, px per axis;

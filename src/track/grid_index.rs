@@ -33,7 +33,7 @@ pub(crate) struct GridIndex {
 }
 
 impl GridIndex {
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     /// An empty index whose cells are about `cell` px wide (enlarged when the
     /// points are few and spread far, so the grid never has many more cells
     /// than points).
@@ -44,7 +44,7 @@ impl GridIndex {
         }
     }
 
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     /// Number of points indexed.
     pub(crate) fn len(&self) -> usize {
         self.item.len()
@@ -170,8 +170,8 @@ impl GridIndex {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
 
@@ -185,7 +185,7 @@ mod tests {
             .collect()
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn matches_brute_force() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(5);
         let mut g = GridIndex::new(4.0);
@@ -219,7 +219,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn masked_queries_equal_a_grid_of_the_unmasked_points() {
         // The backward extension searches a frame's grid over all its
         // particles, skipping the used ones, for what a grid over the

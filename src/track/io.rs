@@ -343,7 +343,7 @@ impl TimeTextCache {
 }
 
 impl TracksCsvWriter {
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     fn create(path: &Path) -> Result<Self> {
         Self::create_calibrated(path, None)
     }
@@ -504,7 +504,7 @@ impl TracksNpyWriter {
 /// Write `tracks.npy` in one go, column by column through
 /// [`crate::io::npy::write_npy_table`] (the reference of
 /// [`TracksNpyWriter`]).
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 fn write_tracks_npy(path: &Path, tracks: &[Track]) -> Result<()> {
     use crate::io::npy::NpyColumn;
     let pts = || {
@@ -545,7 +545,7 @@ pub(crate) fn write_particles_csv(path: &Path, particles: &[Particle]) -> Result
 }
 
 /// Write `tracks.csv` in one go.
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 fn write_tracks_csv(path: &Path, tracks: &[Track]) -> Result<()> {
     let mut w = TracksCsvWriter::create(path)?;
     w.write(tracks)?;
@@ -905,11 +905,11 @@ pub(crate) fn write_summary_json(path: &Path, summary: &Summary) -> Result<()> {
     AtomicFile::write_all_to(path, &bytes)
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn particles_roundtrip_and_errors() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("particles.csv");
@@ -958,7 +958,7 @@ mod tests {
             .contains("empty"));
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn tracks_roundtrip() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("tracks.csv");
@@ -1020,7 +1020,7 @@ mod tests {
         tracks
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn tracks_csv_matches_core_fmt() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("tracks.csv");
@@ -1068,7 +1068,7 @@ mod tests {
     /// positions at every magnitude up to and past 10^4 px (8 digits at
     /// 4 decimals), rounding ties, non-finite and huge values, large
     /// counts and negative pulses.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn particles_csv_matches_core_fmt() {
         use rand::{Rng, SeedableRng};
         let dir = tempfile::tempdir().unwrap();
@@ -1135,7 +1135,7 @@ mod tests {
         assert_eq!(got, want);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn streamed_tracks_npy_matches_the_table_writer() {
         let dir = tempfile::tempdir().unwrap();
         let tracks = varied_tracks();
@@ -1165,7 +1165,7 @@ mod tests {
         assert_eq!((hc.shape, c.len()), (vec![0], hc.data_offset));
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn summary_histogram() {
         let mk = |n: usize| Track {
             id: 0,

@@ -327,8 +327,8 @@ fn hungarian_in(h: &mut Hungarian, cost: &[f64], n: usize, m: usize, row_to_col:
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
 
@@ -369,7 +369,7 @@ mod tests {
             .sum()
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn sparse_assignment_is_optimal() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(11);
         for _ in 0..2000 {
@@ -395,7 +395,7 @@ mod tests {
     /// assignment, ties included: costs from a small set of values (many
     /// equal gains), duplicate edges, rows without candidates, sparse
     /// scenes (mostly lone rows) and dense ones (mostly shared columns).
-    #[test]
+    #[ebptv_macros::unit_test]
     fn fast_path_equals_reference() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(23);
         let mut lone_rows = 0;
@@ -440,7 +440,7 @@ mod tests {
         );
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn greedy_would_fail_here() {
         // Row 0 grabs column 0 first-come; the optimum gives it column 1.
         let edges = [(0, 0, 0.1), (0, 1, 0.2), (1, 0, 0.15)];

@@ -287,8 +287,8 @@ pub(crate) fn flow_consistent(
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
     /// A uniform flow (3, −1) px/pulse seen by many links with ±0.3 px
@@ -305,7 +305,7 @@ mod tests {
         f
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn tabulated_decay_is_the_power_bit_for_bit() {
         for memory in [8.0, 3.0, 1e-3, 1e6] {
             let f = LocalFlow::new(16.0, memory);
@@ -319,7 +319,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn mean_spread_and_decay() {
         let f = uniform_flow();
         let e = f.at(19, 50.0, 50.0).unwrap();
@@ -338,7 +338,7 @@ mod tests {
         assert!(f.at(19, -5.0, 50.0).is_none());
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn ghost_test_separates_off_flow_tracks() {
         let f = uniform_flow();
         let sigma = 0.4;
@@ -373,7 +373,7 @@ mod tests {
         assert_eq!(flow_consistent(&far, &f, sigma, 3.0), FlowCheck::Unknown);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn line_fit_is_exact_on_a_line() {
         let d: Vec<(i64, f64, f64)> = [5, 6, 8, 9]
             .iter()

@@ -103,17 +103,17 @@ pub(crate) mod step;
 pub(crate) mod stream;
 /// Synthetic scenes with ground truth, oracles and link scores for the
 /// tests and benches (feature `testkit`).
-#[cfg(any(test, feature = "testkit"))]
+#[cfg(feature = "testkit")]
 #[allow(missing_docs)]
 // the tests' and benches' kit, not the user API: its fields are documented by the module doc
 pub mod synth;
 pub(crate) mod turn;
 
 mod assign;
-mod bridge;
+pub(crate) mod bridge;
 mod finalise;
 mod params;
-mod predict;
+pub(crate) mod predict;
 mod state;
 
 use std::collections::VecDeque;
@@ -147,14 +147,14 @@ pub use state::*;
 #[ebptv_macros::testkit]
 pub(crate) use stream::{track_recording, PtvSink, PtvStream, TrackingRun};
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     // Linking against brute-force oracles, the slice tracker, track
     // accuracy and the output fit on synthetic scenes (src/track/tests/).
-    mod accuracy;
-    mod fit_accuracy;
-    mod oracle;
-    mod slice;
+    pub(crate) mod accuracy;
+    pub(crate) mod fit_accuracy;
+    pub(crate) mod oracle;
+    pub(crate) mod slice;
 
     use super::*;
 
@@ -172,7 +172,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn two_crossing_tracks_are_followed_with_exact_velocity() {
         // Two particles on straight lines crossing at pulse 10; 5 kHz.
         let mut ps = Vec::new();
@@ -195,7 +195,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn gaps_are_bridged_and_marked() {
         let mut ps = Vec::new();
         for k in 0..15 {
@@ -213,7 +213,7 @@ mod tests {
         assert!((pts[7].t_us - 1400.0).abs() < 1e-9);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn long_tracks_come_out_in_segments_covering_every_pulse_once() {
         let ps: Vec<Particle> = (0..130)
             .map(|k| particle(k, 5.0 + 2.0 * k as f64, 20.0 + 0.5 * k as f64))
@@ -245,7 +245,7 @@ mod tests {
         .is_err());
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn init_gap_starts_a_particle_never_seen_four_times_in_a_row() {
         // Seen at pulses 0, 1, 3, 4, 5 (runs of 2 and 3): no four-frame
         // chain, but four detections in the five pulses 0..=4. A second
@@ -299,7 +299,7 @@ mod tests {
         assert_eq!(link(&ps, &p).unwrap(), link(&ps, &off).unwrap());
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn long_gaps_are_stitched() {
         let mut ps = Vec::new();
         for k in 0..30 {
@@ -314,7 +314,7 @@ mod tests {
         assert_eq!(tracks[0].track.points.len(), 30);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn no_stitch_across_a_masked_region() {
         let mut ps = Vec::new();
         for k in 0..30 {
@@ -341,7 +341,7 @@ mod tests {
         assert_eq!(tracks[1].track.points.len(), 17);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn bad_parameters_and_input() {
         let p = TrackParams {
             max_disp: 0.0,
@@ -367,7 +367,7 @@ mod tests {
         assert!(t.push(6, 0.0, &[particle(6, f64::NAN, 1.0)]).is_err());
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn grid_prior_is_bilinear() {
         let g = FlowPrior::grid(
             0.0,
@@ -386,7 +386,7 @@ mod tests {
         assert!(FlowPrior::grid(0.0, 0.0, 1.0, 1.0, 2, 2, vec![0.0; 3], vec![0.0; 4]).is_err());
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn tabulated_outlier_pass_matches_the_reference() {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_pcg::Pcg64::seed_from_u64(8);
@@ -425,7 +425,7 @@ mod tests {
         assert!(removed > 5 && kept > 500, "{removed} {kept}");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn tabulated_output_fit_matches_the_reference() {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_pcg::Pcg64::seed_from_u64(7);

@@ -329,8 +329,8 @@ impl Tracker {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
 
@@ -339,7 +339,7 @@ mod tests {
     /// relative) of the angle itself on either side, and the odd inputs
     /// (opposite, perpendicular and equal headings, zero, infinite and NaN
     /// thresholds).
-    #[test]
+    #[ebptv_macros::unit_test]
     fn turn_screen_matches_the_arctangent() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(11);
         let mut cases = vec![

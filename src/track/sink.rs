@@ -721,8 +721,8 @@ impl PtvSink for FileSink {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -738,7 +738,7 @@ mod tests {
         std::fs::write(path, text).unwrap();
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn particles_csv_into_a_directory() {
         let dir = tempfile::tempdir().unwrap();
         let input = dir.path().join("particles.csv");
@@ -820,7 +820,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn a_failed_run_leaves_no_files() {
         let dir = tempfile::tempdir().unwrap();
         let input = dir.path().join("missing.raw");

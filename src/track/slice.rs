@@ -459,8 +459,8 @@ fn trim_to_owned(mut t: LinkedTrack, owned: (i64, i64), base: u64) -> Option<Lin
     Some(t)
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
     fn particle(pulse: i64, x: f64, y: f64) -> Particle {
@@ -479,7 +479,7 @@ mod tests {
 
     /// Three particles crossing many seams: each must come out as one
     /// track over all pulses, with every detection in order.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn tracks_cross_seams_whole() {
         let slicing = SliceParams {
             slice_pulses: 7,
@@ -514,7 +514,7 @@ mod tests {
         assert_eq!(stats.pulses, 60);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn bad_parameters_and_order_are_refused() {
         let zero = SliceParams {
             slice_pulses: 0,

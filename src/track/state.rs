@@ -70,7 +70,7 @@ impl FlowPrior {
     pub(crate) fn uniform(u: f64, v: f64) -> Self {
         Self::from_fn(move |_, _| (u, v))
     }
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     /// A gridded field: node `(i, j)` at `(x0 + i·dx, y0 + j·dy)`, row-major
     /// `u[j·nx + i]`; bilinear inside, clamped to the border outside.
     #[allow(clippy::too_many_arguments)]
@@ -529,7 +529,7 @@ impl Tracker {
         (out, self.stats)
     }
 
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     /// First steps (pairs of a first and a second particle) the four-frame
     /// initialisation has expanded into chains so far: its work, for
     /// comparing search strategies (`TrackParams::gap_first_step`).

@@ -42,7 +42,7 @@ pub(crate) const STEP_HALF_WINDOW: usize = 6;
 /// Fewest detections on each side of a step.
 pub(crate) const STEP_MIN_SIDE: usize = 3;
 
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 /// Residual sum of squares (both axes) of the least-squares fit of
 /// `xs`, `ys` on the columns 1, τ, τ² (as many as `order + 1`) and, when
 /// given, one extra column `extra`. `None` when the fit is singular.
@@ -617,7 +617,7 @@ fn find_cuts(
     }
 }
 
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 /// [`gains`] by refitting with each extra column (the reference).
 /// Gains at detection `s` of `dets` (`(pulse, x, y)`, increasing pulses),
 /// fitting the detections of `lo..hi` within `STEP_HALF_WINDOW` of it:
@@ -662,8 +662,8 @@ fn gains_reference(
     Some(((base - with_step) / s2, outlier / s2))
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
     /// A curved track with a deterministic ±`noise` px wobble and a jump
@@ -683,7 +683,7 @@ mod tests {
             .collect()
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn finds_a_jump_to_a_neighbour() {
         let t = track(20, 0.3, 11, 1.5, -1.2);
         assert_eq!(step_cuts(&t, 0.4, 12.0, 0), vec![11]);
@@ -693,7 +693,7 @@ mod tests {
         assert!(step_cuts(&t, 0.4, 0.0, 0).is_empty());
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn smooth_tracks_and_single_outliers_are_not_cut() {
         assert!(step_cuts(&track(30, 0.3, 99, 0.0, 0.0), 0.4, 12.0, 0).is_empty());
         // An excursion: one image 2 px off, then back.
@@ -705,7 +705,7 @@ mod tests {
 
     /// The projection formulas against refitting with each extra column,
     /// on tracks with and without steps, outliers and missed pulses.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn gains_match_the_refitting_reference() {
         let mut t = track(30, 0.3, 12, 1.7, -0.9);
         t[20].1 += 1.5;
@@ -732,7 +732,7 @@ mod tests {
     /// steps, missed pulses of 1–3 and now and then 60–89) and every
     /// piece bound `lo..hi` the recursive search can make; gap-free and
     /// gapped windows (and `None`s) must occur.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn tabulated_gains_are_the_direct_ones_bit_for_bit() {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_pcg::Pcg64::seed_from_u64(9);
@@ -798,7 +798,7 @@ mod tests {
     /// gaps), thresholds just below, at and above the exact gain; and
     /// the screened search cuts exactly where the unscreened one does,
     /// also at thresholds that make many cuts.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn screening_keeps_every_cut() {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_pcg::Pcg64::seed_from_u64(13);
@@ -869,7 +869,7 @@ mod tests {
         );
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn two_steps_give_two_cuts() {
         let mut t = track(30, 0.2, 10, 2.0, 0.0);
         for d in &mut t[20..] {
@@ -880,7 +880,7 @@ mod tests {
 
     /// The normal-equation fit against a plain check: an exact quadratic
     /// has no residual, and a step column absorbs an exact step.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn rss_is_exact_on_its_model() {
         let tau: Vec<f64> = (0..8).map(|i| i as f64 - 4.0).collect();
         let xs: Vec<f64> = tau.iter().map(|t| 1.0 + 2.0 * t - 0.3 * t * t).collect();

@@ -704,8 +704,8 @@ pub(crate) fn track_recording<'a>(
     })
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use crate::events::EventChunk;
 
@@ -731,7 +731,7 @@ mod tests {
     /// Three particles moving uniformly, two events each per pulse: the
     /// stream must give one track per particle with the true velocity,
     /// whatever the batch size.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn batches_do_not_change_the_result() {
         let period = 200.0;
         let pulses: Vec<PulseEvents> = (0..30)
@@ -787,7 +787,7 @@ mod tests {
     /// fitted later, on another thread, with the curvature prior of the
     /// tracks kept before them) and in parallel change nothing. Short
     /// `max_track_length` so that segment hand-outs are exercised too.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn parallel_stream_equals_sequential_tracking() {
         use crate::cluster::cluster_pulse;
         use crate::track::synth::{generate, SynthParams};
@@ -918,7 +918,7 @@ mod tests {
     /// Errors of the sink, of the tracker stage (pulses out of order) and
     /// a stream dropped half-way: each ends the pipeline's threads and
     /// reaches the caller (the test would hang otherwise).
-    #[test]
+    #[ebptv_macros::unit_test]
     fn errors_and_drops_end_the_pipeline() {
         let pulses = moving_pulses(40);
         let s = PtvStream::new(ClusterParams::default(), TrackParams::default(), 3).unwrap();
@@ -952,7 +952,7 @@ mod tests {
         assert!(s.push_particles(1, 200.0, &[], &mut sink).is_err());
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn zero_batch_is_refused() {
         assert!(PtvStream::new(ClusterParams::default(), TrackParams::default(), 0).is_err());
     }

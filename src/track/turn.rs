@@ -251,7 +251,7 @@ pub(crate) struct TurnFit {
 /// The least-squares coefficients `(z₀, V, A)` (`A = 0` for `P = 2`) at a
 /// given ω and, with `leverage`, the leverage at `s = 0` (NaN without):
 /// what the fits compute, from the samples' times afresh.
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 fn coeffs<const P: usize>(
     s: &[f64],
     xs: &[f64],
@@ -365,7 +365,7 @@ fn rss_of(bs: &[(C, C)], xs: &[f64], ys: &[f64]) -> Option<f64> {
 /// The fixed point for ω of the six-coefficient fit (times `s` from any
 /// origin near the samples); 0 when the path is too slow to have a
 /// heading.
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 fn turn_rate(s: &[f64], xs: &[f64], ys: &[f64]) -> Option<f64> {
     turn_rate_full(s, xs, ys).map(|r| r.w)
 }
@@ -598,8 +598,8 @@ pub(crate) fn heading_prefix(pulses: &[i64], xs: &[f64], ys: &[f64], sigma: f64)
     out
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
     /// The recurrence of [`bases`] against each sample's own [`basis`]:
@@ -607,7 +607,7 @@ mod tests {
     /// branch's edge to the largest, both signs. Near the series branch
     /// both forms lose digits to `e^{iωs} − 1` (relative ~ε/(ωs)²), so the
     /// tolerance grows there.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn bases_equal_each_samples_basis() {
         let mut times: Vec<Vec<f64>> = vec![
             (0..12).map(|k| k as f64 - 11.0).collect(),
@@ -659,7 +659,7 @@ mod tests {
         (tau, xs, ys)
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn an_arc_is_extrapolated_exactly_and_a_quadratic_is_not() {
         for (r, w, acc) in [
             (20.0, 0.19, 0.0),
@@ -682,7 +682,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn a_straight_or_accelerating_path_gives_the_quadratic() {
         let tau: Vec<f64> = (0..10).map(|i| i as f64).collect();
         let xs: Vec<f64> = tau.iter().map(|t| 3.0 + 2.0 * t + 0.05 * t * t).collect();
@@ -709,7 +709,7 @@ mod tests {
         assert!((g.x - 20.0).abs() < 1e-9 && g.y.abs() < 1e-9);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn noise_leverage_matches_monte_carlo() {
         // The stated leverage is the prediction's variance per unit noise.
         use rand::{Rng, SeedableRng};
@@ -742,7 +742,7 @@ mod tests {
         );
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn the_joint_solve_equals_two_plain_solves_bit_for_bit() {
         let (tau, xs, ys) = arc(20.0, 0.15, 0.1, 12);
         for (n, w) in [(12, 0.15), (7, -0.4), (5, 1e-4), (12, 0.0)] {
@@ -779,7 +779,7 @@ mod tests {
         );
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn reused_rate_checks_equal_the_fits_recomputed() {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_pcg::Pcg64::seed_from_u64(5);

@@ -23,6 +23,12 @@ mod robust;
 #[path = "../sim/mod.rs"]
 mod sim;
 
+/// The library's unit tests (`#[ebptv_macros::unit_test]` in src/), under
+/// their module paths: `cargo test --release --test integration unit::grid::`.
+mod unit {
+    include!(concat!(env!("OUT_DIR"), "/unit_tests.rs"));
+}
+
 // Helpers shared by several areas.
 #[path = "../cli_common/mod.rs"]
 mod cli_common;

@@ -19,6 +19,29 @@
 //! crate that uses the attribute, so each crate needs a `testkit` feature.
 //! Works on any item with a visibility, methods of inherent impls
 //! included. Plain token handling: no parser crate to build.
+//!
+//! `#[unit_test]`: a white-box test that lives next to the code it tests.
+//!
+//! A crate's unit tests would need a test harness of their own, which
+//! compiles the whole crate a second time (for the root crate, as long as
+//! the crate itself). Instead they are compiled into the crate's
+//! `testkit` build, which the integration tests link anyway:
+//!
+//! ```ignore
+//! #[cfg(feature = "testkit")]
+//! pub(crate) mod tests {
+//!     use super::*;
+//!     #[ebptv_macros::unit_test]
+//!     fn sums() { assert_eq!(add(1, 2), 3) }
+//! }
+//! ```
+//!
+//! makes `sums` a `pub(crate)` function (an `#[ignore]` after the attribute
+//! is removed here, it only means something to the runner). The crate's
+//! build script (crate `ebptv-testgen`) finds every `#[unit_test]`, indexes the
+//! functions in the crate (`unit_tests`, testkit only) and writes one
+//! `#[test]` per function for the integration-test binary, under the same
+//! module path and with the same `#[ignore]`.
 
 use proc_macro::{Delimiter, Group, Ident, Punct, Spacing, Span, TokenStream, TokenTree};
 
@@ -64,6 +87,36 @@ pub fn testkit(args: TokenStream, item: TokenStream) -> TokenStream {
     out.extend(cfg_attr(true));
     out.extend(attribute("allow(dead_code, unused_imports)"));
     out.extend(tokens.iter().cloned());
+    out
+}
+
+/// A unit test compiled into the `testkit` build; see the crate
+/// documentation.
+#[proc_macro_attribute]
+pub fn unit_test(args: TokenStream, item: TokenStream) -> TokenStream {
+    if !args.is_empty() {
+        return compile_error("`#[unit_test]` takes no arguments");
+    }
+    let tokens: Vec<TokenTree> = item.into_iter().collect();
+    let mut out = TokenStream::new();
+    let mut i = 0;
+    while i + 1 < tokens.len()
+        && is_punct(&tokens[i], '#')
+        && is_group(&tokens[i + 1], Delimiter::Bracket)
+    {
+        let ignore = matches!(&tokens[i + 1], TokenTree::Group(g)
+            if g.stream().into_iter().next().is_some_and(|t| t.to_string() == "ignore"));
+        if !ignore {
+            out.extend(tokens[i..i + 2].iter().cloned());
+        }
+        i += 2;
+    }
+    match tokens.get(i) {
+        Some(TokenTree::Ident(id)) if id.to_string() == "fn" => {}
+        _ => return compile_error("`#[unit_test]` goes on a private `fn`"),
+    }
+    out.extend("pub(crate)".parse::<TokenStream>().expect("a visibility"));
+    out.extend(tokens[i..].iter().cloned());
     out
 }
 

@@ -65,7 +65,7 @@ fn median_mean_error(
     median(e)
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn steady_vortex_mean_within_one_percent_of_max_speed() {
     // In-bin fits evaluate the mean at the bin centre: every bin within 1 %.
     // A top-hat mean belongs to the samples' centroid, which wanders by
@@ -111,7 +111,7 @@ fn steady_vortex_mean_within_one_percent_of_max_speed() {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn channel_mean_within_one_percent_of_max_speed() {
     let (h, umax) = (200.0, 1500.0);
     let flow = |_x: f64, y: f64| (umax * 4.0 * y * (h - y) / (h * h), 0.0);
@@ -151,7 +151,7 @@ fn stress_errors(g: &GridStats, f: &Shear) -> (f64, f64, f64, usize) {
     (median(eu), median(ev), median(ec), n)
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn shear_flow_stresses_within_ten_percent() {
     let f = Shear {
         u0: 400.0,
@@ -177,7 +177,7 @@ fn shear_flow_stresses_within_ten_percent() {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn in_bin_fit_removes_the_top_hat_gradient_bias_in_a_shear_layer() {
     // Strong shear: the top-hat bias (dU/dy)² b²/12 = 12² · 16² / 12 ≈ 3072
     // (px/s)² exceeds the true uu = 2500.
@@ -216,7 +216,7 @@ fn in_bin_fit_removes_the_top_hat_gradient_bias_in_a_shear_layer() {
     assert!((m - f.shear).abs() < 0.05 * f.shear, "dU/dy {m}");
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn in_bin_fit_removes_spurious_stress_in_a_vortex_core() {
     // Steady vortex, small noise: all "stress" is the unresolved gradient.
     let vx = Vortex {
@@ -272,7 +272,7 @@ fn in_bin_fit_removes_spurious_stress_in_a_vortex_core() {
     );
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn standard_error_counts_tracks_not_samples() {
     // Each track carries one frozen fluctuation over 20 samples: the bin
     // mean has the error of ~50 independent values, not of 1000.
@@ -323,7 +323,7 @@ fn standard_error_counts_tracks_not_samples() {
     assert!(naive < 0.3 * sd);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn noise_bias_correction_recovers_stresses() {
     let f = Shear {
         u0: 300.0,
@@ -373,7 +373,7 @@ fn noise_bias_correction_recovers_stresses() {
     assert!(cu < 0.06 && cv < 0.1 && cc < 0.1, "{cu} {cv} {cc}");
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn wall_position_and_shear_from_thin_bins() {
     // Channel between walls at y = 40 and y = 240; dU/dy at the wall = 4 Umax/H.
     let (y0, h, umax) = (40.0, 200.0, 1000.0);

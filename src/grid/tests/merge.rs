@@ -15,7 +15,7 @@ fn close(a: f64, b: f64, rel: f64) -> bool {
     (a.is_nan() && b.is_nan()) || (a - b).abs() <= rel * a.abs().max(b.abs()).max(1e-9)
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn merged_slices_equal_one_run() {
     let f = Shear {
         u0: 5000.0,
@@ -89,7 +89,7 @@ fn merged_slices_equal_one_run() {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn incompatible_grids_do_not_merge() {
     let s = vec![Sample {
         x: 10.0,
@@ -131,7 +131,7 @@ fn incompatible_grids_do_not_merge() {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn bad_input_is_a_clear_error() {
     assert!(bin_samples(
         &[],
@@ -213,7 +213,7 @@ fn reference_fit(samples: &[(f64, f64, f64, f64, f64)], p: usize) -> (f64, f64, 
     (cu[0], cv[0], ru.dot(&ru) / dof)
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn accumulated_fit_matches_direct_least_squares() {
     use rand::{Rng, SeedableRng};
     let mut rng = rand_pcg::Pcg64::seed_from_u64(12);
@@ -275,7 +275,7 @@ fn accumulated_fit_matches_direct_least_squares() {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn fit_falls_back_when_positions_cannot_resolve_it() {
     // All samples on one line y = const: η-terms are unresolvable.
     let s: Vec<Sample> = (0..50)
@@ -305,7 +305,7 @@ fn fit_falls_back_when_positions_cannot_resolve_it() {
     assert!(b.u.is_finite());
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn parallel_binning_equals_sequential() {
     let f = Shear {
         u0: 800.0,

@@ -2,11 +2,11 @@
 //! against known flows, Welch spectra, and the simulated chain scored
 //! against the simulator's flow.
 
-mod accuracy;
-mod chain_common;
+pub(crate) mod accuracy;
+pub(crate) mod chain_common;
 // Shared with the command tests in tests/grid/.
 #[path = "../../../tests/grid_common/mod.rs"]
-mod grid_common;
-mod merge;
-mod sim;
-mod welch;
+pub(crate) mod grid_common;
+pub(crate) mod merge;
+pub(crate) mod sim;
+pub(crate) mod welch;

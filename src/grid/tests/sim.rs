@@ -127,7 +127,7 @@ fn vortex_scene(seconds: f64) -> Scenario {
 /// bins; a fixed 5-point fit 0.63 %. The adaptive window
 /// (`track::fit::fit_adaptive`) shortens the window where the path's cubic
 /// term makes the bias exceed the noise.
-#[test]
+#[ebptv_macros::unit_test]
 fn vortex_mean_and_top_hat_bias() {
     let sc = vortex_scene(0.03);
     let (samples, flow) = chain(&sc, 3, TrackParams::default());
@@ -239,7 +239,7 @@ fn vortex_mean_and_top_hat_bias() {
 /// linear fit carries its curvature bias U''b²/24). The columns where
 /// particles enter and leave the image are left out: tracks begin and end
 /// there, and a track's end points come from one-sided fits.
-#[test]
+#[ebptv_macros::unit_test]
 fn channel_mean_through_the_chain() {
     let mut sc = vortex_scene(0.03);
     sc.sensor.width = 320;
@@ -306,7 +306,7 @@ fn true_noise(samples: &[Sample], flow: &Flow) -> (f64, f64) {
 /// themselves are not reached by a 0.1 s record (a 16-mode field converges
 /// slowly: the record's own truth stresses differ from them by tens of %,
 /// printed), so they cannot be the reference of a short test.
-#[test]
+#[ebptv_macros::unit_test]
 fn turbulent_stresses_through_the_chain() {
     let sc = chain_common::turbulent_roi_scenario();
     let (samples, flow) = chain(&sc, 6, fixed_window_fit());
@@ -386,7 +386,7 @@ fn turbulent_stresses_through_the_chain() {
 /// The demo scene with the default tracker: the pair estimator of the
 /// per-sample velocity noise within 15 % of the truth, and the dynamic
 /// velocity range (max mean speed / noise rms) it gives.
-#[test]
+#[ebptv_macros::unit_test]
 fn noise_and_dynamic_range_of_the_demo_scene() {
     let sc = vortex_scene(0.03);
     let (samples, flow) = chain(&sc, 5, TrackParams::default());
@@ -412,7 +412,7 @@ fn noise_and_dynamic_range_of_the_demo_scene() {
 /// 256 × 128 ROI on the wake axis, 0.2 s (7 shedding periods): the peak of
 /// the velocity spectrum at three points within 1.5 Hz; the noise rms from
 /// the spectrum's floor within 25 % of the true noise of the binned series.
-#[test]
+#[ebptv_macros::unit_test]
 fn shedding_frequency_through_the_chain() {
     let mut sc = crate::sim::presets::preset("rib_wake").unwrap();
     sc.sensor.roi = Some(Roi {
@@ -506,7 +506,7 @@ fn shedding_frequency_through_the_chain() {
 /// y = 700 px, air, 5 kHz) near the wall, 512 × 140 px ROI, 0.1 s: thin bins
 /// (256 × 4 px, an edge on the wall, linear fit), the profile's wall fit finds the wall within 1 px and the
 /// wall gradient 2U/δ within 5 %, hence u_τ within 2.5 %.
-#[test]
+#[ebptv_macros::unit_test]
 fn laminar_wall_through_the_chain() {
     use crate::grid::profiles::{profile_at_x, wall_fit, WallOptions, WallSide};
     let mut sc = crate::sim::presets::preset("laminar_bl").unwrap();

@@ -33,7 +33,7 @@ fn noise(n: usize, sigma: f64, seed: u64) -> Vec<f64> {
     (0..n).map(|_| d.sample(&mut rng)).collect()
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn fft_matches_direct_dft() {
     let fs = 1000.0;
     let x: Vec<f64> = noise(256, 1.0, 1)
@@ -78,7 +78,7 @@ fn fft_matches_direct_dft() {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn parseval_holds_per_segment_and_on_average() {
     let fs = 2000.0;
     let x = noise(512, 3.0, 3);
@@ -129,7 +129,7 @@ fn parseval_holds_per_segment_and_on_average() {
     );
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn sine_amplitude_and_frequency_are_recovered() {
     let fs = 1000.0;
     for &(a, f0) in &[(2.0, 35.4), (0.5, 125.0), (10.0, 7.81)] {
@@ -165,7 +165,7 @@ fn sine_amplitude_and_frequency_are_recovered() {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn moving_average_rms_measures_noise_under_a_slow_drift() {
     let x: Vec<f64> = noise(20_000, 2.0, 5)
         .iter()

@@ -37,7 +37,7 @@ fn truth_scene() -> Scenario {
     s
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn baseline_replays_the_measured_vortex_and_matches_pulses_seeding_brightness() {
     let truth = truth_scene();
     let out = crate::sim::simulate(&truth, 4242).unwrap();
@@ -149,7 +149,7 @@ fn baseline_replays_the_measured_vortex_and_matches_pulses_seeding_brightness() 
     assert_eq!(&back, sc);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn baseline_refuses_a_recording_without_triggers() {
     let out = crate::sim::simulate(
         &Scenario {

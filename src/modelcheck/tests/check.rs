@@ -7,7 +7,7 @@ use crate::modelcheck::check::{check_recording_capped, ModelCheckOptions};
 /// A recording longer than the cap is checked on a stretch around its
 /// middle (two passes): both blocks lie inside the stretch read, next to
 /// the recording's middle, and the notes say so.
-#[test]
+#[ebptv_macros::unit_test]
 fn a_long_recording_is_checked_around_its_middle() {
     let dir = tempfile::tempdir().unwrap();
     let mut sc = base();

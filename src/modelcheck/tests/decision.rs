@@ -47,7 +47,7 @@ fn with(rows: &[(&'static str, f64)]) -> DiscrepancyTable {
 /// One effect explains nearly all: leaving 9 where the rival leaves 41
 /// is clear (a hidden jitter against intensity latency): the lead, 32,
 /// exceeds a quarter of the gap the rival leaves (10.25).
-#[test]
+#[ebptv_macros::unit_test]
 fn a_clear_winner_is_named() {
     let before = table(&[("a", 1000.0), ("b", 1000.0)]);
     let jitter = table(&[("a", 5.0), ("b", 4.0)]);
@@ -62,7 +62,7 @@ fn a_clear_winner_is_named() {
 
 /// Two explanations of the same component that remove nearly the same
 /// amount: no clear winner, however large the gap.
-#[test]
+#[ebptv_macros::unit_test]
 fn a_near_tie_on_one_component_is_not_clear() {
     let before = table(&[("a", 1000.0), ("b", 1000.0)]);
     let x = table(&[("a", 50.0), ("b", 1000.0)]);
@@ -87,7 +87,7 @@ fn a_near_tie_on_one_component_is_not_clear() {
 /// removes 1800 of 8000 where its rival removes 700 of the same rows is
 /// not named (lead 1100 < 0.25 × 7300). The search then stops with
 /// "unexplained" and names the two in its note.
-#[test]
+#[ebptv_macros::unit_test]
 fn the_margin_is_on_the_whole_gap() {
     let before = table(&far_off());
     let best = with(&[("a", 100.0), ("b", 100.0)]); // removes 1800
@@ -108,7 +108,7 @@ fn the_margin_is_on_the_whole_gap() {
 }
 
 /// Nothing beyond chance: not named, whatever the lead.
-#[test]
+#[ebptv_macros::unit_test]
 fn an_improvement_within_chance_is_not_named() {
     let before = table(&[("a", 30.0), ("b", 2.0)]);
     let x = table(&[("a", 25.0), ("b", 2.0)]);
@@ -119,7 +119,7 @@ fn an_improvement_within_chance_is_not_named() {
 /// The improvement is the gap before minus the gap after, each on its own
 /// rows: a row a candidate brings (no OFF events before, an OFF latency
 /// histogram after) counts against it.
-#[test]
+#[ebptv_macros::unit_test]
 fn improvement_is_the_whole_gap_difference() {
     let before = table(&[("a", 500.0), ("b", 20.0)]);
     let brings_row = table(&[("a", 10.0), ("b", 20.0), ("off_latency", 80.0)]);
@@ -138,7 +138,7 @@ fn improvement_is_the_whole_gap_difference() {
 // ------------------------------------------------------------------
 // The standard-sensor check's rule (`modelcheck::standard`).
 
-mod standard_rule {
+pub(crate) mod standard_rule {
     use super::table;
     use crate::modelcheck::standard::{
         decide, excess, gap_on, structural_rows, ACCEPT_RATIO, RIVAL_MARGIN,
@@ -160,7 +160,7 @@ mod standard_rule {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn the_gap_counts_only_what_lies_beyond_the_standard_range() {
         assert_eq!(excess(0.4), 0.0);
         assert_eq!(excess(1.0), 0.0);
@@ -170,14 +170,14 @@ mod standard_rule {
         assert!((gap_on(&t, &["a".to_string()]) - 2.0).abs() < 1e-12);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn a_clear_winner_that_halves_the_gap_is_named() {
         let sorted = [cand("x", 1, 4.0), cand("y", 1, 15.0)];
         let (pick, note) = decide(20.0, true, &sorted);
         assert_eq!(pick, Some(0), "{note}");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn nothing_is_named_without_a_disagreement_or_below_half() {
         let sorted = [cand("x", 1, 4.0)];
         assert_eq!(decide(20.0, false, &sorted).0, None);
@@ -187,7 +187,7 @@ mod standard_rule {
         assert_eq!(decide(20.0, true, &sorted).0, None);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn a_near_tie_is_not_named_unless_one_explanation_is_simpler() {
         // Gain 16; the rival is within a quarter of it (lead 2 < 4).
         const { assert!(2.0 < RIVAL_MARGIN * 16.0) };
@@ -201,7 +201,7 @@ mod standard_rule {
         assert_eq!(decide(20.0, true, &tie).0, None);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn rows_no_candidate_brings_half_way_back_are_structural() {
         let before = table(&[("a", 11.0), ("b", 9.0), ("c", 0.5)]);
         // Candidate 1 fixes a; candidate 2 moves b only a little.
@@ -215,10 +215,10 @@ mod standard_rule {
     }
 }
 
-mod quiet_window {
+pub(crate) mod quiet_window {
     use crate::modelcheck::signatures::{quiet_complement, BinScale, Histogram};
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn the_burst_window_is_the_complement_of_the_quietest_quarter() {
         // 200 µs period in 20 bins: a burst over 40–120 µs, a floor elsewhere.
         let edges: Vec<f64> = (0..=20).map(|k| 10.0 * k as f64).collect();

@@ -103,7 +103,7 @@ fn assert_parameters(found: &BTreeMap<String, f64>, truth: &EffectSetting) {
 /// The signature against the simulator's ground truth: the drift in ppm
 /// comes back as the latency slope, with its sign; without drift the slope
 /// is within the noise of zero.
-#[test]
+#[ebptv_macros::unit_test]
 fn latency_drift_signature_measures_the_simulated_drift() {
     let sim = SceneSimulator::new(base()).unwrap();
     let cfg = sim.signature_config();
@@ -133,7 +133,7 @@ fn latency_drift_signature_measures_the_simulated_drift() {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn real_sim_hidden_clock_drift() {
     // A slow laser clock or a fast one: the sign is part of the truth.
     let ppm = -strength(61, 150.0, 400.0);
@@ -170,7 +170,7 @@ fn assert_both_found(truth: &[EffectSetting], seed: u64, order_seed: u64) {
 /// Two catalogue effects at once, seen by different signatures (a fixed
 /// pattern of off-burst activity; the latency's slope over the recording):
 /// the second round's acceptance triggers the joint refit of both.
-#[test]
+#[ebptv_macros::unit_test]
 fn real_sim_two_hidden_effects_hot_pixels_and_clock_drift() {
     let truth = [
         setting(
@@ -190,7 +190,7 @@ fn real_sim_two_hidden_effects_hot_pixels_and_clock_drift() {
 // `latency_jitter` 95.7 (both leave the hot pixels' part): a near tie of
 // two rival explanations of the burst's width, so nothing is accepted
 // ("unexplained").
-#[test]
+#[ebptv_macros::unit_test]
 #[ignore]
 fn real_sim_two_hidden_effects_hot_pixels_and_latency_jitter() {
     let truth = [
@@ -212,7 +212,7 @@ fn real_sim_two_hidden_effects_hot_pixels_and_latency_jitter() {
 // background (spread over the period by the long decay) and the jitter
 // (OFF events after the burst widen the all-events latency histogram);
 // no signature separates ON-only latency from OFF activity well enough.
-#[test]
+#[ebptv_macros::unit_test]
 #[ignore]
 fn real_sim_two_hidden_effects_background_and_latency_jitter() {
     let truth = [

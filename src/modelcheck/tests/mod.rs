@@ -1,11 +1,11 @@
 //! Unit tests of the model check: distances and signatures against
 //! references, the decision rules, the search on hidden effects.
 
-mod baseline;
-mod check;
-mod decision;
-mod hidden_more;
-mod modelcheck_common;
-mod scene;
-mod signatures;
-mod workflow;
+pub(crate) mod baseline;
+pub(crate) mod check;
+pub(crate) mod decision;
+pub(crate) mod hidden_more;
+pub(crate) mod modelcheck_common;
+pub(crate) mod scene;
+pub(crate) mod signatures;
+pub(crate) mod workflow;

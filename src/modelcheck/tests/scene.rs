@@ -131,14 +131,14 @@ fn assert_recovered(res: &ModelCheckResult, truth: &EffectSetting) {
     assert!(first.gap_after <= 0.5 * first.gap_before, "{first:?}");
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn real_sim_hidden_latency_jitter() {
     let truth = setting("latency_jitter", &[("spread_us", strength(1, 6.0, 20.0))]);
     let res = check_hidden(Some(truth.clone()), 1, 11);
     assert_recovered(&res, &truth);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn real_sim_null_case_names_nothing() {
     let res = check_hidden(None, 2, 12);
     assert!(res.effects.is_empty(), "{:#?}", res.rounds);
@@ -152,7 +152,7 @@ fn real_sim_null_case_names_nothing() {
 
 // Hot pixels stay in CI: they are missed when a zero-spread scalar swamps
 // the fit objective, or when no signature tells count from rate.
-#[test]
+#[ebptv_macros::unit_test]
 fn real_sim_hidden_hot_pixels() {
     let truth = setting(
         "hot_pixels",
@@ -170,7 +170,7 @@ fn real_sim_hidden_hot_pixels() {
 
 /// Also the catalogue-order check on the real simulator: the same
 /// recording with the catalogue in another order gives the same answer.
-#[test]
+#[ebptv_macros::unit_test]
 fn real_sim_hidden_background_noise_in_any_catalogue_order() {
     let truth = setting("background_noise", &[("rate_hz", strength(3, 2.0, 20.0))]);
     let a = check_hidden(Some(truth.clone()), 3, 13);
@@ -180,13 +180,13 @@ fn real_sim_hidden_background_noise_in_any_catalogue_order() {
     assert_eq!(a.verdict, b.verdict);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn real_sim_hidden_refractory() {
     let truth = setting("refractory", &[("period_us", strength(4, 4.0, 15.0))]);
     assert_recovered(&check_hidden(Some(truth.clone()), 4, 14), &truth);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn real_sim_hidden_intensity_latency() {
     let truth = setting(
         "intensity_latency",
@@ -198,7 +198,7 @@ fn real_sim_hidden_intensity_latency() {
     assert_recovered(&check_hidden(Some(truth.clone()), 7, 17), &truth);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn real_sim_hidden_arbiter_saturation() {
     let truth = setting(
         "arbiter_saturation",
@@ -221,7 +221,7 @@ fn real_sim_hidden_arbiter_saturation() {
 // yields carry a fixed pattern without any mismatch (split-half r 0.33 ±
 // 0.07 clean) and extent_x follows the brightness of a few hundred
 // particles (replicate spread as large as a scale-10 streak).
-#[test]
+#[ebptv_macros::unit_test]
 fn real_sim_hidden_pulse_streaks() {
     let truth = setting("pulse_streaks", &[("scale", strength(21, 10.0, 25.0))]);
     assert_recovered(
@@ -230,7 +230,7 @@ fn real_sim_hidden_pulse_streaks() {
     );
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn real_sim_hidden_threshold_mismatch() {
     let truth = setting("threshold_mismatch", &[("sigma", strength(22, 0.15, 0.35))]);
     assert_recovered(
@@ -239,7 +239,7 @@ fn real_sim_hidden_threshold_mismatch() {
     );
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn real_sim_mixing_scene_null_case_names_nothing() {
     let res = check_hidden_on(mixing(), None, 27, 37, None);
     assert!(res.effects.is_empty(), "{:#?}", res.rounds);
@@ -251,7 +251,7 @@ fn real_sim_mixing_scene_null_case_names_nothing() {
     );
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn real_sim_hidden_off_events() {
     let truth = setting(
         "off_events",
@@ -263,7 +263,7 @@ fn real_sim_hidden_off_events() {
     assert_recovered(&check_hidden(Some(truth.clone()), 23, 33), &truth);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn real_sim_hidden_rate_limiter() {
     // A ceiling below the burst: each window keeps 40-70 % of what the
     // clean scene puts into it at the burst's peak (~300 events per pulse
@@ -280,7 +280,7 @@ fn real_sim_hidden_rate_limiter() {
 
 // Out-of-catalogue, null and order checks with the real simulator.
 
-#[test]
+#[ebptv_macros::unit_test]
 fn real_sim_effect_outside_the_catalogue_is_unexplained() {
     // Long pulse streaks, with `pulse_streaks` removed from the catalogue:
     // no other candidate elongates particle images along the flow.

@@ -38,7 +38,7 @@ fn wasserstein_reference(a: &[f64], b: &[f64]) -> f64 {
         .sum()
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn wasserstein_matches_sorted_sample_reference() {
     let mut rng = Pcg64::seed_from_u64(7);
     // Uneven bin positions, as for geometric binnings on a linear axis.
@@ -87,7 +87,7 @@ fn wasserstein_matches_sorted_sample_reference() {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn wasserstein_known_cases_and_errors() {
     let pos = [0.0, 2.0, 4.0, 6.0];
     assert_eq!(
@@ -122,7 +122,7 @@ fn wasserstein_known_cases_and_errors() {
     assert!(histogram_wasserstein(&h1, &h2).is_err(), "different bins");
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn chi_square_known_cases() {
     let c = chi_square(&[10.0, 0.0], &[0.0, 10.0]).unwrap();
     assert!((c.statistic - 20.0).abs() < 1e-12 && c.dof == 1);
@@ -137,7 +137,7 @@ fn chi_square_known_cases() {
     assert!(chi_square(&[f64::NAN, 0.0], &[1.0, 2.0]).is_err());
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn chi_square_of_two_draws_of_one_law_is_about_its_dof() {
     let mut rng = Pcg64::seed_from_u64(11);
     let probs = [0.05, 0.1, 0.2, 0.3, 0.2, 0.1, 0.05];
@@ -168,7 +168,7 @@ fn chi_square_of_two_draws_of_one_law_is_about_its_dof() {
     assert!(chi_square(&a, &b).unwrap().reduced() > 20.0);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn standardise_and_rank() {
     let s = standardise(10.0, &[1.0, 2.0, 3.0]).unwrap();
     assert!((s.replicate_mean - 2.0).abs() < 1e-12 && (s.replicate_sd - 1.0).abs() < 1e-12);
@@ -236,7 +236,7 @@ fn chunk(events: &[(i64, u16, u16, u8)]) -> EventChunk {
     c
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn folded_latency_on_off_and_rate() {
     let mut cfg = SignatureConfig::new(Geometry::new(8, 8), timing(100.0, 1000.0));
     cfg.latency_bin_us = 10.0;
@@ -261,7 +261,7 @@ fn folded_latency_on_off_and_rate() {
     assert!((s.scalar("event_rate").unwrap() - 4.0 / 310e-6).abs() < 1e-6);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn shared_timestamps_and_group_sizes_are_counted_across_chunks() {
     let cfg = SignatureConfig::new(Geometry::new(16, 16), timing(100.0, 0.0));
     let mut acc = SignatureAccumulator::new(cfg).unwrap();
@@ -286,7 +286,7 @@ fn shared_timestamps_and_group_sizes_are_counted_across_chunks() {
     assert_eq!(g.total(), 4.0);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn streaming_in_chunks_equals_one_shot() {
     let mut rng = Pcg64::seed_from_u64(3);
     let mut all = EventChunk::default();
@@ -342,7 +342,7 @@ fn particle_events(
     ev
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn hot_pixels_show_in_split_half_consistency() {
     let g = Geometry::new(64, 48);
     let (period, pulses) = (100i64, 2000i64);
@@ -397,7 +397,7 @@ fn hot_pixels_show_in_split_half_consistency() {
     assert!(get("pixel_count") > 0.0);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn background_noise_shows_as_off_burst_rate() {
     let g = Geometry::new(32, 32);
     let (period, pulses) = (200i64, 1000i64);
@@ -437,7 +437,7 @@ fn background_noise_shows_as_off_burst_rate() {
     assert!((got - expect).abs() < 1e-9 * expect, "{got} vs {expect}");
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn burst_window_wraps_around_the_period() {
     let mut h = Histogram::new(
         (0..=10).map(|k| k as f64 * 10.0).collect(),
@@ -455,7 +455,7 @@ fn burst_window_wraps_around_the_period() {
     .is_err());
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn min_inter_event_interval_per_pixel() {
     let cfg = SignatureConfig::new(Geometry::new(4, 4), timing(1000.0, 0.0));
     // Pixel (1,1): 0, 50, 1000 → min 50. Pixel (2,2): 10, 13 → 3. Pixel (3,3): one event.
@@ -493,7 +493,7 @@ fn particle(pulse: i64, x: f64, y: f64, n: u32, lat: f32, ex: f32, ey: f32) -> P
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn cluster_and_track_signatures() {
     let cfg = SignatureConfig::new(Geometry::new(64, 64), timing(100.0, 0.0));
     let ev = chunk(&[(10, 1, 1, 1), (20, 2, 2, 1)]);
@@ -559,7 +559,7 @@ fn cluster_and_track_signatures() {
     ));
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn bad_configuration_and_empty_data_are_errors() {
     let g = Geometry::new(8, 8);
     let mut cfg = SignatureConfig::new(g, timing(0.0, 0.0));
@@ -581,7 +581,7 @@ fn bad_configuration_and_empty_data_are_errors() {
     assert_eq!(&count_edges(20.0)[14..], &[14.0, 15.0, 16.0, 19.0, 23.0]);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn off_burst_pixels_separate_hot_pixels_from_background() {
     let g = Geometry::new(32, 32);
     let (period, pulses) = (200i64, 400i64);
@@ -622,7 +622,7 @@ fn off_burst_pixels_separate_hot_pixels_from_background() {
     assert!(s.get("off_burst_pixel_count").is_none());
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn tick_profile_counts_busy_ticks_only() {
     let cfg = SignatureConfig::new(Geometry::new(16, 16), timing(1000.0, 0.0));
     // Ticks 10, 11, 12, 13 are one busy period; tick 20 stands alone.
@@ -652,7 +652,7 @@ fn tick_profile_counts_busy_ticks_only() {
     assert_eq!((p.count[k3], p.mean[k3]), (1.0, 3.0));
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn elongation_is_extent_x_minus_extent_y() {
     let cfg = SignatureConfig::new(Geometry::new(64, 64), timing(100.0, 0.0));
     let ev = chunk(&[(10, 1, 1, 1)]);
@@ -713,7 +713,7 @@ fn visit_events(visits: &[(u16, u16, i64, u32)], period: i64) -> EventChunk {
     chunk(&ev)
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn yield_split_correlation_known_case() {
     // Blocks of one pulse: even and odd pulses are the two halves. Pixel
     // yields (even, odd): A (3, 2), B (1, 1), C (2, 3); D is visited in
@@ -739,7 +739,7 @@ fn yield_split_correlation_known_case() {
     assert!((r - 0.5).abs() < 1e-12, "{r}");
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn yield_split_correlation_sees_a_fixed_pattern_not_chance() {
     // Each pixel's visits give 1 + Binomial(3, p) events with its own p:
     // a fixed pattern of variance Var(3p) = 9 · 0.8² / 12 = 0.48 (p uniform
@@ -817,7 +817,7 @@ fn fast_and_reference(
     )
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn fast_accumulator_equals_reference_on_simulated_recordings() {
     use crate::modelcheck::scene::SceneSimulator;
     use crate::modelcheck::workflow::{EffectSetting, Simulator};
@@ -870,7 +870,7 @@ fn fast_accumulator_equals_reference_on_simulated_recordings() {
     assert_eq!(compared, 12);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn fast_accumulator_equals_reference_on_odd_streams() {
     // Random events: times mostly rising with backward steps, long gaps
     // (intervals beyond the table and beyond u32 µs), negative times,
@@ -926,7 +926,7 @@ fn fast_accumulator_equals_reference_on_odd_streams() {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn pulses_of_equals_its_reference() {
     use crate::modelcheck::scene::{pulses_of, pulses_of_reference};
     let mut rng = Pcg64::seed_from_u64(5);
@@ -983,7 +983,7 @@ fn pulses_of_equals_its_reference() {
 /// half a pulse period (add-one smoothed, log10): "some repeat" and "none
 /// repeats" lie decades apart on a large sensor, a few more or fewer
 /// repeats do not.
-#[test]
+#[ebptv_macros::unit_test]
 fn burst_repeat_share_tells_none_from_few() {
     use crate::modelcheck::signatures::burst_repeat_share;
     let period = 200.0;

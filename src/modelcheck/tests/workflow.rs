@@ -379,39 +379,39 @@ const HIDDEN_EFFECTS: [&str; 6] = [
     "hot_pixels",
 ];
 
-#[test]
+#[ebptv_macros::unit_test]
 fn hidden_latency_jitter_is_found() {
     hidden_case("latency_jitter", 0);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn hidden_background_noise_is_found() {
     hidden_case("background_noise", 0);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn hidden_intensity_latency_is_found() {
     hidden_case("intensity_latency", 0);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn hidden_refractory_is_found() {
     hidden_case("refractory", 0);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn hidden_arbiter_saturation_is_found() {
     hidden_case("arbiter_saturation", 0);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn hidden_hot_pixels_are_found() {
     hidden_case("hot_pixels", 0);
 }
 
 /// Robustness sweep: every hidden-effect case with three other sets of
 /// truth seeds and strengths (command in BENCHMARKS.md).
-#[test]
+#[ebptv_macros::unit_test]
 #[ignore]
 fn hidden_effects_other_seeds() {
     for offset in 1..=3 {
@@ -421,7 +421,7 @@ fn hidden_effects_other_seeds() {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn null_case_names_nothing() {
     let (fit, hold) = measured(&[], 701, None);
     let res = run(&Toy::model(None), &config(), &fit, &hold, &[], &opts()).unwrap();
@@ -429,14 +429,14 @@ fn null_case_names_nothing() {
     assert_eq!(res.verdict, Verdict::Consistent, "{:#?}", res.final_table);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn effect_outside_the_catalogue_is_unexplained() {
     let (fit, hold) = measured(&[], 801, Some(0.3));
     let res = run(&Toy::model(None), &config(), &fit, &hold, &[], &opts()).unwrap();
     assert_eq!(res.verdict, Verdict::Unexplained, "{:#?}", res.rounds);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn catalogue_order_does_not_change_the_answer() {
     let truth = setting("latency_jitter", &[("sigma_us", 9.0)]);
     let (fit, hold) = measured(std::slice::from_ref(&truth), 901, None);
@@ -446,7 +446,7 @@ fn catalogue_order_does_not_change_the_answer() {
     assert_eq!(a.verdict, b.verdict);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn optimisers_find_known_minima() {
     let (u, v, n) = minimise_1d_in(&mut |x| Ok((x - 0.3141).powi(2)), 0.0, 1.0, 30).unwrap();
     assert!(
@@ -502,7 +502,7 @@ impl Simulator for Counting<'_> {
 /// hot-pixel search (two parameters: the simplex, then a narrower one
 /// around it) may meet the same point again only in another fit (a joint
 /// refit), so no setting is simulated with one seed more than twice.
-#[test]
+#[ebptv_macros::unit_test]
 fn a_fit_simulates_each_point_once() {
     let truth = setting("hot_pixels", &[("fraction", 0.01), ("rate_hz", 800.0)]);
     let (fit, hold) = measured(std::slice::from_ref(&truth), 611, None);
@@ -529,7 +529,7 @@ fn a_fit_simulates_each_point_once() {
 /// The fit memo evaluates each parameter point once and returns the same
 /// value again; another point is evaluated; a failed evaluation is not
 /// remembered (the next call tries again).
-#[test]
+#[ebptv_macros::unit_test]
 fn fit_memo_evaluates_each_point_once() {
     use crate::modelcheck::workflow::FitMemo;
     let point = |v: f64| EffectSetting {

@@ -35,7 +35,7 @@ fn errors(
     (mean, std, rms_total, invalid)
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn uniform_subpixel_shift_random_error_below_005px_with_nf5() {
     let d = (3.3, -1.7);
     let so = SynthOptions {
@@ -58,7 +58,7 @@ fn uniform_subpixel_shift_random_error_below_005px_with_nf5() {
     assert_eq!(invalid, 0);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn two_frames_single_pass_finds_integer_and_large_shifts() {
     let d = (7.0, 4.0);
     let so = SynthOptions {
@@ -76,7 +76,7 @@ fn two_frames_single_pass_finds_integer_and_large_shifts() {
     assert!(invalid <= 2, "{invalid} invalid");
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn rectangular_64x8_windows_resolve_a_boundary_layer_profile() {
     // u(y) varies strongly in y: 64x8 windows resolve it where 32x32 smear.
     let (w, h) = (256usize, 128usize);
@@ -130,7 +130,7 @@ fn inner_bias(d: (f64, f64), passes: usize, nf: usize, seed: u64) -> (f64, f64) 
 
 /// Peak locking: the bias as a function of the sub-pixel part of the
 /// displacement. Printed for BENCHMARKS.md (`-- --nocapture`).
-#[test]
+#[ebptv_macros::unit_test]
 fn bias_versus_subpixel_displacement_is_small_with_deformation() {
     let mut worst3: f64 = 0.0;
     for k in 0..=10 {

@@ -76,7 +76,7 @@ fn field_points(f: &crate::piv::VectorField) -> Vec<(f64, f64, f64, f64, bool)> 
         .collect()
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn vortex_mean_field_within_2_percent() {
     let vortex = lamb_oseen(128.0, 128.0, 70.0, 3.0);
     // The mean field: average of three independent recordings (seeds).
@@ -120,7 +120,7 @@ fn vortex_mean_field_within_2_percent() {
     assert!(valid > 0.95, "valid fraction {valid}");
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn channel_mean_field_within_2_percent() {
     let (w, h) = (256usize, 128usize);
     let poiseuille = move |_x: f64, y: f64| {
@@ -222,7 +222,7 @@ fn timing() -> PulseTiming {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn streaming_pseudo_images_give_the_mean_velocity() {
     let (w, h) = (192usize, 128usize);
     let vortex = lamb_oseen(96.0, 64.0, 60.0, 2.0);
@@ -265,7 +265,7 @@ fn streaming_pseudo_images_give_the_mean_velocity() {
     assert!(valid > 0.95);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn stream_fills_short_gaps_and_restarts_after_long_ones() {
     let (w, h) = (96usize, 64usize);
     let mut pulses = pulse_events(30, w, h, &|_, _| (1.0, 0.0), 3);
@@ -289,7 +289,7 @@ fn stream_fills_short_gaps_and_restarts_after_long_ones() {
     assert!(s.push_pulse(&pulses[0]).is_err());
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn bad_input_gives_clear_errors() {
     let img = Image::zeros(64, 48);
     let small = Image::zeros(60, 48);
@@ -327,7 +327,7 @@ fn bad_input_gives_clear_errors() {
     assert!(f.u.iter().all(|u| u.is_nan()));
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn masked_nodes_are_flagged_and_empty() {
     let so = SynthOptions {
         width: 128,
@@ -384,7 +384,7 @@ fn stream_record(fields: &[crate::piv::StepField], s: &PivStream) -> Vec<String>
 /// evaluation after the other), with overlapping evaluations (step 2 <
 /// N_f: frames shared between queued evaluations), a short gap and a
 /// restart after a long one.
-#[test]
+#[ebptv_macros::unit_test]
 fn parallel_time_steps_match_sequential_bit_for_bit() {
     let (w, h) = (128usize, 96usize);
     let vortex = lamb_oseen(64.0, 48.0, 40.0, 1.5);

@@ -1,6 +1,6 @@
 //! Unit tests of PIV: correlation, peaks, multipass and the image pyramid
 //! against known flows.
 
-mod accuracy;
-mod flows;
-mod pyramid;
+pub(crate) mod accuracy;
+pub(crate) mod flows;
+pub(crate) mod pyramid;

@@ -67,7 +67,7 @@ fn errors(
     (std, mean, invalid)
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn pyramid_lowers_random_error_at_equal_frames() {
     let nf = 5;
     // Binary pseudo-images: the event positions rounded to pixels.
@@ -109,7 +109,7 @@ fn pyramid_lowers_random_error_at_equal_frames() {
     );
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn pyramid_needs_deformation_and_enough_frames() {
     let so = SynthOptions {
         frames: 3,

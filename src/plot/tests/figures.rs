@@ -55,7 +55,7 @@ fn gaussian_bump(nx: usize, ny: usize) -> Vec<f64> {
     v
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn heatmap_png_decodes_with_requested_size_and_many_colours() {
     let out = out_dir();
     let (nx, ny) = (64, 36);
@@ -98,7 +98,7 @@ fn heatmap_png_decodes_with_requested_size_and_many_colours() {
     assert!(w2 > h2, "640x360 frame gives a landscape figure");
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn diverging_heatmap_and_all_nan_map_render() {
     let out = out_dir();
     let (nx, ny) = (40, 30);
@@ -152,7 +152,7 @@ fn diverging_heatmap_and_all_nan_map_render() {
     );
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn heatmap_rejects_bad_input_without_writing() {
     let out = out_dir();
     let path = out.dir.join("bad.png");
@@ -200,7 +200,7 @@ fn heatmap_rejects_bad_input_without_writing() {
     no_stray_files(&out.dir);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn line_plot_with_legend_log_axes_and_markers() {
     let out = out_dir();
     let f: Vec<f64> = (1..400).map(|k| k as f64 * 0.5).collect();
@@ -276,7 +276,7 @@ fn line_plot_with_legend_log_axes_and_markers() {
     assert!(px.contains(&(31, 119, 180)));
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn line_plot_rejects_bad_series() {
     let out = out_dir();
     let path = out.dir.join("bad_line.png");
@@ -315,7 +315,7 @@ fn line_plot_rejects_bad_series() {
     no_stray_files(&out.dir);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn histogram_plot_overlays_measured_and_simulated() {
     let out = out_dir();
     let edges: Vec<f64> = (0..=20).map(|k| k as f64 * 10.0).collect();
@@ -355,7 +355,7 @@ fn histogram_plot_overlays_measured_and_simulated() {
     assert!(e.to_string().contains("5 counts for 20 bins"), "{e}");
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn polylines_coloured_by_value() {
     let out = out_dir();
     let lines: Vec<Vec<(f64, f64)>> = (0..30)

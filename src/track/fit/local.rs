@@ -592,7 +592,7 @@ pub(crate) enum FitPath {
     Plain,
     /// [`RunningFit`] and [`TabulatedFit`] on gap-free windows (the
     /// tests compare the paths with and without [`GapFit`]).
-    #[cfg_attr(not(test), allow(dead_code))]
+    #[cfg_attr(not(feature = "testkit"), allow(dead_code))]
     Tabulated,
     /// As `Tabulated`, and [`GapFit`] on windows with gaps.
     Fast,
@@ -657,8 +657,8 @@ impl LocalPolyFit for OutputFit<'_> {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
 
@@ -702,7 +702,7 @@ mod tests {
         TrackSamples::new(tau, xs, ys, &pulses, grid_tolerance(1e6, 200.0))
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn every_backend_matches_the_plain_fit_on_tracks_with_gaps() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(25);
         // (min, max window, bias weight, prior): the default rule among them.
@@ -783,7 +783,7 @@ mod tests {
         assert!(served.iter().all(|&k| k > 500), "{served:?}");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn the_gap_path_matches_the_plain_fit_across_long_gaps() {
         // Gaps longer than the power table reaches: the powers computed.
         let mut rng = rand_pcg::Pcg64::seed_from_u64(29);
@@ -831,7 +831,7 @@ mod tests {
         assert!(direct > 100 && tabled > 100, "{direct} {tabled}");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn the_running_gap_path_matches_the_plain_and_the_fresh_fit() {
         // Tracks shorter than the pilot and longer, gaps at the first and
         // last detections (track ends), gaps entering and leaving the
@@ -889,7 +889,7 @@ mod tests {
         assert!(stepped > 1000, "{stepped}");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn the_chain_serves_every_sample_and_the_gap_path_takes_gaps() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(27);
         let rule = tracker_rule();

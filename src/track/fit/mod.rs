@@ -145,7 +145,7 @@
 
 mod adaptive;
 mod grid;
-mod local;
+pub(crate) mod local;
 mod prior;
 mod running;
 #[ebptv_macros::testkit]
@@ -351,7 +351,7 @@ impl Sums {
         Some(Solved { cx, cy, inv, p })
     }
 
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     /// The fit of order ≤ `order` (≤ 2, lowered to what the points allow)
     /// evaluated at s = 0; `None` when empty or singular. Equal to
     /// [`fit_eval`] over the same samples up to rounding.
@@ -486,11 +486,11 @@ fn invert_inline<const N: usize>(m: &[[f64; N]; N], p: usize) -> Option<[[f64; N
     Some(inv)
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn exact_quadratic_is_recovered() {
         let tau: Vec<f64> = (0..7).map(|i| i as f64).collect();
         let xs: Vec<f64> = tau.iter().map(|t| 3.0 + 2.0 * t + 0.25 * t * t).collect();
@@ -503,7 +503,7 @@ mod tests {
         assert!(f.rms_residual < 1e-9);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn linear_fit_leverage_matches_formula() {
         // Linear LSQ over τ = 0..n-1: var factor at τ0 is 1/n + (τ0-τ̄)²/Sxx.
         let tau: Vec<f64> = (0..5).map(|i| i as f64).collect();
@@ -528,7 +528,7 @@ mod tests {
         (tau, xs, ys)
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn sums_match_the_reference_fit() {
         let (tau, xs, ys) = noisy_track(15, 3);
         for order in 0..=2 {
@@ -557,7 +557,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn fixed_window_rule_is_the_plain_centred_fit() {
         let (tau, xs, ys) = noisy_track(20, 4);
         let rule = WindowRule {
@@ -584,7 +584,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn adaptive_window_is_long_on_smooth_tracks_and_short_on_sharp_turns() {
         let rule = WindowRule {
             min_window: 5,
@@ -610,7 +610,7 @@ mod tests {
         assert!((speed - 9.0).abs() < (fixed.vx.hypot(fixed.vy) - 9.0).abs() / 4.0);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn cofactor_inverse_matches_gauss_jordan() {
         let mut s = Sums::default();
         for i in 0..9 {
@@ -670,7 +670,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn grid_fit_matches_the_reference() {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_pcg::Pcg64::seed_from_u64(11);
@@ -749,7 +749,7 @@ mod tests {
         assert!(compared > 2800, "{compared}");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn running_grid_fit_matches_the_reference() {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_pcg::Pcg64::seed_from_u64(12);
@@ -854,7 +854,7 @@ mod tests {
         assert!(widened > 100, "{widened}");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn grid_tables_follow_the_rule_and_span() {
         let rule = WindowRule {
             min_window: 5,
@@ -905,7 +905,7 @@ mod tests {
         assert!(grid_tolerance(1e6, 200.0) > 1e-11 / 200.0);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn leave_one_out_matches_the_reference() {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_pcg::Pcg64::seed_from_u64(12);
@@ -982,7 +982,7 @@ mod tests {
         (se / count as f64).sqrt()
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn curvature_prior_cuts_the_velocity_error_of_short_tracks() {
         // Tracks of 4-9 detections, where the quadratic's own curvature
         // is mostly noise: the prior at the population's rms acceleration.
@@ -997,7 +997,7 @@ mod tests {
         assert!(prior < 1.02 * plain, "{plain} -> {prior}");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn accel_prior_recovers_the_flow_curvature() {
         use rand::{Rng, SeedableRng};
         use rand_distr::{Distribution, Normal};
@@ -1040,7 +1040,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn degenerate_inputs() {
         assert!(fit_eval(&[], &[], &[], 2, 0.0).is_none());
         let one = fit_eval(&[1.0], &[2.0], &[3.0], 2, 5.0).unwrap();

@@ -66,7 +66,7 @@ impl AccelPrior {
         self.samples += other.samples;
     }
 
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     /// Curvature samples so far.
     pub(crate) fn samples(&self) -> u64 {
         self.samples

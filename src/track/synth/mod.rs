@@ -166,7 +166,7 @@ use crate::pulses::PulseEvents;
 use crate::sim::TruthSample;
 
 mod diagnose;
-mod oracle;
+pub(crate) mod oracle;
 mod run;
 mod score;
 
@@ -525,8 +525,8 @@ pub(crate) fn attribute_nearest(
         .collect()
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use crate::track::{Track, TrackPoint};
 
@@ -593,7 +593,7 @@ mod tests {
     const A: u64 = 1;
     const B: u64 = 2;
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn a_track_from_one_particle_through_their_merge_to_another_has_one_wrong_link() {
         for owner in [A, B] {
             let s = score_one(
@@ -613,7 +613,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn a_track_following_its_particle_through_merged_images_has_no_wrong_link() {
         // A co-moving pair: one track holds A's images and the merged
         // ones, whose event majority flips between A and B.
@@ -633,7 +633,7 @@ mod tests {
         assert_eq!(s.truth_links_set, 6);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn the_labelling_follows_the_majority_among_equal_labellings() {
         // A pair merged throughout: all-A and all-B change nothing; the
         // labelling agreeing with more owners (B: 2 of 3) is taken.
@@ -650,7 +650,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn a_noise_detection_makes_both_its_links_wrong() {
         let s = score_one(
             &[&[A], &[A], &[], &[A], &[A]],
@@ -681,7 +681,7 @@ mod tests {
         (sp, run)
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn without_merged_images_identity_scoring_is_strict_scoring() {
         let (sp, run) = small_run(&Default::default());
         assert!(
@@ -731,7 +731,7 @@ mod tests {
         );
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn oracle_tracks_share_merged_images_and_bridge_short_gaps_only() {
         // Particle 1 at pulses 0, 1, (merged with 2 at) 2, 4, 9, 10;
         // particle 2 at 2 (merged), 3; noise at 1.
@@ -784,7 +784,7 @@ mod tests {
         assert_eq!(o[0].detections, [0, 2]);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn the_quadratic_velocity_variance_factor() {
         // Symmetric window: the slope is orthogonal to the other terms,
         // factor 1 / Σ τ².
@@ -814,7 +814,7 @@ mod tests {
         assert!((a.unwrap() - b.unwrap()).abs() < 1e-12, "{a:?} {b:?}");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn the_best_window_trades_curvature_bias_against_noise() {
         // A true quadratic path: no bias, so the longest window (all 31
         // samples) wins, and its error is the noise floor.
@@ -835,7 +835,7 @@ mod tests {
         assert!(mse > 0.0 && mse < 1e-2, "{mse}");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn the_oracle_scores_its_own_links_perfectly_and_fits_as_the_tracker() {
         // Fixed noise and no curvature prior: the tracker's fit of a track
         // depends on its detections only, so refitting them with

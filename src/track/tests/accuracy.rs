@@ -27,7 +27,7 @@ fn run(sp: &SynthParams) -> crate::track::synth::LinkScore {
     s
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn paper_like_conditions() {
     // ppp 0.01, 1.3-2 events per firing particle, 95 % firing, 1 % noise
     // events, up to 8 px/pulse, particles leaving/entering the sheet.
@@ -56,7 +56,7 @@ fn paper_like_conditions() {
     );
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn sparse_seeding_meets_the_issue_targets_on_links() {
     // At ppp 0.002 close pairs are rare and linking is nearly perfect.
     let s = run(&SynthParams {
@@ -69,7 +69,7 @@ fn sparse_seeding_meets_the_issue_targets_on_links() {
     assert!(s.recall >= 0.95, "recall {}", s.recall);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn dense_noisy_fast_conditions() {
     // The hardest row of BENCHMARKS.md: ppp 0.02, up to 12 px/pulse, 5 %
     // noise events (384², 60 pulses). Without the position-noise ceiling
@@ -101,7 +101,7 @@ fn dense_noisy_fast_conditions() {
     );
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn ghost_test_keeps_short_tracks_at_paper_like_conditions() {
     // The 384² paper-like scene of BENCHMARKS.md. No ghost test,
     // `min_length` 5: precision 0.9628, recall 0.9395, velocity rms
@@ -143,7 +143,7 @@ fn ghost_test_keeps_short_tracks_at_paper_like_conditions() {
     );
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn cutting_tracks_at_steps_removes_swaps() {
     // A track whose particle is missed while an untracked
     // neighbour 1–4 px away lies in its gate goes on with the neighbour
@@ -175,7 +175,7 @@ fn cutting_tracks_at_steps_removes_swaps() {
     );
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn gapped_chains_search_only_along_the_flow() {
     // Chains that skip a pulse look for their second particle
     // only where the local flow leads (`TrackParams::gap_first_step`):

@@ -15,7 +15,7 @@ fn score(sp: &SynthParams, tp: &TrackParams) -> LinkScore {
     s
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn curvature_prior_lowers_the_velocity_error_on_the_paper_like_scene() {
     let sp = SynthParams::default();
     let plain = score(

@@ -132,7 +132,7 @@ fn random_pulse() -> impl Strategy<Value = PulseEvents> {
 
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(300))]
-    #[test]
+    #[ebptv_macros::unit_test]
     fn kdtree_matches_brute_force(pulse in random_pulse(), r10 in 5u32..40, on_only in any::<bool>(), min_events in 1u32..3, hot in prop::collection::vec((0u16..40, 0u16..40), 0..5), kd_tree in any::<bool>()) {
         let params = ClusterParams {
             radius: r10 as f64 / 10.0,
@@ -202,7 +202,7 @@ fn brute_split(pix: &[(f64, f64, f64)]) -> Option<BTreeSet<usize>> {
 
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(300))]
-    #[test]
+    #[ebptv_macros::unit_test]
     fn split_matches_brute_force(pulse in random_pulse(), extent in 2u32..5) {
         let params = ClusterParams { split_extent: extent, on_only: false, ..Default::default() };
         let pixels = pulse_pixels(&pulse, &params);

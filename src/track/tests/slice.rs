@@ -126,7 +126,7 @@ fn compare(sp: &SynthParams, slicing: SliceParams) {
     );
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn sliced_matches_sequential_at_paper_conditions() {
     compare(
         &SynthParams {
@@ -137,7 +137,7 @@ fn sliced_matches_sequential_at_paper_conditions() {
     );
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn sliced_matches_sequential_when_harder() {
     // ppp 0.02 (with 12 px/pulse and 5 % noise on top the sequential
     // tracker itself fails: precision ~0.3, nothing to compare).
@@ -157,7 +157,7 @@ fn sliced_matches_sequential_when_harder() {
 
 /// Same tracks (ids, points, detections) with 1, 2 and 3 threads and any
 /// number of slices in flight.
-#[test]
+#[ebptv_macros::unit_test]
 fn sliced_output_is_identical_for_any_thread_count() {
     let scene = generate(&SynthParams {
         width: 160,
@@ -211,7 +211,7 @@ fn sliced_output_is_identical_for_any_thread_count() {
 
 /// What the overlap costs in accuracy (printed; BENCHMARKS.md): run with
 /// `cargo test --release --lib -- --ignored --nocapture track::tests::slice`.
-#[test]
+#[ebptv_macros::unit_test]
 #[ignore]
 fn overlap_sweep() {
     let sp = SynthParams {
