@@ -846,7 +846,7 @@ pub(crate) fn encode_aedat4(
     out
 }
 
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 /// Wrap bytes in a valid Zstd frame made of raw (stored) blocks: lets tests
 /// exercise the Zstd path without a Zstd compressor.
 pub(crate) fn zstd_stored_frame(data: &[u8]) -> Vec<u8> {
@@ -874,8 +874,8 @@ pub(crate) fn lz4_frame(data: &[u8]) -> Vec<u8> {
     enc.finish().expect("writing to a Vec")
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use crate::events::Event;
 
@@ -915,7 +915,7 @@ mod tests {
         Ok((ev, tr, r))
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn roundtrip_all_compressions() {
         let dir = tempfile::tempdir().unwrap();
         let (events, triggers) = sample();
@@ -940,7 +940,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn packets_recognised_without_stream_description() {
         let dir = tempfile::tempdir().unwrap();
         let (events, triggers) = sample();
@@ -966,7 +966,7 @@ mod tests {
         assert_eq!(r.info().geometry, None);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn xml_streams() {
         let s = parse_streams(
             "<dv><node name=\"outInfo\"><node name=\"0\"><attr key=\"typeIdentifier\" type=\"string\">EVTS</attr>\
@@ -986,7 +986,7 @@ mod tests {
         assert_eq!((s[1].id, s[1].type_identifier.as_str()), (3, "TRIG"));
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn bad_inputs() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("x.aedat4");

@@ -216,11 +216,11 @@ impl Drop for AtomicFile {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn uncommitted_file_leaves_nothing() {
         let dir = tempfile::tempdir().unwrap();
         let target = dir.path().join("out.csv");
@@ -234,7 +234,7 @@ mod tests {
 
     /// A directory that cannot be written: the error names the target the
     /// user asked for, not the hidden temporary.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn errors_name_the_target() {
         let dir = tempfile::tempdir().unwrap();
         let target = dir.path().join("missing").join("out.csv");
@@ -242,7 +242,7 @@ mod tests {
         assert!(e.contains("out.csv") && !e.contains(".partial"), "{e}");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn committed_file_has_content() {
         let dir = tempfile::tempdir().unwrap();
         let target = dir.path().join("out.csv");

@@ -827,7 +827,7 @@ impl TriggerStream {
     }
 }
 
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 /// Read a whole trigger CSV (openeb `p,id,t`, or any order by header names
 /// `t`, `id`, `p`). Time unit as for events; `unit` applies when the header
 /// does not state one.
@@ -922,8 +922,8 @@ impl crate::EventWriter for CsvWriter {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use crate::events::Event;
     use crate::EventWriter;
@@ -950,7 +950,7 @@ mod tests {
         p
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn time_parsing_is_exact() {
         assert_eq!(
             parse_time_us("123", TimeUnit::Microseconds),
@@ -991,7 +991,7 @@ mod tests {
         );
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn header_names_any_order_and_units() {
         let dir = tempfile::tempdir().unwrap();
         let expect = vec![
@@ -1033,7 +1033,7 @@ mod tests {
         assert!(read_all(&p, 10, Some(TimeUnit::Microseconds)).is_err());
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn headerless_is_openeb_order_and_checked() {
         let dir = tempfile::tempdir().unwrap();
         let p = write(dir.path(), "h.csv", "3,4,1,1500000\n5,6,0,2000001\n");
@@ -1065,7 +1065,7 @@ mod tests {
         );
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn bad_rows_name_the_line() {
         let dir = tempfile::tempdir().unwrap();
         for (text, needle) in [
@@ -1089,7 +1089,7 @@ mod tests {
         assert!(read_all(&p, 10, None).is_err());
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn writer_roundtrip_with_triggers_and_geometry_comment() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("out.csv");

@@ -317,8 +317,8 @@ pub(crate) fn encode_dat_triggers(triggers: &[Trigger]) -> Vec<u8> {
     out
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use crate::events::Event;
 
@@ -365,7 +365,7 @@ mod tests {
         out
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn roundtrip_with_wrap_and_chunking() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("a.dat");
@@ -394,7 +394,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn triggers_file() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("trig.dat");
@@ -415,7 +415,7 @@ mod tests {
         assert_eq!(tr, trig);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn bad_inputs_are_errors_or_counted() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("x.dat");
@@ -459,7 +459,7 @@ mod tests {
         assert_eq!(info.geometry, None);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn out_of_geometry_counted() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("g.dat");

@@ -306,8 +306,8 @@ pub(crate) fn encode_es_dvs(events: &[crate::events::Event], geometry: Geometry)
     out
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use crate::events::Event;
 
@@ -322,7 +322,7 @@ mod tests {
         Ok((out, r.anomalies()))
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn roundtrip_dvs_across_blocks() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("a.es");
@@ -348,7 +348,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn bad_inputs() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("b.es");

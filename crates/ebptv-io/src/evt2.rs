@@ -275,8 +275,8 @@ impl crate::EventWriter for Evt2Writer {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
     fn decode_all(words: &[u32]) -> (Chunk, Anomalies) {
@@ -287,7 +287,7 @@ mod tests {
         (c, d.anomalies)
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn words_of_every_type() {
         let cd = |p: u32, low: u32, x: u32, y: u32| (p << 28) | (low << 22) | (x << 11) | y;
         let (c, a) = decode_all(&[
@@ -317,7 +317,7 @@ mod tests {
         assert_eq!(a.unknown_word_types, 1);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn loop_of_the_34_bit_clock() {
         let (c, a) = decode_all(&[
             0x8FFF_FFFF,

@@ -164,7 +164,7 @@ impl RawReader<Evt21Decoder> {
         })
     }
 
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     /// True when the file uses the legacy (swapped halves) word order.
     pub(crate) fn legacy_word_order(&self) -> bool {
         self.decoder.legacy
@@ -184,11 +184,11 @@ impl WordDecoder for Evt21Decoder {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn both_word_orders() {
         let words: [u64; 3] = [
             0x8000_0002_0000_0000, // time high 2 → 128

@@ -40,9 +40,9 @@ use crate::error::{Error, Result};
 use crate::events::{Chunk, Edge, EventChunk, Geometry, Trigger};
 use crate::raw_header::READ_BUFFER_BYTES;
 use crate::raw_reader::{RawReader, WordDecoder};
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 use crate::raw_writer::encode_chunk;
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 use crate::raw_writer::time_high_steps;
 use crate::raw_writer::{RawEncoder, RawWordWriter, TimeSplit};
 use crate::{Anomalies, Format, StreamInfo};
@@ -720,7 +720,7 @@ impl Evt3Writer {
     /// [`crate::EventWriter::write_chunk`] through the plain
     /// [`encode_chunk`] loop (the reference the fast path is tested
     /// against).
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     pub(crate) fn write_chunk_reference(&mut self, chunk: &Chunk) -> Result<()> {
         encode_chunk(self, chunk)
     }
@@ -812,8 +812,8 @@ impl crate::EventWriter for Evt3Writer {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
     fn decode_all(words: &[u16]) -> (Chunk, Anomalies) {
@@ -825,7 +825,7 @@ mod tests {
         (c, d.anomalies)
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn words_of_every_type() {
         let (c, a) = decode_all(&[
             0x2005, // ADDR_X before time base: skipped
@@ -858,7 +858,7 @@ mod tests {
         assert_eq!(a.unknown_word_types, 1);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn time_high_loop() {
         let (c, a) = decode_all(&[0x8FFF, 0x0001, 0x6FFF, 0x2001, 0x8000, 0x6002, 0x2002]);
         assert_eq!(
@@ -872,7 +872,7 @@ mod tests {
         assert_eq!(a.time_loops, 0);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn vector_without_base_is_counted() {
         let (c, a) = decode_all(&[0x8000, 0x0003, 0x4FFF, 0x2001]);
         assert_eq!(c.events.len(), 1);
@@ -966,7 +966,7 @@ mod tests {
         Ok(std::fs::read(&path).unwrap())
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn fast_encoder_writes_the_reference_bytes() {
         for seed in 0..12 {
             let chunks = random_chunks(seed);
@@ -1022,7 +1022,7 @@ mod tests {
         );
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn time_high_steps_cross_loops() {
         let mut v = Vec::new();
         time_high_steps(Some(100), (2 << 12) + 50, 12, &mut v).unwrap();

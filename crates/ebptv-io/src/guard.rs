@@ -337,8 +337,8 @@ impl<S: EventSource> EventSource for TimeGuard<S> {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use crate::events::EventChunk;
 
@@ -377,7 +377,7 @@ mod tests {
         c
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn observed_reports_each_chunk_and_a_hook_error_ends_the_read() {
         let chunks = vec![chunk(&[1, 2, 3]), chunk(&[4]), chunk(&[5, 6])];
         let mut seen = Vec::new();
@@ -416,7 +416,7 @@ mod tests {
         Ok(out)
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn a_glitch_is_dropped_and_counted() {
         let h = 16_000_000_000i64;
         let src = Vecs(
@@ -434,7 +434,7 @@ mod tests {
         assert_eq!(g.anomalies().time_jumps, 2);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn a_lasting_jump_is_an_error() {
         let mut ts: Vec<i64> = (0..1000).collect();
         ts.extend((0..1000).map(|k| 3_600_000_000 + k * 200));
@@ -446,7 +446,7 @@ mod tests {
         );
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn a_continuous_clock_passes_untouched() {
         let ts: Vec<i64> = (0..10_000).map(|k| k * 4_000).collect();
         let mut g = TimeGuard::new(Vecs(info(), vec![chunk(&ts[..5000]), chunk(&ts[5000..])]));
@@ -455,7 +455,7 @@ mod tests {
         let _ = EventChunk::default();
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn impossible_geometry_is_dropped_with_a_warning() {
         for (g, ok) in [
             (Geometry::new(1280, 720), true),
@@ -473,7 +473,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn contradicting_format_lines_are_refused() {
         let mut i = info();
         i.header = vec![

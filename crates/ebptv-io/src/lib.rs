@@ -66,7 +66,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 // Unit tests name the crate `ebptv_io`, as a user does.
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 extern crate self as ebptv_io;
 
 pub mod error;
@@ -422,5 +422,13 @@ pub(crate) mod raw_writer;
 pub mod sniff;
 pub mod summary;
 
-#[cfg(test)]
-mod tests;
+#[cfg(feature = "testkit")]
+pub(crate) mod tests;
+
+/// The unit tests, indexed for tests/unit.rs (build.rs, `ebptv-testgen`);
+/// test kit only.
+#[cfg(feature = "testkit")]
+#[doc(hidden)]
+pub mod unit_tests {
+    include!(concat!(env!("OUT_DIR"), "/unit_index.rs"));
+}

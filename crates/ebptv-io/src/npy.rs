@@ -397,12 +397,12 @@ impl EventWriter for NpyEventWriter {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use crate::events::{EventChunk, Trigger};
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn header_is_aligned_and_parses() {
         for shape in [vec![0], vec![5], vec![3, 4], vec![usize::MAX]] {
             let h = header_bytes("'<f8'", &shape, 0);
@@ -415,7 +415,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn event_writer_patches_count_and_data_decodes() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("ev.npy");
@@ -457,7 +457,7 @@ mod tests {
         assert_eq!(tb.len() - th.data_offset, 3 * 10);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn dropped_writer_leaves_nothing() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("ev.npy");
@@ -473,7 +473,7 @@ mod tests {
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn f64_and_table_writers() {
         let dir = tempfile::tempdir().unwrap();
         let a = dir.path().join("a.npy");

@@ -94,7 +94,7 @@ pub(crate) struct RawHeader {
 }
 
 impl RawHeader {
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     /// Look up a header value by key (case-insensitive), first occurrence.
     pub(crate) fn get(&self, key: &str) -> Option<&str> {
         get(&self.entries, key)
@@ -362,11 +362,11 @@ impl PayloadReader {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn modern_header() {
         let bytes = b"% camera_integrator_name Prophesee\n% format EVT3;height=720;width=1280\n% geometry 1280x720\n% end\n\x01\x02";
         let (e, off) = parse_percent_header(bytes);
@@ -377,7 +377,7 @@ mod tests {
         assert_eq!(h.get("camera_integrator_name"), Some("Prophesee"));
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn old_header_infers_from_system_id() {
         let bytes = b"% Date 2020-01-01 10:00:00\n% evt 3.0\n% system_ID 48\n\x00\x80";
         let (e, off) = parse_percent_header(bytes);
@@ -391,7 +391,7 @@ mod tests {
         assert_eq!(h.geometry, Some(Geometry::new(640, 480)));
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn evt21_word_order() {
         let (e, _) = parse_percent_header(
             b"% format EVT21;endianness=legacy;height=720;width=1280\n% end\n",
@@ -405,7 +405,7 @@ mod tests {
         assert!(interpret(e, 0).evt21_legacy);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn binary_percent_byte_is_payload() {
         // A payload word starting with 0x25 ('%') followed by binary bytes.
         let bytes = b"% evt 3.0\n%\x80\x01\x02\n";

@@ -210,15 +210,15 @@ fn describe_start(head: &[u8]) -> String {
     format!("starts with bytes {} (\"{}\")", hex.join(" "), printable)
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
     fn det(name: &str, bytes: &[u8]) -> Result<Format> {
         detect_from_bytes(Path::new(name), bytes)
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn content_beats_extension() {
         assert_eq!(
             det("a.raw", b"% evt 2.0\n% system_ID 21\n\x00\x00\x00\x80").unwrap(),
@@ -249,7 +249,7 @@ mod tests {
         assert_eq!(det("x.bin", b"12,3,4,1\n13,3,4,0\n").unwrap(), Format::Csv);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn dat_vs_raw() {
         let dat = b"% Data file containing CD events.\n% Version 2\n% Date 2017-10-31 11:29:21\n% Height 480\n% Width 640\n\x0c\x08";
         assert_eq!(det("x.raw", dat).unwrap(), Format::Dat);
@@ -263,7 +263,7 @@ mod tests {
         assert_eq!(det("x.dat", raw).unwrap(), Format::Evt3);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn unknown_content() {
         let e = det("pic.raw", b"\x89PNG\r\n\x1a\n\x00\x00")
             .unwrap_err()

@@ -308,8 +308,8 @@ pub fn summarize(
     Ok(b.finish(info, src.anomalies(), secs))
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use crate::events::Trigger;
     use std::collections::HashMap;
@@ -334,7 +334,7 @@ mod tests {
         m.values().copied().max().unwrap_or(0)
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn peak_matches_brute_force_with_steps_back() {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_pcg::Pcg64::seed_from_u64(7);
@@ -372,7 +372,7 @@ mod tests {
         assert_eq!(s.time_steps_back, back);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn counts_triggers_and_polarity() {
         let mut chunk = Chunk::default();
         chunk.events.push(0, 3, 4, 1);
@@ -413,7 +413,7 @@ mod tests {
         assert_eq!(s.peak_rate_ev_per_s, Some(1000.0));
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn geometry_source_rules() {
         let mut i = dummy_info();
         assert_eq!(geometry_source(&i), "unknown");
@@ -430,7 +430,7 @@ mod tests {
         assert_eq!(geometry_source(&i), "stated");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn empty_stream() {
         let b = SummaryBuilder::new(1000);
         let s = b.finish(dummy_info(), Anomalies::default(), 0.0);

@@ -31,7 +31,7 @@
 //! cos d − 1 within 1e-17 on their domains (no range reduction: callers
 //! check the bound).
 
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 use crate::simd::F64x2;
 use crate::simd::{Lanes, ROUND};
 
@@ -201,14 +201,14 @@ pub(crate) fn sincos_tiny<T: Lanes>(d: T) -> (T, T) {
 }
 
 /// cos(x) (see the module docs for the accuracy).
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 #[inline(always)]
 pub(crate) fn cos(x: f64) -> f64 {
     cos_lanes(x)
 }
 
 /// sin(x) (see the module docs for the accuracy).
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 #[inline(always)]
 pub(crate) fn sin(x: f64) -> f64 {
     sin_lanes(x)
@@ -261,14 +261,14 @@ pub(crate) fn exp_lanes<T: Lanes>(x: T) -> T {
 }
 
 /// exp(x) (see the module docs for the accuracy and the clamp).
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 #[inline(always)]
 pub(crate) fn exp(x: f64) -> f64 {
     exp_lanes(x)
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
     /// A deterministic spread of arguments: uniform in [lo, hi] plus the
@@ -303,7 +303,7 @@ mod tests {
         worst
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn cos_and_sin_match_libm() {
         for (lo, hi) in [(-10.0, 10.0), (-1e3, 1e3), (-1e5, 1e5)] {
             let xs = args(lo, hi, 400_000);
@@ -329,7 +329,7 @@ mod tests {
     /// The sin of [`sincos_lanes`] is within 4e-16 of libm and its cos
     /// is [`cos_lanes`] bit for bit (the turbulent field's velocity at a
     /// step's start is the plain evaluation's).
-    #[test]
+    #[ebptv_macros::unit_test]
     fn sincos_matches_libm_and_cos_lanes() {
         for (lo, hi) in [(-10.0, 10.0), (-1e3, 1e3), (-1e5, 1e5)] {
             let xs = args(lo, hi, 400_000);
@@ -349,7 +349,7 @@ mod tests {
     /// rounding), cos d − 1 within 1e-17 of −2 sin²(d/2) (libm). From
     /// 1.9 to 2 times the domain the error is above 1e-15: the callers'
     /// bound is needed.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn small_angle_sincos_within_bounds() {
         type F = fn(f64) -> (f64, f64);
         for (f, b, name) in [
@@ -376,7 +376,7 @@ mod tests {
     }
 
     /// The pair type gives the scalar's bits in both lanes.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn pairs_are_the_scalar_bit_for_bit() {
         let xs = args(-2e4, 2e4, 100_000);
         let es = args(-800.0, 800.0, 100_000);
@@ -455,7 +455,7 @@ mod tests {
     /// kernel: the portable SSE2 pairs and, on a CPU with AVX2 and FMA,
     /// the AVX2 lanes through the dispatcher (without them both runs take
     /// the portable lanes).
-    #[test]
+    #[ebptv_macros::unit_test]
     fn every_lane_type_is_the_scalar_bit_for_bit() {
         use crate::simd::{Dispatch, LaneKernel};
         let xs = args(-2e4, 2e4, 100_000);
@@ -557,7 +557,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn exp_matches_libm() {
         for &x in &args(-708.0, 709.0, 400_000) {
             let (a, b) = (exp(x), x.exp());

@@ -113,7 +113,7 @@ pub(crate) enum Flow {
     Gridded(Box<Gridded>),
     /// Tests: the field evaluated by its plain formulas (libm), never in
     /// lanes: the reference the fast fields are advected against.
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     Plain(Box<Flow>),
 }
 
@@ -164,7 +164,7 @@ impl<T: Lanes> Phases<T> {
 
 /// Tests: lanes of [`Turbulent::rk4_substep`] that took the fallback
 /// (all threads: the advection runs on rayon's).
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 pub(crate) static FALLBACK_LANES: std::sync::atomic::AtomicU64 =
     std::sync::atomic::AtomicU64::new(0);
 
@@ -457,7 +457,7 @@ impl Flow {
             }
             Flow::Shedding(s) => s.velocity_plain(x, y, t),
             Flow::Gridded(g) => g.velocity(x, y),
-            #[cfg(test)]
+            #[cfg(feature = "testkit")]
             Flow::Plain(f) => f.velocity_plain(x, y, t),
         }
     }
@@ -653,7 +653,7 @@ impl Turbulent {
             out(amax, c(fastmath::SMALL_ANGLE)) + out(b3, tiny) + out(b4, tiny) + out(b5, tiny);
         let mut res = (nx, ny, u5, v5);
         if (0..T::N).any(|i| bad.lane(i) != 0.0) {
-            #[cfg(test)]
+            #[cfg(feature = "testkit")]
             FALLBACK_LANES.fetch_add(
                 (0..T::N).filter(|&i| bad.lane(i) != 0.0).count() as u64,
                 std::sync::atomic::Ordering::Relaxed,
@@ -773,14 +773,14 @@ impl Shedding {
     }
 }
 
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 /// Error function (Abramowitz–Stegun 7.1.26, |error| < 1.5e-7).
 #[inline]
 pub(crate) fn erf(x: f64) -> f64 {
     erf_lanes(x)
 }
 
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 /// [`erf`] per lane, with [`fastmath::exp_lanes`].
 #[inline(always)]
 fn erf_lanes<T: Lanes>(x: T) -> T {
@@ -1006,7 +1006,7 @@ impl Gridded {
 
     /// The bilinear interpolant by binary search and the component arrays
     /// as loaded: the reference [`Gridded::velocity`] is tested against.
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     fn velocity_reference(&self, x: f64, y: f64) -> (f64, f64) {
         let find = |axis: &[f64], x: f64| -> (usize, f64) {
             let last = axis.len() - 1;
@@ -1051,8 +1051,8 @@ fn bilinear<T: Lanes>(n: &[[f64; 8]], (fx, gx): (T, T), (fy, gy): (T, T)) -> T {
         + (rows::<T>(&n[2]) * gx + rows::<T>(&n[3]) * fx) * fy
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
     fn divergence(f: &Flow, x: f64, y: f64, t: f64) -> f64 {
@@ -1064,7 +1064,7 @@ mod tests {
         (u1 - u0 + v1 - v0) / (2.0 * h)
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn locate_matches_binary_search_on_any_axis() {
         let uniform: Vec<f64> = (0..41).map(|k| 16.0 * k as f64 + 8.0).collect();
         let skewed: Vec<f64> = (0..30).map(|k| (k as f64).powi(3) * 0.01 - 5.0).collect();
@@ -1091,7 +1091,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn fields_are_divergence_free() {
         let specs = [
             FlowSpec::LambOseen {
@@ -1140,7 +1140,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn lamb_oseen_profile() {
         let f = Flow::build(&FlowSpec::LambOseen {
             x0: 0.0,
@@ -1163,7 +1163,7 @@ mod tests {
     /// 61 others), the rib wake and the demo vortex (with its core), on
     /// and around the presets' ROIs, for 100 s of phases: the difference
     /// stays below 1e-15 of the size of the terms summed (rounding).
-    #[test]
+    #[ebptv_macros::unit_test]
     fn fast_fields_match_plain_formulas() {
         let mut specs = vec![];
         for name in ["turbulent_bl", "rib_wake", "demo"] {
@@ -1230,7 +1230,7 @@ mod tests {
 
     /// Two points at once give each point's scalar velocity bit for bit,
     /// for every field (the lane-by-lane fallback included).
-    #[test]
+    #[ebptv_macros::unit_test]
     fn lanes_are_the_scalar_field() {
         use crate::simd::F64x2;
         let mut specs = vec![];
@@ -1281,7 +1281,7 @@ mod tests {
     /// rounded to 7e-15). 200 steps: phases within 4e-13 of fresh ones
     /// (~130 rad, rounded to 3e-14) and |e^{iθ}|² within 2e-14 of 1
     /// (the carried rotations' drift).
-    #[test]
+    #[ebptv_macros::unit_test]
     fn turbulent_rotation_step_matches_full_step() {
         let f = Flow::build(&crate::presets::preset("turbulent_bl").unwrap().flow).unwrap();
         let Flow::Turbulent(tb) = &f else { panic!() };
@@ -1326,7 +1326,7 @@ mod tests {
         assert!(wp <= 4e-13 && wm <= 2e-14, "{wp:e} {wm:e}");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn turbulent_stresses_match_time_average() {
         let f = Flow::build(&FlowSpec::Turbulent {
             u_mean: 0.0,
@@ -1358,7 +1358,7 @@ mod tests {
         assert!((suv / n - uv).abs() < tol, "uv {} vs {uv}", suv / n);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn erf_is_accurate() {
         // Reference values of erf.
         for (x, e) in [
@@ -1379,7 +1379,7 @@ mod tests {
     /// on random points inside, on nodes and cell edges, on the grid's
     /// border and outside it (clamped), on a uniform grid (as the model
     /// check's baseline writes) and on a non-uniform one.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn gridded_lanes_are_the_scalar_interpolant() {
         use crate::simd::{Dispatch, F64x2, F64x4, LaneKernel};
         let mut rng = Pcg64::seed_from_u64(5);
@@ -1462,7 +1462,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn gridded_interpolates_and_rejects_holes() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("f.csv");

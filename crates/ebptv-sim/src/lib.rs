@@ -358,7 +358,7 @@ impl pixel::ArrivalSink for KeySink {
 
 /// The plain definition of the request order (test reference): keys,
 /// stable comparison sort by (time in ns, y), decode.
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 pub(crate) fn sort_requests_reference(reqs: &mut [pixel::Arrival], t_begin: f64) {
     let mut keys: Vec<u64> = reqs
         .iter()
@@ -380,7 +380,7 @@ pub(crate) fn sort_requests_reference(reqs: &mut [pixel::Arrival], t_begin: f64)
 
 /// The simulator's request sort ([`KeyLayout`] keys through
 /// [`radix_sort_above`]) for requests inside `roi` (for tests).
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 pub(crate) fn sort_requests(reqs: &mut [pixel::Arrival], t_begin: f64, roi: scenario::Roi) {
     let layout = KeyLayout::new(roi);
     let mut keys: Vec<u64> = reqs.iter().map(|a| layout.key(a, t_begin)).collect();
@@ -776,7 +776,7 @@ impl Simulator {
 
     /// Every request through the sort and the refractory filter, no
     /// refractory groups (the plain definition the tests compare with).
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     fn without_refractory_groups(mut self) -> Simulator {
         self.front.group_ns = 0;
         self
@@ -1376,12 +1376,12 @@ fn drain(mut sim: Simulator) -> Result<SimOutput> {
     Ok(out)
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn radix_sort_matches_comparison_sort() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(11);
         let mut scratch = Vec::new();
@@ -1427,7 +1427,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn refractory_groups_match_plain_filtering() {
         // Scenes where group heads are often dropped (a refractory period
         // longer than the pulse period, dense noise), groups are carried
@@ -1488,7 +1488,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn time_sort_with_row_ties_matches_full_radix_sort() {
         // Keys as a block makes them (2 and 3 radix passes on the time),
         // with runs of equal nanoseconds of every length up to one run
@@ -1531,7 +1531,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn request_sort_matches_reference() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(12);
         let t_begin = 123_456.789;
@@ -1566,4 +1566,12 @@ mod tests {
             assert!(fast.windows(2).all(|w| w[0].t <= w[1].t));
         }
     }
+}
+
+/// The unit tests, indexed for tests/unit.rs (build.rs, `ebptv-testgen`);
+/// test kit only.
+#[cfg(feature = "testkit")]
+#[doc(hidden)]
+pub mod unit_tests {
+    include!(concat!(env!("OUT_DIR"), "/unit_index.rs"));
 }

@@ -74,11 +74,11 @@ pub(crate) fn envelope(l: &Light, t: f64) -> f64 {
     up.min(down) * (1.0 + l.sawtooth_depth * saw)
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn rectangular_pulse_has_unit_level() {
         let l = Light {
             rise_us: 0.0,
@@ -93,7 +93,7 @@ mod tests {
         assert!((w - 1.0).abs() < 1e-12);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn trapezoid_keeps_half_power_width() {
         let l = Light {
             rise_us: 4.0,
@@ -107,7 +107,7 @@ mod tests {
         assert!((envelope(&l, 2.0) - 0.5).abs() < 1e-12);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn sawtooth_modulates_power() {
         let l = Light {
             rise_us: 0.0,

@@ -156,14 +156,14 @@ impl MotionCache {
     }
 
     /// Number of motions held.
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     pub(crate) fn len(&self) -> usize {
         self.motions.lock().unwrap_or_else(|e| e.into_inner()).len()
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use crate::{presets, scenario, simulate, simulate_with, SimOutput};
 
@@ -193,7 +193,7 @@ mod tests {
         sc
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn replayed_motion_gives_the_simulation_without_cache() {
         let dir = tempfile::tempdir().unwrap();
         for gridded in [true, false] {
@@ -240,7 +240,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn a_changed_flow_file_is_a_new_motion_and_the_budget_holds() {
         let dir = tempfile::tempdir().unwrap();
         let sc = scene(dir.path(), true);

@@ -43,7 +43,7 @@ impl Refractory {
     }
 
     /// Filter time-ordered requests in place.
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     pub(crate) fn apply(&mut self, reqs: &mut Vec<Arrival>) {
         reqs.retain(|a| self.keep(a));
     }
@@ -85,7 +85,7 @@ impl Refractory {
         a.t - self.last[self.index(a)] >= self.period_us
     }
 
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     /// Whether request `a` passes (requests in time order).
     #[inline]
     pub(crate) fn keep(&mut self, a: &Arrival) -> bool {
@@ -166,7 +166,7 @@ impl Arbiter {
     }
 
     /// Admit request `a` (see [`Self::admit_at`]).
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     fn admit(&mut self, a: &Arrival) {
         self.admit_at(
             a.t,
@@ -205,7 +205,7 @@ impl Arbiter {
         let _ = t;
     }
 
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     /// Serve the requests `reqs`, in (time, row) order (all requests
     /// before `t_end` are known; none later is in `reqs`), emitting events
     /// granted before `t_end`. Requests not yet granted stay pending
@@ -223,7 +223,7 @@ impl Arbiter {
     /// reaches before `a` arrives (and before `t_end`), then admit `a`.
     /// The readout feeds its requests one by one as it decodes them.
     // (Always inlined: the readout calls it once per request.)
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     #[inline(always)]
     pub(crate) fn offer(&mut self, a: &Arrival, t_end: f64, out: &mut EventChunk) {
         self.offer_at(
@@ -332,7 +332,7 @@ impl Arbiter {
 
     /// The batch loop `run` was before requests could be offered one by
     /// one (the reference `offer_matches_batch_run` compares with).
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     fn run_batch(&mut self, reqs: &[Arrival], t_end: f64, out: &mut EventChunk) {
         let mut i = 0;
         loop {
@@ -360,7 +360,7 @@ impl Arbiter {
         }
     }
 
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     /// Requests still waiting.
     pub(crate) fn pending(&self) -> usize {
         self.counts.iter().map(|&n| n as usize).sum()
@@ -467,8 +467,8 @@ pub(crate) fn stamp_ideal(reqs: &[Arrival], out: &mut EventChunk) {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
 
     fn roi() -> Roi {
@@ -531,7 +531,7 @@ mod tests {
         a
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn bit_cells_match_row_lists() {
         // The bit-cell arbiter against the list arbiter it replaced:
         // light to heavily saturated loads, ROI widths around the 64-bit
@@ -778,7 +778,7 @@ mod tests {
         out
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn arbiter_matches_tick_reference_and_shares_timestamps() {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_pcg::Pcg64::seed_from_u64(5);
@@ -816,7 +816,7 @@ mod tests {
         assert!(got.windows(2).all(|w| w[0].0 <= w[1].0), "time-ordered");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn offer_matches_batch_run() {
         // Requests offered one by one against the batch loop: light and
         // saturated loads, repeats of blocked pixels (lost), idle gaps,
@@ -864,7 +864,7 @@ mod tests {
         assert!(lost > 1000, "{lost}");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn refractory_drops_only_close_repeats() {
         let mut r = Refractory::new(10.0, roi());
         let mut v = vec![
@@ -900,7 +900,7 @@ mod tests {
         );
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn floor_matches_libm() {
         for v in [
             0.0,
@@ -927,7 +927,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn rate_limiter_caps_each_window() {
         let mut ev = EventChunk::default();
         for t in 0..100 {

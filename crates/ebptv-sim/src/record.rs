@@ -325,7 +325,7 @@ impl TruthWriter {
 /// formatting (which was 40 % of the CPU time of a full-frame
 /// `ebptv simulate`); a row with a value near a rounding tie is written
 /// by the reference instead.
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 pub(crate) fn truth_line(line: &mut Vec<u8>, r: &TruthSample) {
     let mut window = [0u8; ROW_WINDOW];
     match truth_row_fast(&mut window, r) {
@@ -337,7 +337,7 @@ pub(crate) fn truth_line(line: &mut Vec<u8>, r: &TruthSample) {
 /// Format `r` at the start of `w`: its length, or None when a value
 /// needs the exact formatter.
 #[inline]
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 fn truth_row_fast(w: &mut [u8; ROW_WINDOW], r: &TruthSample) -> Option<usize> {
     let mut p = 0;
     if r.pulse < 0 {
@@ -353,7 +353,7 @@ fn truth_row_fast(w: &mut [u8; ROW_WINDOW], r: &TruthSample) -> Option<usize> {
 /// The fields of `r` after `pulse,t_us,` from position `p` of `w` (see
 /// [`truth_row_fast`]): the row's length, or None.
 #[inline(always)]
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 fn truth_row_rest(w: &mut [u8; ROW_WINDOW], p: usize, r: &TruthSample) -> Option<usize> {
     let mut p = put_uint(w, p, r.particle_id);
     p = put_byte(w, p, b',');
@@ -761,12 +761,12 @@ pub fn write_recording_with(
     Ok(summary)
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn truth_line_matches_reference() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(4);
         let (mut a, mut b) = (Vec::new(), Vec::new());
@@ -851,7 +851,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn truth_writer_file_matches_reference_rows() {
         // Enough rows for several batches, with fallback rows (ties, huge,
         // non-finite values) in between: same bytes, same order.
@@ -886,7 +886,7 @@ mod tests {
         assert_eq!(std::fs::read(&path).unwrap(), want);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn truth_writer_over_many_batches_with_writeback_matches_reference() {
         // ~10 MB: several write-back requests (every WRITEBACK_BATCHES
         // full batches) between batches; the file is unchanged by them.
@@ -917,7 +917,7 @@ mod tests {
         assert_eq!(std::fs::read(&path).unwrap(), want);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn fastmod_equals_remainder() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(21);
         for d in [1u32, 2, 3, 7, 4096, 4801, 65_536, u32::MAX - 1, u32::MAX] {
@@ -939,7 +939,7 @@ mod tests {
     /// values sit at a rounding tie (the whole row through the reference,
     /// again at the next pulse): the file equals the reference rows, with
     /// the right slot count, a wrong one (entries shared) and the default.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn truth_writer_tail_cache_matches_reference() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(17);
         let slots = 300u64;
@@ -1028,7 +1028,7 @@ mod tests {
     /// on at the next probe, and rows through the reference (ties) and
     /// long ids or tails come in every phase: the file equals the
     /// reference rows throughout.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn truth_writer_tail_cache_bypass_matches_reference() {
         let mut rng = rand_pcg::Pcg64::seed_from_u64(23);
         let slots = 1000u64;
@@ -1104,7 +1104,7 @@ mod tests {
         assert!(std::fs::read(&path).unwrap() == want);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn truth_writer_reuses_the_pulse_prefix_correctly() {
         // Rows in runs sharing (pulse, t_us), as the simulator writes
         // them: the prefix is formatted once per run and copied. Runs

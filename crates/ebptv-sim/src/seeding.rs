@@ -283,7 +283,7 @@ impl Particles {
         p.z.abs() <= self.sheet_half
     }
 
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     /// Advance every particle from `t0` to each of `times` in turn (s) and
     /// return, per time, the lit particles as snapshots (in slot order).
     pub(crate) fn advance_and_snapshot(
@@ -931,7 +931,7 @@ std::thread_local! {
     static FORCE_SSE2: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
 }
 
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 pub(crate) mod tests {
     use super::*;
     use crate::presets;
@@ -941,7 +941,7 @@ pub(crate) mod tests {
     /// the periodic x wrap), particle states and random streams, for the
     /// jet, a boundary layer (walls: re-seeding), a Poiseuille channel and
     /// a uniform flow, over blocks with repeated times (dt = 0).
-    #[test]
+    #[ebptv_macros::unit_test]
     fn parallel_flow_loop_matches_generic_loop() {
         use crate::scenario::FlowSpec;
         let mut cases = Vec::new();
@@ -1025,7 +1025,7 @@ pub(crate) mod tests {
     /// small-rotation step and of its full-field fallback; a gridded
     /// field (the rib wake sampled on a grid, part of the domain outside
     /// it) at both time steps.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn lane_advection_matches_scalar() {
         let p = |n| presets::preset(n).unwrap();
         let dir = tempfile::tempdir().unwrap();
@@ -1114,7 +1114,7 @@ pub(crate) mod tests {
     /// included. (Without
     /// AVX2 + FMA there is no second path to compare; the test then says
     /// so and passes.)
-    #[test]
+    #[ebptv_macros::unit_test]
     fn avx_lanes_are_the_sse2_lanes() {
         if !crate::simd::avx2_fma() {
             eprintln!("no AVX2 + FMA on this CPU: one path only");
@@ -1232,7 +1232,7 @@ pub(crate) mod tests {
     /// and positions agree to 1e-10 px, velocities to 1e-10 relative
     /// (rounding differences carried along the pathlines; measured
     /// ≤ 4.3e-11 px and 8.3e-13).
-    #[test]
+    #[ebptv_macros::unit_test]
     fn fast_fields_advect_like_plain_formulas() {
         use std::sync::atomic::Ordering::Relaxed;
         let mut cases: Vec<_> = ["demo", "rib_wake", "turbulent_bl"]
@@ -1298,7 +1298,7 @@ pub(crate) mod tests {
     /// The velocity cache gives the numbers a fresh field evaluation
     /// gives: advancing with the caches emptied before every pulse (the
     /// plain path: every velocity evaluated) yields identical snapshots.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn velocity_cache_changes_nothing() {
         for name in ["water_jet_5khz", "demo", "rib_wake"] {
             let mut sc = presets::preset(name).unwrap();

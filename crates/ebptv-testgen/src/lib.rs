@@ -18,7 +18,9 @@
 //! The scan reads rustfmt-formatted source line by line: a file's module
 //! path follows from its place under `src/` (`a/mod.rs` and `a.rs` are
 //! `a`), inline modules (`mod name {`) nest by their indentation, and the
-//! attribute is followed by further attributes and then `fn name`.
+//! attribute is followed by further attributes and then `fn name`. A
+//! plain `#[test]` or `cfg(test)` in `src/` is an error: without a
+//! unit-test build it would never run.
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -36,8 +38,9 @@ pub struct UnitTest {
     pub module: Vec<String>,
     /// Name of the function.
     pub name: String,
-    /// Marked `#[ignore]`: run only on request.
-    pub ignore: bool,
+    /// Its `#[ignore]` or `#[ignore = "why"]` attribute, if any: run only
+    /// on request.
+    pub ignore: Option<String>,
 }
 
 /// For a build script: scan `$CARGO_MANIFEST_DIR/src`, write both files
@@ -114,7 +117,7 @@ fn file_module(rel: &Path) -> Option<Vec<String>> {
 fn scan_text(text: &str, module: &[String], tests: &mut Vec<UnitTest>) -> Result<(), String> {
     // Open inline modules: (indentation of the `mod` line, name).
     let mut open: Vec<(usize, String)> = Vec::new();
-    let mut pending: Option<(usize, bool)> = None;
+    let mut pending: Option<(usize, Option<String>)> = None;
     for (no, line) in text.lines().enumerate() {
         let indent = line.len() - line.trim_start().len();
         let t = line.trim();
@@ -124,9 +127,9 @@ fn scan_text(text: &str, module: &[String], tests: &mut Vec<UnitTest>) -> Result
                 continue;
             }
         }
-        if let Some((at, ignore)) = pending {
-            if t == "#[ignore]" {
-                pending = Some((at, true));
+        if let Some((at, ignore)) = pending.take() {
+            if t.starts_with("#[ignore") {
+                pending = Some((at, Some(t.to_string())));
             } else if let Some(name) = fn_name(t) {
                 let mut m = module.to_vec();
                 m.extend(open.iter().map(|(_, n)| n.clone()));
@@ -135,8 +138,9 @@ fn scan_text(text: &str, module: &[String], tests: &mut Vec<UnitTest>) -> Result
                     name,
                     ignore,
                 });
-                pending = None;
-            } else if !(t.starts_with("#[") || t.starts_with("///") || t.starts_with("//")) {
+            } else if t.starts_with("#[") || t.starts_with("//") {
+                pending = Some((at, ignore));
+            } else {
                 return Err(format!(
                     "line {}: `{MARKER}` is not followed by a `fn`",
                     at + 1
@@ -144,8 +148,15 @@ fn scan_text(text: &str, module: &[String], tests: &mut Vec<UnitTest>) -> Result
             }
             continue;
         }
+        if t == "#[test]" || t.contains("cfg(test)") || t.contains("cfg(not(test))") {
+            return Err(format!(
+                "line {}: the crate has no unit-test build, so `{t}` would never run; \
+                 write `{MARKER}` or `cfg(feature = \"testkit\")`",
+                no + 1
+            ));
+        }
         if t == MARKER {
-            pending = Some((no, false));
+            pending = Some((no, None));
         } else if let Some(name) = inline_mod(t) {
             open.push((indent, name));
         }
@@ -235,10 +246,9 @@ fn wrappers(tests: &[UnitTest], crate_name: &str) -> String {
         String::from("// Written by ebptv-testgen from the crate's #[unit_test] functions.\n");
     emit(&tree(tests), 0, "", &mut out, &|t, pad| {
         let path: String = t.module.iter().map(|m| format!("{m}::")).collect();
-        let ignore = if t.ignore {
-            format!("{pad}#[ignore]\n")
-        } else {
-            String::new()
+        let ignore = match &t.ignore {
+            Some(attr) => format!("{pad}{attr}\n"),
+            None => String::new(),
         };
         format!(
             "{pad}#[test]\n{ignore}{pad}fn {n}() {{\n{pad}    {crate_name}::unit_tests::{path}{n}()\n{pad}}}",
@@ -246,4 +256,102 @@ fn wrappers(tests: &[UnitTest], crate_name: &str) -> String {
         )
     });
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scan_one(text: &str, module: &[&str]) -> Result<Vec<UnitTest>, String> {
+        let module: Vec<String> = module.iter().map(|m| m.to_string()).collect();
+        let mut out = Vec::new();
+        scan_text(text, &module, &mut out)?;
+        Ok(out)
+    }
+
+    #[test]
+    fn finds_tests_in_nested_inline_modules_with_their_ignore() {
+        let text = r#"
+pub fn add(a: u32, b: u32) -> u32 { a + b }
+
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
+    use super::*;
+
+    /// Adds.
+    #[ebptv_macros::unit_test]
+    fn sums() {}
+
+    mod inner {
+        #[ebptv_macros::unit_test]
+        #[ignore = "slow"]
+        fn slow_one() {}
+    }
+
+    #[ebptv_macros::unit_test]
+    #[allow(clippy::unit_cmp)]
+    fn after_inner() {}
+}
+"#;
+        let got = scan_one(text, &["grid", "noise"]).unwrap();
+        let names: Vec<(String, &str, Option<&str>)> = got
+            .iter()
+            .map(|t| (t.module.join("::"), t.name.as_str(), t.ignore.as_deref()))
+            .collect();
+        assert_eq!(
+            names,
+            [
+                ("grid::noise::tests".to_string(), "sums", None),
+                (
+                    "grid::noise::tests::inner".to_string(),
+                    "slow_one",
+                    Some("#[ignore = \"slow\"]")
+                ),
+                ("grid::noise::tests".to_string(), "after_inner", None),
+            ]
+        );
+    }
+
+    #[test]
+    fn a_plain_test_or_cfg_test_is_an_error() {
+        for bad in [
+            "#[cfg(test)]\nmod tests {}",
+            "mod t {\n    #[test]\n    fn x() {}\n}",
+        ] {
+            let e = scan_one(bad, &[]).unwrap_err();
+            assert!(e.contains("never run"), "{e}");
+        }
+        let e = scan_one("#[ebptv_macros::unit_test]\nconst X: u8 = 1;", &[]).unwrap_err();
+        assert!(e.contains("not followed by a `fn`"), "{e}");
+    }
+
+    #[test]
+    fn file_paths_give_module_paths() {
+        let m = |p: &str| file_module(Path::new(p));
+        assert_eq!(m("lib.rs"), Some(vec![]));
+        assert_eq!(m("main.rs"), None);
+        assert_eq!(m("grid/mod.rs"), Some(vec!["grid".to_string()]));
+        assert_eq!(
+            m("track/tests/slice.rs"),
+            Some(vec!["track".into(), "tests".into(), "slice".into()])
+        );
+    }
+
+    #[test]
+    fn index_and_wrappers_mirror_the_module_paths() {
+        let tests = vec![UnitTest {
+            module: vec!["a".into(), "tests".into()],
+            name: "works".into(),
+            ignore: Some("#[ignore]".into()),
+        }];
+        let index = index(&tests);
+        assert!(index.contains("pub mod a {"), "{index}");
+        assert!(index.contains("crate::a::tests::works()"), "{index}");
+        let w = wrappers(&tests, "my_crate");
+        assert!(
+            w.contains("#[test]\n        #[ignore]\n        fn works()"),
+            "{w}"
+        );
+        assert!(w.contains("my_crate::unit_tests::a::tests::works()"), "{w}");
+    }
 }

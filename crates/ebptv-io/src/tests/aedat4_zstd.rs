@@ -53,7 +53,7 @@ fn zstd_cli(data: &[u8]) -> Vec<u8> {
     out.stdout
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 #[ignore = "regenerates data/aedat4_zstd_small.aedat4 with the zstd tool"]
 fn make_fixture() {
     let (events, triggers) = content();
@@ -68,7 +68,7 @@ fn make_fixture() {
     std::fs::write(fixture(), bytes).unwrap();
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn zstd_fixture_decodes() {
     let mut r = Aedat4Reader::open(&fixture(), 64).unwrap();
     let mut c = Chunk::default();

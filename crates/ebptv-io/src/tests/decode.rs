@@ -377,7 +377,7 @@ fn check_real(
     Some(reference)
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn real_evt3_sample() {
     let Some(d) = check_real(
         "evt3_sample.raw",
@@ -430,7 +430,7 @@ fn real_evt3_sample() {
     assert_eq!(info.geometry, Some(Geometry::new(1280, 720)));
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn real_evt2_sample() {
     check_real(
         "evt2_sample.raw",
@@ -451,7 +451,7 @@ fn real_evt2_sample() {
     );
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn real_faery_evt2() {
     let Some(d) = check_real(
         "faery_evt2.raw",
@@ -485,7 +485,7 @@ fn real_faery_evt2() {
 }
 
 /// The `evt3` crate as an independent oracle on the real file.
-#[test]
+#[ebptv_macros::unit_test]
 fn real_evt3_matches_evt3_crate() {
     let Some(path) = real("evt3_sample.raw") else {
         return;
@@ -541,7 +541,7 @@ fn to_bytes16(words: &[u16]) -> Vec<u8> {
 proptest! {
     #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn evt3_fast_matches_reference(words in prop_oneof![prop::collection::vec(evt3_word(), 0..3000), evt3_words_with_pairs()],
                                    odd in any::<bool>(), chunk in 1usize..200, buf in 1usize..64) {
         let dir = tempfile::tempdir().unwrap();
@@ -556,7 +556,7 @@ proptest! {
         prop_assert_eq!(src.anomalies().out_of_geometry, out);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn evt2_fast_matches_reference(words in prop::collection::vec(
             prop_oneof![6 => 0u32..(1 << 29), 2 => (0x8000_0000u32..0x8000_0010).prop_union(0x8FFF_FFF0u32..0x9000_0000),
                         1 => 0xA000_0000u32..0xB000_0000, 1 => any::<u32>()], 0..2000),
@@ -571,7 +571,7 @@ proptest! {
         prop_assert_eq!(fast, reference);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn evt21_fast_matches_reference(words in prop::collection::vec(
             prop_oneof![6 => 0u64..(1 << 61), 2 => (0x8000_0000u64..0x8000_0010).prop_union(0x8FFF_FFF0u64..0x9000_0000).prop_map(|v| v << 32),
                         1 => (0xA000_0000u64..0xB000_0000).prop_map(|v| v << 32), 1 => any::<u64>()], 0..1000),
@@ -599,7 +599,7 @@ proptest! {
 
     /// Well-formed synthetic EVT3 (row and base set first, no EM words):
     /// the `evt3` crate must agree event for event.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn evt3_matches_evt3_crate(words in prop::collection::vec(evt3_word().prop_filter("defined CD types",
             |w| matches!(w >> 12, 0 | 2..=6 | 8 | 0xA)), 0..3000)) {
         let mut all = vec![0x8003u16, 0x0005, 0x3010];
@@ -624,7 +624,7 @@ proptest! {
 
     /// Fuzz: arbitrary bytes after a valid header never panic, and chunks
     /// stay bounded, for every decoder.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn arbitrary_bytes_never_panic(payload in prop::collection::vec(any::<u8>(), 0..4000), which in 0u8..4, chunk in 1usize..64) {
         let dir = tempfile::tempdir().unwrap();
         let header = match which {
@@ -646,7 +646,7 @@ proptest! {
     }
 
     /// Sniffing arbitrary bytes never panics.
-    #[test]
+    #[ebptv_macros::unit_test]
     fn sniff_never_panics(head in prop::collection::vec(any::<u8>(), 0..600), pct in any::<bool>()) {
         let mut bytes = if pct { b"% ".to_vec() } else { Vec::new() };
         bytes.extend(head);
@@ -657,7 +657,7 @@ proptest! {
 
 // ------------------------------------------------------------ bad input
 
-#[test]
+#[ebptv_macros::unit_test]
 fn empty_file_is_a_clear_error() {
     let dir = tempfile::tempdir().unwrap();
     let p = write_tmp(&dir, "empty.raw", "", b"");
@@ -668,7 +668,7 @@ fn empty_file_is_a_clear_error() {
     assert!(e.contains("empty.raw") && e.contains("empty"), "{e}");
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn header_only_file_is_an_empty_stream() {
     let dir = tempfile::tempdir().unwrap();
     let p = write_tmp(&dir, "h.raw", EVT3_HEADER, b"");
@@ -682,7 +682,7 @@ fn header_only_file_is_an_empty_stream() {
     assert_eq!(drain(&mut src, 100, 11), Decoded::default());
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn truncated_last_word_is_counted() {
     let dir = tempfile::tempdir().unwrap();
     let p = write_tmp(
@@ -709,7 +709,7 @@ fn truncated_last_word_is_counted() {
     assert_eq!(drain(&mut src, 100, 0).tail, 3);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn unknown_words_and_vectors_without_base_are_counted() {
     let dir = tempfile::tempdir().unwrap();
     let words = [
@@ -730,7 +730,7 @@ fn unknown_words_and_vectors_without_base_are_counted() {
     assert_eq!((d.before_time_base, d.without_base, d.unknown), (1, 1, 4));
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn out_of_geometry_events_are_kept_and_counted() {
     let dir = tempfile::tempdir().unwrap();
     let words = [0x8000u16, 0x0010, 0x2000 | 700, 0x2000 | 10];
@@ -745,7 +745,7 @@ fn out_of_geometry_events_are_kept_and_counted() {
     assert_eq!(src.anomalies().out_of_geometry, 1);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn not_event_data_is_refused_with_what_it_is() {
     let dir = tempfile::tempdir().unwrap();
     let p = write_tmp(
@@ -764,7 +764,7 @@ fn not_event_data_is_refused_with_what_it_is() {
     assert!(e.contains("blob.xyz") && e.contains("de ad be ef"), "{e}");
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn wrong_extension_is_read_by_content() {
     let dir = tempfile::tempdir().unwrap();
     let words: Vec<u32> = vec![0x8000_0001, 0x1000_0000 | (5 << 11) | 6];
@@ -791,7 +791,7 @@ fn wrong_extension_is_read_by_content() {
     assert!(e.contains("EVT 2.0") && e.contains("EVT 3.0"), "{e}");
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn garbage_bytes_without_header_are_refused_without_panic() {
     let dir = tempfile::tempdir().unwrap();
     let mut x = 0x1234_5678u32;

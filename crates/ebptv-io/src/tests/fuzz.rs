@@ -65,7 +65,7 @@ fn small_aedat4(comp: Compression) -> Vec<u8> {
 proptest! {
     #![proptest_config(ProptestConfig { cases: 96, ..ProptestConfig::default() })]
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn dat_payload(ty in prop::sample::select(vec![0u8, 0x0C, 0x0E, 0x33]), size in prop::sample::select(vec![8u8, 4]),
                    body in prop::collection::vec(any::<u8>(), 0..600)) {
         let mut b = b"% Version 2\n% Width 64\n% Height 64\n".to_vec();
@@ -75,14 +75,14 @@ proptest! {
         drain(&b, Format::Dat, "dat");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn any_bytes_any_reader(body in prop::collection::vec(any::<u8>(), 0..400)) {
         for (f, ext) in [(Format::Dat, "dat"), (Format::Es, "es"), (Format::Aedat4, "aedat4"), (Format::Csv, "csv")] {
             drain(&body, f, ext);
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn es_payload(kind in 0u8..6, w in any::<u16>(), h in any::<u16>(), body in prop::collection::vec(any::<u8>(), 0..600)) {
         let mut b = b"Event Stream\x02\x00\x00".to_vec();
         b.push(kind);
@@ -92,7 +92,7 @@ proptest! {
         drain(&b, Format::Es, "es");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn aedat4_flipped(comp in prop::sample::select(vec![Compression::None, Compression::Lz4, Compression::Zstd]),
                       flips in prop::collection::vec((any::<prop::sample::Index>(), any::<u8>()), 1..8),
                       cut in any::<prop::sample::Index>()) {
@@ -106,7 +106,7 @@ proptest! {
         drain(&b[..k], Format::Aedat4, "aedat4");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn aedat4_random_packets(comp in prop::sample::select(vec![Compression::None, Compression::Lz4, Compression::Zstd]),
                              body in prop::collection::vec(any::<u8>(), 0..400)) {
         let valid = small_aedat4(comp);
@@ -119,7 +119,7 @@ proptest! {
         drain(&b, Format::Aedat4, "aedat4");
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn csv_text(lines in prop::collection::vec("[0-9txyp,.;\\- e]{0,24}", 0..20)) {
         let text = lines.join("\n");
         drain(text.as_bytes(), Format::Csv, "csv");

@@ -2,9 +2,9 @@
 //! reference decoders and the `evt3` crate, fuzzed inputs, format sniffing,
 //! AEDAT 4 compression, and NumPy loading our `.npy` files.
 
-mod aedat4_zstd;
-mod decode;
-mod fuzz;
-mod npy_numpy;
-mod reference;
-mod sniff;
+pub(crate) mod aedat4_zstd;
+pub(crate) mod decode;
+pub(crate) mod fuzz;
+pub(crate) mod npy_numpy;
+pub(crate) mod reference;
+pub(crate) mod sniff;

@@ -16,7 +16,7 @@ fn numpy_available() -> bool {
         .unwrap_or(false)
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn numpy_loads_events_tables_and_arrays() {
     if !numpy_available() {
         eprintln!("skip: python3 with numpy not available");

@@ -100,7 +100,7 @@ fn arb_events(max: usize) -> impl Strategy<Value = Vec<Event>> {
 proptest! {
     #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn dat_matches_reference(payload in prop::collection::vec(any::<u8>(), 0..4000), chunk in 1usize..300) {
         let mut b = b"% Version 2\n".to_vec();
         b.extend_from_slice(&[0x0C, 8]);
@@ -109,7 +109,7 @@ proptest! {
         prop_assert_eq!(ev, dat_reference(&payload));
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn es_matches_reference(payload in prop::collection::vec(any::<u8>(), 0..4000), chunk in 1usize..300) {
         let mut b = b"Event Stream\x02\x00\x00\x01".to_vec();
         b.extend_from_slice(&[0xFF, 0xFF, 0xFF, 0xFF]); // 65535 x 65535: nothing out of range
@@ -118,7 +118,7 @@ proptest! {
         prop_assert_eq!(ev, es_reference(&payload));
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn csv_writer_reader_roundtrip(events in arb_events(500), trig_every in 1usize..50, chunk in 1usize..200) {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("r.csv");
@@ -144,7 +144,7 @@ proptest! {
         prop_assert_eq!(tr, trig);
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn aedat4_roundtrip(events in arb_events(400), per_packet in 1usize..100, chunk in 1usize..300) {
         let events: Vec<Event> = events.into_iter().map(|e| Event { x: e.x & 0x7FFF, y: e.y & 0x7FFF, ..e }).collect();
         let b = encode_aedat4(&events, &[], Geometry::new(0x7FFF, 0x7FFF), Compression::Lz4, per_packet, &lz4_frame);

@@ -18,7 +18,7 @@ fn real_dir() -> Option<std::path::PathBuf> {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn real_files_are_recognised_by_content_even_when_renamed() {
     let Some(dir) = real_dir() else { return };
     let tmp = tempfile::tempdir().unwrap();
@@ -47,7 +47,7 @@ fn real_files_are_recognised_by_content_even_when_renamed() {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn text_and_foreign_files() {
     let tmp = tempfile::tempdir().unwrap();
     let write = |name: &str, bytes: &[u8]| {

@@ -111,8 +111,8 @@ pub(super) fn at_least_mask8(v: &[f32; 8], floor: f32) -> u32 {
     }
 }
 
-#[cfg(test)]
-mod tests {
+#[cfg(feature = "testkit")]
+pub(crate) mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
 
@@ -139,7 +139,7 @@ mod tests {
         })
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn at_least_mask8_is_the_per_lane_compare() {
         let mut rng = Pcg64::seed_from_u64(41);
         for _ in 0..20_000 {
@@ -153,7 +153,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn write_hits8_writes_the_set_lanes_in_order() {
         let mut rng = Pcg64::seed_from_u64(42);
         for _ in 0..20_000 {
@@ -179,7 +179,7 @@ mod tests {
         }
     }
 
-    #[test]
+    #[ebptv_macros::unit_test]
     fn clear_lanes8_clears_the_first_n() {
         let mut rng = Pcg64::seed_from_u64(43);
         for n in 0..=8 {

@@ -56,7 +56,7 @@ pub(crate) struct Arrival {
 pub(crate) struct PixelModel {
     roi: Roi,
     /// The light sheet (the exact model of the tests reads its envelope).
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     light: Light,
     shape: PulseShape,
     sigma_img: f64,
@@ -71,7 +71,7 @@ pub(crate) struct PixelModel {
     mismatch: Option<(f64, u64)>,
     /// The smallest threshold any pixel can have (ON or OFF): signals
     /// below it cannot fire.
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     c_floor: f64,
     /// [`f32_at_least`]`(c_floor)`: the same test on the f32 sums
     /// without converting each touched pixel's sum to f64.
@@ -148,7 +148,7 @@ impl PixelModel {
             .map_or(0.0, |p| shape.end_us * 1e-6 * p.scale / 0.2);
         PixelModel {
             roi,
-            #[cfg(test)]
+            #[cfg(feature = "testkit")]
             light: sc.light,
             sigma_img: sc.optics.particle_diameter_px / 4.0,
             gain: sc.light.energy * shape.mean_level,
@@ -169,7 +169,7 @@ impl PixelModel {
             streak_nodes,
             background_rate: sc.noise.background_noise.map(|b| b.rate_hz),
             hot,
-            #[cfg(test)]
+            #[cfg(feature = "testkit")]
             c_floor,
             c_floor_f32: f32_at_least(c_floor),
             quad: QuadTable::new(&table),
@@ -376,7 +376,7 @@ impl PixelModel {
     /// The summed signal of every pixel the fast path gives a non-zero
     /// sum for one pulse, in ROI-index order: `(roi_index, signal)`
     /// (tests compare it with `pixel_signals_reference` (in the tests)).
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     pub(crate) fn pixel_signals(&self, snaps: &[Snapshot]) -> Vec<(u32, f32)> {
         let mut v = Vec::new();
         // (The least positive f32: every pixel with a non-zero sum.)
@@ -395,7 +395,7 @@ impl PixelModel {
 
     /// The summed signal of every pixel of the exact model
     /// ([`Self::contributions`], f64), in ROI-index order.
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     pub(crate) fn pixel_signals_reference(&self, snaps: &[Snapshot]) -> Vec<(u32, f64)> {
         let mut list: Vec<(u32, f64)> = Vec::new();
         self.contributions(snaps, |idx, sig| list.push((idx, sig)));
@@ -580,7 +580,7 @@ impl PixelModel {
     /// ([`Self::pixel_signals_reference`]), responses with libm's
     /// logarithms; pixels in ROI-index order, so the random draws pair up
     /// with the fast path's.
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     pub(crate) fn render_pulse_reference(
         &self,
         snaps: &[Snapshot],
@@ -595,7 +595,7 @@ impl PixelModel {
         }
     }
 
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     /// Threshold factor of ROI pixel `idx` under `threshold_mismatch`
     /// (σ, key): 1 + σ·g with g a standard normal deviate chosen by a hash
     /// of the pixel index, so the pattern is fixed for a seed. g is one of
@@ -622,7 +622,7 @@ impl PixelModel {
     /// resolution).
     #[allow(clippy::too_many_arguments)]
     #[inline]
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     fn respond<const EXACT: bool>(
         &self,
         idx: u32,
@@ -896,7 +896,7 @@ fn poisson(rng: &mut Pcg64, mean: f64) -> u64 {
         .unwrap_or(0)
 }
 
-mod drain;
+pub(crate) mod drain;
 mod render;
 mod tables;
 
@@ -904,5 +904,5 @@ use drain::*;
 use render::*;
 pub(crate) use tables::*;
 
-#[cfg(test)]
-mod tests;
+#[cfg(feature = "testkit")]
+pub(crate) mod tests;

@@ -11,7 +11,7 @@ use super::*;
 impl PixelModel {
     /// Pixel-integrated Gaussian image of a particle at (x, y): calls
     /// `f(ix, iy, fraction)` for each ROI pixel it covers.
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     #[inline]
     pub(super) fn footprint(&self, x: f64, y: f64, mut f: impl FnMut(u32, u32, f64)) {
         let erf = erf_table();
@@ -53,7 +53,7 @@ impl PixelModel {
     }
 
     /// Image positions of a particle during the pulse and their weights.
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     pub(super) fn positions(&self, s: &Snapshot, out: &mut Vec<(f64, f64, f64)>) {
         out.clear();
         match self.streak_scale {
@@ -146,7 +146,7 @@ impl PixelModel {
     /// Signal contributions of one particle's image by the test oracle
     /// ([`Exact`]): `f(ix, iy, signal)` (sensor pixel coordinates inside
     /// the ROI).
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     pub(super) fn particle_contributions(&self, s: &Snapshot, f: impl FnMut(u32, u32, f64)) {
         Exact.draw(self, s, &mut Profiles::new(), &mut EachPixel(f, 0));
     }
@@ -183,7 +183,7 @@ impl PixelModel {
     /// The fast path's image of one particle, as per-pixel signals:
     /// `f(ix, iy, signal)` (for tests; the renderer takes them row by row
     /// through [`Self::particle_rows`]).
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     pub(super) fn particle_contributions_fast(&self, s: &Snapshot, f: impl FnMut(u32, u32, f64)) {
         Rows.draw(self, s, &mut Profiles::new(), &mut EachPixel(f, 0));
     }
@@ -662,7 +662,7 @@ impl PixelModel {
 
     /// Signal contributions of a pulse's particle images, particles taken
     /// in [`render_order`]: `f(roi_pixel_index, signal)`.
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     pub(super) fn contributions(&self, snaps: &[Snapshot], mut f: impl FnMut(u32, f64)) {
         let w = self.roi.width;
         for &(key, _, _) in &self.render_order(snaps, true) {
@@ -747,10 +747,10 @@ impl Renderer for Rows {
 /// The exact model, plainly: every position's pixel-integrated Gaussian
 /// from erf at the pixel edges ([`PixelModel::footprint`]), one pixel at
 /// a time in f64 ([`ContributionSink::add`]). The test oracle.
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 pub(super) struct Exact;
 
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 impl Renderer for Exact {
     fn draw(
         &self,
@@ -775,10 +775,10 @@ impl Renderer for Exact {
 
 /// A sink calling `f(ix, iy, signal)` per pixel contribution (f64 for
 /// [`Exact`]'s, the f32 products of the fast renderers' runs).
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 pub(super) struct EachPixel<F>(pub(super) F, pub(super) u32);
 
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 impl<F: FnMut(u32, u32, f64)> ContributionSink for EachPixel<F> {
     fn row(&mut self, iy: u32) {
         self.1 = iy;
@@ -825,7 +825,7 @@ pub(super) trait ContributionSink {
     );
     /// Add `signal` to sensor column `ix` of the current row (the plain
     /// renderer's pixel at a time; a sink that sums in f32 rounds it).
-    #[cfg(test)]
+    #[cfg(feature = "testkit")]
     fn add(&mut self, ix: u32, signal: f64) {
         self.add_run(ix, &[1.0], signal as f32)
     }

@@ -407,7 +407,7 @@ pub(crate) fn ln_table() -> &'static LnTable {
 }
 
 /// [`LnTable::ln`] through the process-wide table.
-#[cfg(test)]
+#[cfg(feature = "testkit")]
 pub(crate) fn ln_fast(x: f64) -> f64 {
     ln_table().ln(x)
 }

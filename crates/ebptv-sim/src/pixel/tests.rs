@@ -37,7 +37,7 @@ fn scene(n: usize, w: f64, h: f64, seed: u64) -> Vec<Snapshot> {
 /// hypot's count exactly, also for speeds whose count ⌈q⌉ sits on an
 /// integer (every count's boundary, approached to the last bit, in
 /// many directions) and for tiny, axis-aligned and huge velocities.
-#[test]
+#[ebptv_macros::unit_test]
 fn streak_count_is_hypots() {
     for (scale, width) in [(1.0, 10.0), (0.37, 10.0), (3.0, 5.0), (30.0, 7.3)] {
         streak_count_is_hypots_for(scale, width);
@@ -106,7 +106,7 @@ fn small_sensor() -> Sensor {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn fast_pixel_signals_match_exact_model() {
     // The fast path (tabulated f32 fractions, merged streaks, ring)
     // against the exact model (erf at every edge, f64 sums): every
@@ -212,7 +212,7 @@ impl ContributionSink for DenseSink<'_> {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn drained_hits_match_dense_sums() {
     // The drain (boxes, eight-pixel groups, branch-free hit writes,
     // each box clearing only its own columns) against a dense ROI
@@ -287,7 +287,7 @@ fn drained_hits_match_dense_sums() {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn response_passes_match_respond() {
     // `render_pulse`'s two passes (branch-free threshold pass, then
     // the crossings) against `respond::<false>` (the same fast
@@ -344,7 +344,7 @@ fn response_passes_match_respond() {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn fast_events_match_exact_model() {
     // Same pixels in the same order: every pixel's events agree
     // (count, and times within 1e-5 of the delay) except where a
@@ -440,7 +440,7 @@ fn fast_events_match_exact_model() {
     assert!(moved * 10 > plain.len() * 9, "jitter moved {moved}");
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn lean_images_match_particle_rows() {
     // The lean renderer writes the ring bit for bit as
     // `particle_rows` does through its sink, with the same box, for
@@ -506,7 +506,7 @@ fn lean_images_match_particle_rows() {
 /// along the ROI's edges, added onto a ring that already holds sums
 /// (so the order of the additions counts): the same ring bit for bit
 /// and the same box.
-#[test]
+#[ebptv_macros::unit_test]
 fn diagonal_streaks_match_particle_rows() {
     for (scale, diameter) in [(1.0, 1.5), (1.0, 1.3), (2.5, 1.0), (1.0, 0.3), (4.0, 1.99)] {
         let mut sc = Scenario::default();
@@ -611,7 +611,7 @@ fn diagonal_streaks_match_particle_rows() {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn quad_path_matches_general_fast_path_exactly() {
     // The four-pixel windows give the general table's numbers bit for
     // bit (0 outside the image's pixels) ...
@@ -670,7 +670,7 @@ fn quad_path_matches_general_fast_path_exactly() {
 /// window, fractions (bit for bit), first pixel and count, for centres
 /// all over the sub-pixel range, at and next to every table node and
 /// rounding boundary of c ± 3σ, and at the ROI's edges.
-#[test]
+#[ebptv_macros::unit_test]
 fn quad_axis_lanes_match_axis_range() {
     for diameter in [0.6, 1.0, 1.3, 1.5, 1.9] {
         let mut sc = Scenario::default();
@@ -731,7 +731,7 @@ fn quad_axis_lanes_match_axis_range() {
 
 /// The screened bisection of the quantile table gives the plain
 /// bisection's numbers, bit for bit, at every node.
-#[test]
+#[ebptv_macros::unit_test]
 fn normal_quantiles_screening_is_exact() {
     let table = normal_quantiles();
     for i in 0..=4096 {
@@ -740,7 +740,7 @@ fn normal_quantiles_screening_is_exact() {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn fraction_table_matches_erf() {
     for sigma in [0.025, 0.1, 0.325, 0.375, 1.0, 5.0] {
         let t = FractionTable::new(sigma);
@@ -764,7 +764,7 @@ fn fraction_table_matches_erf() {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn ln_table_matches_libm() {
     let mut rng = Pcg64::seed_from_u64(5);
     for _ in 0..200_000 {
@@ -777,7 +777,7 @@ fn ln_table_matches_libm() {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn erf_table_is_accurate_and_round_matches() {
     let t = erf_table();
     // Known values (Abramowitz & Stegun, table 7.1).
@@ -826,7 +826,7 @@ fn erf_table_is_accurate_and_round_matches() {
     assert_eq!(round_i64(f64::NAN), 0);
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn f32_floor_test_equals_f64_test() {
     let mut rng = Pcg64::seed_from_u64(17);
     let mut xs: Vec<f64> = (0..2000).map(|_| rng.gen_range(1e-3..5.0)).collect();
@@ -849,7 +849,7 @@ fn f32_floor_test_equals_f64_test() {
     }
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn table_normal_moments_and_quantiles() {
     // Exact moments of the table distribution: bin i is uniform on
     // [q_i, q_{i+1}] with mass 1/4096.
@@ -914,7 +914,7 @@ fn table_normal_moments_and_quantiles() {
     assert!(lag.abs() < 5e-3, "lag-1 correlation {lag}");
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn mismatch_pattern_is_gaussian_fixed_and_seeded() {
     let (sigma, key) = (0.1, stream_key(7, 2));
     let f: Vec<f64> = (0..200_000u32)
@@ -940,7 +940,7 @@ fn mismatch_pattern_is_gaussian_fixed_and_seeded() {
     assert!(same < 5, "{same}");
 }
 
-#[test]
+#[ebptv_macros::unit_test]
 fn events_per_pixel_follow_the_log_contrast() {
     // One bright particle centred on a pixel, no effects: the centre
     // pixel fires floor(ln(1 + s)/C) events, capped.
