@@ -210,7 +210,7 @@ fn sliced_output_is_identical_for_any_thread_count() {
 }
 
 /// What the overlap costs in accuracy (printed; BENCHMARKS.md): run with
-/// `cargo test --release --lib -- --ignored --nocapture track::tests::slice`.
+/// `cargo test --release --test integration -- --ignored --nocapture track::tests::slice`.
 #[ebptv_macros::unit_test]
 #[ignore]
 fn overlap_sweep() {
