@@ -91,10 +91,7 @@ pub use cancel::Cancel;
 pub use error::{Error, Result};
 pub use events::{Chunk, Edge, Event, EventChunk, Geometry, Trigger};
 
-/// The unit tests, indexed for the integration-test binary (build.rs,
-/// `ebptv-testgen`); test kit only.
+// The unit tests, indexed for the integration-test binary (`unit_tests`; build.rs,
+// `ebptv-testgen`); test kit only.
 #[cfg(feature = "testkit")]
-#[doc(hidden)]
-pub mod unit_tests {
-    include!(concat!(env!("OUT_DIR"), "/unit_index.rs"));
-}
+include!(concat!(env!("OUT_DIR"), "/unit_index.rs"));

@@ -425,10 +425,7 @@ pub mod summary;
 #[cfg(feature = "testkit")]
 pub(crate) mod tests;
 
-/// The unit tests, indexed for tests/unit.rs (build.rs, `ebptv-testgen`);
-/// test kit only.
+// The unit tests, indexed for tests/unit.rs (`unit_tests`; build.rs,
+// `ebptv-testgen`); test kit only.
 #[cfg(feature = "testkit")]
-#[doc(hidden)]
-pub mod unit_tests {
-    include!(concat!(env!("OUT_DIR"), "/unit_index.rs"));
-}
+include!(concat!(env!("OUT_DIR"), "/unit_index.rs"));

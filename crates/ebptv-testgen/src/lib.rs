@@ -5,9 +5,10 @@
 //! script calls [`run`], which scans the crate's `src/` for the attribute
 //! and writes two files to `OUT_DIR`:
 //!
-//! - `unit_index.rs`, included by the crate under `testkit` as
-//!   `pub mod unit_tests`: for every test a `pub fn` of the same module
-//!   path that calls it (the tests themselves stay crate-private);
+//! - `unit_index.rs`, included at the crate root under `testkit`: a
+//!   hidden `pub mod unit_tests` with, for every test, a `pub fn` of the
+//!   same module path that calls it (the tests themselves stay
+//!   crate-private);
 //! - `unit_tests.rs`, included by the crate's integration-test binary:
 //!   for every test a `#[test]` of the same module path (and the same
 //!   `#[ignore]`) that calls the index.
@@ -33,14 +34,14 @@ const MARKER: &str = "#[ebptv_macros::unit_test]";
 
 /// One unit test: its module path in the crate and its function name.
 #[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord)]
-pub struct UnitTest {
+struct UnitTest {
     /// Module path from the crate root (empty for the root).
-    pub module: Vec<String>,
+    module: Vec<String>,
     /// Name of the function.
-    pub name: String,
+    name: String,
     /// Its `#[ignore]` or `#[ignore = "why"]` attribute, if any: run only
     /// on request.
-    pub ignore: Option<String>,
+    ignore: Option<String>,
 }
 
 /// For a build script: scan `$CARGO_MANIFEST_DIR/src`, write both files
@@ -67,7 +68,7 @@ fn write(path: &Path, text: &str) {
 }
 
 /// Every unit test under `src` (a crate's source folder), sorted.
-pub fn scan(src: &Path) -> io::Result<Vec<UnitTest>> {
+fn scan(src: &Path) -> io::Result<Vec<UnitTest>> {
     let mut files = Vec::new();
     collect(src, &mut files)?;
     let mut tests = Vec::new();
@@ -228,15 +229,20 @@ fn emit(
 
 /// The crate-side index: `pub fn` per test calling it.
 fn index(tests: &[UnitTest]) -> String {
-    let mut out =
-        String::from("// Written by ebptv-testgen from the crate's #[unit_test] functions.\n");
-    emit(&tree(tests), 0, "pub ", &mut out, &|t, pad| {
+    let mut out = String::from(
+        "// Written by ebptv-testgen from the crate's #[unit_test] functions.\n\
+         /// The crate's unit tests, for its integration-test binary.\n\
+         #[doc(hidden)]\n\
+         pub mod unit_tests {\n",
+    );
+    emit(&tree(tests), 1, "pub ", &mut out, &|t, pad| {
         let path: String = t.module.iter().map(|m| format!("{m}::")).collect();
         format!(
             "{pad}pub fn {n}() {{\n{pad}    crate::{path}{n}()\n{pad}}}",
             n = t.name
         )
     });
+    out.push_str("}\n");
     out
 }
 
@@ -345,7 +351,10 @@ pub(crate) mod tests {
             ignore: Some("#[ignore]".into()),
         }];
         let index = index(&tests);
-        assert!(index.contains("pub mod a {"), "{index}");
+        assert!(
+            index.contains("pub mod unit_tests {\n    pub mod a {"),
+            "{index}"
+        );
         assert!(index.contains("crate::a::tests::works()"), "{index}");
         let w = wrappers(&tests, "my_crate");
         assert!(
