@@ -232,8 +232,7 @@ fn index(tests: &[UnitTest]) -> String {
     let mut out = String::from(
         "// Written by ebptv-testgen from the crate's #[unit_test] functions.\n\
          /// The crate's unit tests, for its integration-test binary.\n\
-         #[doc(hidden)]\n\
-         pub mod unit_tests {\n",
+         #[doc(hidden)]\npub mod unit_tests {\n",
     );
     emit(&tree(tests), 1, "pub ", &mut out, &|t, pad| {
         let path: String = t.module.iter().map(|m| format!("{m}::")).collect();
@@ -278,7 +277,7 @@ mod tests {
     #[test]
     fn finds_tests_in_nested_inline_modules_with_their_ignore() {
         let text = r#"
-pub fn add(a: u32, b: u32) -> u32 { a + b }
+fn add(a: u32, b: u32) -> u32 { a + b }
 
 #[cfg(feature = "testkit")]
 pub(crate) mod tests {
