@@ -4,8 +4,8 @@
 //! `FftPlanner::<f64>::new()` compiles the planner and every algorithm it
 //! may choose (scalar, SSE and AVX butterflies, mixed radix, Bluestein, …)
 //! for that type, in that crate. In ebptv's library this was about a third
-//! of its LLVM IR, compiled twice over (the library and its unit-test
-//! harness) and again after every change to any of its modules. Here the
+//! of its LLVM IR, compiled again after every change to any of its
+//! modules. Here the
 //! planners are instantiated once, behind the non-generic functions below;
 //! the library only calls the returned plans through their trait objects.
 //!
