@@ -149,7 +149,8 @@ fn scan_text(text: &str, module: &[String], tests: &mut Vec<UnitTest>) -> Result
             }
             continue;
         }
-        if t == "#[test]" || t.contains("cfg(test)") || t.contains("cfg(not(test))") {
+        let code = !t.starts_with("//");
+        if code && (t == "#[test]" || t.contains("cfg(test)") || t.contains("cfg(not(test))")) {
             return Err(format!(
                 "line {}: the crate has no unit-test build, so `{t}` would never run; \
                  write `{MARKER}` or `cfg(feature = \"testkit\")`",
@@ -326,6 +327,8 @@ pub(crate) mod tests {
             let e = scan_one(bad, &[]).unwrap_err();
             assert!(e.contains("never run"), "{e}");
         }
+        // A comment may name them.
+        assert!(scan_one("//! Not under `cfg(test)`: see #[test].", &[]).is_ok());
         let e = scan_one("#[ebptv_macros::unit_test]\nconst X: u8 = 1;", &[]).unwrap_err();
         assert!(e.contains("not followed by a `fn`"), "{e}");
     }
