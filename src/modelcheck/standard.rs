@@ -54,21 +54,13 @@
 //!    is reported in the round's note and left out of that round's gap,
 //!    before and after alike: it must neither dominate the gap (and hide a
 //!    real departure elsewhere) nor let the candidate that moves it a
-//!    little be named. When every disagreeing row is structural and the
-//!    others do not disagree together (below), the verdict is
-//!    `unexplained`.
+//!    little be named. When every disagreeing row is structural, the
+//!    verdict is `unexplained`.
 //!
 //! 6. **The acceptance rule**: the best candidate is named only when
 //!    - some row disagrees beyond chance and range (z > `z_threshold` and
-//!      beyond every replicate and envelope member) and is not structural,
-//!      or the rows do together ([`jointly_disagrees`]: the non-structural
-//!      rows beyond every member have a summed excess above
-//!      `z_threshold − 1`, what one row needs alone; an effect that moves
-//!      several rows at once can leave each under the threshold) — with
-//!      neither the verdict is `consistent`. Rows disagree together only
-//!      against the standard model (the first round): a fitted model's
-//!      residuals spread over rows, and a further effect needs a row that
-//!      disagrees alone;
+//!      beyond every replicate and envelope member) and is not structural
+//!      — with no row disagreeing the verdict is `consistent`;
 //!    - it removes at least half of the gap (`gap_after ≤`
 //!      [`ACCEPT_RATIO`]` · gap_before`);
 //!    - it beats every rival clearly: the runner-up leaves at least
@@ -366,28 +358,6 @@ pub(crate) fn gap_on(table: &DiscrepancyTable, structural: &[String]) -> f64 {
         .sum()
 }
 
-/// Σ [`excess`] over the rows of `table` not in `structural` that lie
-/// beyond every replicate and envelope member.
-pub(crate) fn joint_excess(table: &DiscrepancyTable, structural: &[String]) -> f64 {
-    table
-        .rows
-        .iter()
-        .filter(|r| !structural.contains(&r.signature) && r.stats.observed > r.stats.replicate_max)
-        .map(|r| excess(r.stats.z))
-        .sum()
-}
-
-/// The rows of `table` not in `structural` disagree together: those beyond
-/// every replicate and envelope member lie, summed, as far beyond the
-/// standard range as one row must to disagree on its own
-/// (`excess(z_threshold)`). A departure that shows in several rows at once
-/// (an intensity-dependent latency moves both the latency histogram and
-/// its dependence on brightness) can leave each of them under the
-/// threshold; a standard sensor leaves the sum near zero.
-pub(crate) fn jointly_disagrees(table: &DiscrepancyTable, structural: &[String]) -> bool {
-    joint_excess(table, structural) > excess(table.z_threshold)
-}
-
 /// Rows beyond the standard range that no candidate brings even half way
 /// back: a structural mismatch between the measured sensor and the
 /// simulator that no effect of the catalogue explains. `after` holds each
@@ -653,28 +623,17 @@ fn fit(
 
 /// The rows that disagree, for a note.
 fn disagreeing(table: &DiscrepancyTable) -> String {
-    let list = |alone: bool| -> Vec<String> {
-        table
-            .rows
-            .iter()
-            .filter(|r| {
-                if alone {
-                    r.disagrees
-                } else {
-                    r.stats.observed > r.stats.replicate_max && r.stats.z > 1.0
-                }
-            })
-            .take(8)
-            .map(|r| format!("{} (z = {:.1})", r.signature, r.stats.z))
-            .collect()
-    };
-    let rows = list(true);
-    if !rows.is_empty() {
-        rows.join(", ")
-    } else if jointly_disagrees(table, &[]) {
-        format!("together, none alone: {}", list(false).join(", "))
-    } else {
+    let rows: Vec<String> = table
+        .rows
+        .iter()
+        .filter(|r| r.disagrees)
+        .take(8)
+        .map(|r| format!("{} (z = {:.1})", r.signature, r.stats.z))
+        .collect();
+    if rows.is_empty() {
         "none".into()
+    } else {
+        rows.join(", ")
     }
 }
 
@@ -808,14 +767,7 @@ pub(crate) fn check(
     let catalogue = candidates(sim, start, event_rate_hz / pixels.max(1.0));
     for round_no in 0.. {
         let table = yard.table(&m_hold, &model_sigs, z)?;
-        // Rows disagree together only against the standard sensor itself:
-        // the yardstick's envelope describes it, and the summed excess asks
-        // whether the recording departs from it at all. Once an effect is
-        // named, a fitted model's residuals spread over rows (no fit is
-        // exact), and a further effect needs a row that disagrees alone.
-        let joint =
-            |t: &DiscrepancyTable, s: &[String]| effects.is_empty() && jointly_disagrees(t, s);
-        let any = table.any_disagreement() || joint(&table, &[]);
+        let any = table.any_disagreement();
         let remaining: Vec<&EffectSpec> = catalogue
             .iter()
             .filter(|c| !found.contains(&c.name))
@@ -889,8 +841,7 @@ pub(crate) fn check(
         let explainable = table
             .rows
             .iter()
-            .any(|r| r.disagrees && !structural.contains(&r.signature))
-            || joint(&table, &structural);
+            .any(|r| r.disagrees && !structural.contains(&r.signature));
         results.sort_by(|a, b| a.0.gap_after.total_cmp(&b.0.gap_after));
         let sorted: Vec<CandidateResult> = results.iter().map(|r| r.0.clone()).collect();
         let (pick, mut note) = if explainable {

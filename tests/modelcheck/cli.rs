@@ -307,23 +307,6 @@ fn standard_check_on_independent_dev_recording_refractory() {
     dev_recording_passes("mcdev_refractory");
 }
 
-/// An effect that moves several rows at once, none of them beyond the
-/// threshold alone: on the intensity-latency recording with seed 4 the
-/// latency histogram and its dependence on brightness lie ~2.2 z each
-/// beyond the standard range (the threshold is 4), and only their sum
-/// says the sensor departs from the standard one.
-#[test]
-fn standard_check_names_an_effect_whose_rows_disagree_only_together() {
-    let Some(dev) = dev_dir() else { return };
-    let dir = tempfile::tempdir().unwrap();
-    let name = "mcdev_intensity_latency";
-    let out = dir.path().join(name);
-    // With the rule for single rows alone, the check finds this recording
-    // `consistent`.
-    let (ok, what) = dev_passes(&dev, name, &out, &["--seed", "4"]);
-    assert!(ok, "{what}");
-}
-
 /// All eight development recordings with default options (several
 /// minutes): `cargo test --release --test integration -- --ignored dev_recordings_all`.
 #[test]

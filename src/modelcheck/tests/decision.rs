@@ -141,8 +141,7 @@ fn improvement_is_the_whole_gap_difference() {
 pub(crate) mod standard_rule {
     use super::table;
     use crate::modelcheck::standard::{
-        decide, excess, gap_on, joint_excess, jointly_disagrees, structural_rows, ACCEPT_RATIO,
-        RIVAL_MARGIN,
+        decide, excess, gap_on, structural_rows, ACCEPT_RATIO, RIVAL_MARGIN,
     };
     use crate::modelcheck::workflow::CandidateResult;
     use std::collections::BTreeMap;
@@ -200,26 +199,6 @@ pub(crate) mod standard_rule {
         // Two equally simple ones within the margin: nothing.
         let tie = [cand("x", 2, 4.0), cand("y", 1, 6.0), cand("z", 1, 7.0)];
         assert_eq!(decide(20.0, true, &tie).0, None);
-    }
-
-    #[ebptv_macros::unit_test]
-    fn rows_under_the_threshold_disagree_together_when_their_excess_adds_up() {
-        // Two rows at z = 2.5, each 1.5 beyond the range: 3.0 together, not
-        // above what one row needs alone (excess(4) = 3).
-        let two = table(&[("a", 2.5), ("b", 2.5), ("c", 0.5)]);
-        assert!(!two.any_disagreement());
-        assert!(!jointly_disagrees(&two, &[]));
-        // A third row 0.2 beyond the range tips the sum over.
-        let three = table(&[("a", 2.5), ("b", 2.5), ("c", 1.2)]);
-        assert!((joint_excess(&three, &[]) - 3.2).abs() < 1e-12);
-        assert!(jointly_disagrees(&three, &[]));
-        // A structural row is left out of the sum.
-        assert!(!jointly_disagrees(&three, &["a".to_string()]));
-        // So is a row no farther than the farthest replicate or envelope
-        // member, whatever its z.
-        let mut within = three.clone();
-        within.rows[0].stats.replicate_max = 10.0;
-        assert!(!jointly_disagrees(&within, &[]));
     }
 
     #[ebptv_macros::unit_test]
