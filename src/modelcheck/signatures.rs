@@ -17,7 +17,7 @@
 //! | `split_half_correlation` | scalar, Pearson r of even- vs odd-block counts | fixed pattern vs chance |
 //! | `off_burst_rate` | scalar, events/(pixel·s) outside the burst window | background noise |
 //! | `off_burst_pixels` | scalar, fraction of pixels with an event outside the burst window | hot pixels (few) vs background (many) |
-//! | `off_burst_pixel_count` | histogram of events per pixel outside the burst window, over pixels with any | hot-pixel rate (far tail) vs background (ones) |
+//! | `off_burst_pixel_count` | histogram of visits (pulses) per pixel with events outside the burst window, over pixels with any | hot-pixel rate (far tail) vs background and latency tails (ones) |
 //! | `shared_fraction` | scalar, fraction of events sharing (row, timestamp) | arbiter saturation |
 //! | `group_size` | histogram of (row, timestamp) group sizes | arbiter saturation |
 //! | `tick_events_vs_rows` | profile: events per timestamp tick per bin of distinct rows in the tick | arbiter row time vs event time |
@@ -32,6 +32,7 @@
 //! | `burst_repeat_share` | scalar, log10 of the share of pixels (with two events or more) that fired twice within half a pulse period | refractory period (no pixel fires twice in a burst) |
 //! | `events_per_cluster` | histogram (needs particles) | brightness, threshold |
 //! | `latency_vs_brightness` | profile: mean first latency per events-per-cluster bin | intensity-dependent latency |
+//! | `latency_vs_yield` | profile: mean folded latency of a visit's first event per events in the visit (1, 2, 3, 4+), less the mean over all visits | intensity-dependent latency (a brighter pixel fires more events, and earlier) |
 //! | `elongation_vs_speed` | profile: extent along motion − across, per speed bin (needs tracks) | pulse streaks |
 //! | `track_length` | histogram of points per track (needs tracks) | everything that breaks tracks |
 //!
@@ -70,7 +71,10 @@
 //! pixels, hot pixels many events over few. The fraction of pixels with any
 //! event outside the burst window and the distribution of those pixels'
 //! off-burst counts separate the two and pin a hot pixel's count and rate
-//! independently (their product alone is what `off_burst_rate` sees). Both
+//! independently (their product alone is what `off_burst_rate` sees). The
+//! counts are of visits (pulses with off-burst events), not of events: a
+//! pixel whose whole visit comes late (the tail of the latency) fires its
+//! few events of that pulse together, a hot pixel fires at every pulse. Both
 //! need a fixed [`SignatureConfig::burst_window_us`] (the per-pixel counts
 //! are taken while streaming); without one they are left out.
 //!
@@ -445,6 +449,36 @@ pub(crate) fn burst_repeat_share(min_intervals: impl Iterator<Item = f64>, perio
         short += (d < 0.5 * period_us) as u64;
     }
     ((short as f64 + 1.0) / (all as f64 + 1.0)).log10()
+}
+
+/// A folded latency (µs, ≥ 0) in quarter microseconds, as `latency_vs_yield`
+/// keeps it per pixel: rounded down, saturating at `u16::MAX` (16 ms, a
+/// pulse rate of 61 Hz). Sums of quarter microseconds are exact.
+pub(crate) fn quarter_us(folded_us: f64) -> u16 {
+    // `as` saturates (and maps NaN to 0).
+    (folded_us * 4.0) as u16
+}
+
+/// Bin edges of `latency_vs_yield`: visits of 1, 2, 3 and 4 or more events.
+pub(crate) const LATENCY_YIELD_EDGES: [f64; 5] = [1.0, 2.0, 3.0, 4.0, 17.0];
+
+/// `latency_vs_yield` from the sums of its visits' first-event latencies
+/// (µs) and the visits per bin: each bin's mean less the mean over all
+/// visits. The level of the latency (its median is matched in every
+/// simulation, its shape is the `latency` histogram's) drops out; what is
+/// left is how the latency depends on the events a pixel fires.
+pub(crate) fn latency_yield_profile(sums: &[f64], counts: &[f64]) -> Profile {
+    let n: f64 = counts.iter().sum();
+    let all = sums.iter().sum::<f64>() / n;
+    Profile {
+        edges: LATENCY_YIELD_EDGES.to_vec(),
+        mean: sums
+            .iter()
+            .zip(counts)
+            .map(|(s, c)| if *c > 0.0 { s / c - all } else { f64::NAN })
+            .collect(),
+        count: counts.to_vec(),
+    }
 }
 
 /// Edges for intervals (µs): [0, 1), then 4 bins per decade up to 10 s.

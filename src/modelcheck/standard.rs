@@ -140,8 +140,8 @@ const OUTLIER_DOMINATED_ROWS: &[&str] = &["split_half_correlation"];
 /// The shape of a well-behaved sensor (see the module doc for the source).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub(crate) struct StandardSensor {
-    /// Standard deviation of the per-event latency around the fixed part
-    /// (µs); with the photoreceptor's decay it makes a 5–95 % latency
+    /// Standard deviation of a visit's latency (one delay per pixel and
+    /// pulse, shared by its events) around the fixed part (µs); with the photoreceptor's decay it makes a 5–95 % latency
     /// width of about 50 µs.
     pub latency_spread_us: f64,
     /// Background activity as a share of all events.
@@ -178,6 +178,12 @@ pub(crate) struct Envelope {
     /// sensor's bias setting; "1–3 events per particle" at a given image
     /// size).
     pub contrast_threshold: [f64; 2],
+    /// Photoreceptor time constant (µs; the simulator's 6 µs in between):
+    /// how much sooner a brighter pixel crosses its first threshold, and
+    /// how closely a pixel's events of one pulse follow each other (its
+    /// bandwidth bias). A fast photoreceptor leaves the first event's
+    /// latency nearly independent of the pixel's brightness.
+    pub photoreceptor_tau_us: [f64; 2],
 }
 
 impl Default for Envelope {
@@ -187,6 +193,7 @@ impl Default for Envelope {
             noise_fraction: [0.001, 0.01],
             particle_diameter_px: [1.1, 1.6],
             contrast_threshold: [0.2, 0.32],
+            photoreceptor_tau_us: [2.0, 10.0],
         }
     }
 }
@@ -423,6 +430,11 @@ fn envelope_members(
     for &c in &env.contrast_threshold {
         let mut b = base.clone();
         b.pixel.contrast_threshold = c;
+        out.push((sim.with_base(b)?, start.to_vec()));
+    }
+    for &t in &env.photoreceptor_tau_us {
+        let mut b = base.clone();
+        b.pixel.tau_us = t;
         out.push((sim.with_base(b)?, start.to_vec()));
     }
     Ok(out)

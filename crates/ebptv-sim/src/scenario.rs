@@ -360,11 +360,12 @@ pub struct IntensityLatency {
     pub reference: f64,
 }
 
-/// Random latency jitter.
+/// Random latency jitter: one Gaussian delay per visit (a pixel's events of
+/// one polarity at one pulse), shared by the visit's events.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LatencyJitter {
-    /// Std dev of a Gaussian added to each event's latency (µs).
+    /// Std dev of the Gaussian delay added to each visit's events (µs).
     pub spread_us: f64,
 }
 

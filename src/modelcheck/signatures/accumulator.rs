@@ -38,6 +38,9 @@ pub(crate) struct SignatureAccumulator {
     /// Visits per number of events (index: events, saturating at 16 and
     /// above, which share the last bin).
     pub(super) visit_yield: Vec<u64>,
+    /// Σ of the visits' first-event latencies (quarter µs,
+    /// [`quarter_us`]) per index of `visit_yield`.
+    pub(super) visit_first_sum: Vec<u64>,
     pub(super) n_events: u64,
     pub(super) n_on: u64,
     pub(super) n_outside: u64,
@@ -59,10 +62,11 @@ pub(crate) struct SignatureAccumulator {
     pub(super) busy_ticks: std::collections::VecDeque<(usize, usize)>,
     /// Σ over busy windows of (1, G, E, G², G·E).
     pub(super) window_sums: [f64; 5],
-    /// Events per pixel outside the burst window (only with a fixed window;
+    /// Per pixel, the visits (pulses) with events outside the burst
+    /// window and the pulse of the last one (only with a fixed window;
     /// apart from [`PixelState`]: it is touched only by the few events
     /// outside the burst).
-    pub(super) count_off_burst: Option<Vec<u32>>,
+    pub(super) count_off_burst: Option<Vec<(u32, i64)>>,
     /// (events, first latency, extent x, extent y) per particle.
     pub(super) particles: Vec<(u32, f32, f32, f32)>,
     pub(super) elongation: Option<ProfileAcc>,
@@ -89,6 +93,8 @@ pub(super) struct PixelState {
     pub(super) visits_odd: u32,
     /// Events in the current visit (saturating).
     pub(super) visit_events: u16,
+    /// Folded latency of the current visit's first event ([`quarter_us`]).
+    pub(super) visit_first: u16,
 }
 
 pub(super) const NO_INTERVAL: u32 = u32::MAX;
@@ -102,6 +108,7 @@ impl PixelState {
         visits_even: 0,
         visits_odd: 0,
         visit_events: 0,
+        visit_first: 0,
     };
 }
 
@@ -269,6 +276,7 @@ impl SignatureAccumulator {
             block_even: true,
             pix: vec![PixelState::EMPTY; n],
             visit_yield: vec![0; 17],
+            visit_first_sum: vec![0; 17],
             n_events: 0,
             n_on: 0,
             n_outside: 0,
@@ -283,7 +291,7 @@ impl SignatureAccumulator {
             busy_last: NO_TIME,
             busy_ticks: Default::default(),
             window_sums: [0.0; 5],
-            count_off_burst: cfg.burst_window_us.map(|_| vec![0; n]),
+            count_off_burst: cfg.burst_window_us.map(|_| vec![(0, NO_TIME); n]),
             particles: Vec::new(),
             elongation: None,
             track_lengths: Vec::new(),
@@ -345,9 +353,12 @@ impl SignatureAccumulator {
             // (its pulse computed exactly as this event's).
             if last == NO_TIME || floor_i64((last as f64 - first) / period) != pulse {
                 if last != NO_TIME {
-                    self.visit_yield[(s.visit_events as usize).min(16)] += 1;
+                    let v = (s.visit_events as usize).min(16);
+                    self.visit_yield[v] += 1;
+                    self.visit_first_sum[v] += s.visit_first as u64;
                 }
                 s.visit_events = 0;
+                s.visit_first = quarter_us(folded);
                 if self.block_even {
                     s.visits_even += 1;
                 } else {
@@ -373,9 +384,11 @@ impl SignatureAccumulator {
                 lat_bin,
             ) {
                 // Folded time, binned as the latency histogram bins it, so
-                // the per-pixel counts agree with `off_burst_rate`.
-                if out[k] {
-                    c[pix] += 1;
+                // the per-pixel counts agree with `off_burst_rate`; one
+                // count per visit.
+                let c = &mut c[pix];
+                if out[k] && c.1 != pulse {
+                    *c = (c.0 + 1, pulse);
                 }
             }
 
@@ -552,6 +565,7 @@ impl SignatureAccumulator {
         let mut split_min = IntBins::new(Histogram::new(edges, BinScale::Index)?);
         let mut iei = IntBins::new(Histogram::new(interval_edges(), BinScale::Index)?);
         let mut visit_yield = self.visit_yield.clone();
+        let mut visit_first_sum = self.visit_first_sum.clone();
         let (mut ye, mut yo) = (Vec::new(), Vec::new());
         let (mut sum_even, mut sum_odd) = (0u64, 0u64);
         for s in &self.pix {
@@ -564,7 +578,9 @@ impl SignatureAccumulator {
                 iei.add(s.min_dt as u64);
             }
             if s.last_t != NO_TIME {
-                visit_yield[(s.visit_events as usize).min(16)] += 1;
+                let v = (s.visit_events as usize).min(16);
+                visit_yield[v] += 1;
+                visit_first_sum[v] += s.visit_first as u64;
             }
             let (ve, vo) = (s.visits_even, s.visits_odd);
             if ve > 0 && vo > 0 {
@@ -616,7 +632,7 @@ impl SignatureAccumulator {
                 BinScale::Index,
             )?);
             let mut active = 0usize;
-            for &k in c.iter().filter(|&&k| k > 0) {
+            for &(k, _) in c.iter().filter(|c| c.0 > 0) {
                 hist.add(k as u64);
                 active += 1;
             }
@@ -629,7 +645,7 @@ impl SignatureAccumulator {
             );
             push(
                 "off_burst_pixel_count",
-                "pixels per bin of their events outside the burst window (pixels with any)",
+                "pixels per bin of their visits (pulses) with events outside the burst window (pixels with any)",
                 SignatureValue::Histogram(hist.finish()),
             );
         }
@@ -723,6 +739,21 @@ impl SignatureAccumulator {
             SignatureValue::Scalar {
                 value: pearson_f64(&ye, &yo),
             },
+        );
+        // Visits of 1, 2, 3 and 4 or more events (`LATENCY_YIELD_EDGES`):
+        // the integer sums of a bin (quarter µs: exact in f64 as well).
+        let bins = LATENCY_YIELD_EDGES.len() - 1;
+        let (mut sums, mut counts) = (vec![0.0; bins], vec![0.0; bins]);
+        for b in 0..bins {
+            let lo = LATENCY_YIELD_EDGES[b] as usize;
+            let hi = LATENCY_YIELD_EDGES[b + 1] as usize;
+            sums[b] = visit_first_sum[lo..hi].iter().sum::<u64>() as f64 * 0.25;
+            counts[b] = visit_yield[lo..hi].iter().sum::<u64>() as f64;
+        }
+        push(
+            "latency_vs_yield",
+            "mean folded latency (us) of a visit's first event per events in the visit, less the mean over all visits",
+            SignatureValue::Profile(latency_yield_profile(&sums, &counts)),
         );
 
         if !self.particles.is_empty() {

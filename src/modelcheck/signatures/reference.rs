@@ -7,9 +7,10 @@
 use std::collections::HashMap;
 
 use super::{
-    burst_window, count_edges, interval_edges, outside_window, pearson, pearson_f64,
-    regression_slope, BinScale, Histogram, ProfileAcc, Signature, SignatureConfig, SignatureValue,
-    Signatures, BUSY_WINDOW_TICKS, MAX_COUNT_EDGE, NO_TIME,
+    burst_window, count_edges, interval_edges, latency_yield_profile, outside_window, pearson,
+    pearson_f64, quarter_us, regression_slope, BinScale, Histogram, ProfileAcc, Signature,
+    SignatureConfig, SignatureValue, Signatures, BUSY_WINDOW_TICKS, LATENCY_YIELD_EDGES,
+    MAX_COUNT_EDGE, NO_TIME,
 };
 use crate::cluster::Particle;
 use crate::error::{Error, Result};
@@ -32,8 +33,13 @@ pub(crate) struct ReferenceAccumulator {
     visit_events: Vec<u16>,
     visits_even: Vec<u32>,
     visits_odd: Vec<u32>,
+    /// Folded latency of the first event of each pixel's current visit
+    /// (quarter µs).
+    visit_first: Vec<u16>,
     /// Visits per bin of their events.
     visit_yield: Histogram,
+    /// Mean first-event latency of the visits per bin of their events.
+    latency_yield: ProfileAcc,
     count_even: Vec<u32>,
     count_odd: Vec<u32>,
     last_t: Vec<i64>,
@@ -59,7 +65,9 @@ pub(crate) struct ReferenceAccumulator {
     /// Σ over busy windows of (1, G, E, G², G·E).
     window_sums: [f64; 5],
     /// Events per pixel outside the burst window (only with a fixed window).
-    count_off_burst: Option<Vec<u32>>,
+    /// Per pixel: visits with events outside the burst window, and the
+    /// pulse of the last one.
+    count_off_burst: Option<Vec<(u32, i64)>>,
     /// (events, first latency, extent x, extent y) per particle.
     particles: Vec<(u32, f32, f32, f32)>,
     elongation: Option<ProfileAcc>,
@@ -82,7 +90,9 @@ impl ReferenceAccumulator {
             visit_events: vec![0; n],
             visits_even: vec![0; n],
             visits_odd: vec![0; n],
+            visit_first: vec![0; n],
             visit_yield: Histogram::new((1..=17).map(|k| k as f64).collect(), BinScale::Index)?,
+            latency_yield: ProfileAcc::new(LATENCY_YIELD_EDGES.to_vec())?,
             count_even: vec![0; n],
             count_odd: vec![0; n],
             last_t: vec![NO_TIME; n],
@@ -101,7 +111,7 @@ impl ReferenceAccumulator {
             busy_last: NO_TIME,
             busy_ticks: Default::default(),
             window_sums: [0.0; 5],
-            count_off_burst: cfg.burst_window_us.map(|_| vec![0; n]),
+            count_off_burst: cfg.burst_window_us.map(|_| vec![(0, NO_TIME); n]),
             particles: Vec::new(),
             elongation: None,
             track_lengths: Vec::new(),
@@ -145,10 +155,14 @@ impl ReferenceAccumulator {
             let pix = y as usize * g.width as usize + x as usize;
             if self.visit_pulse[pix] != pulse {
                 if self.visit_pulse[pix] != NO_TIME {
-                    self.visit_yield.add(self.visit_events[pix] as f64);
+                    let n = self.visit_events[pix] as f64;
+                    self.visit_yield.add(n);
+                    self.latency_yield
+                        .add(n, self.visit_first[pix] as f64 * 0.25);
                 }
                 self.visit_pulse[pix] = pulse;
                 self.visit_events[pix] = 0;
+                self.visit_first[pix] = quarter_us(folded);
                 if pulse.div_euclid(block) % 2 == 0 {
                     self.visits_even[pix] += 1;
                 } else {
@@ -159,8 +173,8 @@ impl ReferenceAccumulator {
             if let (Some(w), Some(c)) = (window, self.count_off_burst.as_mut()) {
                 // Folded time, binned as the latency histogram bins it, so
                 // the per-pixel counts agree with `off_burst_rate`.
-                if outside_window(self.latency.bin_centre(folded), w, period) {
-                    c[pix] += 1;
+                if outside_window(self.latency.bin_centre(folded), w, period) && c[pix].1 != pulse {
+                    c[pix] = (c[pix].0 + 1, pulse);
                 }
             }
             if pulse.div_euclid(block) % 2 == 0 {
@@ -387,7 +401,7 @@ impl ReferenceAccumulator {
             let mut hist =
                 Histogram::new(count_edges(MAX_COUNT_EDGE)[1..].to_vec(), BinScale::Index)?;
             let mut active = 0usize;
-            for &k in c.iter().filter(|&&k| k > 0) {
+            for &(k, _) in c.iter().filter(|c| c.0 > 0) {
                 hist.add(k as f64);
                 active += 1;
             }
@@ -400,7 +414,7 @@ impl ReferenceAccumulator {
             );
             push(
                 "off_burst_pixel_count",
-                "pixels per bin of their events outside the burst window (pixels with any)",
+                "pixels per bin of their visits (pulses) with events outside the burst window (pixels with any)",
                 SignatureValue::Histogram(hist),
             );
         }
@@ -480,10 +494,13 @@ impl ReferenceAccumulator {
             SignatureValue::Histogram(per_pulse),
         );
         let mut visit_yield = self.visit_yield.clone();
+        let mut latency_yield = self.latency_yield.clone();
         let (mut ye, mut yo) = (Vec::new(), Vec::new());
         for pix in 0..self.visit_pulse.len() {
             if self.visit_pulse[pix] != NO_TIME {
-                visit_yield.add(self.visit_events[pix] as f64);
+                let n = self.visit_events[pix] as f64;
+                visit_yield.add(n);
+                latency_yield.add(n, self.visit_first[pix] as f64 * 0.25);
             }
             let (ve, vo) = (self.visits_even[pix], self.visits_odd[pix]);
             if ve > 0 && vo > 0 {
@@ -502,6 +519,14 @@ impl ReferenceAccumulator {
             SignatureValue::Scalar {
                 value: pearson_f64(&ye, &yo),
             },
+        );
+        push(
+            "latency_vs_yield",
+            "mean folded latency (us) of a visit's first event per events in the visit, less the mean over all visits",
+            SignatureValue::Profile(latency_yield_profile(
+                &latency_yield.sum,
+                &latency_yield.bins.counts,
+            )),
         );
 
         if !self.particles.is_empty() {

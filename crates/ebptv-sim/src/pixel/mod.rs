@@ -18,7 +18,15 @@
 //! - `intensity_latency`: τ = tau_us·(reference/s)^exponent (bright pixels
 //!   are faster, as in real photoreceptors whose bandwidth grows with
 //!   photocurrent); off: τ = tau_us;
-//! - `latency_jitter`: Gaussian spread added to each event time;
+//! - `latency_jitter`: a Gaussian delay per visit (one pixel's crossings of
+//!   one polarity at one pulse): every crossing of the visit is shifted by
+//!   the same draw, so a pixel's events keep the photoreceptor's order and
+//!   spacing. A pixel's latency varies with the state of its
+//!   photoreceptor and comparator at the pulse, which all its crossings
+//!   of that pulse share; independent draws per event would make a pixel
+//!   that fires more events fire its first one earlier by order
+//!   statistics alone (the first of k draws), a brightness dependence of
+//!   the latency that the pixel does not have;
 //! - `off_events`: when the pulse ends the signal decays with `tau_us` of
 //!   the effect and crosses the OFF threshold floor(ΔL/C_off) times.
 //!
@@ -191,7 +199,7 @@ impl PixelModel {
     /// lowest threshold (`c_floor`; most pixels of an image, its rim, are
     /// below), then each pixel's response. The pixels come in the order
     /// their images are finished, not in ROI-index order: the random
-    /// draws are keyed by pixel and crossing ([`crossing_draw_key`]), so
+    /// draws are keyed by pixel and polarity ([`visit_draw_key`]), so
     /// the order changes only the order of the requests, which the
     /// readout sorts.
     pub(crate) fn render_pulse(
@@ -317,10 +325,18 @@ impl PixelModel {
         // (The same sums as `respond`: (t0 + latency) + τ·(−ln …).)
         let t_on = t0 + self.latency_us;
         let t_off = t0 + self.shape.end_us + self.latency_us;
-        let jitter = |t: f64, pixel_key: u64, k: u32, p: u8| {
+        // One delay per visit and polarity ([`visit_draw_key`]): every
+        // crossing of the visit is shifted by it.
+        let delay = |pixel_key: u64, p: u8| {
             if JITTER {
-                let g = table_normal(q, crossing_draw_key(pixel_key, k, p));
-                let t = t + j * g;
+                j * table_normal(q, visit_draw_key(pixel_key, p))
+            } else {
+                0.0
+            }
+        };
+        let jitter = |t: f64, d: f64| {
+            if JITTER {
+                let t = t + d;
                 if t < t0 {
                     t0
                 } else {
@@ -341,9 +357,10 @@ impl PixelModel {
             let pixel_key = pulse_key ^ ((p.idx as u64) << 8);
             let mut n = 0;
             let step_on = p.c / p.dl;
+            let d_on = delay(pixel_key, ON);
             for k in 1..=p.n_on {
                 let frac = 0.95 * (k as f64 * step_on).min(1.0);
-                times[n] = jitter(t_on + tau * -ln.ln(1.0 - frac), pixel_key, k, ON);
+                times[n] = jitter(t_on + tau * -ln.ln(1.0 - frac), d_on);
                 n += 1;
                 if n == times.len() {
                     out.arrive_pixel(x, y, ON, &times);
@@ -357,9 +374,10 @@ impl PixelModel {
             if OFF_EVENTS {
                 let n_off = ((p.dl / c_off) as u32).min(self.max_events);
                 let step_off = c_off / p.dl;
+                let d_off = delay(pixel_key, OFF);
                 for k in 1..=n_off {
                     let frac = 0.95 * (k as f64 * step_off).min(1.0);
-                    times[n] = jitter(t_off + tau_off * -ln.ln(1.0 - frac), pixel_key, k, OFF);
+                    times[n] = jitter(t_off + tau_off * -ln.ln(1.0 - frac), d_off);
                     n += 1;
                     if n == times.len() {
                         out.arrive_pixel(x, y, OFF, &times);
@@ -667,13 +685,13 @@ impl PixelModel {
         // Times go to the sink in batches of a pixel's events.
         let mut times = [0.0f64; 16];
         let mut n = 0;
-        // The jitter of crossing k of polarity p: a keyed draw
-        // ([`crossing_draw_key`]), so it does not depend on which other
-        // pixels or crossings were computed before.
+        // The delay of the visit's crossings of polarity p: a keyed draw
+        // ([`visit_draw_key`]), so it does not depend on which other
+        // pixels were computed before.
         let pixel_key = pulse_key ^ ((idx as u64) << 8);
-        let jitter = |t: f64, k: u32, p: u8| match self.jitter_us {
+        let jitter = |t: f64, p: u8| match self.jitter_us {
             Some(j) => {
-                let g = table_normal(self.quantiles, crossing_draw_key(pixel_key, k, p));
+                let g = table_normal(self.quantiles, visit_draw_key(pixel_key, p));
                 // (`max` without its NaN handling: t is finite.)
                 let t = t + j * g;
                 if t < t0 {
@@ -688,7 +706,7 @@ impl PixelModel {
         let step_on = c / dl;
         for k in 1..=n_on {
             let frac = 0.95 * (k as f64 * step_on).min(1.0);
-            times[n] = jitter(t0 + self.latency_us + tau * -ln(1.0 - frac), k, ON);
+            times[n] = jitter(t0 + self.latency_us + tau * -ln(1.0 - frac), ON);
             n += 1;
             if n == times.len() {
                 out.arrive_pixel(x, y, ON, &times);
@@ -706,7 +724,6 @@ impl PixelModel {
                 let frac = 0.95 * (k as f64 * step_off).min(1.0);
                 times[n] = jitter(
                     t0 + self.shape.end_us + self.latency_us + tau_off * -ln(1.0 - frac),
-                    k,
                     OFF,
                 );
                 n += 1;
@@ -757,15 +774,15 @@ impl PixelModel {
     }
 }
 
-/// The hash whose bits give the jitter of threshold crossing `k` (1…64)
-/// of polarity `p` of a pixel, `pixel_key` = pulse key ^ (ROI index << 8):
-/// every (pixel, crossing, polarity) of a pulse has its own input, so the
-/// draws are independent of each other and of the order they are taken
-/// in (a keyed, counter-based stream instead of one sequential generator
-/// per pulse).
+/// The hash whose bits give the latency jitter of a visit: the crossings
+/// of polarity `p` of one pixel at one pulse, `pixel_key` = pulse key ^
+/// (ROI index << 8). Every (pixel, polarity) of a pulse has its own input,
+/// so the draws are independent of each other and of the order they are
+/// taken in (a keyed, counter-based stream instead of one sequential
+/// generator per pulse).
 #[inline(always)]
-pub(crate) fn crossing_draw_key(pixel_key: u64, k: u32, p: u8) -> u64 {
-    crate::splitmix(pixel_key ^ ((k as u64) << 1 | p as u64))
+pub(crate) fn visit_draw_key(pixel_key: u64, p: u8) -> u64 {
+    crate::splitmix(pixel_key ^ (1 << 1 | p as u64))
 }
 
 /// A standard normal deviate from 64 random bits `h`: the top 12 bits

@@ -349,7 +349,7 @@ fn fast_events_match_exact_model() {
     // Same pixels in the same order: every pixel's events agree
     // (count, and times within 1e-5 of the delay) except where a
     // signal sits within f32 rounding of a threshold crossing. The
-    // jitter draws are keyed by (pulse, pixel, crossing, polarity),
+    // jitter draws are keyed by (pulse, pixel, polarity),
     // so this holds with jitter on as well (with a sequential stream
     // a mismatched pixel shifted every later pixel's draws).
     let mut sc = Scenario::default();
@@ -438,6 +438,29 @@ fn fast_events_match_exact_model() {
         .filter(|(a, b)| a.t != b.t)
         .count();
     assert!(moved * 10 > plain.len() * 9, "jitter moved {moved}");
+    // One delay per visit: the events of a pixel and polarity at a pulse
+    // move together (their spacing stays the photoreceptor's), and the
+    // visits' delays have the jitter's spread.
+    let key = |a: &Arrival| (a.y, a.x, a.p);
+    let (mut shifts, mut multi, mut i) = (Vec::new(), 0, 0);
+    while i < plain.len() {
+        let n = plain[i..]
+            .iter()
+            .take_while(|a| key(a) == key(&plain[i]))
+            .count();
+        let d = jittered[i].t - plain[i].t;
+        for k in i..i + n {
+            assert_eq!(key(&jittered[k]), key(&plain[k]));
+            assert!((jittered[k].t - plain[k].t - d).abs() < 1e-9, "{k}");
+        }
+        multi += (n > 1) as usize;
+        shifts.push(d);
+        i += n;
+    }
+    assert!(multi * 10 > shifts.len(), "{multi} of {}", shifts.len());
+    let m = shifts.iter().sum::<f64>() / shifts.len() as f64;
+    let sd = (shifts.iter().map(|d| (d - m).powi(2)).sum::<f64>() / shifts.len() as f64).sqrt();
+    assert!(m.abs() < 0.1 && (sd - 2.0).abs() < 0.1, "{m} {sd}");
 }
 
 #[ebptv_macros::unit_test]
@@ -881,16 +904,16 @@ fn table_normal_moments_and_quantiles() {
     assert!(worst < 2e-5, "{worst}");
     // The bound the tails stop at.
     assert!((q[0] + 3.66833).abs() < 1e-5 && (q[4096] - 3.66833).abs() < 1e-5);
-    // Keyed draws (crossings k of consecutive pixels, both
-    // polarities, as the jitter takes them): sample moments and
+    // Keyed draws (visits of consecutive pixels at consecutive pulses,
+    // both polarities, as the jitter takes them): sample moments and
     // quantiles. 2^20 draws: standard errors 1e-3 (mean), 1.4e-3
     // (variance), 2e-4 (P(|g| > 2)), 5e-5 (P(|g| > 3)).
-    let key = stream_seed(11, 6, 3);
     let mut g = Vec::with_capacity(1 << 20);
-    for idx in 0..(1u64 << 17) {
-        for k in 1..=4 {
+    for pulse in 0..4u64 {
+        let key = stream_seed(11, 6, pulse);
+        for idx in 0..(1u64 << 17) {
             for p in [ON, OFF] {
-                g.push(table_normal(q, crossing_draw_key(key ^ (idx << 8), k, p)));
+                g.push(table_normal(q, visit_draw_key(key ^ (idx << 8), p)));
             }
         }
     }
