@@ -599,20 +599,22 @@ fn off_burst_pixels_separate_hot_pixels_from_background() {
         }
     }
     ev.push((50 * period + 150, 17, 3, 0));
+    // A late visit: three events of one pixel at one pulse, one count.
+    ev.extend([120, 123, 126].map(|dt| (60 * period + dt, 12, 12, 1)));
     ev.sort();
     let s = compute(&cfg, &chunk(&ev), &[], None).unwrap();
-    assert!((s.scalar("off_burst_pixels").unwrap() - 4.0 / 1024.0).abs() < 1e-15);
+    assert!((s.scalar("off_burst_pixels").unwrap() - 5.0 / 1024.0).abs() < 1e-15);
     let h = s.histogram("off_burst_pixel_count").unwrap();
     assert_eq!(
         h.edges[0], 1.0,
         "pixels without off-burst events are left out"
     );
-    assert_eq!(h.total(), 4.0);
-    assert_eq!(h.counts[h.bin_of(1.0).unwrap()], 1.0);
+    assert_eq!(h.total(), 5.0);
+    assert_eq!(h.counts[h.bin_of(1.0).unwrap()], 2.0);
     assert_eq!(h.counts[h.bin_of(7.0).unwrap()], 2.0);
     assert_eq!(h.counts[h.bin_of(40.0).unwrap()], 1.0);
-    // The per-pixel counts add up to what `off_burst_rate` sees.
-    let total_off = 7.0 + 7.0 + 40.0 + 1.0;
+    // `off_burst_rate` counts the events.
+    let total_off = 7.0 + 7.0 + 40.0 + 1.0 + 3.0;
     let rate = s.scalar("off_burst_rate").unwrap();
     assert!((rate - total_off / 1024.0 / (s.duration_us * 1e-6)).abs() < 1e-9 * rate);
     // Without a fixed window they are not computed.
