@@ -431,17 +431,29 @@ pub(crate) fn setting(spec: &EffectSpec, u: &[f64]) -> EffectSetting {
     }
 }
 
+/// Rows of the standard check that the search with a starting model leaves
+/// out besides the range rows. `latency_vs_yield` (how a visit's first
+/// latency depends on its events) is there to tell a brightness-dependent
+/// latency from a standard sensor whose latency shape nobody knows; against
+/// a trusted model judged by chance alone its term misleads the fit of the
+/// effect's parameters (a hidden intensity latency of the simulator,
+/// `src/modelcheck/tests/scene.rs`: exponent fitted 0.77 for 0.55 with it,
+/// the row still 5 z off after the fit; 0.554 without).
+const STANDARD_CHECK_ONLY_ROWS: &[&str] = &["latency_vs_yield"];
+
 /// `s` without the standard check's range rows
-/// ([`super::standard::RANGE_ROWS`]): against a starting model judged by
-/// chance alone, `burst_repeat_share` would only repeat `min_iei`, whose
-/// distribution it summarises, with a replicate spread that is tiny where
-/// most pixels repeat. A row absent from the measurement is left out of
-/// every distance, table and objective of the search.
+/// ([`super::standard::RANGE_ROWS`]) and [`STANDARD_CHECK_ONLY_ROWS`]:
+/// against a starting model judged by chance alone, `burst_repeat_share`
+/// would only repeat `min_iei`, whose distribution it summarises, with a
+/// replicate spread that is tiny where most pixels repeat. A row absent
+/// from the measurement is left out of every distance, table and objective
+/// of the search.
 fn without_range_rows(mut s: Signatures) -> Signatures {
     s.items.retain(|x| {
-        !super::standard::RANGE_ROWS
-            .iter()
-            .any(|(n, _)| *n == x.name)
+        !STANDARD_CHECK_ONLY_ROWS.contains(&x.name.as_str())
+            && !super::standard::RANGE_ROWS
+                .iter()
+                .any(|(n, _)| *n == x.name)
     });
     s
 }
