@@ -384,8 +384,8 @@ impl SignatureAccumulator {
                 lat_bin,
             ) {
                 // Folded time, binned as the latency histogram bins it, so
-                // the per-pixel counts agree with `off_burst_rate`; one
-                // count per visit.
+                // that a pixel counts where `off_burst_rate` counts its
+                // events; one count per visit.
                 let c = &mut c[pix];
                 if out[k] && c.1 != pulse {
                     *c = (c.0 + 1, pulse);

@@ -172,7 +172,8 @@ impl ReferenceAccumulator {
             self.visit_events[pix] = self.visit_events[pix].saturating_add(1);
             if let (Some(w), Some(c)) = (window, self.count_off_burst.as_mut()) {
                 // Folded time, binned as the latency histogram bins it, so
-                // the per-pixel counts agree with `off_burst_rate`.
+                // that a pixel counts where `off_burst_rate` counts its
+                // events; one count per visit.
                 if outside_window(self.latency.bin_centre(folded), w, period) && c[pix].1 != pulse {
                     c[pix] = (c[pix].0 + 1, pulse);
                 }

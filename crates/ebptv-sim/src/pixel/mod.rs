@@ -782,7 +782,7 @@ impl PixelModel {
 /// generator per pulse).
 #[inline(always)]
 pub(crate) fn visit_draw_key(pixel_key: u64, p: u8) -> u64 {
-    crate::splitmix(pixel_key ^ (1 << 1 | p as u64))
+    crate::splitmix(pixel_key ^ (2 | p as u64))
 }
 
 /// A standard normal deviate from 64 random bits `h`: the top 12 bits
